@@ -1,0 +1,53 @@
+# vvloc: every target bootstraps .venv and builds the Rust extension first.
+#   make test    cargo tests of the core crate + pytest of the package
+#   make bench   kernel benchmarks: table on stdout, JSON in bench-results/
+#   make lint    cargo fmt/clippy, ruff, mypy stubtest of the extension
+#   make demo    end-to-end demo (see README)
+SHELL := /bin/bash
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+PYTEST_ARGS ?=
+
+.PHONY: venv develop test test-rust test-python bench lint demo clean
+
+$(VENV)/.deps-stamp: pyproject.toml
+	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -c "import tomllib; p = tomllib.load(open('pyproject.toml', 'rb'))['project']; \
+	  print('\n'.join(p['dependencies'] + p['optional-dependencies']['dev']))" > $(VENV)/requirements.txt
+	$(PY) -m pip install -q -r $(VENV)/requirements.txt
+	touch $@
+
+venv: $(VENV)/.deps-stamp
+
+# flock: concurrent builds (several shells, IDE + terminal) must not race on the install.
+develop: venv
+	flock $(VENV)/.build.lock env VIRTUAL_ENV=$(CURDIR)/$(VENV) PATH=$(CURDIR)/$(VENV)/bin:$$PATH \
+	  $(VENV)/bin/maturin develop --release -q
+
+test-rust:
+	cargo test -p vvloc-core --release
+
+test-python: develop
+	@rc=0; $(PY) -m pytest $(PYTEST_ARGS) || rc=$$?; \
+	if [ $$rc -eq 5 ]; then echo "pytest collected no tests: that is a failure here" >&2; exit 1; fi; \
+	exit $$rc
+
+test: test-rust test-python
+
+bench: develop
+	$(PY) benches/run.py
+
+lint: develop
+	cargo fmt --all --check
+	cargo clippy --workspace --all-targets --release -- -D warnings
+	$(VENV)/bin/ruff check python tests benches
+	$(VENV)/bin/ruff format --check python tests benches
+	$(PY) -m mypy.stubtest vvloc._core
+
+demo: develop
+	$(PY) -m vvloc.cli demo
+
+clean:
+	rm -rf target $(VENV) bench-results

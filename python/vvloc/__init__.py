@@ -1,0 +1,43 @@
+"""vvloc: prior-free 3-DoF multi-camera vehicle visual localization.
+
+Networks run in PyTorch (:mod:`vvloc.nets`); BEV padding, interpolated rolling, yaw matching,
+the coarse-to-fine translation search and descriptor retrieval run in the Rust extension
+``vvloc._core`` behind the gateway :mod:`vvloc.kernels`. Conventions (frames, BEV indexing,
+polar angles, roll, padding, pose signs) are those of DESIGN.md §3.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+
+from vvloc import _core
+
+__version__: str = _core.__version__
+
+logging.getLogger("vvloc").addHandler(logging.NullHandler())
+
+
+def set_num_threads(n: int) -> None:
+    """Set the number of threads of vvloc's Rust kernel pool (``n >= 1``).
+
+    The default is ``VVLOC_NUM_THREADS`` or the number of available cores. Results are identical
+    for any thread count.
+    """
+    if isinstance(n, bool) or not isinstance(n, int):
+        raise TypeError(f"n: expected an int >= 1, got {type(n).__name__}")
+    _core.set_num_threads(n)
+
+
+def get_num_threads() -> int:
+    """Return the number of threads of vvloc's Rust kernel pool."""
+    return int(_core.get_num_threads())
+
+
+# A forked child (e.g. a DataLoader worker) has no pool threads: let it build its own.
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_core._reset_pool_after_fork)
+
+from vvloc import kernels  # noqa: E402
+
+__all__ = ["__version__", "get_num_threads", "kernels", "set_num_threads"]

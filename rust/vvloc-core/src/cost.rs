@@ -1,0 +1,1 @@
+//! Matching cost, integer-shift yaw cost curves and the exact continuous yaw minimum.

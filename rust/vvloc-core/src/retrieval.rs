@@ -1,0 +1,1 @@
+//! Exact descriptor retrieval: top-K and radius queries over L2 distances, with persistence.

@@ -1,0 +1,1 @@
+//! Coarse-to-fine translation hypothesis search (paper's hypothesis verification).

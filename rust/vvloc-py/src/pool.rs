@@ -1,0 +1,119 @@
+//! vvloc's own rayon thread pool.
+//!
+//! Sized from `VVLOC_NUM_THREADS` (default: the number of available cores) or
+//! `vvloc.set_num_threads(n)`. The pool remembers the process id that built it: a forked child
+//! (e.g. a PyTorch DataLoader worker) inherits no worker threads, so it rebuilds its own pool on
+//! first use. `_reset_pool_after_fork` is also registered with `os.register_at_fork`.
+
+use pyo3::exceptions::PyValueError;
+use pyo3::prelude::*;
+use rayon::{ThreadPool, ThreadPoolBuilder};
+use std::sync::{Arc, Mutex};
+
+struct PoolState {
+    pool: Option<Arc<ThreadPool>>,
+    pid: u32,
+    threads: usize,
+}
+
+static STATE: Mutex<PoolState> = Mutex::new(PoolState {
+    pool: None,
+    pid: 0,
+    threads: 0,
+});
+
+fn default_threads() -> usize {
+    std::env::var("VVLOC_NUM_THREADS")
+        .ok()
+        .and_then(|v| v.trim().parse::<usize>().ok())
+        .filter(|&n| n > 0)
+        .unwrap_or_else(|| {
+            std::thread::available_parallelism()
+                .map(|n| n.get())
+                .unwrap_or(1)
+        })
+}
+
+fn build(threads: usize) -> PyResult<Arc<ThreadPool>> {
+    ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .thread_name(|i| format!("vvloc-{i}"))
+        .build()
+        .map(Arc::new)
+        .map_err(|e| PyValueError::new_err(format!("could not start the vvloc thread pool: {e}")))
+}
+
+fn lock() -> std::sync::MutexGuard<'static, PoolState> {
+    // A poisoned lock only means another thread panicked while holding it; the state is still valid.
+    STATE.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+/// The current pool, (re)built if absent or inherited across a fork.
+pub fn get() -> PyResult<Arc<ThreadPool>> {
+    let mut st = lock();
+    let pid = std::process::id();
+    if st.pool.is_none() || st.pid != pid {
+        if st.pid != pid {
+            // A pool inherited across fork has no worker threads here: leak it, never drop it.
+            if let Some(p) = st.pool.take() {
+                std::mem::forget(p);
+            }
+        }
+        if st.threads == 0 {
+            st.threads = default_threads();
+        }
+        st.pool = Some(build(st.threads)?);
+        st.pid = pid;
+    }
+    Ok(st.pool.as_ref().expect("pool was just built").clone())
+}
+
+/// Runs `f` with the GIL released, inside vvloc's pool.
+pub fn run<T, F>(py: Python<'_>, f: F) -> PyResult<T>
+where
+    T: Send,
+    F: FnOnce() -> T + Send,
+{
+    let pool = get()?;
+    Ok(py.detach(move || pool.install(f)))
+}
+
+/// Sets the number of threads of vvloc's kernel pool (n ≥ 1).
+#[pyfunction]
+pub fn set_num_threads(n: i64) -> PyResult<()> {
+    if n < 1 {
+        return Err(PyValueError::new_err(format!(
+            "n: expected an integer >= 1, got {n}"
+        )));
+    }
+    let n = n as usize;
+    let pool = build(n)?;
+    let mut st = lock();
+    st.threads = n;
+    st.pool = Some(pool);
+    st.pid = std::process::id();
+    Ok(())
+}
+
+/// The number of threads of vvloc's kernel pool.
+#[pyfunction]
+pub fn get_num_threads() -> usize {
+    let st = lock();
+    if st.threads == 0 {
+        default_threads()
+    } else {
+        st.threads
+    }
+}
+
+/// Forgets the pool inherited from the parent process (called in a fork child).
+#[pyfunction]
+pub fn _reset_pool_after_fork() {
+    let mut st = lock();
+    // Dropping an inherited pool would try to join threads that do not exist in the child:
+    // leak it instead (a few bytes, once per fork).
+    if let Some(p) = st.pool.take() {
+        std::mem::forget(p);
+    }
+    st.pid = 0;
+}
