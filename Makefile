@@ -24,7 +24,7 @@ venv: $(VENV)/.deps-stamp
 # flock: concurrent builds (several shells, IDE + terminal) must not race on the install.
 develop: venv
 	flock $(VENV)/.build.lock env VIRTUAL_ENV=$(CURDIR)/$(VENV) PATH=$(CURDIR)/$(VENV)/bin:$$PATH \
-	  $(VENV)/bin/maturin develop --release -q
+	  $(PY) -m maturin develop --release -q
 
 test-rust:
 	cargo test -p vvloc-core --release
@@ -42,8 +42,8 @@ bench: develop
 lint: develop
 	cargo fmt --all --check
 	cargo clippy --workspace --all-targets --release -- -D warnings
-	$(VENV)/bin/ruff check python tests benches
-	$(VENV)/bin/ruff format --check python tests benches
+	$(PY) -m ruff check python tests benches
+	$(PY) -m ruff format --check python tests benches
 	$(PY) -m mypy.stubtest vvloc._core
 
 demo: develop
