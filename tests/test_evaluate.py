@@ -491,3 +491,60 @@ def test_plot_rejects_bad_input_without_leaving_files(tmp_path):
     with pytest.raises(ValueError, match="correct"):
         viz.plot_trajectory(tmp_path / "t.png", np.zeros((3, 2)), np.zeros((2, 2)), [True])
     assert list(tmp_path.iterdir()) == []
+
+
+# ------------------------------------------------------------------------- vectorised vs literal
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_recall_matches_a_literal_loop(seed):
+    rng = np.random.default_rng(seed)
+    db = rng.uniform(0, 40, size=(30, 2))
+    q = rng.uniform(0, 40, size=(25, 2))
+    qf, df = rng.integers(0, 2, 25), rng.integers(0, 2, 30)
+    retrieved = np.argsort(rng.random((25, 30)), axis=1)[:, :6]
+    retrieved[rng.random((25, 6)) < 0.1] = -1
+    res = ev.recall_at_n(q, db, retrieved, query_floors=qf, db_floors=df, top_n=(1, 3, 6))
+    for i, n in enumerate((1, 3, 6)):
+        for j, r in enumerate(ev.DEFAULT_RADII):
+            kept = counted = 0
+            for a in range(25):
+                same = df == qf[a]
+                if not (np.linalg.norm(db[same] - q[a], axis=1) <= 2.0).any():
+                    continue
+                kept += 1
+                top = [b for b in retrieved[a, :n] if b >= 0]
+                counted += any(np.linalg.norm(db[b] - q[a]) <= r and df[b] == qf[a] for b in top)
+            assert res.num_kept == kept
+            want = counted / kept if kept else np.nan
+            np.testing.assert_allclose(res.recall[i, j], want, equal_nan=True)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_loop_sweep_matches_pointwise_definition(seed):
+    rng = np.random.default_rng(seed)
+    q = rng.uniform(0, 20, size=(15, 2))
+    db = rng.uniform(0, 20, size=(20, 2))
+    qf, df = rng.integers(0, 2, 15), rng.integers(0, 2, 20)
+    pairs = np.column_stack([rng.integers(0, 15, 40), rng.integers(0, 20, 40)])
+    dist = rng.integers(0, 10, 40) / 10.0  # ties on purpose
+    curve = ev.loop_closure_curve(pairs, dist, q, db, query_floors=qf, db_floors=df)
+    sweep = curve.sweep()
+    positive = {
+        a
+        for a in range(15)
+        for b in range(20)
+        if np.linalg.norm(q[a] - db[b]) <= 2 and qf[a] == df[b]
+    }
+    assert curve.num_positive_queries == len(positive)
+    for k, t in enumerate(sweep["threshold"]):
+        acc = dist <= t
+        true = np.array([np.linalg.norm(q[a] - db[b]) <= 2 and qf[a] == df[b] for a, b in pairs])
+        detected = {a for (a, _), ok in zip(pairs[acc], true[acc], strict=True) if ok}
+        assert sweep["precision"][k] == pytest.approx(true[acc].mean())
+        assert sweep["recall"][k] == pytest.approx(len(detected) / len(positive))
+        cross = np.array([qf[a] != df[b] for a, b in pairs[acc]])
+        assert sweep["cfer"][k] == pytest.approx(cross.mean())
+        at = curve.at(t)
+        for key in ("precision", "recall", "f1", "cfer"):
+            assert at[key] == pytest.approx(sweep[key][k])
