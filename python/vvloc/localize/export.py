@@ -336,7 +336,7 @@ def _odometry_pairs(n: int, sessions: Sequence[Any] | None, seq: np.ndarray | No
     if sessions is None:
         labels: list[Any] = [0] * n
     else:
-        labels = list(np.asarray(sessions).tolist()) if not isinstance(sessions, list) else sessions
+        labels = list(sessions)
         if len(labels) != n:
             raise ValueError(f"sessions: expected {n} session labels, got {len(labels)}")
     groups: dict[Any, list[int]] = {}
