@@ -128,6 +128,10 @@ def atomic_write(
     """
     if mode not in ("w", "wb"):
         raise ValueError(f"mode: expected 'w' or 'wb', got {mode!r}")
-    text = {} if mode == "wb" else {"encoding": encoding, "newline": newline}
-    with AtomicPath(path) as tmp, open(tmp, mode, **text) as f:
-        yield f
+    with AtomicPath(path) as tmp:
+        if mode == "wb":
+            with open(tmp, "wb") as fb:
+                yield fb
+        else:
+            with open(tmp, "w", encoding=encoding, newline=newline) as ft:
+                yield ft

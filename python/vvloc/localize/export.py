@@ -160,7 +160,7 @@ def information_from_sigmas(sigma_x: float, sigma_y: float, sigma_yaw: float) ->
 def _comment_lines(comments: Iterable[str]) -> list[str]:
     if isinstance(comments, str):
         comments = [comments]
-    out = []
+    out: list[str] = []
     for c in comments:
         if not isinstance(c, str):
             raise TypeError(f"comments: expected str lines, got {type(c).__name__}")
@@ -342,7 +342,7 @@ def _odometry_pairs(n: int, sessions: Sequence[Any] | None, seq: np.ndarray | No
     groups: dict[Any, list[int]] = {}
     for r, s in enumerate(labels):
         groups.setdefault(s, []).append(r)
-    pairs = []
+    pairs: list[tuple[int, int]] = []
     for rows_list in groups.values():
         rows = np.array(rows_list, np.int64)
         if seq is not None:
