@@ -344,7 +344,9 @@ def test_modified_dataset_fails_its_checksum(tmp_path: Path) -> None:
     edit(path, lambda f: f["global_descriptors"].__setitem__((3, 0), 0.25))
     with pytest.raises(MapError, match=r"map\.h5.*checksum mismatch.*global_descriptors"):
         MapDatabase.open(path)
-    MapDatabase.open(path, verify=False).close()
+    with MapDatabase.open(path, verify=False) as db:
+        with pytest.raises(MapError, match=r"checksum mismatch.*global_descriptors"):
+            db.verify()
 
 
 def flip_byte_in_chunk(path: Path, dataset: str, row: int) -> None:

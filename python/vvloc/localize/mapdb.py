@@ -1,36 +1,33 @@
 """The map database: keyframes with poses and descriptors, stored as one HDF5 file.
 
-A map holds, per keyframe (row ``i`` of every per-keyframe array, ``N`` rows):
+A map holds, per keyframe (row ``i`` of every per-keyframe dataset, ``N`` rows):
 
-==================  ===============  ========  ===================================================
-dataset             shape            dtype     meaning
-==================  ===============  ========  ===================================================
-``ids``             (N,)             int64     keyframe id, unique in the map
-``session_index``   (N,)             int32     row of ``session_names`` (the recording session)
-``seq``             (N,)             int64     sequence number of the frame in its session
-``timestamps``      (N,)             float64   seconds
-``poses``           (N, 3)           float64   (x, y, yaw) in the world frame: x east, y north
-                                               (metres), yaw counter-clockwise about z (radians)
-``floors``          (N,)             int64     floor / level number
-``global_descr...`` (N, Dg)          f32|f16   global descriptor G (L2-normalised)
-``local_descr...``  (N, T, C)        f32|f16   local-view descriptor D (angle bins × channels)
-``bev``             (N, H, W, C)     float16   optional BEV queries Q (for loop closure)
-``session_names``   (S,)             utf-8     session names, in order of first appearance
-==================  ===============  ========  ===================================================
+* ``ids`` (N,) int64: keyframe id, unique in the map;
+* ``session_index`` (N,) int32: row of ``session_names`` (S,) utf-8, the recording sessions in
+  order of first appearance;
+* ``seq`` (N,) int64: sequence number of the frame in its session;
+* ``timestamps`` (N,) float64: seconds;
+* ``poses`` (N, 3) float64: (x, y, yaw) in the world frame (x east, y north, metres; yaw
+  counter-clockwise about z, radians);
+* ``floors`` (N,) int64: floor / level number;
+* ``global_descriptors`` (N, Dg) float32 or float16: global descriptor G (L2-normalised);
+* ``local_descriptors`` (N, T, C) float32 or float16: local-view descriptor D;
+* ``bev`` (N, H, W, C) float16, optional: BEV queries Q (channels-last), for loop closure;
 
 and as file attributes: ``format`` (``"vvloc-map"``), ``format_version``, ``vvloc_version``,
 ``created_utc`` (ISO 8601), ``model_config_hash``, ``model_config_json``, ``grid_size`` (BEV
 cell size g, metres), ``descriptor_dtype`` and ``num_keyframes``.
 
-Integrity: every dataset is chunked with HDF5's Fletcher-32 filter (a corrupted chunk fails when
-it is read) and carries a ``sha256`` attribute of its stored bytes (little-endian, C order).
+Integrity: every per-keyframe dataset is chunked with HDF5's Fletcher-32 filter (a corrupted
+chunk fails when it is read), and every dataset carries a ``sha256`` attribute of its stored bytes (little-endian, C order).
 :meth:`MapDatabase.open` verifies the SHA-256 of every small dataset (all but the local
 descriptors and the BEVs, which are read lazily); :meth:`MapDatabase.verify` checks all of them.
 
 Files are written atomically (:mod:`vvloc._io`): a temporary file in the same directory, fsync,
 ``os.replace``. A failed or interrupted write leaves no temporary file and leaves an existing
 map at the destination untouched. Maps are opened read-only (h5py mode ``"r"``); the arrays
-returned by the accessors are read-only views.
+held in memory (poses, global descriptors, ids, ...) are returned as read-only arrays, lazy
+reads (local descriptors, BEVs) as fresh float32 copies.
 
 A map built with another model is refused: pass the model's config hash as
 ``expected_config_hash`` to :meth:`MapDatabase.open`.
@@ -928,7 +925,7 @@ class MapDatabase:
         return w.path
 
     def verify(self) -> None:
-        """Check the SHA-256 of every dataset, including the lazily read ones.
+        """Check the SHA-256 of every dataset in the file, including the lazily read ones.
 
         Reads the whole file. Raises :class:`MapError` on a mismatch or unreadable chunk.
         Does nothing for an in-memory map.
@@ -936,7 +933,9 @@ class MapDatabase:
         self._check_open()
         if self._h5 is None or self._path is None:
             return
-        for name in _LAZY:
+        names = self._h5["session_names"].asstr()[()].tolist()
+        _check_digest(self._path, self._h5["session_names"], _names_digest(names))
+        for name in (*_SMALL, *_LAZY):
             if name not in self._h5:
                 continue
             ds = self._h5[name]
