@@ -19,7 +19,8 @@ and as file attributes: ``format`` (``"vvloc-map"``), ``format_version``, ``vvlo
 cell size g, metres), ``descriptor_dtype`` and ``num_keyframes``.
 
 Integrity: every per-keyframe dataset is chunked with HDF5's Fletcher-32 filter (a corrupted
-chunk fails when it is read), and every dataset carries a ``sha256`` attribute of its stored bytes (little-endian, C order).
+chunk fails when it is read), and every dataset carries a ``sha256`` attribute of its stored
+bytes (little-endian, C order).
 :meth:`MapDatabase.open` verifies the SHA-256 of every small dataset (all but the local
 descriptors and the BEVs, which are read lazily); :meth:`MapDatabase.verify` checks all of them.
 
