@@ -1,0 +1,32 @@
+"""Shared helpers of the CLI commands: error reporting with trustworthy exit codes."""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Iterator
+
+import typer
+
+#: Exit codes: 0 success, 1 runtime failure, 2 bad arguments or inputs (missing file, wrong
+#: checkpoint, malformed data).
+EXIT_FAILURE = 1
+EXIT_USAGE = 2
+
+
+@contextlib.contextmanager
+def cli_errors(command: str) -> Iterator[None]:
+    """Turn library exceptions into one-line messages and exit code 2 (bad input) or 1."""
+    try:
+        yield
+    except (FileNotFoundError, FileExistsError, ValueError, KeyError, TypeError) as e:
+        msg = e.args[0] if isinstance(e, KeyError) and e.args else e
+        typer.echo(f"vvloc {command}: error: {msg}", err=True)
+        raise typer.Exit(code=EXIT_USAGE) from e
+    except (RuntimeError, OSError) as e:
+        typer.echo(f"vvloc {command}: failed: {e}", err=True)
+        raise typer.Exit(code=EXIT_FAILURE) from e
+
+
+def split_names(text: str) -> list[str]:
+    """'s1, s2' → ['s1', 's2']."""
+    return [s.strip() for s in text.split(",") if s.strip()]

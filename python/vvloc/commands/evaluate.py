@@ -1,0 +1,37 @@
+"""``vvloc eval``: evaluate a checkpoint (map from one session, queries from others)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from vvloc.commands._util import cli_errors, split_names
+
+
+def _checkpoint_dir(path: Path) -> Path:
+    """A run folder (``runs/x``) or a checkpoint folder (``runs/x/checkpoint``)."""
+    return path / "checkpoint" if (path / "checkpoint").is_dir() else path
+
+
+def eval_command(
+    checkpoint: Annotated[Path, typer.Option("--checkpoint", help="Checkpoint or run folder.")],
+    dataset: Annotated[Path, typer.Option("--dataset", help="Dataset folder.")],
+    database: Annotated[str, typer.Option("--database", help="Map session.")] = "s0",
+    queries: Annotated[str, typer.Option("--queries", help="Query sessions, comma-separated.")] = "s1",
+    out: Annotated[Path, typer.Option("--out", help="Report folder.")] = Path("runs/eval"),
+    top_k: Annotated[int, typer.Option("--top_k", min=1, help="Retrieved candidates.")] = 20,
+    every: Annotated[int, typer.Option("--every", min=1, help="Use every n-th query.")] = 1,
+    device: Annotated[str, typer.Option("--device", help="cpu or cuda.")] = "cpu",
+) -> None:
+    """Write report.md/report.json/plots with Recall@N, AOE/APE and per-stage latency."""
+    from vvloc.localize.evaluation import run_evaluation
+
+    with cli_errors("eval"):
+        names = split_names(queries)
+        if not names:
+            raise ValueError("--queries: expected at least one session name")
+        run_evaluation(_checkpoint_dir(checkpoint), dataset, database, names, out,
+                       top_k=top_k, every=every, device=device)
+    typer.echo(f"report: {out / 'report.md'}")

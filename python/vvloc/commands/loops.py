@@ -1,0 +1,54 @@
+"""``vvloc loops``: detect loop closures in a map and export CSV + g2o + TUM."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from vvloc.commands._util import cli_errors
+from vvloc.commands.evaluate import _checkpoint_dir
+
+
+def loops(
+    map_path: Annotated[Path, typer.Option("--map", help="Map file (.h5) with BEVs.")],
+    out: Annotated[Path, typer.Option("--out", help="Output folder.")],
+    checkpoint: Annotated[
+        Path | None, typer.Option("--checkpoint", help="The model that built the map.")
+    ] = None,
+    radius: Annotated[float, typer.Option("--radius", help="Descriptor distance radius.")] = 0.1,
+    window: Annotated[
+        int, typer.Option("--window", min=0, help="Exclude same-session neighbours within.")
+    ] = 10,
+    threshold: Annotated[float, typer.Option("--threshold", help="Accept cost below.")] = 0.75,
+    max_pairs: Annotated[
+        int, typer.Option("--max_pairs", min=0, help="Closest candidates to verify (0: all).")
+    ] = 0,
+    device: Annotated[str, typer.Option("--device", help="cpu or cuda.")] = "cpu",
+) -> None:
+    """Write loops.csv, graph.g2o and one TUM trajectory per session into --out."""
+    import numpy as np
+    import torch
+
+    from vvloc.localize.export import write_g2o, write_loop_csv, write_tum
+    from vvloc.localize.loops import detect_loops
+    from vvloc.localize.mapdb import MapDatabase
+    from vvloc.nets import VVLocNet
+
+    with cli_errors("loops"):
+        if checkpoint is None:
+            raise ValueError("--checkpoint: required (the model that built the map)")
+        model = VVLocNet.load(_checkpoint_dir(checkpoint)).to(torch.device(device))
+        db = MapDatabase.open(map_path, expected_config_hash=model.config_hash())
+        found = detect_loops(model, db, radius=radius, window=window, cost_threshold=threshold,
+                             max_pairs=max_pairs or None)
+        out.mkdir(parents=True, exist_ok=True)
+        write_loop_csv(out / "loops.csv", found)
+        write_g2o(out / "graph.g2o", db.poses, found, ids=db.ids,
+                  sessions=[db.session_of(i) for i in range(len(db))], seq=db.seq)
+        for name in db.sessions:
+            rows = db.session_rows(name)
+            write_tum(out / f"trajectory_{name}.tum", db.timestamps[rows], db.poses[rows])
+        n_acc = int(np.sum(found.accepted))
+    typer.echo(f"{len(found.i)} candidates, {n_acc} accepted loop closures; outputs in {out}")

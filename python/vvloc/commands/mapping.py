@@ -1,0 +1,40 @@
+"""``vvloc map build``: encode sessions with a model into an HDF5 map."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from vvloc.commands._util import cli_errors, split_names
+from vvloc.commands.evaluate import _checkpoint_dir
+
+map_app = typer.Typer(help="Build map databases.", no_args_is_help=True)
+
+
+@map_app.command("build")
+def build(
+    checkpoint: Annotated[Path, typer.Option("--checkpoint", help="Checkpoint or run folder.")],
+    dataset: Annotated[Path, typer.Option("--dataset", help="Dataset folder.")],
+    sessions: Annotated[str, typer.Option("--sessions", help="Sessions, comma-separated.")],
+    out: Annotated[Path, typer.Option("--out", help="Map file (.h5), written atomically.")],
+    float16: Annotated[bool, typer.Option("--float16", help="Store descriptors as float16.")] = False,
+    no_bev: Annotated[
+        bool, typer.Option("--no_bev", help="Do not store BEVs (then no loop detection).")
+    ] = False,
+    device: Annotated[str, typer.Option("--device", help="cpu or cuda.")] = "cpu",
+) -> None:
+    """Build a map (global + local-view descriptors, poses, BEVs) from dataset sessions."""
+    import torch
+
+    from vvloc.data import open_dataset
+    from vvloc.localize.localizer import build_map
+    from vvloc.nets import VVLocNet
+
+    with cli_errors("map build"):
+        model = VVLocNet.load(_checkpoint_dir(checkpoint)).to(torch.device(device))
+        ds = open_dataset(dataset)
+        path = build_map(model, ds, split_names(sessions), out,
+                         dtype="float16" if float16 else "float32", store_bev=not no_bev)
+    typer.echo(f"map: {path}")

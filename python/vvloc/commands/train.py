@@ -1,0 +1,25 @@
+"""``vvloc train``: train a model from a YAML config (two-stage recipe, checkpoints, resume)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from vvloc.commands._util import cli_errors
+
+
+def train(
+    config: Annotated[Path, typer.Option("--config", help="YAML training config.")],
+    out: Annotated[Path, typer.Option("--out", help="Run folder (checkpoint, logs).")],
+    resume: Annotated[
+        bool, typer.Option("--resume", help="Continue the run in --out from its last epoch.")
+    ] = False,
+) -> None:
+    """Train VVLoc (stage 1 global descriptors, stage 2 joint) and checkpoint every epoch."""
+    from vvloc.train import train as run_training
+
+    with cli_errors("train"):
+        trainer = run_training(config, out, resume=resume)
+    typer.echo(f"trained {trainer.epoch} epochs; checkpoint: {trainer.checkpoint_dir}")

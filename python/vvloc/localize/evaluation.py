@@ -1,0 +1,150 @@
+"""End-to-end evaluation: build a map from a database session, localize query sessions, score
+with :mod:`vvloc.evaluate` and write the report (Markdown + JSON + plots).
+
+Methods in the report: ``VVLoc-G`` (retrieval by global descriptor alone) and ``VVLoc-ML``
+(after metric re-ranking of the top-K by yaw matching cost). AOE/APE are computed from the
+metric-localization global poses (DESIGN.md §3 frames).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import platform
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from vvloc import evaluate, viz
+from vvloc.data import open_dataset
+from vvloc.localize.localizer import Localizer, LocalizationResult, build_map
+from vvloc.localize.mapdb import MapDatabase
+from vvloc.localize.metric import SearchConfig
+from vvloc.nets import VVLocNet
+
+log = logging.getLogger("vvloc.evaluate")
+
+
+def _ranked(results: Sequence[LocalizationResult], attr: str, k: int) -> np.ndarray:
+    out = np.full((len(results), k), -1, dtype=np.int64)
+    for q, r in enumerate(results):
+        rows = getattr(r, attr)[:k]
+        out[q, : len(rows)] = rows
+    return out
+
+
+def run_evaluation(
+    checkpoint: str | os.PathLike[str],
+    dataset: str | os.PathLike[str],
+    database: str,
+    queries: Sequence[str],
+    out: str | os.PathLike[str],
+    *,
+    top_k: int = 20,
+    every: int = 1,
+    device: str = "cpu",
+    search: SearchConfig | None = None,
+    progress: bool = True,
+    untrained_warning: str | None = None,
+) -> dict[str, Any]:
+    """Evaluate a checkpoint on ``dataset``: map = ``database`` session, queries = every
+    ``every``-th frame of each session in ``queries``. Writes ``out/map.h5``,
+    ``out/report.md``, ``out/report.json``, ``out/queries.csv`` and plots; returns the metrics.
+    """
+    out_dir = Path(out)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    model = VVLocNet.load(checkpoint).to(torch.device(device))
+    ds = open_dataset(dataset)
+    for name in [database, *queries]:
+        ds.session(name)  # KeyError naming the known sessions
+    map_path = build_map(model, ds, [database], out_dir / "map.h5", store_bev=False,
+                         progress=progress)
+    mapdb = MapDatabase.open(map_path, expected_config_hash=model.config_hash())
+    loc = Localizer(model, mapdb, top_k=top_k, search=search)
+    frames = [ds.session(s)[i] for s in queries for i in range(0, len(ds.session(s)), every)]
+    results = loc.localize_batch(frames, progress=progress)
+
+    q_pose = np.stack([f.pose for f in frames])
+    q_floor = np.array([f.floor for f in frames])
+    db_pose = np.asarray(mapdb.poses)
+    db_floor = np.asarray(mapdb.floors)
+    k = min(top_k, len(mapdb))
+    retrieved = _ranked(results, "retrieved", k)
+    reranked = _ranked(results, "reranked", k)
+    kw = {"query_floors": q_floor, "db_floors": db_floor, "top_n": tuple(n for n in (1, 5) if n <= k)}
+    rec_g = evaluate.recall_at_n(q_pose[:, :2], db_pose[:, :2], retrieved, **kw)
+    rec_ml = evaluate.recall_at_n(q_pose[:, :2], db_pose[:, :2], reranked, **kw)
+    est = np.stack([r.global_pose for r in results])
+    correct = rec_ml.correct(1, 2.0)
+    pose_acc = evaluate.pose_accuracy(est, q_pose, correct, kept=rec_ml.kept)
+    stages = ("encode", "retrieve", "rerank", "metric")
+    latency = evaluate.latency_summary(
+        {s: [r.timings_ms.get(s, np.nan) for r in results] for s in stages}
+    )
+    costs = np.array([r.cost for r in results])
+    accepted = np.array([r.accepted for r in results])
+    notes = [
+        f"{len(frames)} queries from {list(queries)}, map = {database} ({len(mapdb)} keyframes)",
+        f"accepted share (cost < {loc.accept_threshold}): {accepted.mean():.1%}",
+    ]
+    if untrained_warning:
+        notes.insert(0, untrained_warning)
+    metrics: dict[str, Any] = {
+        "meta": {
+            "checkpoint": str(checkpoint),
+            "dataset": str(dataset),
+            "database": database,
+            "queries": ",".join(queries),
+            "model_config_hash": model.config_hash(),
+            "top_k": k,
+            "device": device,
+            "hardware": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores",
+            "torch_threads": torch.get_num_threads(),
+        },
+        "global_localization": {"VVLoc-G": rec_g, "VVLoc-ML": rec_ml},
+        "pose_accuracy": {"VVLoc-ML": pose_acc},
+        "latency": latency,
+        "notes": notes,
+        "accepted_share": float(accepted.mean()),
+    }
+
+    # per-query CSV
+    yaw_err, pos_err = evaluate.pose_errors(est, q_pose)
+    lines = [
+        "# vvloc evaluation per query. Poses: world frame x east, y north (m), yaw CCW from east"
+        " (deg). cost: matching cost (lower is better).",
+        "session,index,map_row,est_x,est_y,est_yaw_deg,gt_x,gt_y,gt_yaw_deg,pos_err_m,"
+        "yaw_err_deg,cost,accepted,top1_correct",
+    ]
+    for f, r, e, g, pe, ye, c in zip(frames, results, est, q_pose, pos_err, yaw_err, correct,
+                                     strict=True):
+        lines.append(
+            f"{f.session},{f.index},{r.map_row},{e[0]:.4f},{e[1]:.4f},{np.degrees(e[2]):.3f},"
+            f"{g[0]:.4f},{g[1]:.4f},{np.degrees(g[2]):.3f},{pe:.4f},{ye:.3f},{r.cost:.5f},"
+            f"{int(r.accepted)},{int(c)}"
+        )
+    (out_dir / "queries.csv").write_text("\n".join(lines) + "\n")
+
+    figures = {}
+    figures["Recall@N at 2 m"] = viz.plot_recall_curves(
+        out_dir / "recall.png", {"VVLoc-G": rec_g.curve(2.0), "VVLoc-ML": rec_ml.curve(2.0)}
+    )
+    sel = correct & rec_ml.kept
+    figures["Error CDFs"] = viz.plot_error_cdfs(
+        out_dir / "error_cdf.png", {"VVLoc-ML": yaw_err[sel]}, {"VVLoc-ML": pos_err[sel]}
+    )
+    figures["Trajectory"] = viz.plot_trajectory(
+        out_dir / "trajectory.png", db_pose[:, :2], q_pose[:, :2], correct, kept=rec_ml.kept
+    )
+    sample = int(np.argmax(sel)) if sel.any() else 0
+    h = results[sample].search
+    if h is not None and len(h.cost):
+        figures["Translation cost (sample query)"] = viz.plot_translation_costs(
+            out_dir / "translation_costs.png", h.xy, h.cost
+        )
+    evaluate.write_report(out_dir, metrics, title="vvloc evaluation", figures=figures)
+    mapdb.close()
+    return metrics

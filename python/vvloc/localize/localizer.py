@@ -1,0 +1,379 @@
+"""Global + metric localization against a map: retrieve → re-rank → metric pose + confidence.
+
+Pipeline per query frame (DESIGN.md §1):
+
+1. encode the query once (:meth:`VVLocNet.encode`): BEV (H, W, C), global descriptor (Dg,),
+   local-view descriptor (T, C);
+2. top-K retrieval (K = 20) of map keyframes by global-descriptor L2 distance
+   (:class:`vvloc.DescriptorIndex`);
+3. re-ranking of the K candidates by yaw matching cost without padding: the interactor runs
+   once over the K (query, candidate) pairs, the Rust kernel finds each pair's exact yaw minimum;
+4. metric localization against the best candidate: the Rust :class:`TranslationSearch` proposes
+   translations, ``pad_polar`` pads + polar-samples the query BEV for the whole stage, the
+   decoder and the interactor run once per stage (batched), ``estimate_yaw`` scores them.
+
+Frames: the search estimates ξ_{q→m}, the map keyframe's frame expressed in the query's frame
+(the query BEV is the padded source). Results report ``relative_pose`` = ξ_{m→q} (the query
+expressed in the map keyframe's frame: x forward, y left, metres; yaw CCW, radians) and the
+query's global pose T_world_q = T_world_m · ξ_{m→q}. The matching cost is the confidence:
+lower is better; ``accepted`` = cost < ``accept_threshold`` (0.75, the paper's filter).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+import torch
+from tqdm import tqdm
+
+from vvloc import geometry, kernels
+from vvloc.data import Frame
+from vvloc.localize.mapdb import MapDatabase, MapWriter
+from vvloc.localize.metric import SearchConfig, metric_localize
+from vvloc.nets import VVLocNet
+from vvloc.retrieval import DescriptorIndex
+
+log = logging.getLogger("vvloc.localize")
+
+F32 = npt.NDArray[np.float32]
+
+
+@dataclass
+class Encoded:
+    """Encoder outputs of N frames as numpy arrays (float32).
+
+    ``bev`` (N, H, W, C) (None when not requested), ``global_desc`` (N, Dg) L2-normalised,
+    ``local_desc`` (N, T, C).
+    """
+
+    global_desc: F32
+    local_desc: F32
+    bev: F32 | None
+
+
+def frames_to_tensors(
+    frames: Sequence[Frame], device: torch.device
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Stack frames into model inputs: images (B, M, 3, H, W) uint8, K (B, M, 3, 3) float32,
+    cam_to_ego (B, M, 4, 4) float32, on ``device``."""
+    if not frames:
+        raise ValueError("frames: expected at least one frame")
+    images = torch.from_numpy(np.stack([f.images for f in frames])).to(device)
+    k = torch.from_numpy(np.stack([f.K for f in frames]).astype(np.float32)).to(device)
+    t = torch.from_numpy(np.stack([f.cam_to_ego for f in frames]).astype(np.float32)).to(device)
+    return images, k, t
+
+
+def model_device(model: torch.nn.Module) -> torch.device:
+    """The device of the model's parameters."""
+    return next(model.parameters()).device
+
+
+@torch.no_grad()
+def encode_frames(
+    model: VVLocNet,
+    frames: Iterable[Frame],
+    *,
+    batch_size: int = 8,
+    keep_bev: bool = False,
+    progress: bool = False,
+    total: int | None = None,
+) -> Encoded:
+    """Encode frames in batches (eval mode, no gradients); see :class:`Encoded`."""
+    model.eval()
+    device = model_device(model)
+    g_all: list[F32] = []
+    l_all: list[F32] = []
+    b_all: list[F32] = []
+    batch: list[Frame] = []
+
+    def flush() -> None:
+        out = model.encode(*frames_to_tensors(batch, device))
+        g_all.append(out.global_desc.float().cpu().numpy())
+        l_all.append(out.local_desc.float().cpu().numpy())
+        if keep_bev:
+            b_all.append(out.bev.float().cpu().numpy())
+        batch.clear()
+
+    for f in tqdm(frames, desc="encode", total=total, disable=not progress, leave=False):
+        batch.append(f)
+        if len(batch) == batch_size:
+            flush()
+    if batch:
+        flush()
+    if not g_all:
+        raise ValueError("frames: expected at least one frame")
+    return Encoded(
+        global_desc=np.concatenate(g_all),
+        local_desc=np.concatenate(l_all),
+        bev=np.concatenate(b_all) if keep_bev else None,
+    )
+
+
+def interacting_decoder(model: VVLocNet, desc_tgt: F32):  # type: ignore[no-untyped-def]
+    """A ``decode`` callback for :func:`metric_localize` that runs the learned decoder on the
+    padded polar BEVs (N, T, R, C) and the interactor against the target descriptor (T, C);
+    returns (Ds', Dt') each (N, T, C) float32."""
+    device = model_device(model)
+    tgt = torch.from_numpy(np.ascontiguousarray(desc_tgt, dtype=np.float32)).to(device)
+
+    @torch.no_grad()
+    def decode(polar: F32) -> tuple[F32, F32]:
+        p = torch.from_numpy(polar).to(device)
+        ds = model.decode_polar(p)
+        a, b = model.interact(ds, tgt.expand(ds.shape[0], *tgt.shape))
+        return a.float().cpu().numpy(), b.float().cpu().numpy()
+
+    return decode
+
+
+@dataclass
+class LocalizationResult:
+    """The localization of one query frame.
+
+    Attributes:
+        map_row: row of the chosen keyframe in the map (-1 when the map is empty).
+        map_id: its keyframe id; ``map_session`` its session.
+        relative_pose: ξ_{m→q} (3,) float64: the query frame expressed in the map keyframe's
+            frame (x forward m, y left m, yaw CCW rad).
+        global_pose: the query's world pose (x, y, yaw) = T_world_m · ξ_{m→q}.
+        cost: matching cost at the estimate (confidence: lower is better).
+        accepted: ``cost < accept_threshold``.
+        retrieved: (K,) map rows in retrieval order; ``retrieval_dist`` their L2 distances.
+        reranked: (K,) map rows after re-ranking by matching cost; ``rerank_cost`` their costs.
+        timings_ms: per-stage wall time: encode, retrieve, rerank, metric.
+        search: every evaluated translation hypothesis (xy (M, 2), yaw, cost, stage).
+    """
+
+    map_row: int
+    map_id: int
+    map_session: str
+    relative_pose: npt.NDArray[np.float64]
+    global_pose: npt.NDArray[np.float64]
+    cost: float
+    accepted: bool
+    retrieved: npt.NDArray[np.int64]
+    retrieval_dist: F32
+    reranked: npt.NDArray[np.int64]
+    rerank_cost: npt.NDArray[np.float64]
+    timings_ms: dict[str, float] = field(default_factory=dict)
+    search: kernels.SearchHistory | None = None
+
+
+class Localizer:
+    """Localizes query frames against a :class:`MapDatabase` with a :class:`VVLocNet`.
+
+    Args:
+        model: the network (its ``config_hash`` must match the map's).
+        mapdb: an opened map.
+        top_k: number of retrieved candidates (K, default 20).
+        rerank: re-rank the candidates by yaw matching cost (default True).
+        accept_threshold: a result is accepted when its cost is below this (default 0.75).
+        search: the translation search (defaults: ±3 m in steps of one BEV... see
+            :class:`SearchConfig`).
+    """
+
+    def __init__(
+        self,
+        model: VVLocNet,
+        mapdb: MapDatabase,
+        *,
+        top_k: int = 20,
+        rerank: bool = True,
+        accept_threshold: float = 0.75,
+        search: SearchConfig | None = None,
+    ) -> None:
+        if mapdb.config_hash != model.config_hash():
+            raise ValueError(
+                f"map {mapdb.path}: built with model {mapdb.config_hash}, "
+                f"but the model is {model.config_hash()}"
+            )
+        if isinstance(top_k, bool) or not isinstance(top_k, int) or top_k < 1:
+            raise ValueError(f"top_k: expected an int >= 1, got {top_k!r}")
+        self.model = model.eval()
+        self.map = mapdb
+        self.top_k = top_k
+        self.rerank_enabled = bool(rerank)
+        self.accept_threshold = float(accept_threshold)
+        self.search = search or SearchConfig()
+        self.index = DescriptorIndex(mapdb.global_descriptors)
+        cfg = model.config
+        self.grid_size = float(cfg.grid_size)
+        self.num_angles = int(cfg.num_angles)
+        self.num_radii = int(cfg.num_radii)
+
+    @classmethod
+    def open(
+        cls,
+        map_path: str | os.PathLike[str],
+        checkpoint: str | os.PathLike[str],
+        *,
+        device: str | torch.device = "cpu",
+        **kwargs: Any,
+    ) -> Localizer:
+        """Load a checkpoint directory and open a map built with it (refused otherwise)."""
+        model = VVLocNet.load(checkpoint).to(torch.device(device))
+        mapdb = MapDatabase.open(map_path, expected_config_hash=model.config_hash())
+        return cls(model, mapdb, **kwargs)
+
+    # --- stages --------------------------------------------------------------------------
+
+    def retrieve(self, global_desc: F32) -> tuple[npt.NDArray[np.int64], F32]:
+        """Top-K map rows (K,) and distances (K,) of one global descriptor (Dg,)."""
+        idx, dist = self.index.topk(global_desc[None], min(self.top_k, max(len(self.map), 1)))
+        keep = idx[0] >= 0
+        return idx[0][keep], dist[0][keep]
+
+    @torch.no_grad()
+    def rerank(self, local_desc: F32, rows: npt.NDArray[np.int64]) -> kernels.Rerank:
+        """Re-rank candidate rows by the yaw matching cost between the query's local-view
+        descriptor (T, C) and each candidate's, without padding (interactor batched over the
+        candidates, exact yaw minimum in Rust)."""
+        device = model_device(self.model)
+        tgt = torch.from_numpy(self.map.local_descriptors(rows)).to(device)
+        src = torch.from_numpy(local_desc).to(device).expand(len(rows), *local_desc.shape)
+        a, b = self.model.interact(src, tgt)
+        return kernels.rerank(a.float().cpu().numpy(), b.float().cpu().numpy())
+
+    def metric(self, bev: F32, row: int) -> tuple[npt.NDArray[np.float64], float, Any]:
+        """Metric localization of a query BEV (H, W, C) against map row ``row``: returns
+        (ξ_{m→q} (3,), cost, search history)."""
+        tgt = self.map.local_descriptors(int(row))
+        res = metric_localize(
+            bev,
+            tgt,
+            interacting_decoder(self.model, tgt),
+            self.search,
+            self.grid_size,
+            self.num_angles,
+            self.num_radii,
+        )
+        xi_qm = np.asarray(res.pose, dtype=np.float64)
+        return geometry.inverse(xi_qm), float(res.cost), res.history
+
+    # --- public --------------------------------------------------------------------------
+
+    def localize(self, frame: Frame) -> LocalizationResult:
+        """Localize one query frame (see the module docstring for the stages and frames)."""
+        return self.localize_batch([frame])[0]
+
+    def localize_batch(
+        self, frames: Sequence[Frame], *, batch_size: int = 8, progress: bool = False
+    ) -> list[LocalizationResult]:
+        """Localize many frames: encoding is batched; results equal :meth:`localize`'s."""
+        results: list[LocalizationResult] = []
+        for start in tqdm(
+            range(0, len(frames), batch_size), desc="localize", disable=not progress, leave=False
+        ):
+            chunk = frames[start : start + batch_size]
+            t0 = time.perf_counter()
+            enc = encode_frames(self.model, chunk, batch_size=batch_size, keep_bev=True)
+            t_enc = (time.perf_counter() - t0) * 1e3 / len(chunk)
+            assert enc.bev is not None
+            for i in range(len(chunk)):
+                results.append(
+                    self._localize_encoded(
+                        enc.global_desc[i], enc.local_desc[i], enc.bev[i], t_enc
+                    )
+                )
+        return results
+
+    def _localize_encoded(
+        self, g: F32, loc: F32, bev: F32, t_encode_ms: float
+    ) -> LocalizationResult:
+        timings = {"encode": t_encode_ms}
+        t0 = time.perf_counter()
+        rows, dist = self.retrieve(g)
+        timings["retrieve"] = (time.perf_counter() - t0) * 1e3
+        if len(rows) == 0:
+            nan3 = np.full(3, np.nan)
+            return LocalizationResult(
+                -1, -1, "", nan3, nan3, float("inf"), False, rows, dist, rows,
+                np.zeros(0), timings, None,
+            )
+        t0 = time.perf_counter()
+        if self.rerank_enabled:
+            rr = self.rerank(loc, rows)
+            reranked = rows[rr.order]
+            rerank_cost = rr.cost[rr.order]
+        else:
+            reranked, rerank_cost = rows, np.full(len(rows), np.nan)
+        timings["rerank"] = (time.perf_counter() - t0) * 1e3
+        best = int(reranked[0])
+        t0 = time.perf_counter()
+        xi_mq, cost, history = self.metric(bev, best)
+        timings["metric"] = (time.perf_counter() - t0) * 1e3
+        map_pose = self.map.poses[best]
+        return LocalizationResult(
+            map_row=best,
+            map_id=int(self.map.ids[best]),
+            map_session=self.map.session_of(best),
+            relative_pose=xi_mq,
+            global_pose=geometry.compose(map_pose, xi_mq),
+            cost=cost,
+            accepted=bool(cost < self.accept_threshold),
+            retrieved=rows,
+            retrieval_dist=dist,
+            reranked=reranked,
+            rerank_cost=rerank_cost,
+            timings_ms=timings,
+            search=history,
+        )
+
+
+def build_map(
+    model: VVLocNet,
+    dataset: Any,
+    sessions: Sequence[str],
+    out: str | os.PathLike[str],
+    *,
+    dtype: str = "float32",
+    store_bev: bool = True,
+    batch_size: int = 8,
+    progress: bool = True,
+) -> Path:
+    """Encode every frame of ``sessions`` of ``dataset`` and write a map to ``out`` (HDF5,
+    atomically). ``store_bev`` keeps the float16 BEVs that loop-closure detection needs."""
+    if not sessions:
+        raise ValueError("sessions: expected at least one session name")
+    known = set(dataset.sessions)
+    missing = [s for s in sessions if s not in known]
+    if missing:
+        raise ValueError(f"sessions: {missing} not in the dataset (sessions: {sorted(known)})")
+    total = sum(len(dataset.session(s)) for s in sessions)
+    cfg = model.config
+    with MapWriter(
+        out,
+        model_config=cfg.to_dict(),
+        grid_size=float(cfg.grid_size),
+        config_hash=model.config_hash(),
+        dtype=dtype,  # type: ignore[arg-type]
+        expected_keyframes=total,
+    ) as writer:
+        bar = tqdm(total=total, desc="map", disable=not progress)
+        for name in sessions:
+            sess = dataset.session(name)
+            for start in range(0, len(sess), batch_size):
+                frames = [sess[i] for i in range(start, min(start + batch_size, len(sess)))]
+                enc = encode_frames(model, frames, batch_size=batch_size, keep_bev=store_bev)
+                writer.append(
+                    poses=np.stack([f.pose for f in frames]),
+                    timestamps=np.array([f.t for f in frames]),
+                    sessions=name,
+                    global_descriptors=enc.global_desc,
+                    local_descriptors=enc.local_desc,
+                    seq=np.array([f.index for f in frames]),
+                    floors=np.array([f.floor for f in frames]),
+                    bevs=enc.bev,
+                )
+                bar.update(len(frames))
+        bar.close()
+    return Path(out)

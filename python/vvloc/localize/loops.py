@@ -1,0 +1,109 @@
+"""Loop-closure detection across the sessions of a map.
+
+Candidates are map keyframe pairs (i, j), i < j, whose global descriptors lie within
+``radius`` (L2, default 0.1 as in the paper) of each other, excluding temporal neighbours of the
+same session (``|seq_i − seq_j| <= window``). Each candidate gets a metric pose by the same
+search as localization, with keyframe i's stored BEV as the padded source and keyframe j's
+local-view descriptor as the target: ξ_{i→j} (frame j expressed in frame i, DESIGN.md §3). A
+loop is accepted when its matching cost is below ``cost_threshold`` (0.75).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+from tqdm import tqdm
+
+from vvloc.localize.export import LoopClosures
+from vvloc.localize.localizer import interacting_decoder
+from vvloc.localize.mapdb import MapDatabase
+from vvloc.localize.metric import SearchConfig, metric_localize
+from vvloc.nets import VVLocNet
+from vvloc.retrieval import DescriptorIndex, Exclusion
+
+log = logging.getLogger("vvloc.localize")
+
+
+@dataclass(frozen=True)
+class LoopCandidates:
+    """Candidate pairs (i < j map rows) and their global-descriptor L2 distances, (P,) each."""
+
+    i: np.ndarray
+    j: np.ndarray
+    distance: np.ndarray
+
+
+def loop_candidates(mapdb: MapDatabase, radius: float = 0.1, window: int = 10) -> LoopCandidates:
+    """All pairs i < j with descriptor distance < ``radius``, excluding same-session pairs
+    within ``window`` sequence numbers (one radius query per keyframe, Rust index)."""
+    if not radius > 0:
+        raise ValueError(f"radius: expected > 0, got {radius}")
+    if window < 0:
+        raise ValueError(f"window: expected >= 0, got {window}")
+    groups = mapdb.session_index.astype(np.int64)
+    seqs = np.asarray(mapdb.seq, dtype=np.int64)
+    index = DescriptorIndex(mapdb.global_descriptors, groups=groups, seqs=seqs)
+    offsets, idx, dist = index.radius(
+        mapdb.global_descriptors, radius, exclude=Exclusion(groups, seqs, window=int(window))
+    )
+    qi = np.repeat(np.arange(len(mapdb), dtype=np.int64), np.diff(offsets))
+    keep = qi < idx
+    return LoopCandidates(qi[keep], idx[keep], dist[keep])
+
+
+def detect_loops(
+    model: VVLocNet,
+    mapdb: MapDatabase,
+    *,
+    radius: float = 0.1,
+    window: int = 10,
+    cost_threshold: float = 0.75,
+    search: SearchConfig | None = None,
+    max_pairs: int | None = None,
+    progress: bool = True,
+) -> LoopClosures:
+    """Detect loop closures in a map and estimate ξ_{i→j} for each; see the module docstring.
+
+    Returns :class:`LoopClosures` whose ``i``/``j`` are keyframe *ids* (``mapdb.ids``), closest
+    candidates in descriptor space first.
+
+    The map must hold BEVs (built with ``store_bev=True``). ``max_pairs`` keeps only the
+    closest candidates in descriptor space (None: all).
+    """
+    if not mapdb.has_bev:
+        raise ValueError(
+            f"map {mapdb.path}: has no BEVs; rebuild it with BEVs stored to detect loops"
+        )
+    cand = loop_candidates(mapdb, radius, window)
+    order = np.argsort(cand.distance, kind="stable")
+    if max_pairs is not None:
+        order = order[:max_pairs]
+    cfg = model.config
+    poses, costs = [], []
+    for k in tqdm(order, desc="loops", disable=not progress):
+        i, j = int(cand.i[k]), int(cand.j[k])
+        tgt = mapdb.local_descriptors(j)
+        res = metric_localize(
+            mapdb.bev(i),
+            tgt,
+            interacting_decoder(model, tgt),
+            search or SearchConfig(),
+            float(cfg.grid_size),
+            int(cfg.num_angles),
+            int(cfg.num_radii),
+        )
+        poses.append(res.pose)
+        costs.append(res.cost)
+    ids = np.asarray(mapdb.ids, dtype=np.int64)
+    sel_i = ids[cand.i[order]]
+    sel_j = ids[cand.j[order]]
+    cost_arr = np.asarray(costs, dtype=np.float64)
+    return LoopClosures(
+        i=sel_i,
+        j=sel_j,
+        relative_poses=np.asarray(poses, dtype=np.float64).reshape(-1, 3),
+        costs=cost_arr,
+        accepted=cost_arr < cost_threshold,
+    )

@@ -1,0 +1,443 @@
+"""The VVLoc trainer: the paper's two-stage recipe in a plain PyTorch loop.
+
+Stage 1 trains the global descriptor (triplet + hinge losses on L2-normalised global
+descriptors). Stage 2 trains global and local-view descriptors jointly, adding the circle-style
+yaw matching loss and the translation-bias loss on (anchor, positive) pairs whose relative pose
+ξ_{a→p} (DESIGN.md §3: the positive's frame expressed in the anchor's frame) is known from the
+ground truth. Adam, learning rate 1e-4 decayed ×0.95 per epoch; triplets from
+:class:`vvloc.data.TripletSampler` with hard-sample mining (triplets that still violate the
+triplet margin are re-drawn until they are satisfied). Every random choice is seeded.
+
+Outputs in ``out_dir``: ``checkpoint/`` (safetensors weights + JSON config, written each epoch),
+``trainer_state.pt`` (optimizer, scheduler, epoch, step, sampler state, for ``--resume``),
+``log.jsonl`` (one JSON object per epoch) and ``train_config.yaml`` (the resolved config).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import math
+import os
+import pickle
+import random
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import yaml
+from torch.utils.data import DataLoader
+from torch.utils.data import Dataset as TorchDataset
+from tqdm import tqdm
+
+from vvloc import geometry
+from vvloc.data import TripletSampler, open_dataset
+from vvloc.losses import (
+    hinge_loss,
+    translation_bias_loss,
+    triplet_loss,
+    yaw_matching_loss,
+)
+from vvloc.nets import ModelConfig, VVLocNet
+
+log = logging.getLogger("vvloc.train")
+
+
+@dataclass
+class TrainConfig:
+    """Everything a training run needs; loaded from YAML (``configs/*.yaml``).
+
+    ``model`` is ``"small"``, ``"paper"`` or a mapping of :class:`ModelConfig` fields;
+    ``model_overrides`` are applied on top. ``sim`` (optional) holds the arguments of
+    :func:`vvloc.sim.simulate` used to render ``dataset`` when it does not exist yet, so that a
+    committed config reproduces its data and its model with one command.
+    """
+
+    dataset: str = "data/synth"
+    train_sessions: list[str] | None = None
+    model: Any = "small"
+    model_overrides: dict[str, Any] = field(default_factory=dict)
+    sim: dict[str, Any] | None = None
+    seed: int = 0
+    stage1_epochs: int = 2
+    stage2_epochs: int = 4
+    steps_per_epoch: int = 100
+    batch_size: int = 2
+    lr: float = 1e-4
+    lr_decay: float = 0.95
+    weight_decay: float = 0.0
+    grad_clip: float = 10.0
+    num_workers: int = 2
+    device: str = "auto"
+    pos_radius: float = 2.0
+    neg_radius: float = 3.0
+    hard_fraction: float = 0.5
+    triplet_margin: float = 0.1
+    hinge_pos: float = 0.1
+    hinge_neg: float = 0.2
+    yaw_weight: float = 1.0
+    yaw_gamma: float = 40.0
+    yaw_theta_p: float = 0.1
+    yaw_theta_n: float = 1.4
+    tbias_weight: float = 1.0
+    tbias_margin: float = 0.1
+    threads: int | None = None
+
+    @classmethod
+    def from_yaml(cls, path: str | os.PathLike[str]) -> TrainConfig:
+        """Read a YAML config; unknown keys raise ``ValueError`` naming them and the file."""
+        path = Path(path)
+        if not path.is_file():
+            raise FileNotFoundError(f"config file not found: {path}")
+        raw = yaml.safe_load(path.read_text()) or {}
+        if not isinstance(raw, dict):
+            raise ValueError(f"{path}: expected a mapping at the top level")
+        return cls.from_dict(raw, source=str(path))
+
+    @classmethod
+    def from_dict(cls, raw: dict[str, Any], source: str = "config") -> TrainConfig:
+        """Build from a plain dict, rejecting unknown keys."""
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(raw) - names)
+        if unknown:
+            raise ValueError(f"{source}: unknown keys {unknown}; known: {sorted(names)}")
+        cfg = cls(**raw)
+        cfg.validate()
+        return cfg
+
+    def validate(self) -> None:
+        """Raise ``ValueError`` naming the first invalid field."""
+        for name in ("stage1_epochs", "stage2_epochs"):
+            if int(getattr(self, name)) < 0:
+                raise ValueError(f"{name}: expected >= 0")
+        for name in ("steps_per_epoch", "batch_size"):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"{name}: expected >= 1")
+        if not self.lr > 0:
+            raise ValueError("lr: expected > 0")
+        if not 0 < self.lr_decay <= 1:
+            raise ValueError("lr_decay: expected in (0, 1]")
+        if self.num_workers < 0:
+            raise ValueError("num_workers: expected >= 0")
+
+    def model_config(self) -> ModelConfig:
+        """The :class:`ModelConfig` this run trains."""
+        if isinstance(self.model, str):
+            if self.model not in ("small", "paper"):
+                raise ValueError(f"model: expected 'small', 'paper' or a mapping, got {self.model!r}")
+            base = ModelConfig.small() if self.model == "small" else ModelConfig.paper()
+            d = base.to_dict()
+        elif isinstance(self.model, dict):
+            d = ModelConfig().to_dict()
+            d.update(self.model)
+        else:
+            raise ValueError(f"model: expected 'small', 'paper' or a mapping, got {self.model!r}")
+        d.update(self.model_overrides)
+        return ModelConfig.from_dict(d)
+
+    @property
+    def epochs(self) -> int:
+        """Total number of epochs (stage 1 + stage 2)."""
+        return int(self.stage1_epochs) + int(self.stage2_epochs)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain dict (YAML/JSON serialisable)."""
+        return dataclasses.asdict(self)
+
+
+def pick_device(name: str = "auto") -> torch.device:
+    """``"auto"`` → CUDA when available, else CPU; otherwise ``torch.device(name)``."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(name)
+
+
+def seed_everything(seed: int) -> None:
+    """Seed Python, numpy and torch."""
+    random.seed(seed)
+    np.random.seed(seed % 2**32)
+    torch.manual_seed(seed)
+
+
+class TripletFrames(TorchDataset):
+    """A torch dataset over a fixed (n, 3) array of triplet frame ids of a sampler.
+
+    Item k is a dict of tensors for frames (anchor, positive, negative): ``images`` (3, M, 3, H,
+    W) uint8, ``intrinsics`` (3, M, 3, 3) float32, ``cam_to_ego`` (3, M, 4, 4) float32, ``poses``
+    (3, 3) float64 world (x, y, yaw) and ``triplet`` (3,) int64 ids.
+    """
+
+    def __init__(self, sampler: TripletSampler, triplets: np.ndarray) -> None:
+        self.sampler = sampler
+        self.triplets = np.asarray(triplets, dtype=np.int64).reshape(-1, 3)
+
+    def __len__(self) -> int:
+        return len(self.triplets)
+
+    def __getitem__(self, k: int) -> dict[str, torch.Tensor]:
+        frames = [self.sampler.frame(int(g)) for g in self.triplets[k]]
+        return {
+            "images": torch.from_numpy(np.stack([f.images for f in frames])),
+            "intrinsics": torch.from_numpy(np.stack([f.K for f in frames]).astype(np.float32)),
+            "cam_to_ego": torch.from_numpy(
+                np.stack([f.cam_to_ego for f in frames]).astype(np.float32)
+            ),
+            "poses": torch.from_numpy(np.stack([f.pose for f in frames]).astype(np.float64)),
+            "triplet": torch.from_numpy(self.triplets[k].copy()),
+        }
+
+
+@dataclass
+class StepLosses:
+    """Loss values of one step (floats; zero where a loss is not active in the stage)."""
+
+    total: float
+    triplet: float
+    hinge: float
+    yaw: float
+    tbias: float
+    violated: int
+
+
+def training_losses(
+    model: VVLocNet,
+    batch: dict[str, torch.Tensor],
+    cfg: TrainConfig,
+    stage: int,
+    step: int,
+    device: torch.device,
+) -> tuple[torch.Tensor, StepLosses, np.ndarray]:
+    """Forward one batch of B triplets and return (total loss, its parts, correct mask (B,)).
+
+    The three frames of each triplet are encoded in one call (3B samples). Stage 1 uses the
+    triplet and hinge losses of the global descriptors; stage 2 adds the yaw matching loss and
+    the translation bias loss (weights ``yaw_weight``, ``tbias_weight``) on (anchor, positive)
+    with the ground-truth relative pose ξ_{a→p}. A triplet is "correct" for hard mining when
+    ‖g_a − g_p‖ + margin < ‖g_a − g_n‖.
+    """
+    images = batch["images"].to(device)  # (B, 3, M, 3, H, W)
+    b = images.shape[0]
+    flat = lambda x: x.to(device).transpose(0, 1).reshape(3 * b, *x.shape[2:])  # noqa: E731
+    out = model.encode(flat(images), flat(batch["intrinsics"]), flat(batch["cam_to_ego"]))
+    g = out.global_desc.view(3, b, -1)
+    l_tri = triplet_loss(g[0], g[1], g[2], cfg.triplet_margin)
+    d_pos = (g[0] - g[1]).norm(dim=-1)
+    d_neg = (g[0] - g[2]).norm(dim=-1)
+    l_hinge = hinge_loss(d_pos, d_neg, cfg.hinge_pos, cfg.hinge_neg)
+    total = l_tri + l_hinge
+    l_yaw = torch.zeros((), device=device)
+    l_tb = torch.zeros((), device=device)
+    if stage == 2:
+        poses = batch["poses"].numpy()
+        xi = geometry.relative(poses[:, 0], poses[:, 1])  # (B, 3): positive in anchor frame
+        t = torch.as_tensor(xi[:, :2], dtype=torch.float32, device=device)
+        yaw = torch.as_tensor(xi[:, 2], dtype=torch.float32, device=device)
+        bev = out.bev.view(3, b, *out.bev.shape[1:])
+        loc = out.local_desc.view(3, b, *out.local_desc.shape[1:])
+        l_yaw = yaw_matching_loss(
+            model, bev[0], loc[1], t, yaw, cfg.yaw_gamma, cfg.yaw_theta_p, cfg.yaw_theta_n
+        )
+        l_tb = translation_bias_loss(
+            model, bev[0], loc[1], t, yaw, margin=cfg.tbias_margin, seed=cfg.seed * 1_000_003 + step
+        )
+        total = total + cfg.yaw_weight * l_yaw + cfg.tbias_weight * l_tb
+    correct = (d_pos + cfg.triplet_margin < d_neg).detach().cpu().numpy()
+    parts = StepLosses(
+        total=float(total.detach()),
+        triplet=float(l_tri.detach()),
+        hinge=float(l_hinge.detach()),
+        yaw=float(l_yaw.detach()),
+        tbias=float(l_tb.detach()),
+        violated=int((~correct).sum()),
+    )
+    return total, parts, correct
+
+
+def _ensure_dataset(cfg: TrainConfig) -> None:
+    root = Path(cfg.dataset)
+    if root.exists():
+        return
+    if not cfg.sim:
+        raise FileNotFoundError(
+            f"dataset {root} does not exist and the config has no 'sim' section to render it"
+        )
+    from vvloc.sim import simulate_dataset
+
+    log.info("rendering the training dataset into %s", root)
+    simulate_dataset(root, **cfg.sim)
+
+
+class Trainer:
+    """Runs (or resumes) a training run described by a :class:`TrainConfig` into ``out_dir``."""
+
+    def __init__(self, cfg: TrainConfig, out_dir: str | os.PathLike[str]) -> None:
+        self.cfg = cfg
+        self.out = Path(out_dir)
+        self.device = pick_device(cfg.device)
+        if cfg.threads:
+            torch.set_num_threads(int(cfg.threads))
+        seed_everything(cfg.seed)
+        _ensure_dataset(cfg)
+        self.ds = open_dataset(cfg.dataset)
+        self.sampler = TripletSampler(
+            self.ds,
+            pos_radius=cfg.pos_radius,
+            neg_radius=cfg.neg_radius,
+            seed=cfg.seed,
+            sessions=cfg.train_sessions,
+            hard_fraction=cfg.hard_fraction,
+        )
+        self.model = VVLocNet(cfg.model_config()).to(self.device)
+        self.optimizer = torch.optim.Adam(
+            self.model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay
+        )
+        self.scheduler = torch.optim.lr_scheduler.ExponentialLR(self.optimizer, gamma=cfg.lr_decay)
+        self.epoch = 0
+        self.step = 0
+
+    # --- persistence ---------------------------------------------------------------------
+
+    @property
+    def checkpoint_dir(self) -> Path:
+        """Where the latest model checkpoint lives (``VVLocNet.load`` reads it)."""
+        return self.out / "checkpoint"
+
+    def _state_path(self) -> Path:
+        return self.out / "trainer_state.pt"
+
+    def save(self) -> None:
+        """Write the model checkpoint and the trainer state (atomically, each file)."""
+        self.out.mkdir(parents=True, exist_ok=True)
+        self.model.save(self.checkpoint_dir)
+        state = {
+            "epoch": self.epoch,
+            "step": self.step,
+            "optimizer": self.optimizer.state_dict(),
+            "scheduler": self.scheduler.state_dict(),
+            "sampler": pickle.dumps((self.sampler.rng.bit_generator.state, self.sampler._hard)),
+            "torch_rng": torch.get_rng_state(),
+            "config": self.cfg.to_dict(),
+        }
+        tmp = self._state_path().with_suffix(".tmp")
+        torch.save(state, tmp)
+        os.replace(tmp, self._state_path())
+
+    def resume(self) -> bool:
+        """Load the last checkpoint and trainer state from ``out_dir``; False if there is none."""
+        if not self._state_path().is_file():
+            return False
+        state = torch.load(self._state_path(), map_location="cpu", weights_only=False)
+        if state["config"] != self.cfg.to_dict():
+            raise ValueError(
+                f"{self._state_path()}: the run in {self.out} was started with another config; "
+                "use a new --out directory or the same config"
+            )
+        loaded = VVLocNet.load(self.checkpoint_dir)
+        self.model.load_state_dict(loaded.state_dict())
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.scheduler.load_state_dict(state["scheduler"])
+        rng_state, hard = pickle.loads(state["sampler"])
+        self.sampler.rng.bit_generator.state = rng_state
+        self.sampler._hard = hard
+        torch.set_rng_state(state["torch_rng"])
+        self.epoch = int(state["epoch"])
+        self.step = int(state["step"])
+        log.info("resumed %s at epoch %d, step %d", self.out, self.epoch, self.step)
+        return True
+
+    # --- training ------------------------------------------------------------------------
+
+    def stage_of(self, epoch: int) -> int:
+        """1 for the global-descriptor epochs, 2 for the joint epochs."""
+        return 1 if epoch < self.cfg.stage1_epochs else 2
+
+    def run_epoch(self, progress: bool = True) -> dict[str, Any]:
+        """Train one epoch (``steps_per_epoch`` batches); return its log record."""
+        cfg = self.cfg
+        stage = self.stage_of(self.epoch)
+        triplets = self.sampler.sample(cfg.steps_per_epoch * cfg.batch_size)
+        loader = DataLoader(
+            TripletFrames(self.sampler, triplets),
+            batch_size=cfg.batch_size,
+            shuffle=False,
+            num_workers=cfg.num_workers,
+            persistent_workers=False,
+        )
+        self.model.train()
+        sums: dict[str, float] = {"total": 0.0, "triplet": 0.0, "hinge": 0.0, "yaw": 0.0, "tbias": 0.0}
+        violated = 0
+        t0 = time.perf_counter()
+        bar = tqdm(loader, desc=f"epoch {self.epoch + 1}/{cfg.epochs} (stage {stage})",
+                   disable=not progress, leave=False)
+        n = 0
+        for batch in bar:
+            loss, parts, correct = training_losses(
+                self.model, batch, cfg, stage, self.step, self.device
+            )
+            self.optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            if cfg.grad_clip > 0:
+                torch.nn.utils.clip_grad_norm_(self.model.parameters(), cfg.grad_clip)
+            self.optimizer.step()
+            self.sampler.update(batch["triplet"].numpy(), correct)
+            for k in sums:
+                sums[k] += getattr(parts, k)
+            violated += parts.violated
+            n += 1
+            self.step += 1
+            bar.set_postfix(loss=f"{parts.total:.3f}", tri=f"{parts.triplet:.3f}",
+                            yaw=f"{parts.yaw:.3f}", hard=len(self.sampler.hard))
+        record: dict[str, Any] = {
+            "epoch": self.epoch + 1,
+            "stage": stage,
+            "step": self.step,
+            "lr": self.optimizer.param_groups[0]["lr"],
+            **{f"loss_{k}": v / max(n, 1) for k, v in sums.items()},
+            "violated_share": violated / max(n * cfg.batch_size, 1),
+            "hard_pool": len(self.sampler.hard),
+            "seconds": time.perf_counter() - t0,
+            "device": str(self.device),
+        }
+        self.scheduler.step()
+        self.epoch += 1
+        return record
+
+    def fit(self, progress: bool = True) -> list[dict[str, Any]]:
+        """Train until ``cfg.epochs``; checkpoint and log after every epoch."""
+        self.out.mkdir(parents=True, exist_ok=True)
+        (self.out / "train_config.yaml").write_text(yaml.safe_dump(self.cfg.to_dict()))
+        records = []
+        while self.epoch < self.cfg.epochs:
+            rec = self.run_epoch(progress=progress)
+            records.append(rec)
+            self.save()
+            with open(self.out / "log.jsonl", "a") as f:
+                f.write(json.dumps(rec) + "\n")
+            log.info("epoch %d: %s", rec["epoch"], {k: v for k, v in rec.items() if "loss" in k})
+            if not all(math.isfinite(v) for k, v in rec.items() if k.startswith("loss_")):
+                raise FloatingPointError(f"non-finite loss in epoch {rec['epoch']}: {rec}")
+        return records
+
+
+def train(
+    config: str | os.PathLike[str] | TrainConfig,
+    out_dir: str | os.PathLike[str],
+    resume: bool = False,
+    progress: bool = True,
+) -> Trainer:
+    """Train (or resume) a model from a YAML config path or a :class:`TrainConfig`."""
+    cfg = config if isinstance(config, TrainConfig) else TrainConfig.from_yaml(config)
+    trainer = Trainer(cfg, out_dir)
+    if resume:
+        trainer.resume()
+    elif (Path(out_dir) / "trainer_state.pt").exists():
+        raise FileExistsError(
+            f"{out_dir} already holds a training run: pass --resume to continue it, "
+            "or choose another --out"
+        )
+    trainer.fit(progress=progress)
+    return trainer
