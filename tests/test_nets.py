@@ -9,8 +9,8 @@ import math
 import numpy as np
 import pytest
 import torch
-from nets_helpers import make_rig, random_images, tiny_config
 
+from nets_helpers import make_rig, random_images, tiny_config
 from vvloc import kernels
 from vvloc.nets import (
     DiscoHead,
@@ -23,6 +23,15 @@ from vvloc.nets import (
     project_points,
     roll_interp,
 )
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_torch_thread():
+    """Small tensors: one intra-op thread is much faster on a shared, oversubscribed machine."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
 
 
 def _model(cfg: ModelConfig, seed: int = 0) -> VVLocNet:
@@ -381,12 +390,12 @@ def test_load_rejects_mismatched_checkpoints(tmp_path):
     meta = json.loads(meta_path.read_text())
     meta["config"]["ffn_dim"] = 48
     meta_path.write_text(json.dumps(meta))
-    with pytest.raises(ValueError, match="shape mismatches .*ffn"):
+    with pytest.raises(ValueError, match=r"shape mismatches .*ffn"):
         VVLocNet.load(tmp_path)
     meta["config"]["ffn_dim"] = cfg.ffn_dim
     meta["config"]["global_head"] = "disco"
     meta_path.write_text(json.dumps(meta))
-    with pytest.raises(ValueError, match="missing .*unexpected"):
+    with pytest.raises(ValueError, match=r"missing .*unexpected"):
         VVLocNet.load(tmp_path)
     meta["version"] = 99
     meta_path.write_text(json.dumps(meta))

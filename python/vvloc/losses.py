@@ -88,7 +88,7 @@ def yaw_circle_loss(
     Subtracting the floor log T (all logits 0 ⇒ log(1 + (T − 1))) makes a row whose margins are all
     met contribute exactly 0 without changing any gradient. Returns the mean over (P, T).
     """
-    p, t, _ = src.shape
+    _p, t, _ = src.shape
     dist = _pairwise_distance(src, tgt)  # (P, T, T)
     eye = torch.eye(t, dtype=torch.bool, device=src.device)
     d_pos = dist.diagonal(dim1=-2, dim2=-1)  # (P, T)

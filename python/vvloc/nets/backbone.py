@@ -50,7 +50,7 @@ class ResNetBackbone(nn.Module):
         )
         stages = []
         c_in = c0
-        for s, (c, n) in enumerate(zip(widths, blocks)):
+        for s, (c, n) in enumerate(zip(widths, blocks, strict=True)):
             layers = [BasicBlock(c_in, c, 1 if s == 0 else 2)]
             layers += [BasicBlock(c, c, 1) for _ in range(n - 1)]
             stages.append(nn.Sequential(*layers))
@@ -79,10 +79,10 @@ class FPN(nn.Module):
 
     def forward(self, feats: list[Tensor]) -> list[Tensor]:
         feats = feats[len(feats) - self.num_levels :]
-        lat = [conv(f) for conv, f in zip(self.lateral, feats)]
+        lat = [conv(f) for conv, f in zip(self.lateral, feats, strict=True)]
         for i in range(len(lat) - 2, -1, -1):
             lat[i] = lat[i] + F.interpolate(lat[i + 1], size=lat[i].shape[-2:], mode="nearest")
-        return [conv(x) for conv, x in zip(self.output, lat)]
+        return [conv(x) for conv, x in zip(self.output, lat, strict=True)]
 
 
 IMAGENET_MEAN = torch.tensor([0.485, 0.456, 0.406])

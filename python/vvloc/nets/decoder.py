@@ -83,7 +83,7 @@ class Interactor(nn.Module):
                 f"local_src, local_tgt: expected the same number of pairs P, got "
                 f"{src.shape[0]} and {tgt.shape[0]}"
             )
-        for tasa, cross in zip(self.tasa, self.cross):
+        for tasa, cross in zip(self.tasa, self.cross, strict=True):
             src, tgt = tasa(src, self.rel), tasa(tgt, self.rel)
             src, tgt = cross(src, tgt), cross(tgt, src)
         return F.normalize(src, dim=-1), F.normalize(tgt, dim=-1)

@@ -18,7 +18,7 @@ def ms_deform_sample(
     (x, y) normalised to [0, 1] over the level's image extent (pixel-edge convention,
     ``align_corners=False``); weights (B, Q, heads, L, P). Returns (B, Q, C); taps outside read 0.
     """
-    b, q, h, n_levels, p, _ = locations.shape
+    b, q, h, _n_levels, p, _ = locations.shape
     out = None
     grids = 2.0 * locations - 1.0
     for lvl, value in enumerate(values):

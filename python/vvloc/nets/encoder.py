@@ -86,7 +86,7 @@ class EncoderLayer(nn.Module):
     def _self_attention(self, bev: Tensor, pos: Tensor, ref_bev: Tensor) -> Tensor:
         assert self.self_attn is not None
         attn = self.self_attn
-        b, q, c = bev.shape
+        b, _q, c = bev.shape
         h, w = self.bev_shape
         value = attn.value_proj(bev).transpose(1, 2).reshape(b, c, h, w)
         off, wts = attn.offsets_and_weights(bev + pos)
@@ -104,12 +104,12 @@ class EncoderLayer(nn.Module):
         and scattered back; every cell's sum is divided by the number of cameras seeing it.
         """
         attn = self.cross_attn
-        b, m, q = ref_cam.shape[:3]
+        b, m, _q = ref_cam.shape[:3]
         shapes = [(v.shape[-2], v.shape[-1]) for v in values]
         off, wts = attn.offsets_and_weights(bev + pos)
         off_flat, wts_flat = off.flatten(2), wts.flatten(2)
         acc = torch.zeros_like(bev)
-        count = torch.zeros(bev.shape[:2] + (1,), dtype=bev.dtype, device=bev.device)
+        count = torch.zeros((*bev.shape[:2], 1), dtype=bev.dtype, device=bev.device)
         for cam in range(m):
             seen = visible[:, cam].any(-1)  # (B, Q)
             n_seen = seen.sum(1)
@@ -122,12 +122,12 @@ class EncoderLayer(nn.Module):
 
             def take(x: Tensor, idx: Tensor = order) -> Tensor:
                 index = idx.reshape(idx.shape + (1,) * (x.ndim - 2)).expand(
-                    (-1, -1) + tuple(x.shape[2:])
+                    (-1, -1, *tuple(x.shape[2:]))
                 )
                 return torch.gather(x, 1, index)
 
-            cam_off = take(off_flat).view((b, n_max) + tuple(off.shape[2:]))
-            cam_wts = take(wts_flat).view((b, n_max) + tuple(wts.shape[2:]))
+            cam_off = take(off_flat).view((b, n_max, *tuple(off.shape[2:])))
+            cam_wts = take(wts_flat).view((b, n_max, *tuple(wts.shape[2:])))
             loc = attn.sampling_locations(take(ref_cam[:, cam]), cam_off, shapes)
             out = ms_deform_sample([v[:, cam] for v in values], loc, cam_wts, attn.num_heads)
             index = order[..., None].expand(-1, -1, bev.shape[-1])

@@ -47,7 +47,7 @@ def polar_sample(bev: Tensor, num_angles: int, num_radii: int, grid_size: float)
     bilinear weights sum to one).
     """
     _check_bev(bev)
-    b, h, w, c = bev.shape
+    b, h, w, _c = bev.shape
     rows, cols = polar_points(h, w, num_angles, num_radii, grid_size)
     # align_corners=True: normalised −1 ↔ index 0, +1 ↔ index size−1.
     gx = cols * (2.0 / (w - 1)) - 1.0
@@ -91,7 +91,7 @@ def bev_pad(bev: Tensor, translations: Tensor, grid_size: float) -> Tensor:
             f"translations: expected {bev.shape[0]} rows to match bev (N, H, W, C), got {n}"
         )
     _check_bev(bev)
-    _, h, w, c = bev.shape
+    _, h, w, _c = bev.shape
     sx, sy = t[:, 0] / grid_size, t[:, 1] / grid_size  # shift in cells, (N,)
     rows = torch.arange(h, dtype=torch.float64, device=bev.device)[None, :] + sx[:, None]
     cols = torch.arange(w, dtype=torch.float64, device=bev.device)[None, :] + sy[:, None]
