@@ -288,20 +288,19 @@ def test_roll_interp_per_row_shifts():
         np.testing.assert_allclose(out[p].numpy(), ref, atol=1e-6)
 
 
-has_spatial_kernels = hasattr(kernels, "polar_sample") and hasattr(kernels, "bev_pad")
-
-
-@pytest.mark.skipif(not has_spatial_kernels, reason="Rust spatial kernels not merged yet")
 def test_polar_and_pad_equal_rust_kernels():
     rng = np.random.default_rng(3)
     q = rng.standard_normal((2, 20, 18, 5)).astype(np.float32)
     got = polar_sample(torch.from_numpy(q), 24, 8, 0.3).numpy()
-    want = kernels.polar_sample(q, 24, 8, 0.3)  # type: ignore[attr-defined]
+    want = kernels.polar_sample(q, 24, 8, 0.3)
     np.testing.assert_allclose(got, want, atol=1e-5)
     t = np.array([[0.0, 0.0], [0.45, -1.2], [-2.0, 0.7]], dtype=np.float32)
     got_pad = bev_pad(torch.from_numpy(q[0]), torch.from_numpy(t), 0.3).numpy()
-    want_pad = kernels.bev_pad(q[0], t, 0.3)  # type: ignore[attr-defined]
+    want_pad = kernels.bev_pad(q[0], t, 0.3)
     np.testing.assert_allclose(got_pad, want_pad, atol=1e-5)
+    # the per-item (batched) form used by the losses
+    got_items = bev_pad(torch.from_numpy(q[:1]).expand(3, -1, -1, -1), torch.from_numpy(t), 0.3)
+    np.testing.assert_allclose(got_items.numpy(), want_pad, atol=1e-5)
 
 
 # --- heads, decoder, interactor under circular angle shifts -------------------------------

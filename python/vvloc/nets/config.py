@@ -5,7 +5,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 CONFIG_VERSION = 1
@@ -59,7 +59,6 @@ class ModelConfig:
     global_dim: int = 256
     disco_crop: tuple[int, int] = (16, 16)
     gem_p: float = 3.0
-    extra: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self.backbone_widths = tuple(int(v) for v in self.backbone_widths)
