@@ -157,6 +157,9 @@ class EncoderLayer(nn.Module):
 class BevEncoder(nn.Module):
     """Image features of a rig → BEV queries (B, H, W, C) channels-last (DESIGN.md §3)."""
 
+    pillars: Tensor  # (H·W, D, 3) ego-frame reference points, buffer
+    ref_bev: Tensor  # (1, H·W, 1, 2) normalised (x ↔ column, y ↔ row) cell centres, buffer
+
     def __init__(self, cfg: ModelConfig) -> None:
         super().__init__()
         c, h, w = cfg.channels, cfg.bev_height, cfg.bev_width
@@ -226,6 +229,7 @@ class BevEncoder(nn.Module):
         pos = self.positional_encoding()
         bev = self.queries[None].expand(b, -1, -1)
         for layer in self.layers:
+            assert isinstance(layer, EncoderLayer)
             values = [
                 layer.cross_attn.project_values(f.flatten(0, 1)).unflatten(0, (b, m)) for f in feats
             ]

@@ -95,7 +95,8 @@ class VVLocNet(nn.Module):
         """
         images, intrinsics, cam_to_ego = self._check_inputs(images, intrinsics, cam_to_ego)
         feats = self.image_features(images)
-        bev = self.bev_from_features(feats, intrinsics, cam_to_ego, tuple(images.shape[-2:]))
+        size = (int(images.shape[-2]), int(images.shape[-1]))
+        bev = self.bev_from_features(feats, intrinsics, cam_to_ego, size)
         polar = self.polar(bev)
         return EncoderOutput(
             bev=bev,
