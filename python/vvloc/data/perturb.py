@@ -13,7 +13,7 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
-from scipy.ndimage import convolve1d, rotate
+from scipy.ndimage import convolve
 
 from vvloc.data.frame import Frame
 
@@ -75,24 +75,31 @@ def motion_blur(
         raise ValueError(f"length: expected >= 1 pixel, got {length}")
     rng = np.random.default_rng(seed)
     out = images.copy()
-    kernel = np.ones(length) / length
     for c in _camera_list(cameras, images.shape[0]):
         ang = float(rng.uniform(0, 180)) if angle_deg is None else float(angle_deg)
+        kernel = line_kernel(length, ang)
         img = images[c].astype(np.float64)
-        if ang % 180 == 0:
-            res = convolve1d(img, kernel, axis=2, mode="nearest")
-        elif ang % 180 == 90:
-            res = convolve1d(img, kernel, axis=1, mode="nearest")
-        else:
-            # rotate so that the blur direction is horizontal, blur, rotate back
-            r = rotate(img, -ang, axes=(2, 1), reshape=True, order=1, mode="nearest")
-            r = convolve1d(r, kernel, axis=2, mode="nearest")
-            r = rotate(r, ang, axes=(2, 1), reshape=False, order=1, mode="nearest")
-            h0 = (r.shape[1] - img.shape[1]) // 2
-            w0 = (r.shape[2] - img.shape[2]) // 2
-            res = r[:, h0 : h0 + img.shape[1], w0 : w0 + img.shape[2]]
+        res = np.stack([convolve(ch, kernel, mode="nearest") for ch in img])
         out[c] = np.clip(np.rint(res), 0, 255).astype(np.uint8)
     return out
+
+
+def line_kernel(length: int, angle_deg: float) -> np.ndarray:
+    """A normalised (k, k) kernel: a ``length``-pixel line through the centre at ``angle_deg``
+    (0° = image x axis, 90° = image y axis), drawn with bilinear weights."""
+    k = length if length % 2 == 1 else length + 1
+    kern = np.zeros((k, k))
+    c = (k - 1) / 2
+    a = np.deg2rad(angle_deg)
+    for t in np.linspace(-(length - 1) / 2, (length - 1) / 2, 4 * length):
+        x, y = c + t * np.cos(a), c + t * np.sin(a)
+        x0, y0 = int(np.floor(x)), int(np.floor(y))
+        fx, fy = x - x0, y - y0
+        for dy, wy in ((0, 1 - fy), (1, fy)):
+            for dx, wx in ((0, 1 - fx), (1, fx)):
+                if 0 <= y0 + dy < k and 0 <= x0 + dx < k:
+                    kern[y0 + dy, x0 + dx] += wx * wy
+    return kern / kern.sum()
 
 
 def region_boxes(

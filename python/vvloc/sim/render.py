@@ -362,9 +362,11 @@ class Renderer:
         indices: np.ndarray,
         lights: np.ndarray | None = None,
         light_colors: np.ndarray | None = None,
+        light_floors: np.ndarray | None = None,
     ) -> None:
         """Upload the scene: (N, 10) float32 vertices, (K,) uint32 indices, (L, 4) lights
-        (x, y, z, range m) and (L, 3) light colours."""
+        (x, y, z, range m), (L, 3) light colours and (L,) the storey of each light (only the
+        lights of the rendered floor shine; without floors, lights within 8 m above do)."""
         for b in self._buffers:
             b.release()
         if self.vao is not None:
@@ -386,6 +388,7 @@ class Renderer:
             if light_colors is None
             else np.asarray(light_colors, np.float32)
         )
+        self.light_floors = None if light_floors is None else np.asarray(light_floors, np.int64)
 
     def _set(self, name: str, value: Any) -> None:
         if name in self.prog:
@@ -397,8 +400,10 @@ class Renderer:
         z: float = 0.0,
         lighting: Lighting | str = "day",
         frame_index: int = 0,
+        floor: int = 0,
     ) -> np.ndarray:
-        """Render the rig at ego pose (x, y, yaw) and height ``z``: (M, 3, H, W) uint8."""
+        """Render the rig at ego pose (x, y, yaw) and height ``z`` on storey ``floor``:
+        (M, 3, H, W) uint8. ``frame_index`` seeds the rain streaks."""
         if self.vao is None:
             raise RuntimeError("no scene: call set_mesh first")
         lt = PRESETS[lighting] if isinstance(lighting, str) else lighting
@@ -427,7 +432,7 @@ class Renderer:
         self._set("u_wet", lt.wet)
         self._set("u_time", float(frame_index % 9973))
         self._set("u_marker", self.marker)
-        self._set_lights(T_we, z, lt)
+        self._set_lights(T_we, z, lt, floor)
         head = T_we @ np.array([[3.6, 0.7, 0.7, 1.0], [3.6, -0.7, 0.7, 1.0]]).T
         hdir = T_we[:3, :3] @ np.array([0.97, 0.0, -0.12])
         self._set("u_head0", tuple(head[:3, 0]))
@@ -447,12 +452,15 @@ class Renderer:
         )
         return np.ascontiguousarray(img.transpose(0, 3, 1, 2))
 
-    def _set_lights(self, T_we: np.ndarray, z: float, lt: Lighting) -> None:
+    def _set_lights(self, T_we: np.ndarray, z: float, lt: Lighting, floor: int) -> None:
         if lt.lamps <= 0 or len(self.lights) == 0:
             self._set("u_nl", 0)
             return
         pos = self.lights
-        keep = np.flatnonzero((pos[:, 2] > z - 0.5) & (pos[:, 2] < z + 8.0))
+        if self.light_floors is not None:
+            keep = np.flatnonzero(self.light_floors == floor)
+        else:
+            keep = np.flatnonzero((pos[:, 2] > z - 0.5) & (pos[:, 2] < z + 8.0))
         if lt.light_fraction < 1.0:
             # a fixed subset of lamps is out (a function of the lamp, not of the frame)
             h = np.modf(np.abs(pos[keep, 0] * 12.9898 + pos[keep, 1] * 78.233) * 0.1)[0]

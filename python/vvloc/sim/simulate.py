@@ -120,7 +120,7 @@ def simulate_dataset(
         with DatasetWriter(out, rig, overwrite=overwrite, meta=meta) as writer:
             for k, spec in enumerate(plan):
                 verts, idx = world.mesh(spec.change_fraction, spec.seed)
-                renderer.set_mesh(verts, idx, world.lights, world.light_colors)
+                renderer.set_mesh(verts, idx, world.lights, world.light_colors, world.light_floors)
                 sw = writer.add_session(spec.name, meta=asdict(spec))
                 drive = Drive(spec.offset, spec.reverse, seed=spec.seed)
                 nf = len(loops)
@@ -133,7 +133,7 @@ def simulate_dataset(
                     z = float(world.floor_z[f]) + 0.0  # no -0.0 in the CSV
                     for j in range(n):
                         ts = T0_US + k * SESSION_GAP_US + round((t_base + times[j]) * 1e6)
-                        images = renderer.render(poses[j], z, spec.lighting, frame_index=j)
+                        images = renderer.render(poses[j], z, spec.lighting, frame_index=j, floor=f)
                         sw.add(ts, poses[j], images, z=z, floor=f)
                         bar.update(1)
                     t_base += float(times[-1]) + 60.0  # a minute on the ramp to the next floor

@@ -26,6 +26,8 @@ class MeshBuilder:
         self._verts: list[np.ndarray] = []
         self._idx: list[np.ndarray] = []
         self._n = 0
+        # point lights: x, y, z, range m, colour, floor
+        self.lights: list[tuple[float, float, float, float, tuple[float, float, float], int]] = []
 
     def _add(
         self, pos: np.ndarray, nrm: np.ndarray, color: tuple[float, ...], mat: int, tris: np.ndarray
@@ -211,7 +213,8 @@ class World:
         kind: "parking" or "garage".
         static: (vertices, indices) of everything that never changes.
         bays: parking bays; ``occupancy`` (B,) bool and ``car_colors`` (B, 3) of the base world.
-        lights: (L, 4) float32 light positions (x, y, z) and range (m); ``light_colors`` (L, 3).
+        lights: (L, 4) float32 light positions (x, y, z) and range (m); ``light_colors`` (L, 3);
+            ``light_floors`` (L,) the storey each light is on.
         routes: per floor, a closed loop of waypoints (K, 2) along the aisle centres.
         floor_z: (F,) height of each floor's driving surface.
     """
@@ -224,6 +227,7 @@ class World:
     car_colors: np.ndarray
     lights: np.ndarray
     light_colors: np.ndarray
+    light_floors: np.ndarray
     routes: list[np.ndarray]
     floor_z: np.ndarray
     extra: dict[str, float] = field(default_factory=dict)
@@ -467,8 +471,10 @@ def parking_world(
     pts += [(x_far, -8.0 + 2.0), (xw - 7.0 if x_far > 0 else xe + 7.0, -6.0)]
     pts += [(pts[-1][0], y_aisles[0])]
     route = np.array(pts, dtype=np.float64)
-    lights, lcols = _collect_lights(mb)
-    return World("parking", seed, static, bays, occ, colors, lights, lcols, [route], np.zeros(1))
+    lights, lcols, lfloors = _collect_lights(mb)
+    return World(
+        "parking", seed, static, bays, occ, colors, lights, lcols, lfloors, [route], np.zeros(1)
+    )
 
 
 _LIGHTS: list[tuple[float, float, float, float, tuple[float, float, float]]] = []
@@ -478,21 +484,20 @@ def _lamp(mb: MeshBuilder, x: float, y: float, z: float) -> None:
     mb.cylinder((x, y, z), 0.1, 6.0, (0.4, 0.42, 0.45), CONCRETE, sides=6)
     mb.box((x, y, z + 6.0), (0.9, 0.35, 0.12), (0.3, 0.3, 0.32), CONCRETE)
     mb.box((x, y, z + 5.94), (0.7, 0.25, 0.06), (1.0, 0.85, 0.6), EMISSIVE, bottom=True)
-    mb.lights = getattr(mb, "lights", [])  # type: ignore[attr-defined]
-    mb.lights.append((x, y, z + 5.9, 9.0, (1.0, 0.8, 0.55)))  # type: ignore[attr-defined]
+    mb.lights.append((x, y, z + 5.9, 9.0, (1.0, 0.8, 0.55), 0))
 
 
-def _ceiling_light(mb: MeshBuilder, x: float, y: float, z_ceiling: float) -> None:
+def _ceiling_light(mb: MeshBuilder, x: float, y: float, z_ceiling: float, floor: int) -> None:
     mb.box((x, y, z_ceiling - 0.08), (1.2, 0.25, 0.08), (0.95, 0.97, 1.0), EMISSIVE, bottom=True)
-    mb.lights = getattr(mb, "lights", [])  # type: ignore[attr-defined]
-    mb.lights.append((x, y, z_ceiling - 0.2, 4.0, (0.85, 0.9, 1.0)))  # type: ignore[attr-defined]
+    mb.lights.append((x, y, z_ceiling - 0.2, 4.0, (0.85, 0.9, 1.0), floor))
 
 
-def _collect_lights(mb: MeshBuilder) -> tuple[np.ndarray, np.ndarray]:
-    ls = getattr(mb, "lights", [])
-    pos = np.array([(x, y, z, r) for x, y, z, r, _ in ls], dtype=np.float32).reshape(-1, 4)
-    col = np.array([c for *_, c in ls], dtype=np.float32).reshape(-1, 3)
-    return pos, col
+def _collect_lights(mb: MeshBuilder) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    ls = mb.lights
+    pos = np.array([(x, y, z, r) for x, y, z, r, _, _ in ls], dtype=np.float32).reshape(-1, 4)
+    col = np.array([c for *_, c, _ in ls], dtype=np.float32).reshape(-1, 3)
+    floors = np.array([f for *_, f in ls], dtype=np.int64)
+    return pos, col, floors
 
 
 def _tree(mb: MeshBuilder, x: float, y: float, rng: np.random.Generator) -> None:
@@ -508,7 +513,8 @@ def garage_world(
     seed: int = 0, *, floors: int = 2, n_bays: int = 18, occupancy: float = 0.6
 ) -> World:
     """An underground garage of ``floors`` storeys of the same layout (pillars, bays, ceiling
-    lights, walls); the level signs (digits) and the parked cars differ between floors.
+    lights, walls); the level signs (digits) and a quarter of the parked cars differ between
+    floors (the cross-floor look-alikes).
     Floor f's driving surface is at z = −3.2·f."""
     if floors < 1:
         raise ValueError(f"floors: expected >= 1, got {floors}")
@@ -542,10 +548,10 @@ def garage_world(
         for ya in y_aisles:
             _bay_rows(mb, 0.0, n_bays, ya, aisle_w, float(z), f, bays)
             for xl in np.arange(1.0, length, 6.0):
-                _ceiling_light(mb, float(xl), ya, zc)
+                _ceiling_light(mb, float(xl), ya, zc, f)
         for xl in (-4.5, length + 4.5):
             for yl in np.arange(2.0, y_top, 6.0):
-                _ceiling_light(mb, xl, float(yl), zc)
+                _ceiling_light(mb, xl, float(yl), zc, f)
         # pillars every 3 bays on the bay-row boundaries
         for ya in y_aisles:
             for side in (-1, 1):
@@ -592,9 +598,21 @@ def garage_world(
                 (0.95, 0.95, 0.95),
             )
     static = mb.arrays()
-    occ = rng.random(len(bays)) < occupancy
-    colors = CAR_PALETTE[rng.integers(len(CAR_PALETTE), size=len(bays))]
+    # floors look alike: every floor starts from floor 0's cars, a quarter of the bays differ
+    per_floor = len(bays) // floors
+    occ0 = rng.random(per_floor) < occupancy
+    col0 = CAR_PALETTE[rng.integers(len(CAR_PALETTE), size=per_floor)]
+    occ_f, col_f = [occ0], [col0]
+    for _ in range(1, floors):
+        flip = rng.random(per_floor) < 0.25
+        col = col0.copy()
+        col[flip] = CAR_PALETTE[rng.integers(len(CAR_PALETTE), size=int(flip.sum()))]
+        occ_f.append(occ0 ^ flip)
+        col_f.append(col)
+    occ, colors = np.concatenate(occ_f), np.concatenate(col_f)
     xw, xe = -4.5, length + 4.5
     loop = np.array([(xw, y_aisles[0]), (xe, y_aisles[0]), (xe, y_aisles[1]), (xw, y_aisles[1])])
-    lights, lcols = _collect_lights(mb)
-    return World("garage", seed, static, bays, occ, colors, lights, lcols, [loop] * floors, floor_z)
+    lights, lcols, lfloors = _collect_lights(mb)
+    return World(
+        "garage", seed, static, bays, occ, colors, lights, lcols, lfloors, [loop] * floors, floor_z
+    )
