@@ -95,7 +95,7 @@ def test_missing_image_and_unknown_camera_are_named(tmp_path):
     root2 = tmp_path / "ds2"
     _write(root2, {"s0": _line(2)})
     (root2 / "sessions" / "s0" / "roof").mkdir()
-    with pytest.raises(DatasetFormatError, match="camera 'roof' is not in rig.json"):
+    with pytest.raises(DatasetFormatError, match=r"camera 'roof' is not in rig\.json"):
         open_dataset(root2)
     with pytest.raises(FileNotFoundError):
         open_dataset(tmp_path / "nope")
@@ -122,8 +122,11 @@ def test_writer_leaves_nothing_behind_on_error(tmp_path):
 def _drive_dataset(root):
     loop = sample_loop(parking_world(0).routes[0])
     sessions = {}
-    for name, drive in (("s0", Drive()), ("s1", Drive(1.5, False, seed=1)),
-                        ("s2", Drive(-1.5, True, seed=2))):
+    for name, drive in (
+        ("s0", Drive()),
+        ("s1", Drive(1.5, False, seed=1)),
+        ("s2", Drive(-1.5, True, seed=2)),
+    ):
         poses, _ = drive_keyframes(loop, drive, 200)  # about one lap
         sessions[name] = (poses, np.zeros(len(poses), int))
     _write(root, sessions, cameras=make_rig(1, W, H))
@@ -144,7 +147,9 @@ def test_revisits_in_other_sessions_are_positives(tmp_path):
     for other in ("s1", "s2"):
         d = np.linalg.norm(ds.session(other).poses[:, None, :2] - s0.poses[None, :, :2], axis=2)
         assert np.median(d.min(axis=1)) < 2.0
-    assert np.array_equal(TripletSampler(ds, seed=0).sample(16), TripletSampler(ds, seed=0).sample(16))
+    assert np.array_equal(
+        TripletSampler(ds, seed=0).sample(16), TripletSampler(ds, seed=0).sample(16)
+    )
     name, idx = sampler.locate(int(t[0, 0]))
     assert sampler.frame(int(t[0, 0])).session == name and sampler.frame(int(t[0, 0])).index == idx
 
@@ -169,9 +174,10 @@ def test_floors_are_different_places(tmp_path):
     sampler = TripletSampler(ds, seed=0)
     for a in sampler.anchors:
         for p in sampler.positives[a]:
-            assert ds.session(sampler.locate(int(p))[0]).floors[0] == ds.session(
-                sampler.locate(int(a))[0]
-            ).floors[0]
+            assert (
+                ds.session(sampler.locate(int(p))[0]).floors[0]
+                == ds.session(sampler.locate(int(a))[0]).floors[0]
+            )
     split = evaluation_split(ds, database="s0", revisit_radius=1.0)
     assert set(split.query_sessions.tolist()) == {"s2"}  # s1 is on another floor
     assert np.all(split.nearest_distance <= 1.0) and len(split.query_indices) == 5

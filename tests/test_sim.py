@@ -164,8 +164,17 @@ def test_session_plan_covers_offsets_reversals_and_lighting():
 
 def test_simulated_dataset_round_trips_through_the_reader(egl, tmp_path):
     out = tmp_path / "synth"
-    simulate_dataset(out, scene="garage", sessions=2, frames=6, floors=2, width=32, height=24,
-                     cameras=5, progress=False)
+    simulate_dataset(
+        out,
+        scene="garage",
+        sessions=2,
+        frames=6,
+        floors=2,
+        width=32,
+        height=24,
+        cameras=5,
+        progress=False,
+    )
     ds = open_dataset(out)
     assert ds.sessions == ["s0", "s1"] and len(ds.cameras) == 5
     s1 = ds.session("s1")
@@ -188,8 +197,24 @@ def _vvloc_exe() -> list[str]:
 
 def test_cli_sim_through_the_installed_entry_point(egl, tmp_path):
     out = tmp_path / "cli"
-    cmd = [*_vvloc_exe(), "sim", "--scene", "parking", "--sessions", "2", "--frames", "3",
-           "--out", str(out), "--width", "24", "--height", "16", "--texture_strength", "0.5"]
+    cmd = [
+        *_vvloc_exe(),
+        "sim",
+        "--scene",
+        "parking",
+        "--sessions",
+        "2",
+        "--frames",
+        "3",
+        "--out",
+        str(out),
+        "--width",
+        "24",
+        "--height",
+        "16",
+        "--texture_strength",
+        "0.5",
+    ]
     res = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert res.returncode == 0, res.stderr
     ds = open_dataset(out)
@@ -199,14 +224,21 @@ def test_cli_sim_through_the_installed_entry_point(egl, tmp_path):
 
 
 def test_cli_help_shows_defaults_and_rejects_bad_values():
-    res = subprocess.run([*_vvloc_exe(), "sim", "--help"], capture_output=True, text=True,
-                         env={**os.environ, "COLUMNS": "200"})
+    res = subprocess.run(
+        [*_vvloc_exe(), "sim", "--help"],
+        capture_output=True,
+        text=True,
+        env={**os.environ, "COLUMNS": "200"},
+    )
     assert res.returncode == 0
     for flag in ("--scene", "--sessions", "--frames", "--floors", "--texture_strength"):
         assert flag in res.stdout
     assert "default: 600" in res.stdout
-    bad = subprocess.run([sys.executable, "-m", "vvloc.cli", "sim", "--out", "x", "--scene", "moon"],
-                         capture_output=True, text=True)
+    bad = subprocess.run(
+        [sys.executable, "-m", "vvloc.cli", "sim", "--out", "x", "--scene", "moon"],
+        capture_output=True,
+        text=True,
+    )
     assert bad.returncode != 0 and "moon" in bad.stderr
 
 

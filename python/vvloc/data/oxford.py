@@ -4,7 +4,7 @@ Layout read (the dataset's own folders plus the SDK's ``models/`` and ``extrinsi
 
     <root>/<session>/stereo/centre/<utime>.png   Bayer GBRG, 8 bit   + <session>/stereo.timestamps
     <root>/<session>/mono_{left,right,rear}/<utime>.png   Bayer RGGB  + <session>/mono_*.timestamps
-    <root>/<session>/gps/ins.csv                 timestamp,..,northing,easting,down,..,roll,pitch,yaw
+    <root>/<session>/gps/ins.csv                 timestamp,..,northing,easting,down,..,yaw
     <models_dir>/<model>.txt                     "fx fy cx cy" then the 4×4 G_camera_image
     <models_dir>/<model>_distortion_lut.bin      optional float64 LUT 2 × (H·W): source u, v rows
     <extrinsics_dir>/<sensor>.txt                "x y z roll pitch yaw" (m, rad) of the sensor in
