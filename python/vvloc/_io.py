@@ -1,0 +1,137 @@
+"""Atomic file writing: a file at its final path is either the old one or the complete new one.
+
+Every writer of vvloc (maps, CSV, g2o, TUM) writes into a temporary file in the destination's
+directory, flushes it to disk (``fsync``), and renames it over the destination (``os.replace``,
+atomic on POSIX and Windows for paths on one file system), then syncs the directory so that the
+rename itself survives a crash. On any error, including ``KeyboardInterrupt``, the temporary
+file is removed and an existing file at the destination is left untouched.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import secrets
+from collections.abc import Iterator
+from pathlib import Path
+from types import TracebackType
+from typing import IO, Any
+
+__all__ = ["AtomicPath", "atomic_path", "atomic_write"]
+
+
+def _fsync_file(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _fsync_dir(path: Path) -> None:
+    # Directory fsync makes the rename durable; some platforms/file systems refuse it (Windows).
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+class AtomicPath:
+    """A temporary path next to ``path`` that replaces ``path`` on :meth:`commit`.
+
+    Use as a context manager: ``with AtomicPath(p) as tmp: write(tmp)`` commits when the block
+    ends normally and aborts (removes the temporary file) when it raises. The temporary file is
+    created empty (mode 0o666 minus the umask, like a plain ``open``) with a hidden random name
+    ``.<name>.<hex>.tmp`` in the destination's directory, so the final rename never crosses file
+    systems. :meth:`commit` and :meth:`abort` may also be called explicitly (once).
+    """
+
+    def __init__(self, path: str | os.PathLike[str]) -> None:
+        self.path = Path(os.fspath(path))
+        if self.path.name in ("", ".", ".."):
+            raise ValueError(f"path: expected a file path, got {os.fspath(path)!r}")
+        self.tmp = self._create_temp()
+        self._done = False
+
+    def _create_temp(self) -> Path:
+        directory = self.path.parent
+        for _ in range(100):
+            tmp = directory / f".{self.path.name}.{secrets.token_hex(6)}.tmp"
+            try:
+                fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+            except FileExistsError:
+                continue
+            os.close(fd)
+            return tmp
+        raise FileExistsError(f"could not create a temporary file next to {self.path}")
+
+    def commit(self) -> None:
+        """Flush the temporary file to disk and rename it over the destination."""
+        if self._done:
+            raise RuntimeError(f"{self.path}: atomic write already finished")
+        self._done = True
+        try:
+            _fsync_file(self.tmp)
+            os.replace(self.tmp, self.path)
+        except BaseException:
+            self._remove_temp()
+            raise
+        _fsync_dir(self.path.parent)
+
+    def abort(self) -> None:
+        """Remove the temporary file; the destination is left as it was. Idempotent."""
+        self._done = True
+        self._remove_temp()
+
+    def _remove_temp(self) -> None:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(self.tmp)
+
+    def __enter__(self) -> Path:
+        return self.tmp
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        if exc_type is None:
+            self.commit()
+        else:
+            self.abort()
+
+
+def atomic_path(path: str | os.PathLike[str]) -> AtomicPath:
+    """Return an :class:`AtomicPath` for ``path`` (a context manager yielding the temp path)."""
+    return AtomicPath(path)
+
+
+@contextlib.contextmanager
+def atomic_write(
+    path: str | os.PathLike[str],
+    mode: str = "w",
+    *,
+    encoding: str | None = "utf-8",
+    newline: str | None = None,
+) -> Iterator[IO[Any]]:
+    """Open a temporary file for writing that atomically replaces ``path`` when the block ends.
+
+    ``mode`` is ``"w"`` (text, ``encoding``/``newline`` as for :func:`open`) or ``"wb"``. If the
+    block raises, nothing at ``path`` changes and the temporary file is removed.
+    """
+    if mode not in ("w", "wb"):
+        raise ValueError(f"mode: expected 'w' or 'wb', got {mode!r}")
+    with AtomicPath(path) as tmp:
+        if mode == "wb":
+            with open(tmp, "wb") as fb:
+                yield fb
+        else:
+            with open(tmp, "w", encoding=encoding, newline=newline) as ft:
+                yield ft

@@ -1,0 +1,43 @@
+"""Localization against a map: map database, localizer, loop closures and exports.
+
+:mod:`vvloc.localize.mapdb` stores keyframes (poses, descriptors, BEVs) in one HDF5 file;
+:mod:`vvloc.localize.export` writes loop closures (CSV, g2o) and trajectories (TUM).
+"""
+
+from vvloc.localize.export import (
+    G2OGraph,
+    LoopClosures,
+    information_from_sigmas,
+    read_g2o,
+    read_loop_csv,
+    read_tum,
+    write_g2o,
+    write_loop_csv,
+    write_tum,
+)
+from vvloc.localize.mapdb import (
+    FORMAT_VERSION,
+    MapDatabase,
+    MapError,
+    MapMetadata,
+    MapWriter,
+    model_config_hash,
+)
+
+__all__ = [
+    "FORMAT_VERSION",
+    "G2OGraph",
+    "LoopClosures",
+    "MapDatabase",
+    "MapError",
+    "MapMetadata",
+    "MapWriter",
+    "information_from_sigmas",
+    "model_config_hash",
+    "read_g2o",
+    "read_loop_csv",
+    "read_tum",
+    "write_g2o",
+    "write_loop_csv",
+    "write_tum",
+]

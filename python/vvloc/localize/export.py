@@ -1,0 +1,592 @@
+"""Exports of localization results: loop closures (CSV, g2o) and trajectories (TUM).
+
+Conventions (DESIGN.md §3), written into every file's header where the format has comments:
+
+* World frame: x east, y north, z up. Vehicle frame: x forward, y left, z up. Metres.
+* A pose is (x, y, yaw), yaw counter-clockwise positive about z, radians, wrapped to (−π, π].
+* A relative pose ξ_{i→j} = (x, y, yaw) is keyframe j's pose expressed in keyframe i's frame:
+  T_world_j = T_world_i · ξ_{i→j}. This is exactly g2o's ``EDGE_SE2 i j`` measurement.
+
+All writers take plain arrays, validate them (``TypeError``/``ValueError`` naming the argument),
+write numbers with Python's shortest round-trip ``repr`` (reading back gives the same float64),
+and write atomically (:mod:`vvloc._io`): a failed write leaves no partial file and leaves an
+existing file untouched. Each ``read_*`` function reads back what its writer wrote (and common
+files of that format from other tools).
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import os
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from vvloc._io import atomic_write
+
+__all__ = [
+    "DEFAULT_LOOP_SIGMAS",
+    "DEFAULT_ODOMETRY_SIGMAS",
+    "G2O_CONVENTIONS",
+    "G2OGraph",
+    "LoopClosures",
+    "information_from_sigmas",
+    "read_g2o",
+    "read_loop_csv",
+    "read_tum",
+    "relative_pose",
+    "wrap_angle",
+    "write_g2o",
+    "write_loop_csv",
+    "write_tum",
+]
+
+PathLike = str | os.PathLike[str]
+
+#: Default standard deviations (x m, y m, yaw rad) of odometry edges between consecutive
+#: keyframes of a session: their poses come from the session's own trajectory (GPS/INS or SLAM),
+#: trusted to a few centimetres and a fraction of a degree.
+DEFAULT_ODOMETRY_SIGMAS: tuple[float, float, float] = (0.05, 0.05, math.radians(0.5))
+#: Default standard deviations (x m, y m, yaw rad) of loop-closure edges: a typical metric
+#: localization error of the visual matcher (half a metre, two degrees).
+DEFAULT_LOOP_SIGMAS: tuple[float, float, float] = (0.5, 0.5, math.radians(2.0))
+
+G2O_CONVENTIONS = """\
+vvloc pose graph (g2o, 2D):
+  VERTEX_SE2 id x y theta: keyframe pose in the world frame (x east, y north, metres;
+    theta counter-clockwise about z, radians).
+  EDGE_SE2 i j dx dy dtheta I11 I12 I13 I22 I23 I33: measurement xi_{i->j}, the pose of
+    vertex j expressed in the frame of vertex i (vehicle frame: x forward, y left), i.e.
+    T_world_j = T_world_i * xi; followed by the upper triangle of the 3x3 information matrix
+    (inverse covariance) of (dx, dy, dtheta), row by row.
+  Odometry edges link consecutive keyframes of a session; loop-closure edges follow them.
+"""
+
+_FRAME_COMMENTS = (
+    "frames (DESIGN.md 3): world x east, y north, z up; vehicle x forward, y left, z up; metres",
+    "yaw: counter-clockwise positive about z, radians wrapped to (-pi, pi]",
+)
+
+
+def _r(x: float) -> str:
+    """Shortest text that parses back to the same float64."""
+    return repr(float(x))
+
+
+def wrap_angle(a: Any) -> np.ndarray:
+    """Wrap angles (radians) to (−π, π]."""
+    a = np.asarray(a, dtype=np.float64)
+    return a - 2.0 * np.pi * np.ceil((a - np.pi) / (2.0 * np.pi))
+
+
+def relative_pose(source: Any, target: Any) -> np.ndarray:
+    """ξ_{s→t}: the target pose expressed in the source frame (DESIGN.md §3).
+
+    ``source``, ``target``: (..., 3) world poses (x, y, yaw). Returns (..., 3) float64 with
+    T_world_t = T_world_s · ξ and the yaw difference wrapped to (−π, π].
+    """
+    s = np.asarray(source, dtype=np.float64)
+    t = np.asarray(target, dtype=np.float64)
+    dx = t[..., 0] - s[..., 0]
+    dy = t[..., 1] - s[..., 1]
+    c, si = np.cos(s[..., 2]), np.sin(s[..., 2])
+    return np.stack(
+        [c * dx + si * dy, -si * dx + c * dy, wrap_angle(t[..., 2] - s[..., 2])], axis=-1
+    )
+
+
+# ---------------------------------------------------------------------------------------------
+# Validation helpers
+
+
+def _to_array(x: Any, name: str) -> np.ndarray:
+    if hasattr(x, "detach") and hasattr(x, "cpu"):  # torch.Tensor, without importing torch
+        x = x.detach().cpu().numpy()
+    if x is None or isinstance(x, (str, bytes)):
+        raise TypeError(f"{name}: expected an array, got {type(x).__name__}")
+    return np.asarray(x)
+
+
+def _floats(x: Any, name: str, shape_doc: str, shape: tuple[int | None, ...]) -> np.ndarray:
+    arr = _to_array(x, name)
+    if arr.dtype == object or arr.dtype.kind not in "fiu":
+        raise TypeError(f"{name}: expected a real-valued array {shape_doc}, got dtype {arr.dtype}")
+    if arr.ndim != len(shape) or any(
+        e is not None and a != e for a, e in zip(arr.shape, shape, strict=True)
+    ):
+        raise ValueError(f"{name}: expected shape {shape_doc}, got shape {arr.shape}")
+    arr = np.ascontiguousarray(arr, dtype=np.float64)
+    if not np.isfinite(arr).all():
+        raise ValueError(f"{name}: contains non-finite values (NaN or inf)")
+    return arr
+
+
+def _ints(x: Any, name: str, n: int) -> np.ndarray:
+    arr = _to_array(x, name)
+    if arr.shape == (0,) and n == 0:
+        return np.zeros(0, np.int64)
+    if arr.dtype.kind not in "iu":
+        raise TypeError(f"{name}: expected an integer array ({n},), got dtype {arr.dtype}")
+    if arr.shape != (n,):
+        raise ValueError(f"{name}: expected shape ({n},), got shape {arr.shape}")
+    return np.ascontiguousarray(arr, dtype=np.int64)
+
+
+def _information(x: Any, name: str, k: int) -> np.ndarray:
+    """(3, 3) or (k, 3, 3) symmetric positive-definite → (k, 3, 3) float64."""
+    arr = _to_array(x, name)
+    if arr.shape == (3, 3):
+        arr = np.broadcast_to(arr, (k, 3, 3))
+    arr = _floats(arr, name, f"(3, 3) or ({k}, 3, 3)", (k, 3, 3))
+    if not np.allclose(arr, np.swapaxes(arr, 1, 2), rtol=1e-9, atol=0.0):
+        raise ValueError(f"{name}: information matrices must be symmetric")
+    if k and np.linalg.eigvalsh(arr).min() <= 0.0:
+        raise ValueError(f"{name}: information matrices must be positive definite")
+    return arr
+
+
+def information_from_sigmas(sigma_x: float, sigma_y: float, sigma_yaw: float) -> np.ndarray:
+    """(3, 3) diagonal information matrix diag(1/σx², 1/σy², 1/σyaw²) (metres, radians)."""
+    sig = _floats([sigma_x, sigma_y, sigma_yaw], "sigmas", "(3,)", (3,))
+    if (sig <= 0).any():
+        raise ValueError(f"sigmas: standard deviations must be > 0, got {sig.tolist()}")
+    return np.diag(1.0 / sig**2)
+
+
+def _comment_lines(comments: Iterable[str]) -> list[str]:
+    if isinstance(comments, str):
+        comments = [comments]
+    out: list[str] = []
+    for c in comments:
+        if not isinstance(c, str):
+            raise TypeError(f"comments: expected str lines, got {type(c).__name__}")
+        out.extend(f"# {line}".rstrip() for line in c.splitlines() or [""])
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# Loop closures
+
+
+@dataclass(frozen=True, eq=False)
+class LoopClosures:
+    """K loop-closure results (validated and converted on construction).
+
+    Attributes:
+        i: (K,) int64 source keyframe ids.
+        j: (K,) int64 target keyframe ids.
+        relative_poses: (K, 3) float64 ξ_{i→j} = (x, y, yaw): keyframe j in keyframe i's
+            frame (metres, radians CCW, yaw wrapped to (−π, π]).
+        costs: (K,) float64 matching costs (lower is more confident).
+        accepted: (K,) bool, typically ``costs < threshold``.
+    """
+
+    i: np.ndarray
+    j: np.ndarray
+    relative_poses: np.ndarray
+    costs: np.ndarray
+    accepted: np.ndarray
+
+    def __post_init__(self) -> None:
+        i = _to_array(self.i, "i")
+        if i.ndim != 1:
+            raise ValueError(f"i: expected shape (K,), got shape {i.shape}")
+        k = i.shape[0]
+        acc = _to_array(self.accepted, "accepted")
+        if acc.shape == (0,):
+            acc = acc.astype(bool)
+        if acc.dtype != np.bool_:
+            raise TypeError(f"accepted: expected a bool array ({k},), got dtype {acc.dtype}")
+        if acc.shape != (k,):
+            raise ValueError(f"accepted: expected shape ({k},), got shape {acc.shape}")
+        poses = _floats(self.relative_poses, "relative_poses", f"({k}, 3)", (k, 3)).copy()
+        poses[:, 2] = wrap_angle(poses[:, 2])
+        values = {
+            "i": _ints(self.i, "i", k),
+            "j": _ints(self.j, "j", k),
+            "relative_poses": poses,
+            "costs": _floats(self.costs, "costs", f"({k},)", (k,)),
+            "accepted": acc.copy(),
+        }
+        for name, arr in values.items():
+            arr.setflags(write=False)
+            object.__setattr__(self, name, arr)
+
+    def __len__(self) -> int:
+        return int(self.i.shape[0])
+
+    def select(self, mask: Any) -> LoopClosures:
+        """The subset given by a boolean mask or integer indices."""
+        return LoopClosures(
+            self.i[mask],
+            self.j[mask],
+            self.relative_poses[mask],
+            self.costs[mask],
+            self.accepted[mask],
+        )
+
+
+_LOOP_COLUMNS = ("i", "j", "x", "y", "yaw", "yaw_deg", "cost", "accepted")
+
+
+def write_loop_csv(path: PathLike, loops: LoopClosures, *, comments: Iterable[str] = ()) -> Path:
+    """Write loop closures as CSV: ``i,j,x,y,yaw,yaw_deg,cost,accepted``, one row per loop.
+
+    ``#`` comment lines first state the conventions (plus ``comments``, e.g. the threshold or
+    the map file); then a header row. ``accepted`` is written as 1/0. Read with
+    :func:`read_loop_csv` or e.g. ``pandas.read_csv(path, comment="#")``.
+    """
+    if not isinstance(loops, LoopClosures):
+        raise TypeError(f"loops: expected LoopClosures, got {type(loops).__name__}")
+    header = _comment_lines(
+        [
+            "vvloc loop closures",
+            "i, j: keyframe ids; (x, y, yaw) = xi_{i->j}, the pose of keyframe j expressed in "
+            "the frame of keyframe i (T_world_j = T_world_i * xi)",
+            *_FRAME_COMMENTS,
+            "yaw_deg: yaw in degrees; cost: matching cost (lower is better); "
+            "accepted: 1 if the closure passed the cost threshold, else 0",
+            *comments,
+        ]
+    )
+    with atomic_write(path, "w", newline="") as f:
+        for line in header:
+            f.write(line + "\n")
+        w = csv.writer(f, lineterminator="\n")
+        w.writerow(_LOOP_COLUMNS)
+        for r in range(len(loops)):
+            x, y, yaw = loops.relative_poses[r]
+            w.writerow(
+                [
+                    int(loops.i[r]),
+                    int(loops.j[r]),
+                    _r(x),
+                    _r(y),
+                    _r(yaw),
+                    _r(math.degrees(yaw)),
+                    _r(loops.costs[r]),
+                    int(bool(loops.accepted[r])),
+                ]
+            )
+    return Path(path)
+
+
+def read_loop_csv(path: PathLike) -> LoopClosures:
+    """Read a loop-closure CSV written by :func:`write_loop_csv` (``#`` lines skipped)."""
+    p = Path(os.fspath(path))
+    with open(p, encoding="utf-8", newline="") as f:
+        rows = list(csv.DictReader(line for line in f if not line.lstrip().startswith("#")))
+    need = ("i", "j", "x", "y", "yaw", "cost", "accepted")
+    cols: dict[str, list[str]] = {c: [] for c in need}
+    for n, row in enumerate(rows, start=1):
+        missing = [c for c in need if row.get(c) in (None, "")]
+        if missing:
+            raise ValueError(f"{p}: data row {n}: missing columns {missing}")
+        for c in need:
+            cols[c].append(row[c].strip())
+    try:
+        flags = {"1": True, "0": False, "true": True, "false": False}
+        acc = [flags[v.lower()] for v in cols["accepted"]]
+        return LoopClosures(
+            i=np.array([int(v) for v in cols["i"]], np.int64),
+            j=np.array([int(v) for v in cols["j"]], np.int64),
+            relative_poses=np.array(
+                [
+                    [float(v) for v in xyz]
+                    for xyz in zip(cols["x"], cols["y"], cols["yaw"], strict=True)
+                ],
+                np.float64,
+            ).reshape(-1, 3),
+            costs=np.array([float(v) for v in cols["cost"]], np.float64),
+            accepted=np.array(acc, bool),
+        )
+    except (KeyError, ValueError) as e:
+        raise ValueError(f"{p}: malformed loop-closure CSV: {e}") from e
+
+
+# ---------------------------------------------------------------------------------------------
+# g2o
+
+
+@dataclass(frozen=True, eq=False)
+class G2OGraph:
+    """A 2D pose graph read from a g2o file.
+
+    Attributes:
+        vertex_ids: (N,) int64, in file order.
+        vertex_poses: (N, 3) float64 world poses (x, y, theta).
+        edges: (E, 2) int64 (i, j) vertex ids, in file order.
+        measurements: (E, 3) float64 ξ_{i→j} (vertex j in vertex i's frame).
+        information: (E, 3, 3) float64 symmetric information matrices.
+    """
+
+    vertex_ids: np.ndarray
+    vertex_poses: np.ndarray
+    edges: np.ndarray
+    measurements: np.ndarray
+    information: np.ndarray
+
+
+def _odometry_pairs(n: int, sessions: Sequence[Any] | None, seq: np.ndarray | None) -> np.ndarray:
+    """(E, 2) rows (a, b) of consecutive keyframes within each session."""
+    if sessions is None:
+        labels: list[Any] = [0] * n
+    else:
+        labels = list(sessions)
+        if len(labels) != n:
+            raise ValueError(f"sessions: expected {n} session labels, got {len(labels)}")
+    groups: dict[Any, list[int]] = {}
+    for r, s in enumerate(labels):
+        groups.setdefault(s, []).append(r)
+    pairs: list[tuple[int, int]] = []
+    for rows_list in groups.values():
+        rows = np.array(rows_list, np.int64)
+        if seq is not None:
+            rows = rows[np.argsort(seq[rows], kind="stable")]
+        pairs.extend(zip(rows[:-1].tolist(), rows[1:].tolist(), strict=True))
+    return np.array(pairs, np.int64).reshape(-1, 2)
+
+
+def write_g2o(
+    path: PathLike,
+    poses: Any,
+    loops: LoopClosures | None = None,
+    *,
+    ids: Any = None,
+    sessions: Sequence[Any] | None = None,
+    seq: Any = None,
+    odometry_information: Any = None,
+    loop_information: Any = None,
+    only_accepted: bool = True,
+) -> Path:
+    """Write a 2D pose graph in g2o format.
+
+    Args:
+        path: output file.
+        poses: (N, 3) world poses (x, y, yaw) of the keyframes: one ``VERTEX_SE2`` each.
+        loops: loop closures; ``loops.i``/``loops.j`` are vertex ids (entries of ``ids``).
+            Each becomes ``EDGE_SE2 i j x y yaw`` + information (only the accepted ones unless
+            ``only_accepted`` is false).
+        ids: (N,) int vertex ids (keyframe ids); default ``0..N-1``.
+        sessions: (N,) session labels (any hashable): an odometry ``EDGE_SE2`` links each pair
+            of consecutive keyframes of a session, its measurement the relative pose of the two
+            poses (:func:`relative_pose`). Default: all N keyframes form one session.
+        seq: (N,) int order of keyframes within their session; default: array order.
+        odometry_information: (3, 3) information matrix of the odometry edges; default
+            :func:`information_from_sigmas` of :data:`DEFAULT_ODOMETRY_SIGMAS`.
+        loop_information: (3, 3), or (K, 3, 3) one per loop (all K, before the ``accepted``
+            filter), information matrices of the loop edges; default
+            :func:`information_from_sigmas` of :data:`DEFAULT_LOOP_SIGMAS`. Constant by
+            default because the matching cost is a confidence score, not a calibrated
+            covariance; pass per-loop matrices to weight loops by cost or by a learned model.
+        only_accepted: write only loops with ``accepted`` true.
+
+    The file holds ``VERTEX_SE2`` lines, then odometry edges (sessions in order of first
+    appearance), then loop edges, and no comment lines (not every g2o reader skips them); its
+    conventions are in :data:`G2O_CONVENTIONS`. Information matrices are written as the upper
+    triangle I11 I12 I13 I22 I23 I33 of (dx, dy, dtheta).
+    """
+    p = _floats(poses, "poses", "(N, 3)", (None, 3))
+    n = p.shape[0]
+    vid = np.arange(n, dtype=np.int64) if ids is None else _ints(ids, "ids", n)
+    if np.unique(vid).size != n:
+        raise ValueError("ids: vertex ids must be unique")
+    seq_arr = None if seq is None else _ints(seq, "seq", n)
+    if isinstance(sessions, str):
+        raise TypeError("sessions: expected a sequence of N labels, got a str")
+    pairs = _odometry_pairs(n, sessions, seq_arr)
+    odo_info = information_from_sigmas(*DEFAULT_ODOMETRY_SIGMAS)
+    if odometry_information is not None:
+        odo_info = _information(odometry_information, "odometry_information", 1)[0]
+    if loops is not None and not isinstance(loops, LoopClosures):
+        raise TypeError(f"loops: expected LoopClosures or None, got {type(loops).__name__}")
+    k = 0 if loops is None else len(loops)
+    if loop_information is None:
+        loop_info = np.broadcast_to(information_from_sigmas(*DEFAULT_LOOP_SIGMAS), (k, 3, 3))
+    else:
+        loop_info = _information(loop_information, "loop_information", k)
+
+    edge_lines: list[str] = []
+
+    def edge(a: int, b: int, xi: np.ndarray, info: np.ndarray) -> None:
+        upper = (info[0, 0], info[0, 1], info[0, 2], info[1, 1], info[1, 2], info[2, 2])
+        edge_lines.append(
+            f"EDGE_SE2 {a} {b} {_r(xi[0])} {_r(xi[1])} {_r(xi[2])} "
+            + " ".join(_r(v) for v in upper)
+        )
+
+    xi_odo = relative_pose(p[pairs[:, 0]], p[pairs[:, 1]])
+    for (a, b), xi in zip(pairs, xi_odo, strict=True):
+        edge(int(vid[a]), int(vid[b]), xi, odo_info)
+    if loops is not None:
+        known = set(vid.tolist())
+        for name, arr in (("loops.i", loops.i), ("loops.j", loops.j)):
+            unknown = sorted(set(arr.tolist()) - known)
+            if unknown:
+                raise ValueError(f"{name}: ids {unknown[:5]} are not vertex ids")
+        for r in range(k):
+            if only_accepted and not loops.accepted[r]:
+                continue
+            edge(int(loops.i[r]), int(loops.j[r]), loops.relative_poses[r], loop_info[r])
+
+    with atomic_write(path, "w") as f:
+        for v, (x, y, th) in zip(vid.tolist(), p, strict=True):
+            f.write(f"VERTEX_SE2 {v} {_r(x)} {_r(y)} {_r(th)}\n")
+        for line in edge_lines:
+            f.write(line + "\n")
+    return Path(path)
+
+
+def read_g2o(path: PathLike) -> G2OGraph:
+    """Read the ``VERTEX_SE2`` and ``EDGE_SE2`` lines of a g2o file.
+
+    Blank lines and ``#`` comments are skipped, as are lines with other tags (``FIX``, 3D
+    types, ...). A malformed vertex/edge line or a repeated vertex id raises ``ValueError``
+    naming the file and line.
+    """
+    p = Path(os.fspath(path))
+    vids: list[int] = []
+    vposes: list[list[float]] = []
+    edges: list[tuple[int, int]] = []
+    meas: list[list[float]] = []
+    infos: list[np.ndarray] = []
+    seen: set[int] = set()
+    with open(p, encoding="utf-8") as f:
+        for lineno, line in enumerate(f, start=1):
+            tok = line.split()
+            if not tok or tok[0].startswith("#"):
+                continue
+            try:
+                if tok[0] == "VERTEX_SE2":
+                    if len(tok) != 5:
+                        raise ValueError(
+                            f"expected 'VERTEX_SE2 id x y theta', got {len(tok)} fields"
+                        )
+                    v = int(tok[1])
+                    if v in seen:
+                        raise ValueError(f"vertex id {v} repeated")
+                    seen.add(v)
+                    vids.append(v)
+                    vposes.append([float(t) for t in tok[2:5]])
+                elif tok[0] == "EDGE_SE2":
+                    if len(tok) != 12:
+                        raise ValueError(
+                            "expected 'EDGE_SE2 i j dx dy dtheta I11 I12 I13 I22 I23 I33', "
+                            f"got {len(tok)} fields"
+                        )
+                    edges.append((int(tok[1]), int(tok[2])))
+                    meas.append([float(t) for t in tok[3:6]])
+                    a, b, c, d, e, g = (float(t) for t in tok[6:12])
+                    infos.append(np.array([[a, b, c], [b, d, e], [c, e, g]]))
+            except ValueError as err:
+                raise ValueError(f"{p}:{lineno}: malformed g2o line: {err}") from err
+    return G2OGraph(
+        vertex_ids=np.array(vids, np.int64),
+        vertex_poses=np.array(vposes, np.float64).reshape(-1, 3),
+        edges=np.array(edges, np.int64).reshape(-1, 2),
+        measurements=np.array(meas, np.float64).reshape(-1, 3),
+        information=np.array(infos, np.float64).reshape(-1, 3, 3),
+    )
+
+
+# ---------------------------------------------------------------------------------------------
+# TUM trajectories
+
+
+def write_tum(
+    path: PathLike,
+    timestamps: Any,
+    poses: Any,
+    *,
+    z: Any = 0.0,
+    comments: Iterable[str] = (),
+) -> Path:
+    """Write a trajectory in TUM format: ``timestamp tx ty tz qx qy qz qw`` per line.
+
+    Args:
+        timestamps: (N,) seconds.
+        poses: (N, 3) world poses (x, y, yaw), metres and radians CCW.
+        z: height tz, a float or (N,) metres (default 0).
+        comments: extra ``#`` header lines (e.g. the map, the session).
+
+    The orientation is the rotation by yaw about the world z axis, as a unit quaternion
+    (qx, qy, qz, qw) = (0, 0, sin(yaw/2), cos(yaw/2)). ``#`` header lines state the conventions
+    (TUM/evo readers skip them).
+    """
+    t = _floats(timestamps, "timestamps", "(N,)", (None,))
+    n = t.shape[0]
+    p = _floats(poses, "poses", f"({n}, 3)", (n, 3))
+    z_arr = _to_array(z, "z")
+    if z_arr.ndim == 0:
+        z_arr = np.full(n, z_arr)
+    zz = _floats(z_arr, "z", f"float or ({n},)", (n,))
+    header = _comment_lines(
+        [
+            "vvloc trajectory, TUM format: timestamp tx ty tz qx qy qz qw",
+            "timestamp: seconds; (tx, ty, tz): vehicle origin in the world frame, metres",
+            "(qx, qy, qz, qw): unit quaternion (scalar last) of the vehicle-to-world rotation, "
+            "a rotation by yaw about z: (0, 0, sin(yaw/2), cos(yaw/2))",
+            *_FRAME_COMMENTS,
+            *comments,
+        ]
+    )
+    with atomic_write(path, "w") as f:
+        for line in header:
+            f.write(line + "\n")
+        for r in range(n):
+            half = 0.5 * float(p[r, 2])
+            f.write(
+                " ".join(
+                    _r(v)
+                    for v in (
+                        t[r],
+                        p[r, 0],
+                        p[r, 1],
+                        zz[r],
+                        0.0,
+                        0.0,
+                        math.sin(half),
+                        math.cos(half),
+                    )
+                )
+                + "\n"
+            )
+    return Path(path)
+
+
+def read_tum(path: PathLike) -> tuple[np.ndarray, np.ndarray]:
+    """Read a TUM trajectory: (timestamps (N,) float64 s, poses (N, 3) float64 (x, y, yaw)).
+
+    ``#`` and blank lines are skipped. The yaw is the heading of the rotation (its angle
+    about z after projecting the rotated x axis onto the x-y plane), wrapped to (−π, π]; for
+    planar rotations that is exactly the rotation angle. tz, roll and pitch are dropped.
+    """
+    p = Path(os.fspath(path))
+    rows: list[list[float]] = []
+    with open(p, encoding="utf-8") as f:
+        for lineno, line in enumerate(f, start=1):
+            tok = line.split()
+            if not tok or tok[0].startswith("#"):
+                continue
+            if len(tok) != 8:
+                raise ValueError(
+                    f"{p}:{lineno}: expected 8 fields 'timestamp tx ty tz qx qy qz qw', "
+                    f"got {len(tok)}"
+                )
+            try:
+                rows.append([float(v) for v in tok])
+            except ValueError as e:
+                raise ValueError(f"{p}:{lineno}: malformed TUM line: {e}") from e
+    a = np.array(rows, np.float64).reshape(-1, 8)
+    q = a[:, 4:8]
+    norm = np.linalg.norm(q, axis=1)
+    if (norm == 0).any():
+        raise ValueError(f"{p}: zero quaternion at data row {int(np.argmin(norm)) + 1}")
+    qx, qy, qz, qw = (q / norm[:, None]).T
+    yaw = np.arctan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
+    poses = np.stack([a[:, 1], a[:, 2], wrap_angle(yaw)], axis=1)
+    return a[:, 0].copy(), poses

@@ -1,0 +1,1131 @@
+"""The map database: keyframes with poses and descriptors, stored as one HDF5 file.
+
+A map holds, per keyframe (row ``i`` of every per-keyframe dataset, ``N`` rows):
+
+* ``ids`` (N,) int64: keyframe id, unique in the map;
+* ``session_index`` (N,) int32: row of ``session_names`` (S,) utf-8, the recording sessions in
+  order of first appearance;
+* ``seq`` (N,) int64: sequence number of the frame in its session;
+* ``timestamps`` (N,) float64: seconds;
+* ``poses`` (N, 3) float64: (x, y, yaw) in the world frame (x east, y north, metres; yaw
+  counter-clockwise about z, radians);
+* ``floors`` (N,) int64: floor / level number;
+* ``global_descriptors`` (N, Dg) float32 or float16: global descriptor G (L2-normalised);
+* ``local_descriptors`` (N, T, C) float32 or float16: local-view descriptor D;
+* ``bev`` (N, H, W, C) float16, optional: BEV queries Q (channels-last), for loop closure;
+
+and as file attributes: ``format`` (``"vvloc-map"``), ``format_version``, ``vvloc_version``,
+``created_utc`` (ISO 8601), ``model_config_hash``, ``model_config_json``, ``grid_size`` (BEV
+cell size g, metres), ``descriptor_dtype`` and ``num_keyframes``.
+
+Integrity: every per-keyframe dataset is chunked with HDF5's Fletcher-32 filter (a corrupted
+chunk fails when it is read), and every dataset carries a ``sha256`` attribute of its stored
+bytes (little-endian, C order).
+:meth:`MapDatabase.open` verifies the SHA-256 of every small dataset (all but the local
+descriptors and the BEVs, which are read lazily); :meth:`MapDatabase.verify` checks all of them.
+
+Files are written atomically (:mod:`vvloc._io`): a temporary file in the same directory, fsync,
+``os.replace``. A failed or interrupted write leaves no temporary file and leaves an existing
+map at the destination untouched. Maps are opened read-only (h5py mode ``"r"``); the arrays
+held in memory (poses, global descriptors, ids, ...) are returned as read-only arrays, lazy
+reads (local descriptors, BEVs) as fresh float32 copies.
+
+A map built with another model is refused: pass the model's config hash as
+``expected_config_hash`` to :meth:`MapDatabase.open`.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import hashlib
+import json
+import os
+import weakref
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from types import TracebackType
+from typing import Any, Literal
+
+import h5py
+import numpy as np
+import numpy.typing as npt
+
+from vvloc._io import AtomicPath
+
+__all__ = [
+    "FORMAT_NAME",
+    "FORMAT_VERSION",
+    "MapDatabase",
+    "MapError",
+    "MapMetadata",
+    "MapWriter",
+    "model_config_hash",
+]
+
+FORMAT_NAME = "vvloc-map"
+FORMAT_VERSION = 1
+
+DescriptorDType = Literal["float32", "float16"]
+PathLike = str | os.PathLike[str]
+
+# Per-keyframe datasets: name -> stored dtype (None: the map's descriptor dtype).
+_META_DATASETS: dict[str, np.dtype[Any]] = {
+    "ids": np.dtype("<i8"),
+    "session_index": np.dtype("<i4"),
+    "seq": np.dtype("<i8"),
+    "timestamps": np.dtype("<f8"),
+    "poses": np.dtype("<f8"),
+    "floors": np.dtype("<i8"),
+}
+_BEV_DTYPE = np.dtype("<f2")
+# Datasets loaded (and SHA-256 verified) on open; the others are read lazily.
+_SMALL = (*_META_DATASETS, "global_descriptors")
+_LAZY = ("local_descriptors", "bev")
+_REQUIRED_ATTRS = (
+    "format",
+    "format_version",
+    "vvloc_version",
+    "created_utc",
+    "model_config_hash",
+    "model_config_json",
+    "grid_size",
+    "descriptor_dtype",
+    "num_keyframes",
+)
+_SMALL_CHUNK_BYTES = 1 << 16
+_LAZY_CHUNK_BYTES = 1 << 14  # paper-sized rows (>= 16 KiB) get one chunk per keyframe
+_COPY_BLOCK_BYTES = 64 << 20
+
+
+class MapError(ValueError):
+    """A map file is refused: not a vvloc map, corrupted, truncated, or built by another model."""
+
+
+def model_config_hash(config: Mapping[str, Any] | str) -> str:
+    """SHA-256 (hex) of a model config's canonical JSON (sorted keys, no whitespace).
+
+    ``config`` is a JSON-serialisable mapping or JSON text. Two configs with the same content
+    hash equally whatever their key order.
+    """
+    return hashlib.sha256(_canonical_json(config).encode("utf-8")).hexdigest()
+
+
+def _canonical_json(config: Mapping[str, Any] | str) -> str:
+    if isinstance(config, str):
+        try:
+            config = json.loads(config)
+        except json.JSONDecodeError as e:
+            raise ValueError(f"model_config: not valid JSON text: {e}") from e
+    if not isinstance(config, Mapping):
+        raise TypeError(
+            f"model_config: expected a mapping or JSON object text, got {type(config).__name__}"
+        )
+    try:
+        return json.dumps(config, sort_keys=True, separators=(",", ":"), allow_nan=False)
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"model_config: not JSON-serialisable: {e}") from e
+
+
+@dataclass(frozen=True)
+class MapMetadata:
+    """Map-level metadata.
+
+    ``grid_size`` is the BEV cell size g in metres; ``created_utc`` an ISO 8601 UTC time;
+    ``descriptor_dtype`` the stored dtype of the global and local descriptors.
+    """
+
+    model_config_hash: str
+    model_config: dict[str, Any]
+    grid_size: float
+    vvloc_version: str
+    format_version: int
+    created_utc: str
+    descriptor_dtype: str
+
+
+# ---------------------------------------------------------------------------------------------
+# Input validation
+
+
+def _to_numpy(x: Any, name: str) -> np.ndarray:
+    if hasattr(x, "detach") and hasattr(x, "cpu"):  # torch.Tensor, without importing torch
+        x = x.detach().cpu().numpy()
+    if x is None or isinstance(x, (str, bytes)):
+        raise TypeError(f"{name}: expected an array, got {type(x).__name__}")
+    return np.asarray(x)
+
+
+def _float_array(
+    x: Any, name: str, shape_doc: str, ndim: int, rows: int | None, dtype: npt.DTypeLike
+) -> np.ndarray:
+    arr = _to_numpy(x, name)
+    if arr.dtype == object or arr.dtype.kind not in "fiu":
+        raise TypeError(f"{name}: expected a real-valued array {shape_doc}, got dtype {arr.dtype}")
+    if arr.ndim != ndim:
+        raise ValueError(f"{name}: expected shape {shape_doc}, got shape {arr.shape}")
+    if rows is not None and arr.shape[0] != rows:
+        raise ValueError(f"{name}: expected {rows} rows {shape_doc}, got shape {arr.shape}")
+    if not np.isfinite(arr).all():
+        raise ValueError(f"{name}: contains non-finite values (NaN or inf)")
+    with np.errstate(over="ignore"):  # overflow is detected just below
+        out = np.ascontiguousarray(arr, dtype=dtype)
+    if not np.isfinite(out).all():
+        raise ValueError(f"{name}: values overflow {np.dtype(dtype).name} (|x| too large)")
+    return out
+
+
+def _int_array(x: Any, name: str, rows: int) -> np.ndarray:
+    arr = _to_numpy(x, name)
+    if arr.ndim == 1 and arr.size == 0 and rows == 0:
+        return np.zeros(0, np.int64)
+    if arr.dtype.kind not in "iu":
+        raise TypeError(f"{name}: expected an integer array ({rows},), got dtype {arr.dtype}")
+    if arr.shape != (rows,):
+        raise ValueError(f"{name}: expected shape ({rows},), got shape {arr.shape}")
+    if arr.dtype.kind == "u" and arr.size and arr.max() > np.iinfo(np.int64).max:
+        raise ValueError(f"{name}: values exceed the int64 range")
+    return np.ascontiguousarray(arr, dtype=np.int64)
+
+
+def _positive_float(x: Any, name: str) -> float:
+    if isinstance(x, bool) or not isinstance(x, (int, float, np.integer, np.floating)):
+        raise TypeError(f"{name}: expected a positive float, got {type(x).__name__}")
+    v = float(x)
+    if not np.isfinite(v) or v <= 0.0:
+        raise ValueError(f"{name}: expected a finite value > 0, got {v}")
+    return v
+
+
+def _check_dtype(dtype: Any) -> DescriptorDType:
+    name = np.dtype(dtype).name if not isinstance(dtype, str) else dtype
+    if name not in ("float32", "float16"):
+        raise ValueError(f"dtype: expected 'float32' or 'float16', got {dtype!r}")
+    return name  # type: ignore[return-value]
+
+
+def _session_labels(sessions: Any, rows: int) -> list[str]:
+    if isinstance(sessions, str):
+        labels = [sessions] * rows
+    else:
+        if isinstance(sessions, bytes) or not isinstance(sessions, (Sequence, np.ndarray)):
+            raise TypeError(
+                f"sessions: expected a str or a sequence of {rows} str, got "
+                f"{type(sessions).__name__}"
+            )
+        labels = list(sessions)
+        if len(labels) != rows:
+            raise ValueError(f"sessions: expected {rows} session names, got {len(labels)}")
+        bad = [s for s in labels if not isinstance(s, str)]
+        if bad:
+            raise TypeError(f"sessions: expected str names, got {type(bad[0]).__name__}")
+    if any(s == "" for s in labels):
+        raise ValueError("sessions: session names must be non-empty")
+    return labels
+
+
+@dataclass
+class _Batch:
+    """One validated batch of k keyframes, in stored dtypes (descriptors: float32 here)."""
+
+    ids: np.ndarray
+    session_labels: list[str]
+    seq: np.ndarray
+    timestamps: np.ndarray
+    poses: np.ndarray
+    floors: np.ndarray
+    global_descriptors: np.ndarray
+    local_descriptors: np.ndarray
+    bev: np.ndarray | None
+
+    def __len__(self) -> int:
+        return int(self.ids.shape[0])
+
+
+def _validate_batch(
+    *,
+    poses: Any,
+    timestamps: Any,
+    sessions: Any,
+    global_descriptors: Any,
+    local_descriptors: Any,
+    ids: Any,
+    seq: Any,
+    floors: Any,
+    bevs: Any,
+    id_start: int,
+    next_seq: Mapping[str, int],
+) -> _Batch:
+    p = _float_array(poses, "poses", "(N, 3)", 2, None, np.float64)
+    k = p.shape[0]
+    if p.shape[1] != 3:
+        raise ValueError(f"poses: expected shape (N, 3) = (x, y, yaw), got shape {p.shape}")
+    t = _float_array(timestamps, "timestamps", f"({k},)", 1, k, np.float64)
+    labels = _session_labels(sessions, k)
+    g = _float_array(global_descriptors, "global_descriptors", f"({k}, Dg)", 2, k, np.float32)
+    loc = _float_array(local_descriptors, "local_descriptors", f"({k}, T, C)", 3, k, np.float32)
+    if g.shape[1] == 0 or loc.shape[1] == 0 or loc.shape[2] == 0:
+        raise ValueError(
+            f"descriptors: dimensions must be > 0, got global {g.shape}, local {loc.shape}"
+        )
+    b = None
+    if bevs is not None:
+        b = _float_array(bevs, "bevs", f"({k}, H, W, C)", 4, k, _BEV_DTYPE)
+        if 0 in b.shape[1:]:
+            raise ValueError(f"bevs: dimensions must be > 0, got shape {b.shape}")
+    if ids is None:
+        id_arr = np.arange(id_start, id_start + k, dtype=np.int64)
+    else:
+        id_arr = _int_array(ids, "ids", k)
+    if seq is None:
+        counters = dict(next_seq)
+        seq_arr = np.empty(k, np.int64)
+        for r, s in enumerate(labels):
+            seq_arr[r] = counters.get(s, 0)
+            counters[s] = seq_arr[r] + 1
+    else:
+        seq_arr = _int_array(seq, "seq", k)
+    floor_arr = np.zeros(k, np.int64) if floors is None else _int_array(floors, "floors", k)
+    if np.unique(id_arr).size != k:
+        raise ValueError("ids: keyframe ids must be unique")
+    return _Batch(id_arr, labels, seq_arr, t, p, floor_arr, g, loc, b)
+
+
+# ---------------------------------------------------------------------------------------------
+# Writing
+
+
+def _rows_per_chunk(row_bytes: int, target: int) -> int:
+    return max(1, min(1 << 16, target // max(row_bytes, 1)))
+
+
+def _le(arr: np.ndarray, dtype: np.dtype[Any]) -> np.ndarray:
+    return np.ascontiguousarray(arr, dtype=dtype.newbyteorder("<"))
+
+
+def _names_digest(names: Sequence[str]) -> str:
+    return hashlib.sha256(json.dumps(list(names)).encode("utf-8")).hexdigest()
+
+
+def _abandon(h5: h5py.File, atomic: AtomicPath) -> None:
+    """Close and delete an unfinished map (used on error and by the garbage collector)."""
+    try:
+        if h5.id.valid:
+            h5.close()
+    finally:
+        atomic.abort()
+
+
+class MapWriter:
+    """Write a map to ``path`` batch by batch, atomically.
+
+    ``model_config`` is the model's config (mapping or JSON text), stored as JSON; its hash is
+    ``config_hash`` if given (use the model's own hash when it defines one), else
+    :func:`model_config_hash`. ``grid_size`` is the BEV cell size g (metres). ``dtype`` is the
+    stored dtype of the global and local descriptors (``"float32"`` or ``"float16"``); BEVs are
+    always stored as float16. ``expected_keyframes`` (optional, a hint) caps the HDF5 chunk
+    size so that a small map does not occupy whole default-sized chunks.
+
+    Usage::
+
+        with MapWriter("map.h5", model_config=cfg, grid_size=0.3) as w:
+            for batch in batches:
+                w.append(poses=..., timestamps=..., sessions="s0",
+                         global_descriptors=..., local_descriptors=..., bevs=...)
+        # the map exists at "map.h5" only now, complete
+
+    The data goes to a temporary file next to ``path``; :meth:`close` (the end of the ``with``
+    block) writes the metadata and checksums and renames it over ``path``. An exception in the
+    block, :meth:`abort`, or a failed write removes the temporary file and leaves an existing
+    file at ``path`` untouched. Invalid input to :meth:`append` raises ``TypeError`` /
+    ``ValueError`` before anything is written and leaves the writer usable; an error while
+    writing aborts the writer.
+    """
+
+    def __init__(
+        self,
+        path: PathLike,
+        *,
+        model_config: Mapping[str, Any] | str,
+        grid_size: float,
+        config_hash: str | None = None,
+        dtype: DescriptorDType = "float32",
+        expected_keyframes: int | None = None,
+    ) -> None:
+        self._config_json = _canonical_json(model_config)
+        if config_hash is None:
+            config_hash = model_config_hash(self._config_json)
+        if not isinstance(config_hash, str) or not config_hash:
+            raise TypeError("config_hash: expected a non-empty str")
+        self._config_hash = config_hash
+        self._grid_size = _positive_float(grid_size, "grid_size")
+        self._dtype = np.dtype(_check_dtype(dtype)).newbyteorder("<")
+        if expected_keyframes is not None and (
+            isinstance(expected_keyframes, bool)
+            or not isinstance(expected_keyframes, (int, np.integer))
+            or expected_keyframes < 1
+        ):
+            raise ValueError(
+                f"expected_keyframes: expected an int >= 1, got {expected_keyframes!r}"
+            )
+        self._max_chunk_rows = 1 << 16 if expected_keyframes is None else int(expected_keyframes)
+        self.path = Path(os.fspath(path))
+        self._atomic = AtomicPath(self.path)
+        try:
+            self._h5 = h5py.File(self._atomic.tmp, "w")
+        except BaseException:
+            self._atomic.abort()
+            raise
+        self._finalizer = weakref.finalize(self, _abandon, self._h5, self._atomic)
+        self._n = 0
+        self._sessions: dict[str, int] = {}
+        self._next_seq: dict[str, int] = {}
+        self._ids: set[int] = set()
+        self._digests: dict[str, Any] = {}
+        self._shapes: dict[str, tuple[int, ...]] = {}
+        self._has_bev: bool | None = None
+        self._state = "open"
+
+    def __len__(self) -> int:
+        """Number of keyframes appended so far."""
+        return self._n
+
+    def append(
+        self,
+        *,
+        poses: Any,
+        timestamps: Any,
+        sessions: str | Sequence[str],
+        global_descriptors: Any,
+        local_descriptors: Any,
+        ids: Any = None,
+        seq: Any = None,
+        floors: Any = None,
+        bevs: Any = None,
+    ) -> None:
+        """Append k keyframes.
+
+        Args:
+            poses: (k, 3) world-frame (x, y, yaw): metres, radians CCW.
+            timestamps: (k,) seconds.
+            sessions: one session name for all k, or k names.
+            global_descriptors: (k, Dg) float.
+            local_descriptors: (k, T, C) float.
+            ids: (k,) int keyframe ids, unique in the map; default: running row numbers.
+            seq: (k,) int sequence numbers; default: a running count per session.
+            floors: (k,) int; default 0.
+            bevs: (k, H, W, C) float BEVs, stored float16; every batch or none has them.
+        """
+        self._check_open()
+        b = _validate_batch(
+            poses=poses,
+            timestamps=timestamps,
+            sessions=sessions,
+            global_descriptors=global_descriptors,
+            local_descriptors=local_descriptors,
+            ids=ids,
+            seq=seq,
+            floors=floors,
+            bevs=bevs,
+            id_start=self._n,
+            next_seq=self._next_seq,
+        )
+        k = len(b)
+        if k == 0:
+            return
+        with np.errstate(over="ignore"):  # overflow is detected just below
+            g = _le(b.global_descriptors, self._dtype)
+            loc = _le(b.local_descriptors, self._dtype)
+        if not (np.isfinite(g).all() and np.isfinite(loc).all()):
+            raise ValueError(f"descriptors: values overflow {self._dtype.name} (|x| too large)")
+        dup = self._ids.intersection(b.ids.tolist())
+        if dup:
+            raise ValueError(f"ids: keyframe ids already in the map: {sorted(dup)[:5]}")
+        has_bev = b.bev is not None
+        if self._has_bev is not None and has_bev != self._has_bev:
+            raise ValueError(
+                "bevs: every batch must have BEVs or none may "
+                f"(earlier batches {'had' if self._has_bev else 'had none'})"
+            )
+        shapes = {"global_descriptors": g.shape[1:], "local_descriptors": loc.shape[1:]}
+        if b.bev is not None:
+            shapes["bev"] = b.bev.shape[1:]
+        for name, shape in shapes.items():
+            if name in self._shapes and self._shapes[name] != shape:
+                raise ValueError(
+                    f"{name}: per-keyframe shape {shape} differs from earlier batches "
+                    f"{self._shapes[name]}"
+                )
+        session_index = np.empty(k, np.int32)
+        new_sessions = dict(self._sessions)
+        for r, s in enumerate(b.session_labels):
+            session_index[r] = new_sessions.setdefault(s, len(new_sessions))
+        data: dict[str, np.ndarray] = {
+            "ids": b.ids,
+            "session_index": session_index,
+            "seq": b.seq,
+            "timestamps": b.timestamps,
+            "poses": b.poses,
+            "floors": b.floors,
+            "global_descriptors": g,
+            "local_descriptors": loc,
+        }
+        if b.bev is not None:
+            data["bev"] = b.bev
+        try:
+            if self._n == 0:
+                self._create_datasets(data)
+            for name, arr in data.items():
+                stored = _le(arr, self._h5[name].dtype)
+                ds = self._h5[name]
+                ds.resize(self._n + k, axis=0)
+                ds[self._n : self._n + k] = stored
+                self._digests[name].update(stored.data)
+        except BaseException:
+            self.abort()
+            raise
+        self._n += k
+        self._sessions = new_sessions
+        self._ids.update(b.ids.tolist())
+        for s, q in zip(b.session_labels, b.seq.tolist(), strict=True):
+            self._next_seq[s] = max(self._next_seq.get(s, 0), q + 1)
+        self._shapes.update(shapes)
+        self._has_bev = has_bev
+
+    def _create_datasets(self, data: Mapping[str, np.ndarray]) -> None:
+        for name, arr in data.items():
+            tail = arr.shape[1:]
+            dtype = _META_DATASETS.get(name, _BEV_DTYPE if name == "bev" else self._dtype)
+            row_bytes = int(np.prod(tail, dtype=np.int64)) * dtype.itemsize
+            target = _LAZY_CHUNK_BYTES if name in _LAZY else _SMALL_CHUNK_BYTES
+            self._h5.create_dataset(
+                name,
+                shape=(0, *tail),
+                maxshape=(None, *tail),
+                dtype=dtype,
+                chunks=(min(self._max_chunk_rows, _rows_per_chunk(row_bytes, target)), *tail),
+                fletcher32=True,
+            )
+            self._digests[name] = hashlib.sha256()
+
+    def close(self) -> Path:
+        """Finish the map: write metadata and checksums, then rename it to ``path``.
+
+        Returns the path. Raises ``ValueError`` (and aborts) if no keyframe was appended.
+        """
+        self._check_open()
+        if self._n == 0:
+            self.abort()
+            raise ValueError(f"{self.path}: a map needs at least one keyframe; nothing written")
+        from vvloc import __version__
+
+        try:
+            names = list(self._sessions)
+            ds = self._h5.create_dataset(
+                "session_names", data=names, dtype=h5py.string_dtype("utf-8")
+            )
+            ds.attrs["sha256"] = _names_digest(names)
+            for name, digest in self._digests.items():
+                self._h5[name].attrs["sha256"] = digest.hexdigest()
+            attrs = self._h5.attrs
+            attrs["format"] = FORMAT_NAME
+            attrs["format_version"] = FORMAT_VERSION
+            attrs["vvloc_version"] = __version__
+            attrs["created_utc"] = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+            attrs["model_config_hash"] = self._config_hash
+            attrs["model_config_json"] = self._config_json
+            attrs["grid_size"] = self._grid_size
+            attrs["descriptor_dtype"] = self._dtype.name
+            attrs["num_keyframes"] = self._n
+            self._h5.close()
+            self._finalizer.detach()
+            self._atomic.commit()
+        except BaseException:
+            self.abort()
+            raise
+        self._state = "closed"
+        return self.path
+
+    def abort(self) -> None:
+        """Discard everything written; ``path`` is left as it was. Idempotent."""
+        self._state = "aborted" if self._state != "closed" else self._state
+        if self._finalizer.alive:
+            self._finalizer()
+
+    def _check_open(self) -> None:
+        if self._state != "open":
+            raise ValueError(f"{self.path}: map writer is {self._state}")
+
+    def __enter__(self) -> MapWriter:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        if exc_type is not None:
+            self.abort()
+        elif self._state == "open":
+            self.close()
+
+
+# ---------------------------------------------------------------------------------------------
+# Reading
+
+
+def _readonly(arr: np.ndarray) -> np.ndarray:
+    arr.setflags(write=False)
+    return arr
+
+
+def _as_indices(indices: Any, n: int) -> tuple[np.ndarray, bool]:
+    """Validate keyframe row indices: (int64 (k,), whether a scalar was given)."""
+    if isinstance(indices, (bool, np.bool_)):
+        raise TypeError("indices: expected an int or a 1-D integer array, got bool")
+    arr = _to_numpy(indices, "indices")
+    if arr.size == 0 and arr.ndim == 1:
+        return np.zeros(0, np.int64), False
+    if arr.dtype.kind not in "iu":
+        raise TypeError(f"indices: expected integer indices, got dtype {arr.dtype}")
+    if arr.ndim > 1:
+        raise ValueError(f"indices: expected an int or a 1-D array, got shape {arr.shape}")
+    if arr.size and (arr.min() < 0 or arr.max() >= n):
+        raise IndexError(
+            f"indices: keyframe rows must be in [0, {n}), got values in [{arr.min()}, {arr.max()}]"
+        )
+    return arr.astype(np.int64).reshape(-1), arr.ndim == 0
+
+
+def _take(storage: np.ndarray | h5py.Dataset, idx: np.ndarray) -> np.ndarray:
+    if isinstance(storage, np.ndarray):
+        return storage[idx]
+    if idx.size == 0:
+        return np.empty((0, *storage.shape[1:]), storage.dtype)
+    uniq, inverse = np.unique(idx, return_inverse=True)
+    # One hyperslab read per run of consecutive rows: h5py's point (fancy) selection is ~40x
+    # slower than plain slices for a handful of scattered rows.
+    breaks = np.flatnonzero(np.diff(uniq) != 1) + 1
+    starts = np.concatenate([[0], breaks])
+    stops = np.concatenate([breaks, [uniq.size]])
+    data = np.empty((uniq.size, *storage.shape[1:]), storage.dtype)
+    for a, b in zip(starts.tolist(), stops.tolist(), strict=True):
+        data[a:b] = storage[int(uniq[a]) : int(uniq[b - 1]) + 1]
+    return data[inverse.reshape(-1)]
+
+
+class MapDatabase:
+    """A map of keyframes, in memory (:meth:`from_arrays`) or opened from a file (:meth:`open`).
+
+    Row ``i`` of every accessor is keyframe ``i``. Small arrays (poses, global descriptors, ids,
+    ...) are held in memory as read-only arrays; the local descriptors and BEVs of an opened map
+    are read from the file on demand (:meth:`local_descriptors`, :meth:`bev`). An opened map
+    holds the file open (read-only) until :meth:`close` or the end of a ``with`` block.
+    """
+
+    def __init__(
+        self,
+        *,
+        metadata: MapMetadata,
+        ids: np.ndarray,
+        session_names: Sequence[str],
+        session_index: np.ndarray,
+        seq: np.ndarray,
+        timestamps: np.ndarray,
+        poses: np.ndarray,
+        floors: np.ndarray,
+        global_descriptors: np.ndarray,
+        local_descriptors: np.ndarray | h5py.Dataset,
+        bev: np.ndarray | h5py.Dataset | None,
+        path: Path | None = None,
+        h5file: h5py.File | None = None,
+    ) -> None:
+        """Internal: use :meth:`from_arrays` or :meth:`open`."""
+        self._metadata = metadata
+        self._ids = _readonly(ids)
+        self._session_names = tuple(session_names)
+        self._session_index = _readonly(session_index)
+        self._seq = _readonly(seq)
+        self._timestamps = _readonly(timestamps)
+        self._poses = _readonly(poses)
+        self._floors = _readonly(floors)
+        self._global = _readonly(global_descriptors)
+        self._local = local_descriptors
+        self._bev = bev
+        t, c = local_descriptors.shape[1:]
+        self._local_shape = (int(t), int(c))
+        self._bev_shape = None if bev is None else tuple(int(d) for d in bev.shape[1:])
+        self._path = path
+        self._h5 = h5file
+        self._id_to_row: dict[int, int] | None = None
+        self._closed = False
+
+    # -- construction ---------------------------------------------------------------------
+
+    @classmethod
+    def from_arrays(
+        cls,
+        *,
+        poses: Any,
+        timestamps: Any,
+        sessions: str | Sequence[str],
+        global_descriptors: Any,
+        local_descriptors: Any,
+        model_config: Mapping[str, Any] | str,
+        grid_size: float,
+        config_hash: str | None = None,
+        ids: Any = None,
+        seq: Any = None,
+        floors: Any = None,
+        bevs: Any = None,
+    ) -> MapDatabase:
+        """Build an in-memory map of N keyframes (see :meth:`MapWriter.append` for the arrays).
+
+        Descriptors are held as float32, BEVs as float16. ``model_config`` /
+        ``config_hash`` / ``grid_size`` as for :class:`MapWriter`. Save with :meth:`save`;
+        to build a map too large for memory batch by batch, use :class:`MapWriter`.
+        """
+        b = _validate_batch(
+            poses=poses,
+            timestamps=timestamps,
+            sessions=sessions,
+            global_descriptors=global_descriptors,
+            local_descriptors=local_descriptors,
+            ids=ids,
+            seq=seq,
+            floors=floors,
+            bevs=bevs,
+            id_start=0,
+            next_seq={},
+        )
+        if len(b) == 0:
+            raise ValueError("poses: a map needs at least one keyframe, got 0")
+        config_json = _canonical_json(model_config)
+        if config_hash is None:
+            config_hash = model_config_hash(config_json)
+        if not isinstance(config_hash, str) or not config_hash:
+            raise TypeError("config_hash: expected a non-empty str")
+        from vvloc import __version__
+
+        names: dict[str, int] = {}
+        session_index = np.array(
+            [names.setdefault(s, len(names)) for s in b.session_labels], np.int32
+        )
+        metadata = MapMetadata(
+            model_config_hash=config_hash,
+            model_config=json.loads(config_json),
+            grid_size=_positive_float(grid_size, "grid_size"),
+            vvloc_version=__version__,
+            format_version=FORMAT_VERSION,
+            created_utc=_dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+            descriptor_dtype="float32",
+        )
+        return cls(
+            metadata=metadata,
+            ids=b.ids,
+            session_names=list(names),
+            session_index=session_index,
+            seq=b.seq,
+            timestamps=b.timestamps,
+            poses=b.poses,
+            floors=b.floors,
+            global_descriptors=b.global_descriptors,
+            local_descriptors=b.local_descriptors,
+            bev=b.bev,
+        )
+
+    @classmethod
+    def open(
+        cls,
+        path: PathLike,
+        expected_config_hash: str | None = None,
+        *,
+        verify: bool = True,
+    ) -> MapDatabase:
+        """Open a map file read-only.
+
+        Args:
+            path: the HDF5 map file.
+            expected_config_hash: if given, the map must have been built with a model of this
+                config hash (refused otherwise).
+            verify: check the SHA-256 of the small datasets (poses, global descriptors, ...);
+                :meth:`verify` checks the lazily read ones too.
+
+        Raises:
+            FileNotFoundError: no file at ``path``.
+            MapError: not an HDF5 file, not a vvloc map, corrupted or truncated, missing
+                datasets or attributes, another format version, inconsistent lengths, checksum
+                mismatch, or a config hash other than ``expected_config_hash``. The message
+                names the file.
+        """
+        p = Path(os.fspath(path))
+        if not p.exists():
+            raise FileNotFoundError(f"map file not found: {p}")
+        if not p.is_file():
+            raise MapError(f"{p}: not a map file (a directory or special file)")
+        try:
+            h5 = h5py.File(p, "r")
+        except OSError as e:
+            if not h5py.is_hdf5(p):
+                raise MapError(f"{p}: not a vvloc map: not an HDF5 file") from e
+            raise MapError(f"{p}: cannot open the map: corrupted or truncated file ({e})") from e
+        try:
+            return cls._load(h5, p, expected_config_hash, verify)
+        except MapError:
+            h5.close()
+            raise
+        except (OSError, KeyError, ValueError, TypeError, RuntimeError) as e:
+            h5.close()
+            raise MapError(f"{p}: corrupted map: {type(e).__name__}: {e}") from e
+        except BaseException:
+            h5.close()
+            raise
+
+    @classmethod
+    def _load(
+        cls, h5: h5py.File, p: Path, expected_config_hash: str | None, verify: bool
+    ) -> MapDatabase:
+        attrs = h5.attrs
+        fmt = attrs.get("format")
+        if fmt != FORMAT_NAME:
+            raise MapError(f"{p}: not a vvloc map (attribute 'format' is {fmt!r})")
+        missing = [a for a in _REQUIRED_ATTRS if a not in attrs]
+        if missing:
+            raise MapError(f"{p}: corrupted map: missing attributes {missing}")
+        version = int(attrs["format_version"])
+        if version != FORMAT_VERSION:
+            raise MapError(
+                f"{p}: map format version {version} (written by vvloc "
+                f"{attrs['vvloc_version']}), but this vvloc reads format version "
+                f"{FORMAT_VERSION}; rebuild the map"
+            )
+        config_hash = str(attrs["model_config_hash"])
+        if expected_config_hash is not None and config_hash != expected_config_hash:
+            raise MapError(
+                f"{p}: map built with another model: its model config hash is {config_hash}, "
+                f"the model in use has {expected_config_hash}; rebuild the map with this model"
+            )
+        descriptor_dtype = str(attrs["descriptor_dtype"])
+        if descriptor_dtype not in ("float32", "float16"):
+            raise MapError(f"{p}: corrupted map: descriptor dtype {descriptor_dtype!r}")
+
+        required = (*_SMALL, "local_descriptors", "session_names")
+        missing = [d for d in required if not isinstance(h5.get(d), h5py.Dataset)]
+        if missing:
+            raise MapError(f"{p}: corrupted map: missing datasets {missing}")
+        has_bev = "bev" in h5
+        if has_bev and not isinstance(h5["bev"], h5py.Dataset):
+            raise MapError(f"{p}: corrupted map: 'bev' is not a dataset")
+
+        n = int(attrs["num_keyframes"])
+        ndims = {"poses": 2, "global_descriptors": 2, "local_descriptors": 3, "bev": 4}
+        per_keyframe = (*_SMALL, "local_descriptors", *(("bev",) if has_bev else ()))
+        lengths = {}
+        for name in per_keyframe:
+            ds = h5[name]
+            if ds.ndim != ndims.get(name, 1):
+                raise MapError(f"{p}: corrupted map: dataset {name!r} has shape {ds.shape}")
+            lengths[name] = ds.shape[0]
+        if n < 1 or any(length != n for length in lengths.values()):
+            raise MapError(
+                f"{p}: corrupted map: inconsistent lengths: num_keyframes = {n}, datasets "
+                + ", ".join(f"{k} = {v}" for k, v in lengths.items())
+            )
+        if h5["poses"].shape[1] != 3:
+            raise MapError(f"{p}: corrupted map: poses have shape {h5['poses'].shape}")
+        expected_dtypes = {
+            **_META_DATASETS,
+            "global_descriptors": np.dtype(descriptor_dtype),
+            "local_descriptors": np.dtype(descriptor_dtype),
+            "bev": _BEV_DTYPE,
+        }
+        for name in per_keyframe:
+            if h5[name].dtype != expected_dtypes[name]:
+                raise MapError(
+                    f"{p}: corrupted map: dataset {name!r} has dtype {h5[name].dtype}, "
+                    f"expected {expected_dtypes[name]}"
+                )
+
+        small = {name: h5[name][()] for name in _SMALL}
+        names = [str(s) for s in h5["session_names"].asstr()[()].tolist()]
+        if verify:
+            for name, arr in small.items():
+                _check_digest(p, h5[name], hashlib.sha256(_le(arr, arr.dtype).data).hexdigest())
+            _check_digest(p, h5["session_names"], _names_digest(names))
+
+        si = small["session_index"]
+        if si.size and (si.min() < 0 or si.max() >= len(names)):
+            raise MapError(f"{p}: corrupted map: session_index out of range [0, {len(names)})")
+        if np.unique(small["ids"]).size != n:
+            raise MapError(f"{p}: corrupted map: keyframe ids are not unique")
+        if not np.isfinite(small["poses"]).all():
+            raise MapError(f"{p}: corrupted map: non-finite poses")
+
+        metadata = MapMetadata(
+            model_config_hash=config_hash,
+            model_config=json.loads(str(attrs["model_config_json"])),
+            grid_size=float(attrs["grid_size"]),
+            vvloc_version=str(attrs["vvloc_version"]),
+            format_version=version,
+            created_utc=str(attrs["created_utc"]),
+            descriptor_dtype=descriptor_dtype,
+        )
+        return cls(
+            metadata=metadata,
+            ids=small["ids"].astype(np.int64),
+            session_names=names,
+            session_index=small["session_index"].astype(np.int32),
+            seq=small["seq"].astype(np.int64),
+            timestamps=small["timestamps"].astype(np.float64),
+            poses=small["poses"].astype(np.float64),
+            floors=small["floors"].astype(np.int64),
+            global_descriptors=small["global_descriptors"].astype(np.float32),
+            local_descriptors=h5["local_descriptors"],
+            bev=h5["bev"] if has_bev else None,
+            path=p,
+            h5file=h5,
+        )
+
+    # -- persistence ----------------------------------------------------------------------
+
+    def save(self, path: PathLike, dtype: DescriptorDType = "float32") -> Path:
+        """Write the map to one HDF5 file at ``path``, atomically; return the path.
+
+        ``dtype`` is the stored dtype of the global and local descriptors; BEVs are stored
+        float16. Overwriting the file this map was opened from is allowed (the open handle
+        keeps reading the old file until :meth:`close`).
+        """
+        self._check_open()
+        meta = self._metadata
+        row_bytes = int(np.prod(self.local_shape)) * 4
+        if self.bev_shape is not None:
+            row_bytes += int(np.prod(self.bev_shape)) * 2
+        block = max(1, _COPY_BLOCK_BYTES // row_bytes)
+        with MapWriter(
+            path,
+            model_config=meta.model_config,
+            grid_size=meta.grid_size,
+            config_hash=meta.model_config_hash,
+            dtype=dtype,
+            expected_keyframes=len(self),
+        ) as w:
+            for start in range(0, len(self), block):
+                rows = np.arange(start, min(start + block, len(self)))
+                w.append(
+                    ids=self._ids[rows],
+                    sessions=[self._session_names[s] for s in self._session_index[rows]],
+                    seq=self._seq[rows],
+                    timestamps=self._timestamps[rows],
+                    poses=self._poses[rows],
+                    floors=self._floors[rows],
+                    global_descriptors=self._global[rows],
+                    local_descriptors=self.local_descriptors(rows),
+                    bevs=None if self._bev is None else self.bev(rows),
+                )
+        return w.path
+
+    def verify(self) -> None:
+        """Check the SHA-256 of every dataset in the file, including the lazily read ones.
+
+        Reads the whole file. Raises :class:`MapError` on a mismatch or unreadable chunk.
+        Does nothing for an in-memory map.
+        """
+        self._check_open()
+        if self._h5 is None or self._path is None:
+            return
+        names = self._h5["session_names"].asstr()[()].tolist()
+        _check_digest(self._path, self._h5["session_names"], _names_digest(names))
+        for name in (*_SMALL, *_LAZY):
+            if name not in self._h5:
+                continue
+            ds = self._h5[name]
+            row_bytes = max(1, int(np.prod(ds.shape[1:])) * ds.dtype.itemsize)
+            block = max(1, _COPY_BLOCK_BYTES // row_bytes)
+            digest = hashlib.sha256()
+            try:
+                for start in range(0, ds.shape[0], block):
+                    digest.update(_le(ds[start : start + block], ds.dtype).data)
+            except OSError as e:
+                raise MapError(f"{self._path}: corrupted map: cannot read {name!r}: {e}") from e
+            _check_digest(self._path, ds, digest.hexdigest())
+
+    def close(self) -> None:
+        """Close the file of an opened map (idempotent); lazy accessors then raise."""
+        if self._h5 is not None and self._h5.id.valid:
+            self._h5.close()
+        self._closed = True
+
+    def __enter__(self) -> MapDatabase:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise ValueError(f"map {self._path or '(in memory)'} is closed")
+
+    # -- accessors ------------------------------------------------------------------------
+
+    def __len__(self) -> int:
+        return int(self._ids.shape[0])
+
+    def __repr__(self) -> str:
+        where = str(self._path) if self._path is not None else "in memory"
+        return (
+            f"MapDatabase({where}: {len(self)} keyframes, sessions {list(self._session_names)}, "
+            f"global {self.global_dim}, local {self.local_shape}, bev {self.bev_shape})"
+        )
+
+    @property
+    def path(self) -> Path | None:
+        """The file an opened map was read from; ``None`` for an in-memory map."""
+        return self._path
+
+    @property
+    def metadata(self) -> MapMetadata:
+        return self._metadata
+
+    @property
+    def config_hash(self) -> str:
+        """The model config hash the map was built with."""
+        return self._metadata.model_config_hash
+
+    @property
+    def model_config(self) -> dict[str, Any]:
+        """The model config the map was built with (a copy)."""
+        return json.loads(json.dumps(self._metadata.model_config))
+
+    @property
+    def grid_size(self) -> float:
+        """BEV cell size g in metres."""
+        return self._metadata.grid_size
+
+    @property
+    def ids(self) -> np.ndarray:
+        """(N,) int64 keyframe ids."""
+        return self._ids
+
+    @property
+    def poses(self) -> np.ndarray:
+        """(N, 3) float64 world-frame poses (x, y, yaw): metres, radians CCW about z."""
+        return self._poses
+
+    @property
+    def timestamps(self) -> np.ndarray:
+        """(N,) float64 timestamps in seconds."""
+        return self._timestamps
+
+    @property
+    def seq(self) -> np.ndarray:
+        """(N,) int64 sequence numbers within each keyframe's session."""
+        return self._seq
+
+    @property
+    def floors(self) -> np.ndarray:
+        """(N,) int64 floor numbers."""
+        return self._floors
+
+    @property
+    def sessions(self) -> tuple[str, ...]:
+        """Session names, in order of first appearance; ``session_index`` rows point here."""
+        return self._session_names
+
+    @property
+    def session_index(self) -> np.ndarray:
+        """(N,) int32: keyframe i belongs to session ``sessions[session_index[i]]``."""
+        return self._session_index
+
+    def session_of(self, row: int) -> str:
+        """The session name of keyframe row ``row``."""
+        idx, _ = _as_indices(row, len(self))
+        if idx.size != 1:
+            raise ValueError(f"row: expected one int, got {row!r}")
+        return self._session_names[int(self._session_index[idx[0]])]
+
+    def session_rows(self, session: str) -> np.ndarray:
+        """(k,) int64 rows of the keyframes of ``session``, sorted by (seq, row)."""
+        if session not in self._session_names:
+            raise KeyError(f"session {session!r} not in map (sessions: {list(self.sessions)})")
+        rows = np.flatnonzero(self._session_index == self._session_names.index(session))
+        return rows[np.argsort(self._seq[rows], kind="stable")].astype(np.int64)
+
+    def row_of(self, keyframe_id: int) -> int:
+        """The row of the keyframe with id ``keyframe_id`` (``KeyError`` if absent)."""
+        if self._id_to_row is None:
+            self._id_to_row = {int(k): r for r, k in enumerate(self._ids.tolist())}
+        try:
+            return self._id_to_row[int(keyframe_id)]
+        except KeyError:
+            raise KeyError(f"keyframe id {keyframe_id} not in map") from None
+
+    @property
+    def global_descriptors(self) -> np.ndarray:
+        """(N, Dg) float32 global descriptors (converted from float16 if stored so)."""
+        return self._global
+
+    @property
+    def global_dim(self) -> int:
+        """Dg, the global descriptor dimension."""
+        return int(self._global.shape[1])
+
+    @property
+    def local_shape(self) -> tuple[int, int]:
+        """(T, C) of the local-view descriptors."""
+        return self._local_shape
+
+    @property
+    def bev_shape(self) -> tuple[int, int, int] | None:
+        """(H, W, C) of the stored BEVs, or ``None`` if the map has none."""
+        return self._bev_shape  # type: ignore[return-value]
+
+    @property
+    def has_bev(self) -> bool:
+        return self._bev is not None
+
+    def local_descriptors(self, indices: Any) -> np.ndarray:
+        """Local-view descriptors of keyframe rows ``indices`` as float32.
+
+        ``indices``: an int → (T, C); a 1-D integer array of k rows (any order, repeats
+        allowed) → (k, T, C). Read from the file for an opened map.
+        """
+        return self._read("local_descriptors", self._local, indices)
+
+    def bev(self, indices: Any) -> np.ndarray:
+        """BEVs of keyframe rows ``indices`` as float32 (stored float16).
+
+        ``indices``: an int → (H, W, C); a 1-D integer array of k rows → (k, H, W, C).
+        Raises ``ValueError`` if the map has no BEVs.
+        """
+        if self._bev is None:
+            raise ValueError(f"map {self._path or '(in memory)'} has no BEVs")
+        return self._read("bev", self._bev, indices)
+
+    def _read(self, name: str, storage: np.ndarray | h5py.Dataset, indices: Any) -> np.ndarray:
+        self._check_open()
+        idx, scalar = _as_indices(indices, len(self))
+        try:
+            out = _take(storage, idx)
+        except OSError as e:
+            raise MapError(
+                f"{self._path}: corrupted map: cannot read {name!r} of rows {idx.tolist()[:8]}: {e}"
+            ) from e
+        out = out.astype(np.float32)
+        return out[0] if scalar else out
+
+
+def _check_digest(p: Path, ds: h5py.Dataset, actual: str) -> None:
+    stored = ds.attrs.get("sha256")
+    if stored is None:
+        raise MapError(f"{p}: corrupted map: dataset {ds.name!r} has no sha256 checksum")
+    if str(stored) != actual:
+        raise MapError(
+            f"{p}: corrupted map: checksum mismatch in dataset {ds.name!r} "
+            f"(stored sha256 {str(stored)[:16]}…, data {actual[:16]}…)"
+        )

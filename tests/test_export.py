@@ -1,0 +1,303 @@
+"""Exports: loop-closure CSV, g2o pose graphs and TUM trajectories (content and round trips)."""
+
+from __future__ import annotations
+
+import itertools
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from vvloc.localize import (
+    LoopClosures,
+    information_from_sigmas,
+    read_g2o,
+    read_loop_csv,
+    read_tum,
+    write_g2o,
+    write_loop_csv,
+    write_tum,
+)
+from vvloc.localize.export import (
+    DEFAULT_LOOP_SIGMAS,
+    DEFAULT_ODOMETRY_SIGMAS,
+    relative_pose,
+    wrap_angle,
+)
+
+
+def se2(p: np.ndarray) -> np.ndarray:
+    c, s = math.cos(p[2]), math.sin(p[2])
+    return np.array([[c, -s, p[0]], [s, c, p[1]], [0.0, 0.0, 1.0]])
+
+
+def loops_fixture() -> LoopClosures:
+    return LoopClosures(
+        i=np.array([100, 103, 107, 101]),
+        j=np.array([108, 110, 102, 111]),
+        relative_poses=np.array(
+            [[1.5, -0.25, 0.1], [-3.0, 2.0, math.pi], [0.1, 0.2, -3.0], [7.0, 0.0, 4.0]]
+        ),
+        costs=np.array([0.31, 0.52, 0.9, 0.12]),
+        accepted=np.array([True, True, False, True]),
+    )
+
+
+# ---------------------------------------------------------------------------------------------
+# SE(2) helpers
+
+
+def test_relative_pose_follows_design_convention() -> None:
+    # The target is 1 m north of a source that faces north: 1 m straight ahead (x forward).
+    xi = relative_pose([1.0, 2.0, math.pi / 2], [1.0, 3.0, math.pi])
+    np.testing.assert_allclose(xi, [1.0, 0.0, math.pi / 2], atol=1e-12)
+    # ...and 1 m east of it is 1 m to the right (y left ⇒ y = -1).
+    xi = relative_pose([1.0, 2.0, math.pi / 2], [2.0, 2.0, math.pi / 2])
+    np.testing.assert_allclose(xi, [0.0, -1.0, 0.0], atol=1e-12)
+    # T_world_t = T_world_s · ξ for random poses.
+    rng = np.random.default_rng(0)
+    for _ in range(10):
+        s, t = rng.uniform(-5, 5, 3), rng.uniform(-5, 5, 3)
+        np.testing.assert_allclose(se2(s) @ se2(relative_pose(s, t)), se2(t), atol=1e-12)
+
+
+def test_wrap_angle_range() -> None:
+    a = np.array([-math.pi, math.pi, 3 * math.pi, -3 * math.pi / 2, 0.0, 7.0])
+    w = wrap_angle(a)
+    assert (w > -math.pi).all() and (w <= math.pi).all()
+    np.testing.assert_allclose(np.cos(w), np.cos(a), atol=1e-12)
+    np.testing.assert_allclose(np.sin(w), np.sin(a), atol=1e-12)
+    assert w[0] == math.pi and w[1] == math.pi
+
+
+# ---------------------------------------------------------------------------------------------
+# Loop-closure CSV
+
+
+def test_loop_csv_content_and_round_trip(tmp_path: Path) -> None:
+    loops = loops_fixture()
+    path = write_loop_csv(tmp_path / "loops.csv", loops, comments=["threshold: 0.75"])
+    lines = path.read_text().splitlines()
+    comments = [ln for ln in lines if ln.startswith("#")]
+    data = [ln for ln in lines if not ln.startswith("#")]
+    assert lines[: len(comments)] == comments  # the header comes first
+    text = "\n".join(comments)
+    assert "xi_{i->j}" in text and "x forward, y left" in text and "radians" in text
+    assert comments[-1] == "# threshold: 0.75"
+    assert data[0] == "i,j,x,y,yaw,yaw_deg,cost,accepted"
+    assert len(data) == 1 + len(loops)
+    first = data[1].split(",")
+    assert first[:2] == ["100", "108"] and first[-1] == "1"
+    assert float(first[4]) == 0.1 and float(first[5]) == math.degrees(0.1)
+    assert data[3].split(",")[-1] == "0"
+    # yaw was wrapped to (-pi, pi] on construction: 4.0 rad → 4.0 - 2 pi
+    assert float(data[4].split(",")[4]) == pytest.approx(4.0 - 2 * math.pi, abs=1e-15)
+
+    back = read_loop_csv(path)
+    for name in ("i", "j", "relative_poses", "costs", "accepted"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(loops, name))
+
+
+def test_loop_csv_with_no_loops(tmp_path: Path) -> None:
+    empty = LoopClosures(i=[], j=[], relative_poses=np.zeros((0, 3)), costs=[], accepted=[])
+    back = read_loop_csv(write_loop_csv(tmp_path / "l.csv", empty))
+    assert len(back) == 0 and back.relative_poses.shape == (0, 3)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "exc", "match"),
+    [
+        ({"i": [[1]]}, ValueError, "i: expected shape"),
+        ({"j": [1, 2]}, ValueError, "j: expected shape"),
+        ({"relative_poses": np.zeros((1, 2))}, ValueError, "relative_poses"),
+        ({"costs": [np.nan]}, ValueError, "costs.*non-finite"),
+        ({"accepted": [1]}, TypeError, "accepted.*bool"),
+        ({"i": [0.5]}, TypeError, "i: expected an integer"),
+    ],
+)
+def test_loop_closures_validate(kwargs: dict, exc: type, match: str) -> None:
+    args = {"i": [0], "j": [1], "relative_poses": [[0, 0, 0]], "costs": [0.1], "accepted": [True]}
+    with pytest.raises(exc, match=match):
+        LoopClosures(**{**args, **kwargs})
+
+
+# ---------------------------------------------------------------------------------------------
+# g2o
+
+
+def graph_inputs() -> tuple[np.ndarray, np.ndarray, list[str], np.ndarray]:
+    rng = np.random.default_rng(3)
+    n = 12
+    poses = np.column_stack([rng.uniform(-20, 20, (n, 2)), rng.uniform(-math.pi, math.pi, n)])
+    ids = np.arange(100, 100 + n)
+    sessions = ["a"] * 6 + ["b"] * 6
+    seq = np.array([0, 2, 1, 3, 4, 5, 0, 1, 2, 3, 4, 5])  # rows 1 and 2 swapped in time
+    return poses, ids, sessions, seq
+
+
+def test_g2o_round_trip(tmp_path: Path) -> None:
+    poses, ids, sessions, seq = graph_inputs()
+    loops = loops_fixture()
+    rng = np.random.default_rng(4)
+    a = rng.normal(size=(len(loops), 3, 3))
+    loop_info = a @ np.swapaxes(a, 1, 2) + 3 * np.eye(3)  # per-loop SPD information
+    odo_info = information_from_sigmas(0.1, 0.2, 0.01)
+    path = write_g2o(
+        tmp_path / "graph.g2o",
+        poses,
+        loops,
+        ids=ids,
+        sessions=sessions,
+        seq=seq,
+        odometry_information=odo_info,
+        loop_information=loop_info,
+    )
+    g = read_g2o(path)
+    np.testing.assert_array_equal(g.vertex_ids, ids)
+    np.testing.assert_array_equal(g.vertex_poses, poses)  # exact: shortest round-trip repr
+
+    # Odometry edges: consecutive keyframes of each session in seq order; then accepted loops.
+    rows = [0, 2, 1, 3, 4, 5]
+    odo_rows = list(itertools.pairwise(rows)) + [(r, r + 1) for r in range(6, 11)]
+    keep = np.flatnonzero(loops.accepted)
+    want_edges = [(ids[a], ids[b]) for a, b in odo_rows] + [(loops.i[k], loops.j[k]) for k in keep]
+    np.testing.assert_array_equal(g.edges, want_edges)
+    n_odo = len(odo_rows)
+    for e, (a, b) in enumerate(odo_rows):
+        np.testing.assert_allclose(
+            se2(poses[a]) @ se2(g.measurements[e]), se2(poses[b]), atol=1e-12
+        )
+        np.testing.assert_array_equal(g.information[e], odo_info)
+    np.testing.assert_array_equal(g.measurements[n_odo:], loops.relative_poses[keep])
+    np.testing.assert_array_equal(g.information[n_odo:], loop_info[keep])
+
+
+def test_g2o_file_has_only_vertex_and_edge_lines_and_default_information(tmp_path: Path) -> None:
+    poses, *_ = graph_inputs()
+    loops = loops_fixture()
+    path = write_g2o(tmp_path / "g.g2o", poses, loops, ids=np.arange(100, 112), only_accepted=False)
+    lines = path.read_text().splitlines()
+    assert all(ln.split()[0] in ("VERTEX_SE2", "EDGE_SE2") for ln in lines)
+    assert all(len(ln.split()) == (5 if ln.startswith("VERTEX") else 12) for ln in lines)
+    g = read_g2o(path)
+    assert len(g.edges) == 11 + len(loops)  # one session by default; all loops kept
+    np.testing.assert_allclose(g.information[0], information_from_sigmas(*DEFAULT_ODOMETRY_SIGMAS))
+    np.testing.assert_allclose(g.information[-1], information_from_sigmas(*DEFAULT_LOOP_SIGMAS))
+    assert np.diag(g.information[-1]).tolist() == pytest.approx(
+        [1 / 0.5**2, 1 / 0.5**2, 1 / math.radians(2.0) ** 2]
+    )
+
+
+def test_read_g2o_skips_comments_and_other_tags(tmp_path: Path) -> None:
+    path = tmp_path / "other.g2o"
+    path.write_text(
+        "# a comment\n\nVERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 1 0 0.5\nFIX 0\n"
+        "EDGE_SE2 0 1 1 0 0.5 10 1 2 20 3 30\n"
+    )
+    g = read_g2o(path)
+    assert g.vertex_ids.tolist() == [0, 1] and g.edges.tolist() == [[0, 1]]
+    np.testing.assert_array_equal(g.information[0], [[10, 1, 2], [1, 20, 3], [2, 3, 30]])
+
+
+@pytest.mark.parametrize(
+    ("text", "match"),
+    [
+        ("VERTEX_SE2 0 0 0\n", ":1: malformed.*VERTEX_SE2"),
+        ("VERTEX_SE2 0 0 0 0\nVERTEX_SE2 0 1 1 1\n", ":2: .*repeated"),
+        ("EDGE_SE2 0 1 1 0 0 1 0 0 1 0\n", ":1: .*EDGE_SE2"),
+        ("VERTEX_SE2 0 x 0 0\n", ":1: malformed"),
+    ],
+)
+def test_read_g2o_refuses_malformed_lines(tmp_path: Path, text: str, match: str) -> None:
+    path = tmp_path / "bad.g2o"
+    path.write_text(text)
+    with pytest.raises(ValueError, match=match):
+        read_g2o(path)
+
+
+def test_write_g2o_validates(tmp_path: Path) -> None:
+    poses, ids, *_ = graph_inputs()
+    loops = loops_fixture()
+    out = tmp_path / "g.g2o"
+    with pytest.raises(
+        ValueError, match=r"loops\.i: ids \[100, 101, 103, 107\] are not vertex ids"
+    ):
+        write_g2o(out, poses, loops)  # default ids 0..11 hold no loop ids
+    with pytest.raises(ValueError, match="symmetric"):
+        write_g2o(out, poses, loops, ids=ids, loop_information=np.triu(np.ones((3, 3))))
+    with pytest.raises(ValueError, match="positive definite"):
+        write_g2o(out, poses, ids=ids, odometry_information=-np.eye(3))
+    with pytest.raises(ValueError, match=r"ids.*unique"):
+        write_g2o(out, poses, ids=np.zeros(12, np.int64))
+    with pytest.raises(ValueError, match="sessions"):
+        write_g2o(out, poses, sessions=["a"] * 3)
+    with pytest.raises(ValueError, match="poses"):
+        write_g2o(out, poses[:, :2])
+    assert os.listdir(tmp_path) == []
+
+
+# ---------------------------------------------------------------------------------------------
+# TUM
+
+
+def test_tum_round_trip(tmp_path: Path) -> None:
+    rng = np.random.default_rng(5)
+    n = 20
+    t = 1.7e9 + np.sort(rng.uniform(0, 100, n))
+    yaw = np.concatenate([[math.pi, -math.pi + 1e-9, 0.0], rng.uniform(-math.pi, math.pi, n - 3)])
+    poses = np.column_stack([rng.uniform(-100, 100, (n, 2)), yaw])
+    z = rng.uniform(0, 2, n)
+    path = write_tum(tmp_path / "traj.txt", t, poses, z=z, comments=["session: s1"])
+    lines = path.read_text().splitlines()
+    assert lines[0].startswith("# vvloc trajectory, TUM format: timestamp tx ty tz qx qy qz qw")
+    assert "# session: s1" in lines
+    table = np.loadtxt(path, comments="#")  # plain TUM readers skip the '#' header
+    assert table.shape == (n, 8)
+    np.testing.assert_array_equal(table[:, 0], t)
+    np.testing.assert_array_equal(table[:, 3], z)
+    np.testing.assert_allclose(np.linalg.norm(table[:, 4:], axis=1), 1.0, atol=1e-15)
+    np.testing.assert_array_equal(table[:, 4:6], 0.0)
+
+    t2, poses2 = read_tum(path)
+    np.testing.assert_array_equal(t2, t)
+    np.testing.assert_array_equal(poses2[:, :2], poses[:, :2])
+    dyaw = wrap_angle(poses2[:, 2] - poses[:, 2])
+    np.testing.assert_allclose(dyaw, 0.0, atol=1e-12)
+    assert (poses2[:, 2] > -math.pi).all() and (poses2[:, 2] <= math.pi).all()
+
+
+def test_read_tum_heading_of_a_tilted_rotation(tmp_path: Path) -> None:
+    # Rotation = yaw 0.7 about z, then a small roll about the vehicle x axis: heading is 0.7.
+    yaw, roll = 0.7, 0.2
+    qz = np.array([0, 0, math.sin(yaw / 2), math.cos(yaw / 2)])
+    qr = np.array([math.sin(roll / 2), 0, 0, math.cos(roll / 2)])
+    x1, y1, z1, w1 = qz
+    x2, y2, z2, w2 = qr
+    q = [
+        w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+        w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
+        w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
+        w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
+    ]
+    path = tmp_path / "t.txt"
+    path.write_text("0.0 1 2 3 " + " ".join(repr(float(v)) for v in q) + "\n")
+    _, poses = read_tum(path)
+    assert poses[0].tolist() == pytest.approx([1.0, 2.0, yaw], abs=1e-12)
+
+
+def test_tum_validation_leaves_no_file(tmp_path: Path) -> None:
+    out = tmp_path / "traj.txt"
+    out.write_text("old\n")
+    with pytest.raises(ValueError, match="poses"):
+        write_tum(out, [0.0, 1.0], np.zeros((3, 3)))
+    with pytest.raises(ValueError, match=r"timestamps.*non-finite"):
+        write_tum(out, [0.0, np.inf], np.zeros((2, 3)))
+    with pytest.raises(ValueError, match="z"):
+        write_tum(out, [0.0, 1.0], np.zeros((2, 3)), z=[1.0, 2.0, 3.0])
+    assert out.read_text() == "old\n" and os.listdir(tmp_path) == ["traj.txt"]
+    bad = tmp_path / "bad.txt"
+    bad.write_text("0 1 2 3 0 0 0\n")
+    with pytest.raises(ValueError, match=r"bad\.txt:1: expected 8 fields"):
+        read_tum(bad)

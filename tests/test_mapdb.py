@@ -1,0 +1,445 @@
+"""Map database: save/open round trips, lazy reads, read-only access, refusals and atomic writes."""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+import pytest
+
+from vvloc._io import atomic_write
+from vvloc.localize import MapDatabase, MapError, MapWriter, model_config_hash
+from vvloc.localize.mapdb import FORMAT_VERSION
+
+CONFIG = {"name": "tiny", "bev": {"H": 6, "W": 5, "C": 4}, "T": 8}
+N, DG, T, C = 12, 16, 8, 4
+BEV = (6, 5, 4)
+
+
+def keyframes(n: int = N, *, bev: bool = True, seed: int = 0) -> dict[str, Any]:
+    rng = np.random.default_rng(seed)
+    g = rng.normal(size=(n, DG)).astype(np.float32)
+    half = n // 2
+    out: dict[str, Any] = {
+        "poses": np.column_stack([rng.uniform(-50, 50, (n, 2)), rng.uniform(-np.pi, np.pi, n)]),
+        "timestamps": 1.7e9 + np.arange(n) * 0.1,
+        "sessions": ["s0"] * half + ["s1"] * (n - half),
+        "global_descriptors": g / np.linalg.norm(g, axis=1, keepdims=True),
+        "local_descriptors": rng.normal(size=(n, T, C)).astype(np.float32),
+        "ids": np.arange(100, 100 + n, dtype=np.int64)[::-1].copy(),
+        "seq": np.concatenate([np.arange(half), np.arange(n - half)]) * 3,
+        "floors": rng.integers(-1, 3, n),
+    }
+    if bev:
+        out["bevs"] = rng.normal(size=(n, *BEV)).astype(np.float32)
+    return out
+
+
+def make_map(n: int = N, *, bev: bool = True, seed: int = 0) -> MapDatabase:
+    return MapDatabase.from_arrays(
+        **keyframes(n, bev=bev, seed=seed), model_config=CONFIG, grid_size=0.3
+    )
+
+
+def saved(tmp_path: Path, *, bev: bool = True, dtype: str = "float32") -> Path:
+    return make_map(bev=bev).save(tmp_path / "map.h5", dtype=dtype)  # type: ignore[arg-type]
+
+
+def file_sha(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def as_stored(x: np.ndarray, dtype: str) -> np.ndarray:
+    return np.asarray(x).astype(dtype).astype(np.float32)
+
+
+# ---------------------------------------------------------------------------------------------
+# Round trips
+
+
+@pytest.mark.parametrize("dtype", ["float32", "float16"])
+@pytest.mark.parametrize("bev", [True, False])
+def test_save_open_round_trip(tmp_path: Path, dtype: str, bev: bool) -> None:
+    kf = keyframes(bev=bev)
+    path = make_map(bev=bev).save(tmp_path / "map.h5", dtype=dtype)  # type: ignore[arg-type]
+    assert sorted(os.listdir(tmp_path)) == ["map.h5"]  # no temporary file left
+    with MapDatabase.open(path, expected_config_hash=model_config_hash(CONFIG)) as db:
+        assert len(db) == N and db.path == path
+        np.testing.assert_array_equal(db.poses, kf["poses"])
+        np.testing.assert_array_equal(db.timestamps, kf["timestamps"])
+        np.testing.assert_array_equal(db.ids, kf["ids"])
+        np.testing.assert_array_equal(db.seq, kf["seq"])
+        np.testing.assert_array_equal(db.floors, kf["floors"])
+        assert db.sessions == ("s0", "s1")
+        assert [db.session_of(i) for i in range(N)] == kf["sessions"]
+        assert db.global_descriptors.dtype == np.float32
+        np.testing.assert_array_equal(
+            db.global_descriptors, as_stored(kf["global_descriptors"], dtype)
+        )
+        loc = db.local_descriptors(np.arange(N))
+        assert loc.dtype == np.float32 and loc.shape == (N, T, C)
+        np.testing.assert_array_equal(loc, as_stored(kf["local_descriptors"], dtype))
+        assert db.local_shape == (T, C) and db.global_dim == DG
+        assert db.has_bev is bev
+        if bev:
+            assert db.bev_shape == BEV
+            np.testing.assert_array_equal(db.bev([0, 5]), as_stored(kf["bevs"][[0, 5]], "float16"))
+        else:
+            assert db.bev_shape is None
+            with pytest.raises(ValueError, match="no BEVs"):
+                db.bev(0)
+        meta = db.metadata
+        assert meta.model_config == CONFIG
+        assert meta.model_config_hash == db.config_hash == model_config_hash(CONFIG)
+        assert meta.grid_size == db.grid_size == 0.3
+        assert meta.format_version == FORMAT_VERSION
+        assert meta.descriptor_dtype == dtype
+        assert meta.vvloc_version and meta.created_utc.endswith("+00:00")
+        db.verify()
+
+
+def test_float16_file_is_smaller(tmp_path: Path) -> None:
+    m = make_map(n=64, bev=False)
+    a = m.save(tmp_path / "a.h5", dtype="float32")
+    b = m.save(tmp_path / "b.h5", dtype="float16")
+    assert b.stat().st_size < a.stat().st_size
+
+
+@pytest.mark.parametrize("opened", [False, True])
+def test_lazy_reads_follow_numpy_indexing(tmp_path: Path, opened: bool) -> None:
+    kf = keyframes()
+    db = MapDatabase.open(saved(tmp_path)) if opened else make_map()
+    with db:
+        want = kf["local_descriptors"]
+        np.testing.assert_array_equal(db.local_descriptors(3), want[3])  # scalar → (T, C)
+        idx = np.array([7, 2, 7, 0, 11])  # unsorted, repeated
+        np.testing.assert_array_equal(db.local_descriptors(idx), want[idx])
+        np.testing.assert_array_equal(db.local_descriptors([4, 5, 6]), want[4:7])
+        assert db.local_descriptors([]).shape == (0, T, C)
+        np.testing.assert_array_equal(db.bev(np.int64(1)), as_stored(kf["bevs"][1], "float16"))
+        with pytest.raises(IndexError, match=r"indices.*\[0, 12\)"):
+            db.local_descriptors([0, N])
+        with pytest.raises(IndexError):
+            db.local_descriptors(-1)
+        with pytest.raises(TypeError, match="indices"):
+            db.local_descriptors([0.5])
+        with pytest.raises(ValueError, match="indices"):
+            db.local_descriptors([[0, 1]])
+
+
+def test_session_and_id_lookups() -> None:
+    db = make_map()
+    kf = keyframes()
+    assert db.row_of(int(kf["ids"][4])) == 4
+    with pytest.raises(KeyError, match="999"):
+        db.row_of(999)
+    rows = db.session_rows("s1")
+    np.testing.assert_array_equal(rows, np.arange(N // 2, N))
+    with pytest.raises(KeyError, match="nope"):
+        db.session_rows("nope")
+
+
+def test_opened_map_is_read_only_and_file_unchanged(tmp_path: Path) -> None:
+    path = saved(tmp_path)
+    before = (file_sha(path), path.stat().st_mtime_ns)
+    with MapDatabase.open(path) as db:
+        for arr in (db.poses, db.global_descriptors, db.ids, db.timestamps, db.seq, db.floors):
+            assert not arr.flags.writeable
+            with pytest.raises(ValueError, match="read-only"):
+                arr[0] = 0
+        db.local_descriptors([1, 2])
+        db.verify()
+    assert (file_sha(path), path.stat().st_mtime_ns) == before
+    with pytest.raises(ValueError, match="closed"):
+        db.local_descriptors(0)
+
+
+def test_resave_over_the_opened_file(tmp_path: Path) -> None:
+    path = saved(tmp_path)
+    kf = keyframes()
+    with MapDatabase.open(path) as db:
+        db.save(path, dtype="float16")
+        np.testing.assert_array_equal(db.local_descriptors(0), kf["local_descriptors"][0])
+    with MapDatabase.open(path) as db2:
+        assert db2.metadata.descriptor_dtype == "float16"
+        np.testing.assert_array_equal(db2.poses, kf["poses"])
+    assert sorted(os.listdir(tmp_path)) == ["map.h5"]
+
+
+def test_writer_appends_batches(tmp_path: Path) -> None:
+    kf = keyframes(bev=True)
+    path = tmp_path / "map.h5"
+    with MapWriter(path, model_config=CONFIG, grid_size=0.3, dtype="float16") as w:
+        for sl in (slice(0, 5), slice(5, 9), slice(9, N)):
+            w.append(
+                poses=kf["poses"][sl],
+                timestamps=kf["timestamps"][sl],
+                sessions=kf["sessions"][sl],
+                global_descriptors=kf["global_descriptors"][sl],
+                local_descriptors=kf["local_descriptors"][sl],
+                bevs=kf["bevs"][sl],
+            )
+            assert not path.exists()  # nothing at the destination before close
+        assert len(w) == N
+    with MapDatabase.open(path) as db:
+        np.testing.assert_array_equal(db.ids, np.arange(N))  # default: running row numbers
+        np.testing.assert_array_equal(db.seq, [0, 1, 2, 3, 4, 5, 0, 1, 2, 3, 4, 5])
+        np.testing.assert_array_equal(db.floors, 0)
+        np.testing.assert_array_equal(
+            db.local_descriptors(np.arange(N)), as_stored(kf["local_descriptors"], "float16")
+        )
+        np.testing.assert_array_equal(db.bev(np.arange(N)), as_stored(kf["bevs"], "float16"))
+
+
+def test_writer_rejects_inconsistent_batches_and_stays_usable(tmp_path: Path) -> None:
+    kf = keyframes(bev=False)
+    path = tmp_path / "map.h5"
+    args = {
+        k: kf[k][:4]
+        for k in ("poses", "timestamps", "global_descriptors", "local_descriptors", "ids")
+    }
+    with MapWriter(path, model_config=CONFIG, grid_size=0.3) as w:
+        w.append(sessions="s0", **args)
+        with pytest.raises(ValueError, match=r"local_descriptors.*differs"):
+            w.append(
+                sessions="s0",
+                **{**args, "ids": [1, 2, 3, 4], "local_descriptors": np.zeros((4, T + 1, C))},
+            )
+        with pytest.raises(ValueError, match=r"ids.*already"):
+            w.append(sessions="s0", **args)
+        with pytest.raises(ValueError, match="bevs"):
+            w.append(sessions="s0", **{**args, "ids": [1, 2, 3, 4]}, bevs=np.zeros((4, *BEV)))
+        w.append(sessions="s1", **{**args, "ids": [1, 2, 3, 4]})
+    with MapDatabase.open(path) as db:
+        assert len(db) == 8 and db.sessions == ("s0", "s1")
+
+
+def test_writer_with_no_keyframes_writes_nothing(tmp_path: Path) -> None:
+    w = MapWriter(tmp_path / "map.h5", model_config=CONFIG, grid_size=0.3)
+    with pytest.raises(ValueError, match="at least one keyframe"):
+        w.close()
+    assert os.listdir(tmp_path) == []
+
+
+@pytest.mark.parametrize(
+    ("change", "exc", "match"),
+    [
+        ({"poses": np.zeros((N, 2))}, ValueError, r"poses.*\(N, 3\)"),
+        ({"poses": np.full((N, 3), np.nan)}, ValueError, "poses.*non-finite"),
+        ({"timestamps": np.zeros(N - 1)}, ValueError, "timestamps"),
+        ({"sessions": ["a"] * (N - 1)}, ValueError, "sessions"),
+        ({"sessions": [1] * N}, TypeError, "sessions"),
+        ({"global_descriptors": np.zeros((N, DG), dtype=complex)}, TypeError, "global_desc"),
+        ({"local_descriptors": np.zeros((N, T))}, ValueError, "local_descriptors"),
+        ({"ids": np.zeros(N, np.int64)}, ValueError, "ids.*unique"),
+        ({"seq": np.zeros(N)}, TypeError, "seq.*integer"),
+        ({"bevs": np.full((N, *BEV), 1e6)}, ValueError, "bevs.*overflow"),
+        ({"grid_size": -1.0}, ValueError, "grid_size"),
+        ({"model_config": {"a": object()}}, ValueError, "model_config"),
+    ],
+)
+def test_from_arrays_validates(change: dict[str, Any], exc: type, match: str) -> None:
+    args = {**keyframes(), "model_config": CONFIG, "grid_size": 0.3, **change}
+    with pytest.raises(exc, match=match):
+        MapDatabase.from_arrays(**args)
+
+
+def test_float16_overflow_and_bad_dtype_are_refused(tmp_path: Path) -> None:
+    kf = keyframes(bev=False)
+    kf["local_descriptors"] = kf["local_descriptors"] * 1e6
+    db = MapDatabase.from_arrays(**kf, model_config=CONFIG, grid_size=0.3)
+    with pytest.raises(ValueError, match="overflow float16"):
+        db.save(tmp_path / "map.h5", dtype="float16")
+    with pytest.raises(ValueError, match="dtype"):
+        db.save(tmp_path / "map.h5", dtype="int8")  # type: ignore[arg-type]
+    assert os.listdir(tmp_path) == []
+
+
+def test_model_config_hash_is_canonical() -> None:
+    assert model_config_hash({"a": 1, "b": [1, 2]}) == model_config_hash({"b": [1, 2], "a": 1})
+    assert model_config_hash({"a": 1}) == model_config_hash('{"a":   1}')
+    assert model_config_hash({"a": 1}) != model_config_hash({"a": 2})
+
+
+# ---------------------------------------------------------------------------------------------
+# Refusals
+
+
+def test_missing_file(tmp_path: Path) -> None:
+    with pytest.raises(FileNotFoundError, match=r"nope\.h5"):
+        MapDatabase.open(tmp_path / "nope.h5")
+
+
+def test_garbage_file_is_refused(tmp_path: Path) -> None:
+    path = tmp_path / "garbage.h5"
+    path.write_bytes(np.random.default_rng(0).bytes(4096))
+    with pytest.raises(MapError, match=r"garbage\.h5.*not an HDF5 file"):
+        MapDatabase.open(path)
+
+
+@pytest.mark.parametrize("keep", [0.5, 0.9, 0.001])
+def test_truncated_file_is_refused(tmp_path: Path, keep: float) -> None:
+    path = saved(tmp_path)
+    data = path.read_bytes()
+    path.write_bytes(data[: int(len(data) * keep)])
+    with pytest.raises(MapError, match=r"map\.h5"):
+        MapDatabase.open(path)
+
+
+def test_hdf5_file_that_is_not_a_map(tmp_path: Path) -> None:
+    path = tmp_path / "other.h5"
+    with h5py.File(path, "w") as f:
+        f["x"] = np.arange(3)
+    with pytest.raises(MapError, match=r"other\.h5.*not a vvloc map"):
+        MapDatabase.open(path)
+
+
+def edit(path: Path, fn: Any) -> None:
+    with h5py.File(path, "a") as f:
+        fn(f)
+
+
+def test_missing_dataset_is_refused(tmp_path: Path) -> None:
+    path = saved(tmp_path)
+    edit(path, lambda f: f.__delitem__("poses"))
+    with pytest.raises(MapError, match=r"map\.h5.*missing datasets \['poses'\]"):
+        MapDatabase.open(path)
+
+
+def test_wrong_format_version_is_refused(tmp_path: Path) -> None:
+    path = saved(tmp_path)
+    edit(path, lambda f: f.attrs.__setitem__("format_version", FORMAT_VERSION + 98))
+    with pytest.raises(MapError, match=rf"map\.h5.*format version {FORMAT_VERSION + 98}"):
+        MapDatabase.open(path)
+
+
+def test_map_of_another_model_is_refused(tmp_path: Path) -> None:
+    path = saved(tmp_path)
+    mine, other = model_config_hash(CONFIG), model_config_hash({**CONFIG, "T": 16})
+    with pytest.raises(MapError, match="another model") as err:
+        MapDatabase.open(path, expected_config_hash=other)
+    assert mine in str(err.value) and other in str(err.value) and "map.h5" in str(err.value)
+    MapDatabase.open(path, expected_config_hash=mine).close()
+
+
+def test_inconsistent_lengths_are_refused(tmp_path: Path) -> None:
+    path = saved(tmp_path)
+
+    def shorten(f: h5py.File) -> None:
+        floors = f["floors"][:-1]
+        del f["floors"]
+        f["floors"] = floors
+
+    edit(path, shorten)
+    with pytest.raises(MapError, match=rf"map\.h5.*inconsistent lengths.*floors = {N - 1}"):
+        MapDatabase.open(path)
+
+
+def test_modified_dataset_fails_its_checksum(tmp_path: Path) -> None:
+    path = saved(tmp_path)
+    edit(path, lambda f: f["global_descriptors"].__setitem__((3, 0), 0.25))
+    with pytest.raises(MapError, match=r"map\.h5.*checksum mismatch.*global_descriptors"):
+        MapDatabase.open(path)
+    with MapDatabase.open(path, verify=False) as db:
+        with pytest.raises(MapError, match=r"checksum mismatch.*global_descriptors"):
+            db.verify()
+
+
+def flip_byte_in_chunk(path: Path, dataset: str, row: int) -> None:
+    with h5py.File(path, "r") as f:
+        ds = f[dataset]
+        info = ds.id.get_chunk_info_by_coord((row,) + (0,) * (ds.ndim - 1))
+    with open(path, "r+b") as fh:
+        fh.seek(info.byte_offset + info.size // 2)
+        b = fh.read(1)
+        fh.seek(-1, os.SEEK_CUR)
+        fh.write(bytes([b[0] ^ 0xFF]))
+
+
+def test_corrupted_bytes_in_global_descriptors_are_refused_on_open(tmp_path: Path) -> None:
+    path = saved(tmp_path)
+    flip_byte_in_chunk(path, "global_descriptors", 0)
+    with pytest.raises(MapError, match=r"map\.h5.*corrupted"):
+        MapDatabase.open(path)
+
+
+@pytest.mark.parametrize("dataset", ["local_descriptors", "bev"])
+def test_corrupted_lazy_chunk_fails_when_read(tmp_path: Path, dataset: str) -> None:
+    path = saved(tmp_path)
+    flip_byte_in_chunk(path, dataset, 5)
+    with MapDatabase.open(path) as db:  # lazy data is not read on open
+        read = db.local_descriptors if dataset == "local_descriptors" else db.bev
+        with pytest.raises(MapError, match=rf"map\.h5.*{dataset}"):
+            read([4, 5])
+        with pytest.raises(MapError, match=rf"map\.h5.*{dataset}"):
+            db.verify()
+
+
+# ---------------------------------------------------------------------------------------------
+# Atomic writes
+
+
+def test_failed_write_leaves_previous_map_and_no_temp_file(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    path = saved(tmp_path)
+    before = file_sha(path)
+    calls = {"n": 0}
+    original = h5py.Dataset.__setitem__
+
+    def failing_setitem(self: h5py.Dataset, key: Any, value: Any) -> None:
+        calls["n"] += 1
+        if self.name == "/local_descriptors":
+            raise OSError("simulated disk failure")
+        original(self, key, value)
+
+    monkeypatch.setattr(h5py.Dataset, "__setitem__", failing_setitem)
+    with pytest.raises(OSError, match="simulated disk failure"):
+        make_map(seed=1).save(path)
+    monkeypatch.undo()
+    assert calls["n"] > 1  # the failure happened mid-write, after other datasets were written
+    assert sorted(os.listdir(tmp_path)) == ["map.h5"]
+    assert file_sha(path) == before
+    with MapDatabase.open(path) as db:
+        np.testing.assert_array_equal(db.poses, keyframes()["poses"])
+
+
+def test_interrupted_writer_leaves_nothing(tmp_path: Path) -> None:
+    kf = keyframes(bev=False)
+    with (
+        pytest.raises(KeyboardInterrupt),
+        MapWriter(tmp_path / "map.h5", model_config=CONFIG, grid_size=0.3) as w,
+    ):
+        w.append(**{k: v for k, v in kf.items()})
+        assert len(os.listdir(tmp_path)) == 1  # the hidden temporary file
+        raise KeyboardInterrupt
+    assert os.listdir(tmp_path) == []
+
+
+def test_abandoned_writer_removes_its_temp_file(tmp_path: Path) -> None:
+    w = MapWriter(tmp_path / "map.h5", model_config=CONFIG, grid_size=0.3)
+    w.append(**keyframes(bev=False))
+    del w
+    assert os.listdir(tmp_path) == []
+
+
+def test_atomic_write_keeps_old_content_on_error(tmp_path: Path) -> None:
+    path = tmp_path / "out.txt"
+    path.write_text("old\n")
+    with pytest.raises(RuntimeError), atomic_write(path) as f:
+        f.write("new, partial")
+        raise RuntimeError("boom")
+    assert path.read_text() == "old\n" and os.listdir(tmp_path) == ["out.txt"]
+    with atomic_write(path) as f:
+        f.write("new\n")
+    assert path.read_text() == "new\n" and os.listdir(tmp_path) == ["out.txt"]
+
+
+def test_atomic_write_into_missing_directory_fails_cleanly(tmp_path: Path) -> None:
+    with pytest.raises(FileNotFoundError), atomic_write(tmp_path / "no" / "x.txt") as f:
+        f.write("x")
+    assert os.listdir(tmp_path) == []
