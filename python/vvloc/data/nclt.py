@@ -55,7 +55,7 @@ X_BODY_LB3 = (0.035, 0.002, -1.23, -179.93, -0.23, 0.50)
 DEFAULT_CAMERAS = (1, 2, 3, 4, 5)
 
 
-def ssc_degrees_to_matrix(v: Sequence[float]) -> np.ndarray:
+def ssc_degrees_to_matrix(v: Sequence[float] | np.ndarray) -> np.ndarray:
     """4×4 transform of an NCLT six-vector (x, y, z m; roll, pitch, yaw degrees)."""
     x, y, z, r, p, h = (float(a) for a in v)
     return euler_to_matrix(x, y, z, np.deg2rad(r), np.deg2rad(p), np.deg2rad(h))

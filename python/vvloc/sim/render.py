@@ -285,7 +285,7 @@ def egl_status() -> tuple[bool, str]:
     try:
         import moderngl
 
-        ctx = moderngl.create_standalone_context(backend="egl")
+        ctx = moderngl.create_standalone_context(backend="egl")  # type: ignore[arg-type]
         info = ctx.info.get("GL_RENDERER", "?")
         ctx.release()
         return True, str(info)
@@ -317,7 +317,7 @@ class Renderer:
         self.width, self.height = sizes.pop()
         self.texture_strength = float(texture_strength)
         try:
-            self.ctx = moderngl.create_standalone_context(backend="egl")
+            self.ctx: Any = moderngl.create_standalone_context(backend="egl")  # type: ignore[arg-type]
         except Exception as e:
             raise RuntimeError(
                 "cannot create a headless EGL OpenGL context: install Mesa's EGL "
@@ -340,11 +340,11 @@ class Renderer:
                 "BARK",
             )
         }
-        self.prog = self.ctx.program(
+        self.prog: Any = self.ctx.program(
             vertex_shader=_VERTEX, fragment_shader=_FRAGMENT % {"maxl": MAX_LIGHTS, **mats}
         )
         m = len(self.cameras)
-        self.fbo = self.ctx.framebuffer(
+        self.fbo: Any = self.ctx.framebuffer(
             color_attachments=[self.ctx.renderbuffer((self.width, self.height * m), components=4)],
             depth_attachment=self.ctx.depth_renderbuffer((self.width, self.height * m)),
         )

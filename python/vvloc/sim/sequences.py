@@ -30,7 +30,7 @@ def sample_loop(waypoints: np.ndarray, radius: float = 4.0, step: float = 0.05) 
         din = (cur - prev) / np.linalg.norm(cur - prev)
         dout = (nxt - cur) / np.linalg.norm(nxt - cur)
         theta = math.atan2(din[0] * dout[1] - din[1] * dout[0], float(din @ dout))
-        half = min(np.linalg.norm(cur - prev), np.linalg.norm(nxt - cur)) / 2
+        half = min(float(np.linalg.norm(cur - prev)), float(np.linalg.norm(nxt - cur))) / 2
         t = min(radius * math.tan(abs(theta) / 2), half)
         r = t / math.tan(abs(theta) / 2) if abs(theta) > 1e-9 else 0.0
         corners.append((cur - din * t, cur + dout * t, din, theta, r))

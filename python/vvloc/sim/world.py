@@ -88,8 +88,8 @@ class MeshBuilder:
         half = np.array([lx / 2, ly / 2, lz / 2])
         ctr = np.array([0.0, 0.0, lz / 2])
         pos_all, nrm_all, tri_all = [], [], []
-        for k, (n, _) in enumerate(faces):
-            n = np.array(n, dtype=np.float64)
+        for k, (face, _) in enumerate(faces):
+            n = np.array(face, dtype=np.float64)
             # two tangent axes of the face
             a = np.roll(n, 1)
             b = np.cross(n, a)
