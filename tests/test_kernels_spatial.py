@@ -110,7 +110,7 @@ def test_zero_shift_unchanged_and_huge_shift_all_ones():
     out = K.bev_pad(bev, [[0.0, 0.0], [0.0, 1e6], [-50.0, 0.0]], 0.3)
     np.testing.assert_array_equal(out[0], bev)
     assert (out[1:] == 1.0).all()
-    polar = K.pad_polar(bev, [[0.0, 0.0], [1e30, -1e30]], 8, 3, 0.3)
+    polar = K.pad_polar(bev, [[0.0, 0.0], [1e300, -1e300]], 8, 3, 0.3)
     np.testing.assert_array_equal(polar[0], K.polar_sample(bev, 8, 3, 0.3))
     assert (polar[1] == 1.0).all()
 
@@ -229,6 +229,7 @@ TR = np.zeros((1, 2))
         (lambda b: K.bev_pad(BEV, np.zeros((2, 3)), 0.3, backend=b), ValueError, "translations"),
         (lambda b: K.bev_pad(BEV, np.zeros(2), 0.3, backend=b), ValueError, "translations"),
         (lambda b: K.bev_pad(BEV, [[0.0, np.nan]], 0.3, backend=b), ValueError, "translations"),
+        (lambda b: K.bev_pad(BEV, "t", 0.3, backend=b), TypeError, "translations"),
         (lambda b: K.bev_pad(BEV, TR, 0.0, backend=b), ValueError, "grid_size"),
         (lambda b: K.bev_pad(BEV, TR, -1.0, backend=b), ValueError, "grid_size"),
         (lambda b: K.bev_pad(BEV, TR, "0.3", backend=b), TypeError, "grid_size"),

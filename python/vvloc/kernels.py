@@ -103,12 +103,22 @@ def _bev(bev: Any, batched: bool = False) -> F32Array:
 
 def _translations(translations: Any) -> npt.NDArray[np.float64]:
     """Translations (N, 2) metres as C-contiguous float64 (kept in double: they set fill rows)."""
-    arr = _as_f32(translations, "translations", 2, "(N, 2)")  # type/ndim/finite checks
-    if arr.shape[1] != 2:
-        raise ValueError(f"translations: expected shape (N, 2), got shape {arr.shape}")
+    # Validated in float64: a float32 copy would overflow huge (valid) shifts.
     if hasattr(translations, "detach") and hasattr(translations, "cpu"):
         translations = translations.detach().cpu().numpy()
-    return np.ascontiguousarray(translations, dtype=np.float64)
+    if isinstance(translations, (str, bytes)) or translations is None:
+        raise TypeError(f"translations: expected a float array (N, 2), got {type(translations)}")
+    probe = np.asarray(translations)
+    if probe.dtype == object or not (
+        np.issubdtype(probe.dtype, np.floating) or np.issubdtype(probe.dtype, np.integer)
+    ):
+        raise TypeError(f"translations: expected a real-valued array (N, 2), got {probe.dtype}")
+    if probe.ndim != 2 or probe.shape[1] != 2:
+        raise ValueError(f"translations: expected shape (N, 2), got shape {probe.shape}")
+    out = np.ascontiguousarray(probe, dtype=np.float64)
+    if not np.isfinite(out).all():
+        raise ValueError("translations: contains non-finite values (NaN or inf)")
+    return out
 
 
 def roll_interp(x: Any, shift: float, axis: int = 0, backend: Backend = "rust") -> F32Array:

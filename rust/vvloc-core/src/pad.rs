@@ -20,7 +20,9 @@
 //! `Qᵗ[a, b]` is "row `a` invalid or column `b` invalid", the 2-D value is
 //! `Σ αᵣ β_s Q[r, s] + 1 − (Σα)(Σβ)`.
 
-use crate::polar::{blend, check_grid_size, has_avx2_fma, AxisFilter, PolarGrid, Taps};
+use crate::polar::{
+    blend, check_grid_size, has_avx2_fma, output_buffer, AxisFilter, PolarGrid, Taps,
+};
 use crate::roll::PAR_THRESHOLD;
 use crate::{Error, Result};
 use ndarray::{Array4, ArrayView2, ArrayView3};
@@ -164,7 +166,7 @@ pub fn bev_pad(
     let map = bev
         .as_slice()
         .ok_or_else(|| Error::value("bev", "could not view the array as contiguous memory"))?;
-    let mut out = vec![0.0f32; n * h * w * c];
+    let mut out = output_buffer(n * h * w * c);
     if c > 0 && n > 0 {
         let fma = has_avx2_fma();
         let row = |(idx, dst): (usize, &mut [f32])| {
@@ -245,7 +247,7 @@ pub fn pad_polar(
         .as_slice()
         .ok_or_else(|| Error::value("bev", "could not view the array as contiguous memory"))?;
     let per_hyp = num_angles * num_radii * c;
-    let mut out = vec![0.0f32; n * per_hyp];
+    let mut out = output_buffer(n * per_hyp);
     if per_hyp > 0 && n > 0 {
         let fma = has_avx2_fma();
         let run = |(gi, dst): (usize, &mut [f32]), group: usize| {
