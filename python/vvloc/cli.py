@@ -1,0 +1,42 @@
+"""The ``vvloc`` command line. Each command is a thin function that parses options and
+delegates to a library function; commands live in :mod:`vvloc.commands` modules and are
+registered on ``app`` here (add yours with ``app.command("name")(function)``)."""
+
+from __future__ import annotations
+
+import logging
+
+import typer
+
+from vvloc.commands.sim import sim
+
+app = typer.Typer(
+    name="vvloc",
+    help="Prior-free 3-DoF multi-camera vehicle visual localization (VVLoc).",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+)
+
+
+@app.callback()
+def _root(
+    verbose: bool = typer.Option(False, "--verbose", "-v", help="Log progress details."),
+) -> None:
+    """vvloc: synthetic data, training, evaluation and localization."""
+    logging.basicConfig(
+        level=logging.INFO if verbose else logging.WARNING,
+        format="%(levelname)s %(name)s: %(message)s",
+    )
+
+
+app.command("sim")(sim)
+
+
+def main() -> None:
+    """Entry point of the ``vvloc`` console script."""
+    app()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,1 @@
+"""Implementations of the ``vvloc`` CLI commands, one module per command (see vvloc.cli)."""

@@ -1,0 +1,70 @@
+"""Datasets: the vvloc format, NCLT and Oxford RobotCar readers, triplet sampling, perturbations.
+
+``open_dataset(path)`` opens any of the three layouts lazily; ``ds.session(name)[i]`` is a
+:class:`Frame` (images (M, 3, H, W) uint8, K (M, 3, 3), cam_to_ego (M, 4, 4), pose (x, y, yaw),
+t, floor). Frames and signs follow DESIGN.md §3.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+from vvloc.data import perturb
+from vvloc.data.frame import Camera, Dataset, Frame, Session
+from vvloc.data.nclt import is_nclt, open_nclt
+from vvloc.data.oxford import is_oxford, open_oxford
+from vvloc.data.sampling import EvalSplit, TripletSampler, evaluation_split
+from vvloc.data.vvloc_format import DatasetFormatError, DatasetWriter, SessionWriter, open_vvloc
+
+FORMATS = ("auto", "vvloc", "nclt", "oxford")
+
+
+def open_dataset(path: str | os.PathLike[str], format: str = "auto", **kwargs: Any) -> Dataset:
+    """Open a dataset folder lazily: a vvloc-format dataset (``rig.json``), an NCLT raw folder or
+    an Oxford RobotCar raw folder. ``kwargs`` go to the format's reader (``open_nclt``,
+    ``open_oxford``). Raises ``FileNotFoundError`` / ``DatasetFormatError`` naming the problem."""
+    root = Path(path)
+    if format not in FORMATS:
+        raise ValueError(f"format: expected one of {FORMATS}, got {format!r}")
+    if not root.is_dir():
+        raise FileNotFoundError(f"{root}: no such dataset folder")
+    if format == "auto":
+        if (root / "rig.json").is_file():
+            format = "vvloc"
+        elif is_nclt(root):
+            format = "nclt"
+        elif is_oxford(root):
+            format = "oxford"
+        else:
+            raise DatasetFormatError(
+                f"{root}: not a dataset: expected rig.json (vvloc), <date>/lb3 + cam_params (NCLT) "
+                f"or <session>/gps/ins.csv (Oxford RobotCar)"
+            )
+    if format == "vvloc":
+        if kwargs:
+            raise TypeError(f"the vvloc format takes no options, got {sorted(kwargs)}")
+        return open_vvloc(root)
+    if format == "nclt":
+        return open_nclt(root, **kwargs)
+    return open_oxford(root, **kwargs)
+
+
+__all__ = [
+    "Camera",
+    "Dataset",
+    "DatasetFormatError",
+    "DatasetWriter",
+    "EvalSplit",
+    "Frame",
+    "Session",
+    "SessionWriter",
+    "TripletSampler",
+    "evaluation_split",
+    "open_dataset",
+    "open_nclt",
+    "open_oxford",
+    "open_vvloc",
+    "perturb",
+]

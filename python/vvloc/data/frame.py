@@ -1,0 +1,309 @@
+"""The common data model of every vvloc dataset: cameras, frames, sessions, datasets.
+
+Frames follow DESIGN.md §3: world x-east/y-north/z-up, vehicle (ego) x-forward/y-left/z-up,
+camera OpenCV (x right, y down, z forward). A pose is (x, y, yaw) in metres and radians.
+Calibration arrays are float64 so that projections stay exact; networks cast as they need.
+"""
+
+from __future__ import annotations
+
+import abc
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, overload
+
+import numpy as np
+
+
+@dataclass(frozen=True, eq=False)
+class Camera:
+    """One calibrated pinhole camera of a rig.
+
+    ``K`` (3, 3) float64 maps OpenCV camera coordinates to pixels, with pixel (0, 0)'s *centre*
+    at coordinate (0, 0) (OpenCV convention). ``cam_to_ego`` (4, 4) float64 maps camera
+    coordinates to ego (vehicle) coordinates, metres.
+    """
+
+    name: str
+    width: int
+    height: int
+    K: np.ndarray
+    cam_to_ego: np.ndarray
+
+    def __post_init__(self) -> None:
+        if not self.name or "/" in self.name or self.name.strip() != self.name:
+            raise ValueError(f"camera name: expected a non-empty plain name, got {self.name!r}")
+        for key in ("width", "height"):
+            v = getattr(self, key)
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
+                raise ValueError(f"camera {self.name!r}: {key} must be a positive int, got {v!r}")
+        K = np.asarray(self.K, dtype=np.float64)
+        T = np.asarray(self.cam_to_ego, dtype=np.float64)
+        if K.shape != (3, 3) or not np.all(np.isfinite(K)):
+            raise ValueError(
+                f"camera {self.name!r}: K must be a finite (3, 3) array, got {K.shape}"
+            )
+        if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+            raise ValueError(
+                f"camera {self.name!r}: cam_to_ego must be finite (4, 4), got {T.shape}"
+            )
+        object.__setattr__(self, "K", K)
+        object.__setattr__(self, "cam_to_ego", T)
+        object.__setattr__(self, "width", int(self.width))
+        object.__setattr__(self, "height", int(self.height))
+
+    def to_json(self) -> dict[str, Any]:
+        """The camera as the ``rig.json`` entry of the vvloc dataset format."""
+        return {
+            "name": self.name,
+            "width": self.width,
+            "height": self.height,
+            "K": self.K.tolist(),
+            "cam_to_ego": self.cam_to_ego.tolist(),
+        }
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any]) -> Camera:
+        """Build a camera from a ``rig.json`` entry (raises ``ValueError`` on missing keys)."""
+        missing = [k for k in ("name", "width", "height", "K", "cam_to_ego") if k not in d]
+        if missing:
+            raise ValueError(f"camera entry {d.get('name', '?')!r} lacks keys {missing}")
+        return cls(
+            d["name"], d["width"], d["height"], np.asarray(d["K"]), np.asarray(d["cam_to_ego"])
+        )
+
+    def project_ego(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Project ego-frame points (N, 3) m to pixels (N, 2) (u, v); also returns depth (N,) m."""
+        p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        ego_to_cam = np.linalg.inv(self.cam_to_ego)
+        pc = p @ ego_to_cam[:3, :3].T + ego_to_cam[:3, 3]
+        uvw = pc @ self.K.T
+        with np.errstate(divide="ignore", invalid="ignore"):
+            uv = uvw[:, :2] / uvw[:, 2:3]
+        return uv, pc[:, 2]
+
+    def resized(self, width: int, height: int) -> Camera:
+        """The same camera for images resized to (width, height) (pixel-centre exact)."""
+        sx, sy = width / self.width, height / self.height
+        K = self.K.copy()
+        K[0, :] *= sx
+        K[1, :] *= sy
+        K[0, 2] = (self.K[0, 2] + 0.5) * sx - 0.5
+        K[1, 2] = (self.K[1, 2] + 0.5) * sy - 0.5
+        return Camera(self.name, width, height, K, self.cam_to_ego)
+
+
+@dataclass(frozen=True, eq=False)
+class Frame:
+    """One multi-camera keyframe.
+
+    Attributes:
+        images: (M, 3, H, W) uint8 RGB, cameras in rig order.
+        K: (M, 3, 3) float64 intrinsics (OpenCV pixel-centre convention).
+        cam_to_ego: (M, 4, 4) float64 camera (OpenCV) → ego (x fwd, y left, z up), metres.
+        pose: (3,) float64 ego pose in the world (x east m, y north m, yaw rad CCW from east).
+        t: timestamp, seconds.
+        floor: storey index (0 outdoors / ground level; garages count downwards 0, 1, ...).
+        session: name of the session the frame belongs to.
+        index: index of the frame in its session.
+        z: height of the ego origin (ground under the vehicle), metres.
+        cameras: camera names, in the order of the first axis of ``images``.
+    """
+
+    images: np.ndarray
+    K: np.ndarray
+    cam_to_ego: np.ndarray
+    pose: np.ndarray
+    t: float
+    floor: int
+    session: str = ""
+    index: int = -1
+    z: float = 0.0
+    cameras: tuple[str, ...] = field(default_factory=tuple)
+
+    @property
+    def num_cameras(self) -> int:
+        """M, the number of cameras."""
+        return int(self.images.shape[0])
+
+
+def stack_calibration(cameras: Sequence[Camera]) -> tuple[np.ndarray, np.ndarray]:
+    """(M, 3, 3) intrinsics and (M, 4, 4) camera-to-ego transforms of ``cameras``."""
+    return (
+        np.stack([c.K for c in cameras]).astype(np.float64),
+        np.stack([c.cam_to_ego for c in cameras]).astype(np.float64),
+    )
+
+
+class Session(Sequence[Frame], abc.ABC):
+    """A sequence of keyframes of one drive, read lazily (images load on indexing).
+
+    Attributes (all loaded without reading any image):
+        name: session name.
+        cameras: the rig, in image order.
+        timestamps: (N,) int64 microseconds.
+        poses: (N, 3) float64 (x, y, yaw) world poses.
+        z: (N,) float64 heights of the ego origin, metres.
+        floors: (N,) int64 storey indices.
+    """
+
+    def __init__(
+        self,
+        name: str,
+        cameras: Sequence[Camera],
+        timestamps: np.ndarray,
+        poses: np.ndarray,
+        z: np.ndarray,
+        floors: np.ndarray,
+    ) -> None:
+        self.name = name
+        self.cameras = tuple(cameras)
+        self.timestamps = np.asarray(timestamps, dtype=np.int64)
+        self.poses = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
+        self.z = np.asarray(z, dtype=np.float64)
+        self.floors = np.asarray(floors, dtype=np.int64)
+        n = len(self.timestamps)
+        if not (len(self.poses) == len(self.z) == len(self.floors) == n):
+            raise ValueError(f"session {name!r}: timestamps, poses, z and floors differ in length")
+        sizes = {(c.width, c.height) for c in self.cameras}
+        if len(sizes) > 1:
+            raise ValueError(
+                f"session {name!r}: cameras must share one image size to stack a Frame, got {sizes}"
+            )
+        self._K, self._cam_to_ego = stack_calibration(self.cameras)
+
+    def __len__(self) -> int:
+        return len(self.timestamps)
+
+    @overload
+    def __getitem__(self, i: int) -> Frame: ...
+
+    @overload
+    def __getitem__(self, i: slice) -> list[Frame]: ...
+
+    def __getitem__(self, i: int | slice) -> Frame | list[Frame]:
+        if isinstance(i, slice):
+            return [self[j] for j in range(*i.indices(len(self)))]
+        if isinstance(i, bool) or not isinstance(i, (int, np.integer)):
+            raise TypeError(f"index: expected an int or slice, got {type(i).__name__}")
+        n = len(self)
+        j = int(i) + n if i < 0 else int(i)
+        if not 0 <= j < n:
+            raise IndexError(f"frame index {i} out of range for session {self.name!r} of {n}")
+        images = self._load_images(j)
+        return Frame(
+            images=images,
+            K=self._K.copy(),
+            cam_to_ego=self._cam_to_ego.copy(),
+            pose=self.poses[j].copy(),
+            t=float(self.timestamps[j]) * 1e-6,
+            floor=int(self.floors[j]),
+            session=self.name,
+            index=j,
+            z=float(self.z[j]),
+            cameras=tuple(c.name for c in self.cameras),
+        )
+
+    def __iter__(self) -> Iterator[Frame]:
+        for j in range(len(self)):
+            yield self[j]
+
+    @abc.abstractmethod
+    def _load_images(self, index: int) -> np.ndarray:
+        """Read the (M, 3, H, W) uint8 images of frame ``index``."""
+
+
+class Dataset:
+    """A set of sessions recorded with one rig. ``ds.session(name)[i]`` is a :class:`Frame`."""
+
+    def __init__(
+        self,
+        root: Path,
+        cameras: Sequence[Camera],
+        sessions: dict[str, Session],
+        meta: dict[str, Any] | None = None,
+    ) -> None:
+        self.root = Path(root)
+        self.cameras = tuple(cameras)
+        self._sessions = dict(sessions)
+        self.meta: dict[str, Any] = dict(meta or {})
+
+    @property
+    def sessions(self) -> list[str]:
+        """Session names, sorted."""
+        return sorted(self._sessions)
+
+    def session(self, name: str) -> Session:
+        """The session called ``name`` (``KeyError`` naming the known sessions otherwise)."""
+        try:
+            return self._sessions[name]
+        except KeyError:
+            raise KeyError(
+                f"no session {name!r} in {self.root}; sessions: {self.sessions}"
+            ) from None
+
+    def __repr__(self) -> str:
+        n = sum(len(s) for s in self._sessions.values())
+        cams = [c.name for c in self.cameras]
+        return f"Dataset({str(self.root)!r}, sessions={self.sessions}, frames={n}, cameras={cams})"
+
+
+def load_rgb(path: Path) -> np.ndarray:
+    """Read an image file as (H, W, 3) uint8 RGB (grey images are replicated)."""
+    from PIL import Image
+
+    with Image.open(path) as im:
+        return np.asarray(im.convert("RGB"), dtype=np.uint8)
+
+
+def euler_to_matrix(
+    x: float, y: float, z: float, roll: float, pitch: float, yaw: float
+) -> np.ndarray:
+    """4×4 rigid transform from a translation and ZYX Euler angles (R = Rz(yaw)·Ry(pitch)·Rx(roll)).
+
+    This is the "x, y, z, roll, pitch, yaw" convention of both NCLT (``ssc``) and RobotCar.
+    Angles in radians.
+    """
+    cr, sr = np.cos(roll), np.sin(roll)
+    cp, sp = np.cos(pitch), np.sin(pitch)
+    cy, sy = np.cos(yaw), np.sin(yaw)
+    Rz = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1.0]])
+    Ry = np.array([[cp, 0, sp], [0, 1.0, 0], [-sp, 0, cp]])
+    Rx = np.array([[1.0, 0, 0], [0, cr, -sr], [0, sr, cr]])
+    T = np.eye(4)
+    T[:3, :3] = Rz @ Ry @ Rx
+    T[:3, 3] = (x, y, z)
+    return T
+
+
+# Flip between a (x fwd, y right, z down) body frame and vvloc's ego frame (x fwd, y left, z up);
+# it is its own inverse.
+FRD_TO_FLU = np.diag([1.0, -1.0, -1.0, 1.0])
+# World NED (x north, y east, z down) → ENU (x east, y north, z up); its own inverse as well.
+NED_TO_ENU = np.array([[0.0, 1, 0, 0], [1, 0, 0, 0], [0, 0, -1, 0], [0, 0, 0, 1]])
+
+
+def pose_from_matrix(T: np.ndarray) -> tuple[float, float, float, float]:
+    """(x, y, z, yaw) of a 4×4 ego-to-world transform (yaw of the ego x axis, CCW from east)."""
+    yaw = float(np.arctan2(T[1, 0], T[0, 0]))
+    return float(T[0, 3]), float(T[1, 3]), float(T[2, 3]), yaw
+
+
+def nearest_within(
+    reference: np.ndarray, queries: np.ndarray, tolerance: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """For sorted int64 ``reference`` times, the nearest index for each query and a validity mask.
+
+    A query is valid when its nearest reference lies within ``tolerance`` (same unit).
+    """
+    reference = np.asarray(reference, dtype=np.int64)
+    queries = np.asarray(queries, dtype=np.int64)
+    if len(reference) == 0:
+        return np.zeros(len(queries), dtype=np.int64), np.zeros(len(queries), dtype=bool)
+    pos = np.searchsorted(reference, queries)
+    lo = np.clip(pos - 1, 0, len(reference) - 1)
+    hi = np.clip(pos, 0, len(reference) - 1)
+    pick = np.where(np.abs(reference[hi] - queries) < np.abs(reference[lo] - queries), hi, lo)
+    ok = np.abs(reference[pick] - queries) <= tolerance
+    return pick, ok

@@ -1,0 +1,260 @@
+"""Reader of the University of Michigan North Campus Long-Term (NCLT) dataset, raw layout.
+
+Layout read (as distributed; ``images/`` and ``ground_truth/`` levels are optional)::
+
+    <root>/[images/]<date>/lb3/Cam{1..5}/<utime>.tiff      Ladybug3 images (RGB TIFF)
+    <root>/[ground_truth/]groundtruth_<date>.csv            utime,x,y,z,roll,pitch,yaw (no header)
+    <root>/cam_params/K_cam{i}.csv                          3×3 intrinsics, comma separated
+    <root>/cam_params/x_lb3_c{i}.csv                        camera pose in the Ladybug frame
+    <root>/cam_params/U2D_Cam{i}_*.txt                      optional undistortion map
+
+Conventions converted from:
+
+* NCLT's body frame is x forward, y right, z down; ground truth is in a local NED frame
+  (x north, y east, z down), angles in radians. vvloc ego/world are FLU/ENU (DESIGN.md §3), so
+  ``T_world_ego = NED_TO_ENU · T_ned_body · FRD_TO_FLU`` and yaw is read off that matrix
+  (π/2 − NCLT yaw for a level vehicle).
+* Six-vector poses ("ssc": x, y, z, roll, pitch, yaw; R = Rz·Ry·Rx) — ``x_lb3_c{i}`` in metres and
+  degrees, giving the camera in the Ladybug (lb3) frame; the lb3 frame in the body frame is the
+  constant ``X_BODY_LB3`` of NCLT's own projection example.
+* The camera frame that ``K_cam{i}`` projects from is treated as OpenCV (x right, y down,
+  z forward); K applies to the (undistorted) image as stored, with no rotation.
+* The undistortion map file starts with a header holding two integers ``a b`` (the map is b rows ×
+  a columns); each further line ``row col v u`` gives the source pixel (u column, v row) that
+  output pixel (row, col) samples — the way NCLT's ``undistort.py`` reads it.
+* Images of one Ladybug capture share a ``utime``; a frame is a utime present for every camera,
+  posed by the ground-truth row nearest in time, kept only within ``tolerance_us``.
+"""
+
+from __future__ import annotations
+
+import csv
+import os
+import re
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from vvloc.data._remap import remap_bilinear, resize_rgb
+from vvloc.data.frame import (
+    FRD_TO_FLU,
+    NED_TO_ENU,
+    Camera,
+    Dataset,
+    Session,
+    euler_to_matrix,
+    load_rgb,
+    nearest_within,
+    pose_from_matrix,
+)
+from vvloc.data.vvloc_format import DatasetFormatError
+
+# Ladybug (lb3) frame in the body frame: x, y, z m; roll, pitch, yaw degrees (NCLT's example code).
+X_BODY_LB3 = (0.035, 0.002, -1.23, -179.93, -0.23, 0.50)
+DEFAULT_CAMERAS = (1, 2, 3, 4, 5)
+
+
+def ssc_degrees_to_matrix(v: Sequence[float] | np.ndarray) -> np.ndarray:
+    """4×4 transform of an NCLT six-vector (x, y, z m; roll, pitch, yaw degrees)."""
+    x, y, z, r, p, h = (float(a) for a in v)
+    return euler_to_matrix(x, y, z, np.deg2rad(r), np.deg2rad(p), np.deg2rad(h))
+
+
+def _read_numbers(path: Path, shape: tuple[int, ...]) -> np.ndarray:
+    if not path.is_file():
+        raise DatasetFormatError(f"{path}: calibration file missing")
+    try:
+        vals = [float(v) for v in re.split(r"[,\s]+", path.read_text().strip()) if v]
+    except ValueError as e:
+        raise DatasetFormatError(f"{path}: malformed numbers: {e}") from e
+    if len(vals) != int(np.prod(shape)):
+        raise DatasetFormatError(f"{path}: expected {int(np.prod(shape))} numbers, got {len(vals)}")
+    return np.array(vals, dtype=np.float64).reshape(shape)
+
+
+def read_undistortion_map(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Read an NCLT ``U2D_*.txt`` map into source (u, v) arrays shaped like the output image."""
+    with path.open() as f:
+        header = [int(v) for v in re.findall(r"\d+", f.readline())]
+        if len(header) < 2:
+            raise DatasetFormatError(f"{path}, line 1: expected two sizes in the header")
+        cols, rows = header[0], header[1]
+        data = np.loadtxt(f, dtype=np.float64, ndmin=2)
+    if data.shape[1] != 4:
+        raise DatasetFormatError(
+            f"{path}: expected lines 'row col v u', got {data.shape[1]} columns"
+        )
+    mapu = np.full((rows, cols), -1.0)
+    mapv = np.full((rows, cols), -1.0)
+    r, c = data[:, 0].astype(np.int64), data[:, 1].astype(np.int64)
+    if r.min() < 0 or c.min() < 0 or r.max() >= rows or c.max() >= cols:
+        raise DatasetFormatError(f"{path}: pixel index outside the {rows}x{cols} map")
+    mapv[r, c] = data[:, 2]
+    mapu[r, c] = data[:, 3]
+    return mapu, mapv
+
+
+def read_groundtruth(path: Path) -> np.ndarray:
+    """(N, 7) float64 rows utime, x, y, z, roll, pitch, yaw sorted by time; NaN rows dropped."""
+    rows = []
+    with path.open(newline="") as f:
+        for line, row in enumerate(csv.reader(f), start=1):
+            if not row:
+                continue
+            if len(row) != 7:
+                raise DatasetFormatError(f"{path}, line {line}: expected 7 fields, got {len(row)}")
+            try:
+                vals = [float(v) for v in row]
+            except ValueError as e:
+                raise DatasetFormatError(f"{path}, line {line}: malformed row {row}: {e}") from e
+            if all(np.isfinite(vals)):
+                rows.append(vals)
+    arr = np.array(rows, dtype=np.float64).reshape(-1, 7)
+    return arr[np.argsort(arr[:, 0], kind="stable")]
+
+
+class NcltSession(Session):
+    """One NCLT date: lazily read, undistorted (when maps are given), optionally resized."""
+
+    def __init__(
+        self,
+        name: str,
+        image_dirs: list[Path],
+        cameras: Sequence[Camera],
+        native_size: tuple[int, int],
+        maps: list[tuple[np.ndarray, np.ndarray] | None],
+        timestamps: np.ndarray,
+        poses: np.ndarray,
+        z: np.ndarray,
+    ) -> None:
+        super().__init__(name, cameras, timestamps, poses, z, np.zeros(len(timestamps), np.int64))
+        self._dirs = image_dirs
+        self._native = native_size
+        self._maps = maps
+
+    def _load_images(self, index: int) -> np.ndarray:
+        out = []
+        for cam, d, m in zip(self.cameras, self._dirs, self._maps, strict=True):
+            path = d / f"{int(self.timestamps[index])}.tiff"
+            img = load_rgb(path)
+            if m is not None:
+                img = remap_bilinear(img, *m)
+            if (img.shape[1], img.shape[0]) != self._native:
+                raise DatasetFormatError(
+                    f"{path}: image is {img.shape[1]}x{img.shape[0]}, expected {self._native}"
+                )
+            out.append(resize_rgb(img, cam.width, cam.height).transpose(2, 0, 1))
+        return np.ascontiguousarray(np.stack(out))
+
+
+def _find_date_dirs(root: Path) -> dict[str, Path]:
+    found = {}
+    for base in (root, root / "images"):
+        if base.is_dir():
+            for d in sorted(base.iterdir()):
+                if (d / "lb3").is_dir():
+                    found[d.name] = d / "lb3"
+    return found
+
+
+def is_nclt(root: Path) -> bool:
+    """Whether ``root`` looks like an NCLT raw folder."""
+    return bool(_find_date_dirs(root)) and (root / "cam_params").is_dir()
+
+
+def open_nclt(
+    root: str | os.PathLike[str],
+    *,
+    cameras: Sequence[int] = DEFAULT_CAMERAS,
+    image_size: tuple[int, int] | None = None,
+    tolerance_us: int = 50_000,
+) -> Dataset:
+    """Open an NCLT raw folder as a :class:`Dataset` (one session per date).
+
+    Args:
+        root: dataset root (see the module docstring for the layout).
+        cameras: Ladybug camera numbers to use, in image order.
+        image_size: (width, height) to resize every image to (K adjusted), or None for native.
+        tolerance_us: largest image-to-ground-truth time gap kept, microseconds.
+    """
+    root = Path(root)
+    dates = _find_date_dirs(root)
+    if not dates:
+        raise DatasetFormatError(f"{root}: no <date>/lb3 folder found (NCLT layout)")
+    params = root / "cam_params"
+    T_body_lb3 = ssc_degrees_to_matrix(X_BODY_LB3)
+    sessions: dict[str, Session] = {}
+    rig: list[Camera] | None = None
+    for date, lb3 in dates.items():
+        dirs = [lb3 / f"Cam{i}" for i in cameras]
+        for d in dirs:
+            if not d.is_dir():
+                raise DatasetFormatError(f"{d}: camera folder missing")
+        stamps = None
+        for d in dirs:
+            s = {int(p.stem) for p in d.glob("*.tiff") if p.stem.isdigit()}
+            stamps = s if stamps is None else stamps & s
+        utimes = np.array(sorted(stamps or ()), dtype=np.int64)
+        if len(utimes) == 0:
+            raise DatasetFormatError(f"{lb3}: no <utime>.tiff present for every camera")
+        maps: list[tuple[np.ndarray, np.ndarray] | None] = []
+        cams = []
+        native = load_rgb(dirs[0] / f"{utimes[0]}.tiff").shape[1::-1]
+        for i in cameras:
+            K = _read_numbers(params / f"K_cam{i}.csv", (3, 3))
+            T_lb3_c = ssc_degrees_to_matrix(_read_numbers(params / f"x_lb3_c{i}.csv", (6,)))
+            cam_to_ego = FRD_TO_FLU @ T_body_lb3 @ T_lb3_c
+            u2d = sorted(params.glob(f"U2D_Cam{i}_*.txt"))
+            m = read_undistortion_map(u2d[0]) if u2d else None
+            maps.append(m)
+            size = (m[0].shape[1], m[0].shape[0]) if m is not None else tuple(native)
+            cam = Camera(f"Cam{i}", size[0], size[1], K, cam_to_ego)
+            if image_size is not None:
+                cam = cam.resized(*image_size)
+            cams.append(cam)
+        gt_path = next(
+            (
+                p
+                for p in (
+                    root / f"groundtruth_{date}.csv",
+                    root / "ground_truth" / f"groundtruth_{date}.csv",
+                    lb3.parent / f"groundtruth_{date}.csv",
+                )
+                if p.is_file()
+            ),
+            None,
+        )
+        if gt_path is None:
+            raise DatasetFormatError(f"{root}: groundtruth_{date}.csv not found")
+        gt = read_groundtruth(gt_path)
+        pick, ok = nearest_within(gt[:, 0].astype(np.int64), utimes, tolerance_us)
+        utimes, pick = utimes[ok], pick[ok]
+        poses, zs = [], []
+        for row in gt[pick]:
+            T_ned_body = euler_to_matrix(*row[1:7])
+            x, y, z, yaw = pose_from_matrix(NED_TO_ENU @ T_ned_body @ FRD_TO_FLU)
+            poses.append((x, y, yaw))
+            zs.append(z)
+        sessions[date] = NcltSession(
+            date,
+            dirs,
+            cams,
+            _native_size(maps, native),
+            maps,
+            utimes,
+            np.array(poses).reshape(-1, 3),
+            np.array(zs),
+        )
+        rig = rig or cams
+    assert rig is not None
+    return Dataset(root, rig, sessions)
+
+
+def _native_size(
+    maps: list[tuple[np.ndarray, np.ndarray] | None], native: tuple[int, ...]
+) -> tuple[int, int]:
+    m = maps[0]
+    if m is not None:
+        return (m[0].shape[1], m[0].shape[0])
+    return (int(native[0]), int(native[1]))

@@ -1,0 +1,282 @@
+"""Reader of the Oxford (Radar) RobotCar dataset, raw layout.
+
+Layout read (the dataset's own folders plus the SDK's ``models/`` and ``extrinsics/``)::
+
+    <root>/<session>/stereo/centre/<utime>.png   Bayer GBRG, 8 bit   + <session>/stereo.timestamps
+    <root>/<session>/mono_{left,right,rear}/<utime>.png   Bayer RGGB  + <session>/mono_*.timestamps
+    <root>/<session>/gps/ins.csv                 timestamp,..,northing,easting,down,..,yaw
+    <models_dir>/<model>.txt                     "fx fy cx cy" then the 4×4 G_camera_image
+    <models_dir>/<model>_distortion_lut.bin      optional float64 LUT 2 × (H·W): source u, v rows
+    <extrinsics_dir>/<sensor>.txt                "x y z roll pitch yaw" (m, rad) of the sensor in
+                                                 the vehicle frame (stereo.txt optional: identity)
+
+Conventions converted from:
+
+* RobotCar's vehicle, INS and camera frames are x forward, y right, z down; poses use
+  R = Rz(yaw)·Ry(pitch)·Rx(roll). ``G_camera_image`` maps the image frame (OpenCV: x right,
+  y down, z forward) into the camera frame, so ``cam_to_ego = FRD_TO_FLU · T_vehicle_camera ·
+  G_camera_image``.
+* The INS pose (northing, easting, down; roll, pitch, yaw in a NED world) is moved to the vehicle
+  frame with ``extrinsics/ins.txt`` and then to ENU/FLU: ``T_world_ego = NED_TO_ENU · T_ned_ins ·
+  T_vehicle_ins⁻¹ · FRD_TO_FLU``. World coordinates are re-centred on the first pose of the first
+  session (``ds.meta["origin_enu"]``) so that float32 consumers keep centimetres.
+* Mono and stereo intrinsics stay apart: the stereo centre camera uses ``stereo_narrow_left``,
+  each mono camera its own model; mono images are RGGB, stereo GBRG.
+* The cameras are not synchronised: a frame is a timestamp of the first camera, joined with the
+  nearest image of each other camera and the nearest INS row, each within ``tolerance_us``.
+* Images of different native sizes are resized to ``image_size`` (default: the first camera's),
+  with K adjusted exactly.
+"""
+
+from __future__ import annotations
+
+import csv
+import os
+import re
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from vvloc.data._remap import remap_bilinear, resize_rgb
+from vvloc.data.bayer import demosaic_bilinear
+from vvloc.data.frame import (
+    FRD_TO_FLU,
+    NED_TO_ENU,
+    Camera,
+    Dataset,
+    Session,
+    euler_to_matrix,
+    nearest_within,
+    pose_from_matrix,
+)
+from vvloc.data.vvloc_format import DatasetFormatError
+
+DEFAULT_CAMERAS = ("stereo_centre", "mono_left", "mono_rear", "mono_right")
+# camera name → (image folder, timestamps file, model name, extrinsics name, Bayer pattern)
+CAMERA_SPECS = {
+    "stereo_centre": ("stereo/centre", "stereo.timestamps", "stereo_narrow_left", "stereo", "gbrg"),
+    "mono_left": ("mono_left", "mono_left.timestamps", "mono_left", "mono_left", "rggb"),
+    "mono_right": ("mono_right", "mono_right.timestamps", "mono_right", "mono_right", "rggb"),
+    "mono_rear": ("mono_rear", "mono_rear.timestamps", "mono_rear", "mono_rear", "rggb"),
+}
+INS_COLUMNS = ("timestamp", "northing", "easting", "down", "roll", "pitch", "yaw")
+
+
+def read_timestamps(path: Path) -> np.ndarray:
+    """(N,) int64 microsecond timestamps of a ``.timestamps`` file ("utime chunk" per line)."""
+    if not path.is_file():
+        raise DatasetFormatError(f"{path}: timestamps file missing")
+    out = []
+    for line, text in enumerate(path.read_text().splitlines(), start=1):
+        parts = text.split()
+        if not parts:
+            continue
+        try:
+            out.append(int(parts[0]))
+        except ValueError as e:
+            raise DatasetFormatError(f"{path}, line {line}: malformed timestamp {text!r}") from e
+    return np.array(sorted(out), dtype=np.int64)
+
+
+def read_ins(path: Path) -> np.ndarray:
+    """(N, 7) float64 rows timestamp, northing, easting, down, roll, pitch, yaw, sorted by time."""
+    if not path.is_file():
+        raise DatasetFormatError(f"{path}: INS file missing")
+    rows = []
+    with path.open(newline="") as f:
+        reader = csv.DictReader(f)
+        missing = [c for c in INS_COLUMNS if c not in (reader.fieldnames or [])]
+        if missing:
+            raise DatasetFormatError(f"{path}, line 1: header lacks columns {missing}")
+        for row in reader:
+            try:
+                rows.append([float(row[c]) for c in INS_COLUMNS])
+            except (TypeError, ValueError) as e:
+                raise DatasetFormatError(
+                    f"{path}, line {reader.line_num}: malformed row: {e}"
+                ) from e
+    arr = np.array(rows, dtype=np.float64).reshape(-1, 7)
+    return arr[np.argsort(arr[:, 0], kind="stable")]
+
+
+def read_model(models_dir: Path, model: str) -> tuple[np.ndarray, np.ndarray, Path | None]:
+    """K (3, 3), G_camera_image (4, 4) and the LUT path (or None) of a RobotCar camera model."""
+    path = models_dir / f"{model}.txt"
+    if not path.is_file():
+        raise DatasetFormatError(f"{path}: camera model missing")
+    lines = [ln.split() for ln in path.read_text().splitlines() if ln.strip()]
+    try:
+        fx, fy, cx, cy = (float(v) for v in lines[0])
+        G = np.array([[float(v) for v in ln] for ln in lines[1:5]], dtype=np.float64)
+    except (ValueError, IndexError) as e:
+        raise DatasetFormatError(f"{path}: expected 'fx fy cx cy' then a 4x4 matrix: {e}") from e
+    if G.shape != (4, 4):
+        raise DatasetFormatError(f"{path}: G_camera_image must be 4x4, got {G.shape}")
+    K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    lut = models_dir / f"{model}_distortion_lut.bin"
+    return K, G, lut if lut.is_file() else None
+
+
+def read_extrinsics(extrinsics_dir: Path, sensor: str, *, required: bool = True) -> np.ndarray:
+    """4×4 pose of ``sensor`` in the RobotCar vehicle frame (identity if optional and missing)."""
+    path = extrinsics_dir / f"{sensor}.txt"
+    if not path.is_file():
+        if required:
+            raise DatasetFormatError(f"{path}: extrinsics missing")
+        return np.eye(4)
+    try:
+        vals = [float(v) for v in re.split(r"[,\s]+", path.read_text().strip()) if v]
+    except ValueError as e:
+        raise DatasetFormatError(f"{path}: malformed extrinsics: {e}") from e
+    if len(vals) != 6:
+        raise DatasetFormatError(f"{path}: expected 'x y z roll pitch yaw', got {len(vals)} values")
+    return euler_to_matrix(*vals)
+
+
+def read_lut(path: Path, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """Source (u, v) maps (height, width) of a RobotCar undistortion LUT."""
+    lut = np.fromfile(path, dtype=np.float64)
+    if lut.size != 2 * width * height:
+        raise DatasetFormatError(f"{path}: {lut.size} values, expected 2x{width}x{height}")
+    lut = lut.reshape(2, height, width)
+    return lut[0], lut[1]
+
+
+class OxfordSession(Session):
+    """One RobotCar session: demosaiced, undistorted (when a LUT is present) and resized lazily."""
+
+    def __init__(
+        self,
+        name: str,
+        paths: list[list[Path]],
+        patterns: list[str],
+        luts: list[tuple[np.ndarray, np.ndarray] | None],
+        cameras: Sequence[Camera],
+        timestamps: np.ndarray,
+        poses: np.ndarray,
+        z: np.ndarray,
+    ) -> None:
+        super().__init__(name, cameras, timestamps, poses, z, np.zeros(len(timestamps), np.int64))
+        self._paths = paths
+        self._patterns = patterns
+        self._luts = luts
+
+    def _load_images(self, index: int) -> np.ndarray:
+        from PIL import Image
+
+        out = []
+        parts = zip(self.cameras, self._paths, self._patterns, self._luts, strict=True)
+        for cam, paths, pattern, lut in parts:
+            with Image.open(paths[index]) as im:
+                raw = np.asarray(im)
+            img = demosaic_bilinear(raw, pattern) if raw.ndim == 2 else raw[..., :3]
+            img = np.asarray(img, dtype=np.uint8)
+            if lut is not None:
+                img = remap_bilinear(img, *lut)
+            out.append(resize_rgb(img, cam.width, cam.height).transpose(2, 0, 1))
+        return np.ascontiguousarray(np.stack(out))
+
+
+def _sessions_in(root: Path) -> list[Path]:
+    return sorted(d for d in root.iterdir() if d.is_dir() and (d / "gps" / "ins.csv").is_file())
+
+
+def is_oxford(root: Path) -> bool:
+    """Whether ``root`` looks like an Oxford RobotCar raw folder."""
+    return root.is_dir() and bool(_sessions_in(root))
+
+
+def open_oxford(
+    root: str | os.PathLike[str],
+    *,
+    cameras: Sequence[str] = DEFAULT_CAMERAS,
+    models_dir: str | os.PathLike[str] | None = None,
+    extrinsics_dir: str | os.PathLike[str] | None = None,
+    image_size: tuple[int, int] | None = None,
+    tolerance_us: int = 50_000,
+) -> Dataset:
+    """Open an Oxford RobotCar raw folder as a :class:`Dataset` (one session per folder).
+
+    Args:
+        root: folder holding the session folders (see the module docstring for the layout).
+        cameras: names from ``CAMERA_SPECS``, in image order (default front, left, rear, right).
+        models_dir, extrinsics_dir: the SDK's folders (default ``<root>/models``,
+            ``<root>/extrinsics``).
+        image_size: (width, height) for every camera; default the first camera's native size.
+        tolerance_us: largest time gap joined between cameras and to the INS, microseconds.
+    """
+    from PIL import Image
+
+    root = Path(root)
+    models = Path(models_dir) if models_dir is not None else root / "models"
+    extr = Path(extrinsics_dir) if extrinsics_dir is not None else root / "extrinsics"
+    unknown = [c for c in cameras if c not in CAMERA_SPECS]
+    if unknown or not cameras:
+        raise ValueError(
+            f"cameras: expected names from {sorted(CAMERA_SPECS)}, got {list(cameras)}"
+        )
+    dirs = _sessions_in(root)
+    if not dirs:
+        raise DatasetFormatError(f"{root}: no <session>/gps/ins.csv found (RobotCar layout)")
+    T_vehicle_ins = read_extrinsics(extr, "ins")
+    sessions: dict[str, Session] = {}
+    rig: list[Camera] = []
+    origin: np.ndarray | None = None
+    for sdir in dirs:
+        stamps = [read_timestamps(sdir / CAMERA_SPECS[c][1]) for c in cameras]
+        stamps = [
+            s[[(sdir / CAMERA_SPECS[c][0] / f"{t}.png").is_file() for t in s]]
+            for c, s in zip(cameras, stamps, strict=True)
+        ]
+        if len(stamps[0]) == 0:
+            raise DatasetFormatError(f"{sdir}: no images of {cameras[0]} listed and present")
+        ref = stamps[0]
+        keep = np.ones(len(ref), dtype=bool)
+        picks = []
+        for s in stamps:
+            p, ok = nearest_within(s, ref, tolerance_us)
+            picks.append(p)
+            keep &= ok
+        ins = read_ins(sdir / "gps" / "ins.csv")
+        ip, ok = nearest_within(ins[:, 0].astype(np.int64), ref, tolerance_us)
+        keep &= ok
+        ref = ref[keep]
+        paths = [
+            [sdir / CAMERA_SPECS[c][0] / f"{t}.png" for t in s[p[keep]]]
+            for c, s, p in zip(cameras, stamps, picks, strict=True)
+        ]
+        cams, luts, patterns = [], [], []
+        for c, ps in zip(cameras, paths, strict=True):
+            _, _, model, sensor, pattern = CAMERA_SPECS[c]
+            K, G, lut_path = read_model(models, model)
+            with Image.open(ps[0] if ps else sdir / CAMERA_SPECS[c][0]) as im:
+                w, h = im.size
+            cam_to_ego = FRD_TO_FLU @ read_extrinsics(extr, sensor, required=sensor != "stereo") @ G
+            cams.append(Camera(c, w, h, K, cam_to_ego))
+            luts.append(read_lut(lut_path, w, h) if lut_path is not None else None)
+            patterns.append(pattern)
+        size = image_size or (cams[0].width, cams[0].height)
+        cams = [cam.resized(*size) for cam in cams]
+        poses, zs = [], []
+        for row in ins[ip[keep]]:
+            T_ned_ins = euler_to_matrix(*row[1:7])
+            T = NED_TO_ENU @ T_ned_ins @ np.linalg.inv(T_vehicle_ins) @ FRD_TO_FLU
+            x, y, z, yaw = pose_from_matrix(T)
+            if origin is None:
+                origin = np.array([x, y, z])
+            poses.append((x - origin[0], y - origin[1], yaw))
+            zs.append(z - origin[2])
+        sessions[sdir.name] = OxfordSession(
+            sdir.name,
+            paths,
+            patterns,
+            luts,
+            cams,
+            ref,
+            np.array(poses).reshape(-1, 3),
+            np.array(zs),
+        )
+        rig = rig or cams
+    meta = {"origin_enu": [float(v) for v in (origin if origin is not None else np.zeros(3))]}
+    return Dataset(root, rig, sessions, meta=meta)

@@ -1,0 +1,196 @@
+"""Seeded image perturbations for robustness evaluation (degraded scenarios).
+
+Every function takes ``images`` (M, 3, H, W) uint8 — one multi-camera frame — and returns a new
+array of the same shape and dtype; it changes only what its name says (the chosen cameras, the
+chosen regions). :func:`perturb_frame` applies one to a :class:`~vvloc.data.Frame`, leaving its
+calibration and pose untouched. Random choices come from ``seed`` only.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import numpy as np
+from scipy.ndimage import convolve
+
+from vvloc.data.frame import Frame
+
+
+def _check(images: np.ndarray) -> np.ndarray:
+    if not isinstance(images, np.ndarray) or images.dtype != np.uint8 or images.ndim != 4:
+        got = getattr(images, "shape", type(images).__name__)
+        raise ValueError(f"images: expected a uint8 (M, 3, H, W) array, got {got}")
+    if images.shape[1] != 3:
+        raise ValueError(f"images: expected 3 channels on axis 1, got shape {images.shape}")
+    return images
+
+
+def _camera_list(cameras: Sequence[int] | None, m: int) -> list[int]:
+    if cameras is None:
+        return list(range(m))
+    out = [int(c) for c in cameras]
+    bad = [c for c in out if not 0 <= c < m]
+    if bad:
+        raise ValueError(f"cameras: indices {bad} out of range for {m} cameras")
+    return out
+
+
+def mask_cameras(
+    images: np.ndarray,
+    cameras: Sequence[int] | None = None,
+    *,
+    count: int = 1,
+    seed: int = 0,
+    fill: int = 0,
+) -> np.ndarray:
+    """Blank whole cameras (a failed or covered camera).
+
+    ``cameras`` lists the indices to blank; if None, ``count`` distinct cameras are drawn.
+    """
+    images = _check(images)
+    m = images.shape[0]
+    if cameras is None:
+        if not 0 <= count <= m:
+            raise ValueError(f"count: expected 0..{m}, got {count}")
+        cameras = np.random.default_rng(seed).choice(m, size=count, replace=False).tolist()
+    out = images.copy()
+    out[_camera_list(cameras, m)] = np.uint8(fill)
+    return out
+
+
+def motion_blur(
+    images: np.ndarray,
+    length: int = 9,
+    angle_deg: float | None = 0.0,
+    *,
+    cameras: Sequence[int] | None = None,
+    seed: int = 0,
+) -> np.ndarray:
+    """Linear motion blur of ``length`` pixels along ``angle_deg`` (image x axis = 0°, random
+    per camera when None) on the chosen cameras (all by default)."""
+    images = _check(images)
+    if length < 1:
+        raise ValueError(f"length: expected >= 1 pixel, got {length}")
+    rng = np.random.default_rng(seed)
+    out = images.copy()
+    for c in _camera_list(cameras, images.shape[0]):
+        ang = float(rng.uniform(0, 180)) if angle_deg is None else float(angle_deg)
+        kernel = line_kernel(length, ang)
+        img = images[c].astype(np.float64)
+        res = np.stack([convolve(ch, kernel, mode="nearest") for ch in img])
+        out[c] = np.clip(np.rint(res), 0, 255).astype(np.uint8)
+    return out
+
+
+def line_kernel(length: int, angle_deg: float) -> np.ndarray:
+    """A normalised (k, k) kernel: a ``length``-pixel line through the centre at ``angle_deg``
+    (0° = image x axis, 90° = image y axis), drawn with bilinear weights."""
+    k = length if length % 2 == 1 else length + 1
+    kern = np.zeros((k, k))
+    c = (k - 1) / 2
+    a = np.deg2rad(angle_deg)
+    for t in np.linspace(-(length - 1) / 2, (length - 1) / 2, 4 * length):
+        x, y = c + t * np.cos(a), c + t * np.sin(a)
+        x0, y0 = int(np.floor(x)), int(np.floor(y))
+        fx, fy = x - x0, y - y0
+        for dy, wy in ((0, 1 - fy), (1, fy)):
+            for dx, wx in ((0, 1 - fx), (1, fx)):
+                if 0 <= y0 + dy < k and 0 <= x0 + dx < k:
+                    kern[y0 + dy, x0 + dx] += wx * wy
+    return kern / kern.sum()
+
+
+def region_boxes(
+    shape: tuple[int, ...], count: int, size: float, seed: int, cameras: Sequence[int] | None
+) -> list[tuple[int, int, int, int, int]]:
+    """The (camera, row0, row1, col0, col1) boxes :func:`mask_regions` blanks for these args."""
+    m, _, h, w = shape
+    if not 0 < size <= 1:
+        raise ValueError(f"size: expected a fraction of the image side in (0, 1], got {size}")
+    rng = np.random.default_rng(seed)
+    bh, bw = max(1, round(size * h)), max(1, round(size * w))
+    boxes = []
+    for c in _camera_list(cameras, m):
+        for _ in range(count):
+            r0 = int(rng.integers(0, h - bh + 1))
+            c0 = int(rng.integers(0, w - bw + 1))
+            boxes.append((c, r0, r0 + bh, c0, c0 + bw))
+    return boxes
+
+
+def mask_regions(
+    images: np.ndarray,
+    count: int = 2,
+    size: float = 0.25,
+    *,
+    cameras: Sequence[int] | None = None,
+    seed: int = 0,
+    fill: int = 0,
+) -> np.ndarray:
+    """Blank ``count`` rectangles per chosen camera (occlusion: dirt, a pedestrian, a truck).
+
+    Each rectangle is ``size`` × the image height by ``size`` × the image width, placed at
+    random; :func:`region_boxes` returns the same rectangles.
+    """
+    images = _check(images)
+    out = images.copy()
+    for c, r0, r1, c0, c1 in region_boxes(images.shape, count, size, seed, cameras):
+        out[c, :, r0:r1, c0:c1] = np.uint8(fill)
+    return out
+
+
+def exposure(
+    images: np.ndarray,
+    gain: float = 0.5,
+    gamma: float = 1.0,
+    *,
+    cameras: Sequence[int] | None = None,
+) -> np.ndarray:
+    """Exposure change: ``255 · (gain · x / 255) ** gamma``, clipped, on the chosen cameras."""
+    images = _check(images)
+    if not (gain > 0 and gamma > 0):
+        raise ValueError(f"gain, gamma: expected positive values, got {gain}, {gamma}")
+    out = images.copy()
+    for c in _camera_list(cameras, images.shape[0]):
+        x = np.clip(gain * images[c].astype(np.float64) / 255.0, 0.0, 1.0) ** gamma
+        out[c] = np.clip(np.rint(255.0 * x), 0, 255).astype(np.uint8)
+    return out
+
+
+def noise(
+    images: np.ndarray,
+    sigma: float = 8.0,
+    *,
+    cameras: Sequence[int] | None = None,
+    seed: int = 0,
+) -> np.ndarray:
+    """Additive Gaussian noise of standard deviation ``sigma`` grey levels, clipped."""
+    images = _check(images)
+    if sigma < 0:
+        raise ValueError(f"sigma: expected >= 0, got {sigma}")
+    rng = np.random.default_rng(seed)
+    out = images.copy()
+    for c in _camera_list(cameras, images.shape[0]):
+        x = images[c].astype(np.float64) + rng.normal(0.0, sigma, size=images[c].shape)
+        out[c] = np.clip(np.rint(x), 0, 255).astype(np.uint8)
+    return out
+
+
+PERTURBATIONS: dict[str, Callable[..., np.ndarray]] = {
+    "mask_cameras": mask_cameras,
+    "motion_blur": motion_blur,
+    "mask_regions": mask_regions,
+    "exposure": exposure,
+    "noise": noise,
+}
+
+
+def perturb_frame(frame: Frame, name: str, **kwargs: Any) -> Frame:
+    """A copy of ``frame`` whose images went through perturbation ``name`` (see PERTURBATIONS)."""
+    try:
+        fn = PERTURBATIONS[name]
+    except KeyError:
+        raise ValueError(f"name: expected one of {sorted(PERTURBATIONS)}, got {name!r}") from None
+    return dataclasses.replace(frame, images=fn(frame.images, **kwargs))

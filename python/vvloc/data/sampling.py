@@ -1,0 +1,226 @@
+"""Ground-truth neighbours: triplet sampling with hard-sample mining, and evaluation splits.
+
+Neighbours are found with ``scipy.spatial.cKDTree`` on (x, y, floor · floor_separation): frames
+on different storeys of a garage are different places even at the same (x, y), so a large
+``floor_separation`` keeps them apart (and makes them valid negatives).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from vvloc.data.frame import Dataset, Frame
+
+FLOOR_SEPARATION = 1000.0
+
+
+def _positions(poses: np.ndarray, floors: np.ndarray, floor_separation: float) -> np.ndarray:
+    return np.column_stack([poses[:, 0], poses[:, 1], floors.astype(np.float64) * floor_separation])
+
+
+class TripletSampler:
+    """Seeded (anchor, positive, negative) triplets across the sessions of a dataset.
+
+    A positive lies within ``pos_radius`` metres of the anchor (same floor) in *another* session
+    (``cross_session=True``, the default) or any other frame; a negative lies beyond
+    ``neg_radius`` metres (or on another floor). Triplets are (T, 3) int64 arrays of *global*
+    frame ids; :meth:`locate` and :meth:`frame` map an id back to (session, index) and a Frame.
+
+    Hard-sample mining: :meth:`mark_hard` adds triplets the model got wrong to a pool; each
+    :meth:`sample` call draws up to ``hard_fraction`` of its triplets from that pool (oldest
+    first, cycling) until :meth:`resolve` removes them, i.e. they are re-drawn until the model
+    gets them right. :meth:`update` does both from a per-triplet correctness mask.
+    """
+
+    def __init__(
+        self,
+        ds: Dataset,
+        pos_radius: float = 2.0,
+        neg_radius: float = 3.0,
+        seed: int = 0,
+        sessions: Sequence[str] | None = None,
+        *,
+        cross_session: bool = True,
+        hard_fraction: float = 0.5,
+        floor_separation: float = FLOOR_SEPARATION,
+    ) -> None:
+        if not (pos_radius > 0 and neg_radius >= pos_radius):
+            raise ValueError(
+                f"pos_radius, neg_radius: expected 0 < pos_radius <= neg_radius, "
+                f"got {pos_radius}, {neg_radius}"
+            )
+        if not 0.0 <= hard_fraction <= 1.0:
+            raise ValueError(f"hard_fraction: expected a value in [0, 1], got {hard_fraction}")
+        self.ds = ds
+        self.sessions = list(sessions) if sessions is not None else ds.sessions
+        if not self.sessions:
+            raise ValueError("sessions: expected at least one session")
+        self.pos_radius = float(pos_radius)
+        self.neg_radius = float(neg_radius)
+        self.hard_fraction = float(hard_fraction)
+        self.rng = np.random.default_rng(seed)
+        sess_ids, idx, pos = [], [], []
+        for k, name in enumerate(self.sessions):
+            s = ds.session(name)
+            sess_ids.append(np.full(len(s), k, dtype=np.int64))
+            idx.append(np.arange(len(s), dtype=np.int64))
+            pos.append(_positions(s.poses, s.floors, floor_separation))
+        self.session_of = np.concatenate(sess_ids)
+        self.index_of = np.concatenate(idx)
+        self.positions = np.concatenate(pos)
+        self.tree = cKDTree(self.positions)
+        near = self.tree.query_ball_point(self.positions, r=self.pos_radius)
+        self.positives: list[np.ndarray] = []
+        for i, cand in enumerate(near):
+            c = np.asarray(sorted(cand), dtype=np.int64)
+            c = c[c != i]
+            if cross_session:
+                c = c[self.session_of[c] != self.session_of[i]]
+            self.positives.append(c)
+        self.anchors = np.array([i for i, p in enumerate(self.positives) if len(p)], dtype=np.int64)
+        if len(self.anchors) == 0:
+            raise ValueError(
+                f"no frame has a positive within {self.pos_radius} m "
+                f"{'in another session ' if cross_session else ''}(sessions {self.sessions})"
+            )
+        self._hard: dict[tuple[int, int, int], None] = {}
+        self._hard_cursor = 0
+
+    def __len__(self) -> int:
+        """Number of frames indexed (global ids run from 0 to len - 1)."""
+        return len(self.positions)
+
+    def locate(self, gid: int) -> tuple[str, int]:
+        """(session name, frame index) of global frame id ``gid``."""
+        return self.sessions[int(self.session_of[gid])], int(self.index_of[gid])
+
+    def frame(self, gid: int) -> Frame:
+        """The :class:`Frame` of global frame id ``gid`` (loads its images)."""
+        name, i = self.locate(gid)
+        return self.ds.session(name)[i]
+
+    def _negative(self, anchor: int) -> int:
+        for _ in range(64):
+            cand = int(self.rng.integers(len(self.positions)))
+            if np.linalg.norm(self.positions[cand] - self.positions[anchor]) > self.neg_radius:
+                return cand
+        far = np.linalg.norm(self.positions - self.positions[anchor], axis=1) > self.neg_radius
+        choices = np.flatnonzero(far)
+        if len(choices) == 0:
+            raise ValueError(f"frame {anchor} has no negative beyond {self.neg_radius} m")
+        return int(self.rng.choice(choices))
+
+    def sample_random(self, n: int) -> np.ndarray:
+        """(n, 3) int64 fresh random triplets (no hard ones)."""
+        out = np.empty((n, 3), dtype=np.int64)
+        for k in range(n):
+            a = int(self.anchors[self.rng.integers(len(self.anchors))])
+            pos = self.positives[a]
+            out[k] = (a, int(pos[self.rng.integers(len(pos))]), self._negative(a))
+        return out
+
+    def sample(self, n: int) -> np.ndarray:
+        """(n, 3) int64 triplets: up to ``hard_fraction·n`` from the hard pool, the rest random."""
+        if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 0:
+            raise ValueError(f"n: expected an int >= 0, got {n!r}")
+        hard = list(self._hard)
+        k = min(len(hard), round(self.hard_fraction * n))
+        picked = []
+        for j in range(k):
+            picked.append(hard[(self._hard_cursor + j) % len(hard)])
+        if hard:
+            self._hard_cursor = (self._hard_cursor + k) % len(hard)
+        fresh = self.sample_random(n - k)
+        out = np.concatenate([np.array(picked, dtype=np.int64).reshape(-1, 3), fresh])
+        return out[self.rng.permutation(len(out))]
+
+    def mark_hard(self, triplets: np.ndarray) -> None:
+        """Add (T, 3) triplets the model got wrong to the hard pool."""
+        for t in np.asarray(triplets, dtype=np.int64).reshape(-1, 3):
+            self._hard[(int(t[0]), int(t[1]), int(t[2]))] = None
+
+    def resolve(self, triplets: np.ndarray) -> None:
+        """Remove (T, 3) triplets the model now gets right from the hard pool."""
+        for t in np.asarray(triplets, dtype=np.int64).reshape(-1, 3):
+            self._hard.pop((int(t[0]), int(t[1]), int(t[2])), None)
+
+    def update(self, triplets: np.ndarray, correct: np.ndarray) -> None:
+        """Mark the wrong triplets hard and resolve the right ones (``correct``: (T,) bool)."""
+        t = np.asarray(triplets, dtype=np.int64).reshape(-1, 3)
+        ok = np.asarray(correct, dtype=bool).reshape(-1)
+        if len(ok) != len(t):
+            raise ValueError(f"correct: expected {len(t)} flags, got {len(ok)}")
+        self.mark_hard(t[~ok])
+        self.resolve(t[ok])
+
+    @property
+    def hard(self) -> np.ndarray:
+        """(H, 3) int64 triplets currently in the hard pool."""
+        return np.array(list(self._hard), dtype=np.int64).reshape(-1, 3)
+
+
+@dataclass(frozen=True)
+class EvalSplit:
+    """A retrieval/localization evaluation split.
+
+    Attributes:
+        database: the map session's name; ``database_indices`` (D,) its frames.
+        query_sessions: (Q,) session name per query; ``query_indices`` (Q,) frame indices.
+        nearest_database: (Q,) index (into the database session) of the nearest map frame.
+        nearest_distance: (Q,) its distance, metres (same floor; always <= revisit_radius).
+        revisit_radius: the radius a query needed a map frame within to be kept.
+    """
+
+    database: str
+    database_indices: np.ndarray
+    query_sessions: np.ndarray
+    query_indices: np.ndarray
+    nearest_database: np.ndarray
+    nearest_distance: np.ndarray
+    revisit_radius: float
+
+
+def evaluation_split(
+    ds: Dataset,
+    database: str | None = None,
+    queries: Sequence[str] | None = None,
+    revisit_radius: float = 3.0,
+    floor_separation: float = FLOOR_SEPARATION,
+) -> EvalSplit:
+    """Database session vs query sessions; a query is kept only when a map frame (same floor)
+    lies within ``revisit_radius`` metres, as the standard place-recognition protocol does.
+
+    Defaults: the first session (sorted) is the database, all others are queries.
+    """
+    names = ds.sessions
+    database = database if database is not None else names[0]
+    queries = list(queries) if queries is not None else [n for n in names if n != database]
+    if database in queries:
+        raise ValueError(f"queries: must not contain the database session {database!r}")
+    if not revisit_radius > 0:
+        raise ValueError(f"revisit_radius: expected > 0 m, got {revisit_radius}")
+    db = ds.session(database)
+    tree = cKDTree(_positions(db.poses, db.floors, floor_separation))
+    qs, qi, nn, nd = [], [], [], []
+    for name in queries:
+        s = ds.session(name)
+        d, j = tree.query(_positions(s.poses, s.floors, floor_separation), k=1)
+        keep = np.flatnonzero(d <= revisit_radius)
+        qs.extend([name] * len(keep))
+        qi.append(keep)
+        nn.append(j[keep])
+        nd.append(d[keep])
+    cat = lambda a, dt: np.concatenate(a).astype(dt) if a else np.zeros(0, dt)  # noqa: E731
+    return EvalSplit(
+        database=database,
+        database_indices=np.arange(len(db), dtype=np.int64),
+        query_sessions=np.array(qs, dtype=object),
+        query_indices=cat(qi, np.int64),
+        nearest_database=cat(nn, np.int64),
+        nearest_distance=cat(nd, np.float64),
+        revisit_radius=float(revisit_radius),
+    )

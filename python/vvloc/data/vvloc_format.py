@@ -1,0 +1,320 @@
+"""The vvloc dataset format: writer and lazy, validating reader (see docs/dataset-format.md).
+
+Layout::
+
+    <root>/rig.json                                  {"format": "vvloc", "version": 1, "cameras"}
+    <root>/sessions/<name>/poses.csv                 timestamp,x,y,z,yaw,floor  (one row per frame)
+    <root>/sessions/<name>/<camera>/<timestamp>.png  RGB, the camera's image size
+    <root>/sessions/<name>/session.json              optional metadata (ignored by the reader)
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+import shutil
+import tempfile
+from collections.abc import Sequence
+from pathlib import Path
+from types import TracebackType
+from typing import Any
+
+import numpy as np
+
+from vvloc.data.frame import Camera, Dataset, Session, load_rgb
+
+FORMAT_NAME = "vvloc"
+FORMAT_VERSION = 1
+POSES_HEADER = ("timestamp", "x", "y", "z", "yaw", "floor")
+
+
+class DatasetFormatError(ValueError):
+    """A dataset on disk does not follow its format; the message names the file (and line)."""
+
+
+# ------------------------------------------------------------------------------------------ reader
+class VvlocSession(Session):
+    """A session of a vvloc-format dataset; images are read from PNG on indexing."""
+
+    def __init__(self, directory: Path, name: str, cameras: Sequence[Camera], rows: np.ndarray):
+        self.directory = directory
+        super().__init__(
+            name,
+            cameras,
+            timestamps=rows["timestamp"],
+            poses=np.stack([rows["x"], rows["y"], rows["yaw"]], axis=1),
+            z=rows["z"],
+            floors=rows["floor"],
+        )
+
+    def image_path(self, index: int, camera: str) -> Path:
+        """Path of the PNG of camera ``camera`` at frame ``index``."""
+        return self.directory / camera / f"{int(self.timestamps[index])}.png"
+
+    def _load_images(self, index: int) -> np.ndarray:
+        out = []
+        for cam in self.cameras:
+            path = self.image_path(index, cam.name)
+            if not path.is_file():
+                raise DatasetFormatError(f"{path}: image missing (frame {index})")
+            img = load_rgb(path)
+            if img.shape != (cam.height, cam.width, 3):
+                raise DatasetFormatError(
+                    f"{path}: image is {img.shape[1]}x{img.shape[0]}, "
+                    f"rig.json says {cam.width}x{cam.height}"
+                )
+            out.append(img.transpose(2, 0, 1))
+        return np.ascontiguousarray(np.stack(out))
+
+
+def read_rig(path: Path) -> tuple[list[Camera], dict[str, Any]]:
+    """Read ``rig.json``: the cameras and the whole document."""
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as e:
+        raise DatasetFormatError(f"{path}: cannot read rig: {e}") from e
+    if not isinstance(doc, dict) or not isinstance(doc.get("cameras"), list) or not doc["cameras"]:
+        raise DatasetFormatError(f"{path}: expected an object with a non-empty 'cameras' list")
+    if doc.get("format", FORMAT_NAME) != FORMAT_NAME:
+        raise DatasetFormatError(f"{path}: format {doc.get('format')!r} is not {FORMAT_NAME!r}")
+    cameras = []
+    for i, entry in enumerate(doc["cameras"]):
+        try:
+            cameras.append(Camera.from_json(entry))
+        except (ValueError, TypeError) as e:
+            raise DatasetFormatError(f"{path}: camera {i}: {e}") from e
+    names = [c.name for c in cameras]
+    if len(set(names)) != len(names):
+        raise DatasetFormatError(f"{path}: duplicate camera names {names}")
+    return cameras, doc
+
+
+_ROW_DTYPE = np.dtype(
+    [("timestamp", np.int64), ("x", "f8"), ("y", "f8"), ("z", "f8"), ("yaw", "f8"), ("floor", "i8")]
+)
+
+
+def read_poses(path: Path) -> np.ndarray:
+    """Parse ``poses.csv`` into a structured array; errors name the file and the line."""
+    if not path.is_file():
+        raise DatasetFormatError(f"{path}: poses file missing")
+    rows = []
+    with path.open(newline="") as f:
+        reader = csv.reader(f)
+        header = next(reader, None)
+        if header is None or tuple(h.strip() for h in header) != POSES_HEADER:
+            raise DatasetFormatError(
+                f"{path}, line 1: header must be {','.join(POSES_HEADER)}, got {header}"
+            )
+        seen: set[int] = set()
+        for row in reader:
+            line = reader.line_num
+            if not row or all(not c.strip() for c in row):
+                continue
+            if len(row) != len(POSES_HEADER):
+                raise DatasetFormatError(
+                    f"{path}, line {line}: expected {len(POSES_HEADER)} fields, got {len(row)}"
+                )
+            try:
+                ts = int(row[0])
+                x, y, z, yaw = (float(v) for v in row[1:5])
+                floor = int(row[5])
+            except ValueError as e:
+                raise DatasetFormatError(f"{path}, line {line}: malformed row {row}: {e}") from e
+            if not all(math.isfinite(v) for v in (x, y, z, yaw)):
+                raise DatasetFormatError(f"{path}, line {line}: non-finite value in {row}")
+            if ts in seen:
+                raise DatasetFormatError(f"{path}, line {line}: duplicate timestamp {ts}")
+            seen.add(ts)
+            rows.append((ts, x, y, z, yaw, floor))
+    return np.array(rows, dtype=_ROW_DTYPE)
+
+
+def open_vvloc(root: str | os.PathLike[str]) -> Dataset:
+    """Open a vvloc-format dataset lazily and validate its structure.
+
+    Reads ``rig.json`` and every ``poses.csv`` and lists the image folders (no image is decoded).
+    Raises :class:`DatasetFormatError` (a ``ValueError``) naming the file and line for a malformed
+    row, a camera folder that is not in the rig, or a missing image.
+    """
+    root = Path(root)
+    cameras, _ = read_rig(root / "rig.json")
+    names = {c.name for c in cameras}
+    sess_root = root / "sessions"
+    if not sess_root.is_dir():
+        raise DatasetFormatError(f"{sess_root}: sessions folder missing")
+    sessions: dict[str, Session] = {}
+    for d in sorted(p for p in sess_root.iterdir() if p.is_dir()):
+        poses_path = d / "poses.csv"
+        rows = read_poses(poses_path)
+        for sub in sorted(p for p in d.iterdir() if p.is_dir()):
+            if sub.name not in names:
+                raise DatasetFormatError(
+                    f"{sub}: camera {sub.name!r} is not in rig.json (cameras: {sorted(names)})"
+                )
+        for cam in cameras:
+            cam_dir = d / cam.name
+            present = set(os.listdir(cam_dir)) if cam_dir.is_dir() else set()
+            for k, ts in enumerate(rows["timestamp"]):
+                if f"{ts}.png" not in present:
+                    raise DatasetFormatError(
+                        f"{cam_dir / f'{ts}.png'}: image missing "
+                        f"(listed in {poses_path}, line {k + 2})"
+                    )
+        sessions[d.name] = VvlocSession(d, d.name, cameras, rows)
+    return Dataset(root, cameras, sessions)
+
+
+# ------------------------------------------------------------------------------------------ writer
+class SessionWriter:
+    """Appends frames to one session of a :class:`DatasetWriter` (use via ``add_session``)."""
+
+    def __init__(self, directory: Path, cameras: Sequence[Camera], meta: dict[str, Any] | None):
+        self.directory = directory
+        self.cameras = tuple(cameras)
+        directory.mkdir(parents=True)
+        for cam in self.cameras:
+            (directory / cam.name).mkdir()
+        if meta is not None:
+            (directory / "session.json").write_text(json.dumps(meta, indent=2))
+        self._file = (directory / "poses.csv").open("w", newline="")
+        self._csv = csv.writer(self._file, lineterminator="\n")
+        self._csv.writerow(POSES_HEADER)
+        self._last_ts: int | None = None
+        self.count = 0
+
+    def add(
+        self,
+        timestamp: int,
+        pose: Sequence[float],
+        images: np.ndarray,
+        *,
+        z: float = 0.0,
+        floor: int = 0,
+    ) -> None:
+        """Append one frame.
+
+        Args:
+            timestamp: microseconds, strictly increasing within the session.
+            pose: (x, y, yaw) metres, radians, world frame.
+            images: (M, 3, H, W) uint8, cameras in rig order.
+            z: height of the ego origin, metres.
+            floor: storey index.
+        """
+        from PIL import Image
+
+        ts = int(timestamp)
+        if self._last_ts is not None and ts <= self._last_ts:
+            raise ValueError(f"timestamp: must increase, got {ts} after {self._last_ts}")
+        x, y, yaw = (float(v) for v in pose)
+        m = len(self.cameras)
+        h, w = self.cameras[0].height, self.cameras[0].width
+        if images.dtype != np.uint8 or images.shape != (m, 3, h, w):
+            raise ValueError(
+                f"images: expected uint8 ({m}, 3, {h}, {w}), got {images.dtype} {images.shape}"
+            )
+        for cam, img in zip(self.cameras, images, strict=True):
+            Image.fromarray(np.ascontiguousarray(img.transpose(1, 2, 0))).save(
+                self.directory / cam.name / f"{ts}.png", compress_level=1
+            )
+        self._csv.writerow([ts, repr(x), repr(y), repr(float(z)), repr(yaw), int(floor)])
+        self._last_ts = ts
+        self.count += 1
+
+    def close(self) -> None:
+        """Flush ``poses.csv``."""
+        if not self._file.closed:
+            self._file.close()
+
+
+class DatasetWriter:
+    """Writes a vvloc-format dataset atomically: into a hidden temporary folder beside ``root``,
+    renamed to ``root`` by :meth:`close`; on an exception inside ``with`` nothing is left behind.
+
+    Example::
+
+        with DatasetWriter("data/synth", cameras) as w:
+            s = w.add_session("s0")
+            s.add(0, (1.0, 2.0, 0.1), images)
+    """
+
+    def __init__(
+        self,
+        root: str | os.PathLike[str],
+        cameras: Sequence[Camera],
+        *,
+        overwrite: bool = False,
+        meta: dict[str, Any] | None = None,
+    ) -> None:
+        self.root = Path(root)
+        if not cameras:
+            raise ValueError("cameras: expected at least one camera")
+        if len({(c.width, c.height) for c in cameras}) != 1:
+            raise ValueError("cameras: all cameras of a written dataset must share one image size")
+        if (
+            self.root.exists()
+            and not overwrite
+            and (not self.root.is_dir() or any(self.root.iterdir()))
+        ):
+            raise FileExistsError(
+                f"{self.root} exists and is not empty "
+                "(pass overwrite=True, or --overwrite on the command line)"
+            )
+        self.cameras = tuple(cameras)
+        self.overwrite = overwrite
+        self.root.parent.mkdir(parents=True, exist_ok=True)
+        self._tmp = Path(
+            tempfile.mkdtemp(prefix=f".{self.root.name}.partial-", dir=self.root.parent)
+        )
+        doc = {
+            "format": FORMAT_NAME,
+            "version": FORMAT_VERSION,
+            "cameras": [c.to_json() for c in cameras],
+        }
+        if meta:
+            doc["meta"] = meta
+        (self._tmp / "rig.json").write_text(json.dumps(doc, indent=2))
+        (self._tmp / "sessions").mkdir()
+        self._sessions: dict[str, SessionWriter] = {}
+
+    def add_session(self, name: str, meta: dict[str, Any] | None = None) -> SessionWriter:
+        """Start session ``name`` (a plain folder name) and return its writer."""
+        if not name or "/" in name or name.startswith(".") or name in self._sessions:
+            raise ValueError(f"name: expected a new plain session name, got {name!r}")
+        w = SessionWriter(self._tmp / "sessions" / name, self.cameras, meta)
+        self._sessions[name] = w
+        return w
+
+    def close(self) -> Path:
+        """Finish: close every session and move the dataset into place. Returns ``root``."""
+        for w in self._sessions.values():
+            w.close()
+        if self.root.exists():
+            if self.overwrite and self.root.is_dir():
+                shutil.rmtree(self.root)
+            else:
+                self.root.rmdir()  # empty by the constructor's check
+        os.replace(self._tmp, self.root)
+        return self.root
+
+    def abort(self) -> None:
+        """Discard everything written so far."""
+        for w in self._sessions.values():
+            w.close()
+        shutil.rmtree(self._tmp, ignore_errors=True)
+
+    def __enter__(self) -> DatasetWriter:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()

@@ -1,0 +1,172 @@
+"""Training losses of VVLoc, with the paper's constants as defaults.
+
+* :func:`triplet_loss` — global descriptors (margin 0.1).
+* :func:`hinge_loss` — separate positive and negative distances/costs (margins 0.1 and 0.2).
+* :func:`yaw_circle_loss` — circle-style loss on aligned local descriptors (γ = 40, ϑp = 0.1,
+  ϑn = 1.4); :func:`yaw_matching_loss` builds the aligned pair from a source BEV, the ground-truth
+  relative pose and the target's local descriptor.
+* :func:`translation_bias_loss` — the matching cost at the true translation must beat a randomly
+  biased translation by a margin (0.1).
+
+Poses follow DESIGN.md §3: ξ_{s→t} = (x, y, φ) is the target pose in the source frame; padding the
+source BEV with t = (x, y) re-centres it at the target origin and Dt ≈ ρ(Ds, φ·T/2π).
+Every loss returns a scalar tensor (mean over the batch) and is exactly zero when all margins are
+met.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from vvloc.nets.polar import bev_pad, polar_sample, roll_interp
+
+if TYPE_CHECKING:
+    from vvloc.nets.model import VVLocNet
+
+
+def _pairwise_distance(a: Tensor, b: Tensor) -> Tensor:
+    """Euclidean distances (..., n, m) between rows of a (..., n, C) and b (..., m, C); the
+    square root is taken of a value clamped at 1e-12 so the gradient stays finite at 0."""
+    sq = (
+        (a * a).sum(-1)[..., :, None]
+        + (b * b).sum(-1)[..., None, :]
+        - 2.0 * a @ b.transpose(-1, -2)
+    )
+    return sq.clamp(min=1e-12).sqrt()
+
+
+def matching_cost(a: Tensor, b: Tensor) -> Tensor:
+    """δ(A, B) = (1/T)·Σᵢ ‖Aᵢ − Bᵢ‖₂ (not squared), DESIGN.md §3: (..., T, C) × 2 → (...)."""
+    return (a - b).pow(2).sum(-1).clamp(min=1e-12).sqrt().mean(-1)
+
+
+def triplet_loss(anchor: Tensor, positive: Tensor, negative: Tensor, margin: float = 0.1) -> Tensor:
+    """Triplet margin loss on L2-normalised global descriptors.
+
+    anchor, positive (B, Dg); negative (B, Dg) or (B, K, Dg) (K negatives per anchor).
+    L = mean over (b, k) of max(0, ‖a − p‖₂ − ‖a − n_k‖₂ + margin).
+    """
+    if negative.ndim == anchor.ndim:
+        negative = negative[:, None]
+    d_pos = (anchor - positive).norm(dim=-1)  # (B,)
+    d_neg = (anchor[:, None] - negative).norm(dim=-1)  # (B, K)
+    return F.relu(d_pos[:, None] - d_neg + margin).mean()
+
+
+def hinge_loss(
+    pos_dist: Tensor, neg_dist: Tensor, pos_margin: float = 0.1, neg_margin: float = 0.2
+) -> Tensor:
+    """Double hinge: pull positive distances/costs below ``pos_margin`` and push negative ones
+    above ``neg_margin``: mean(max(0, d⁺ − 0.1)) + mean(max(0, 0.2 − d⁻)).
+
+    ``pos_dist`` and ``neg_dist`` are any-shape tensors of distances (e.g. yaw-matching costs
+    :func:`matching_cost` of positive and negative pairs); an empty tensor contributes 0.
+    """
+    pos = F.relu(pos_dist - pos_margin)
+    neg = F.relu(neg_margin - neg_dist)
+    zero = pos_dist.new_zeros(())
+    return (pos.mean() if pos.numel() else zero) + (neg.mean() if neg.numel() else zero)
+
+
+def yaw_circle_loss(
+    src: Tensor, tgt: Tensor, gamma: float = 40.0, theta_p: float = 0.1, theta_n: float = 1.4
+) -> Tensor:
+    """Circle-style matching loss between aligned local descriptors (P, T, C) (rows normalised).
+
+    δ_ij = ‖src_i − tgt_j‖₂. Row i of the source is the positive of target row i (δ_ii should be
+    < ϑp); every other target row j ≠ i is a negative (δ_ij should be > ϑn). Following circle
+    loss's self-paced weighting, the logits are
+        s_p = γ·α_p·(δ_ii − ϑp),  α_p = max(0, δ_ii − ϑp) (detached),
+        s_n = γ·α_n·(ϑn − δ_ij),  α_n = max(0, ϑn − δ_ij) (detached),
+    so the paper's squared terms max(0, δ − ϑ)² appear with the weight treated as a constant, and
+        Lᵢ = log(1 + exp(s_p)·Σ_{j≠i} exp(s_n,ij)) − log T.
+    Subtracting the floor log T (all logits 0 ⇒ log(1 + (T − 1))) makes a row whose margins are all
+    met contribute exactly 0 without changing any gradient. Returns the mean over (P, T).
+    """
+    _p, t, _ = src.shape
+    dist = _pairwise_distance(src, tgt)  # (P, T, T)
+    eye = torch.eye(t, dtype=torch.bool, device=src.device)
+    d_pos = dist.diagonal(dim1=-2, dim2=-1)  # (P, T)
+    alpha_p = F.relu(d_pos - theta_p).detach()
+    alpha_n = F.relu(theta_n - dist).detach()
+    s_p = gamma * alpha_p * (d_pos - theta_p)
+    s_n = (gamma * alpha_n * (theta_n - dist)).masked_fill(eye, float("-inf"))
+    row = F.softplus(s_p + torch.logsumexp(s_n, dim=-1)) - math.log(t)
+    return row.clamp(min=0.0).mean()
+
+
+def aligned_descriptors(
+    model: VVLocNet,
+    bev_src: Tensor,
+    local_tgt: Tensor,
+    translation: Tensor,
+    yaw: Tensor,
+) -> tuple[Tensor, Tensor]:
+    """Source BEV padded with ``translation``, polar-sampled, decoded, rolled by ``yaw``, and
+    passed through the interactor with the target descriptor.
+
+    bev_src (B, H, W, C); local_tgt (B, T, C); translation (B, 2) metres and yaw (B,) radians:
+    the relative pose ξ_{s→t}. The roll is ρ(Ds, φ·T/2π) (DESIGN.md §3). Returns (Ds', Dt')
+    (B, T, C), rows L2-normalised; at the true pose row i of each should describe the same view.
+    """
+    cfg = model.config
+    padded = bev_pad(bev_src, translation, cfg.grid_size)
+    ds = model.decode_polar(polar_sample(padded, cfg.num_angles, cfg.num_radii, cfg.grid_size))
+    shift = torch.as_tensor(yaw, dtype=torch.float64, device=ds.device) * (
+        cfg.num_angles / (2.0 * math.pi)
+    )
+    return model.interact(roll_interp(ds, shift, dim=1), local_tgt)
+
+
+def yaw_matching_loss(
+    model: VVLocNet,
+    bev_src: Tensor,
+    local_tgt: Tensor,
+    translation: Tensor,
+    yaw: Tensor,
+    gamma: float = 40.0,
+    theta_p: float = 0.1,
+    theta_n: float = 1.4,
+) -> Tensor:
+    """:func:`yaw_circle_loss` on :func:`aligned_descriptors` at the ground-truth pose."""
+    ds, dt = aligned_descriptors(model, bev_src, local_tgt, translation, yaw)
+    return yaw_circle_loss(ds, dt, gamma, theta_p, theta_n)
+
+
+def random_translation_bias(
+    n: int, bias_range: tuple[float, float] = (1.0, 3.0), seed: int = 0
+) -> Tensor:
+    """n random 2-D offsets (n, 2) float32 metres: uniform direction, length uniform in
+    ``bias_range``, drawn from a generator seeded with ``seed``."""
+    gen = torch.Generator().manual_seed(int(seed))
+    ang = torch.rand(n, generator=gen, dtype=torch.float64) * (2.0 * math.pi)
+    lo, hi = bias_range
+    mag = lo + (hi - lo) * torch.rand(n, generator=gen, dtype=torch.float64)
+    return torch.stack([mag * ang.cos(), mag * ang.sin()], -1).to(torch.float32)
+
+
+def translation_bias_loss(
+    model: VVLocNet,
+    bev_src: Tensor,
+    local_tgt: Tensor,
+    translation: Tensor,
+    yaw: Tensor,
+    margin: float = 0.1,
+    bias_range: tuple[float, float] = (1.0, 3.0),
+    seed: int = 0,
+) -> Tensor:
+    """The matching cost at the true translation must be lower, by ``margin``, than at a
+    randomly biased one t + Δ (Δ from :func:`random_translation_bias`, seeded, same yaw):
+    L = mean(max(0, c(t) − c(t + Δ) + margin)), c = :func:`matching_cost` of
+    :func:`aligned_descriptors`. The range of |Δ| (metres) is our choice; the paper does not
+    state it."""
+    t = torch.as_tensor(translation, dtype=torch.float32, device=bev_src.device)
+    delta = random_translation_bias(t.shape[0], bias_range, seed).to(t.device)
+    cost_true = matching_cost(*aligned_descriptors(model, bev_src, local_tgt, t, yaw))
+    cost_bias = matching_cost(*aligned_descriptors(model, bev_src, local_tgt, t + delta, yaw))
+    return F.relu(cost_true - cost_bias + margin).mean()

@@ -1,0 +1,78 @@
+"""Global descriptor heads over the polar BEV (B, T, R, C) → (B, Dg), L2-normalised.
+
+Each head pools over every polar cell, so it is invariant to circular shifts along the angle axis
+(a yaw rotation of the vehicle): GeM and NetVLAD because they sum over cells, DiSCO because the
+magnitude of a 2-D DFT ignores circular shifts.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from vvloc.nets.config import ModelConfig
+
+
+class GeMHead(nn.Module):
+    """Generalised-mean pooling with a learnable exponent p (init ``cfg.gem_p`` = 3): Dg = C."""
+
+    def __init__(self, cfg: ModelConfig, eps: float = 1e-6) -> None:
+        super().__init__()
+        self.p = nn.Parameter(torch.tensor(float(cfg.gem_p)))
+        self.eps = eps
+        self.out_dim = cfg.channels
+
+    def forward(self, polar: Tensor) -> Tensor:
+        x = polar.clamp(min=self.eps).pow(self.p).mean(dim=(1, 2)).pow(1.0 / self.p)
+        return F.normalize(x, dim=-1)
+
+
+class NetVLADHead(nn.Module):
+    """NetVLAD with K clusters: soft assignment, residual aggregation, intra-normalisation,
+    global L2, optional linear projection to ``global_dim`` (0 = none) and a final L2.
+
+    Dg = global_dim if > 0 else K·C.
+    """
+
+    def __init__(self, cfg: ModelConfig) -> None:
+        super().__init__()
+        k, c = cfg.netvlad_clusters, cfg.channels
+        self.assign = nn.Linear(c, k)
+        self.centroids = nn.Parameter(torch.rand(k, c))
+        self.proj: nn.Linear | None = nn.Linear(k * c, cfg.global_dim) if cfg.global_dim else None
+        self.out_dim = cfg.global_dim or k * c
+
+    def forward(self, polar: Tensor) -> Tensor:
+        x = F.normalize(polar.flatten(1, 2), dim=-1)  # (B, N, C)
+        a = self.assign(x).softmax(dim=-1)  # (B, N, K)
+        vlad = a.transpose(1, 2) @ x - a.sum(dim=1)[..., None] * self.centroids  # (B, K, C)
+        vlad = F.normalize(F.normalize(vlad, dim=-1).flatten(1), dim=-1)
+        if self.proj is not None:
+            vlad = F.normalize(self.proj(vlad), dim=-1)
+        return vlad
+
+
+class DiscoHead(nn.Module):
+    """DiSCO-style: 1-channel projection → |2-D DFT| (orthonormal) over (T, R) → fftshift →
+    central crop (ct, cr) → flatten → L2. Dg = ct·cr. Invariant to circular angle shifts."""
+
+    def __init__(self, cfg: ModelConfig) -> None:
+        super().__init__()
+        self.proj = nn.Linear(cfg.channels, 1)
+        self.crop = cfg.disco_crop
+        self.out_dim = cfg.disco_crop[0] * cfg.disco_crop[1]
+
+    def forward(self, polar: Tensor) -> Tensor:
+        x = self.proj(polar).squeeze(-1)  # (B, T, R)
+        spec = torch.fft.fftshift(torch.fft.fft2(x, norm="ortho").abs(), dim=(1, 2))
+        t, r = x.shape[1:]
+        ct, cr = self.crop
+        t0, r0 = t // 2 - ct // 2, r // 2 - cr // 2
+        return F.normalize(spec[:, t0 : t0 + ct, r0 : r0 + cr].flatten(1), dim=-1)
+
+
+def make_global_head(cfg: ModelConfig) -> nn.Module:
+    """The head selected by ``cfg.global_head`` ("gem" | "netvlad" | "disco")."""
+    heads: dict[str, type[nn.Module]] = {"gem": GeMHead, "netvlad": NetVLADHead, "disco": DiscoHead}
+    return heads[cfg.global_head](cfg)

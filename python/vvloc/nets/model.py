@@ -1,0 +1,215 @@
+"""The full VVLoc network: images of a rig → BEV → polar BEV → global + local descriptors."""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from safetensors.torch import load_file, save_file
+from torch import Tensor, nn
+
+from vvloc.nets.backbone import FPN, ResNetBackbone, normalise_images
+from vvloc.nets.config import CONFIG_VERSION, ModelConfig
+from vvloc.nets.decoder import Interactor, LocalViewDecoder
+from vvloc.nets.encoder import BevEncoder
+from vvloc.nets.heads import make_global_head
+from vvloc.nets.polar import polar_sample
+
+WEIGHTS_FILE = "model.safetensors"
+CONFIG_FILE = "config.json"
+CHECKPOINT_FORMAT = "vvloc.nets.VVLocNet"
+
+
+@dataclass
+class EncoderOutput:
+    """What :meth:`VVLocNet.encode` returns (float32, on the model's device).
+
+    bev (B, H, W, C) channels-last; polar (B, T, R, C); global_desc (B, Dg) L2-normalised;
+    local_desc (B, T, C) (not normalised; the interactor normalises its outputs).
+    """
+
+    bev: Tensor
+    polar: Tensor
+    global_desc: Tensor
+    local_desc: Tensor
+
+
+class VVLocNet(nn.Module):
+    """VVLoc networks (DESIGN.md §1): BEV encoder, polar transform, global head, local-view
+    decoder and interactor, built from a :class:`ModelConfig`."""
+
+    def __init__(self, config: ModelConfig) -> None:
+        super().__init__()
+        if not isinstance(config, ModelConfig):
+            raise TypeError(f"config: expected a ModelConfig, got {type(config).__name__}")
+        self.config = config
+        self.backbone = ResNetBackbone(config.backbone_widths, config.backbone_blocks)
+        self.fpn = FPN(config.backbone_widths, config.channels, config.num_levels)
+        self.encoder = BevEncoder(config)
+        self.global_head = make_global_head(config)
+        self.decoder = LocalViewDecoder(config)
+        self.interactor = Interactor(config)
+
+    @property
+    def global_dim(self) -> int:
+        """Dg, the length of the global descriptor."""
+        return int(self.global_head.out_dim)  # type: ignore[arg-type]
+
+    def config_hash(self) -> str:
+        """Stable hash of the architecture (the config's canonical JSON)."""
+        return self.config.config_hash()
+
+    # --- forward pieces --------------------------------------------------------------------
+
+    def image_features(self, images: Tensor) -> list[Tensor]:
+        """images (B, M, 3, Hi, Wi) uint8 or float in [0, 1] → FPN levels (B, M, C, H_l, W_l)."""
+        b, m = images.shape[:2]
+        x = normalise_images(images.flatten(0, 1))
+        return [f.unflatten(0, (b, m)) for f in self.fpn(self.backbone(x))]
+
+    def bev_from_features(
+        self,
+        feats: list[Tensor],
+        intrinsics: Tensor,
+        cam_to_ego: Tensor,
+        image_size: tuple[int, int],
+    ) -> Tensor:
+        """FPN levels (B, M, C, H_l, W_l) + calibration → BEV (B, H, W, C)."""
+        return self.encoder(feats, intrinsics, cam_to_ego, image_size)
+
+    def polar(self, bev: Tensor) -> Tensor:
+        """BEV (B, H, W, C) → polar BEV (B, T, R, C) (differentiable, DESIGN.md §3)."""
+        cfg = self.config
+        return polar_sample(bev, cfg.num_angles, cfg.num_radii, cfg.grid_size)
+
+    def encode(self, images: Tensor, intrinsics: Tensor, cam_to_ego: Tensor) -> EncoderOutput:
+        """Encode one frame per batch item.
+
+        images (B, M, 3, Hi, Wi) uint8 [0, 255] or float [0, 1]; intrinsics (B, M, 3, 3) in pixels
+        of these images; cam_to_ego (B, M, 4, 4) OpenCV camera → ego (x forward, y left, z up),
+        metres. Calibration may differ per batch item.
+        """
+        images, intrinsics, cam_to_ego = self._check_inputs(images, intrinsics, cam_to_ego)
+        feats = self.image_features(images)
+        size = (int(images.shape[-2]), int(images.shape[-1]))
+        bev = self.bev_from_features(feats, intrinsics, cam_to_ego, size)
+        polar = self.polar(bev)
+        return EncoderOutput(
+            bev=bev,
+            polar=polar,
+            global_desc=self.global_head(polar),
+            local_desc=self.decoder(polar),
+        )
+
+    def decode_polar(self, polar: Tensor) -> Tensor:
+        """Polar BEVs (N, T, R, C) (e.g. of padded hypotheses) → local descriptors (N, T, C)."""
+        return self.decoder(polar)
+
+    def interact(self, local_src: Tensor, local_tgt: Tensor) -> tuple[Tensor, Tensor]:
+        """(P, T, C) pairs → (Ds', Dt') (P, T, C), rows L2-normalised."""
+        return self.interactor(local_src, local_tgt)
+
+    def _check_inputs(
+        self, images: Tensor, intrinsics: Tensor, cam_to_ego: Tensor
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        for name, x in (("images", images), ("intrinsics", intrinsics), ("cam_to_ego", cam_to_ego)):
+            if not isinstance(x, Tensor):
+                raise TypeError(f"{name}: expected a torch.Tensor, got {type(x).__name__}")
+        if images.ndim != 5 or images.shape[2] != 3:
+            raise ValueError(f"images: expected shape (B, M, 3, Hi, Wi), got {tuple(images.shape)}")
+        if images.dtype != torch.uint8 and not images.is_floating_point():
+            raise TypeError(f"images: expected uint8 or float, got {images.dtype}")
+        b, m = images.shape[:2]
+        if tuple(intrinsics.shape) != (b, m, 3, 3):
+            raise ValueError(
+                f"intrinsics: expected shape ({b}, {m}, 3, 3), got {tuple(intrinsics.shape)}"
+            )
+        if tuple(cam_to_ego.shape) != (b, m, 4, 4):
+            raise ValueError(
+                f"cam_to_ego: expected shape ({b}, {m}, 4, 4), got {tuple(cam_to_ego.shape)}"
+            )
+        if m > self.config.max_cameras:
+            raise ValueError(
+                f"images: {m} cameras exceed ModelConfig.max_cameras={self.config.max_cameras}"
+            )
+        dev = self.encoder.queries.device
+        return (
+            images.to(dev),
+            intrinsics.to(dev, torch.float32),
+            cam_to_ego.to(dev, torch.float32),
+        )
+
+    # --- checkpoints -----------------------------------------------------------------------
+
+    def save(self, directory: str | os.PathLike[str]) -> Path:
+        """Write ``model.safetensors`` and ``config.json`` (format, version, config, hash) into
+        ``directory`` (created if needed). Files are written to temporaries and renamed, so a
+        failure leaves no partial file."""
+        out = Path(directory)
+        out.mkdir(parents=True, exist_ok=True)
+        meta = {
+            "format": CHECKPOINT_FORMAT,
+            "version": CONFIG_VERSION,
+            "config_hash": self.config_hash(),
+            "config": self.config.to_dict(),
+        }
+        tensors = {k: v.detach().cpu().contiguous() for k, v in self.state_dict().items()}
+        _atomic_write(out / WEIGHTS_FILE, lambda p: save_file(tensors, str(p)))
+        _atomic_write(out / CONFIG_FILE, lambda p: Path(p).write_text(json.dumps(meta, indent=2)))
+        return out
+
+    @classmethod
+    def load(
+        cls, directory: str | os.PathLike[str], map_location: str | torch.device = "cpu"
+    ) -> VVLocNet:
+        """Load a checkpoint written by :meth:`save`; raises ``ValueError`` on a wrong format,
+        version, or weights that do not match the architecture (names and shapes listed)."""
+        src = Path(directory)
+        cfg_path, w_path = src / CONFIG_FILE, src / WEIGHTS_FILE
+        for p in (cfg_path, w_path):
+            if not p.is_file():
+                raise FileNotFoundError(f"directory: {p} not found (not a vvloc checkpoint)")
+        meta = json.loads(cfg_path.read_text())
+        if meta.get("format") != CHECKPOINT_FORMAT:
+            raise ValueError(
+                f"{cfg_path}: format {meta.get('format')!r} is not {CHECKPOINT_FORMAT}"
+            )
+        if meta.get("version") != CONFIG_VERSION:
+            raise ValueError(
+                f"{cfg_path}: checkpoint version {meta.get('version')} is not supported "
+                f"(expected {CONFIG_VERSION})"
+            )
+        model = cls(ModelConfig.from_dict(meta["config"]))
+        state = load_file(str(w_path), device=str(map_location))
+        expected = model.state_dict()
+        missing = sorted(set(expected) - set(state))
+        unexpected = sorted(set(state) - set(expected))
+        wrong = [
+            f"{k}: checkpoint {tuple(state[k].shape)} vs model {tuple(v.shape)}"
+            for k, v in expected.items()
+            if k in state and state[k].shape != v.shape
+        ]
+        if missing or unexpected or wrong:
+            raise ValueError(
+                f"{w_path}: weights do not match the architecture of {cfg_path}: "
+                f"missing {missing[:5]}{'…' if len(missing) > 5 else ''}, "
+                f"unexpected {unexpected[:5]}{'…' if len(unexpected) > 5 else ''}, "
+                f"shape mismatches {wrong[:5]}"
+            )
+        model.load_state_dict(state)
+        return model.to(map_location)
+
+
+def _atomic_write(path: Path, write: object) -> None:
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    os.close(fd)
+    try:
+        write(tmp)  # type: ignore[operator]
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise

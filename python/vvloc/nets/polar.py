@@ -1,0 +1,84 @@
+"""Differentiable spatial operations of the training path (DESIGN.md §3).
+
+``polar_sample`` and ``bev_pad`` are the networks' entry points to the vectorised torch
+implementation in :mod:`vvloc.reference.torch_spatial` (the one implementation; it equals
+:func:`vvloc.kernels.polar_sample` / :func:`vvloc.kernels.bev_pad` to 1e-5); they add the
+shapes the networks and losses use. ``roll_interp`` is the interpolated roll ρ with one real
+shift per leading item (per pair), differentiable w.r.t. the descriptors.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from vvloc.reference.torch_spatial import torch_bev_pad, torch_polar_sample
+
+
+def _check_bev(bev: Tensor, name: str = "bev") -> None:
+    if not isinstance(bev, Tensor):
+        raise TypeError(f"{name}: expected a torch.Tensor (B, H, W, C), got {type(bev).__name__}")
+    if bev.ndim != 4:
+        raise ValueError(f"{name}: expected shape (B, H, W, C), got {tuple(bev.shape)}")
+
+
+def polar_sample(bev: Tensor, num_angles: int, num_radii: int, grid_size: float) -> Tensor:
+    """Sample a BEV on the polar grid: (B, H, W, C) → (B, T, R, C), differentiable.
+
+    Bilinear interpolation at the polar sample points of DESIGN.md §3; a tap outside the grid
+    reads 1. Delegates to :func:`vvloc.reference.torch_spatial.torch_polar_sample`.
+    """
+    _check_bev(bev)
+    return torch_polar_sample(bev, num_angles, num_radii, grid_size).contiguous()
+
+
+def bev_pad(bev: Tensor, translations: Tensor, grid_size: float) -> Tensor:
+    """BEV padding (paper Alg. 1, DESIGN.md §3), differentiable w.r.t. ``bev``.
+
+    ``bev`` (H, W, C) with ``translations`` (N, 2) metres → (N, H, W, C), or a batch ``bev``
+    (N, H, W, C) with one translation per item (N, 2) → (N, H, W, C). Output cell (i, j) is the
+    bilinear sample of the BEV at (i + x/g, j + y/g), or 1 wherever a tap with non-zero weight
+    falls outside the grid: Qᵗ(p) = Q(p + t). Delegates to
+    :func:`vvloc.reference.torch_spatial.torch_bev_pad`.
+    """
+    if not isinstance(bev, Tensor) or bev.ndim not in (3, 4):
+        raise ValueError("bev: expected a tensor of shape (H, W, C) or (N, H, W, C)")
+    t = torch.as_tensor(translations, dtype=torch.float64, device=bev.device)
+    if t.ndim != 2 or t.shape[1] != 2:
+        raise ValueError(f"translations: expected shape (N, 2), got {tuple(t.shape)}")
+    if bev.ndim == 3:
+        return torch_bev_pad(bev[None], t, grid_size)[0].contiguous()
+    if bev.shape[0] != t.shape[0]:
+        raise ValueError(
+            f"translations: expected {bev.shape[0]} rows to match bev (N, H, W, C), "
+            f"got {t.shape[0]}"
+        )
+    return torch_bev_pad(bev, t[:, None, :], grid_size)[:, 0].contiguous()
+
+
+def roll_interp(x: Tensor, shift: Tensor | float, dim: int = 1) -> Tensor:
+    """Interpolated roll ρ(x, s) along ``dim`` with one real shift per leading item.
+
+    ``x`` (P, ..., n, ...) with ``shift`` (P,) or a scalar: out[p] = (1 − w)·roll(x[p], k) +
+    w·roll(x[p], k + 1), k = ⌊s_p⌋, w = s_p − k, roll(D, k)[i] = D[(i − k) mod n] (torch.roll
+    semantics, DESIGN.md §3). Differentiable w.r.t. ``x`` (not the shift).
+    """
+    n = x.shape[dim]
+    s = torch.as_tensor(shift, dtype=torch.float64, device=x.device).reshape(-1)
+    if s.numel() == 1:
+        s = s.expand(x.shape[0])
+    if s.shape[0] != x.shape[0]:
+        raise ValueError(f"shift: expected a scalar or {x.shape[0]} shifts, got {s.shape[0]}")
+    k = torch.floor(s)
+    w = (s - k).to(x.dtype)
+    idx = torch.arange(n, device=x.device)
+    src0 = (idx[None, :] - k.long()[:, None]) % n  # (P, n)
+    src1 = (src0 - 1) % n
+    shape = [1] * x.ndim
+    shape[0], shape[dim] = x.shape[0], n
+    exp = list(x.shape)
+    g0 = torch.gather(x, dim, src0.reshape(shape).expand(exp))
+    g1 = torch.gather(x, dim, src1.reshape(shape).expand(exp))
+    wshape = [x.shape[0]] + [1] * (x.ndim - 1)
+    w = w.reshape(wshape)
+    return (1.0 - w) * g0 + w * g1

@@ -1,0 +1,236 @@
+"""The vvloc dataset format, triplet sampling, evaluation splits and perturbations (no EGL)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import vvloc.data.vvloc_format as fmt
+from vvloc.data import (
+    DatasetFormatError,
+    DatasetWriter,
+    TripletSampler,
+    evaluation_split,
+    open_dataset,
+    perturb,
+)
+from vvloc.sim.rig import make_rig
+from vvloc.sim.sequences import Drive, drive_keyframes, sample_loop
+from vvloc.sim.world import parking_world
+
+W, H = 16, 12
+
+
+def _write(root, sessions: dict[str, tuple[np.ndarray, np.ndarray]], cameras=None, seed=0):
+    """Write sessions {name: (poses (N, 3), floors (N,))} with random pixels."""
+    cams = cameras or make_rig(4, W, H)
+    rng = np.random.default_rng(seed)
+    with DatasetWriter(root, cams) as w:
+        for name, (poses, floors) in sessions.items():
+            s = w.add_session(name, meta={"note": name})
+            for k, (p, f) in enumerate(zip(poses, floors, strict=True)):
+                imgs = rng.integers(0, 256, size=(len(cams), 3, H, W), dtype=np.uint8)
+                s.add(1000 + 100_000 * k, p, imgs, z=-3.2 * f, floor=int(f))
+    return cams
+
+
+def _line(n, y=0.0, floor=0):
+    poses = np.column_stack([np.arange(n) * 2.0, np.full(n, y), np.zeros(n)])
+    return poses, np.full(n, floor)
+
+
+def test_writer_and_reader_round_trip_lazily(tmp_path, monkeypatch):
+    root = tmp_path / "ds"
+    cams = _write(root, {"s0": _line(5), "s1": _line(4, y=1.0, floor=1)})
+    calls = []
+    real = fmt.load_rgb
+    monkeypatch.setattr(fmt, "load_rgb", lambda p: calls.append(p) or real(p))
+    ds = open_dataset(root)
+    assert calls == []  # opening reads no image
+    assert ds.sessions == ["s0", "s1"] and [c.name for c in ds.cameras] == [c.name for c in cams]
+    s1 = ds.session("s1")
+    assert len(s1) == 4 and s1.poses.shape == (4, 3) and list(s1.floors) == [1] * 4
+    f = s1[2]
+    assert len(calls) == 4  # one image per camera of that frame
+    assert f.images.shape == (4, 3, H, W) and f.images.dtype == np.uint8
+    assert np.allclose(f.K, np.stack([c.K for c in cams]))
+    assert np.allclose(f.cam_to_ego, np.stack([c.cam_to_ego for c in cams]))
+    assert np.allclose(f.pose, [4.0, 1.0, 0.0]) and f.floor == 1 and f.z == pytest.approx(-3.2)
+    assert f.t == pytest.approx((1000 + 200_000) * 1e-6) and (f.session, f.index) == ("s1", 2)
+    assert s1[-1].index == 3 and len(s1[1:3]) == 2
+    with pytest.raises(IndexError):
+        s1[4]
+    with pytest.raises(KeyError, match="s9"):
+        ds.session("s9")
+    # the written pixels come back exactly (PNG is lossless)
+    first = np.random.default_rng(0).integers(0, 256, size=(4, 3, H, W), dtype=np.uint8)
+    assert np.array_equal(ds.session("s0")[0].images, first)
+
+
+def test_malformed_row_names_file_and_line(tmp_path):
+    root = tmp_path / "ds"
+    _write(root, {"s0": _line(3)})
+    p = root / "sessions" / "s0" / "poses.csv"
+    lines = p.read_text().splitlines()
+    lines[2] = lines[2].replace(",0.0,", ",abc,", 1)
+    p.write_text("\n".join(lines) + "\n")
+    with pytest.raises(DatasetFormatError, match=r"poses\.csv, line 3: malformed"):
+        open_dataset(root)
+    lines[2] = "1,2,3"
+    p.write_text("\n".join(lines) + "\n")
+    with pytest.raises(DatasetFormatError, match=r"poses\.csv, line 3: expected 6 fields"):
+        open_dataset(root)
+
+
+def test_missing_image_and_unknown_camera_are_named(tmp_path):
+    root = tmp_path / "ds"
+    _write(root, {"s0": _line(3)})
+    img = root / "sessions" / "s0" / "left" / "201000.png"
+    img.unlink()
+    with pytest.raises(DatasetFormatError, match=r"left/201000\.png: image missing.*line 4"):
+        open_dataset(root)
+    root2 = tmp_path / "ds2"
+    _write(root2, {"s0": _line(2)})
+    (root2 / "sessions" / "s0" / "roof").mkdir()
+    with pytest.raises(DatasetFormatError, match=r"camera 'roof' is not in rig\.json"):
+        open_dataset(root2)
+    with pytest.raises(FileNotFoundError):
+        open_dataset(tmp_path / "nope")
+
+
+def test_writer_leaves_nothing_behind_on_error(tmp_path):
+    cams = make_rig(4, W, H)
+    with pytest.raises(RuntimeError), DatasetWriter(tmp_path / "ds", cams) as w:
+        s = w.add_session("s0")
+        s.add(1, (0, 0, 0), np.zeros((4, 3, H, W), np.uint8))
+        raise RuntimeError("boom")
+    assert list(tmp_path.iterdir()) == []
+    with DatasetWriter(tmp_path / "ds", cams) as w:
+        s = w.add_session("s0")
+        with pytest.raises(ValueError, match="images"):
+            s.add(1, (0, 0, 0), np.zeros((3, 3, H, W), np.uint8))
+        s.add(5, (0, 0, 0), np.zeros((4, 3, H, W), np.uint8))
+        with pytest.raises(ValueError, match="timestamp"):
+            s.add(5, (0, 0, 0), np.zeros((4, 3, H, W), np.uint8))
+    with pytest.raises(FileExistsError):
+        DatasetWriter(tmp_path / "ds", cams)
+
+
+def _drive_dataset(root):
+    loop = sample_loop(parking_world(0).routes[0])
+    sessions = {}
+    for name, drive in (
+        ("s0", Drive()),
+        ("s1", Drive(1.5, False, seed=1)),
+        ("s2", Drive(-1.5, True, seed=2)),
+    ):
+        poses, _ = drive_keyframes(loop, drive, 200)  # about one lap
+        sessions[name] = (poses, np.zeros(len(poses), int))
+    _write(root, sessions, cameras=make_rig(1, W, H))
+    return open_dataset(root)
+
+
+def test_revisits_in_other_sessions_are_positives(tmp_path):
+    ds = _drive_dataset(tmp_path / "ds")
+    sampler = TripletSampler(ds, pos_radius=2.0, neg_radius=3.0, seed=0)
+    t = sampler.sample(64)
+    assert t.shape == (64, 3)
+    d_pos = np.linalg.norm(sampler.positions[t[:, 0]] - sampler.positions[t[:, 1]], axis=1)
+    d_neg = np.linalg.norm(sampler.positions[t[:, 0]] - sampler.positions[t[:, 2]], axis=1)
+    assert np.all(d_pos <= 2.0) and np.all(d_neg > 3.0)
+    assert np.all(sampler.session_of[t[:, 0]] != sampler.session_of[t[:, 1]])
+    # the offset (+1.5 m) and the reversed (-1.5 m) drives revisit s0 within the radius
+    s0 = ds.session("s0")
+    for other in ("s1", "s2"):
+        d = np.linalg.norm(ds.session(other).poses[:, None, :2] - s0.poses[None, :, :2], axis=2)
+        assert np.median(d.min(axis=1)) < 2.0
+    assert np.array_equal(
+        TripletSampler(ds, seed=0).sample(16), TripletSampler(ds, seed=0).sample(16)
+    )
+    name, idx = sampler.locate(int(t[0, 0]))
+    assert sampler.frame(int(t[0, 0])).session == name and sampler.frame(int(t[0, 0])).index == idx
+
+
+def test_hard_triplets_are_redrawn_until_resolved(tmp_path):
+    ds = _drive_dataset(tmp_path / "ds")
+    sampler = TripletSampler(ds, seed=1, hard_fraction=0.5)
+    hard = sampler.sample(4)
+    sampler.update(hard, np.array([False, False, True, False]))
+    assert len(sampler.hard) == 3
+    for _ in range(3):
+        drawn = {tuple(r) for r in sampler.sample(8).tolist()}
+        assert {tuple(r) for r in sampler.hard.tolist()} <= drawn
+    sampler.resolve(sampler.hard)
+    assert len(sampler.hard) == 0
+
+
+def test_floors_are_different_places(tmp_path):
+    root = tmp_path / "ds"
+    _write(root, {"s0": _line(5, floor=0), "s1": _line(5, floor=1), "s2": _line(5, y=0.5)})
+    ds = open_dataset(root)
+    sampler = TripletSampler(ds, seed=0)
+    for a in sampler.anchors:
+        for p in sampler.positives[a]:
+            assert (
+                ds.session(sampler.locate(int(p))[0]).floors[0]
+                == ds.session(sampler.locate(int(a))[0]).floors[0]
+            )
+    split = evaluation_split(ds, database="s0", revisit_radius=1.0)
+    assert set(split.query_sessions.tolist()) == {"s2"}  # s1 is on another floor
+    assert np.all(split.nearest_distance <= 1.0) and len(split.query_indices) == 5
+    assert np.array_equal(split.nearest_database, np.arange(5))
+
+
+def _frame_images(seed=0):
+    return np.random.default_rng(seed).integers(0, 256, size=(4, 3, 24, 32), dtype=np.uint8)
+
+
+def test_perturbations_change_only_what_they_say():
+    x = _frame_images()
+    m = perturb.mask_cameras(x, [1, 3])
+    assert np.all(m[[1, 3]] == 0) and np.array_equal(m[[0, 2]], x[[0, 2]])
+    drawn = perturb.mask_cameras(x, count=2, seed=4)
+    blank = [k for k in range(4) if not drawn[k].any()]
+    assert len(blank) == 2 and np.array_equal(drawn, perturb.mask_cameras(x, count=2, seed=4))
+    r = perturb.mask_regions(x, count=2, size=0.25, cameras=[0], seed=3)
+    inside = np.zeros(x.shape, bool)
+    for c, r0, r1, c0, c1 in perturb.region_boxes(x.shape, 2, 0.25, 3, [0]):
+        inside[c, :, r0:r1, c0:c1] = True
+    assert np.all(r[inside] == 0) and np.array_equal(r[~inside], x[~inside])
+    b = perturb.motion_blur(x, length=5, angle_deg=0.0, cameras=[2])
+    assert np.array_equal(b[[0, 1, 3]], x[[0, 1, 3]]) and not np.array_equal(b[2], x[2])
+    # horizontal blur of a vertical-stripe-free image (constant rows) changes nothing
+    rows = np.repeat(np.arange(24, dtype=np.uint8)[None, None, :, None], 32, axis=3)
+    rows = np.repeat(np.repeat(rows, 3, axis=1), 4, axis=0)
+    assert np.array_equal(perturb.motion_blur(rows, 7, 0.0), rows)
+    assert perturb.motion_blur(x, 7, None, seed=1).shape == x.shape
+    e = perturb.exposure(x, gain=0.5, cameras=[0])
+    assert np.array_equal(e[1:], x[1:]) and e[0].mean() < 0.6 * x[0].mean()
+    n = perturb.noise(x, sigma=10.0, cameras=[3], seed=2)
+    assert np.array_equal(n[:3], x[:3])
+    diff = n[3].astype(float) - x[3]
+    assert 5 < diff.std() < 12 and np.array_equal(n, perturb.noise(x, 10.0, cameras=[3], seed=2))
+    with pytest.raises(ValueError, match="images"):
+        perturb.noise(x[0])
+    with pytest.raises(ValueError, match="cameras"):
+        perturb.mask_cameras(x, [7])
+
+
+def test_perturb_frame_keeps_calibration_and_pose(tmp_path):
+    root = tmp_path / "ds"
+    _write(root, {"s0": _line(2)})
+    f = open_dataset(root).session("s0")[1]
+    g = perturb.perturb_frame(f, "mask_cameras", cameras=[0])
+    assert g.images[0].max() == 0 and np.array_equal(g.K, f.K) and np.array_equal(g.pose, f.pose)
+    with pytest.raises(ValueError, match="name"):
+        perturb.perturb_frame(f, "smudge")
+
+
+def test_camera_resize_keeps_projection_exact():
+    cam = make_rig(4, 160, 96)[0]
+    small = cam.resized(80, 48)
+    pts = np.array([[10.0, 1.0, 1.2], [5.0, -2.0, 0.3]])
+    uv, _ = cam.project_ego(pts)
+    uv2, _ = small.project_ego(pts)
+    # pixel-centre convention: u' + 0.5 = (u + 0.5) / 2
+    assert np.allclose(uv2 + 0.5, (uv + 0.5) / 2)

@@ -1,0 +1,277 @@
+"""Spatial kernels: Rust vs the literal reference vs the vectorised torch path (DESIGN.md §3–4)."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+import vvloc
+from vvloc import kernels as K
+from vvloc.reference import torch_spatial as TS
+
+TOL = 1e-5
+
+
+def field(rng: np.random.Generator, *shape: int) -> np.ndarray:
+    return rng.standard_normal(shape).astype(np.float32)
+
+
+def close(a: np.ndarray, b: np.ndarray, tol: float = TOL) -> None:
+    assert a.shape == b.shape and a.dtype == np.float32
+    np.testing.assert_allclose(a, b, rtol=tol, atol=tol)
+
+
+# Shifts in metres: fractional, negative, integer multiples of g, zero, beyond the map.
+shift_values = st.one_of(
+    st.floats(-3.0, 3.0, allow_nan=False),
+    st.integers(-8, 8).map(lambda k: k * 0.3),
+    st.just(0.0),
+    st.sampled_from([1e3, -1e6, 1e30]),
+)
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    shape=st.lists(st.integers(1, 6), min_size=1, max_size=4),
+    shift=st.one_of(st.floats(-20, 20), st.integers(-9, 9).map(float), st.just(1e18 + 0.5)),
+    data=st.data(),
+)
+def test_roll_interp_matches_reference(shape, shift, data):
+    axis = data.draw(st.integers(-len(shape), len(shape) - 1))
+    x = field(np.random.default_rng(len(shape)), *shape)
+    close(K.roll_interp(x, shift, axis), K.roll_interp(x, shift, axis, backend="reference"))
+
+
+def test_roll_interp_is_torch_roll_at_integers_and_continuous():
+    x = field(np.random.default_rng(0), 7, 3)
+    np.testing.assert_array_equal(K.roll_interp(x, 3.0), torch.roll(torch.from_numpy(x), 3, 0))
+    np.testing.assert_array_equal(K.roll_interp(x, -2.0, axis=1), np.roll(x, -2, axis=1))
+    close(K.roll_interp(x, 3.0 - 1e-7), K.roll_interp(x, 3.0), 1e-5)
+    half = 0.5 * (np.roll(x, 1, 0) + np.roll(x, 2, 0))
+    close(K.roll_interp(x, 1.5), half)
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    h=st.integers(1, 9),
+    w=st.integers(1, 9),
+    c=st.integers(1, 5),
+    g=st.sampled_from([0.3, 0.25, 1.0]),
+    t=st.lists(st.tuples(shift_values, shift_values), min_size=1, max_size=4),
+)
+def test_bev_pad_matches_algorithm_one(h, w, c, g, t):
+    bev = field(np.random.default_rng(h * 10 + w), h, w, c)
+    tr = np.array(t, dtype=np.float64)
+    close(K.bev_pad(bev, tr, g), K.bev_pad(bev, tr, g, backend="reference"))
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    shape=st.tuples(st.integers(1, 3), st.integers(1, 9), st.integers(1, 9), st.integers(1, 5)),
+    batched=st.booleans(),
+    num_angles=st.integers(1, 13),
+    num_radii=st.integers(1, 7),
+    g=st.sampled_from([0.3, 0.5]),
+)
+def test_polar_sample_matches_reference(shape, batched, num_angles, num_radii, g):
+    bev = field(np.random.default_rng(sum(shape)), *shape)
+    if not batched:
+        bev = bev[0]
+    got = K.polar_sample(bev, num_angles, num_radii, g)
+    close(got, K.polar_sample(bev, num_angles, num_radii, g, backend="reference"))
+    assert got.shape == (*bev.shape[:-3], num_angles, num_radii, bev.shape[-1])
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    h=st.integers(1, 9),
+    w=st.integers(1, 9),
+    c=st.integers(1, 5),
+    num_angles=st.integers(1, 9),
+    num_radii=st.integers(1, 5),
+    t=st.lists(st.tuples(shift_values, shift_values), min_size=1, max_size=3),
+)
+def test_pad_polar_equals_composition_and_reference(h, w, c, num_angles, num_radii, t):
+    bev = field(np.random.default_rng(h + 7 * w), h, w, c)
+    tr = np.array(t, dtype=np.float64)
+    fused = K.pad_polar(bev, tr, num_angles, num_radii, 0.3)
+    composed = K.polar_sample(K.bev_pad(bev, tr, 0.3), num_angles, num_radii, 0.3)
+    close(fused, composed)
+    close(fused, K.pad_polar(bev, tr, num_angles, num_radii, 0.3, backend="reference"))
+
+
+def test_zero_shift_unchanged_and_huge_shift_all_ones():
+    bev = field(np.random.default_rng(1), 6, 5, 4)
+    out = K.bev_pad(bev, [[0.0, 0.0], [0.0, 1e6], [-50.0, 0.0]], 0.3)
+    np.testing.assert_array_equal(out[0], bev)
+    assert (out[1:] == 1.0).all()
+    polar = K.pad_polar(bev, [[0.0, 0.0], [1e300, -1e300]], 8, 3, 0.3)
+    np.testing.assert_array_equal(polar[0], K.polar_sample(bev, 8, 3, 0.3))
+    assert (polar[1] == 1.0).all()
+
+
+def test_float32_translation_on_the_grid_is_an_exact_cell_shift():
+    # 0.3 m in float32 is 1.0000000397 cells of 0.3 m: snapped to exactly one cell.
+    bev = field(np.random.default_rng(2), 5, 4, 3)
+    out = K.bev_pad(bev, np.array([[0.3, -0.6]], dtype=np.float32), 0.3)[0]
+    np.testing.assert_array_equal(out[:4, 2:], bev[1:, :2])
+    assert (out[4] == 1.0).all() and (out[:, :2] == 1.0).all()
+
+
+def test_paper_size_once():
+    rng = np.random.default_rng(3)
+    bev = field(rng, 100, 100, 256)
+    tr = np.array([[0.0, 0.0], [0.45, -1.2], [-1.5, 0.3]])
+    got = K.pad_polar(bev, tr, 120, 40, 0.3)
+    assert got.shape == (3, 120, 40, 256)
+    close(got[1:2], K.pad_polar(bev, tr[1:2], 120, 40, 0.3, backend="reference"))
+    close(got, K.polar_sample(K.bev_pad(bev, tr, 0.3), 120, 40, 0.3))
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_torch_training_path_equals_kernels(dtype):
+    rng = np.random.default_rng(4)
+    bev = field(rng, 2, 11, 9, 6)
+    tr = np.array([[0.0, 0.0], [0.3, -0.6], [0.41, 0.07], [-0.95, 1.3], [20.0, 0.0]])
+    tol = TOL if dtype == torch.float64 else 1e-4  # float32 grid coordinates: ~n·2⁻²⁴ cells
+    tb = torch.from_numpy(bev).to(dtype)
+    tt = torch.from_numpy(tr)
+    padded = TS.torch_bev_pad(tb, tt, 0.3)
+    polar = TS.torch_polar_sample(tb, 10, 4, 0.3)
+    fused = TS.torch_pad_polar(tb, tt, 10, 4, 0.3, chunk=2)
+    for b in range(2):
+        close(padded[b].float().numpy(), K.bev_pad(bev[b], tr, 0.3), tol)
+        close(polar[b].float().numpy(), K.polar_sample(bev[b], 10, 4, 0.3), tol)
+        close(fused[b].float().numpy(), K.pad_polar(bev[b], tr, 10, 4, 0.3), tol)
+
+
+def test_torch_training_path_is_differentiable():
+    tb = torch.randn(1, 8, 8, 3, dtype=torch.float64, requires_grad=True)
+    out = TS.torch_pad_polar(tb, torch.tensor([[0.2, -0.1]]), 6, 3, 0.3)
+    out.square().sum().backward()
+    assert tb.grad is not None and tb.grad.abs().sum() > 0
+
+
+def test_non_contiguous_float64_and_torch_inputs_are_converted():
+    rng = np.random.default_rng(5)
+    base = rng.standard_normal((7, 9, 12))
+    bev = base[:, ::2, ::3]  # float64, non-contiguous
+    tr = np.array([[0.1, 0.2], [0.5, -0.4]])[:, ::-1]
+    bev32 = np.ascontiguousarray(bev, dtype=np.float32)
+    want = K.pad_polar(bev32, np.ascontiguousarray(tr), 5, 3, 0.3)
+    close(K.pad_polar(bev, tr, 5, 3, 0.3), want)
+    close(K.pad_polar(torch.from_numpy(bev), torch.from_numpy(tr.copy()), 5, 3, 0.3), want)
+    close(K.bev_pad(bev, tr, 0.3), K.bev_pad(bev.astype(np.float32), tr, 0.3, backend="reference"))
+    close(K.polar_sample(bev, 5, 3, 0.3), K.polar_sample(bev, 5, 3, 0.3, backend="reference"))
+    close(K.roll_interp(bev.T, 1.25, 1), K.roll_interp(bev.T, 1.25, 1, backend="reference"))
+
+
+def test_one_and_two_threads_give_identical_results():
+    rng = np.random.default_rng(6)
+    bev = field(rng, 40, 30, 48)
+    tr = rng.uniform(-2, 2, size=(17, 2))
+    before = vvloc.get_num_threads()
+    results = []
+    try:
+        for n in (1, 2):
+            vvloc.set_num_threads(n)
+            results.append(
+                (
+                    K.pad_polar(bev, tr, 30, 12, 0.3),
+                    K.bev_pad(bev, tr, 0.3),
+                    K.polar_sample(bev[None].repeat(3, 0), 30, 12, 0.3),
+                    K.roll_interp(bev, 2.7, 1),
+                )
+            )
+    finally:
+        vvloc.set_num_threads(before)
+    for a, b in zip(*results, strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_python_threads_can_call_kernels_concurrently():
+    rng = np.random.default_rng(7)
+    bev = field(rng, 30, 30, 32)
+    tr = rng.uniform(-1, 1, size=(9, 2))
+    want = K.pad_polar(bev, tr, 24, 8, 0.3)
+    errors: list[BaseException] = []
+
+    def work() -> None:
+        try:
+            for _ in range(3):
+                np.testing.assert_array_equal(K.pad_polar(bev, tr, 24, 8, 0.3), want)
+        except BaseException as e:  # pragma: no cover - reported below
+            errors.append(e)
+
+    threads = [threading.Thread(target=work) for _ in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors
+
+
+BEV = np.zeros((4, 5, 2), dtype=np.float32)
+TR = np.zeros((1, 2))
+
+
+@pytest.mark.parametrize("backend", ["rust", "reference"])
+@pytest.mark.parametrize(
+    ("call", "exc", "arg"),
+    [
+        (lambda b: K.bev_pad(np.zeros((4, 5)), TR, 0.3, backend=b), ValueError, "bev"),
+        (lambda b: K.bev_pad(np.zeros((0, 5, 2)), TR, 0.3, backend=b), ValueError, "bev"),
+        (lambda b: K.bev_pad(BEV, np.zeros((2, 3)), 0.3, backend=b), ValueError, "translations"),
+        (lambda b: K.bev_pad(BEV, np.zeros(2), 0.3, backend=b), ValueError, "translations"),
+        (lambda b: K.bev_pad(BEV, [[0.0, np.nan]], 0.3, backend=b), ValueError, "translations"),
+        (lambda b: K.bev_pad(BEV, "t", 0.3, backend=b), TypeError, "translations"),
+        (lambda b: K.bev_pad(BEV, TR, 0.0, backend=b), ValueError, "grid_size"),
+        (lambda b: K.bev_pad(BEV, TR, -1.0, backend=b), ValueError, "grid_size"),
+        (lambda b: K.bev_pad(BEV, TR, "0.3", backend=b), TypeError, "grid_size"),
+        (lambda b: K.bev_pad(np.full((4, 5, 2), np.inf), TR, 0.3, backend=b), ValueError, "bev"),
+        (lambda b: K.bev_pad("map", TR, 0.3, backend=b), TypeError, "bev"),
+        (
+            lambda b: K.polar_sample(np.zeros((2, 2, 4, 5, 6)), 4, 4, 0.3, backend=b),
+            ValueError,
+            "bev",
+        ),
+        (lambda b: K.polar_sample(BEV, 0, 4, 0.3, backend=b), ValueError, "num_angles"),
+        (lambda b: K.polar_sample(BEV, 4, 0, 0.3, backend=b), ValueError, "num_radii"),
+        (lambda b: K.polar_sample(BEV, 4.0, 4, 0.3, backend=b), TypeError, "num_angles"),
+        (lambda b: K.polar_sample(BEV, 4, 4, np.nan, backend=b), ValueError, "grid_size"),
+        (lambda b: K.pad_polar(BEV, TR, 4, -1, 0.3, backend=b), ValueError, "num_radii"),
+        (lambda b: K.pad_polar(BEV[None], TR, 4, 4, 0.3, backend=b), ValueError, "bev"),
+        (lambda b: K.pad_polar(BEV, TR, 4, 4, 0.0, backend=b), ValueError, "grid_size"),
+        (lambda b: K.roll_interp(BEV, 1.0, 3, backend=b), ValueError, "axis"),
+        (lambda b: K.roll_interp(BEV, 1.0, -4, backend=b), ValueError, "axis"),
+        (lambda b: K.roll_interp(BEV, 1.0, 1.5, backend=b), TypeError, "axis"),
+        (lambda b: K.roll_interp(BEV, np.inf, backend=b), ValueError, "shift"),
+        (lambda b: K.roll_interp(np.float32(1.0), 1.0, backend=b), ValueError, "x"),
+    ],
+)
+def test_bad_input_names_the_argument(backend, call, exc, arg):
+    with pytest.raises(exc, match=rf"^{arg}"):
+        call(backend)
+
+
+def test_bad_backend():
+    with pytest.raises(ValueError, match="backend"):
+        K.bev_pad(BEV, TR, 0.3, backend="cuda")  # type: ignore[arg-type]
+
+
+def test_extension_rejects_bad_values_without_panicking():
+    from vvloc import _core
+
+    with pytest.raises(ValueError, match=r"^translations"):
+        _core.pad_polar(BEV, np.array([[np.nan, 0.0]]), 3, 3, 0.3)
+    with pytest.raises(ValueError, match=r"^num_angles"):
+        _core.polar_sample(BEV, -1, 3, 0.3)
+    with pytest.raises(ValueError, match=r"^axis"):
+        _core.roll_interp(BEV, 1.0, -1)
+    with pytest.raises(ValueError, match=r"^grid_size"):
+        _core.bev_pad(BEV, TR, float("inf"))

@@ -1,0 +1,404 @@
+"""VVLoc networks: shapes, geometry of the projection, camera locality, polar/padding parity,
+heads' and decoder/interactor's behaviour under circular angle shifts, gradients, checkpoints."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from nets_helpers import make_rig, random_images, tiny_config
+from vvloc import kernels
+from vvloc.nets import (
+    DiscoHead,
+    GeMHead,
+    ModelConfig,
+    NetVLADHead,
+    VVLocNet,
+    bev_pad,
+    polar_sample,
+    project_points,
+    roll_interp,
+)
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_torch_thread():
+    """Small tensors: one intra-op thread is much faster on a shared, oversubscribed machine."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+def _model(cfg: ModelConfig, seed: int = 0) -> VVLocNet:
+    torch.manual_seed(seed)
+    return VVLocNet(cfg).eval()
+
+
+def _encode(model: VVLocNet, batch: int, cameras: int, seed: int = 0):
+    cfg = model.config
+    intr, ext = make_rig(batch, cameras, cfg.image_height, cfg.image_width)
+    imgs = random_images(batch, cameras, cfg.image_height, cfg.image_width, seed)
+    return model.encode(imgs, intr, ext)
+
+
+def _check_shapes(out, cfg: ModelConfig, batch: int, dg: int) -> None:
+    assert out.bev.shape == (batch, cfg.bev_height, cfg.bev_width, cfg.channels)
+    assert out.polar.shape == (batch, cfg.num_angles, cfg.num_radii, cfg.channels)
+    assert out.global_desc.shape == (batch, dg)
+    assert out.local_desc.shape == (batch, cfg.num_angles, cfg.channels)
+    for t in (out.bev, out.polar, out.global_desc, out.local_desc):
+        assert t.dtype == torch.float32 and torch.isfinite(t).all()
+    np.testing.assert_allclose(out.global_desc.norm(dim=-1).detach().numpy(), 1.0, atol=1e-5)
+
+
+# --- config -------------------------------------------------------------------------------
+
+
+def test_config_presets_and_json_roundtrip():
+    paper = ModelConfig.paper()
+    assert (paper.image_height, paper.image_width) == (256, 448)
+    assert (paper.bev_height, paper.bev_width, paper.channels) == (100, 100, 256)
+    assert (paper.grid_size, paper.num_angles, paper.num_radii) == (0.3, 120, 40)
+    assert (paper.sigma_r, paper.sigma_a) == (4.8, 15.0)
+    for cfg in (paper, ModelConfig.small(), tiny_config(global_head="disco")):
+        back = ModelConfig.from_json(cfg.to_json())
+        assert back == cfg
+        assert back.config_hash() == cfg.config_hash()
+    assert paper.config_hash() != ModelConfig.small().config_hash()
+    assert len(paper.config_hash()) == 16
+
+
+def test_config_rejects_bad_values():
+    with pytest.raises(ValueError, match="global_head"):
+        tiny_config(global_head="max")
+    with pytest.raises(ValueError, match="encoder_heads"):
+        tiny_config(encoder_heads=3)
+    with pytest.raises(ValueError, match="unknown fields"):
+        ModelConfig.from_dict({"channels": 8, "colour": 1})
+    with pytest.raises(ValueError, match="disco_crop"):
+        tiny_config(disco_crop=(20, 2))
+
+
+# --- shapes -------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("cameras", [1, 4, 6])
+def test_encode_shapes_odd_rigs(cameras):
+    cfg = tiny_config()
+    model = _model(cfg)
+    with torch.no_grad():
+        out = _encode(model, 2, cameras)
+    _check_shapes(out, cfg, 2, cfg.channels)
+
+
+@pytest.mark.parametrize(("head", "dg"), [("gem", 16), ("netvlad", 8), ("disco", 16)])
+def test_global_head_dims(head, dg):
+    cfg = tiny_config(global_head=head)
+    model = _model(cfg)
+    with torch.no_grad():
+        out = _encode(model, 1, 2)
+    _check_shapes(out, cfg, 1, dg)
+    assert model.global_dim == dg
+
+
+def test_netvlad_without_projection_has_k_times_c_dims():
+    cfg = tiny_config(global_head="netvlad", global_dim=0)
+    assert _model(cfg).global_dim == cfg.netvlad_clusters * cfg.channels
+
+
+def test_small_config_shapes():
+    cfg = ModelConfig.small()
+    model = _model(cfg)
+    with torch.no_grad():
+        out = _encode(model, 1, 4)
+    _check_shapes(out, cfg, 1, model.global_dim)
+
+
+def test_paper_config_forward_once():
+    cfg = ModelConfig.paper()
+    model = _model(cfg)
+    with torch.no_grad():
+        out = _encode(model, 1, 1)
+    _check_shapes(out, cfg, 1, model.global_dim)
+
+
+def test_uint8_and_float_images_agree():
+    cfg = tiny_config()
+    model = _model(cfg)
+    intr, ext = make_rig(1, 2, cfg.image_height, cfg.image_width)
+    imgs = random_images(1, 2, cfg.image_height, cfg.image_width)
+    with torch.no_grad():
+        a = model.encode(imgs, intr, ext).bev
+        b = model.encode(imgs.float() / 255.0, intr, ext).bev
+    torch.testing.assert_close(a, b)
+
+
+def test_encode_rejects_bad_inputs():
+    cfg = tiny_config()
+    model = _model(cfg)
+    intr, ext = make_rig(1, 2, cfg.image_height, cfg.image_width)
+    imgs = random_images(1, 2, cfg.image_height, cfg.image_width)
+    with pytest.raises(ValueError, match="images"):
+        model.encode(imgs[0], intr, ext)
+    with pytest.raises(ValueError, match="intrinsics"):
+        model.encode(imgs, intr[:, :1], ext)
+    with pytest.raises(ValueError, match="cam_to_ego"):
+        model.encode(imgs, intr, ext[..., :3, :])
+    with pytest.raises(TypeError, match="intrinsics"):
+        model.encode(imgs, intr.numpy(), ext)
+    with pytest.raises(ValueError, match="max_cameras"):
+        i7, e7 = make_rig(1, 7, cfg.image_height, cfg.image_width)
+        model.encode(random_images(1, 7, cfg.image_height, cfg.image_width), i7, e7)
+    with pytest.raises(ValueError, match="local_src"):
+        model.interact(torch.zeros(2, 5, 16), torch.zeros(2, 12, 16))
+
+
+# --- geometry of the spatial cross-attention ----------------------------------------------
+
+
+def test_projection_of_known_points():
+    # Forward camera at 1.5 m height, f = 100 px, principal point (79.5, 47.5), image 160x96.
+    intr, ext = make_rig(1, 1, 96, 160, focal=100.0)
+    pts = torch.tensor(
+        [
+            [10.0, 0.0, 1.5],  # straight ahead at camera height -> principal point
+            [10.0, 2.0, 0.5],  # 2 m left, 1 m below -> u = cx - 20, v = cy + 10
+            [-10.0, 0.0, 1.5],  # behind the camera
+            [2.0, 10.0, 1.5],  # far to the left, outside the image
+        ]
+    )
+    ref, vis = project_points(pts, intr, ext, (96, 160))
+    assert ref.shape == (1, 1, 4, 2) and vis.shape == (1, 1, 4)
+    assert vis[0, 0].tolist() == [True, True, False, False]
+    u = ref[0, 0, :2, 0] * 160 - 0.5
+    v = ref[0, 0, :2, 1] * 96 - 0.5
+    torch.testing.assert_close(u, torch.tensor([79.5, 59.5]))
+    torch.testing.assert_close(v, torch.tensor([47.5, 57.5]))
+
+
+def test_zeroed_camera_changes_only_the_cells_it_sees():
+    cfg = tiny_config(bev_self_attention=False, encoder_layers=2)
+    model = _model(cfg)
+    intr, ext = make_rig(1, 4, cfg.image_height, cfg.image_width)
+    imgs = random_images(1, 4, cfg.image_height, cfg.image_width)
+    size = (cfg.image_height, cfg.image_width)
+    with torch.no_grad():
+        feats = model.image_features(imgs)
+        bev = model.bev_from_features(feats, intr, ext, size)
+        zeroed = [f.clone() for f in feats]
+        for f in zeroed:
+            f[:, 1] = 0.0
+        bev0 = model.bev_from_features(zeroed, intr, ext, size)
+    _, vis = project_points(model.encoder.pillars.reshape(-1, 3), intr, ext, size)
+    seen = vis[0, 1].reshape(cfg.bev_height, cfg.bev_width, -1).any(-1)
+    changed = (bev - bev0).abs().amax(-1)[0]
+    assert 0 < int(seen.sum()) < seen.numel()
+    assert bool((changed[~seen] == 0).all())
+    assert bool((changed[seen] > 1e-5).all())
+
+
+# --- polar transform and padding ----------------------------------------------------------
+
+
+def _literal_polar(q: np.ndarray, t_bins: int, r_bins: int, g: float) -> np.ndarray:
+    """Bilinear sampling loop of DESIGN.md §3 (fill 1 outside), float64."""
+    h, w, c = q.shape
+    r_max = min(h, w) * g / 2
+    out = np.empty((t_bins, r_bins, c))
+    for k in range(t_bins):
+        th = (k + 0.5) * 2 * math.pi / t_bins
+        for m in range(r_bins):
+            r = (m + 0.5) * r_max / r_bins
+            fi, fj = r * math.sin(th) / g + (h - 1) / 2, r * math.cos(th) / g + (w - 1) / 2
+            i0, j0 = math.floor(fi), math.floor(fj)
+            acc = np.zeros(c)
+            for di, wi in ((0, 1 - (fi - i0)), (1, fi - i0)):
+                for dj, wj in ((0, 1 - (fj - j0)), (1, fj - j0)):
+                    ii, jj = i0 + di, j0 + dj
+                    inside = 0 <= ii < h and 0 <= jj < w
+                    acc += wi * wj * (q[ii, jj] if inside else 1.0)
+            out[k, m] = acc
+    return out
+
+
+def _roll_interp_np(x: np.ndarray, s: float, axis: int) -> np.ndarray:
+    k = math.floor(s)
+    w = s - k
+    return (1 - w) * np.roll(x, k, axis) + w * np.roll(x, k + 1, axis)
+
+
+def _literal_pad(q: np.ndarray, t: tuple[float, float], g: float) -> np.ndarray:
+    """Paper Alg. 1 with corrected negative shifts (DESIGN.md §3)."""
+    h, w, _ = q.shape
+    sx, sy = t[0] / g, t[1] / g
+    out = _roll_interp_np(_roll_interp_np(q, -sx, 0), -sy, 1)
+    if sx >= 0:
+        out[h - math.ceil(sx) :] = 1.0
+    else:
+        out[: math.ceil(-sx)] = 1.0
+    if sy >= 0:
+        out[:, w - math.ceil(sy) :] = 1.0
+    else:
+        out[:, : math.ceil(-sy)] = 1.0
+    return out
+
+
+@pytest.mark.parametrize(
+    ("h", "w", "t_bins", "r_bins", "g"), [(9, 9, 12, 4, 0.5), (10, 7, 7, 5, 0.3)]
+)
+def test_polar_sample_matches_literal_loop(h, w, t_bins, r_bins, g):
+    rng = np.random.default_rng(1)
+    q = rng.standard_normal((2, h, w, 3))
+    got = polar_sample(torch.tensor(q, dtype=torch.float32), t_bins, r_bins, g).numpy()
+    for b in range(2):
+        np.testing.assert_allclose(got[b], _literal_polar(q[b], t_bins, r_bins, g), atol=1e-5)
+
+
+@pytest.mark.parametrize("t", [(0.0, 0.0), (1.0, -2.0), (0.7, 1.3), (-1.45, -0.2), (3.3, 0.5)])
+def test_bev_pad_matches_literal_algorithm(t):
+    rng = np.random.default_rng(2)
+    q = rng.standard_normal((8, 9, 3))
+    got = bev_pad(torch.tensor(q, dtype=torch.float32), torch.tensor([t]), 0.5).numpy()[0]
+    np.testing.assert_allclose(got, _literal_pad(q, t, 0.5), atol=1e-5)
+
+
+def test_bev_pad_batched_form_and_gradient():
+    q = torch.randn(3, 6, 6, 2, requires_grad=True)
+    t = torch.tensor([[0.0, 0.0], [0.5, 0.0], [-1.0, 0.25]])
+    out = bev_pad(q, t, 0.5)
+    assert out.shape == (3, 6, 6, 2)
+    torch.testing.assert_close(out[0], q[0])
+    single = bev_pad(q[1], t[1:2], 0.5)[0]
+    torch.testing.assert_close(out[1], single)
+    out.sum().backward()
+    assert q.grad is not None and q.grad.abs().sum() > 0
+
+
+def test_roll_interp_per_row_shifts():
+    x = torch.randn(3, 8, 2)
+    shifts = torch.tensor([0.0, 2.0, -1.25])
+    out = roll_interp(x, shifts, dim=1)
+    for p, s in enumerate(shifts.tolist()):
+        ref = _roll_interp_np(x[p].numpy(), s, 0)
+        np.testing.assert_allclose(out[p].numpy(), ref, atol=1e-6)
+
+
+def test_polar_and_pad_equal_rust_kernels():
+    rng = np.random.default_rng(3)
+    q = rng.standard_normal((2, 20, 18, 5)).astype(np.float32)
+    got = polar_sample(torch.from_numpy(q), 24, 8, 0.3).numpy()
+    want = kernels.polar_sample(q, 24, 8, 0.3)
+    np.testing.assert_allclose(got, want, atol=1e-5)
+    t = np.array([[0.0, 0.0], [0.45, -1.2], [-2.0, 0.7]], dtype=np.float32)
+    got_pad = bev_pad(torch.from_numpy(q[0]), torch.from_numpy(t), 0.3).numpy()
+    want_pad = kernels.bev_pad(q[0], t, 0.3)
+    np.testing.assert_allclose(got_pad, want_pad, atol=1e-5)
+    # the per-item (batched) form used by the losses
+    got_items = bev_pad(torch.from_numpy(q[:1]).expand(3, -1, -1, -1), torch.from_numpy(t), 0.3)
+    np.testing.assert_allclose(got_items.numpy(), want_pad, atol=1e-5)
+
+
+# --- heads, decoder, interactor under circular angle shifts -------------------------------
+
+
+@pytest.mark.parametrize("head_cls", [DiscoHead, GeMHead, NetVLADHead])
+def test_global_heads_invariant_to_angle_shifts(head_cls):
+    torch.manual_seed(0)
+    cfg = tiny_config(num_angles=24, num_radii=6, disco_crop=(8, 4))
+    head = head_cls(cfg)
+    polar = torch.randn(2, 24, 6, cfg.channels).abs()
+    base = head(polar)
+    np.testing.assert_allclose(base.norm(dim=-1).detach().numpy(), 1.0, atol=1e-5)
+    for k in (1, 5, 23):
+        torch.testing.assert_close(head(torch.roll(polar, k, dims=1)), base, atol=1e-5, rtol=1e-5)
+
+
+def test_disco_head_is_not_trivially_constant():
+    torch.manual_seed(0)
+    cfg = tiny_config(global_head="disco")
+    head = DiscoHead(cfg)
+    with torch.no_grad():
+        a, b = head(torch.randn(1, 12, 4, 16)), head(torch.randn(1, 12, 4, 16))
+    assert float((a - b).abs().max()) > 1e-3
+
+
+def test_decoder_is_equivariant_to_angle_rolls():
+    cfg = tiny_config(decoder_layers=2)
+    model = _model(cfg)
+    polar = torch.randn(2, cfg.num_angles, cfg.num_radii, cfg.channels)
+    with torch.no_grad():
+        base = model.decode_polar(polar)
+        for k in (1, 5, 11):
+            rolled = model.decode_polar(torch.roll(polar, k, dims=1))
+            torch.testing.assert_close(rolled, torch.roll(base, k, dims=1), atol=1e-5, rtol=1e-5)
+
+
+def test_interactor_is_equivariant_to_angle_rolls():
+    cfg = tiny_config(interactor_rounds=2)
+    model = _model(cfg)
+    ds = torch.randn(3, cfg.num_angles, cfg.channels)
+    dt = torch.randn(3, cfg.num_angles, cfg.channels)
+    with torch.no_grad():
+        s1, t1 = model.interact(ds, dt)
+        np.testing.assert_allclose(s1.norm(dim=-1).numpy(), 1.0, atol=1e-5)
+        np.testing.assert_allclose(t1.norm(dim=-1).numpy(), 1.0, atol=1e-5)
+        for k in (1, 4, 7):
+            s2, t2 = model.interact(torch.roll(ds, k, dims=1), dt)
+            torch.testing.assert_close(s2, torch.roll(s1, k, dims=1), atol=1e-5, rtol=1e-5)
+            torch.testing.assert_close(t2, t1, atol=1e-5, rtol=1e-5)
+            s3, t3 = model.interact(ds, torch.roll(dt, k, dims=1))
+            torch.testing.assert_close(s3, s1, atol=1e-5, rtol=1e-5)
+            torch.testing.assert_close(t3, torch.roll(t1, k, dims=1), atol=1e-5, rtol=1e-5)
+        # attention is really mixing angles: changing one target row changes every source row
+        dt2 = dt.clone()
+        dt2[:, 0] += 1.0
+        s4, _ = model.interact(ds, dt2)
+        assert bool(((s4 - s1).abs().amax(-1) > 1e-6).all())
+
+
+# --- checkpoints --------------------------------------------------------------------------
+
+
+def test_save_load_roundtrip(tmp_path):
+    cfg = tiny_config(global_head="netvlad")
+    model = _model(cfg, seed=3)
+    model.save(tmp_path / "ckpt")
+    assert sorted(p.name for p in (tmp_path / "ckpt").iterdir()) == [
+        "config.json",
+        "model.safetensors",
+    ]
+    meta = json.loads((tmp_path / "ckpt" / "config.json").read_text())
+    assert meta["version"] == 1 and meta["config_hash"] == model.config_hash()
+    loaded = VVLocNet.load(tmp_path / "ckpt").eval()
+    assert loaded.config == cfg and loaded.config_hash() == model.config_hash()
+    with torch.no_grad():
+        a, b = _encode(model, 1, 2), _encode(loaded, 1, 2)
+    torch.testing.assert_close(a.global_desc, b.global_desc, rtol=0, atol=0)
+    torch.testing.assert_close(a.local_desc, b.local_desc, rtol=0, atol=0)
+
+
+def test_load_rejects_mismatched_checkpoints(tmp_path):
+    cfg = tiny_config()
+    _model(cfg).save(tmp_path)
+    meta_path = tmp_path / "config.json"
+    meta = json.loads(meta_path.read_text())
+    meta["config"]["ffn_dim"] = 48
+    meta_path.write_text(json.dumps(meta))
+    with pytest.raises(ValueError, match=r"shape mismatches .*ffn"):
+        VVLocNet.load(tmp_path)
+    meta["config"]["ffn_dim"] = cfg.ffn_dim
+    meta["config"]["global_head"] = "disco"
+    meta_path.write_text(json.dumps(meta))
+    with pytest.raises(ValueError, match=r"missing .*unexpected"):
+        VVLocNet.load(tmp_path)
+    meta["version"] = 99
+    meta_path.write_text(json.dumps(meta))
+    with pytest.raises(ValueError, match="version 99"):
+        VVLocNet.load(tmp_path)
+    with pytest.raises(FileNotFoundError):
+        VVLocNet.load(tmp_path / "nothing")

@@ -1,0 +1,254 @@
+"""The headless renderer: exact projection, determinism, presets, the simulated dataset, the CLI.
+
+Renderer tests need EGL (Mesa). Without it they skip with a message, except when
+VVLOC_REQUIRE_EGL=1 (CI), where a missing EGL is a failure.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from vvloc.data import open_dataset
+from vvloc.sim import (
+    Lighting,
+    Renderer,
+    egl_status,
+    garage_world,
+    make_rig,
+    parking_world,
+    session_plan,
+    simulate_dataset,
+)
+from vvloc.sim.render import ego_to_world
+from vvloc.sim.sequences import Drive, drive_keyframes, sample_loop
+from vvloc.sim.world import MARKER, MeshBuilder
+
+
+@pytest.fixture(scope="module")
+def egl() -> None:
+    ok, why = egl_status()
+    if not ok:
+        msg = (
+            "headless EGL unavailable (apt-get install libegl1 libegl-mesa0 libgl1-mesa-dri "
+            f"libgl1): {why}"
+        )
+        if os.environ.get("VVLOC_REQUIRE_EGL") == "1":
+            pytest.fail(f"VVLOC_REQUIRE_EGL=1 but {msg}")
+        pytest.skip(msg)
+
+
+BLACK = Lighting("black", sun=(0, 0, 0), ambient=(0, 0, 0), sky=(0, 0, 0), fog_density=0.0)
+
+
+def _marker_quad(center: np.ndarray, right: np.ndarray, down: np.ndarray, half: float):
+    mb = MeshBuilder()
+    c = [center + half * (a * right + b * down) for a, b in ((-1, -1), (1, -1), (1, 1), (-1, 1))]
+    mb.quad(np.array(c), (1.0, 1.0, 1.0), MARKER)
+    return mb.arrays()
+
+
+@pytest.mark.parametrize("num_cameras", [4, 5, 6])
+def test_marker_lands_within_a_tenth_of_a_pixel_of_its_projection(egl, num_cameras):
+    rig = make_rig(num_cameras, 160, 96)
+    r = Renderer(rig)
+    rng = np.random.default_rng(num_cameras)
+    pose = (12.3, -4.5, 0.7)
+    T_we = ego_to_world(pose, z=0.4)
+    try:
+        for ci, cam in enumerate(rig):
+            # a marker fronto-parallel to the camera, off-axis, 6 m away, sigma ~1.6 px
+            T_wc = T_we @ cam.cam_to_ego
+            R, t = T_wc[:3, :3], T_wc[:3, 3]
+            a, b = rng.uniform(-25, 25), rng.uniform(-15, 15)
+            depth = 6.0
+            p_cam = np.array([a / cam.K[0, 0] * depth, b / cam.K[1, 1] * depth, depth])
+            center = R @ p_cam + t
+            sigma = 1.6 * depth / cam.K[0, 0]
+            v, i = _marker_quad(center, R[:, 0], R[:, 1], 4.5 * sigma)
+            r.set_mesh(v, i)
+            r.marker = (*center, sigma)
+            img = r.render(pose, 0.4, BLACK)[ci, 0].astype(np.float64)
+            others = np.delete(r.render(pose, 0.4, BLACK), ci, axis=0)
+            assert others.max() == 0  # the marker shows in its camera only
+            ys, xs = np.mgrid[0 : img.shape[0], 0 : img.shape[1]]
+            w = img.sum()
+            centroid = np.array([(img * xs).sum() / w, (img * ys).sum() / w])
+            p_ego = np.linalg.inv(T_we) @ np.append(center, 1.0)
+            uv, d = cam.project_ego(p_ego[:3])
+            assert d[0] == pytest.approx(depth)
+            assert np.abs(centroid - uv[0]).max() < 0.1, (cam.name, centroid, uv[0])
+    finally:
+        r.release()
+
+
+def test_same_seed_same_world_and_poses_and_pixels(egl):
+    a, b = parking_world(seed=5), parking_world(seed=5)
+    va, ia = a.mesh(0.15, 9)
+    vb, ib = b.mesh(0.15, 9)
+    assert np.array_equal(va, vb) and np.array_equal(ia, ib)
+    v6 = parking_world(seed=6).mesh()[0]
+    assert v6.shape != va.shape or not np.array_equal(v6, va)
+    loop = sample_loop(a.routes[0])
+    pa, ta = drive_keyframes(loop, Drive(1.5, True, seed=3), 20)
+    pb, tb = drive_keyframes(sample_loop(b.routes[0]), Drive(1.5, True, seed=3), 20)
+    assert np.array_equal(pa, pb) and np.array_equal(ta, tb)
+    rig = make_rig(4, 64, 40)
+    imgs = []
+    for _ in range(2):
+        r = Renderer(rig)
+        r.set_mesh(va, ia, a.lights, a.light_colors)
+        imgs.append(r.render(pa[3], 0.0, "rain", frame_index=3).astype(np.int16))
+        r.release()
+    assert np.abs(imgs[0] - imgs[1]).max() <= 2
+
+
+def test_presets_and_texture_strength_change_what_they_say(egl):
+    w = parking_world(seed=1)
+    v, i = w.mesh()
+    rig = make_rig(4, 80, 48)
+    flat, textured = Renderer(rig, texture_strength=0.0), Renderer(rig, texture_strength=1.0)
+    try:
+        for r in (flat, textured):
+            r.set_mesh(v, i, w.lights, w.light_colors)
+        pose = (20.0, 8.5, 0.0)
+        day = textured.render(pose, 0.0, "day").astype(np.float64)
+        night = textured.render(pose, 0.0, "night").astype(np.float64)
+        assert night.mean() < 0.6 * day.mean()
+        # the bottom rows of the front camera see asphalt only: texture adds variation there
+        ground_flat = flat.render(pose, 0.0, "day")[0, :, -8:, 30:50].astype(np.float64)
+        ground_tex = day[0, :, -8:, 30:50]
+        assert ground_tex.std() > 2.0 * ground_flat.std() + 1.0
+        for name in ("dusk", "rain", "fog", "garage", "garage_dim"):
+            img = textured.render(pose, 0.0, name)
+            assert img.shape == (4, 3, 48, 80) and img.dtype == np.uint8
+    finally:
+        flat.release()
+        textured.release()
+
+
+def test_garage_floors_look_alike_but_are_different_places(egl):
+    g = garage_world(seed=0, floors=2)
+    assert list(g.floor_z) == [0.0, -3.2]
+    v, i = g.mesh()
+    r = Renderer(make_rig(4, 80, 48))
+    try:
+        r.set_mesh(v, i, g.lights, g.light_colors, g.light_floors)
+        a = r.render((20.0, 8.25, 0.0), g.floor_z[0], "garage", floor=0).astype(np.float64)
+        b = r.render((20.0, 8.25, 0.0), g.floor_z[1], "garage", floor=1).astype(np.float64)
+        c = r.render((31.0, 8.25, 0.0), g.floor_z[0], "garage", floor=0).astype(np.float64)
+    finally:
+        r.release()
+    across_floors = np.abs(a - b).mean()
+    same_floor_elsewhere = np.abs(a - c).mean()
+    # not identical (parked cars and level signs differ), yet more alike than another spot
+    assert 0.5 < across_floors < same_floor_elsewhere
+
+
+def test_session_plan_covers_offsets_reversals_and_lighting():
+    plan = session_plan("parking", 6, seed=0)
+    assert plan[0].offset == 0 and not plan[0].reverse and plan[0].change_fraction == 0
+    assert {p.offset for p in plan} == {0.0, 1.5, -1.5}
+    assert any(p.reverse for p in plan) and len({p.lighting for p in plan}) == 5
+    with pytest.raises(ValueError, match="lighting"):
+        session_plan("parking", 2, lighting=["sunny"])
+
+
+def test_simulated_dataset_round_trips_through_the_reader(egl, tmp_path):
+    out = tmp_path / "synth"
+    simulate_dataset(
+        out,
+        scene="garage",
+        sessions=2,
+        frames=6,
+        floors=2,
+        width=32,
+        height=24,
+        cameras=5,
+        progress=False,
+    )
+    ds = open_dataset(out)
+    assert ds.sessions == ["s0", "s1"] and len(ds.cameras) == 5
+    s1 = ds.session("s1")
+    assert len(s1) == 6 and set(s1.floors.tolist()) == {0, 1}
+    f = s1[4]
+    assert f.images.shape == (5, 3, 24, 32) and f.images.dtype == np.uint8
+    assert f.floor == 1 and f.z == pytest.approx(-3.2)
+    assert f.K.shape == (5, 3, 3) and f.cam_to_ego.shape == (5, 4, 4)
+    assert np.array_equal(f.pose, s1.poses[4])
+    # keyframes: consecutive frames of a floor are <= ~2 m and <= ~5 degrees apart
+    p = s1.poses[:3]
+    assert np.all(np.linalg.norm(np.diff(p[:, :2], axis=0), axis=1) < 2.2)
+    assert not any(p.name.startswith(".synth") for p in tmp_path.iterdir())
+
+
+def _vvloc_exe() -> list[str]:
+    exe = Path(sys.executable).parent / "vvloc"
+    return [str(exe)] if exe.exists() else [shutil.which("vvloc") or "vvloc"]
+
+
+def test_cli_sim_through_the_installed_entry_point(egl, tmp_path):
+    out = tmp_path / "cli"
+    cmd = [
+        *_vvloc_exe(),
+        "sim",
+        "--scene",
+        "parking",
+        "--sessions",
+        "2",
+        "--frames",
+        "3",
+        "--out",
+        str(out),
+        "--width",
+        "24",
+        "--height",
+        "16",
+        "--texture_strength",
+        "0.5",
+    ]
+    res = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr
+    ds = open_dataset(out)
+    assert ds.sessions == ["s0", "s1"] and len(ds.session("s1")) == 3
+    again = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert again.returncode != 0 and "--overwrite" in again.stderr
+
+
+def test_cli_help_shows_defaults_and_rejects_bad_values():
+    res = subprocess.run(
+        [*_vvloc_exe(), "sim", "--help"],
+        capture_output=True,
+        text=True,
+        env={**os.environ, "COLUMNS": "200"},
+    )
+    assert res.returncode == 0
+    for flag in ("--scene", "--sessions", "--frames", "--floors", "--texture_strength"):
+        assert flag in res.stdout
+    assert "default: 600" in res.stdout
+    bad = subprocess.run(
+        [sys.executable, "-m", "vvloc.cli", "sim", "--out", "x", "--scene", "moon"],
+        capture_output=True,
+        text=True,
+    )
+    assert bad.returncode != 0 and "moon" in bad.stderr
+
+
+def test_rig_cameras_look_where_their_names_say():
+    for m in (4, 5, 6):
+        rig = make_rig(m)
+        axes = [c.cam_to_ego[:3, 2] for c in rig]
+        assert np.allclose(axes[0][:2] / np.linalg.norm(axes[0][:2]), [1, 0])
+        for k, ax in enumerate(axes):
+            assert math.atan2(ax[1], ax[0]) == pytest.approx(
+                math.remainder(2 * math.pi * k / m, 2 * math.pi), abs=1e-9
+            )
+            R = rig[k].cam_to_ego[:3, :3]
+            assert np.allclose(R.T @ R, np.eye(3)) and np.linalg.det(R) == pytest.approx(1.0)
