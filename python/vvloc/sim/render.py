@@ -280,11 +280,26 @@ def ego_to_world(pose: Sequence[float], z: float = 0.0) -> np.ndarray:
     return T
 
 
+def _preload_triton() -> None:
+    """Load Triton's native library (bundled with CUDA builds of torch) before Mesa.
+
+    Mesa's llvmpipe rasteriser and Triton each carry their own LLVM. When Triton's library is
+    loaded *after* an EGL context has brought Mesa's LLVM into the process (torch does so
+    lazily, e.g. when an optimizer is created), the process crashes with a segmentation fault;
+    loaded before, both coexist. So every EGL context creation first loads Triton if present.
+    """
+    try:
+        import triton._C.libtriton  # noqa: F401
+    except Exception:  # not installed, or a build without the native library: nothing clashes
+        pass
+
+
 def egl_status() -> tuple[bool, str]:
     """Whether a headless EGL context can be created here, and why not."""
     try:
         import moderngl
 
+        _preload_triton()
         ctx = moderngl.create_standalone_context(backend="egl")  # type: ignore[arg-type]
         info = ctx.info.get("GL_RENDERER", "?")
         ctx.release()
@@ -317,6 +332,7 @@ class Renderer:
         self.width, self.height = sizes.pop()
         self.texture_strength = float(texture_strength)
         try:
+            _preload_triton()
             self.ctx: Any = moderngl.create_standalone_context(backend="egl")  # type: ignore[arg-type]
         except Exception as e:
             raise RuntimeError(

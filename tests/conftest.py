@@ -1,0 +1,33 @@
+"""Shared fixtures: a tiny rendered synthetic world (needs headless EGL)."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+
+def _require_egl() -> None:
+    from vvloc.sim import egl_status
+
+    ok, why = egl_status()
+    if not ok:
+        msg = (
+            "headless EGL unavailable (apt-get install libegl1 libegl-mesa0 libgl1-mesa-dri "
+            f"libgl1): {why}"
+        )
+        if os.environ.get("VVLOC_REQUIRE_EGL") == "1":
+            pytest.fail(f"VVLOC_REQUIRE_EGL=1 but {msg}")
+        pytest.skip(msg)
+
+
+@pytest.fixture(scope="session")
+def tiny_world(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A 3-session, 40-keyframe parking-lot dataset (vvloc format), rendered once per run."""
+    _require_egl()
+    from vvloc.sim import simulate_dataset
+
+    root = tmp_path_factory.mktemp("world") / "tiny"
+    simulate_dataset(root, scene="parking", sessions=3, frames=40, seed=0, progress=False)
+    return root

@@ -1,0 +1,103 @@
+"""The trainer: losses fall on a tiny set, checkpoints and resume, config validation."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from vvloc.train import TrainConfig, Trainer, TripletFrames, train, training_losses
+
+
+@pytest.fixture(autouse=True)
+def _one_torch_thread():
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+def _config(root, **kw) -> TrainConfig:
+    base = dict(
+        dataset=str(root), model="small", stage1_epochs=1, stage2_epochs=1,
+        steps_per_epoch=2, batch_size=2, num_workers=0, seed=3,
+    )
+    base.update(kw)
+    return TrainConfig.from_dict(base)
+
+
+def test_a_few_steps_on_fixed_triplets_lower_every_loss(tiny_world):
+    cfg = _config(tiny_world)
+    tr = Trainer(cfg, "unused")
+    triplets = tr.sampler.sample_random(2)
+    batch = torch.utils.data.default_collate([TripletFrames(tr.sampler, triplets)[k] for k in (0, 1)])
+    opt = torch.optim.Adam(tr.model.parameters(), lr=1e-3)
+    first = last = None
+    for step in range(25):
+        loss, parts, _ = training_losses(tr.model, batch, cfg, stage=2, step=0, device=tr.device)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        first = first or parts
+        last = parts
+    assert first is not None and last is not None
+    for name in ("triplet", "hinge", "yaw", "tbias"):
+        a, b = getattr(first, name), getattr(last, name)
+        if a > 0:
+            assert b < a, f"{name} did not fall: {a} -> {b}"
+    assert last.total < 0.5 * first.total
+
+
+def test_fit_writes_checkpoint_log_and_resume_continues_from_the_same_step(tiny_world, tmp_path):
+    cfg = _config(tiny_world)
+    out = tmp_path / "run"
+    t1 = train(cfg, out, progress=False)
+    assert t1.epoch == 2 and t1.step == 4
+    log = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
+    assert [r["stage"] for r in log] == [1, 2]
+    assert all(np.isfinite(r["loss_total"]) for r in log)
+    assert (out / "checkpoint" / "model.safetensors").is_file()
+    with pytest.raises(FileExistsError, match="--resume"):
+        train(cfg, out, progress=False)
+    # Resume a run with more epochs from the same state: it continues at step 4.
+    cfg3 = _config(tiny_world, stage2_epochs=2)
+    (out / "trainer_state.pt").rename(out / "state_copy.pt")
+    (out / "state_copy.pt").rename(out / "trainer_state.pt")
+    tr = Trainer(cfg, out)
+    assert tr.resume()
+    assert (tr.epoch, tr.step) == (2, 4)
+    for a, b in zip(tr.model.state_dict().values(), t1.model.state_dict().values(), strict=True):
+        assert torch.equal(a, b)
+    with pytest.raises(ValueError, match="another config"):
+        Trainer(cfg3, out).resume()
+
+
+def test_resumed_run_equals_uninterrupted_run(tiny_world, tmp_path):
+    cfg = _config(tiny_world, stage1_epochs=1, stage2_epochs=1)
+    full = train(cfg, tmp_path / "full", progress=False)
+    part = Trainer(cfg, tmp_path / "part")
+    part.run_epoch(progress=False)
+    part.save()
+    resumed = train(cfg, tmp_path / "part", resume=True, progress=False)
+    assert resumed.step == full.step
+    for a, b in zip(
+        resumed.model.state_dict().values(), full.model.state_dict().values(), strict=True
+    ):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize(
+    ("key", "value", "match"),
+    [("batch_size", 0, "batch_size"), ("lr", -1.0, "lr"), ("bogus", 1, "unknown keys")],
+)
+def test_bad_config_is_refused(key, value, match):
+    with pytest.raises(ValueError, match=match):
+        TrainConfig.from_dict({"dataset": "x", key: value})
+
+
+def test_missing_dataset_without_sim_section_is_a_clear_error(tmp_path):
+    cfg = TrainConfig.from_dict({"dataset": str(tmp_path / "nope")})
+    with pytest.raises(FileNotFoundError, match="sim"):
+        Trainer(cfg, tmp_path / "run")
