@@ -227,7 +227,11 @@ impl TranslationSearch {
             return out;
         }
         let centre = self.best.map_or([0.0, 0.0], |b| [b.x, b.y]);
-        let half = cfg.step * cfg.shrink.powi(self.stage as i32 - 1);
+        // Repeated multiplication (not powi) so that the Python reference matches bit for bit.
+        let mut half = cfg.step;
+        for _ in 1..self.stage {
+            half *= cfg.shrink;
+        }
         let mut rng =
             SplitMix64::new(cfg.seed ^ (self.stage as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15));
         let r = cfg.half_range;
