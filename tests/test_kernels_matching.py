@@ -179,8 +179,8 @@ def test_results_identical_for_one_and_two_threads():
         b = (K.estimate_yaw(src, tgt), K.yaw_costs(src, tgt), K.rerank(src, tgt))
     finally:
         vvloc.set_num_threads(before)
-    for x, y in zip(a, b):
-        for u, v in zip(x, y):
+    for x, y in zip(a, b, strict=True):
+        for u, v in zip(x, y, strict=True):
             np.testing.assert_array_equal(u, v)
     np.testing.assert_array_equal(a[1], b[1])
 
@@ -214,7 +214,7 @@ def test_search_schedule_identical_on_both_backends(half, step_frac, fine, stage
     args = (half, step, fine, stages, shrink, seed)
     a = _drive(K.TranslationSearch(*args), f)
     b = _drive(K.TranslationSearch(*args, backend="reference"), f)
-    for u, v in zip(a.history(), b.history()):
+    for u, v in zip(a.history(), b.history(), strict=True):
         np.testing.assert_array_equal(u, v)
     assert a.best() == b.best()
 

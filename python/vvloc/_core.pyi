@@ -1,5 +1,8 @@
 """Type stubs of the Rust extension ``vvloc._core`` (checked by ``python -m mypy.stubtest``)."""
 
+import numpy as np
+import numpy.typing as npt
+
 __version__: str
 build_profile: str
 
@@ -8,11 +11,13 @@ def get_num_threads() -> int: ...
 def _reset_pool_after_fork() -> None: ...
 
 # --- matching kernels ---------------------------------------------------------------------------
-import numpy as np
-import numpy.typing as npt
 
-def matching_cost(a: npt.NDArray[np.float32], b: npt.NDArray[np.float32]) -> npt.NDArray[np.float64]: ...
-def yaw_costs(src: npt.NDArray[np.float32], tgt: npt.NDArray[np.float32]) -> npt.NDArray[np.float64]: ...
+def matching_cost(
+    a: npt.NDArray[np.float32], b: npt.NDArray[np.float32]
+) -> npt.NDArray[np.float64]: ...
+def yaw_costs(
+    src: npt.NDArray[np.float32], tgt: npt.NDArray[np.float32]
+) -> npt.NDArray[np.float64]: ...
 def estimate_yaw(
     src: npt.NDArray[np.float32], tgt: npt.NDArray[np.float32]
 ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64], npt.NDArray[np.float64]]: ...
@@ -42,5 +47,8 @@ class TranslationSearch:
     def history(
         self,
     ) -> tuple[
-        npt.NDArray[np.float64], npt.NDArray[np.float64], npt.NDArray[np.float64], npt.NDArray[np.int64]
+        npt.NDArray[np.float64],
+        npt.NDArray[np.float64],
+        npt.NDArray[np.float64],
+        npt.NDArray[np.int64],
     ]: ...

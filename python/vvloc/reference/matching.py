@@ -82,13 +82,11 @@ def estimate_yaw(src: npt.ArrayLike, tgt: npt.ArrayLike) -> tuple[F64, F64, F64]
     """Per-pair (shift (P,), yaw (P,), cost (P,)) of pairs (P, T, C) (``tgt`` may broadcast)."""
     src = np.asarray(src, dtype=np.float64)
     tgt = np.broadcast_to(np.asarray(tgt, dtype=np.float64), src.shape)
-    res = np.array([estimate_yaw_pair(s, t) for s, t in zip(src, tgt)]).reshape(-1, 3)
+    res = np.array([estimate_yaw_pair(s, t) for s, t in zip(src, tgt, strict=True)]).reshape(-1, 3)
     return res[:, 0].copy(), res[:, 1].copy(), res[:, 2].copy()
 
 
-def rerank(
-    src: npt.ArrayLike, tgt: npt.ArrayLike
-) -> tuple[npt.NDArray[np.int64], F64, F64, F64]:
+def rerank(src: npt.ArrayLike, tgt: npt.ArrayLike) -> tuple[npt.NDArray[np.int64], F64, F64, F64]:
     """(order, cost, yaw, shift) of K candidates: order by cost ascending, ties by lower index."""
     shift, yaw, cost = estimate_yaw(src, tgt)
     order = np.lexsort((np.arange(len(cost)), cost)).astype(np.int64)
@@ -159,7 +157,7 @@ class TranslationSearch:
         n = len(self._pending)
         if costs.shape != (n,) or yaws.shape != (n,):
             raise ValueError(f"costs, yaws: expected shape ({n},)")
-        for (x, y), c, w in zip(self._pending, costs, yaws):
+        for (x, y), c, w in zip(self._pending, costs, yaws, strict=True):
             if self._best is None or c < self._best[3]:
                 self._best = (x, y, float(w), float(c))
             self._hist.append((x, y, float(w), float(c), self.stage))

@@ -1,0 +1,1 @@
+"""Localization on top of the kernels: metric localization (translation search + yaw)."""
