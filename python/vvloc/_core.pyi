@@ -5,6 +5,13 @@ import numpy.typing as npt
 
 __version__: str
 build_profile: str
+__all__ = [
+    "__version__",
+    "_reset_pool_after_fork",
+    "build_profile",
+    "get_num_threads",
+    "set_num_threads",
+]
 
 def set_num_threads(n: int) -> None: ...
 def get_num_threads() -> int: ...

@@ -1,0 +1,1030 @@
+"""Evaluation metrics of vvloc (the paper's protocol), on plain numpy arrays.
+
+Units: positions and translation errors in metres; angles are radians in every input and degrees in
+every output (errors, percentiles, report). Poses are ``(x, y, yaw)`` rows as in DESIGN.md §3;
+relative poses are ξ_{s→t} = T_world_s⁻¹ · T_world_t (:func:`vvloc.geometry.relative`).
+
+The functions know nothing about networks or datasets: the ``vvloc eval`` command runs the
+localizer, then hands positions, retrieved indices, estimated poses and matching costs to them.
+
+* Global localization — :func:`recall_at_n` (Recall@N at revisit radii), :func:`pose_accuracy`
+  (AOE/APE percentiles), :func:`evaluate_robustness` (the same per perturbation).
+* Loop closure — :func:`loop_closure_curve` (Precision/Recall@2m, PR sweep, best F1, CFER).
+* Pose on loop pairs — :func:`loop_pose_metrics` (mRRE, mRTE, RR, confidence filter) and
+  :func:`confidence_curve`.
+* Latency — :func:`latency_summary`.
+
+Undefined values (e.g. a recall with no eligible query) are ``nan``; the report writes them as
+``null`` (JSON) and ``–`` (Markdown).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+from scipy.spatial import cKDTree
+
+from vvloc.geometry import wrap_angle
+
+F64Array = npt.NDArray[np.float64]
+I64Array = npt.NDArray[np.int64]
+BoolArray = npt.NDArray[np.bool_]
+
+#: Revisit radii (m) of the paper's global-localization tables.
+DEFAULT_RADII: tuple[float, ...] = (2.0, 5.0, 10.0, 20.0)
+#: Ranks N of the paper's Recall@N tables.
+DEFAULT_TOP_N: tuple[int, ...] = (1, 5)
+#: Percentiles (%) of the AOE/APE tables.
+DEFAULT_PERCENTILES: tuple[float, ...] = (25.0, 50.0, 75.0, 95.0)
+#: The paper's confidence filter: keep loop pairs with matching cost below this value.
+DEFAULT_COST_THRESHOLD = 0.75
+
+
+# ----------------------------------------------------------------------------- validation
+
+
+def _real_array(x: Any, name: str, shape_doc: str, ndim: int, last: int | None = None) -> F64Array:
+    """Return ``x`` as a finite float64 array of ``ndim`` dimensions (last axis ``last``)."""
+    if x is None or isinstance(x, (str, bytes)):
+        raise TypeError(f"{name}: expected a real array of shape {shape_doc}, got {x!r}")
+    arr = np.asarray(x)
+    if arr.dtype == np.bool_ or not (
+        np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)
+    ):
+        raise TypeError(
+            f"{name}: expected a real array of shape {shape_doc}, got dtype {arr.dtype}"
+        )
+    if arr.ndim != ndim or (last is not None and arr.shape[-1] != last):
+        raise ValueError(f"{name}: expected shape {shape_doc}, got {arr.shape}")
+    out = arr.astype(np.float64)
+    if out.size and not np.isfinite(out).all():
+        raise ValueError(f"{name}: contains non-finite values (NaN or inf)")
+    return out
+
+
+def _int_array(x: Any, name: str, shape_doc: str, ndim: int, last: int | None = None) -> I64Array:
+    """Return ``x`` as an int64 array of ``ndim`` dimensions (last axis ``last``)."""
+    arr = np.asarray(x)
+    if arr.dtype == np.bool_ or not np.issubdtype(arr.dtype, np.integer):
+        if not (arr.size == 0 and arr.dtype == np.float64):  # np.asarray([]) is float64
+            raise TypeError(f"{name}: expected an integer array {shape_doc}, got dtype {arr.dtype}")
+    if arr.ndim != ndim or (last is not None and arr.shape[-1] != last):
+        raise ValueError(f"{name}: expected shape {shape_doc}, got {arr.shape}")
+    return arr.astype(np.int64)
+
+
+def _bool_array(x: Any, name: str, length: int) -> BoolArray:
+    arr = np.asarray(x)
+    if arr.dtype != np.bool_:
+        raise TypeError(
+            f"{name}: expected a bool array of shape ({length},), got dtype {arr.dtype}"
+        )
+    if arr.shape != (length,):
+        raise ValueError(f"{name}: expected shape ({length},), got {arr.shape}")
+    return arr
+
+
+def _floors(
+    query_floors: Any, db_floors: Any, num_queries: int, num_db: int
+) -> tuple[I64Array, I64Array] | None:
+    """Validate optional floor labels; both or neither must be given."""
+    if query_floors is None and db_floors is None:
+        return None
+    if query_floors is None or db_floors is None:
+        raise ValueError("query_floors and db_floors: give both or neither")
+    qf = _int_array(query_floors, "query_floors", f"({num_queries},)", 1)
+    df = _int_array(db_floors, "db_floors", f"({num_db},)", 1)
+    if qf.shape[0] != num_queries:
+        raise ValueError(f"query_floors: expected shape ({num_queries},), got {qf.shape}")
+    if df.shape[0] != num_db:
+        raise ValueError(f"db_floors: expected shape ({num_db},), got {df.shape}")
+    return qf, df
+
+
+def _positive(x: Any, name: str) -> float:
+    if isinstance(x, bool) or not isinstance(x, (int, float, np.integer, np.floating)):
+        raise TypeError(f"{name}: expected a positive number, got {type(x).__name__}")
+    v = float(x)
+    if not np.isfinite(v) or v <= 0.0:
+        raise ValueError(f"{name}: expected a finite value > 0, got {v}")
+    return v
+
+
+def _ratio(num: float, den: float) -> float:
+    return float(num) / float(den) if den > 0 else float("nan")
+
+
+# ----------------------------------------------------------------------------- ground truth
+
+
+def nearest_map_distance(
+    query_positions: npt.ArrayLike,
+    db_positions: npt.ArrayLike,
+    query_floors: npt.ArrayLike | None = None,
+    db_floors: npt.ArrayLike | None = None,
+) -> F64Array:
+    """Distance (m) from each query to its nearest map frame (on the same floor when given).
+
+    Args:
+        query_positions: ``(Q, 2)`` world x, y of the queries (m).
+        db_positions: ``(N, 2)`` world x, y of the map frames (m).
+        query_floors, db_floors: optional ``(Q,)`` / ``(N,)`` integer floor labels.
+
+    Returns:
+        ``(Q,)`` float64 distances; ``inf`` where no map frame shares the query's floor.
+    """
+    q = _real_array(query_positions, "query_positions", "(Q, 2)", 2, 2)
+    d = _real_array(db_positions, "db_positions", "(N, 2)", 2, 2)
+    floors = _floors(query_floors, db_floors, q.shape[0], d.shape[0])
+    out = np.full(q.shape[0], np.inf)
+    if floors is None:
+        if d.shape[0]:
+            out[:] = cKDTree(d).query(q)[0]
+        return out
+    qf, df = floors
+    for floor in np.unique(qf):
+        on_floor = df == floor
+        if on_floor.any():
+            sel = qf == floor
+            out[sel] = cKDTree(d[on_floor]).query(q[sel])[0]
+    return out
+
+
+# ----------------------------------------------------------------------------- global localization
+
+
+@dataclass(frozen=True)
+class RecallResult:
+    """Recall@N of a ranked retrieval, per revisit radius (see :func:`recall_at_n`).
+
+    Attributes:
+        top_n: the ranks N of the table, e.g. ``(1, 5)``.
+        radii: the revisit radii (m), e.g. ``(2, 5, 10, 20)``.
+        recall: ``(len(top_n), len(radii))`` fractions in [0, 1] over the kept queries
+            (``nan`` when no query is kept).
+        kept: ``(Q,)`` bool, queries with a map frame within the eligibility radius.
+        first_hit: ``(Q, len(radii))`` int64, 0-based rank of the first retrieved map frame
+            within the radius (same floor when floors are given), ``-1`` when none of the K is.
+        num_retrieved: K, the number of ranked results per query.
+    """
+
+    top_n: tuple[int, ...]
+    radii: tuple[float, ...]
+    recall: F64Array
+    kept: BoolArray
+    first_hit: I64Array
+    num_retrieved: int
+
+    @property
+    def num_queries(self) -> int:
+        """Number of queries given (Q)."""
+        return int(self.kept.shape[0])
+
+    @property
+    def num_kept(self) -> int:
+        """Number of queries kept by the eligibility rule (the recall denominator)."""
+        return int(self.kept.sum())
+
+    def _radius_index(self, radius: float) -> int:
+        for i, r in enumerate(self.radii):
+            if np.isclose(r, radius):
+                return i
+        raise ValueError(f"radius: {radius} m is not one of the evaluated radii {self.radii}")
+
+    def correct(self, n: int = 1, radius: float = 2.0) -> BoolArray:
+        """``(Q,)`` bool: kept queries with a map frame within ``radius`` among their top ``n``.
+
+        Excluded queries are False. ``correct(1, 2.0)`` marks the queries whose top-1 is a true
+        revisit (the AOE/APE subset).
+        """
+        if not 1 <= n <= self.num_retrieved:
+            raise ValueError(f"n: expected 1 <= n <= K = {self.num_retrieved}, got {n}")
+        hit = self.first_hit[:, self._radius_index(radius)]
+        return self.kept & (hit >= 0) & (hit < n)
+
+    def at(self, n: int, radius: float) -> float:
+        """Recall@``n`` at ``radius`` (m), a fraction over the kept queries (``nan`` if none)."""
+        return _ratio(self.correct(n, radius).sum(), self.num_kept)
+
+    def curve(self, radius: float = 2.0) -> tuple[I64Array, F64Array]:
+        """Recall@N for N = 1..K at ``radius``: ``(ns (K,), recall (K,))``."""
+        hit = self.first_hit[self.kept, self._radius_index(radius)]
+        ns = np.arange(1, self.num_retrieved + 1, dtype=np.int64)
+        if hit.size == 0:
+            return ns, np.full(ns.shape, np.nan)
+        counts = np.array([(hit >= 0) & (hit < n) for n in ns]).sum(axis=1)
+        return ns, counts / hit.size
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-friendly summary: counts and ``recall[str(N)][f"{radius:g}"]``."""
+        return {
+            "num_queries": self.num_queries,
+            "num_kept": self.num_kept,
+            "top_n": list(self.top_n),
+            "radii_m": list(self.radii),
+            "recall": {
+                str(n): {f"{r:g}": float(self.recall[i, j]) for j, r in enumerate(self.radii)}
+                for i, n in enumerate(self.top_n)
+            },
+        }
+
+
+def recall_at_n(
+    query_positions: npt.ArrayLike,
+    db_positions: npt.ArrayLike,
+    retrieved: npt.ArrayLike,
+    *,
+    query_floors: npt.ArrayLike | None = None,
+    db_floors: npt.ArrayLike | None = None,
+    top_n: Sequence[int] = DEFAULT_TOP_N,
+    radii: Sequence[float] = DEFAULT_RADII,
+    eligibility_radius: float = 2.0,
+) -> RecallResult:
+    """Recall@N of a ranked retrieval at several revisit radii.
+
+    Definition: a query is *kept* when at least one map frame lies within
+    ``eligibility_radius`` (2 m, on the same floor when floors are given) of its ground-truth
+    position — queries of places the map never visited are left out, as the standard protocol
+    does, whatever the revisit radius. A kept query counts for Recall@N at radius r when any of
+    its top-N retrieved map frames lies within r (Euclidean distance ≤ r in the x-y plane) and, when
+    floors are given, on the query's floor. Recall@N(r) = counted queries / kept queries.
+
+    The same function scores retrieval alone and after metric re-ranking: pass the re-ranked
+    indices for the latter (method labels such as ``-G``/``-N``/``-V``/``-ML`` are the caller's).
+
+    Args:
+        query_positions: ``(Q, 2)`` ground-truth world x, y of the queries (m).
+        db_positions: ``(N, 2)`` world x, y of the map frames (m).
+        retrieved: ``(Q, K)`` integer map indices, best first; ``-1`` marks an empty slot.
+        query_floors, db_floors: optional ``(Q,)`` / ``(N,)`` integer floor labels (both or none).
+        top_n: the ranks N to tabulate, each in ``1..K``.
+        radii: the revisit radii (m), each > 0.
+        eligibility_radius: the radius (m) of the keep rule.
+
+    Returns:
+        A :class:`RecallResult` (``num_kept`` says how many queries were kept).
+    """
+    q = _real_array(query_positions, "query_positions", "(Q, 2)", 2, 2)
+    d = _real_array(db_positions, "db_positions", "(N, 2)", 2, 2)
+    idx = _int_array(retrieved, "retrieved", "(Q, K)", 2)
+    num_q, num_db = q.shape[0], d.shape[0]
+    if idx.shape[0] != num_q:
+        raise ValueError(f"retrieved: expected {num_q} rows (one per query), got {idx.shape}")
+    k = idx.shape[1]
+    if idx.size and (idx.min() < -1 or idx.max() >= num_db):
+        raise ValueError(f"retrieved: indices must lie in [-1, {num_db}) (N = {num_db} map frames)")
+    floors = _floors(query_floors, db_floors, num_q, num_db)
+    ns = tuple(int(n) for n in top_n)
+    if not ns or any(not 1 <= n <= k for n in ns):
+        raise ValueError(f"top_n: expected ranks in 1..K = {k}, got {tuple(top_n)}")
+    rs = tuple(_positive(r, "radii") for r in radii)
+    if not rs:
+        raise ValueError("radii: expected at least one radius")
+    elig = _positive(eligibility_radius, "eligibility_radius")
+
+    nearest = nearest_map_distance(q, d, *(floors if floors is not None else (None, None)))
+    kept = nearest <= elig
+
+    valid = idx >= 0
+    safe = np.where(valid, idx, 0)
+    dist = (
+        np.linalg.norm(d[safe] - q[:, None, :], axis=-1) if num_db else np.full(idx.shape, np.inf)
+    )
+    if floors is not None:
+        valid &= floors[1][safe] == floors[0][:, None]
+    first_hit = np.full((num_q, len(rs)), -1, dtype=np.int64)
+    for j, r in enumerate(rs):
+        hit = valid & (dist <= r)
+        any_hit = hit.any(axis=1)
+        first_hit[any_hit, j] = hit[any_hit].argmax(axis=1)
+
+    num_kept = int(kept.sum())
+    recall = np.full((len(ns), len(rs)), np.nan)
+    for i, n in enumerate(ns):
+        counted = kept[:, None] & (first_hit >= 0) & (first_hit < n)
+        recall[i] = counted.sum(axis=0) / num_kept if num_kept else np.nan
+    return RecallResult(ns, rs, recall, kept, first_hit, k)
+
+
+def evaluate_robustness(
+    query_positions: npt.ArrayLike,
+    db_positions: npt.ArrayLike,
+    retrieved: Mapping[str, npt.ArrayLike],
+    **kwargs: Any,
+) -> dict[str, RecallResult]:
+    """Recall@N per perturbation: ``{name: recall_at_n(query_positions, db_positions, r, **kw)}``.
+
+    ``retrieved`` maps a perturbation name (e.g. ``"none"``, ``"fog"``, ``"drop-camera"``) to the
+    ``(Q, K)`` ranked indices obtained with perturbed query images; the ground-truth positions are
+    the same for all. ``kwargs`` go to :func:`recall_at_n` (floors, top_n, radii, ...). The order of
+    ``retrieved`` is kept.
+    """
+    if not isinstance(retrieved, Mapping):
+        raise TypeError("retrieved: expected a mapping {perturbation name: (Q, K) indices}")
+    return {
+        str(name): recall_at_n(query_positions, db_positions, r, **kwargs)
+        for name, r in retrieved.items()
+    }
+
+
+# ----------------------------------------------------------------------------- pose errors
+
+
+def pose_errors(estimated: npt.ArrayLike, ground_truth: npt.ArrayLike) -> tuple[F64Array, F64Array]:
+    """Absolute yaw and position errors of poses.
+
+    Args:
+        estimated: ``(Q, 3)`` estimated poses (x, y in m, yaw in rad), any common frame.
+        ground_truth: ``(Q, 3)`` true poses in the same frame.
+
+    Returns:
+        ``(yaw_error_deg (Q,), position_error_m (Q,))``: ``|wrap(yaw_est − yaw_gt)|`` in degrees
+        (in [0, 180], so 179° vs −179° is 2°) and the Euclidean distance of the x, y parts.
+    """
+    est = _real_array(estimated, "estimated", "(Q, 3)", 2, 3)
+    gt = _real_array(ground_truth, "ground_truth", "(Q, 3)", 2, 3)
+    if est.shape != gt.shape:
+        raise ValueError(f"estimated, ground_truth: shapes differ ({est.shape} vs {gt.shape})")
+    yaw = np.degrees(np.abs(wrap_angle(est[:, 2] - gt[:, 2])))
+    return yaw, np.linalg.norm(est[:, :2] - gt[:, :2], axis=1)
+
+
+def relative_pose_errors(
+    estimated: npt.ArrayLike, ground_truth: npt.ArrayLike
+) -> tuple[F64Array, F64Array]:
+    """Relative rotation / translation errors (RRE °, RTE m) of relative poses ξ_{s→t}.
+
+    Both inputs are ``(P, 3)`` relative poses in the source frame (DESIGN.md §3; build the ground
+    truth with :func:`vvloc.geometry.relative`). RRE = ``|wrap(φ_est − φ_gt)|`` in degrees,
+    RTE = ``‖t_est − t_gt‖`` in metres (both translations in source coordinates).
+    """
+    return pose_errors(estimated, ground_truth)
+
+
+def error_percentiles(
+    errors: npt.ArrayLike, percentiles: Sequence[float] = DEFAULT_PERCENTILES
+) -> F64Array:
+    """Percentiles of an error sample: the smallest error e with at least p% of samples ≤ e.
+
+    This is the inverted-CDF percentile (no interpolation), so every value is an observed error:
+    ``error_percentiles([0, 0, 0, 90], (50, 75, 95)) == [0, 0, 90]``. Returns ``(len(p),)``
+    float64, ``nan`` for an empty sample.
+    """
+    e = _real_array(errors, "errors", "(n,)", 1)
+    p = np.asarray(percentiles, dtype=np.float64)
+    if p.ndim != 1 or ((p < 0) | (p > 100)).any():
+        raise ValueError(f"percentiles: expected values in [0, 100], got {percentiles}")
+    if e.size == 0:
+        return np.full(p.shape, np.nan)
+    return np.asarray(np.percentile(e, p, method="inverted_cdf"), dtype=np.float64)
+
+
+def _aoe_ape(yaw_deg: F64Array, pos_m: F64Array, percentiles: Sequence[float]) -> dict[str, Any]:
+    aoe = error_percentiles(yaw_deg, percentiles)
+    ape = error_percentiles(pos_m, percentiles)
+    out: dict[str, Any] = {"count": int(yaw_deg.size)}
+    for p, a in zip(percentiles, aoe, strict=True):
+        out[f"AOE@{p:g}"] = float(a)
+    for p, a in zip(percentiles, ape, strict=True):
+        out[f"APE@{p:g}"] = float(a)
+    return out
+
+
+def pose_accuracy(
+    estimated: npt.ArrayLike,
+    ground_truth: npt.ArrayLike,
+    correct: npt.ArrayLike,
+    *,
+    kept: npt.ArrayLike | None = None,
+    percentiles: Sequence[float] = DEFAULT_PERCENTILES,
+) -> dict[str, dict[str, Any]]:
+    """AOE/APE@p: percentiles of absolute yaw error (°) and position error (m) of global poses.
+
+    Args:
+        estimated: ``(Q, 3)`` metric-localization world poses (x, y in m, yaw in rad).
+        ground_truth: ``(Q, 3)`` true world poses.
+        correct: ``(Q,)`` bool, queries whose top-1 is a true revisit
+            (``RecallResult.correct(1, 2.0)`` after re-ranking).
+        kept: ``(Q,)`` bool, the evaluated queries (``RecallResult.kept``); default all.
+        percentiles: the p of AOE@p / APE@p, in %.
+
+    Returns:
+        ``{"true_revisit": row, "all": row}``; a row is ``{"count", "AOE@25", …, "APE@25", …}``
+        (see :func:`error_percentiles`). ``true_revisit`` covers ``correct & kept`` queries,
+        ``all`` every kept query.
+    """
+    yaw, pos = pose_errors(estimated, ground_truth)
+    n = yaw.shape[0]
+    corr = _bool_array(correct, "correct", n)
+    keep = np.ones(n, dtype=bool) if kept is None else _bool_array(kept, "kept", n)
+    sub = corr & keep
+    return {
+        "true_revisit": _aoe_ape(yaw[sub], pos[sub], percentiles),
+        "all": _aoe_ape(yaw[keep], pos[keep], percentiles),
+    }
+
+
+# ----------------------------------------------------------------------------- loop closure
+
+
+@dataclass(frozen=True)
+class LoopClosureCurve:
+    """Loop-closure detection scored against ground truth (see :func:`loop_closure_curve`).
+
+    Attributes:
+        distances: ``(P,)`` sorted ascending scores of the evaluated candidate pairs.
+        is_true: ``(P,)`` bool, pair is a true loop (same order as ``distances``).
+        is_cross_floor: ``(P,)`` bool, pair joins different floors (all False without floors).
+        has_floors: whether floor labels were given (CFER is ``nan`` otherwise).
+        query_first_true: ``(Q_pos,)`` per query with a true revisit, the lowest score among its
+            true candidate pairs (``inf`` when it has none): it is detected at τ iff this is ≤ τ.
+        num_queries: number of queries evaluated.
+        radius: the true-loop radius (m).
+    """
+
+    distances: F64Array
+    is_true: BoolArray
+    is_cross_floor: BoolArray
+    has_floors: bool
+    query_first_true: F64Array
+    num_queries: int
+    radius: float
+
+    @property
+    def num_positive_queries(self) -> int:
+        """The recall denominator: queries with at least one true revisit."""
+        return int(self.query_first_true.shape[0])
+
+    def at(self, threshold: float) -> dict[str, Any]:
+        """Metrics when pairs with score ≤ ``threshold`` are accepted.
+
+        Returns ``{"threshold", "accepted", "true_accepted", "precision", "recall", "f1",
+        "cfer"}``: precision = true accepted pairs / accepted pairs; recall = queries with ≥ 1
+        accepted true pair / :attr:`num_positive_queries`; F1 = 2PR/(P+R) (0 when P = R = 0);
+        CFER = accepted pairs joining different floors / accepted pairs. Undefined → ``nan``.
+        """
+        t = float(threshold)
+        k = int(np.searchsorted(self.distances, t, side="right"))
+        tp = int(self.is_true[:k].sum())
+        precision = _ratio(tp, k)
+        recall = _ratio((self.query_first_true <= t).sum(), self.num_positive_queries)
+        cfer = _ratio(self.is_cross_floor[:k].sum(), k) if self.has_floors else float("nan")
+        return {
+            "threshold": t,
+            "accepted": k,
+            "true_accepted": tp,
+            "precision": precision,
+            "recall": recall,
+            "f1": _f1(precision, recall),
+            "cfer": cfer,
+        }
+
+    def sweep(self) -> dict[str, F64Array]:
+        """The precision–recall sweep over every distinct score as threshold.
+
+        Returns arrays of equal length M (distinct scores, ascending): ``threshold``,
+        ``precision``, ``recall``, ``f1``, ``cfer`` (definitions of :meth:`at`).
+        """
+        if self.distances.size == 0:
+            empty = np.zeros(0)
+            return {k: empty for k in ("threshold", "precision", "recall", "f1", "cfer")}
+        last = np.flatnonzero(np.append(np.diff(self.distances) > 0, True))  # last of each score
+        thresholds = self.distances[last]
+        accepted = last + 1.0
+        precision = np.cumsum(self.is_true)[last] / accepted
+        first = np.sort(self.query_first_true)
+        detected = np.searchsorted(first, thresholds, side="right")
+        recall = (
+            detected / self.num_positive_queries
+            if self.num_positive_queries
+            else np.full(thresholds.shape, np.nan)
+        )
+        with np.errstate(invalid="ignore", divide="ignore"):
+            f1 = np.where(
+                precision + recall > 0, 2 * precision * recall / (precision + recall), 0.0
+            )
+        f1 = np.where(np.isnan(recall), np.nan, f1)
+        cfer = (
+            np.cumsum(self.is_cross_floor)[last] / accepted
+            if self.has_floors
+            else np.full(thresholds.shape, np.nan)
+        )
+        return {
+            "threshold": thresholds,
+            "precision": precision,
+            "recall": recall,
+            "f1": f1,
+            "cfer": cfer,
+        }
+
+    def best_f1(self) -> dict[str, Any]:
+        """:meth:`at` the threshold of the sweep with the highest F1 (lowest such threshold)."""
+        s = self.sweep()
+        if s["f1"].size == 0 or np.isnan(s["f1"]).all():
+            nan = float("nan")
+            keys = ("threshold", "precision", "recall", "f1", "cfer")
+            return {k: nan for k in keys} | {"accepted": 0, "true_accepted": 0}
+        return self.at(float(s["threshold"][int(np.nanargmax(s["f1"]))]))
+
+    def summary(self, threshold: float) -> dict[str, Any]:
+        """JSON-friendly: metrics :meth:`at` ``threshold``, ``best_f1`` and the counts."""
+        return {
+            "radius_m": self.radius,
+            "num_queries": self.num_queries,
+            "num_positive_queries": self.num_positive_queries,
+            "num_pairs": int(self.distances.size),
+            "at_threshold": self.at(threshold),
+            "best_f1": self.best_f1(),
+        }
+
+
+def _f1(precision: float, recall: float) -> float:
+    if np.isnan(precision) or np.isnan(recall):
+        return float("nan")
+    s = precision + recall
+    return 2.0 * precision * recall / s if s > 0 else 0.0
+
+
+def loop_closure_curve(
+    pairs: npt.ArrayLike,
+    distances: npt.ArrayLike,
+    query_positions: npt.ArrayLike,
+    db_positions: npt.ArrayLike,
+    *,
+    query_floors: npt.ArrayLike | None = None,
+    db_floors: npt.ArrayLike | None = None,
+    query_times: npt.ArrayLike | None = None,
+    db_times: npt.ArrayLike | None = None,
+    time_window: float = 0.0,
+    causal: bool = False,
+    radius: float = 2.0,
+) -> LoopClosureCurve:
+    """Score loop-closure candidates: Precision@2m / Recall@2m, PR sweep, best F1, CFER.
+
+    Definitions. An *admissible* (query q, map frame j) pair is one outside the temporal-exclusion
+    window: ``|t_q − t_j| > time_window`` and, when ``causal``, ``t_j < t_q`` (without times every
+    pair is admissible). A pair is a *true loop* when admissible, ``‖p_q − p_j‖ ≤ radius`` and, with
+    floors, on the same floor. A query is *positive* when it has at least one true loop among all
+    map frames (the ground truth, not only the candidates): the recall denominator. Candidate pairs
+    that are not admissible are ignored (the detector should not propose them). At a threshold τ,
+    candidates with score ≤ τ are accepted; see :meth:`LoopClosureCurve.at` for precision, recall,
+    F1 and CFER (share of accepted pairs joining different floors).
+
+    For loop closure within one sequence pass the same positions/floors/times as query and map.
+
+    Args:
+        pairs: ``(P, 2)`` integer (query index, map index) candidate pairs.
+        distances: ``(P,)`` score of each pair, lower is better (descriptor distance, or the
+            matching cost after metric verification).
+        query_positions, db_positions: ``(Q, 2)`` / ``(N, 2)`` world x, y (m).
+        query_floors, db_floors: optional ``(Q,)`` / ``(N,)`` integer floors (both or none).
+        query_times, db_times: optional ``(Q,)`` / ``(N,)`` timestamps (s) or frame numbers.
+        time_window: temporal-exclusion window, same unit as the times (≥ 0).
+        causal: only earlier map frames count (loop closure against the past).
+        radius: true-loop radius (m).
+    """
+    q = _real_array(query_positions, "query_positions", "(Q, 2)", 2, 2)
+    d = _real_array(db_positions, "db_positions", "(N, 2)", 2, 2)
+    num_q, num_db = q.shape[0], d.shape[0]
+    pr = (
+        _int_array(pairs, "pairs", "(P, 2)", 2, 2) if np.size(pairs) else np.zeros((0, 2), np.int64)
+    )
+    dist = _real_array(distances, "distances", "(P,)", 1)
+    if dist.shape[0] != pr.shape[0]:
+        raise ValueError(f"distances: expected shape ({pr.shape[0]},), got {dist.shape}")
+    if pr.size and not (
+        (pr[:, 0] >= 0).all()
+        and (pr[:, 0] < num_q).all()
+        and (pr[:, 1] >= 0).all()
+        and (pr[:, 1] < num_db).all()
+    ):
+        raise ValueError(f"pairs: indices must lie in [0, {num_q}) x [0, {num_db})")
+    floors = _floors(query_floors, db_floors, num_q, num_db)
+    if (query_times is None) != (db_times is None):
+        raise ValueError("query_times and db_times: give both or neither")
+    times = None
+    if query_times is not None:
+        qt = _real_array(query_times, "query_times", f"({num_q},)", 1)
+        dt = _real_array(db_times, "db_times", f"({num_db},)", 1)
+        if qt.shape[0] != num_q or dt.shape[0] != num_db:
+            raise ValueError("query_times, db_times: expected shapes (Q,) and (N,)")
+        times = (qt, dt)
+    window = float(time_window)
+    if not np.isfinite(window) or window < 0:
+        raise ValueError(f"time_window: expected a finite value >= 0, got {time_window}")
+    rad = _positive(radius, "radius")
+
+    def admissible(qi: I64Array, dj: I64Array) -> BoolArray:
+        ok = np.ones(qi.shape, dtype=bool)
+        if times is not None:
+            tq, td = times[0][qi], times[1][dj]
+            ok &= np.abs(tq - td) > window
+            if causal:
+                ok &= td < tq
+        return ok
+
+    def same_floor(qi: I64Array, dj: I64Array) -> BoolArray:
+        if floors is None:
+            return np.ones(qi.shape, dtype=bool)
+        return floors[0][qi] == floors[1][dj]
+
+    # Ground truth: every admissible map frame within the radius, on the same floor.
+    if num_q and num_db:
+        near = cKDTree(q).sparse_distance_matrix(cKDTree(d), rad, output_type="ndarray")
+        gi, gj = near["i"].astype(np.int64), near["j"].astype(np.int64)
+        ok = admissible(gi, gj) & same_floor(gi, gj) & (near["v"] <= rad)
+        positive = np.unique(gi[ok])
+    else:
+        positive = np.zeros(0, dtype=np.int64)
+
+    keep = admissible(pr[:, 0], pr[:, 1])
+    pr, dist = pr[keep], dist[keep]
+    order = np.argsort(dist, kind="stable")
+    pr, dist = pr[order], dist[order]
+    close = np.linalg.norm(q[pr[:, 0]] - d[pr[:, 1]], axis=1) <= rad
+    is_true = close & same_floor(pr[:, 0], pr[:, 1])
+    cross = ~same_floor(pr[:, 0], pr[:, 1])
+
+    first_true = np.full(num_q, np.inf)
+    np.minimum.at(first_true, pr[is_true, 0], dist[is_true])
+    return LoopClosureCurve(
+        distances=dist,
+        is_true=is_true,
+        is_cross_floor=cross,
+        has_floors=floors is not None,
+        query_first_true=first_true[positive],
+        num_queries=num_q,
+        radius=rad,
+    )
+
+
+# ----------------------------------------------------------------------------- pose on loop pairs
+
+
+def _loop_pose_row(
+    rre: F64Array, rte: F64Array, total: int, rot_threshold_deg: float, trans_threshold_m: float
+) -> dict[str, Any]:
+    n = int(rre.size)
+    return {
+        "count": n,
+        "share": _ratio(n, total),
+        "mRRE_deg": float(rre.mean()) if n else float("nan"),
+        "mRTE_m": float(rte.mean()) if n else float("nan"),
+        "RR_rot": _ratio((rre < rot_threshold_deg).sum(), n),
+        "RR_trans": _ratio((rte < trans_threshold_m).sum(), n),
+    }
+
+
+def loop_pose_metrics(
+    estimated: npt.ArrayLike,
+    ground_truth: npt.ArrayLike,
+    costs: npt.ArrayLike | None = None,
+    *,
+    cost_threshold: float = DEFAULT_COST_THRESHOLD,
+    rot_threshold_deg: float = 5.0,
+    trans_threshold_m: float = 2.0,
+) -> dict[str, dict[str, Any]]:
+    """Relative-pose accuracy on detected loop pairs, with and without the confidence filter.
+
+    Args:
+        estimated: ``(P, 3)`` estimated relative poses ξ_{s→t} (m, rad).
+        ground_truth: ``(P, 3)`` true relative poses (:func:`vvloc.geometry.relative`).
+        costs: optional ``(P,)`` matching costs (lower = more confident).
+        cost_threshold: the confidence filter keeps pairs with cost < this (paper: 0.75).
+        rot_threshold_deg, trans_threshold_m: the RR thresholds (5°, 2 m).
+
+    Returns:
+        ``{"all": row}`` plus ``{"confident": row}`` when costs are given. A row is
+        ``{"count", "share", "mRRE_deg", "mRTE_m", "RR_rot", "RR_trans"}``: mean RRE (°) and RTE
+        (m) (:func:`relative_pose_errors`), RR_rot = share with RRE < 5°, RR_trans = share with
+        RTE < 2 m, share = count / P. Undefined means (no pair) are ``nan``.
+    """
+    rre, rte = relative_pose_errors(estimated, ground_truth)
+    n = rre.shape[0]
+    rot_t = _positive(rot_threshold_deg, "rot_threshold_deg")
+    trans_t = _positive(trans_threshold_m, "trans_threshold_m")
+    out = {"all": _loop_pose_row(rre, rte, n, rot_t, trans_t)}
+    if costs is not None:
+        c = _real_array(costs, "costs", f"({n},)", 1)
+        if c.shape[0] != n:
+            raise ValueError(f"costs: expected shape ({n},), got {c.shape}")
+        keep = c < float(cost_threshold)
+        out["confident"] = _loop_pose_row(rre[keep], rte[keep], n, rot_t, trans_t) | {
+            "cost_threshold": float(cost_threshold)
+        }
+    return out
+
+
+def confidence_curve(
+    costs: npt.ArrayLike,
+    rre_deg: npt.ArrayLike,
+    rte_m: npt.ArrayLike,
+    *,
+    rot_threshold_deg: float = 5.0,
+    trans_threshold_m: float = 2.0,
+) -> dict[str, F64Array]:
+    """Share of pairs kept vs their error as the matching-cost threshold moves.
+
+    For each distinct cost c (ascending) the pairs with cost ≤ c are kept. Returns arrays of
+    length M: ``threshold`` (c), ``kept_share`` (kept / P), ``mRRE_deg``, ``mRTE_m`` (means over
+    the kept pairs), ``RR_rot`` and ``RR_trans`` (shares of kept pairs under 5° / 2 m).
+
+    Args:
+        costs: ``(P,)`` matching costs; rre_deg, rte_m: ``(P,)`` errors of the same pairs
+            (:func:`relative_pose_errors`).
+    """
+    c = _real_array(costs, "costs", "(P,)", 1)
+    rre = _real_array(rre_deg, "rre_deg", "(P,)", 1)
+    rte = _real_array(rte_m, "rte_m", "(P,)", 1)
+    if not c.shape == rre.shape == rte.shape:
+        raise ValueError(
+            f"costs, rre_deg, rte_m: shapes differ ({c.shape}, {rre.shape}, {rte.shape})"
+        )
+    rot_t = _positive(rot_threshold_deg, "rot_threshold_deg")
+    trans_t = _positive(trans_threshold_m, "trans_threshold_m")
+    order = np.argsort(c, kind="stable")
+    c, rre, rte = c[order], rre[order], rte[order]
+    last = np.flatnonzero(np.append(np.diff(c) > 0, True)) if c.size else np.zeros(0, np.int64)
+    kept = last + 1.0
+    return {
+        "threshold": c[last],
+        "kept_share": kept / max(c.size, 1),
+        "mRRE_deg": np.cumsum(rre)[last] / kept,
+        "mRTE_m": np.cumsum(rte)[last] / kept,
+        "RR_rot": np.cumsum(rre < rot_t)[last] / kept,
+        "RR_trans": np.cumsum(rte < trans_t)[last] / kept,
+    }
+
+
+# ----------------------------------------------------------------------------- latency
+
+
+def latency_summary(samples_ms: Mapping[str, npt.ArrayLike]) -> dict[str, dict[str, Any]]:
+    """Per-stage latency statistics from timing samples in milliseconds.
+
+    ``samples_ms`` maps a stage name (e.g. ``"encoder"``, ``"retrieval"``, ``"re-ranking"``,
+    ``"metric"``) to its ``(n,)`` samples. Returns ``{stage: {"count", "mean_ms", "median_ms",
+    "p95_ms"}}`` in the given order (p95 by the inverted CDF, see :func:`error_percentiles`).
+    """
+    out: dict[str, dict[str, Any]] = {}
+    for stage, samples in samples_ms.items():
+        s = _real_array(samples, f"samples_ms[{stage!r}]", "(n,)", 1)
+        out[str(stage)] = {
+            "count": int(s.size),
+            "mean_ms": float(s.mean()) if s.size else float("nan"),
+            "median_ms": float(error_percentiles(s, (50.0,))[0]),
+            "p95_ms": float(error_percentiles(s, (95.0,))[0]),
+        }
+    return out
+
+
+# ----------------------------------------------------------------------------- report
+
+
+def to_jsonable(value: Any) -> Any:
+    """Convert metric results to plain JSON types.
+
+    Objects with ``to_dict()`` (:class:`RecallResult`) are summarised, numpy scalars and arrays
+    become numbers and lists, tuples become lists, mapping keys become strings, and non-finite
+    floats (undefined metrics) become ``None``.
+    """
+    if hasattr(value, "to_dict"):
+        return to_jsonable(value.to_dict())
+    if isinstance(value, Mapping):
+        return {str(k): to_jsonable(v) for k, v in value.items()}
+    if isinstance(value, np.ndarray):
+        return to_jsonable(value.tolist())
+    if isinstance(value, (list, tuple)):
+        return [to_jsonable(v) for v in value]
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    if isinstance(value, (int, np.integer)):
+        return int(value)
+    if isinstance(value, (float, np.floating)):
+        v = float(value)
+        return v if np.isfinite(v) else None
+    if value is None or isinstance(value, str):
+        return value
+    if isinstance(value, os.PathLike):
+        return os.fspath(value)
+    raise TypeError(f"metrics: cannot write a {type(value).__name__} to JSON")
+
+
+def _pct(v: Any) -> str:
+    return "–" if v is None else f"{100.0 * v:.1f}"
+
+
+def _num(v: Any, digits: int = 2) -> str:
+    return "–" if v is None else f"{v:.{digits}f}"
+
+
+def _table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> list[str]:
+    lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
+    lines += ["| " + " | ".join(row) + " |" for row in rows]
+    return [*lines, ""]
+
+
+def _recall_table(results: Mapping[str, Any], first: str) -> list[str]:
+    """Rows: ``first`` column (method / perturbation) then Recall@N at each radius, in %."""
+    any_res = next(iter(results.values()))
+    ns, radii = any_res["top_n"], any_res["radii_m"]
+    header = [first, "kept"] + [f"R@{n} {r:g} m" for n in ns for r in radii]
+    rows = []
+    for name, res in results.items():
+        cells = [_pct(res["recall"].get(str(n), {}).get(f"{r:g}")) for n in ns for r in radii]
+        rows.append([name, f"{res['num_kept']}/{res['num_queries']}", *cells])
+    return _table(header, rows)
+
+
+def _pose_table(results: Mapping[str, Any]) -> list[str]:
+    subsets = {"true_revisit": "top-1 true revisit", "all": "all queries"}
+    first = next(iter(next(iter(results.values())).values()))
+    aoe = [k for k in first if k.startswith("AOE@")]
+    ape = [k for k in first if k.startswith("APE@")]
+    header = ["method", "queries", "n"] + [f"{k}% (°)" for k in aoe] + [f"{k}% (m)" for k in ape]
+    rows = []
+    for name, res in results.items():
+        for key, label in subsets.items():
+            if key in res:
+                row = res[key]
+                cells = [_num(row[k]) for k in aoe] + [_num(row[k]) for k in ape]
+                rows.append([name, label, str(row["count"]), *cells])
+    return _table(header, rows)
+
+
+def _loop_table(results: Mapping[str, Any]) -> list[str]:
+    header = [
+        "name",
+        "threshold",
+        "accepted",
+        "Precision@2m (%)",
+        "Recall@2m (%)",
+        "F1",
+        "CFER (%)",
+        "best F1",
+        "best-F1 threshold",
+    ]
+    rows = []
+    for name, res in results.items():
+        at, best = res["at_threshold"], res["best_f1"]
+        rows.append(
+            [
+                name,
+                _num(at["threshold"], 3),
+                str(at["accepted"]),
+                _pct(at["precision"]),
+                _pct(at["recall"]),
+                _num(at["f1"], 3),
+                _pct(at["cfer"]),
+                _num(best["f1"], 3),
+                _num(best["threshold"], 3),
+            ]
+        )
+    return _table(header, rows)
+
+
+def _loop_pose_table(results: Mapping[str, Any]) -> list[str]:
+    header = ["name", "pairs", "n", "mRRE (°)", "mRTE (m)", "RR(<5°) (%)", "RR(<2 m) (%)"]
+    rows = []
+    for name, res in results.items():
+        for key in ("all", "confident"):
+            if key in res:
+                row = res[key]
+                label = "all" if key == "all" else f"cost < {row.get('cost_threshold', 0.75):g}"
+                rows.append(
+                    [
+                        name,
+                        label,
+                        str(row["count"]),
+                        _num(row["mRRE_deg"]),
+                        _num(row["mRTE_m"]),
+                        _pct(row["RR_rot"]),
+                        _pct(row["RR_trans"]),
+                    ]
+                )
+    return _table(header, rows)
+
+
+def _latency_table(results: Mapping[str, Any]) -> list[str]:
+    header = ["stage", "n", "mean (ms)", "median (ms)", "p95 (ms)"]
+    rows = [
+        [stage, str(r["count"]), _num(r["mean_ms"]), _num(r["median_ms"]), _num(r["p95_ms"])]
+        for stage, r in results.items()
+    ]
+    return _table(header, rows)
+
+
+#: Report sections: metrics key → (heading, first column of a Recall table or None).
+_SECTIONS = {
+    "global_localization": ("Global localization (Recall@N, %)", "method"),
+    "pose_accuracy": ("Metric pose accuracy (AOE / APE percentiles)", None),
+    "loop_closure": ("Loop closure", None),
+    "loop_pose": ("Relative pose on detected loop pairs", None),
+    "robustness": ("Robustness (Recall@N under perturbations, %)", "perturbation"),
+    "latency": ("Latency per stage", None),
+}
+
+
+def render_markdown(
+    metrics: Mapping[str, Any],
+    *,
+    title: str = "vvloc evaluation",
+    figures: Mapping[str, str] | None = None,
+) -> str:
+    """The Markdown report of a metrics dict (see :func:`write_report` for its layout)."""
+    m = to_jsonable(metrics)
+    lines = [f"# {title}", ""]
+    meta = m.get("meta") or {}
+    for k, v in meta.items():
+        lines.append(f"- **{k}**: {v}")
+    if meta:
+        lines.append("")
+    builders = {
+        "pose_accuracy": _pose_table,
+        "loop_closure": _loop_table,
+        "loop_pose": _loop_pose_table,
+        "latency": _latency_table,
+    }
+    for key, (heading, first) in _SECTIONS.items():
+        section = m.get(key)
+        if not section:
+            continue
+        lines += [f"## {heading}", ""]
+        lines += _recall_table(section, first) if first else builders[key](section)
+    notes = m.get("notes")
+    if notes:
+        lines += ["## Notes", ""]
+        lines += [f"- {n}" for n in ([notes] if isinstance(notes, str) else notes)]
+        lines.append("")
+    if figures:
+        lines += ["## Figures", ""]
+        for name, rel in figures.items():
+            lines += [f"### {name}", "", f"![{name}]({rel})", ""]
+    return "\n".join(lines).rstrip("\n") + "\n"
+
+
+def _write_atomic(path: Path, text: str) -> None:
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def write_report(
+    out_dir: str | os.PathLike[str],
+    metrics: Mapping[str, Any],
+    *,
+    title: str = "vvloc evaluation",
+    figures: Mapping[str, str | os.PathLike[str]] | None = None,
+    stem: str = "report",
+) -> tuple[Path, Path]:
+    """Write ``<stem>.md`` (tables in the paper's layout) and ``<stem>.json`` into ``out_dir``.
+
+    ``metrics`` layout (every section optional; sections keep their order; values may be the
+    objects/dicts returned by this module):
+
+    * ``"meta"``: ``{key: value}`` printed as a list (checkpoint, dataset, hardware, seed, ...).
+    * ``"global_localization"``: ``{method: RecallResult}`` e.g. ``"VVLoc-G"``, ``"VVLoc-ML"``.
+    * ``"pose_accuracy"``: ``{method: pose_accuracy(...)}``.
+    * ``"loop_closure"``: ``{name: LoopClosureCurve.summary(threshold)}``.
+    * ``"loop_pose"``: ``{name: loop_pose_metrics(...)}``.
+    * ``"robustness"``: ``{perturbation: RecallResult}`` (:func:`evaluate_robustness`).
+    * ``"latency"``: ``latency_summary(...)``.
+    * ``"notes"``: a string or list of strings (e.g. a missed target and why).
+
+    Any other key is written to the JSON only. ``figures`` maps a caption to an image path; paths
+    inside ``out_dir`` are linked relatively. Files are written atomically (temporary file +
+    rename). Returns ``(markdown_path, json_path)``.
+    """
+    out = Path(out_dir)
+    if not isinstance(metrics, Mapping):
+        raise TypeError(f"metrics: expected a mapping of sections, got {type(metrics).__name__}")
+    links: dict[str, str] = {}
+    for name, p in (figures or {}).items():
+        fp = Path(p)
+        try:
+            links[str(name)] = fp.resolve().relative_to(out.resolve()).as_posix()
+        except ValueError:
+            links[str(name)] = fp.as_posix()
+    data = to_jsonable(metrics)
+    if links:
+        data = {**data, "figures": links}
+    text_json = json.dumps(data, indent=2, sort_keys=False, allow_nan=False) + "\n"
+    text_md = render_markdown(metrics, title=title, figures=links)
+    md_path, json_path = out / f"{stem}.md", out / f"{stem}.json"
+    out.mkdir(parents=True, exist_ok=True)
+    _write_atomic(json_path, text_json)
+    _write_atomic(md_path, text_md)
+    return md_path, json_path

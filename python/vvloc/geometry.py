@@ -1,0 +1,77 @@
+"""Small SE(2) helpers for 3-DoF poses (DESIGN.md §3).
+
+A 3-DoF pose is an array ``(..., 3)`` of ``(x, y, yaw)``: metres and radians, yaw counter-clockwise
+positive about z. A pose ``T_a_b`` maps coordinates in frame ``b`` to frame ``a``:
+``p_a = R(yaw) · p_b + (x, y)``. World frame: x east, y north; vehicle frame: x forward, y left.
+
+All functions broadcast over leading dimensions, return float64 and wrap yaw to (−π, π].
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import numpy.typing as npt
+
+F64Array = npt.NDArray[np.float64]
+
+
+def wrap_angle(angle: npt.ArrayLike) -> F64Array:
+    """Wrap angles (radians) to the half-open interval (−π, π], elementwise.
+
+    ``wrap_angle(π) == π`` and ``wrap_angle(−π) == π``; ``wrap_angle(3π/2) == −π/2``.
+    """
+    a = np.asarray(angle, dtype=np.float64)
+    wrapped = np.mod(a + np.pi, 2.0 * np.pi) - np.pi  # in [−π, π)
+    return np.where(wrapped <= -np.pi, wrapped + 2.0 * np.pi, wrapped)
+
+
+def _as_pose(pose: npt.ArrayLike, name: str) -> F64Array:
+    arr = np.asarray(pose, dtype=np.float64)
+    if arr.ndim == 0 or arr.shape[-1] != 3:
+        raise ValueError(f"{name}: expected poses of shape (..., 3) = (x, y, yaw), got {arr.shape}")
+    return arr
+
+
+def compose(a: npt.ArrayLike, b: npt.ArrayLike) -> F64Array:
+    """Compose poses: ``T_w_c = T_w_b · T_b_c`` given ``a = T_w_b`` and ``b = T_b_c``.
+
+    Args:
+        a: ``(..., 3)`` pose of frame b in frame w.
+        b: ``(..., 3)`` pose of frame c in frame b (broadcast against ``a``).
+
+    Returns:
+        ``(..., 3)`` pose of frame c in frame w: translation ``t_a + R(yaw_a) · t_b``,
+        yaw ``wrap(yaw_a + yaw_b)``.
+    """
+    a = _as_pose(a, "a")
+    b = _as_pose(b, "b")
+    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
+    x = a[..., 0] + c * b[..., 0] - s * b[..., 1]
+    y = a[..., 1] + s * b[..., 0] + c * b[..., 1]
+    return np.stack([x, y, wrap_angle(a[..., 2] + b[..., 2])], axis=-1)
+
+
+def inverse(pose: npt.ArrayLike) -> F64Array:
+    """Invert poses: given ``T_a_b`` return ``T_b_a`` (``(..., 3)`` → ``(..., 3)``).
+
+    Translation ``−R(−yaw) · t``, yaw ``wrap(−yaw)``.
+    """
+    p = _as_pose(pose, "pose")
+    c, s = np.cos(p[..., 2]), np.sin(p[..., 2])
+    x = -(c * p[..., 0] + s * p[..., 1])
+    y = -(-s * p[..., 0] + c * p[..., 1])
+    return np.stack([x, y, wrap_angle(-p[..., 2])], axis=-1)
+
+
+def relative(source: npt.ArrayLike, target: npt.ArrayLike) -> F64Array:
+    """Relative pose ξ_{s→t} = T_world_s⁻¹ · T_world_t (DESIGN.md §3).
+
+    Args:
+        source: ``(..., 3)`` world pose of the source frame s.
+        target: ``(..., 3)`` world pose of the target frame t (broadcast against ``source``).
+
+    Returns:
+        ``(..., 3)``: the target origin expressed in source coordinates (metres) and
+        ``wrap(yaw_t − yaw_s)`` (radians), so that ``compose(source, ξ) == target``.
+    """
+    return compose(inverse(source), target)

@@ -1,0 +1,550 @@
+"""Evaluation metrics, SE(2) helpers, report and plots on hand-made cases."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from vvloc import evaluate as ev
+from vvloc import geometry as geo
+from vvloc import viz
+
+DEG = math.pi / 180.0
+
+
+# ----------------------------------------------------------------------------- geometry
+
+
+def test_wrap_angle_half_open_interval():
+    got = geo.wrap_angle([0.0, math.pi, -math.pi, 1.5 * math.pi, -1.5 * math.pi, 7 * math.pi])
+    np.testing.assert_allclose(got, [0.0, math.pi, math.pi, -0.5 * math.pi, 0.5 * math.pi, math.pi])
+    assert ((got > -math.pi) & (got <= math.pi)).all()
+
+
+def test_relative_pose_matches_design_convention():
+    # Source faces north at (1, 0); target is 1 m north of it, facing north-west.
+    source = np.array([1.0, 0.0, math.pi / 2])
+    target = np.array([1.0, 1.0, 3 * math.pi / 4])
+    xi = geo.relative(source, target)
+    # Target origin is 1 m straight ahead (vehicle +x), yaw difference +45°.
+    np.testing.assert_allclose(xi, [1.0, 0.0, math.pi / 4], atol=1e-12)
+    np.testing.assert_allclose(geo.compose(source, xi), target, atol=1e-12)
+
+
+def test_relative_yaw_is_wrapped():
+    xi = geo.relative([0.0, 0.0, 179 * DEG], [0.0, 0.0, -179 * DEG])
+    np.testing.assert_allclose(xi[2], 2 * DEG, atol=1e-12)
+
+
+def test_compose_inverse_roundtrip_batched():
+    rng = np.random.default_rng(0)
+    poses = np.column_stack([rng.normal(size=(20, 2)) * 50, rng.uniform(-np.pi, np.pi, 20)])
+    others = np.column_stack([rng.normal(size=(20, 2)) * 50, rng.uniform(-np.pi, np.pi, 20)])
+    np.testing.assert_allclose(geo.compose(poses, geo.inverse(poses)), 0.0, atol=1e-9)
+    np.testing.assert_allclose(geo.compose(poses, geo.relative(poses, others)), others, atol=1e-9)
+
+
+def test_geometry_rejects_bad_shapes():
+    with pytest.raises(ValueError, match="pose"):
+        geo.inverse(np.zeros((4, 2)))
+
+
+# ----------------------------------------------------------------------------- Recall@N
+
+
+def _line_map(n: int = 10, spacing: float = 10.0) -> np.ndarray:
+    return np.column_stack([np.arange(n) * spacing, np.zeros(n)])
+
+
+def test_perfect_retrieval_gives_recall_one():
+    db = _line_map()
+    queries = db + np.array([0.5, 0.5])
+    retrieved = np.column_stack([np.arange(10), (np.arange(10) + 1) % 10])
+    res = ev.recall_at_n(queries, db, retrieved, top_n=(1, 2))
+    assert res.num_kept == res.num_queries == 10
+    np.testing.assert_array_equal(res.recall, np.ones((2, 4)))
+    assert res.at(1, 2.0) == 1.0
+
+
+def test_query_without_map_frame_within_2m_is_excluded():
+    db = _line_map()
+    queries = np.array([[0.0, 1.0], [10.0, 0.0], [45.0, 0.0], [20.0, 2.5]])
+    retrieved = np.array([[0], [1], [4], [2]])
+    res = ev.recall_at_n(queries, db, retrieved, top_n=(1,))
+    # Query 2 is 5 m from any map frame, query 3 is 2.5 m away: both left out.
+    np.testing.assert_array_equal(res.kept, [True, True, False, False])
+    assert res.num_kept == 2
+    np.testing.assert_array_equal(res.recall, np.ones((1, 4)))
+    # The excluded query is never "correct", even though its top-1 is within 5 m.
+    np.testing.assert_array_equal(res.correct(1, 5.0), [True, True, False, False])
+
+
+def test_recall_counts_rank_and_radius():
+    db = np.array([[0.0, 0.0], [3.0, 0.0], [8.0, 0.0], [100.0, 0.0], [15.0, 0.0]])
+    q = np.array([[0.0, 0.0]])
+    # Ranked: 100 m, 15 m, 8 m, 3 m, exact.
+    res = ev.recall_at_n(q, db, [[3, 4, 2, 1, 0]], top_n=(1, 2, 3, 4, 5))
+    expected = {  # (N, radius) -> counted
+        (1, 20.0): 0,
+        (2, 20.0): 1,
+        (2, 10.0): 0,
+        (3, 10.0): 1,
+        (3, 5.0): 0,
+        (4, 5.0): 1,
+        (4, 2.0): 0,
+        (5, 2.0): 1,
+    }
+    for (n, r), want in expected.items():
+        assert res.at(n, r) == want, (n, r)
+    np.testing.assert_array_equal(res.first_hit, [[4, 3, 2, 1]])
+    ns, curve = res.curve(5.0)
+    np.testing.assert_array_equal(ns, [1, 2, 3, 4, 5])
+    np.testing.assert_array_equal(curve, [0, 0, 0, 1, 1])
+
+
+def test_recall_respects_floors_and_empty_slots():
+    db = np.array([[0.0, 0.0], [0.0, 0.0], [50.0, 0.0]])
+    db_floors = np.array([0, 1, 1])
+    q = np.array([[0.5, 0.0], [50.0, 0.5]])
+    q_floors = np.array([1, 0])  # query 1 is on a floor where nothing is near: excluded
+    res = ev.recall_at_n(
+        q, db, [[0, -1], [2, 1]], query_floors=q_floors, db_floors=db_floors, top_n=(1, 2)
+    )
+    np.testing.assert_array_equal(res.kept, [True, False])
+    # Query 0's top-1 is right above it but on the other floor; slot 2 is empty.
+    assert res.at(1, 20.0) == 0.0
+    assert res.at(2, 20.0) == 0.0
+    res2 = ev.recall_at_n(
+        q, db, [[0, 1], [2, 1]], query_floors=q_floors, db_floors=db_floors, top_n=(1, 2)
+    )
+    assert res2.at(1, 2.0) == 0.0
+    assert res2.at(2, 2.0) == 1.0
+
+
+def test_recall_with_no_kept_query_is_nan_and_summary_is_json():
+    res = ev.recall_at_n([[100.0, 0.0]], [[0.0, 0.0]], [[0]], top_n=(1,))
+    assert res.num_kept == 0
+    assert np.isnan(res.recall).all()
+    d = ev.to_jsonable(res)
+    assert d["recall"]["1"]["2"] is None
+    assert json.loads(json.dumps(d)) == d
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "err", "match"),
+    [
+        ({"retrieved": [[0, 9]]}, ValueError, "retrieved"),
+        ({"retrieved": [[0.0, 1.0]]}, TypeError, "retrieved"),
+        ({"query_positions": [[0.0, 0.0, 0.0]]}, ValueError, "query_positions"),
+        ({"top_n": (1, 3)}, ValueError, "top_n"),
+        ({"radii": (2.0, -1.0)}, ValueError, "radii"),
+        ({"query_floors": [0]}, ValueError, "db_floors"),
+        ({"db_positions": [[0.0, np.nan], [1.0, 0.0]]}, ValueError, "db_positions"),
+    ],
+)
+def test_recall_rejects_bad_input(kwargs, err, match):
+    args = {"query_positions": [[0.0, 0.0]], "db_positions": [[0.0, 0.0], [1.0, 0.0]]}
+    args |= {"retrieved": [[0, 1]], "top_n": (1,)}
+    args.update(kwargs)
+    with pytest.raises(err, match=match):
+        ev.recall_at_n(**args)
+
+
+def test_robustness_tabulates_each_perturbation_in_order():
+    db = _line_map(5)
+    q = db + np.array([1.0, 0.0])
+    good = np.arange(5)[:, None]
+    bad = ((np.arange(5) + 2) % 5)[:, None]
+    out = ev.evaluate_robustness(q, db, {"none": good, "fog": bad}, top_n=(1,))
+    assert list(out) == ["none", "fog"]
+    assert out["none"].at(1, 2.0) == 1.0
+    assert out["fog"].at(1, 2.0) == 0.0
+    assert out["fog"].at(1, 20.0) == pytest.approx(0.6)  # 3 of 5 land 19 m away, 2 wrap 31 m
+
+
+# ----------------------------------------------------------------------------- AOE / APE
+
+
+def test_yaw_error_wraps_around():
+    yaw, pos = ev.pose_errors([[3.0, 4.0, 179 * DEG]], [[0.0, 0.0, -179 * DEG]])
+    np.testing.assert_allclose(yaw, [2.0])
+    np.testing.assert_allclose(pos, [5.0])
+
+
+def test_90_degree_error_lands_in_the_top_percentile():
+    gt = np.zeros((4, 3))
+    est = np.zeros((4, 3))
+    est[:, 2] = np.array([1.0, 2.0, 3.0, 90.0]) * DEG
+    est[:, 0] = [0.1, 0.2, 0.3, 10.0]
+    acc = ev.pose_accuracy(est, gt, np.ones(4, dtype=bool))
+    row = acc["all"]
+    assert row["count"] == 4
+    assert [row[f"AOE@{p}"] for p in (25, 50, 75)] == pytest.approx([1.0, 2.0, 3.0])
+    assert row["AOE@95"] == pytest.approx(90.0)
+    assert [row[f"APE@{p}"] for p in (25, 50, 75, 95)] == pytest.approx([0.1, 0.2, 0.3, 10.0])
+
+
+def test_error_percentiles_inverted_cdf_and_empty():
+    np.testing.assert_array_equal(ev.error_percentiles([0, 0, 0, 90], (50, 75, 95)), [0, 0, 90])
+    assert np.isnan(ev.error_percentiles([], (50,))).all()
+    with pytest.raises(ValueError, match="percentiles"):
+        ev.error_percentiles([1.0], (150,))
+
+
+def test_pose_accuracy_subsets_true_revisit_and_all():
+    gt = np.zeros((3, 3))
+    est = np.array([[1.0, 0.0, 10 * DEG], [0.0, 2.0, 20 * DEG], [30.0, 0.0, 170 * DEG]])
+    correct = np.array([True, True, False])
+    kept = np.array([True, True, True])
+    acc = ev.pose_accuracy(est, gt, correct, kept=kept, percentiles=(50, 100))
+    assert acc["true_revisit"]["count"] == 2
+    assert acc["true_revisit"]["AOE@100"] == pytest.approx(20.0)
+    assert acc["true_revisit"]["APE@50"] == pytest.approx(1.0)
+    assert acc["all"]["count"] == 3
+    assert acc["all"]["AOE@100"] == pytest.approx(170.0)
+    assert acc["all"]["APE@100"] == pytest.approx(30.0)
+    with pytest.raises(TypeError, match="correct"):
+        ev.pose_accuracy(est, gt, np.ones(3))
+
+
+# ----------------------------------------------------------------------------- loop closure
+
+
+def _tiny_loop_set():
+    db = np.array([[0.0, 0.0], [10.0, 0.0], [20.0, 0.0], [30.0, 0.0]])
+    q = np.array([[0.0, 1.0], [10.0, 0.5], [50.0, 0.0], [20.0, 1.5]])
+    pairs = np.array([[0, 0], [1, 2], [1, 1], [2, 3], [3, 2]])
+    dist = np.array([0.1, 0.2, 0.3, 0.4, 0.9])
+    return pairs, dist, q, db
+
+
+def test_precision_recall_f1_on_a_tiny_set():
+    curve = ev.loop_closure_curve(*_tiny_loop_set())
+    assert curve.num_positive_queries == 3  # query 2 has no map frame within 2 m
+    at = curve.at(0.35)
+    assert at["accepted"] == 3
+    assert at["precision"] == pytest.approx(2 / 3)
+    assert at["recall"] == pytest.approx(2 / 3)
+    assert at["f1"] == pytest.approx(2 / 3)
+    assert np.isnan(at["cfer"])  # no floors given
+    s = curve.sweep()
+    np.testing.assert_allclose(s["threshold"], [0.1, 0.2, 0.3, 0.4, 0.9])
+    np.testing.assert_allclose(s["precision"], [1, 1 / 2, 2 / 3, 1 / 2, 3 / 5])
+    np.testing.assert_allclose(s["recall"], [1 / 3, 1 / 3, 2 / 3, 2 / 3, 1])
+    np.testing.assert_allclose(s["f1"], [0.5, 0.4, 2 / 3, 4 / 7, 0.75])
+    best = curve.best_f1()
+    assert best["f1"] == pytest.approx(0.75)
+    assert best["threshold"] == pytest.approx(0.9)
+    nothing = curve.at(0.05)
+    assert nothing["accepted"] == 0 and np.isnan(nothing["precision"])
+    assert nothing["recall"] == 0.0
+
+
+def test_cfer_counts_accepted_pairs_across_floors():
+    db = np.array([[0.0, 0.0], [0.0, 0.0]])
+    q = np.array([[0.0, 0.5], [0.0, 0.5]])
+    pairs = np.array([[0, 0], [0, 1], [1, 1], [1, 0]])
+    dist = np.array([0.1, 0.2, 0.3, 0.5])
+    curve = ev.loop_closure_curve(pairs, dist, q, db, query_floors=[0, 1], db_floors=[0, 1])
+    at = curve.at(0.3)
+    assert at["cfer"] == pytest.approx(1 / 3)
+    assert at["precision"] == pytest.approx(2 / 3)
+    assert at["recall"] == 1.0
+    assert curve.at(0.1)["cfer"] == 0.0
+    np.testing.assert_allclose(curve.sweep()["cfer"], [0, 1 / 2, 1 / 3, 1 / 2])
+
+
+def test_temporal_window_and_causality_define_the_ground_truth():
+    pos = np.column_stack([np.r_[np.arange(10.0), 0.5], np.zeros(11)])
+    t = np.arange(11.0)
+    pairs = np.array([[10, 0], [1, 2]])  # the second pair lies inside the window: ignored
+    dist = np.array([0.2, 0.05])
+    kw = {"query_times": t, "db_times": t, "time_window": 3.0}
+    causal = ev.loop_closure_curve(pairs, dist, pos, pos, causal=True, **kw)
+    assert causal.num_positive_queries == 1
+    assert causal.distances.tolist() == [0.2]
+    at = causal.at(1.0)
+    assert at["precision"] == 1.0 and at["recall"] == 1.0
+    both = ev.loop_closure_curve(pairs, dist, pos, pos, **kw)
+    assert both.num_positive_queries == 4  # frames 0, 1, 2 are revisited later by frame 10
+    assert both.at(1.0)["recall"] == pytest.approx(1 / 4)
+    summary = ev.to_jsonable(both.summary(1.0))
+    assert json.loads(json.dumps(summary)) == summary
+
+
+def test_loop_closure_rejects_bad_input():
+    pairs, dist, q, db = _tiny_loop_set()
+    with pytest.raises(ValueError, match="distances"):
+        ev.loop_closure_curve(pairs, dist[:2], q, db)
+    with pytest.raises(ValueError, match="pairs"):
+        ev.loop_closure_curve(pairs + 10, dist, q, db)
+    with pytest.raises(ValueError, match="times"):
+        ev.loop_closure_curve(pairs, dist, q, db, query_times=np.arange(4.0))
+
+
+def test_loop_closure_without_candidates():
+    _, _, q, db = _tiny_loop_set()
+    curve = ev.loop_closure_curve(np.zeros((0, 2), np.int64), np.zeros(0), q, db)
+    assert curve.sweep()["f1"].size == 0
+    assert np.isnan(curve.best_f1()["f1"])
+
+
+# ----------------------------------------------------------------------------- loop pose
+
+
+def _loop_pose_case():
+    gt = np.zeros((4, 3))
+    est = np.zeros((4, 3))
+    est[:, 2] = np.array([1.0, 4.0, 6.0, 10.0]) * DEG
+    est[:, 0] = [0.5, 1.9, 2.0, 3.0]
+    costs = np.array([0.1, 0.5, 0.75, 0.9])
+    return est, gt, costs
+
+
+def test_rr_thresholds_and_means():
+    est, gt, costs = _loop_pose_case()
+    out = ev.loop_pose_metrics(est, gt, costs)
+    a = out["all"]
+    assert a["count"] == 4
+    assert a["mRRE_deg"] == pytest.approx(5.25)
+    assert a["mRTE_m"] == pytest.approx(1.85)
+    assert a["RR_rot"] == 0.5  # 6° and 10° fail
+    assert a["RR_trans"] == 0.5  # 2.0 m is not < 2 m
+
+
+def test_confidence_filter_keeps_costs_strictly_below_threshold():
+    est, gt, costs = _loop_pose_case()
+    c = ev.loop_pose_metrics(est, gt, costs)["confident"]
+    assert c["count"] == 2 and c["share"] == 0.5  # the pair at exactly 0.75 is dropped
+    assert c["mRRE_deg"] == pytest.approx(2.5)
+    assert c["mRTE_m"] == pytest.approx(1.2)
+    assert c["RR_rot"] == 1.0 and c["RR_trans"] == 1.0
+    assert "confident" not in ev.loop_pose_metrics(est, gt)
+
+
+def test_confidence_curve():
+    est, gt, costs = _loop_pose_case()
+    rre, rte = ev.relative_pose_errors(est, gt)
+    order = [3, 0, 2, 1]  # shuffled input: the curve sorts by cost
+    curve = ev.confidence_curve(costs[order], rre[order], rte[order])
+    np.testing.assert_allclose(curve["threshold"], costs)
+    np.testing.assert_allclose(curve["kept_share"], [0.25, 0.5, 0.75, 1.0])
+    np.testing.assert_allclose(curve["mRRE_deg"], [1.0, 2.5, 11 / 3, 5.25])
+    np.testing.assert_allclose(curve["RR_trans"], [1.0, 1.0, 2 / 3, 0.5])
+
+
+def test_relative_pose_errors_consistent_with_geometry():
+    src = np.array([[5.0, 5.0, 170 * DEG], [0.0, 0.0, 0.0]])
+    tgt = np.array([[6.0, 4.0, -170 * DEG], [3.0, 4.0, 90 * DEG]])
+    gt = geo.relative(src, tgt)
+    est = gt + np.array([[0.0, 0.0, 0.0], [0.3, -0.4, 0.0]])
+    est[0, 2] = geo.wrap_angle(gt[0, 2] + 179 * DEG + 180 * DEG)  # −1° after wrapping
+    rre, rte = ev.relative_pose_errors(est, gt)
+    np.testing.assert_allclose(rre, [1.0, 0.0], atol=1e-9)
+    np.testing.assert_allclose(rte, [0.0, 0.5], atol=1e-12)
+
+
+# ----------------------------------------------------------------------------- latency, report
+
+
+def test_latency_summary():
+    out = ev.latency_summary({"encoder": [4.0, 1.0, 3.0, 2.0], "retrieval": []})
+    assert out["encoder"] == {"count": 4, "mean_ms": 2.5, "median_ms": 2.0, "p95_ms": 4.0}
+    assert out["retrieval"]["count"] == 0 and np.isnan(out["retrieval"]["mean_ms"])
+
+
+def _full_metrics():
+    db = _line_map()
+    q = db + np.array([0.5, 0.5])
+    q[3] = [300.0, 0.0]
+    retrieved = np.column_stack([np.arange(10), (np.arange(10) + 1) % 10])
+    reranked = retrieved.copy()
+    retrieved[0] = [1, 0]
+    g = ev.recall_at_n(q, db, retrieved, top_n=(1, 2))
+    ml = ev.recall_at_n(q, db, reranked, top_n=(1, 2))
+    gt = np.column_stack([q, np.zeros(10)])
+    est = gt + np.linspace(0, 0.2, 30).reshape(10, 3)
+    est_l, gt_l, costs = _loop_pose_case()
+    curve = ev.loop_closure_curve(*_tiny_loop_set())
+    return {
+        "meta": {"checkpoint": "runs/x", "hardware": "test"},
+        "global_localization": {"VVLoc-G": g, "VVLoc-ML": ml},
+        "pose_accuracy": {"VVLoc-ML": ev.pose_accuracy(est, gt, ml.correct(), kept=ml.kept)},
+        "loop_closure": {"s1": curve.summary(0.35)},
+        "loop_pose": {"s1": ev.loop_pose_metrics(est_l, gt_l, costs)},
+        "robustness": ev.evaluate_robustness(
+            q, db, {"none": reranked, "fog": retrieved}, top_n=(1, 2)
+        ),
+        "latency": ev.latency_summary({"encoder": [10.0, 12.0], "retrieval": [0.5, 0.7]}),
+        "notes": ["hand-made data"],
+    }
+
+
+def test_write_report_markdown_and_json(tmp_path):
+    metrics = _full_metrics()
+    fig = viz.plot_recall_curves(
+        tmp_path / "fig" / "recall.png", {"G": (np.arange(1, 4), [0.5, 0.7, 0.9])}
+    )
+    md, js = ev.write_report(tmp_path, metrics, figures={"Recall@N": fig})
+    assert md.exists() and js.exists()
+    data = json.loads(js.read_text())
+    assert data == json.loads(
+        json.dumps(ev.to_jsonable(metrics) | {"figures": {"Recall@N": "fig/recall.png"}})
+    )
+    assert data["global_localization"]["VVLoc-G"]["num_kept"] == 9
+    assert data["global_localization"]["VVLoc-G"]["recall"]["1"]["2"] == pytest.approx(8 / 9)
+    assert data["loop_closure"]["s1"]["at_threshold"]["cfer"] is None
+    text = md.read_text()
+    for heading in (
+        "Global localization",
+        "AOE@50% (°)",
+        "Precision@2m (%)",
+        "mRRE (°)",
+        "Robustness",
+        "Latency per stage",
+        "![Recall@N](fig/recall.png)",
+    ):
+        assert heading in text, heading
+    assert "| VVLoc-G | 9/10 | 88.9 | 88.9 | 100.0 | 100.0 | 100.0 |" in text
+    assert "| VVLoc-ML | 9/10 | 100.0 |" in text
+    assert "| s1 | 0.350 | 3 | 66.7 | 66.7 | 0.667 | – | 0.750 | 0.900 |" in text
+    assert "| s1 | cost < 0.75 | 2 | 2.50 | 1.20 | 100.0 | 100.0 |" in text
+    assert not list(tmp_path.glob(".*.tmp"))
+
+
+def test_report_is_deterministic(tmp_path):
+    a, b = tmp_path / "a", tmp_path / "b"
+    for out in (a, b):
+        ev.write_report(out, _full_metrics())
+        viz.plot_trajectory(
+            out / "traj.png", _line_map(), _line_map() + 1.0, np.arange(10) % 2 == 0
+        )
+    for name in ("report.md", "report.json", "traj.png"):
+        assert (a / name).read_bytes() == (b / name).read_bytes(), name
+
+
+def test_write_report_rejects_unserialisable(tmp_path):
+    with pytest.raises(TypeError, match="JSON"):
+        ev.write_report(tmp_path / "out", {"meta": {"x": object()}})
+    assert list(tmp_path.iterdir()) == []
+
+
+# ----------------------------------------------------------------------------- plots
+
+
+def test_all_plots_are_written(tmp_path):
+    rng = np.random.default_rng(1)
+    db = np.column_stack([np.linspace(0, 100, 50), 10 * np.sin(np.linspace(0, 3, 50))])
+    q = db[::5] + rng.normal(scale=1.0, size=(10, 2))
+    correct = rng.random(10) > 0.3
+    kept = np.ones(10, dtype=bool)
+    kept[0] = False
+    res = ev.recall_at_n(q, db, np.argsort(rng.random((10, 50)), axis=1)[:, :5], top_n=(1, 5))
+    loop = ev.loop_closure_curve(*_tiny_loop_set())
+    est, gt, costs = _loop_pose_case()
+    rre, rte = ev.relative_pose_errors(est, gt)
+    hyp = np.stack(np.meshgrid(np.linspace(-3, 3, 7), np.linspace(-3, 3, 7)), -1).reshape(-1, 2)
+    paths = [
+        viz.plot_recall_curves(
+            tmp_path / "recall.png", {"G": res.curve(2.0), "ML": res.curve(5.0)}
+        ),
+        viz.plot_error_cdfs(tmp_path / "cdf.png", {"ML": rre, "empty": []}, {"ML": rte}),
+        viz.plot_precision_recall(tmp_path / "pr.png", {"s1": loop.sweep()}),
+        viz.plot_trajectory(
+            tmp_path / "traj.png",
+            db,
+            q,
+            correct,
+            kept=kept,
+            retrieved_positions=db[res.first_hit[:, 0].clip(0)],
+        ),
+        viz.plot_yaw_cost_curve(
+            tmp_path / "yaw.png",
+            1 - np.cos(np.linspace(0, 2 * np.pi, 120, endpoint=False) - 1.0),
+            estimated_yaw=1.0,
+            true_yaw=1.05,
+        ),
+        viz.plot_translation_costs(
+            tmp_path / "trans.svg",
+            hyp,
+            np.linalg.norm(hyp - [1.0, -0.5], axis=1),
+            estimate=[1.0, -0.5],
+            truth=[1.1, -0.4],
+        ),
+        viz.plot_confidence_curve(tmp_path / "conf.pdf", ev.confidence_curve(costs, rre, rte)),
+    ]
+    for p in paths:
+        assert p.exists() and p.stat().st_size > 1000, p
+    assert (tmp_path / "recall.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert (tmp_path / "trans.svg").read_text().lstrip().startswith("<?xml")
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(p.name for p in paths)
+
+
+def test_plot_rejects_bad_input_without_leaving_files(tmp_path):
+    with pytest.raises(ValueError, match="path"):
+        viz.plot_yaw_cost_curve(tmp_path / "yaw.jpeg", np.ones(8))
+    with pytest.raises(ValueError, match="costs"):
+        viz.plot_translation_costs(tmp_path / "t.png", np.zeros((3, 2)), np.zeros(4))
+    with pytest.raises(ValueError, match="correct"):
+        viz.plot_trajectory(tmp_path / "t.png", np.zeros((3, 2)), np.zeros((2, 2)), [True])
+    assert list(tmp_path.iterdir()) == []
+
+
+# ------------------------------------------------------------------------- vectorised vs literal
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_recall_matches_a_literal_loop(seed):
+    rng = np.random.default_rng(seed)
+    db = rng.uniform(0, 40, size=(30, 2))
+    q = rng.uniform(0, 40, size=(25, 2))
+    qf, df = rng.integers(0, 2, 25), rng.integers(0, 2, 30)
+    retrieved = np.argsort(rng.random((25, 30)), axis=1)[:, :6]
+    retrieved[rng.random((25, 6)) < 0.1] = -1
+    res = ev.recall_at_n(q, db, retrieved, query_floors=qf, db_floors=df, top_n=(1, 3, 6))
+    for i, n in enumerate((1, 3, 6)):
+        for j, r in enumerate(ev.DEFAULT_RADII):
+            kept = counted = 0
+            for a in range(25):
+                same = df == qf[a]
+                if not (np.linalg.norm(db[same] - q[a], axis=1) <= 2.0).any():
+                    continue
+                kept += 1
+                top = [b for b in retrieved[a, :n] if b >= 0]
+                counted += any(np.linalg.norm(db[b] - q[a]) <= r and df[b] == qf[a] for b in top)
+            assert res.num_kept == kept
+            want = counted / kept if kept else np.nan
+            np.testing.assert_allclose(res.recall[i, j], want, equal_nan=True)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_loop_sweep_matches_pointwise_definition(seed):
+    rng = np.random.default_rng(seed)
+    q = rng.uniform(0, 20, size=(15, 2))
+    db = rng.uniform(0, 20, size=(20, 2))
+    qf, df = rng.integers(0, 2, 15), rng.integers(0, 2, 20)
+    pairs = np.column_stack([rng.integers(0, 15, 40), rng.integers(0, 20, 40)])
+    dist = rng.integers(0, 10, 40) / 10.0  # ties on purpose
+    curve = ev.loop_closure_curve(pairs, dist, q, db, query_floors=qf, db_floors=df)
+    sweep = curve.sweep()
+    positive = {
+        a
+        for a in range(15)
+        for b in range(20)
+        if np.linalg.norm(q[a] - db[b]) <= 2 and qf[a] == df[b]
+    }
+    assert curve.num_positive_queries == len(positive)
+    for k, t in enumerate(sweep["threshold"]):
+        acc = dist <= t
+        true = np.array([np.linalg.norm(q[a] - db[b]) <= 2 and qf[a] == df[b] for a, b in pairs])
+        detected = {a for (a, _), ok in zip(pairs[acc], true[acc], strict=True) if ok}
+        assert sweep["precision"][k] == pytest.approx(true[acc].mean())
+        assert sweep["recall"][k] == pytest.approx(len(detected) / len(positive))
+        cross = np.array([qf[a] != df[b] for a, b in pairs[acc]])
+        assert sweep["cfer"][k] == pytest.approx(cross.mean())
+        at = curve.at(t)
+        for key in ("precision", "recall", "f1", "cfer"):
+            assert at[key] == pytest.approx(sweep[key][k])
