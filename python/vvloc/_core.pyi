@@ -1,16 +1,23 @@
 """Type stubs of the Rust extension ``vvloc._core`` (checked by ``python -m mypy.stubtest``)."""
 
+from typing import final
+
 import numpy as np
 import numpy.typing as npt
 
 __version__: str
 build_profile: str
 __all__ = [
+    "TranslationSearch",
     "__version__",
     "_reset_pool_after_fork",
     "build_profile",
+    "estimate_yaw",
     "get_num_threads",
+    "matching_cost",
+    "rerank",
     "set_num_threads",
+    "yaw_costs",
 ]
 
 def set_num_threads(n: int) -> None: ...
@@ -34,6 +41,7 @@ def rerank(
     npt.NDArray[np.int64], npt.NDArray[np.float64], npt.NDArray[np.float64], npt.NDArray[np.float64]
 ]: ...
 
+@final
 class TranslationSearch:
     def __new__(
         cls,

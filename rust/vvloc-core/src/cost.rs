@@ -23,12 +23,18 @@
 //!    from rows recomputed directly in f64 and re-minimised, so the reported shift and cost do
 //!    not suffer from fp32 cancellation.
 
+// Index loops over fixed lane counts are deliberate: they are what the compiler vectorises.
+#![allow(clippy::needless_range_loop)]
+
 use crate::error::{Error, Result};
 use crate::pose::wrap_angle;
 use ndarray::{Array2, ArrayView3};
 use rayon::prelude::*;
 use std::borrow::Cow;
 use std::f64::consts::PI;
+
+/// Checked pair batch: (P, T, C, src data, tgt data, whether tgt is shared by all pairs).
+type Pairs<'a> = (usize, usize, usize, Cow<'a, [f32]>, Cow<'a, [f32]>, bool);
 
 /// Entries whose Gram-derived squared distance is below this fraction of `‖u‖² + ‖z‖²` are
 /// recomputed directly in f64 (fp32 cancellation would make their square roots inaccurate).
@@ -73,7 +79,7 @@ fn check_finite(x: &[f32], arg: &'static str) -> Result<()> {
 fn check_pairs<'a>(
     src: &'a ArrayView3<'a, f32>,
     tgt: &'a ArrayView3<'a, f32>,
-) -> Result<(usize, usize, usize, Cow<'a, [f32]>, Cow<'a, [f32]>, bool)> {
+) -> Result<Pairs<'a>> {
     let (p, t, c) = src.dim();
     let (pt, tt, ct) = tgt.dim();
     if p == 0 {
@@ -632,6 +638,10 @@ fn estimate_impl<G: Gram>(ds: &[f32], dt: &[f32], t: usize, c: usize, g: &G) -> 
     let margin = |b: f64| POLISH_MARGIN * (1.0 + b.abs());
     let mut cands: Vec<(usize, f64)> = Vec::new(); // (interval k, approximate minimum)
     let (mut a64, mut b64, mut e64) = (vec![0.0; t], vec![0.0; t], vec![0.0; t]);
+    // Pass 1 (vectorised f32): end slopes, plus value and slope where the end tangents meet;
+    // the three tangents give a lower bound of the interval's minimum, the value an upper bound.
+    let mut open: Vec<(f64, usize)> = Vec::new(); // (lower bound, interval k)
+    let mut r = vec![0.0f32; t];
     for k in 0..t {
         let k1 = (k + 1) % t;
         let (c0, c1) = (cv.cint[k], cv.cint[k1]);
@@ -649,20 +659,57 @@ fn estimate_impl<G: Gram>(ds: &[f32], dt: &[f32], t: usize, c: usize, g: &G) -> 
         }
         let wx = ((c1 - d1 - c0) / (d0 - d1)).clamp(0.0, 1.0);
         if c0 + d0 * wx > best + margin(best) {
-            continue; // the tangents' lower bound cannot beat the best
+            continue; // the end tangents' lower bound cannot beat the best
         }
+        let w = wx as f32;
+        for (i, ri) in r.iter_mut().enumerate() {
+            *ri = ((1.0 - w) * da[i] + w * db[i] - w * (1.0 - w) * er[i])
+                .max(0.0)
+                .sqrt();
+        }
+        let gx = lane_sum(t, |i| r[i]) / t as f64;
+        let sx = lane_sum(t, |i| {
+            if r[i] > 0.0 {
+                (db[i] - da[i] - er[i] + 2.0 * w * er[i]) / r[i]
+            } else {
+                0.0
+            }
+        }) * inv_2t;
+        // Lower envelope of the tangents at 0, wx, 1 (each a lower bound of a convex function).
+        let lb = if sx > 0.0 {
+            let wi = ((gx - sx * wx) - c0) / (d0 - sx); // tangent at 0 meets tangent at wx
+            c0 + d0 * wi.clamp(0.0, wx)
+        } else {
+            let wi = ((c1 - d1) - (gx - sx * wx)) / (sx - d1); // tangent at wx meets tangent at 1
+            c1 + d1 * (wi.clamp(wx, 1.0) - 1.0)
+        };
+        open.push((lb.min(gx), k));
+    }
+    // Pass 2: minimise the surviving intervals, most promising first.
+    open.sort_by(|x, y| x.0.total_cmp(&y.0).then(x.1.cmp(&y.1)));
+    for &(lb, k) in &open {
+        if lb > best + margin(best) {
+            break; // sorted: no later interval can beat the best either
+        }
+        let k1 = (k + 1) % t;
+        let (da, db) = (&cv.dg[k * t..(k + 1) * t], &cv.dg[k1 * t..(k1 + 1) * t]);
         for i in 0..t {
             a64[i] = da[i] as f64;
             b64[i] = db[i] as f64;
             e64[i] = e[(i + t - k) % t];
         }
-        let (_, v) = minimise_interval(&a64, &b64, &e64, c0, c1);
+        let (_, v) = minimise_interval(&a64, &b64, &e64, cv.cint[k], cv.cint[k1]);
         best = best.min(v);
         cands.push((k, v));
     }
 
     // Exact polish: the intervals around every near-best integer shift and every near-best
     // interior candidate, from rows recomputed directly in f64.
+    let best = cands
+        .iter()
+        .map(|c| c.1)
+        .chain(cv.cint.iter().copied())
+        .fold(f64::INFINITY, f64::min);
     let mut polish: Vec<usize> = Vec::new();
     for (k, &v) in cv.cint.iter().enumerate() {
         if v <= best + margin(best) {
