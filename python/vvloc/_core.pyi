@@ -1,29 +1,30 @@
 """Type stubs of the Rust extension ``vvloc._core`` (checked by ``python -m mypy.stubtest``)."""
 
+from typing import final
+
 import numpy as np
+import numpy.typing as npt
 from numpy.typing import NDArray
 
 __all__ = [
+    "TranslationSearch",
     "__version__",
     "_reset_pool_after_fork",
     "bev_pad",
     "build_profile",
+    "estimate_yaw",
     "get_num_threads",
+    "matching_cost",
     "pad_polar",
     "polar_sample",
+    "rerank",
     "roll_interp",
     "set_num_threads",
+    "yaw_costs",
 ]
 
 __version__: str
 build_profile: str
-__all__ = [
-    "__version__",
-    "_reset_pool_after_fork",
-    "build_profile",
-    "get_num_threads",
-    "set_num_threads",
-]
 
 def set_num_threads(n: int) -> None: ...
 def get_num_threads() -> int: ...
@@ -44,3 +45,47 @@ def pad_polar(
     num_radii: int,
     grid_size: float,
 ) -> NDArray[np.float32]: ...
+
+# --- matching kernels ---------------------------------------------------------------------------
+
+def matching_cost(
+    a: npt.NDArray[np.float32], b: npt.NDArray[np.float32]
+) -> npt.NDArray[np.float64]: ...
+def yaw_costs(
+    src: npt.NDArray[np.float32], tgt: npt.NDArray[np.float32]
+) -> npt.NDArray[np.float64]: ...
+def estimate_yaw(
+    src: npt.NDArray[np.float32], tgt: npt.NDArray[np.float32]
+) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64], npt.NDArray[np.float64]]: ...
+def rerank(
+    src: npt.NDArray[np.float32], tgt: npt.NDArray[np.float32]
+) -> tuple[
+    npt.NDArray[np.int64], npt.NDArray[np.float64], npt.NDArray[np.float64], npt.NDArray[np.float64]
+]: ...
+
+@final
+class TranslationSearch:
+    def __new__(
+        cls,
+        half_range: float,
+        step: float,
+        fine_samples: int,
+        stages: int,
+        shrink: float,
+        seed: int,
+    ) -> TranslationSearch: ...
+    def proposals(self) -> npt.NDArray[np.float64]: ...
+    def report(self, costs: npt.NDArray[np.float64], yaws: npt.NDArray[np.float64]) -> None: ...
+    @property
+    def done(self) -> bool: ...
+    @property
+    def stage(self) -> int: ...
+    def best(self) -> tuple[float, float, float, float] | None: ...
+    def history(
+        self,
+    ) -> tuple[
+        npt.NDArray[np.float64],
+        npt.NDArray[np.float64],
+        npt.NDArray[np.float64],
+        npt.NDArray[np.int64],
+    ]: ...

@@ -9,10 +9,13 @@ radians, lengths in metres, BEVs are channels-last (H, W, C) with row i ↔ x, c
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Any, Literal, NamedTuple
 
 import numpy as np
 import numpy.typing as npt
+
+from vvloc import _core
+from vvloc.reference import matching as ref_matching
 
 Backend = Literal["rust", "reference"]
 F32Array = npt.NDArray[np.float32]
@@ -222,3 +225,212 @@ def pad_polar(
 
 
 # --- matching kernels (matching_cost, yaw_costs, estimate_yaw, rerank, TranslationSearch) ----
+
+
+class YawEstimate(NamedTuple):
+    """Per-pair yaw estimates: ``shift`` s* ∈ [0, T) bins, ``yaw`` φ̂ = 2π·s*/T wrapped to
+    (−π, π] radians, ``cost`` c(s*); each (P,) float64."""
+
+    shift: npt.NDArray[np.float64]
+    yaw: npt.NDArray[np.float64]
+    cost: npt.NDArray[np.float64]
+
+
+class Rerank(NamedTuple):
+    """Re-ranking of K candidates: ``order`` (K,) int64 (cost ascending, ties by lower index);
+    ``cost``, ``yaw`` (radians), ``shift`` (bins), each (K,) float64 in *input* order."""
+
+    order: npt.NDArray[np.int64]
+    cost: npt.NDArray[np.float64]
+    yaw: npt.NDArray[np.float64]
+    shift: npt.NDArray[np.float64]
+
+
+class SearchHypothesis(NamedTuple):
+    """One hypothesis of the translation search: metres, metres, radians, cost."""
+
+    x: float
+    y: float
+    yaw: float
+    cost: float
+
+
+class SearchHistory(NamedTuple):
+    """Every evaluated hypothesis: ``xy`` (M, 2) metres, ``yaw`` (M,) radians, ``cost`` (M,),
+    ``stage`` (M,) int64."""
+
+    xy: npt.NDArray[np.float64]
+    yaw: npt.NDArray[np.float64]
+    cost: npt.NDArray[np.float64]
+    stage: npt.NDArray[np.int64]
+
+
+def _f64_vector(x: Any, name: str, n: int) -> npt.NDArray[np.float64]:
+    """Validate a finite real vector of length ``n`` and return it as C-contiguous float64."""
+    if hasattr(x, "detach") and hasattr(x, "cpu"):
+        x = x.detach().cpu().numpy()
+    arr = np.asarray(x)
+    if arr.dtype == object or not (
+        np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)
+    ):
+        raise TypeError(f"{name}: expected a real-valued array ({n},), got dtype {arr.dtype}")
+    if arr.shape != (n,):
+        raise ValueError(f"{name}: expected shape ({n},), got {arr.shape}")
+    out = np.ascontiguousarray(arr, dtype=np.float64)
+    if not np.isfinite(out).all():
+        raise ValueError(f"{name}: contains non-finite values (NaN or inf)")
+    return out
+
+
+def _pairs(src: Any, tgt: Any, *, shared_ok: bool = True) -> tuple[F32Array, F32Array]:
+    """Validate descriptor pairs: ``src`` (P, T, C); ``tgt`` (P, T, C), or (1, T, C) / (T, C)
+    shared by every pair when ``shared_ok``. Returns both as 3-D C-contiguous float32."""
+    s = _as_f32(src, "src", 3, "(P, T, C)")
+    t = _as_f32(tgt, "tgt", (2, 3) if shared_ok else 3, "(P, T, C)")
+    if t.ndim == 2:
+        t = t[None]
+    p, nt, c = s.shape
+    if p == 0:
+        raise ValueError(f"src: expected a non-empty batch (P, T, C) with P >= 1, got {s.shape}")
+    if nt < 2:
+        raise ValueError(f"src: expected (P, T, C) with T >= 2 angle bins, got {s.shape}")
+    if c == 0:
+        raise ValueError(f"src: expected (P, T, C) with C >= 1 channels, got {s.shape}")
+    if t.shape[1:] != (nt, c) or t.shape[0] not in ((p, 1) if shared_ok else (p,)):
+        want = f"({p}, {nt}, {c})" + (f", (1, {nt}, {c}) or ({nt}, {c})" if shared_ok else "")
+        raise ValueError(f"tgt: expected shape {want} to match src, got {t.shape}")
+    return s, t
+
+
+def matching_cost(a: Any, b: Any, *, backend: Backend = "rust") -> npt.NDArray[np.float64]:
+    """Matching cost ``δ(A, B) = (1/T)·Σᵢ ‖Aᵢ − Bᵢ‖₂`` (no shift) of ``a``, ``b`` (..., T, C)
+    float → (...) float64. Leading dimensions must be equal; T, C ≥ 1."""
+    _check_backend(backend)
+    x = _as_f32(a, "a", None, "(..., T, C)")
+    y = _as_f32(b, "b", None, "(..., T, C)")
+    if x.ndim < 2 or 0 in x.shape:
+        raise ValueError(f"a: expected a non-empty array (..., T, C), got shape {x.shape}")
+    if y.shape != x.shape:
+        raise ValueError(f"b: expected shape {x.shape} like a, got {y.shape}")
+    lead, (t, c) = x.shape[:-2], x.shape[-2:]
+    if backend == "reference":
+        return np.asarray(ref_matching.matching_cost(x, y), dtype=np.float64).reshape(lead)
+    out = _core.matching_cost(x.reshape(-1, t, c), y.reshape(-1, t, c))
+    return out.reshape(lead)
+
+
+def yaw_costs(src: Any, tgt: Any, *, backend: Backend = "rust") -> npt.NDArray[np.float64]:
+    """Yaw cost curves at every integer shift: ``out[p, k] = c_p(k)`` for k = 0..T−1.
+
+    ``src`` (P, T, C), ``tgt`` (P, T, C) or (T, C) shared; float → (P, T) float64.
+    """
+    _check_backend(backend)
+    s, t = _pairs(src, tgt)
+    if backend == "reference":
+        return ref_matching.yaw_costs(s, t)
+    return _core.yaw_costs(s, t)
+
+
+def estimate_yaw(src: Any, tgt: Any, *, backend: Backend = "rust") -> YawEstimate:
+    """Exact global continuous yaw minimum of each pair (DESIGN.md §3 "Yaw").
+
+    ``src`` (P, T, C) source local-view descriptors, ``tgt`` (P, T, C) or (T, C) shared target.
+    Returns :class:`YawEstimate` (shift (P,) bins in [0, T), yaw (P,) radians in (−π, π],
+    cost (P,)). Rust: Gram-based exact minimiser; reference: dense 0.01-bin scan + refinement.
+    """
+    _check_backend(backend)
+    s, t = _pairs(src, tgt)
+    if backend == "reference":
+        return YawEstimate(*ref_matching.estimate_yaw(s, t))
+    return YawEstimate(*_core.estimate_yaw(s, t))
+
+
+def rerank(src: Any, tgt: Any, *, backend: Backend = "rust") -> Rerank:
+    """Re-rank K candidates by matching cost (exact yaw minimum, no padding).
+
+    ``src`` (K, T, C) candidate descriptors, ``tgt`` (K, T, C) or (T, C) broadcast query.
+    Returns :class:`Rerank` (order by cost ascending, ties by lower index; cost, yaw, shift in
+    input order).
+    """
+    _check_backend(backend)
+    s, t = _pairs(src, tgt)
+    if backend == "reference":
+        return Rerank(*ref_matching.rerank(s, t))
+    return Rerank(*_core.rerank(s, t))
+
+
+class TranslationSearch:
+    """Coarse-to-fine translation hypothesis search (the paper's hypothesis verification).
+
+    Stage 0 proposes the square grid ``{i·step : |i·step| ≤ half_range}²`` (metres, source
+    frame); each later stage proposes ``fine_samples`` seeded uniform samples in a square of
+    half-size ``step·shrink^(stage−1)`` around the best hypothesis so far. Drive it as::
+
+        search = TranslationSearch(3.0, 0.6, fine_samples=32, stages=3, seed=0)
+        while not search.done:
+            xy = search.proposals()              # (N, 2) float64 metres
+            search.report(costs, yaws)           # (N,), (N,) for those proposals
+        best = search.best()                     # SearchHypothesis(x, y, yaw, cost)
+
+    Deterministic for a seed (SplitMix64; identical on both backends) and any thread count.
+    """
+
+    def __init__(
+        self,
+        half_range: float,
+        step: float,
+        fine_samples: int = 32,
+        stages: int = 3,
+        shrink: float = 0.5,
+        seed: int = 0,
+        *,
+        backend: Backend = "rust",
+    ) -> None:
+        _check_backend(backend)
+        hr = _positive_float(half_range, "half_range")
+        st = _positive_float(step, "step")
+        if hr < st:
+            raise ValueError(f"half_range: expected a value >= step ({st}), got {hr}")
+        nst = _positive_int(stages, "stages")
+        nfs = _positive_int(fine_samples, "fine_samples", 1 if nst > 1 else 0)
+        sh = _positive_float(shrink, "shrink")
+        if sh > 1.0:
+            raise ValueError(f"shrink: expected a value in (0, 1], got {sh}")
+        sd = _positive_int(seed, "seed", 0)
+        if sd >= 1 << 64:
+            raise ValueError(f"seed: expected an int in [0, 2**64), got {sd}")
+        self.backend = backend
+        impl = _core.TranslationSearch if backend == "rust" else ref_matching.TranslationSearch
+        self._impl = impl(hr, st, nfs, nst, sh, sd)
+
+    @property
+    def done(self) -> bool:
+        """Whether every stage has been evaluated."""
+        return bool(self._impl.done)
+
+    @property
+    def stage(self) -> int:
+        """The current stage index (``stages`` when done)."""
+        return int(self._impl.stage)
+
+    def proposals(self) -> npt.NDArray[np.float64]:
+        """The current stage's translations (N, 2) float64, metres ((0, 2) when done)."""
+        return np.asarray(self._impl.proposals(), dtype=np.float64)
+
+    def report(self, costs: Any, yaws: Any) -> None:
+        """Report (N,) costs and (N,) yaws (radians) of the current proposals; next stage."""
+        if self.done:
+            raise ValueError("report: the search is already done")
+        n = len(self._impl.proposals())
+        c = _f64_vector(costs, "costs", n)
+        y = _f64_vector(yaws, "yaws", n)
+        self._impl.report(c, y)
+
+    def best(self) -> SearchHypothesis | None:
+        """The best hypothesis so far, or None before the first report."""
+        b = self._impl.best()
+        return None if b is None else SearchHypothesis(*map(float, b))
+
+    def history(self) -> SearchHistory:
+        """Every evaluated hypothesis, in evaluation order."""
+        return SearchHistory(*self._impl.history())

@@ -1,7 +1,8 @@
 """Localization against a map: map database, localizer, loop closures and exports.
 
 :mod:`vvloc.localize.mapdb` stores keyframes (poses, descriptors, BEVs) in one HDF5 file;
-:mod:`vvloc.localize.export` writes loop closures (CSV, g2o) and trajectories (TUM).
+:mod:`vvloc.localize.export` writes loop closures (CSV, g2o) and trajectories (TUM);
+:mod:`vvloc.localize.metric` runs metric localization (translation search + exact yaw).
 """
 
 from vvloc.localize.export import (

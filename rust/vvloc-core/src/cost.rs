@@ -1,1 +1,915 @@
 //! Matching cost, integer-shift yaw cost curves and the exact continuous yaw minimum.
+//!
+//! Conventions (DESIGN.md §3): for local-view descriptors `Ds`, `Dt` of shape (T, C) the yaw cost
+//! curve is `c(s) = δ(ρ(Ds, s), Dt)` with `δ(A, B) = (1/T)·Σᵢ ‖Aᵢ − Bᵢ‖₂` and the interpolated
+//! roll `ρ(D, k + w)ᵢ = (1 − w)·D[i − k] + w·D[i − k − 1]` (indices mod T). The estimated shift is
+//! the global continuous minimiser `s* ∈ [0, T)`, the yaw `φ̂ = 2π·s*/T` wrapped to (−π, π].
+//!
+//! # Method (exact, near the matrix-multiply floor)
+//! Per pair:
+//! 1. one Gram product `G = Ds·Dtᵀ` (f32, AVX-512 or AVX2/FMA when the CPU has them, a portable
+//!    fallback otherwise); squared row distances `d²[j][i] = ‖Ds_j‖² + ‖Dt_i‖² − 2·G[j][i]`
+//!    stored in *diagonal layout* `dg[k][i] = d²[(i − k) mod T][i]`, so that shift `k` reads one
+//!    contiguous row. Entries with `d² ≤ 1e-2·(‖Ds_j‖² + ‖Dt_i‖²)` (where fp32 cancellation
+//!    would hurt) are recomputed directly in f64;
+//! 2. integer-shift costs `c(k) = (1/T)·Σᵢ sqrt(dg[k][i])`;
+//! 3. on `[k, k+1]`, with `a = dg[k][i]`, `b = dg[k+1][i]` and `e = ‖Ds_j − Ds_{j−1}‖²`
+//!    (`j = i − k`), the squared row distance is `(1 − w)·a + w·b − w(1 − w)·e`: any fractional
+//!    shift costs O(T). Each `c` restricted to an interval is convex (a sum of norms of affine
+//!    functions). Intervals are pruned with a Lipschitz bound and then with the tangents at both
+//!    ends (end slopes from the same entries); the survivors are minimised by safeguarded
+//!    Newton/bisection;
+//! 4. the winner and every near-tie (within a small margin of the approximate best) are re-scored
+//!    from rows recomputed directly in f64 and re-minimised, so the reported shift and cost do
+//!    not suffer from fp32 cancellation.
+
+// Index loops over fixed lane counts are deliberate: they are what the compiler vectorises.
+#![allow(clippy::needless_range_loop)]
+
+use crate::error::{Error, Result};
+use crate::pose::wrap_angle;
+use ndarray::{Array2, ArrayView3};
+use rayon::prelude::*;
+use std::borrow::Cow;
+use std::f64::consts::PI;
+
+/// Checked pair batch: (P, T, C, src data, tgt data, whether tgt is shared by all pairs).
+type Pairs<'a> = (usize, usize, usize, Cow<'a, [f32]>, Cow<'a, [f32]>, bool);
+
+/// Entries whose Gram-derived squared distance is below this fraction of `‖u‖² + ‖z‖²` are
+/// recomputed directly in f64 (fp32 cancellation would make their square roots inaccurate).
+const NEAR_ZERO_REL: f64 = 1e-2;
+/// Relative margin (of `1 + best cost`) within which approximate candidates are polished exactly.
+const POLISH_MARGIN: f64 = 1e-5;
+
+/// The yaw estimate of one (source, target) pair.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct YawEstimate {
+    /// Continuous minimiser s* ∈ [0, T) of the cost curve, in bins.
+    pub shift: f64,
+    /// φ̂ = 2π·s*/T wrapped to (−π, π], radians.
+    pub yaw: f64,
+    /// The matching cost c(s*).
+    pub cost: f64,
+}
+
+/// Candidates ordered by matching cost, with their per-candidate estimates.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Reranked {
+    /// Candidate indices sorted by cost ascending, ties broken by lower index.
+    pub order: Vec<usize>,
+    /// Estimates in input order (`estimates[k]` belongs to candidate `k`).
+    pub estimates: Vec<YawEstimate>,
+}
+
+// --------------------------------------------------------------------------------------------
+// Input checks
+// --------------------------------------------------------------------------------------------
+
+fn check_finite(x: &[f32], arg: &'static str) -> Result<()> {
+    if x.iter().all(|v| v.is_finite()) {
+        Ok(())
+    } else {
+        Err(Error::value(arg, "contains non-finite values (NaN or inf)"))
+    }
+}
+
+/// Checks a batch of pairs; `tgt` may hold one matrix shared by all pairs. Returns (P, T, C)
+/// and C-contiguous data of both.
+fn check_pairs<'a>(
+    src: &'a ArrayView3<'a, f32>,
+    tgt: &'a ArrayView3<'a, f32>,
+) -> Result<Pairs<'a>> {
+    let (p, t, c) = src.dim();
+    let (pt, tt, ct) = tgt.dim();
+    if p == 0 {
+        return Err(Error::shape("src", "(P, T, C) with P >= 1", src.shape()));
+    }
+    if t < 2 {
+        return Err(Error::shape("src", "(P, T, C) with T >= 2", src.shape()));
+    }
+    if c == 0 {
+        return Err(Error::shape("src", "(P, T, C) with C >= 1", src.shape()));
+    }
+    if (pt != p && pt != 1) || tt != t || ct != c {
+        return Err(Error::shape(
+            "tgt",
+            format!("({p}, {t}, {c}) or (1, {t}, {c}) to match src"),
+            tgt.shape(),
+        ));
+    }
+    let s = contiguous(src);
+    let g = contiguous(tgt);
+    check_finite(&s, "src")?;
+    check_finite(&g, "tgt")?;
+    Ok((p, t, c, s, g, pt == 1 && p > 1))
+}
+
+fn contiguous<'a>(x: &'a ArrayView3<'a, f32>) -> Cow<'a, [f32]> {
+    match x.as_slice() {
+        Some(s) => Cow::Borrowed(s),
+        None => Cow::Owned(x.iter().copied().collect()),
+    }
+}
+
+/// Runs `f` for every pair index, in parallel when there is more than one pair. Each pair is
+/// computed sequentially, so results do not depend on the thread count.
+fn per_pair<T: Send, F: Fn(usize) -> T + Sync + Send>(p: usize, f: F) -> Vec<T> {
+    if p <= 1 {
+        (0..p).map(f).collect()
+    } else {
+        (0..p).into_par_iter().with_min_len(1).map(f).collect()
+    }
+}
+
+// --------------------------------------------------------------------------------------------
+// Public kernels
+// --------------------------------------------------------------------------------------------
+
+/// Matching cost `δ(A, B) = (1/T)·Σᵢ ‖Aᵢ − Bᵢ‖₂` of P pairs `a`, `b` (P, T, C), without shifting.
+/// Computed directly (differences in f64). Requires T ≥ 1, C ≥ 1, equal shapes, finite values.
+pub fn matching_cost(a: ArrayView3<f32>, b: ArrayView3<f32>) -> Result<Vec<f64>> {
+    let (p, t, c) = a.dim();
+    if b.dim() != (p, t, c) {
+        return Err(Error::shape(
+            "b",
+            format!("({p}, {t}, {c}) like a"),
+            b.shape(),
+        ));
+    }
+    if t == 0 || c == 0 {
+        return Err(Error::shape(
+            "a",
+            "(P, T, C) with T >= 1, C >= 1",
+            a.shape(),
+        ));
+    }
+    let (sa, sb) = (contiguous(&a), contiguous(&b));
+    check_finite(&sa, "a")?;
+    check_finite(&sb, "b")?;
+    let isa = Isa::detect();
+    Ok(per_pair(p, |q| {
+        let (x, y) = (
+            &sa[q * t * c..(q + 1) * t * c],
+            &sb[q * t * c..(q + 1) * t * c],
+        );
+        let sum: f64 = (0..t)
+            .map(|i| {
+                isa.sqdist(&x[i * c..(i + 1) * c], &y[i * c..(i + 1) * c])
+                    .sqrt()
+            })
+            .sum();
+        sum / t as f64
+    }))
+}
+
+/// Integer-shift yaw cost curves: `out[p][k] = c_p(k)` for k = 0..T−1, from `src`, `tgt`
+/// (P, T, C) (or `tgt` (1, T, C) shared by all pairs). Gram-based; relative accuracy ~1e-6.
+pub fn yaw_costs(src: ArrayView3<f32>, tgt: ArrayView3<f32>) -> Result<Array2<f64>> {
+    let (p, t, c, s, g, shared) = check_pairs(&src, &tgt)?;
+    let isa = Isa::detect();
+    let rows = per_pair(p, |q| {
+        let (ds, dt) = pair_slices(&s, &g, q, t, c, shared);
+        isa.curve(ds, dt, t, c, false).cint
+    });
+    let mut out = Array2::zeros((p, t));
+    for (q, r) in rows.into_iter().enumerate() {
+        out.row_mut(q).assign(&ndarray::ArrayView1::from(&r));
+    }
+    Ok(out)
+}
+
+/// Exact global continuous yaw minimum of each pair (see the module docs for the method).
+pub fn estimate_yaw(src: ArrayView3<f32>, tgt: ArrayView3<f32>) -> Result<Vec<YawEstimate>> {
+    let (p, t, c, s, g, shared) = check_pairs(&src, &tgt)?;
+    let isa = Isa::detect();
+    Ok(per_pair(p, |q| {
+        let (ds, dt) = pair_slices(&s, &g, q, t, c, shared);
+        isa.estimate(ds, dt, t, c)
+    }))
+}
+
+/// Re-ranks K candidates `src` (K, T, C) against `tgt` (K, T, C) or one shared target (1, T, C):
+/// exact yaw estimate per candidate (parallel over candidates), then the order by cost
+/// ascending, ties broken by lower index.
+pub fn rerank(src: ArrayView3<f32>, tgt: ArrayView3<f32>) -> Result<Reranked> {
+    let estimates = estimate_yaw(src, tgt)?;
+    let mut order: Vec<usize> = (0..estimates.len()).collect();
+    order.sort_by(|&x, &y| {
+        estimates[x]
+            .cost
+            .total_cmp(&estimates[y].cost)
+            .then(x.cmp(&y))
+    });
+    Ok(Reranked { order, estimates })
+}
+
+fn pair_slices<'a>(
+    s: &'a [f32],
+    g: &'a [f32],
+    q: usize,
+    t: usize,
+    c: usize,
+    shared: bool,
+) -> (&'a [f32], &'a [f32]) {
+    let n = t * c;
+    let qt = if shared { 0 } else { q };
+    (&s[q * n..(q + 1) * n], &g[qt * n..(qt + 1) * n])
+}
+
+// --------------------------------------------------------------------------------------------
+// Instruction-set dispatch
+// --------------------------------------------------------------------------------------------
+
+/// The instruction set the kernels run with, detected at run time (the build stays portable).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Isa {
+    #[cfg(target_arch = "x86_64")]
+    Avx512,
+    #[cfg(target_arch = "x86_64")]
+    Avx2,
+    Generic,
+}
+
+impl Isa {
+    fn detect() -> Isa {
+        #[cfg(target_arch = "x86_64")]
+        {
+            if std::env::var_os("VVLOC_NO_SIMD").is_none() {
+                if is_x86_feature_detected!("avx512f") {
+                    return Isa::Avx512;
+                }
+                if is_x86_feature_detected!("avx2") && is_x86_feature_detected!("fma") {
+                    return Isa::Avx2;
+                }
+            }
+        }
+        Isa::Generic
+    }
+
+    fn sqdist(self, x: &[f32], y: &[f32]) -> f64 {
+        match self {
+            // SAFETY (all arms): the target features were detected at run time by `detect`.
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx512 => unsafe { x86::sqdist_avx512(x, y) },
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx2 => unsafe { x86::sqdist_avx2(x, y) },
+            Isa::Generic => sqdist_f64(x, y),
+        }
+    }
+
+    fn curve(self, ds: &[f32], dt: &[f32], t: usize, c: usize, slopes: bool) -> Curve {
+        match self {
+            // SAFETY (all arms): the target features were detected at run time by `detect`.
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx512 => unsafe { x86::curve_avx512(ds, dt, t, c, slopes) },
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx2 => unsafe { x86::curve_avx2(ds, dt, t, c, slopes) },
+            Isa::Generic => curve_impl(ds, dt, t, c, slopes, &GenericGram),
+        }
+    }
+
+    fn estimate(self, ds: &[f32], dt: &[f32], t: usize, c: usize) -> YawEstimate {
+        match self {
+            // SAFETY (all arms): the target features were detected at run time by `detect`.
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx512 => unsafe { x86::estimate_avx512(ds, dt, t, c) },
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx2 => unsafe { x86::estimate_avx2(ds, dt, t, c) },
+            Isa::Generic => estimate_impl(ds, dt, t, c, &GenericGram),
+        }
+    }
+}
+
+/// A 4×4 block of dot products: `out[r][s] = a_r · b_s` (f32).
+trait Gram {
+    fn dot4x4(&self, a: [&[f32]; 4], b: [&[f32]; 4]) -> [[f32; 4]; 4];
+    fn dot(&self, a: &[f32], b: &[f32]) -> f32;
+}
+
+/// Portable Gram blocks: 8 independent lanes the compiler can vectorise.
+struct GenericGram;
+
+impl Gram for GenericGram {
+    #[inline(always)]
+    fn dot4x4(&self, a: [&[f32]; 4], b: [&[f32]; 4]) -> [[f32; 4]; 4] {
+        let mut out = [[0.0f32; 4]; 4];
+        for r in 0..4 {
+            for s in 0..4 {
+                out[r][s] = self.dot(a[r], b[s]);
+            }
+        }
+        out
+    }
+
+    #[inline(always)]
+    fn dot(&self, a: &[f32], b: &[f32]) -> f32 {
+        const L: usize = 8;
+        let mut acc = [0.0f32; L];
+        let (ca, cb) = (a.chunks_exact(L), b.chunks_exact(L));
+        let (ra, rb) = (ca.remainder(), cb.remainder());
+        for (x, y) in ca.zip(cb) {
+            for l in 0..L {
+                acc[l] += x[l] * y[l];
+            }
+        }
+        let tail: f32 = ra.iter().zip(rb).map(|(x, y)| x * y).sum();
+        acc.iter().sum::<f32>() + tail
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+mod x86 {
+    //! AVX-512 and AVX2/FMA instantiations. Every function here requires its target features;
+    //! callers (`Isa`) only call them after run-time detection.
+    use super::*;
+    use std::arch::x86_64::*;
+
+    /// AVX-512 Gram blocks: 16 zmm accumulators, 16-lane fused multiply-adds, masked tail.
+    pub struct Avx512Gram;
+
+    impl Gram for Avx512Gram {
+        #[inline(always)]
+        fn dot4x4(&self, a: [&[f32]; 4], b: [&[f32]; 4]) -> [[f32; 4]; 4] {
+            // SAFETY: `Avx512Gram` is only used inside `#[target_feature(enable = "avx512f")]`
+            // functions, which run only after run-time detection of AVX-512F.
+            unsafe { dot4x4_avx512(a, b) }
+        }
+        #[inline(always)]
+        fn dot(&self, a: &[f32], b: &[f32]) -> f32 {
+            GenericGram.dot(a, b)
+        }
+    }
+
+    #[target_feature(enable = "avx512f")]
+    fn dot4x4_avx512(a: [&[f32]; 4], b: [&[f32]; 4]) -> [[f32; 4]; 4] {
+        let c = a[0].len();
+        debug_assert!(a.iter().chain(b.iter()).all(|r| r.len() == c));
+        let mut acc = [[_mm512_setzero_ps(); 4]; 4];
+        let mut off = 0;
+        while off < c {
+            let rem = c - off;
+            let mask: __mmask16 = if rem >= 16 {
+                0xFFFF
+            } else {
+                ((1u32 << rem) - 1) as u16
+            };
+            let mut av = [_mm512_setzero_ps(); 4];
+            let mut bv = [_mm512_setzero_ps(); 4];
+            for r in 0..4 {
+                // SAFETY: all rows have length c (checked by the callers' slicing); the mask
+                // enables only lanes off..off + min(16, c − off), which lie inside each row.
+                av[r] = unsafe { _mm512_maskz_loadu_ps(mask, a[r].as_ptr().add(off)) };
+                bv[r] = unsafe { _mm512_maskz_loadu_ps(mask, b[r].as_ptr().add(off)) };
+            }
+            for r in 0..4 {
+                for s in 0..4 {
+                    acc[r][s] = _mm512_fmadd_ps(av[r], bv[s], acc[r][s]);
+                }
+            }
+            off += 16;
+        }
+        let mut out = [[0.0f32; 4]; 4];
+        for r in 0..4 {
+            for s in 0..4 {
+                out[r][s] = _mm512_reduce_add_ps(acc[r][s]);
+            }
+        }
+        out
+    }
+
+    #[target_feature(enable = "avx512f")]
+    pub fn sqdist_avx512(x: &[f32], y: &[f32]) -> f64 {
+        sqdist_f64(x, y)
+    }
+    #[target_feature(enable = "avx2,fma")]
+    pub fn sqdist_avx2(x: &[f32], y: &[f32]) -> f64 {
+        sqdist_f64(x, y)
+    }
+    #[target_feature(enable = "avx512f")]
+    pub fn curve_avx512(ds: &[f32], dt: &[f32], t: usize, c: usize, slopes: bool) -> Curve {
+        curve_impl(ds, dt, t, c, slopes, &Avx512Gram)
+    }
+    #[target_feature(enable = "avx2,fma")]
+    pub fn curve_avx2(ds: &[f32], dt: &[f32], t: usize, c: usize, slopes: bool) -> Curve {
+        curve_impl(ds, dt, t, c, slopes, &GenericGram)
+    }
+    #[target_feature(enable = "avx512f")]
+    pub fn estimate_avx512(ds: &[f32], dt: &[f32], t: usize, c: usize) -> YawEstimate {
+        estimate_impl(ds, dt, t, c, &Avx512Gram)
+    }
+    #[target_feature(enable = "avx2,fma")]
+    pub fn estimate_avx2(ds: &[f32], dt: &[f32], t: usize, c: usize) -> YawEstimate {
+        estimate_impl(ds, dt, t, c, &GenericGram)
+    }
+}
+
+// --------------------------------------------------------------------------------------------
+// Vectorisable helpers (inlined into the target-feature instantiations above)
+// --------------------------------------------------------------------------------------------
+
+/// `‖x − y‖²` with the differences and the sum in f64 (no cancellation).
+#[inline(always)]
+fn sqdist_f64(x: &[f32], y: &[f32]) -> f64 {
+    const L: usize = 8;
+    let mut acc = [0.0f64; L];
+    let (cx, cy) = (x.chunks_exact(L), y.chunks_exact(L));
+    let (rx, ry) = (cx.remainder(), cy.remainder());
+    for (a, b) in cx.zip(cy) {
+        for l in 0..L {
+            let d = a[l] as f64 - b[l] as f64;
+            acc[l] += d * d;
+        }
+    }
+    let tail: f64 = rx
+        .iter()
+        .zip(ry)
+        .map(|(a, b)| {
+            let d = *a as f64 - *b as f64;
+            d * d
+        })
+        .sum();
+    acc.iter().sum::<f64>() + tail
+}
+
+/// `‖x‖²` in f64.
+#[inline(always)]
+fn sqnorm_f64(x: &[f32]) -> f64 {
+    const L: usize = 8;
+    let mut acc = [0.0f64; L];
+    let cx = x.chunks_exact(L);
+    let rx = cx.remainder();
+    for a in cx {
+        for l in 0..L {
+            acc[l] += a[l] as f64 * a[l] as f64;
+        }
+    }
+    acc.iter().sum::<f64>() + rx.iter().map(|a| *a as f64 * *a as f64).sum::<f64>()
+}
+
+/// Sum of `f(i)` for i in 0..n with 16 f32 lanes, combined in f64.
+#[inline(always)]
+fn lane_sum(n: usize, f: impl Fn(usize) -> f32) -> f64 {
+    const L: usize = 16;
+    let mut acc = [0.0f32; L];
+    let full = n / L * L;
+    let mut i = 0;
+    while i < full {
+        for l in 0..L {
+            acc[l] += f(i + l);
+        }
+        i += L;
+    }
+    let tail: f64 = (full..n).map(|i| f(i) as f64).sum();
+    acc.iter().map(|&v| v as f64).sum::<f64>() + tail
+}
+
+// --------------------------------------------------------------------------------------------
+// Per-pair analysis
+// --------------------------------------------------------------------------------------------
+
+/// Row `j` of a (rows, c) row-major matrix.
+#[inline(always)]
+fn row_of(c: usize, m: &[f32], j: usize) -> &[f32] {
+    &m[j * c..(j + 1) * c]
+}
+
+/// Gram-derived quantities of one pair (see the module docs).
+struct Curve {
+    /// (T, T) diagonal layout: `dg[k·T + i] = ‖Ds[(i − k) mod T] − Dt[i]‖²`.
+    dg: Vec<f32>,
+    /// (T, T) `1/sqrt(dg)` (0 where dg = 0); empty unless slopes were requested.
+    rinv: Vec<f32>,
+    /// (T,) integer-shift costs.
+    cint: Vec<f64>,
+}
+
+#[inline(always)]
+fn curve_impl<G: Gram>(ds: &[f32], dt: &[f32], t: usize, c: usize, slopes: bool, g: &G) -> Curve {
+    let ns: Vec<f64> = (0..t).map(|j| sqnorm_f64(row_of(c, ds, j))).collect();
+    let nt: Vec<f64> = (0..t).map(|i| sqnorm_f64(row_of(c, dt, i))).collect();
+    let mut dg = vec![0.0f32; t * t];
+    let mut put = |j: usize, i: usize, gji: f32| {
+        let scale = ns[j] + nt[i];
+        let mut d2 = scale - 2.0 * gji as f64;
+        if d2 <= NEAR_ZERO_REL * scale {
+            d2 = sqdist_f64(row_of(c, ds, j), row_of(c, dt, i));
+        }
+        let k = (i + t - j) % t;
+        dg[k * t + i] = d2.max(0.0) as f32;
+    };
+    let (t4j, t4i) = (t / 4 * 4, t / 4 * 4);
+    for jb in (0..t4j).step_by(4) {
+        let a = [
+            row_of(c, ds, jb),
+            row_of(c, ds, jb + 1),
+            row_of(c, ds, jb + 2),
+            row_of(c, ds, jb + 3),
+        ];
+        for ib in (0..t4i).step_by(4) {
+            let b = [
+                row_of(c, dt, ib),
+                row_of(c, dt, ib + 1),
+                row_of(c, dt, ib + 2),
+                row_of(c, dt, ib + 3),
+            ];
+            let blk = g.dot4x4(a, b);
+            for (r, br) in blk.iter().enumerate() {
+                for (s, &v) in br.iter().enumerate() {
+                    put(jb + r, ib + s, v);
+                }
+            }
+        }
+    }
+    for j in 0..t {
+        let i0 = if j < t4j { t4i } else { 0 };
+        for i in i0..t {
+            put(j, i, g.dot(row_of(c, ds, j), row_of(c, dt, i)));
+        }
+    }
+    let inv_t = 1.0 / t as f64;
+    let sq: Vec<f32> = dg.iter().map(|v| v.sqrt()).collect();
+    let cint: Vec<f64> = (0..t)
+        .map(|k| lane_sum(t, |i| sq[k * t + i]) * inv_t)
+        .collect();
+    let rinv = if slopes {
+        sq.iter()
+            .map(|&v| if v > 0.0 { 1.0 / v } else { 0.0 })
+            .collect()
+    } else {
+        Vec::new()
+    };
+    Curve { dg, rinv, cint }
+}
+
+/// Value, first and second derivative of `g(w) = (1/T)·Σᵢ sqrt((1−w)aᵢ + w·bᵢ − w(1−w)eᵢ)`.
+fn eval_interval(a: &[f64], b: &[f64], e: &[f64], w: f64) -> (f64, f64, f64) {
+    let (mut g0, mut g1, mut g2) = (0.0, 0.0, 0.0);
+    for ((&ai, &bi), &ei) in a.iter().zip(b).zip(e) {
+        let f = ((1.0 - w) * ai + w * bi - w * (1.0 - w) * ei).max(0.0);
+        if f > 0.0 {
+            let r = f.sqrt();
+            let d = (bi - ai - ei + 2.0 * w * ei) / (2.0 * r);
+            g0 += r;
+            g1 += d;
+            g2 += (ei - d * d).max(0.0) / r;
+        }
+    }
+    let n = a.len() as f64;
+    (g0 / n, g1 / n, g2 / n)
+}
+
+/// Exact one-sided end slopes `g'(0+)`, `g'(1−)` of the interval function (rows with a zero
+/// end distance contribute `±sqrt(e)`).
+fn end_slopes(a: &[f64], b: &[f64], e: &[f64]) -> (f64, f64) {
+    let (mut d0, mut d1) = (0.0, 0.0);
+    for ((&ai, &bi), &ei) in a.iter().zip(b).zip(e) {
+        d0 += if ai > 0.0 {
+            (bi - ai - ei) / (2.0 * ai.sqrt())
+        } else {
+            ei.sqrt()
+        };
+        d1 += if bi > 0.0 {
+            (bi - ai + ei) / (2.0 * bi.sqrt())
+        } else {
+            -ei.sqrt()
+        };
+    }
+    let n = a.len() as f64;
+    (d0 / n, d1 / n)
+}
+
+/// Minimises the convex interval function on [0, 1]: returns (w*, g(w*)). Safeguarded Newton
+/// on g' = 0 inside the bracket, falling back to bisection (Numerical Recipes' `rtsafe` idea).
+fn minimise_interval(a: &[f64], b: &[f64], e: &[f64], c0: f64, c1: f64) -> (f64, f64) {
+    let (d0, d1) = end_slopes(a, b, e);
+    if d0 >= 0.0 || d1 <= 0.0 {
+        return if c0 <= c1 { (0.0, c0) } else { (1.0, c1) };
+    }
+    let (mut lo, mut hi) = (0.0f64, 1.0f64);
+    // Start where the two end tangents meet.
+    let mut w = ((c1 - d1 - c0) / (d0 - d1)).clamp(0.0, 1.0);
+    let mut step_old = 1.0f64;
+    let mut best = (0.0, c0);
+    if c1 < c0 {
+        best = (1.0, c1);
+    }
+    for _ in 0..100 {
+        let (g0, g1, g2) = eval_interval(a, b, e, w);
+        if g0 < best.1 {
+            best = (w, g0);
+        }
+        if g1 > 0.0 {
+            hi = w;
+        } else {
+            lo = w;
+        }
+        if hi - lo <= 1e-13 || g1 == 0.0 {
+            break;
+        }
+        let newton = if g2 > 0.0 { w - g1 / g2 } else { f64::NAN };
+        let next = if newton > lo && newton < hi && (g1 / g2).abs() * 2.0 <= step_old.abs() {
+            newton
+        } else {
+            0.5 * (lo + hi)
+        };
+        step_old = next - w;
+        if step_old.abs() <= 1e-15 {
+            break;
+        }
+        w = next;
+    }
+    best
+}
+
+#[inline(always)]
+fn estimate_impl<G: Gram>(ds: &[f32], dt: &[f32], t: usize, c: usize, g: &G) -> YawEstimate {
+    let cv = curve_impl(ds, dt, t, c, true, g);
+    // e[j] = ‖Ds_j − Ds_{j−1}‖², exact; e2 holds two periods so that every shift reads a slice.
+    let e: Vec<f64> = (0..t)
+        .map(|j| sqdist_f64(row_of(c, ds, j), row_of(c, ds, (j + t - 1) % t)))
+        .collect();
+    let e2: Vec<f32> = e.iter().chain(e.iter()).map(|&v| v as f32).collect();
+    let lipschitz = e.iter().map(|v| v.sqrt()).sum::<f64>() / t as f64;
+    let inv_2t = 0.5 / t as f64;
+
+    // Approximate stage on the Gram-derived entries.
+    let mut best = cv.cint.iter().copied().fold(f64::INFINITY, f64::min);
+    let margin = |b: f64| POLISH_MARGIN * (1.0 + b.abs());
+    let mut cands: Vec<(usize, f64)> = Vec::new(); // (interval k, approximate minimum)
+    let (mut a64, mut b64, mut e64) = (vec![0.0; t], vec![0.0; t], vec![0.0; t]);
+    // Pass 1 (vectorised f32): end slopes, plus value and slope where the end tangents meet;
+    // the three tangents give a lower bound of the interval's minimum, the value an upper bound.
+    let mut open: Vec<(f64, usize)> = Vec::new(); // (lower bound, interval k)
+    let mut r = vec![0.0f32; t];
+    for k in 0..t {
+        let k1 = (k + 1) % t;
+        let (c0, c1) = (cv.cint[k], cv.cint[k1]);
+        // Lipschitz bound: |g'| ≤ (1/T)·Σ sqrt(e).
+        if 0.5 * (c0 + c1 - lipschitz) > best + margin(best) {
+            continue;
+        }
+        let (ra, rb) = (&cv.rinv[k * t..(k + 1) * t], &cv.rinv[k1 * t..(k1 + 1) * t]);
+        let (da, db) = (&cv.dg[k * t..(k + 1) * t], &cv.dg[k1 * t..(k1 + 1) * t]);
+        let er = &e2[t - k..2 * t - k]; // er[i] = e[(i − k) mod T]
+        let d0 = lane_sum(t, |i| (db[i] - da[i] - er[i]) * ra[i]) * inv_2t;
+        let d1 = lane_sum(t, |i| (db[i] - da[i] + er[i]) * rb[i]) * inv_2t;
+        if d0 >= 0.0 || d1 <= 0.0 {
+            continue; // the minimum is at an end: an integer shift, already in cint
+        }
+        let wx = ((c1 - d1 - c0) / (d0 - d1)).clamp(0.0, 1.0);
+        if c0 + d0 * wx > best + margin(best) {
+            continue; // the end tangents' lower bound cannot beat the best
+        }
+        let w = wx as f32;
+        for (i, ri) in r.iter_mut().enumerate() {
+            *ri = ((1.0 - w) * da[i] + w * db[i] - w * (1.0 - w) * er[i])
+                .max(0.0)
+                .sqrt();
+        }
+        let gx = lane_sum(t, |i| r[i]) / t as f64;
+        let sx = lane_sum(t, |i| {
+            if r[i] > 0.0 {
+                (db[i] - da[i] - er[i] + 2.0 * w * er[i]) / r[i]
+            } else {
+                0.0
+            }
+        }) * inv_2t;
+        // Lower envelope of the tangents at 0, wx, 1 (each a lower bound of a convex function).
+        let lb = if sx > 0.0 {
+            let wi = ((gx - sx * wx) - c0) / (d0 - sx); // tangent at 0 meets tangent at wx
+            c0 + d0 * wi.clamp(0.0, wx)
+        } else {
+            let wi = ((c1 - d1) - (gx - sx * wx)) / (sx - d1); // tangent at wx meets tangent at 1
+            c1 + d1 * (wi.clamp(wx, 1.0) - 1.0)
+        };
+        open.push((lb.min(gx), k));
+    }
+    // Pass 2: minimise the surviving intervals, most promising first.
+    open.sort_by(|x, y| x.0.total_cmp(&y.0).then(x.1.cmp(&y.1)));
+    for &(lb, k) in &open {
+        if lb > best + margin(best) {
+            break; // sorted: no later interval can beat the best either
+        }
+        let k1 = (k + 1) % t;
+        let (da, db) = (&cv.dg[k * t..(k + 1) * t], &cv.dg[k1 * t..(k1 + 1) * t]);
+        for i in 0..t {
+            a64[i] = da[i] as f64;
+            b64[i] = db[i] as f64;
+            e64[i] = e[(i + t - k) % t];
+        }
+        let (_, v) = minimise_interval(&a64, &b64, &e64, cv.cint[k], cv.cint[k1]);
+        best = best.min(v);
+        cands.push((k, v));
+    }
+
+    // Exact polish: the intervals around every near-best integer shift and every near-best
+    // interior candidate, from rows recomputed directly in f64.
+    let best = cands
+        .iter()
+        .map(|c| c.1)
+        .chain(cv.cint.iter().copied())
+        .fold(f64::INFINITY, f64::min);
+    let mut polish: Vec<usize> = Vec::new();
+    for (k, &v) in cv.cint.iter().enumerate() {
+        if v <= best + margin(best) {
+            polish.push((k + t - 1) % t);
+            polish.push(k);
+        }
+    }
+    for &(k, v) in &cands {
+        if v <= best + margin(best) {
+            polish.push(k);
+        }
+    }
+    polish.sort_unstable();
+    polish.dedup();
+    let mut exact_rows: std::collections::BTreeMap<usize, Vec<f64>> = Default::default();
+    let mut exact_row = |k: usize| -> Vec<f64> {
+        exact_rows
+            .entry(k)
+            .or_insert_with(|| {
+                (0..t)
+                    .map(|i| sqdist_f64(row_of(c, ds, (i + t - k) % t), row_of(c, dt, i)))
+                    .collect()
+            })
+            .clone()
+    };
+    let mut result = (0.0f64, f64::INFINITY);
+    for &k in &polish {
+        let k1 = (k + 1) % t;
+        let (ea, eb) = (exact_row(k), exact_row(k1));
+        for (i, ei) in e64.iter_mut().enumerate() {
+            *ei = e[(i + t - k) % t];
+        }
+        let c0 = ea.iter().map(|v| v.sqrt()).sum::<f64>() / t as f64;
+        let c1 = eb.iter().map(|v| v.sqrt()).sum::<f64>() / t as f64;
+        let (w, v) = minimise_interval(&ea, &eb, &e64, c0, c1);
+        if v < result.1 {
+            result = (k as f64 + w, v);
+        }
+    }
+    let mut shift = result.0;
+    if shift >= t as f64 {
+        shift -= t as f64;
+    }
+    YawEstimate {
+        shift,
+        yaw: wrap_angle(2.0 * PI * shift / t as f64),
+        cost: result.1,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use ndarray::{Array3, Axis};
+
+    /// Small deterministic generator for test data.
+    fn data(p: usize, t: usize, c: usize, seed: u64) -> Array3<f32> {
+        let mut s = seed;
+        Array3::from_shape_fn((p, t, c), |_| {
+            s = s
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            ((s >> 40) as f32 / (1u64 << 24) as f32) - 0.5
+        })
+    }
+
+    /// Literal cost at a real shift: roll-interpolate the source rows, mean row distance (f64).
+    fn literal_cost(ds: &ndarray::ArrayView2<f32>, dt: &ndarray::ArrayView2<f32>, s: f64) -> f64 {
+        let (t, c) = ds.dim();
+        let k = s.floor();
+        let w = s - k;
+        let k = k as i64;
+        let mut sum = 0.0;
+        for i in 0..t {
+            let u = ((i as i64 - k).rem_euclid(t as i64)) as usize;
+            let v = ((i as i64 - k - 1).rem_euclid(t as i64)) as usize;
+            let mut d2 = 0.0;
+            for ch in 0..c {
+                let x = (1.0 - w) * ds[[u, ch]] as f64 + w * ds[[v, ch]] as f64;
+                let d = x - dt[[i, ch]] as f64;
+                d2 += d * d;
+            }
+            sum += d2.sqrt();
+        }
+        sum / t as f64
+    }
+
+    #[test]
+    fn yaw_costs_match_literal_integer_shifts() {
+        for (t, c) in [(2, 1), (5, 3), (12, 37), (17, 16)] {
+            let (s, g) = (data(3, t, c, 1), data(3, t, c, 2));
+            let out = yaw_costs(s.view(), g.view()).unwrap();
+            for q in 0..3 {
+                for k in 0..t {
+                    let want = literal_cost(
+                        &s.index_axis(Axis(0), q),
+                        &g.index_axis(Axis(0), q),
+                        k as f64,
+                    );
+                    assert!(
+                        (out[[q, k]] - want).abs() < 1e-5 * (1.0 + want),
+                        "{t} {c} {k}"
+                    );
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn estimate_yaw_is_the_dense_minimum() {
+        for (t, c) in [(2, 3), (7, 5), (24, 33), (40, 64)] {
+            let (s, g) = (data(4, t, c, 3), data(4, t, c, 4));
+            let est = estimate_yaw(s.view(), g.view()).unwrap();
+            for q in 0..4 {
+                let (ds, dt) = (s.index_axis(Axis(0), q), g.index_axis(Axis(0), q));
+                let dense = (0..t * 200)
+                    .map(|m| literal_cost(&ds, &dt, m as f64 / 200.0))
+                    .fold(f64::INFINITY, f64::min);
+                let e = est[q];
+                assert!(e.cost <= dense + 1e-9, "{t} {c}: {} > {dense}", e.cost);
+                assert!((literal_cost(&ds, &dt, e.shift) - e.cost).abs() < 1e-9);
+                assert!((0.0..t as f64).contains(&e.shift));
+                assert!(e.yaw > -PI && e.yaw <= PI);
+            }
+        }
+    }
+
+    #[test]
+    fn recovers_an_exact_fractional_roll() {
+        let (t, c) = (36, 20);
+        let s = data(1, t, c, 5);
+        for s_true in [0.0, 3.25, 17.5, 35.9] {
+            let k = f64::floor(s_true);
+            let w = s_true - k;
+            let ds = s.index_axis(Axis(0), 0);
+            let dt = Array3::from_shape_fn((1, t, c), |(_, i, ch)| {
+                let u = ((i as i64 - k as i64).rem_euclid(t as i64)) as usize;
+                let v = ((i as i64 - k as i64 - 1).rem_euclid(t as i64)) as usize;
+                ((1.0 - w) * ds[[u, ch]] as f64 + w * ds[[v, ch]] as f64) as f32
+            });
+            let e = estimate_yaw(s.view(), dt.view()).unwrap()[0];
+            assert!((e.shift - s_true).abs() < 1e-4, "{s_true}: {e:?}");
+            assert!(e.cost < 1e-5, "{e:?}");
+        }
+    }
+
+    #[test]
+    fn shared_target_and_rerank_order() {
+        let (t, c) = (10, 8);
+        let s = data(5, t, c, 7);
+        let g = data(1, t, c, 8);
+        let full = g.broadcast((5, t, c)).unwrap().to_owned();
+        let a = estimate_yaw(s.view(), g.view()).unwrap();
+        let b = estimate_yaw(s.view(), full.view()).unwrap();
+        assert_eq!(a, b);
+        let r = rerank(s.view(), g.view()).unwrap();
+        for w in r.order.windows(2) {
+            assert!(r.estimates[w[0]].cost <= r.estimates[w[1]].cost);
+        }
+        let mut sorted = r.order.clone();
+        sorted.sort_unstable();
+        assert_eq!(sorted, (0..5).collect::<Vec<_>>());
+    }
+
+    #[test]
+    fn generic_path_agrees_with_simd_path() {
+        let (s, g) = (data(3, 20, 45, 9), data(3, 20, 45, 10));
+        for q in 0..3 {
+            let (ds, dt) = (s.index_axis(Axis(0), q), g.index_axis(Axis(0), q));
+            let (ds, dt) = (ds.as_slice().unwrap(), dt.as_slice().unwrap());
+            let a = estimate_impl(ds, dt, 20, 45, &GenericGram);
+            let b = Isa::detect().estimate(ds, dt, 20, 45);
+            assert!((a.cost - b.cost).abs() < 1e-9 && (a.shift - b.shift).abs() < 1e-6);
+        }
+    }
+
+    #[test]
+    fn matching_cost_is_mean_row_distance() {
+        let (a, b) = (data(2, 6, 9, 11), data(2, 6, 9, 12));
+        let got = matching_cost(a.view(), b.view()).unwrap();
+        for q in 0..2 {
+            let want = literal_cost(&a.index_axis(Axis(0), q), &b.index_axis(Axis(0), q), 0.0);
+            assert!((got[q] - want).abs() < 1e-12);
+        }
+    }
+
+    #[test]
+    fn bad_inputs_are_errors() {
+        let ok = data(2, 4, 3, 1);
+        assert!(estimate_yaw(ok.view(), data(2, 5, 3, 1).view()).is_err());
+        assert!(estimate_yaw(ok.view(), data(2, 4, 2, 1).view()).is_err());
+        assert!(estimate_yaw(ok.view(), data(3, 4, 3, 1).view()).is_err());
+        assert!(estimate_yaw(data(2, 1, 3, 1).view(), data(2, 1, 3, 1).view()).is_err());
+        assert!(estimate_yaw(data(0, 4, 3, 1).view(), data(0, 4, 3, 1).view()).is_err());
+        let mut nan = ok.clone();
+        nan[[1, 2, 0]] = f32::NAN;
+        assert!(matches!(
+            yaw_costs(ok.view(), nan.view()),
+            Err(Error::Value { arg: "tgt", .. })
+        ));
+        assert!(matching_cost(ok.view(), data(2, 4, 4, 1).view()).is_err());
+    }
+}

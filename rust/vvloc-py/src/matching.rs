@@ -1,8 +1,189 @@
-//! Bindings of the matching kernels.
+//! Bindings of the matching kernels: matching cost, yaw cost curves, exact yaw estimation,
+//! re-ranking and the translation search.
 
+use crate::errors::to_py;
+use crate::pool;
+use numpy::{IntoPyArray, PyArray1, PyArray2, PyReadonlyArray1, PyReadonlyArray3};
 use pyo3::prelude::*;
+use vvloc_core::cost;
+use vvloc_core::search::{SearchConfig, TranslationSearch as CoreSearch};
+
+type F64Vec<'py> = Bound<'py, PyArray1<f64>>;
+
+fn estimates_to_py<'py>(
+    py: Python<'py>,
+    est: &[cost::YawEstimate],
+) -> (F64Vec<'py>, F64Vec<'py>, F64Vec<'py>) {
+    let shift: Vec<f64> = est.iter().map(|e| e.shift).collect();
+    let yaw: Vec<f64> = est.iter().map(|e| e.yaw).collect();
+    let c: Vec<f64> = est.iter().map(|e| e.cost).collect();
+    (
+        shift.into_pyarray(py),
+        yaw.into_pyarray(py),
+        c.into_pyarray(py),
+    )
+}
+
+/// Matching cost of P pairs (P, T, C) float32 → (P,) float64.
+#[pyfunction]
+fn matching_cost<'py>(
+    py: Python<'py>,
+    a: PyReadonlyArray3<'py, f32>,
+    b: PyReadonlyArray3<'py, f32>,
+) -> PyResult<F64Vec<'py>> {
+    let (a, b) = (a.as_array(), b.as_array());
+    let out = to_py(pool::run(py, || cost::matching_cost(a, b))?)?;
+    Ok(out.into_pyarray(py))
+}
+
+/// Integer-shift yaw cost curves: src (P, T, C), tgt (P, T, C) or (1, T, C) → (P, T) float64.
+#[pyfunction]
+fn yaw_costs<'py>(
+    py: Python<'py>,
+    src: PyReadonlyArray3<'py, f32>,
+    tgt: PyReadonlyArray3<'py, f32>,
+) -> PyResult<Bound<'py, PyArray2<f64>>> {
+    let (s, t) = (src.as_array(), tgt.as_array());
+    let out = to_py(pool::run(py, || cost::yaw_costs(s, t))?)?;
+    Ok(out.into_pyarray(py))
+}
+
+/// Exact yaw estimate per pair → (shift, yaw, cost), each (P,) float64.
+#[pyfunction]
+fn estimate_yaw<'py>(
+    py: Python<'py>,
+    src: PyReadonlyArray3<'py, f32>,
+    tgt: PyReadonlyArray3<'py, f32>,
+) -> PyResult<(F64Vec<'py>, F64Vec<'py>, F64Vec<'py>)> {
+    let (s, t) = (src.as_array(), tgt.as_array());
+    let est = to_py(pool::run(py, || cost::estimate_yaw(s, t))?)?;
+    Ok(estimates_to_py(py, &est))
+}
+
+/// Re-ranking of K candidates → (order int64, cost, yaw, shift), costs etc. in input order.
+#[pyfunction]
+#[allow(clippy::type_complexity)]
+fn rerank<'py>(
+    py: Python<'py>,
+    src: PyReadonlyArray3<'py, f32>,
+    tgt: PyReadonlyArray3<'py, f32>,
+) -> PyResult<(
+    Bound<'py, PyArray1<i64>>,
+    F64Vec<'py>,
+    F64Vec<'py>,
+    F64Vec<'py>,
+)> {
+    let (s, t) = (src.as_array(), tgt.as_array());
+    let r = to_py(pool::run(py, || cost::rerank(s, t))?)?;
+    let order: Vec<i64> = r.order.iter().map(|&k| k as i64).collect();
+    let (shift, yaw, c) = estimates_to_py(py, &r.estimates);
+    Ok((order.into_pyarray(py), c, yaw, shift))
+}
+
+/// The coarse-to-fine translation search (see `vvloc_core::search`).
+#[pyclass(name = "TranslationSearch", module = "vvloc._core")]
+struct TranslationSearch {
+    inner: CoreSearch,
+}
+
+#[pymethods]
+impl TranslationSearch {
+    #[new]
+    #[pyo3(signature = (half_range, step, fine_samples, stages, shrink, seed))]
+    fn new(
+        half_range: f64,
+        step: f64,
+        fine_samples: usize,
+        stages: usize,
+        shrink: f64,
+        seed: u64,
+    ) -> PyResult<Self> {
+        let inner = to_py(CoreSearch::new(SearchConfig {
+            half_range,
+            step,
+            fine_samples,
+            stages,
+            shrink,
+            seed,
+        }))?;
+        Ok(TranslationSearch { inner })
+    }
+
+    /// The current stage's translations (N, 2) float64 in metres ((0, 2) when done).
+    fn proposals<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray2<f64>> {
+        let p = self.inner.proposals();
+        let arr = ndarray::Array2::from_shape_fn((p.len(), 2), |(i, j)| p[i][j]);
+        arr.into_pyarray(py)
+    }
+
+    /// Reports (N,) costs and (N,) yaws of the current proposals and advances a stage.
+    fn report(
+        &mut self,
+        costs: PyReadonlyArray1<'_, f64>,
+        yaws: PyReadonlyArray1<'_, f64>,
+    ) -> PyResult<()> {
+        let c = costs.as_array().to_vec();
+        let y = yaws.as_array().to_vec();
+        to_py(self.inner.report(&c, &y))
+    }
+
+    /// Whether every stage has been evaluated.
+    #[getter]
+    fn done(&self) -> bool {
+        self.inner.done()
+    }
+
+    /// The current stage index.
+    #[getter]
+    fn stage(&self) -> usize {
+        self.inner.stage()
+    }
+
+    /// The best hypothesis (x, y, yaw, cost), or None before the first report.
+    fn best(&self) -> Option<(f64, f64, f64, f64)> {
+        self.inner.best().map(|b| (b.x, b.y, b.yaw, b.cost))
+    }
+
+    /// Every evaluated hypothesis: (xy (M, 2), yaw (M,), cost (M,), stage (M,) int64).
+    #[allow(clippy::type_complexity)]
+    fn history<'py>(
+        &self,
+        py: Python<'py>,
+    ) -> (
+        Bound<'py, PyArray2<f64>>,
+        F64Vec<'py>,
+        F64Vec<'py>,
+        Bound<'py, PyArray1<i64>>,
+    ) {
+        let h = self.inner.history();
+        let xy = ndarray::Array2::from_shape_fn(
+            (h.len(), 2),
+            |(i, j)| {
+                if j == 0 {
+                    h[i].x
+                } else {
+                    h[i].y
+                }
+            },
+        );
+        let yaw: Vec<f64> = h.iter().map(|v| v.yaw).collect();
+        let c: Vec<f64> = h.iter().map(|v| v.cost).collect();
+        let st: Vec<i64> = h.iter().map(|v| v.stage as i64).collect();
+        (
+            xy.into_pyarray(py),
+            yaw.into_pyarray(py),
+            c.into_pyarray(py),
+            st.into_pyarray(py),
+        )
+    }
+}
 
 /// Adds this area's functions and classes to the `_core` module.
-pub fn register(_m: &Bound<'_, PyModule>) -> PyResult<()> {
+pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add_function(wrap_pyfunction!(matching_cost, m)?)?;
+    m.add_function(wrap_pyfunction!(yaw_costs, m)?)?;
+    m.add_function(wrap_pyfunction!(estimate_yaw, m)?)?;
+    m.add_function(wrap_pyfunction!(rerank, m)?)?;
+    m.add_class::<TranslationSearch>()?;
     Ok(())
 }

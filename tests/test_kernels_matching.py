@@ -1,0 +1,314 @@
+"""Matching kernels: Rust vs the literal references, exactness of the yaw minimum, re-ranking,
+the translation search schedule, thread-count independence and bad inputs."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+import vvloc
+from vvloc import kernels as K
+from vvloc.reference import matching as ref
+
+
+def _unit_rows(rng: np.random.Generator, shape: tuple[int, ...]) -> np.ndarray:
+    x = rng.standard_normal(shape).astype(np.float32)
+    return x / np.linalg.norm(x, axis=-1, keepdims=True)
+
+
+def _smooth_rows(rng: np.random.Generator, p: int, t: int, c: int) -> np.ndarray:
+    """Descriptors that vary smoothly with the angle bin (like real local-view descriptors)."""
+    ang = 2 * np.pi * np.arange(t) / t
+    coef = rng.standard_normal((p, 3, 2, c))
+    x = sum(
+        coef[:, f, 0, None, :] * np.cos((f + 1) * ang)[None, :, None]
+        + coef[:, f, 1, None, :] * np.sin((f + 1) * ang)[None, :, None]
+        for f in range(3)
+    )
+    x = np.asarray(x, dtype=np.float32)
+    return x / np.linalg.norm(x, axis=-1, keepdims=True)
+
+
+def _fractional_roll(src: np.ndarray, s: float) -> np.ndarray:
+    return ref.roll_rows(src, s).astype(np.float32)
+
+
+# --- parity ----------------------------------------------------------------------------------
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    p=st.integers(1, 3),
+    t=st.integers(2, 16),
+    c=st.integers(1, 20),
+    seed=st.integers(0, 2**32 - 1),
+    scale=st.sampled_from([1.0, 0.01, 30.0]),
+)
+def test_yaw_costs_equal_reference(p, t, c, seed, scale):
+    rng = np.random.default_rng(seed)
+    src = (rng.standard_normal((p, t, c)) * scale).astype(np.float32)
+    tgt = (rng.standard_normal((p, t, c)) * scale).astype(np.float32)
+    got = K.yaw_costs(src, tgt)
+    want = K.yaw_costs(src, tgt, backend="reference")
+    assert got.shape == (p, t) and got.dtype == np.float64
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6 * scale)
+
+
+@settings(max_examples=20, deadline=None)
+@given(
+    p=st.integers(1, 3),
+    t=st.integers(2, 14),
+    c=st.integers(1, 24),
+    seed=st.integers(0, 2**32 - 1),
+    smooth=st.booleans(),
+)
+def test_estimate_yaw_is_at_least_as_good_as_the_dense_reference(p, t, c, seed, smooth):
+    rng = np.random.default_rng(seed)
+    if smooth:
+        src, tgt = _smooth_rows(rng, p, t, c), _smooth_rows(rng, p, t, c)
+    else:
+        src, tgt = _unit_rows(rng, (p, t, c)), _unit_rows(rng, (p, t, c))
+    got = K.estimate_yaw(src, tgt)
+    want = K.estimate_yaw(src, tgt, backend="reference")
+    for q in range(p):
+        # The reported cost is the literal cost at the reported shift ...
+        lit = ref.shift_cost(src[q], tgt[q], float(got.shift[q]))
+        assert got.cost[q] == pytest.approx(lit, abs=1e-9)
+        # ... and no larger than the reference's dense-scan minimum.
+        assert got.cost[q] <= want.cost[q] + 1e-6
+        assert 0.0 <= got.shift[q] < t
+        assert -np.pi < got.yaw[q] <= np.pi
+        np.testing.assert_allclose(
+            np.exp(1j * got.yaw[q]), np.exp(2j * np.pi * got.shift[q] / t), atol=1e-12
+        )
+        # Where the minimum is unique (clear gap to the second-best integer bin), s* agrees.
+        curve = ref.yaw_costs(src[q : q + 1], tgt[q : q + 1])[0]
+        srt = np.sort(curve)
+        if t > 3 and srt[1] - srt[0] > 0.05:
+            d = abs(got.shift[q] - want.shift[q])
+            assert min(d, t - d) < 1e-3
+
+
+@pytest.mark.parametrize("s_true", [0.0, 0.37, 5.5, 47.99, 71.25])
+def test_estimate_yaw_recovers_an_exact_fractional_roll(s_true):
+    rng = np.random.default_rng(1)
+    t, c = 72, 32
+    src = _unit_rows(rng, (1, t, c))
+    tgt = _fractional_roll(src[0], s_true)[None]
+    est = K.estimate_yaw(src, tgt)
+    d = abs(est.shift[0] - s_true)
+    assert min(d, t - d) < 1e-4
+    assert est.cost[0] < 1e-5
+    yaw = 2 * np.pi * s_true / t
+    assert np.angle(np.exp(1j * (est.yaw[0] - yaw))) == pytest.approx(0.0, abs=1e-5)
+
+
+def test_estimate_yaw_paper_size_matches_reference_on_two_pairs():
+    rng = np.random.default_rng(2)
+    src = _smooth_rows(rng, 2, 120, 64)
+    tgt = np.stack([_fractional_roll(src[0], 33.3), _smooth_rows(rng, 1, 120, 64)[0]])
+    tgt[0] += 0.01 * rng.standard_normal(tgt[0].shape).astype(np.float32)
+    got = K.estimate_yaw(src, tgt)
+    want = K.estimate_yaw(src, tgt, backend="reference")
+    assert np.all(got.cost <= want.cost + 1e-6)
+    assert abs(got.shift[0] - 33.3) < 0.05
+
+
+def test_matching_cost_any_leading_shape():
+    rng = np.random.default_rng(3)
+    a = rng.standard_normal((2, 3, 5, 4)).astype(np.float32)
+    b = rng.standard_normal((2, 3, 5, 4)).astype(np.float32)
+    got = K.matching_cost(a, b)
+    assert got.shape == (2, 3)
+    np.testing.assert_allclose(got, K.matching_cost(a, b, backend="reference"), rtol=1e-12)
+    assert K.matching_cost(a[0, 0], b[0, 0]).shape == ()
+
+
+def test_non_contiguous_and_float64_inputs():
+    rng = np.random.default_rng(4)
+    big = rng.standard_normal((3, 10, 16))
+    src, tgt = big[:, :, ::2], big[::-1, :, 1::2]
+    got = K.estimate_yaw(src, tgt)
+    want = K.estimate_yaw(np.ascontiguousarray(src), np.ascontiguousarray(tgt))
+    np.testing.assert_array_equal(got.cost, want.cost)
+
+
+def test_shared_target_broadcasts():
+    rng = np.random.default_rng(5)
+    src, tgt = _unit_rows(rng, (4, 9, 6)), _unit_rows(rng, (9, 6))
+    a = K.estimate_yaw(src, tgt)
+    b = K.estimate_yaw(src, np.broadcast_to(tgt, src.shape))
+    np.testing.assert_array_equal(a.cost, b.cost)
+    np.testing.assert_array_equal(a.shift, b.shift)
+
+
+# --- rerank ----------------------------------------------------------------------------------
+
+
+def test_rerank_orders_by_cost_with_ties_by_index():
+    rng = np.random.default_rng(6)
+    k, t, c = 12, 16, 8
+    query = _unit_rows(rng, (t, c))
+    cands = _unit_rows(rng, (k, t, c))
+    cands[7] = _fractional_roll(query, 3.4)  # the true match
+    cands[3] = cands[9] = cands[5]  # exact ties
+    r = K.rerank(cands, query)
+    assert r.order[0] == 7
+    assert sorted(r.order.tolist()) == list(range(k))
+    assert np.all(np.diff(r.cost[r.order]) >= 0)
+    pos = {int(i): n for n, i in enumerate(r.order)}
+    assert pos[3] < pos[5] < pos[9]
+    ref_r = K.rerank(cands, query, backend="reference")
+    np.testing.assert_array_equal(r.order, ref_r.order)
+    assert np.all(r.cost <= ref_r.cost + 1e-6)
+
+
+# --- threads ---------------------------------------------------------------------------------
+
+
+def test_results_identical_for_one_and_two_threads():
+    rng = np.random.default_rng(7)
+    src, tgt = _smooth_rows(rng, 9, 40, 33), _smooth_rows(rng, 9, 40, 33)
+    before = vvloc.get_num_threads()
+    try:
+        vvloc.set_num_threads(1)
+        a = (K.estimate_yaw(src, tgt), K.yaw_costs(src, tgt), K.rerank(src, tgt))
+        vvloc.set_num_threads(2)
+        b = (K.estimate_yaw(src, tgt), K.yaw_costs(src, tgt), K.rerank(src, tgt))
+    finally:
+        vvloc.set_num_threads(before)
+    for x, y in zip(a, b, strict=True):
+        for u, v in zip(x, y, strict=True):
+            np.testing.assert_array_equal(u, v)
+    np.testing.assert_array_equal(a[1], b[1])
+
+
+# --- translation search ----------------------------------------------------------------------
+
+
+def _drive(search, f):
+    while not search.done:
+        xy = search.proposals()
+        costs = np.array([f(x, y) for x, y in xy])
+        search.report(costs, 0.1 * costs)
+    return search
+
+
+@settings(max_examples=15, deadline=None)
+@given(
+    half=st.floats(0.5, 5.0),
+    step_frac=st.floats(0.1, 1.0),
+    fine=st.integers(1, 20),
+    stages=st.integers(1, 5),
+    shrink=st.floats(0.1, 1.0),
+    seed=st.integers(0, 2**64 - 1),
+)
+def test_search_schedule_identical_on_both_backends(half, step_frac, fine, stages, shrink, seed):
+    step = half * step_frac
+
+    def f(x, y):
+        return np.cos(1.7 * x) + np.sin(0.9 * y) + 0.1 * x * y
+
+    args = (half, step, fine, stages, shrink, seed)
+    a = _drive(K.TranslationSearch(*args), f)
+    b = _drive(K.TranslationSearch(*args, backend="reference"), f)
+    for u, v in zip(a.history(), b.history(), strict=True):
+        np.testing.assert_array_equal(u, v)
+    assert a.best() == b.best()
+
+
+def test_search_finds_a_smooth_minimum_and_records_stages():
+    s = _drive(
+        K.TranslationSearch(3.0, 0.5, fine_samples=24, stages=4, shrink=0.5, seed=3),
+        lambda x, y: np.hypot(x - 1.23, y + 2.04),
+    )
+    h = s.history()
+    assert (h.stage == 0).sum() == 13 * 13
+    assert len(h.cost) == 169 + 3 * 24
+    assert np.all(np.abs(h.xy) <= 3.0)
+    best = s.best()
+    assert best is not None
+    assert np.hypot(best.x - 1.23, best.y + 2.04) < 0.1
+    assert best.cost == h.cost.min()
+    assert s.proposals().shape == (0, 2)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "name"),
+    [
+        ({"step": 0.0}, "step"),
+        ({"step": -1.0}, "step"),
+        ({"stages": 0}, "stages"),
+        ({"half_range": 0.1}, "half_range"),
+        ({"shrink": 1.5}, "shrink"),
+        ({"shrink": 0.0}, "shrink"),
+        ({"fine_samples": 0}, "fine_samples"),
+        ({"seed": -1}, "seed"),
+    ],
+)
+@pytest.mark.parametrize("backend", ["rust", "reference"])
+def test_search_rejects_bad_configuration(kwargs, name, backend):
+    cfg = {"half_range": 2.0, "step": 0.5, "fine_samples": 4, "stages": 3, "shrink": 0.5}
+    with pytest.raises(ValueError, match=name):
+        K.TranslationSearch(**{**cfg, **kwargs}, backend=backend)
+
+
+def test_search_rejects_bad_reports():
+    s = K.TranslationSearch(1.0, 0.5, fine_samples=3, stages=2)
+    n = len(s.proposals())
+    with pytest.raises(ValueError, match="costs"):
+        s.report(np.zeros(n + 1), np.zeros(n))
+    with pytest.raises(ValueError, match="yaws"):
+        s.report(np.zeros(n), np.full(n, np.nan))
+    s.report(np.zeros(n), np.zeros(n))
+    s.report(np.zeros(3), np.zeros(3))
+    with pytest.raises(ValueError, match="done"):
+        s.report(np.zeros(0), np.zeros(0))
+
+
+# --- bad inputs ------------------------------------------------------------------------------
+
+_OK = np.zeros((2, 8, 4), dtype=np.float32)
+
+
+@pytest.mark.parametrize("fn", [K.yaw_costs, K.estimate_yaw, K.rerank])
+@pytest.mark.parametrize(
+    ("src", "tgt", "name"),
+    [
+        (_OK, np.zeros((2, 7, 4)), "tgt"),  # T mismatch
+        (_OK, np.zeros((2, 8, 5)), "tgt"),  # C mismatch
+        (_OK, np.zeros((3, 8, 4)), "tgt"),  # P mismatch
+        (np.zeros((2, 1, 4)), np.zeros((2, 1, 4)), "src"),  # T < 2
+        (np.zeros((0, 8, 4)), np.zeros((0, 8, 4)), "src"),  # empty batch
+        (np.zeros((2, 8, 0)), np.zeros((2, 8, 0)), "src"),  # no channels
+        (np.zeros((8, 4)), np.zeros((8, 4)), "src"),  # wrong rank
+        (np.full((2, 8, 4), np.nan), _OK, "src"),
+        (_OK, np.full((2, 8, 4), np.inf), "tgt"),
+    ],
+)
+@pytest.mark.parametrize("backend", ["rust", "reference"])
+def test_bad_pairs_raise_value_error(fn, src, tgt, name, backend):
+    with pytest.raises(ValueError, match=name):
+        fn(src, tgt, backend=backend)
+
+
+def test_bad_types_and_backend():
+    with pytest.raises(TypeError, match="src"):
+        K.estimate_yaw("abc", _OK)
+    with pytest.raises(ValueError, match="backend"):
+        K.estimate_yaw(_OK, _OK, backend="cuda")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="b"):
+        K.matching_cost(np.zeros((3, 4)), np.zeros((3, 5)))
+    with pytest.raises(ValueError, match="a"):
+        K.matching_cost(np.zeros((0, 4)), np.zeros((0, 4)))
+
+
+def test_core_rejects_bad_shapes_without_panicking():
+    from vvloc import _core
+
+    with pytest.raises(ValueError, match="tgt"):
+        _core.estimate_yaw(_OK, np.zeros((2, 8, 3), dtype=np.float32))
+    with pytest.raises(ValueError, match="src"):
+        _core.yaw_costs(np.zeros((0, 8, 4), np.float32), np.zeros((0, 8, 4), np.float32))
