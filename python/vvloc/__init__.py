@@ -40,4 +40,35 @@ if hasattr(os, "register_at_fork"):
 
 from vvloc import kernels  # noqa: E402
 
-__all__ = ["__version__", "get_num_threads", "kernels", "set_num_threads"]
+# Heavy (torch-importing) parts load on first use, so `import vvloc` stays light.
+_LAZY = {
+    "Localizer": ("vvloc.localize.localizer", "Localizer"),
+    "LocalizationResult": ("vvloc.localize.localizer", "LocalizationResult"),
+    "MapDatabase": ("vvloc.localize.mapdb", "MapDatabase"),
+    "nets": ("vvloc.nets", None),
+    "data": ("vvloc.data", None),
+    "losses": ("vvloc.losses", None),
+    "localize": ("vvloc.localize", None),
+    "evaluate": ("vvloc.evaluate", None),
+}
+
+
+def __getattr__(name: str) -> object:
+    if name in _LAZY:
+        import importlib
+
+        module, attr = _LAZY[name]
+        mod = importlib.import_module(module)
+        return mod if attr is None else getattr(mod, attr)
+    raise AttributeError(f"module 'vvloc' has no attribute {name!r}")
+
+
+__all__ = [
+    "Localizer",
+    "LocalizationResult",
+    "MapDatabase",
+    "__version__",
+    "get_num_threads",
+    "kernels",
+    "set_num_threads",
+]

@@ -8,7 +8,13 @@ import logging
 
 import typer
 
+from vvloc.commands.demo import demo
+from vvloc.commands.evaluate import eval_command
+from vvloc.commands.localize import localize
+from vvloc.commands.loops import loops
+from vvloc.commands.mapping import map_app
 from vvloc.commands.sim import sim
+from vvloc.commands.train import train
 
 app = typer.Typer(
     name="vvloc",
@@ -31,6 +37,12 @@ def _root(
 
 
 app.command("sim")(sim)
+app.command("train")(train)
+app.command("eval")(eval_command)
+app.add_typer(map_app, name="map")
+app.command("localize")(localize)
+app.command("loops")(loops)
+app.command("demo")(demo)
 
 
 def main() -> None:

@@ -65,6 +65,12 @@ class MetricResult(NamedTuple):
     history: kernels.SearchHistory
 
 
+def _numpy(x: Any) -> npt.NDArray[np.float32]:
+    if hasattr(x, "detach"):
+        x = x.detach().cpu().numpy()
+    return np.asarray(x, dtype=np.float32)
+
+
 def metric_localize(
     bev_src: Any,
     desc_tgt: Any,
@@ -82,7 +88,9 @@ def metric_localize(
         bev_src: source BEV queries (H, W, C) float, channels-last, cell size ``grid_size``.
         desc_tgt: target local-view descriptors (T, C) (e.g. ``decode`` of the target's polar
             BEV), T = ``num_angles``.
-        decode: maps polar BEVs (N, T, R, C) float32 to descriptors (N, T, C) (numpy or torch).
+        decode: maps polar BEVs (N, T, R, C) float32 to descriptors (N, T, C) (numpy or torch),
+            or to a pair (Ds', Dt') of (N, T, C) when the target side is refined per hypothesis
+            too (the learned interactor); ``desc_tgt`` then only fixes T.
         config: the translation search; :class:`SearchConfig` defaults when None.
         grid_size: BEV cell size g, metres.
         num_angles, num_radii: polar grid T × R.
@@ -110,9 +118,11 @@ def metric_localize(
             bev_src, xy, num_angles, num_radii, grid_size, backend=backend
         )
         desc = decode(polar)
-        if hasattr(desc, "detach"):
-            desc = desc.detach().cpu().numpy()
-        est = kernels.estimate_yaw(desc, t, backend=backend)
+        if isinstance(desc, tuple):  # a learned decoder + interactor refines both sides
+            src, tgt = (_numpy(d) for d in desc)
+        else:
+            src, tgt = _numpy(desc), t
+        est = kernels.estimate_yaw(src, tgt, backend=backend)
         search.report(est.cost, est.yaw)
     best = search.best()
     assert best is not None  # at least one stage was reported
