@@ -39,5 +39,7 @@ if hasattr(os, "register_at_fork"):
     os.register_at_fork(after_in_child=_core._reset_pool_after_fork)
 
 from vvloc import kernels  # noqa: E402
+from vvloc.retrieval import DescriptorIndex, Exclusion  # noqa: E402
 
 __all__ = ["__version__", "get_num_threads", "kernels", "set_num_threads"]
+__all__ += ["DescriptorIndex", "Exclusion"]
