@@ -12,7 +12,9 @@ from typing import Any
 import vvloc
 
 
-def timeit(fn: Callable[[], Any], *, min_time: float = 0.3, repeat: int = 5, warmup: int = 1) -> float:
+def timeit(
+    fn: Callable[[], Any], *, min_time: float = 0.3, repeat: int = 5, warmup: int = 1
+) -> float:
     """Median seconds per call of ``fn`` over ``repeat`` rounds of at least ``min_time`` each."""
     for _ in range(warmup):
         fn()
@@ -32,6 +34,7 @@ def timeit(fn: Callable[[], Any], *, min_time: float = 0.3, repeat: int = 5, war
 
 def print_table(rows: list[dict[str, Any]], columns: list[str]) -> None:
     """Print ``rows`` as a fixed-width table of ``columns``."""
+
     def fmt(v: Any) -> str:
         if isinstance(v, float):
             return f"{v:.4g}"
@@ -39,9 +42,9 @@ def print_table(rows: list[dict[str, Any]], columns: list[str]) -> None:
 
     cells = [[fmt(r.get(c, "")) for c in columns] for r in rows]
     widths = [max(len(c), *(len(row[i]) for row in cells)) for i, c in enumerate(columns)]
-    print("  ".join(c.ljust(w) for c, w in zip(columns, widths)))
+    print("  ".join(c.ljust(w) for c, w in zip(columns, widths, strict=True)))
     for row in cells:
-        print("  ".join(v.ljust(w) for v, w in zip(row, widths)))
+        print("  ".join(v.ljust(w) for v, w in zip(row, widths, strict=True)))
 
 
 def write_json(path: str | Path, name: str, rows: list[dict[str, Any]]) -> None:

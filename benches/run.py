@@ -25,7 +25,8 @@ def main(argv: list[str]) -> int:
     scripts = sorted(HERE.glob("bench_*.py"))
     if argv:
         scripts = [s for s in scripts if any(a in s.stem for a in argv)]
-    print(f"vvloc {vvloc.__version__}, {vvloc.get_num_threads()} threads, build {_core.build_profile}")
+    threads = vvloc.get_num_threads()
+    print(f"vvloc {vvloc.__version__}, {threads} threads, build {_core.build_profile}")
     rc = 0
     for script in scripts:
         name = script.stem.removeprefix("bench_")

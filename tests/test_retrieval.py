@@ -42,9 +42,7 @@ def assert_topk_equal(idx, dist, ref_idx, ref_dist, full):
     np.testing.assert_allclose(dist[valid] ** 2, ref_dist[valid] ** 2, rtol=0, atol=scale)
     # The distance Rust reports is the true distance of the index it returns.
     rows = np.nonzero(valid)[0]
-    np.testing.assert_allclose(
-        dist[valid] ** 2, full[rows, idx[valid]] ** 2, rtol=0, atol=scale
-    )
+    np.testing.assert_allclose(dist[valid] ** 2, full[rows, idx[valid]] ** 2, rtol=0, atol=scale)
     # Outside near-ties the indices are identical.
     for q in range(idx.shape[0]):
         for c in np.nonzero(valid[q])[0]:
@@ -111,7 +109,7 @@ def test_compressed_is_exact_on_realistic_data(dtype):
     idx = np.concatenate([s[0] for s in single])
     dist = np.concatenate([s[1] for s in single])
     ref_idx, _ = ref.topk(q, x, 20)
-    recall = np.mean([len(set(a) & set(b)) / 20 for a, b in zip(idx, ref_idx)])
+    recall = np.mean([len(set(a) & set(b)) / 20 for a, b in zip(idx, ref_idx, strict=True)])
     assert recall >= 0.999
     # Exact re-scoring: identical to the float32 index, single queries and batch.
     np.testing.assert_array_equal(idx, exact_idx)
@@ -207,7 +205,7 @@ def test_save_load_round_trip(tmp_path, dtype):
     np.testing.assert_array_equal(back.descriptors, x)
     np.testing.assert_array_equal(back.groups, index.groups)
     np.testing.assert_array_equal(back.seqs, index.seqs)
-    for a, b in zip(back.topk(x[:5], 4), index.topk(x[:5], 4)):
+    for a, b in zip(back.topk(x[:5], 4), index.topk(x[:5], 4), strict=True):
         np.testing.assert_array_equal(a, b)
     assert os.listdir(tmp_path) == ["map.vvidx"]  # no temporary file left behind
 
@@ -275,7 +273,7 @@ def test_concurrent_queries_from_python_threads():
     want = [index.topk(q[i : i + 1], 10) for i in range(len(q))]
     with ThreadPoolExecutor(4) as pool:
         got = list(pool.map(lambda i: index.topk(q[i : i + 1], 10), range(len(q))))
-    for (gi, gd), (wi, wd) in zip(got, want):
+    for (gi, gd), (wi, wd) in zip(got, want, strict=True):
         np.testing.assert_array_equal(gi, wi)
         np.testing.assert_array_equal(gd, wd)
 
@@ -293,7 +291,7 @@ def test_one_and_two_threads_identical():
                 results.append((index.topk(q, 20), index.topk(q[:1], 20), index.radius(q, 0.3)))
     finally:
         vvloc.set_num_threads(before)
-    for a, b in zip(results[:2], results[2:]):
-        for xa, xb in zip(a, b):
-            for u, v in zip(xa, xb):
+    for a, b in zip(results[:2], results[2:], strict=True):
+        for xa, xb in zip(a, b, strict=True):
+            for u, v in zip(xa, xb, strict=True):
                 np.testing.assert_array_equal(u, v)

@@ -9,9 +9,21 @@ def _reset_pool_after_fork() -> None: ...
 
 # --- retrieval -------------------------------------------------------------------------------
 
-import numpy as np
-import numpy.typing as npt
+import numpy as np  # noqa: E402
+import numpy.typing as npt  # noqa: E402
+from typing_extensions import final  # noqa: E402
 
+# The extension's runtime __all__ (PyModule.add appends every name): keep in sync.
+__all__ = [
+    "DescriptorIndex",
+    "__version__",
+    "_reset_pool_after_fork",
+    "build_profile",
+    "get_num_threads",
+    "set_num_threads",
+]
+
+@final
 class DescriptorIndex:
     def __new__(
         cls,

@@ -41,7 +41,18 @@ fn matrix<'a>(a: &'a PyReadonlyArray2<'_, f32>, name: &str, dim: usize) -> PyRes
     slice(a, name)
 }
 
-type Exclude<'py> = (PyReadonlyArray1<'py, i64>, PyReadonlyArray1<'py, i64>, i64, bool);
+type TopK<'py> = (Bound<'py, PyArray2<i64>>, Bound<'py, PyArray2<f32>>);
+type Csr<'py> = (
+    Bound<'py, PyArray1<i64>>,
+    Bound<'py, PyArray1<i64>>,
+    Bound<'py, PyArray1<f32>>,
+);
+type Exclude<'py> = (
+    PyReadonlyArray1<'py, i64>,
+    PyReadonlyArray1<'py, i64>,
+    i64,
+    bool,
+);
 
 /// Exact L2 nearest-neighbour index (see `vvloc.DescriptorIndex`).
 #[pyclass(module = "vvloc._core", frozen)]
@@ -72,9 +83,7 @@ impl DescriptorIndex {
         let rows = slice(&descriptors, "descriptors")?;
         let groups = groups.as_ref().map(|g| slice(g, "groups")).transpose()?;
         let seqs = seqs.as_ref().map(|s| slice(s, "seqs")).transpose()?;
-        let index = pool::run(py, || {
-            CoreIndex::from_rows(rows, dim, dtype, groups, seqs)
-        })?;
+        let index = pool::run(py, || CoreIndex::from_rows(rows, dim, dtype, groups, seqs))?;
         Ok(DescriptorIndex {
             inner: RwLock::new(to_py(index)?),
         })
@@ -105,7 +114,7 @@ impl DescriptorIndex {
         queries: PyReadonlyArray2<'py, f32>,
         k: usize,
         exclude: Option<Exclude<'py>>,
-    ) -> PyResult<(Bound<'py, PyArray2<i64>>, Bound<'py, PyArray2<f32>>)> {
+    ) -> PyResult<TopK<'py>> {
         let dim = self.read().dim();
         let q = matrix(&queries, "queries", dim)?;
         let nq = queries.shape()[0];
@@ -118,18 +127,13 @@ impl DescriptorIndex {
     }
 
     #[pyo3(signature = (queries, r, exclude = None))]
-    #[allow(clippy::type_complexity)]
     fn radius<'py>(
         &self,
         py: Python<'py>,
         queries: PyReadonlyArray2<'py, f32>,
         r: f32,
         exclude: Option<Exclude<'py>>,
-    ) -> PyResult<(
-        Bound<'py, PyArray1<i64>>,
-        Bound<'py, PyArray1<i64>>,
-        Bound<'py, PyArray1<f32>>,
-    )> {
+    ) -> PyResult<Csr<'py>> {
         let dim = self.read().dim();
         let q = matrix(&queries, "queries", dim)?;
         let ex = exclusion(&exclude)?;

@@ -13,6 +13,9 @@
 //! `dp = ceil(d / 2)`, so that `vdpbf16ps` consumes one pair of dimensions of 16 rows per
 //! instruction.
 
+// Index loops mirror the register layout (t = query, g = block, l = lane) and read best as is.
+#![allow(clippy::needless_range_loop)]
+
 use half::{bf16, f16};
 use std::sync::OnceLock;
 
@@ -211,36 +214,6 @@ pub fn norm_sq(level: Level, v: &[f32]) -> f32 {
         // SAFETY: fma detected (see `block_norms`).
         Level::Avx2 | Level::Avx512 { .. } => unsafe { fast(v) },
         _ => generic(v),
-    }
-}
-
-/// Exact float32 dot products of query `q` with the given rows of the blocked map, in the same
-/// accumulation order as [`tile_f32`] (used to re-score candidates of a compressed scan).
-pub fn dot_rows(level: Level, q: &[f32], data: &[f32], d: usize, rows: &[u32], out: &mut [f32]) {
-    assert!(q.len() >= d && out.len() >= rows.len());
-    #[inline(always)]
-    fn generic(q: &[f32], data: &[f32], d: usize, rows: &[u32], out: &mut [f32]) {
-        for (o, &r) in out.iter_mut().zip(rows) {
-            let r = r as usize;
-            let base = (r / BLOCK) * d * BLOCK + r % BLOCK;
-            let row = &data[base..base + (d - 1) * BLOCK + 1];
-            let mut acc = 0f32;
-            for j in 0..d {
-                acc = q[j].mul_add(row[j * BLOCK], acc);
-            }
-            *o = acc;
-        }
-    }
-    #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx2,fma")]
-    unsafe fn fast(q: &[f32], data: &[f32], d: usize, rows: &[u32], out: &mut [f32]) {
-        generic(q, data, d, rows, out)
-    }
-    match level {
-        #[cfg(target_arch = "x86_64")]
-        // SAFETY: fma detected (see `block_norms`).
-        Level::Avx2 | Level::Avx512 { .. } => unsafe { fast(q, data, d, rows, out) },
-        _ => generic(q, data, d, rows, out),
     }
 }
 

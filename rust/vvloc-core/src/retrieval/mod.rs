@@ -121,8 +121,11 @@ pub struct DescriptorIndex {
     norms: Vec<f32>,
     /// The compressed scan copy in its blocked layout (empty for float32).
     packed: Vec<u16>,
-    /// Largest row norm (for the compressed error bound).
+    /// Largest row norm ‖x‖ (for the compressed error bound).
     max_norm: f32,
+    /// Largest ‖x̃‖ and ‖x − x̃‖ over rows, x̃ the compressed row (exact, rounded up).
+    max_packed_norm: f64,
+    max_resid: f64,
     groups: Vec<i64>,
     seqs: Vec<i64>,
     level: Level,
@@ -142,6 +145,8 @@ impl DescriptorIndex {
             norms: Vec::new(),
             packed: Vec::new(),
             max_norm: 0.0,
+            max_packed_norm: 0.0,
+            max_resid: 0.0,
             groups: Vec::new(),
             seqs: Vec::new(),
             level: kernels::detect(),
@@ -234,7 +239,7 @@ impl DescriptorIndex {
         seqs: Option<&[i64]>,
     ) -> Result<()> {
         let d = self.dim;
-        if descriptors.len() % d != 0 {
+        if !descriptors.len().is_multiple_of(d) {
             return Err(Error::shape(
                 "descriptors",
                 format!("(n, {d})"),
@@ -293,12 +298,37 @@ impl DescriptorIndex {
 
     fn repack(&mut self) {
         self.packed.clear();
+        self.max_packed_norm = 0.0;
+        self.max_resid = 0.0;
         self.pack_blocks(0);
+    }
+
+    /// The value row element `v` has in the compressed copy.
+    fn compressed_value(&self, v: f32) -> f32 {
+        match self.dtype {
+            Dtype::F32 => v,
+            Dtype::F16 => f16::from_f32(v).to_f32(),
+            Dtype::BF16 => bf16::from_f32(v).to_f32(),
+        }
     }
 
     /// (Re)builds the compressed copy of blocks `from..`.
     fn pack_blocks(&mut self, from: usize) {
         let (d, nb, dp) = (self.dim, self.nblocks(), self.pairs());
+        if self.dtype != Dtype::F32 {
+            // Error-bound inputs: ‖x̃‖ and ‖x − x̃‖ in f64, rounded up (relative 1e-9 covers
+            // the f64 rounding of d ≤ 1e6 terms).
+            for i in (from * BLOCK)..self.len {
+                let (mut pn, mut res) = (0f64, 0f64);
+                for v in self.row(i) {
+                    let c = self.compressed_value(v) as f64;
+                    pn += c * c;
+                    res += (v as f64 - c).powi(2);
+                }
+                self.max_packed_norm = self.max_packed_norm.max(pn.sqrt() * (1.0 + 1e-9));
+                self.max_resid = self.max_resid.max(res.sqrt() * (1.0 + 1e-9));
+            }
+        }
         match self.dtype {
             Dtype::F32 => {}
             Dtype::F16 => {
@@ -326,38 +356,52 @@ impl DescriptorIndex {
         }
     }
 
-    /// A bound ε on |approximate − exact| squared distance of the compressed scan for a query of
-    /// norm `qnorm` (exact = this index's float32 result). Derivation: with unit roundoff u of
-    /// the storage type (2⁻¹¹ float16, 2⁻⁸ bfloat16, whose scan also rounds the query),
-    /// |q·x − q̃·x̃| ≤ (2u + u²)·Σ|q_j x_j| ≤ (2u + u²)·‖q‖‖x‖ (Cauchy–Schwarz; u instead of
-    /// 2u + u² for float16, whose query stays float32), each float32 accumulation of n terms adds
-    /// at most γ_n·Σ|terms| (γ_n = n·2⁻²⁴ / (1 − n·2⁻²⁴)), the final subtraction one rounding of
-    /// at most 2⁻²⁴·(‖q‖ + ‖x‖)², plus absolute terms for subnormals. The result is doubled for
-    /// safety.
-    pub fn error_bound(&self, qnorm: f32) -> f32 {
+    /// A bound ε on |approximate − exact| squared distance of the compressed scan for query `q`
+    /// (exact = this index's float32 result), so that re-scoring every row within 2ε of the
+    /// approximate k-th is provably exact.
+    ///
+    /// With x̃, q̃ the compressed row and query (the float16 scan keeps q̃ = q):
+    /// |q·x − q̃·x̃| ≤ ‖q‖·‖x − x̃‖ + ‖q − q̃‖·‖x̃‖ (Cauchy–Schwarz), bounded with the largest
+    /// residual and norm over the map (exact, computed at build time). Each float32
+    /// accumulation of n terms adds at most γ_n·Σ|terms| ≤ γ_n·‖a‖‖b‖
+    /// (γ_n = n·2⁻²⁴ / (1 − n·2⁻²⁴); n = 2d + 2 for `vdpbf16ps`, which may round twice per pair),
+    /// the final `‖q‖² + ‖x‖² − 2 q·x` one rounding of at most 2⁻²⁴·(‖q‖ + ‖x‖)² on each side,
+    /// and `d·2⁻¹²⁰` covers flushed subnormals. ε = 1.01 × (2·dot error + roundings).
+    pub fn error_bound(&self, q: &[f32]) -> f32 {
+        if self.dtype == Dtype::F32 {
+            return 0.0;
+        }
         let d = self.dim as f64;
-        let u32_ = 2f64.powi(-24);
-        let gamma = |n: f64| n * u32_ / (1.0 - n * u32_);
-        let (qn, m) = (qnorm as f64, self.max_norm as f64);
-        let dot = match self.dtype {
-            Dtype::F32 => return 0.0,
-            Dtype::F16 => {
-                let u = 2f64.powi(-11);
-                (u + gamma(d) * (1.0 + u) + gamma(d)) * qn * m + 2f64.powi(-25) * d.sqrt() * qn
-            }
-            Dtype::BF16 => {
-                let u = 2f64.powi(-8);
-                (2.0 * u + u * u + gamma(2.0 * d + 2.0) * (1.0 + u).powi(2) + gamma(d)) * qn * m
-                    + d * 2f64.powi(-120) * (qn + m + 1.0)
-            }
+        let u = 2f64.powi(-24);
+        let gamma = |n: f64| n * u / (1.0 - n * u);
+        let qn = q.iter().map(|&v| (v as f64).powi(2)).sum::<f64>().sqrt();
+        let (qr, qpn) = q.iter().fold((0f64, 0f64), |(r, n), &v| {
+            let c = match self.dtype {
+                Dtype::BF16 => bf16::from_f32(v).to_f32() as f64,
+                _ => v as f64,
+            };
+            (r + (v as f64 - c).powi(2), n + c * c)
+        });
+        let (qr, qpn) = (qr.sqrt(), qpn.sqrt());
+        let (m, mp, res) = (
+            self.max_norm as f64 * (1.0 + 1e-6),
+            self.max_packed_norm,
+            self.max_resid,
+        );
+        let terms = if self.dtype == Dtype::BF16 {
+            2.0 * d + 2.0
+        } else {
+            d
         };
-        let eps = 2.0 * (2.0 * dot + 2.0 * u32_ * (qn + m).powi(2)) + 1e-30;
-        eps as f32
+        let dot = qn * res + qr * mp + gamma(terms) * qpn * mp + gamma(d) * qn * m;
+        let big = qn.max(qpn) + m.max(mp);
+        let eps = 1.01 * (2.0 * dot + 2.0 * u * big * big + d * 2f64.powi(-120) * (big + 1.0));
+        (eps * (1.0 + 1e-6)) as f32
     }
 
     fn check_queries(&self, queries: &[f32]) -> Result<usize> {
         let d = self.dim;
-        if queries.len() % d != 0 {
+        if !queries.len().is_multiple_of(d) {
             return Err(Error::shape("queries", format!("(nq, {d})"), queries.len()));
         }
         if queries.iter().any(|v| !v.is_finite()) {
@@ -477,6 +521,7 @@ impl DescriptorIndex {
         }
     }
 
+    #[allow(clippy::too_many_arguments)]
     /// Compressed (approximate) scan of blocks `b0..b1` for query `qi` alone.
     fn scan_packed<S: Sink>(
         &self,
@@ -540,18 +585,26 @@ impl DescriptorIndex {
         self.dtype != Dtype::F32 && nq < QT
     }
 
-    /// Exact squared distances of `rows` to query `q` (float32 re-scoring).
+    /// Exact squared distances of the candidates to query `q` (float32 re-scoring): each block
+    /// holding a candidate is re-scanned with the float32 kernel (a contiguous, vectorised read,
+    /// bitwise the result of the float32 scan).
     fn rescore(&self, q: &[f32], qn: f32, cands: &[Hit]) -> Vec<Hit> {
-        let rows: Vec<u32> = cands.iter().map(|h| h.row).collect();
-        let mut dots = vec![0f32; rows.len()];
-        kernels::dot_rows(self.level, q, &self.data, self.dim, &rows, &mut dots);
-        rows.iter()
-            .zip(&dots)
-            .map(|(&row, &dot)| Hit {
-                sq: ((qn + self.norms[row as usize]) - 2.0 * dot).max(0.0),
-                row,
-            })
-            .collect()
+        let d = self.dim;
+        let mut rows: Vec<u32> = cands.iter().map(|h| h.row).collect();
+        rows.sort_unstable();
+        let mut out = Vec::with_capacity(rows.len());
+        let mut dots = [0f32; BLOCK];
+        let mut last = usize::MAX;
+        for &row in &rows {
+            let (b, l) = (row as usize / BLOCK, row as usize % BLOCK);
+            if b != last {
+                kernels::tile_f32::<1, 1>(self.level, q, d, &self.data[b * d * BLOCK..], &mut dots);
+                last = b;
+            }
+            let sq = ((qn + self.norms[row as usize]) - 2.0 * dots[l]).max(0.0);
+            out.push(Hit { sq, row });
+        }
+        out
     }
 
     /// The `k` nearest entries of each query (row-major (nq, d)), sorted by distance then index;
@@ -630,7 +683,7 @@ impl DescriptorIndex {
         } else {
             Vec::new()
         };
-        let slack = 2.0 * self.error_bound(qn[qi].sqrt());
+        let slack = 2.0 * self.error_bound(q);
         let sinks: Vec<ShortlistSink> = self
             .chunks(self.dim)
             .par_iter()
@@ -724,7 +777,7 @@ impl DescriptorIndex {
             (0..nq)
                 .map(|qi| {
                     let q = &queries[qi * self.dim..(qi + 1) * self.dim];
-                    let eps = self.error_bound(qn[qi].sqrt());
+                    let eps = self.error_bound(q);
                     let cands = std::mem::take(&mut scan(Some(qi), r2 + eps)[qi]);
                     self.rescore(q, qn[qi], &cands)
                 })

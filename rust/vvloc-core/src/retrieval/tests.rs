@@ -1,4 +1,7 @@
+#![allow(clippy::needless_range_loop)]
+
 use super::*;
+use select::Hit;
 
 /// Deterministic pseudo-random floats in [-1, 1) (xorshift).
 fn rand_vec(n: usize, seed: u64) -> Vec<f32> {
@@ -240,4 +243,53 @@ fn save_load_round_trip_and_corruption_detected() {
         Err(Error::Io { .. })
     ));
     std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn compressed_error_bound_holds() {
+    let d = 96;
+    let mut data = rand_vec(64 * d, 21);
+    data.iter_mut()
+        .enumerate()
+        .for_each(|(i, v)| *v *= 1.0 + (i % 7) as f32); // uneven scales
+    let queries = rand_vec(5 * d, 22);
+    for level in kernels::available_levels() {
+        for dtype in [Dtype::F16, Dtype::BF16] {
+            let idx = DescriptorIndex::from_rows(&data, d, dtype, None, None)
+                .unwrap()
+                .with_level(level)
+                .unwrap();
+            for q in queries.chunks_exact(d) {
+                let qn = kernels::norm_sq(level, q);
+                let eps = idx.error_bound(q);
+                let qpair = kernels::pack_query_bf16(q);
+                let (mut approx, mut exact): (Vec<Hit>, Vec<Hit>) = (Vec::new(), Vec::new());
+                let mut a = BelowSink {
+                    bound: f32::INFINITY,
+                    hits: vec![Vec::new(); 1],
+                    ex: idx.excluder(1, None).unwrap(),
+                };
+                idx.scan_packed(q, &qpair, 0, qn, 0, idx.nblocks(), &mut a);
+                let mut e = BelowSink {
+                    bound: f32::INFINITY,
+                    hits: vec![Vec::new(); 1],
+                    ex: idx.excluder(1, None).unwrap(),
+                };
+                idx.scan_f32(q, &[qn], 0, idx.nblocks(), &mut e);
+                approx.extend(&a.hits[0]);
+                exact.extend(&e.hits[0]);
+                assert_eq!(approx.len(), 64);
+                let worst = approx
+                    .iter()
+                    .zip(&exact)
+                    .map(|(x, y)| (x.sq - y.sq).abs())
+                    .fold(0f32, f32::max);
+                assert!(worst <= eps, "{level:?} {dtype:?}: {worst} > {eps}");
+                assert!(
+                    worst > 0.0 && eps < 1e3 * worst.max(1e-6),
+                    "bound far too loose: {eps} vs {worst}"
+                );
+            }
+        }
+    }
 }
