@@ -39,6 +39,7 @@ if hasattr(os, "register_at_fork"):
     os.register_at_fork(after_in_child=_core._reset_pool_after_fork)
 
 from vvloc import kernels  # noqa: E402
+from vvloc.retrieval import DescriptorIndex, Exclusion  # noqa: E402
 
 # Heavy (torch-importing) parts load on first use, so `import vvloc` stays light.
 _LAZY = {
@@ -64,6 +65,8 @@ def __getattr__(name: str) -> object:
 
 
 __all__ = [
+    "DescriptorIndex",
+    "Exclusion",
     "Localizer",
     "LocalizationResult",
     "MapDatabase",

@@ -1,8 +1,203 @@
-//! Bindings of the retrieval kernels.
+//! Bindings of the retrieval kernels: `_core.DescriptorIndex`.
+//!
+//! Arrays must already be C-contiguous float32 / int64 (the Python wrapper
+//! `vvloc.retrieval.DescriptorIndex` converts and validates); the core re-checks shapes and
+//! values. The index sits behind a `RwLock`: queries from several Python threads run
+//! concurrently (GIL released), `add` waits for them.
 
+use crate::errors::to_py;
+use crate::pool;
+use ndarray::{Array1, Array2};
+use numpy::{
+    IntoPyArray, PyArray1, PyArray2, PyReadonlyArray1, PyReadonlyArray2, PyUntypedArrayMethods,
+};
+use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
+use std::sync::{RwLock, RwLockReadGuard};
+use vvloc_core::retrieval::{DescriptorIndex as CoreIndex, Dtype, Exclusion};
 
 /// Adds this area's functions and classes to the `_core` module.
-pub fn register(_m: &Bound<'_, PyModule>) -> PyResult<()> {
+pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add_class::<DescriptorIndex>()?;
     Ok(())
+}
+
+fn slice<'a, T: numpy::Element, D: ndarray::Dimension>(
+    a: &'a numpy::PyReadonlyArray<'_, T, D>,
+    name: &str,
+) -> PyResult<&'a [T]> {
+    a.as_slice()
+        .map_err(|_| PyValueError::new_err(format!("{name}: expected a C-contiguous array")))
+}
+
+fn matrix<'a>(a: &'a PyReadonlyArray2<'_, f32>, name: &str, dim: usize) -> PyResult<&'a [f32]> {
+    let shape = a.shape();
+    if shape[1] != dim {
+        return Err(PyValueError::new_err(format!(
+            "{name}: expected shape (n, {dim}), got ({}, {})",
+            shape[0], shape[1]
+        )));
+    }
+    slice(a, name)
+}
+
+type TopK<'py> = (Bound<'py, PyArray2<i64>>, Bound<'py, PyArray2<f32>>);
+type Csr<'py> = (
+    Bound<'py, PyArray1<i64>>,
+    Bound<'py, PyArray1<i64>>,
+    Bound<'py, PyArray1<f32>>,
+);
+type Exclude<'py> = (
+    PyReadonlyArray1<'py, i64>,
+    PyReadonlyArray1<'py, i64>,
+    i64,
+    bool,
+);
+
+/// Exact L2 nearest-neighbour index (see `vvloc.DescriptorIndex`).
+#[pyclass(module = "vvloc._core", frozen)]
+pub struct DescriptorIndex {
+    inner: RwLock<CoreIndex>,
+}
+
+impl DescriptorIndex {
+    fn read(&self) -> RwLockReadGuard<'_, CoreIndex> {
+        // A poisoned lock means a panic in a kernel (a bug); the index itself is still valid.
+        self.inner.read().unwrap_or_else(|p| p.into_inner())
+    }
+}
+
+#[pymethods]
+impl DescriptorIndex {
+    #[new]
+    #[pyo3(signature = (descriptors, dtype = "float32", groups = None, seqs = None))]
+    fn new(
+        py: Python<'_>,
+        descriptors: PyReadonlyArray2<'_, f32>,
+        dtype: &str,
+        groups: Option<PyReadonlyArray1<'_, i64>>,
+        seqs: Option<PyReadonlyArray1<'_, i64>>,
+    ) -> PyResult<Self> {
+        let dtype = to_py(Dtype::parse(dtype))?;
+        let dim = descriptors.shape()[1];
+        let rows = slice(&descriptors, "descriptors")?;
+        let groups = groups.as_ref().map(|g| slice(g, "groups")).transpose()?;
+        let seqs = seqs.as_ref().map(|s| slice(s, "seqs")).transpose()?;
+        let index = pool::run(py, || CoreIndex::from_rows(rows, dim, dtype, groups, seqs))?;
+        Ok(DescriptorIndex {
+            inner: RwLock::new(to_py(index)?),
+        })
+    }
+
+    #[pyo3(signature = (descriptors, groups = None, seqs = None))]
+    fn add(
+        &self,
+        py: Python<'_>,
+        descriptors: PyReadonlyArray2<'_, f32>,
+        groups: Option<PyReadonlyArray1<'_, i64>>,
+        seqs: Option<PyReadonlyArray1<'_, i64>>,
+    ) -> PyResult<()> {
+        let dim = self.read().dim();
+        let rows = matrix(&descriptors, "descriptors", dim)?;
+        let groups = groups.as_ref().map(|g| slice(g, "groups")).transpose()?;
+        let seqs = seqs.as_ref().map(|s| slice(s, "seqs")).transpose()?;
+        to_py(py.detach(|| {
+            let mut w = self.inner.write().unwrap_or_else(|p| p.into_inner());
+            w.add(rows, groups, seqs)
+        }))
+    }
+
+    #[pyo3(signature = (queries, k, exclude = None))]
+    fn topk<'py>(
+        &self,
+        py: Python<'py>,
+        queries: PyReadonlyArray2<'py, f32>,
+        k: usize,
+        exclude: Option<Exclude<'py>>,
+    ) -> PyResult<TopK<'py>> {
+        let dim = self.read().dim();
+        let q = matrix(&queries, "queries", dim)?;
+        let nq = queries.shape()[0];
+        let ex = exclusion(&exclude)?;
+        let res = to_py(pool::run(py, || self.read().topk(q, k, ex))?)?;
+        let shape = (nq, res.k);
+        let idx = Array2::from_shape_vec(shape, res.indices).expect("core returns nq*k indices");
+        let dist = Array2::from_shape_vec(shape, res.distances).expect("core returns nq*k");
+        Ok((idx.into_pyarray(py), dist.into_pyarray(py)))
+    }
+
+    #[pyo3(signature = (queries, r, exclude = None))]
+    fn radius<'py>(
+        &self,
+        py: Python<'py>,
+        queries: PyReadonlyArray2<'py, f32>,
+        r: f32,
+        exclude: Option<Exclude<'py>>,
+    ) -> PyResult<Csr<'py>> {
+        let dim = self.read().dim();
+        let q = matrix(&queries, "queries", dim)?;
+        let ex = exclusion(&exclude)?;
+        let res = to_py(pool::run(py, || self.read().radius(q, r, ex))?)?;
+        Ok((
+            Array1::from(res.offsets).into_pyarray(py),
+            Array1::from(res.indices).into_pyarray(py),
+            Array1::from(res.distances).into_pyarray(py),
+        ))
+    }
+
+    fn save(&self, py: Python<'_>, path: std::path::PathBuf) -> PyResult<()> {
+        to_py(py.detach(|| self.read().save(&path)))
+    }
+
+    #[staticmethod]
+    fn load(py: Python<'_>, path: std::path::PathBuf) -> PyResult<Self> {
+        let index = to_py(pool::run(py, || CoreIndex::load(&path))?)?;
+        Ok(DescriptorIndex {
+            inner: RwLock::new(index),
+        })
+    }
+
+    /// All descriptors, float32 (N, d).
+    fn descriptors<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray2<f32>> {
+        let g = self.read();
+        let a = Array2::from_shape_vec((g.len(), g.dim()), g.rows()).expect("rows are N*d");
+        a.into_pyarray(py)
+    }
+
+    /// Group id of every entry, int64 (N,).
+    fn groups<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<i64>> {
+        Array1::from(self.read().groups().to_vec()).into_pyarray(py)
+    }
+
+    /// Sequence number of every entry, int64 (N,).
+    fn seqs<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<i64>> {
+        Array1::from(self.read().seqs().to_vec()).into_pyarray(py)
+    }
+
+    fn __len__(&self) -> usize {
+        self.read().len()
+    }
+
+    #[getter]
+    fn dim(&self) -> usize {
+        self.read().dim()
+    }
+
+    #[getter]
+    fn dtype(&self) -> &'static str {
+        self.read().dtype().name()
+    }
+}
+
+fn exclusion<'a>(e: &'a Option<Exclude<'_>>) -> PyResult<Option<Exclusion<'a>>> {
+    e.as_ref()
+        .map(|(g, s, window, whole_group)| {
+            Ok(Exclusion {
+                query_groups: slice(g, "exclude.groups")?,
+                query_seqs: slice(s, "exclude.seqs")?,
+                window: *window,
+                whole_group: *whole_group,
+            })
+        })
+        .transpose()
 }

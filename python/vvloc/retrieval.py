@@ -1,0 +1,214 @@
+"""Exact descriptor retrieval: :class:`DescriptorIndex` (top-K and radius queries by L2 distance).
+
+A thin validating wrapper around the Rust ``vvloc._core.DescriptorIndex`` (DESIGN.md §3
+"Retrieval", §4). Distances are L2 distances (not squared) in float32, computed as
+``sqrt(max(0, ‖q‖² + ‖x‖² − 2 q·x))`` with the stored norms (normalisation is not assumed).
+Top-K rows are sorted by distance ascending, ties broken by the lower map index; radius queries
+return every entry with distance ``< r`` as CSR arrays, each query's hits sorted the same way.
+
+Storage ``dtype``: ``"float32"`` scans the float32 map; ``"float16"`` and ``"bfloat16"`` scan a
+compressed copy (half the bytes per single query) and re-score a provably sufficient shortlist
+exactly from the float32 originals, which the index keeps (1.5× the float32 memory): their
+results are identical to ``"float32"``.
+
+Loop closure excludes temporal neighbours with an :class:`Exclusion`: each map entry has a group
+id (e.g. a session; default 0) and a sequence number (default: its index in the map).
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from vvloc import _core
+from vvloc.kernels import _as_f32, _positive_float, _positive_int
+
+DTYPES = ("float32", "float16", "bfloat16")
+
+
+def _as_i64(x: Any, name: str, n: int) -> npt.NDArray[np.int64]:
+    if hasattr(x, "detach") and hasattr(x, "cpu"):
+        x = x.detach().cpu().numpy()
+    arr = np.asarray(x)
+    if arr.ndim == 0 and n >= 0:
+        arr = np.full(n, arr)
+    if not np.issubdtype(arr.dtype, np.integer):
+        raise TypeError(f"{name}: expected an integer array ({n},), got dtype {arr.dtype}")
+    if arr.shape != (n,):
+        raise ValueError(f"{name}: expected shape ({n},), got {arr.shape}")
+    return np.ascontiguousarray(arr, dtype=np.int64)
+
+
+@dataclass(frozen=True)
+class Exclusion:
+    """Which map entries a query may not return.
+
+    Entry ``i`` is excluded for query ``q`` when ``map_groups[i] == groups[q]`` and either
+    ``whole_group`` is true or ``|map_seqs[i] - seqs[q]| <= window``.
+
+    Attributes:
+        groups: group id of each query, int (nq,) (a scalar applies to all queries).
+        seqs: sequence number of each query, int (nq,).
+        window: half-width of the excluded sequence window, int >= 0.
+        whole_group: exclude every entry of the query's group.
+    """
+
+    groups: Any
+    seqs: Any
+    window: int = 0
+    whole_group: bool = False
+
+
+def _matrix(x: Any, name: str, dim: int | None) -> npt.NDArray[np.float32]:
+    arr = _as_f32(x, name, 2, "(n, d)")
+    if dim is not None and arr.shape[1] != dim:
+        raise ValueError(f"{name}: expected shape (n, {dim}), got {arr.shape}")
+    return arr
+
+
+def _queries(x: Any, dim: int) -> npt.NDArray[np.float32]:
+    arr = _as_f32(x, "queries", (1, 2), "(nq, d) or (d,)")
+    if arr.ndim == 1:
+        arr = arr[None, :]
+    if arr.shape[1] != dim:
+        raise ValueError(f"queries: expected shape (nq, {dim}), got {arr.shape}")
+    return arr
+
+
+def _exclusion(ex: Exclusion | None, nq: int) -> tuple[Any, Any, int, bool] | None:
+    if ex is None:
+        return None
+    if not isinstance(ex, Exclusion):
+        raise TypeError(f"exclude: expected a vvloc.Exclusion or None, got {type(ex).__name__}")
+    window = _positive_int(ex.window, "exclude.window", minimum=0)
+    return (
+        _as_i64(ex.groups, "exclude.groups", nq),
+        _as_i64(ex.seqs, "exclude.seqs", nq),
+        window,
+        bool(ex.whole_group),
+    )
+
+
+class DescriptorIndex:
+    """Exact L2 nearest-neighbour index over N descriptors of dimension d (Rust, parallel).
+
+    Args:
+        descriptors: float array (N, d) (numpy or torch; converted to C-contiguous float32,
+            must be finite). N may be 0.
+        dtype: storage of the scanned copy, ``"float32"``, ``"float16"`` or ``"bfloat16"``.
+        groups: group id per entry, int (N,); default 0.
+        seqs: sequence number per entry, int (N,); default the entry index.
+
+    Thread-safe: queries from several Python threads run concurrently with the GIL released.
+    """
+
+    def __init__(
+        self,
+        descriptors: Any,
+        dtype: str = "float32",
+        groups: Any = None,
+        seqs: Any = None,
+        *,
+        _inner: _core.DescriptorIndex | None = None,
+    ) -> None:
+        if _inner is not None:
+            self._inner = _inner
+            return
+        if dtype not in DTYPES:
+            raise ValueError(f"dtype: expected one of {DTYPES}, got {dtype!r}")
+        rows = _matrix(descriptors, "descriptors", None)
+        if rows.shape[1] < 1:
+            raise ValueError(f"descriptors: expected shape (N, d) with d >= 1, got {rows.shape}")
+        n = rows.shape[0]
+        g = None if groups is None else _as_i64(groups, "groups", n)
+        s = None if seqs is None else _as_i64(seqs, "seqs", n)
+        self._inner = _core.DescriptorIndex(rows, dtype, g, s)
+
+    def add(self, descriptors: Any, groups: Any = None, seqs: Any = None) -> None:
+        """Append descriptors (n, d); ``groups`` default 0, ``seqs`` default their map index."""
+        rows = _matrix(descriptors, "descriptors", self.dim)
+        n = rows.shape[0]
+        g = None if groups is None else _as_i64(groups, "groups", n)
+        s = None if seqs is None else _as_i64(seqs, "seqs", n)
+        self._inner.add(rows, g, s)
+
+    def topk(
+        self, queries: Any, k: int, exclude: Exclusion | None = None
+    ) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.float32]]:
+        """The ``k`` nearest entries of each query.
+
+        Args:
+            queries: float array (nq, d) (or (d,) for one query).
+            k: number of neighbours, int >= 1 (may exceed N).
+            exclude: optional :class:`Exclusion` (temporal neighbours).
+
+        Returns:
+            ``(indices int64 (nq, k), distances float32 (nq, k))``, sorted by distance then
+            index; when fewer than ``k`` entries are eligible the row is padded with index -1
+            and distance +inf.
+        """
+        q = _queries(queries, self.dim)
+        k = _positive_int(k, "k")
+        return self._inner.topk(q, k, _exclusion(exclude, q.shape[0]))
+
+    def radius(
+        self, queries: Any, r: float, exclude: Exclusion | None = None
+    ) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64], npt.NDArray[np.float32]]:
+        """Every entry at L2 distance ``< r`` of each query, in CSR form.
+
+        Returns:
+            ``(offsets int64 (nq + 1,), indices int64 (M,), distances float32 (M,))``: query
+            ``q``'s hits are ``indices[offsets[q]:offsets[q + 1]]``, sorted by distance then
+            index.
+        """
+        q = _queries(queries, self.dim)
+        r = _positive_float(r, "r")
+        return self._inner.radius(q, r, _exclusion(exclude, q.shape[0]))
+
+    def save(self, path: str | os.PathLike[str]) -> None:
+        """Write the index atomically to ``path`` (format: ``vvloc_core::retrieval::format``)."""
+        self._inner.save(os.fspath(path))
+
+    @staticmethod
+    def load(path: str | os.PathLike[str]) -> DescriptorIndex:
+        """Read an index written by :meth:`save`.
+
+        Raises ``ValueError`` for a truncated, corrupted or foreign file, ``OSError`` when it
+        cannot be read.
+        """
+        return DescriptorIndex(None, _inner=_core.DescriptorIndex.load(os.fspath(path)))
+
+    @property
+    def descriptors(self) -> npt.NDArray[np.float32]:
+        """A copy of the stored descriptors, float32 (N, d)."""
+        return self._inner.descriptors()
+
+    @property
+    def groups(self) -> npt.NDArray[np.int64]:
+        """Group id of every entry, int64 (N,)."""
+        return self._inner.groups()
+
+    @property
+    def seqs(self) -> npt.NDArray[np.int64]:
+        """Sequence number of every entry, int64 (N,)."""
+        return self._inner.seqs()
+
+    def __len__(self) -> int:
+        return len(self._inner)
+
+    @property
+    def dim(self) -> int:
+        """Descriptor dimension d."""
+        return self._inner.dim
+
+    @property
+    def dtype(self) -> str:
+        """Storage of the scanned copy: ``"float32"``, ``"float16"`` or ``"bfloat16"``."""
+        return self._inner.dtype
+
+    def __repr__(self) -> str:
+        return f"DescriptorIndex(N={len(self)}, d={self.dim}, dtype={self.dtype!r})"

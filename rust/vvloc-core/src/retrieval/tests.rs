@@ -1,0 +1,295 @@
+#![allow(clippy::needless_range_loop)]
+
+use super::*;
+use select::Hit;
+
+/// Deterministic pseudo-random floats in [-1, 1) (xorshift).
+fn rand_vec(n: usize, seed: u64) -> Vec<f32> {
+    let mut s = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
+    (0..n)
+        .map(|_| {
+            s ^= s << 13;
+            s ^= s >> 7;
+            s ^= s << 17;
+            ((s >> 40) as f32 / (1u64 << 24) as f32) * 2.0 - 1.0
+        })
+        .collect()
+}
+
+/// Clustered, L2-normalised descriptors (realistic: many close neighbours).
+fn clustered(n: usize, d: usize, seed: u64) -> Vec<f32> {
+    let centres = rand_vec(8 * d, seed);
+    let noise = rand_vec(n * d, seed + 1);
+    let mut out = vec![0f32; n * d];
+    for i in 0..n {
+        let c = i % 8;
+        let row = &mut out[i * d..(i + 1) * d];
+        for j in 0..d {
+            row[j] = centres[c * d + j] + 0.15 * noise[i * d + j];
+        }
+        let norm = row.iter().map(|v| v * v).sum::<f32>().sqrt();
+        row.iter_mut().for_each(|v| *v /= norm);
+    }
+    out
+}
+
+/// Brute force in f64 (the oracle): sorted (distance, index) of all rows.
+fn brute(data: &[f32], d: usize, q: &[f32]) -> Vec<(f64, usize)> {
+    let mut v: Vec<(f64, usize)> = data
+        .chunks_exact(d)
+        .enumerate()
+        .map(|(i, x)| {
+            let s: f64 = x
+                .iter()
+                .zip(q)
+                .map(|(&a, &b)| (a as f64 - b as f64).powi(2))
+                .sum();
+            (s.sqrt(), i)
+        })
+        .collect();
+    v.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+    v
+}
+
+#[test]
+fn topk_matches_brute_force_for_all_levels_and_dtypes() {
+    let (n, d, k) = (1000, 37, 10);
+    let data = clustered(n, d, 1);
+    let queries = clustered(11, d, 2);
+    let base = DescriptorIndex::from_rows(&data, d, Dtype::F32, None, None).unwrap();
+    let want = base.topk(&queries, k, None).unwrap();
+    for qi in 0..11 {
+        let oracle = brute(&data, d, &queries[qi * d..(qi + 1) * d]);
+        for c in 0..k {
+            assert!((want.distances[qi * k + c] as f64 - oracle[c].0).abs() < 1e-3);
+        }
+    }
+    for level in kernels::available_levels() {
+        for dtype in [Dtype::F32, Dtype::F16, Dtype::BF16] {
+            let idx = DescriptorIndex::from_rows(&data, d, dtype, None, None)
+                .unwrap()
+                .with_level(level)
+                .unwrap();
+            // One query at a time (compressed path) and as a batch (tile path).
+            for qi in 0..11 {
+                let got = idx.topk(&queries[qi * d..(qi + 1) * d], k, None).unwrap();
+                assert_eq!(
+                    got.indices,
+                    want.indices[qi * k..(qi + 1) * k],
+                    "{level:?} {dtype:?}"
+                );
+                assert_eq!(got.distances, want.distances[qi * k..(qi + 1) * k]);
+            }
+            assert_eq!(idx.topk(&queries, k, None).unwrap(), want);
+        }
+    }
+}
+
+#[test]
+fn ties_break_by_lower_index_and_k_beyond_n_pads() {
+    let d = 4;
+    let mut data = rand_vec(5 * d, 3);
+    let dup = data[..d].to_vec();
+    data.extend(&dup); // row 5 duplicates row 0
+    let idx = DescriptorIndex::from_rows(&data, d, Dtype::F32, None, None).unwrap();
+    let res = idx.topk(&dup, 8, None).unwrap();
+    assert_eq!(&res.indices[..2], &[0, 5]);
+    assert_eq!(res.distances[0], res.distances[1]);
+    assert_eq!(&res.indices[6..], &[-1, -1]);
+    assert!(res.distances[6].is_infinite());
+}
+
+#[test]
+fn empty_index_returns_padding() {
+    let idx = DescriptorIndex::new(3, Dtype::F16).unwrap();
+    let res = idx.topk(&[1.0, 0.0, 0.0], 2, None).unwrap();
+    assert_eq!(res.indices, vec![-1, -1]);
+    let rad = idx.radius(&[1.0, 0.0, 0.0], 1.0, None).unwrap();
+    assert_eq!(rad.offsets, vec![0, 0]);
+}
+
+#[test]
+fn radius_matches_brute_force_and_exclusion_applies() {
+    let (n, d) = (700, 16);
+    let data = clustered(n, d, 5);
+    let queries = clustered(9, d, 6);
+    let r = 0.5f32;
+    for dtype in [Dtype::F32, Dtype::BF16, Dtype::F16] {
+        let idx = DescriptorIndex::from_rows(&data, d, dtype, None, None).unwrap();
+        for batch in [true, false] {
+            for qi in 0..9 {
+                let q = &queries[qi * d..(qi + 1) * d];
+                let res = if batch {
+                    let all = idx.radius(&queries, r, None).unwrap();
+                    let (a, b) = (all.offsets[qi] as usize, all.offsets[qi + 1] as usize);
+                    all.indices[a..b].to_vec()
+                } else {
+                    idx.radius(q, r, None).unwrap().indices
+                };
+                let want: Vec<i64> = brute(&data, d, q)
+                    .into_iter()
+                    .filter(|&(s, _)| s < r as f64)
+                    .map(|(_, i)| i as i64)
+                    .collect();
+                assert_eq!(res, want, "{dtype:?} batch={batch}");
+            }
+        }
+    }
+    // Exclusion: query = row 100 (group 0, seq 100), window 3 removes rows 97..=103.
+    let idx = DescriptorIndex::from_rows(&data, d, Dtype::F32, None, None).unwrap();
+    let q = &data[100 * d..101 * d];
+    let ex = Exclusion {
+        query_groups: &[0],
+        query_seqs: &[100],
+        window: 3,
+        whole_group: false,
+    };
+    let res = idx.radius(q, 2.5, Some(ex)).unwrap();
+    assert_eq!(res.indices.len(), n - 7);
+    assert!(res.indices.iter().all(|&i| !(97..=103).contains(&i)));
+    let top = idx.topk(q, 1, Some(ex)).unwrap();
+    assert!(!(97..=103).contains(&top.indices[0]));
+}
+
+#[test]
+fn add_appends_and_equals_one_shot_construction() {
+    let d = 20;
+    let data = rand_vec(100 * d, 9);
+    let mut inc = DescriptorIndex::new(d, Dtype::BF16).unwrap();
+    inc.add(&data[..37 * d], None, None).unwrap();
+    inc.add(&data[37 * d..], None, None).unwrap();
+    let one = DescriptorIndex::from_rows(&data, d, Dtype::BF16, None, None).unwrap();
+    assert_eq!(inc.rows(), one.rows());
+    assert_eq!(inc.seqs(), one.seqs());
+    assert_eq!(inc.packed, one.packed);
+    assert_eq!(inc.norms, one.norms);
+}
+
+#[test]
+fn bad_input_is_an_error_not_a_panic() {
+    let mut idx = DescriptorIndex::new(4, Dtype::F16).unwrap();
+    assert!(matches!(
+        idx.add(&[1.0; 6], None, None),
+        Err(Error::Shape { .. })
+    ));
+    assert!(idx.add(&[f32::NAN, 0.0, 0.0, 0.0], None, None).is_err());
+    assert!(idx.add(&[1e6, 0.0, 0.0, 0.0], None, None).is_err());
+    assert!(idx.add(&[1.0; 4], Some(&[1, 2]), None).is_err());
+    idx.add(&[1.0; 4], None, None).unwrap();
+    assert!(idx.topk(&[1.0; 4], 0, None).is_err());
+    assert!(idx.topk(&[1.0; 3], 1, None).is_err());
+    assert!(idx.radius(&[1.0; 4], 0.0, None).is_err());
+    assert!(idx.radius(&[1.0; 4], f32::NAN, None).is_err());
+    assert!(DescriptorIndex::new(0, Dtype::F32).is_err());
+    assert!(Dtype::parse("int4").is_err());
+}
+
+#[test]
+fn results_do_not_depend_on_thread_count() {
+    let (n, d) = (20_000, 64);
+    let data = clustered(n, d, 11);
+    let queries = clustered(10, d, 12);
+    for dtype in [Dtype::F32, Dtype::BF16] {
+        let idx = DescriptorIndex::from_rows(&data, d, dtype, None, None).unwrap();
+        let run = |t: usize| {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(t)
+                .build()
+                .unwrap();
+            pool.install(|| {
+                (
+                    idx.topk(&queries, 20, None).unwrap(),
+                    idx.topk(&queries[..d], 20, None).unwrap(),
+                    idx.radius(&queries, 0.4, None).unwrap(),
+                )
+            })
+        };
+        assert_eq!(run(1), run(3));
+    }
+}
+
+#[test]
+fn save_load_round_trip_and_corruption_detected() {
+    let d = 7;
+    let data = rand_vec(50 * d, 13);
+    let groups: Vec<i64> = (0..50).map(|i| i / 10).collect();
+    let idx = DescriptorIndex::from_rows(&data, d, Dtype::F16, Some(&groups), None).unwrap();
+    let dir = std::env::temp_dir().join(format!("vvloc-idx-test-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join("map.vvidx");
+    idx.save(&path).unwrap();
+    let back = DescriptorIndex::load(&path).unwrap();
+    assert_eq!(back.rows(), idx.rows());
+    assert_eq!(back.groups(), idx.groups());
+    assert_eq!(back.seqs(), idx.seqs());
+    assert_eq!(back.dtype(), Dtype::F16);
+    let bytes = std::fs::read(&path).unwrap();
+    for cut in [0, 10, 39, 40, bytes.len() - 1] {
+        assert!(matches!(
+            format::from_bytes(&bytes[..cut]),
+            Err(Error::Format(_))
+        ));
+    }
+    for pos in [0, 9, 13, 20, 33, 45, bytes.len() - 3] {
+        let mut bad = bytes.clone();
+        bad[pos] ^= 0x10;
+        assert!(
+            matches!(format::from_bytes(&bad), Err(Error::Format(_))),
+            "byte {pos}"
+        );
+    }
+    assert!(matches!(
+        DescriptorIndex::load(&dir.join("missing")),
+        Err(Error::Io { .. })
+    ));
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn compressed_error_bound_holds() {
+    let d = 96;
+    let mut data = rand_vec(64 * d, 21);
+    data.iter_mut()
+        .enumerate()
+        .for_each(|(i, v)| *v *= 1.0 + (i % 7) as f32); // uneven scales
+    let queries = rand_vec(5 * d, 22);
+    for level in kernels::available_levels() {
+        for dtype in [Dtype::F16, Dtype::BF16] {
+            let idx = DescriptorIndex::from_rows(&data, d, dtype, None, None)
+                .unwrap()
+                .with_level(level)
+                .unwrap();
+            for q in queries.chunks_exact(d) {
+                let qn = kernels::norm_sq(level, q);
+                let eps = idx.error_bound(q);
+                let qpair = kernels::pack_query_bf16(q);
+                let (mut approx, mut exact): (Vec<Hit>, Vec<Hit>) = (Vec::new(), Vec::new());
+                let mut a = BelowSink {
+                    bound: f32::INFINITY,
+                    hits: vec![Vec::new(); 1],
+                    ex: idx.excluder(1, None).unwrap(),
+                };
+                idx.scan_packed(q, &qpair, 0, qn, 0, idx.nblocks(), &mut a);
+                let mut e = BelowSink {
+                    bound: f32::INFINITY,
+                    hits: vec![Vec::new(); 1],
+                    ex: idx.excluder(1, None).unwrap(),
+                };
+                idx.scan_f32(q, &[qn], 0, idx.nblocks(), &mut e);
+                approx.extend(&a.hits[0]);
+                exact.extend(&e.hits[0]);
+                assert_eq!(approx.len(), 64);
+                let worst = approx
+                    .iter()
+                    .zip(&exact)
+                    .map(|(x, y)| (x.sq - y.sq).abs())
+                    .fold(0f32, f32::max);
+                assert!(worst <= eps, "{level:?} {dtype:?}: {worst} > {eps}");
+                assert!(
+                    worst > 0.0 && eps < 1e3 * worst.max(1e-6),
+                    "bound far too loose: {eps} vs {worst}"
+                );
+            }
+        }
+    }
+}

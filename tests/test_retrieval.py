@@ -1,0 +1,297 @@
+"""vvloc.DescriptorIndex (Rust) against the numpy brute-force reference."""
+
+from __future__ import annotations
+
+import os
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+import vvloc
+from vvloc import DescriptorIndex, Exclusion
+from vvloc.reference import retrieval as ref
+
+DTYPES = ["float32", "float16", "bfloat16"]
+
+
+def clustered(n: int, d: int, seed: int, clusters: int = 50, spread: float = 0.3) -> np.ndarray:
+    """Realistic global descriptors: a mixture of Gaussians, L2-normalised, float32 (n, d)."""
+    rng = np.random.default_rng(seed)
+    centres = rng.standard_normal((clusters, d))
+    x = centres[rng.integers(0, clusters, n)] + spread * rng.standard_normal((n, d))
+    return (x / np.linalg.norm(x, axis=1, keepdims=True)).astype(np.float32)
+
+
+def revisits(x: np.ndarray, nq: int, seed: int, noise: float = 0.01) -> np.ndarray:
+    """Queries that revisit map places: noisy copies of random map rows, L2-normalised."""
+    rng = np.random.default_rng(seed)
+    q = x[rng.integers(0, len(x), nq)] + noise * rng.standard_normal((nq, x.shape[1]))
+    return (q / np.linalg.norm(q, axis=1, keepdims=True)).astype(np.float32)
+
+
+def assert_topk_equal(idx, dist, ref_idx, ref_dist, full):
+    """Indices equal to the reference except inside float32 near-ties, distances close."""
+    assert idx.shape == ref_idx.shape and idx.dtype == np.int64 and dist.dtype == np.float32
+    np.testing.assert_array_equal(idx == -1, ref_idx == -1)
+    valid = idx >= 0
+    scale = 1e-5 * (1.0 + full.max() ** 2 if full.size else 1.0)
+    np.testing.assert_allclose(dist[valid] ** 2, ref_dist[valid] ** 2, rtol=0, atol=scale)
+    # The distance Rust reports is the true distance of the index it returns.
+    rows = np.nonzero(valid)[0]
+    np.testing.assert_allclose(dist[valid] ** 2, full[rows, idx[valid]] ** 2, rtol=0, atol=scale)
+    # Outside near-ties the indices are identical.
+    for q in range(idx.shape[0]):
+        for c in np.nonzero(valid[q])[0]:
+            d = ref_dist[q, c]
+            if np.sum(np.abs(full[q] ** 2 - d**2) <= scale) == 1:
+                assert idx[q, c] == ref_idx[q, c]
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    n=st.integers(0, 300),
+    d=st.integers(1, 40),
+    nq=st.integers(1, 12),
+    k=st.integers(1, 350),
+    ints=st.booleans(),
+    seed=st.integers(0, 2**31),
+)
+def test_topk_matches_reference(n, d, nq, k, ints, seed):
+    rng = np.random.default_rng(seed)
+    if ints:  # small integers: many exact duplicates and ties
+        x = rng.integers(-2, 3, (n, d)).astype(np.float32)
+        q = rng.integers(-2, 3, (nq, d)).astype(np.float32)
+    else:
+        x = rng.standard_normal((n, d)).astype(np.float32)
+        q = rng.standard_normal((nq, d)).astype(np.float32)
+    idx, dist = DescriptorIndex(x).topk(q, k)
+    ref_idx, ref_dist = ref.topk(q, x, k)
+    assert_topk_equal(idx, dist, ref_idx, ref_dist, ref.distances(q, x))
+    if ints:  # exact arithmetic: identical indices, ties by lower index
+        np.testing.assert_array_equal(idx, ref_idx)
+
+
+def test_duplicates_tie_break_by_lower_index():
+    x = np.tile(np.eye(4, dtype=np.float32), (3, 1))  # rows i, i+4, i+8 are equal
+    idx, dist = DescriptorIndex(x).topk(x[:2], 5)
+    np.testing.assert_array_equal(idx[0, :3], [0, 4, 8])
+    np.testing.assert_array_equal(idx[1, :3], [1, 5, 9])
+    assert dist[0, 0] == dist[0, 1] == dist[0, 2] == 0.0
+
+
+def test_k_beyond_n_pads_and_empty_index():
+    x = clustered(5, 8, 0)
+    idx, dist = DescriptorIndex(x).topk(x[:1], 7)
+    assert idx.shape == (1, 7)
+    np.testing.assert_array_equal(idx[0, 5:], [-1, -1])
+    assert np.isinf(dist[0, 5:]).all()
+    empty = DescriptorIndex(np.zeros((0, 8), np.float32), dtype="float16")
+    assert len(empty) == 0 and empty.dim == 8
+    idx, dist = empty.topk(x, 3)
+    assert (idx == -1).all() and np.isinf(dist).all()
+    offsets, ridx, rdist = empty.radius(x, 1.0)
+    np.testing.assert_array_equal(offsets, np.zeros(6, np.int64))
+    assert ridx.shape == (0,) and rdist.shape == (0,)
+
+
+@pytest.mark.parametrize("dtype", ["float16", "bfloat16"])
+def test_compressed_is_exact_on_realistic_data(dtype):
+    x = clustered(20_000, 256, 1)
+    q = revisits(x, 70, 2)  # 64 batched + 6 one by one
+    exact_idx, exact_dist = DescriptorIndex(x).topk(q, 20)
+    index = DescriptorIndex(x, dtype=dtype)
+    assert index.dtype == dtype
+    single = [index.topk(q[i], 20) for i in range(len(q))]
+    idx = np.concatenate([s[0] for s in single])
+    dist = np.concatenate([s[1] for s in single])
+    ref_idx, _ = ref.topk(q, x, 20)
+    recall = np.mean([len(set(a) & set(b)) / 20 for a, b in zip(idx, ref_idx, strict=True)])
+    assert recall >= 0.999
+    # Exact re-scoring: identical to the float32 index, single queries and batch.
+    np.testing.assert_array_equal(idx, exact_idx)
+    np.testing.assert_array_equal(dist, exact_dist)
+    np.testing.assert_array_equal(index.topk(q, 20)[0], exact_idx)
+
+
+def assert_radius_equal(got, want, r, full):
+    offsets, idx, dist = got
+    assert offsets.dtype == np.int64 and idx.dtype == np.int64 and dist.dtype == np.float32
+    assert offsets.shape == want[0].shape and offsets[0] == 0
+    for q in range(len(offsets) - 1):
+        mine = idx[offsets[q] : offsets[q + 1]]
+        theirs = want[1][want[0][q] : want[0][q + 1]]
+        border = set(np.flatnonzero(np.abs(full[q] - r) < 1e-4))
+        assert set(mine) - border == set(theirs) - border
+        d = dist[offsets[q] : offsets[q + 1]]
+        assert (np.diff(d) >= 0).all() and (d < r).all()
+        np.testing.assert_allclose(d, full[q, mine], atol=1e-3)
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    n=st.integers(0, 300),
+    d=st.integers(1, 24),
+    nq=st.integers(1, 10),
+    r=st.floats(0.05, 6.0),
+    dtype=st.sampled_from(DTYPES),
+    seed=st.integers(0, 2**31),
+)
+def test_radius_matches_reference(n, d, nq, r, dtype, seed):
+    rng = np.random.default_rng(seed)
+    x = rng.standard_normal((n, d)).astype(np.float32)
+    q = rng.standard_normal((nq, d)).astype(np.float32)
+    got = DescriptorIndex(x, dtype=dtype).radius(q, r)
+    assert_radius_equal(got, ref.radius(q, x, r), r, ref.distances(q, x))
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+@pytest.mark.parametrize("nq", [1, 9])
+def test_radius_realistic(dtype, nq):
+    x = clustered(5000, 64, 3, spread=0.15)
+    q = revisits(x, nq, 4)
+    for r in (0.1, 0.2, 0.5):
+        got = DescriptorIndex(x, dtype=dtype).radius(q, r)
+        assert_radius_equal(got, ref.radius(q, x, r), r, ref.distances(q, x))
+    assert len(got[1]) > 0
+
+
+@pytest.mark.parametrize("whole_group", [False, True])
+def test_exclusion_rule(whole_group):
+    n, d = 600, 16
+    x = clustered(n, d, 5, clusters=5)
+    groups = np.repeat([0, 1, 2], n // 3)
+    seqs = np.tile(np.arange(n // 3), 3)
+    qi = np.array([10, 250, 590])
+    ex = Exclusion(groups=groups[qi], seqs=seqs[qi], window=5, whole_group=whole_group)
+    index = DescriptorIndex(x, groups=groups, seqs=seqs)
+    mask = ref.excluded(groups, seqs, groups[qi], seqs[qi], 5, whole_group)
+    idx, dist = index.topk(x[qi], 30, exclude=ex)
+    ref_idx, ref_dist = ref.topk(x[qi], x, 30, mask)
+    assert_topk_equal(idx, dist, ref_idx, ref_dist, ref.distances(x[qi], x))
+    assert not mask[np.arange(3)[:, None], idx].any()
+    got = index.radius(x[qi], 1.0, exclude=ex)
+    full = ref.distances(x[qi], x)
+    assert_radius_equal(got, ref.radius(x[qi], x, 1.0, mask), 1.0, full)
+    # The query itself (distance 0) is always excluded.
+    assert 10 not in got[1][got[0][0] : got[0][1]]
+
+
+def test_default_groups_and_seqs_and_add():
+    x = clustered(100, 12, 6)
+    index = DescriptorIndex(x[:40], dtype="bfloat16")
+    index.add(x[40:])
+    one_shot = DescriptorIndex(x, dtype="bfloat16")
+    np.testing.assert_array_equal(index.descriptors, x)
+    np.testing.assert_array_equal(index.seqs, np.arange(100))
+    np.testing.assert_array_equal(index.groups, np.zeros(100))
+    np.testing.assert_array_equal(index.topk(x, 5)[0], one_shot.topk(x, 5)[0])
+    ex = Exclusion(groups=0, seqs=np.arange(100), window=2)
+    idx, _ = index.topk(x, 1, exclude=ex)
+    assert (np.abs(idx[:, 0] - np.arange(100)) > 2).all()
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_save_load_round_trip(tmp_path, dtype):
+    x = clustered(300, 20, 7)
+    index = DescriptorIndex(x, dtype=dtype, groups=np.arange(300) // 100, seqs=np.arange(300) * 2)
+    path = tmp_path / "map.vvidx"
+    index.save(path)
+    back = DescriptorIndex.load(path)
+    assert (len(back), back.dim, back.dtype) == (300, 20, dtype)
+    np.testing.assert_array_equal(back.descriptors, x)
+    np.testing.assert_array_equal(back.groups, index.groups)
+    np.testing.assert_array_equal(back.seqs, index.seqs)
+    for a, b in zip(back.topk(x[:5], 4), index.topk(x[:5], 4), strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert os.listdir(tmp_path) == ["map.vvidx"]  # no temporary file left behind
+
+
+def test_truncated_or_corrupted_file_is_a_clear_error(tmp_path):
+    path = tmp_path / "map.vvidx"
+    DescriptorIndex(clustered(50, 8, 8)).save(path)
+    data = path.read_bytes()
+    for cut in (0, 20, len(data) - 1):
+        path.write_bytes(data[:cut])
+        with pytest.raises(ValueError, match="truncated"):
+            DescriptorIndex.load(path)
+    for pos in (3, 60, len(data) - 5):
+        bad = bytearray(data)
+        bad[pos] ^= 0xFF
+        path.write_bytes(bytes(bad))
+        with pytest.raises(ValueError, match="not a valid vvloc descriptor index"):
+            DescriptorIndex.load(path)
+    with pytest.raises(OSError):
+        DescriptorIndex.load(tmp_path / "missing.vvidx")
+    with pytest.raises(OSError):
+        DescriptorIndex(clustered(5, 8, 8)).save(tmp_path / "no_such_dir" / "x.vvidx")
+
+
+def test_bad_input_raises_value_error_naming_the_argument():
+    x = clustered(50, 8, 9)
+    index = DescriptorIndex(x)
+    cases = [
+        (lambda: index.topk(np.ones((2, 7)), 3), "queries"),
+        (lambda: index.topk(x[:2], 0), "k"),
+        (lambda: index.radius(x[:2], 0.0), "r"),
+        (lambda: index.radius(x[:2], -1.0), "r"),
+        (lambda: index.radius(x[:2], float("nan")), "r"),
+        (lambda: index.topk(np.full((1, 8), np.nan), 3), "queries"),
+        (lambda: DescriptorIndex(np.array([[1.0, np.inf]])), "descriptors"),
+        (lambda: DescriptorIndex(x, dtype="int4"), "dtype"),
+        (lambda: DescriptorIndex(x, groups=np.zeros(3, np.int64)), "groups"),
+        (lambda: DescriptorIndex(np.full((2, 3), 1e6), dtype="float16"), "descriptors"),
+        (lambda: index.add(np.ones((2, 9))), "descriptors"),
+        (lambda: index.topk(x[:2], 3, exclude=Exclusion([0], [0, 1])), "exclude.groups"),
+        (lambda: index.topk(x[:2], 3, exclude=Exclusion([0, 0], [0, 1], -1)), "exclude.window"),
+    ]
+    for call, name in cases:
+        with pytest.raises(ValueError, match=name):
+            call()
+    with pytest.raises(TypeError, match="k"):
+        index.topk(x[:2], 2.5)
+    with pytest.raises(TypeError, match="exclude"):
+        index.topk(x[:2], 2, exclude=(0, 0))
+
+
+def test_accepts_torch_float64_and_non_contiguous():
+    x = clustered(200, 16, 10)
+    index = DescriptorIndex(torch.from_numpy(x.astype(np.float64)))
+    q = np.asfortranarray(x[:6].astype(np.float64))[:, :]
+    want = DescriptorIndex(x).topk(x[:6], 4)
+    for got in (index.topk(q, 4), index.topk(torch.from_numpy(x[:6]), 4), index.topk(x[0], 4)):
+        np.testing.assert_array_equal(got[0], want[0][: len(got[0])])
+
+
+def test_concurrent_queries_from_python_threads():
+    x = clustered(30_000, 64, 11)
+    q = clustered(40, 64, 12)
+    index = DescriptorIndex(x, dtype="bfloat16")
+    want = [index.topk(q[i : i + 1], 10) for i in range(len(q))]
+    with ThreadPoolExecutor(4) as pool:
+        got = list(pool.map(lambda i: index.topk(q[i : i + 1], 10), range(len(q))))
+    for (gi, gd), (wi, wd) in zip(got, want, strict=True):
+        np.testing.assert_array_equal(gi, wi)
+        np.testing.assert_array_equal(gd, wd)
+
+
+def test_one_and_two_threads_identical():
+    x = clustered(40_000, 64, 13)
+    q = clustered(20, 64, 14)
+    before = vvloc.get_num_threads()
+    results = []
+    try:
+        for threads in (1, 2):
+            vvloc.set_num_threads(threads)
+            for dtype in ("float32", "float16"):
+                index = DescriptorIndex(x, dtype=dtype)
+                results.append((index.topk(q, 20), index.topk(q[:1], 20), index.radius(q, 0.3)))
+    finally:
+        vvloc.set_num_threads(before)
+    for a, b in zip(results[:2], results[2:], strict=True):
+        for xa, xb in zip(a, b, strict=True):
+            for u, v in zip(xa, xb, strict=True):
+                np.testing.assert_array_equal(u, v)
