@@ -1,0 +1,135 @@
+"""End to end on a tiny rendered world: map build → localize → loops → exports, CLI included.
+
+The model here is a small untrained network: these tests pin the plumbing, frames and files
+(poses must be consistent with the map and the search), not accuracy. Accuracy of the metric
+search itself is pinned by the geometry oracle (tests/test_metric_localize.py).
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from vvloc import geometry
+from vvloc.data import open_dataset
+from vvloc.localize import MapDatabase, read_g2o, read_loop_csv, read_tum
+from vvloc.localize.localizer import Localizer, build_map
+from vvloc.localize.loops import detect_loops, loop_candidates
+from vvloc.localize.metric import SearchConfig
+from vvloc.nets import ModelConfig, VVLocNet
+
+SMALL_SEARCH = SearchConfig(half_range=1.2, step=0.6, fine_samples=8, stages=2)
+
+
+@pytest.fixture(autouse=True)
+def _one_torch_thread():
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+@pytest.fixture(scope="module")
+def model_dir(tmp_path_factory):
+    torch.manual_seed(0)
+    d = tmp_path_factory.mktemp("ckpt") / "model"
+    VVLocNet(ModelConfig.small()).save(d)
+    return d
+
+
+@pytest.fixture(scope="module")
+def map_file(tiny_world, model_dir, tmp_path_factory):
+    model = VVLocNet.load(model_dir)
+    out = tmp_path_factory.mktemp("map") / "map.h5"
+    build_map(model, open_dataset(tiny_world), ["s0"], out, progress=False)
+    return out
+
+
+def test_map_holds_every_keyframe_of_the_session(tiny_world, map_file, model_dir):
+    ds = open_dataset(tiny_world)
+    model = VVLocNet.load(model_dir)
+    with MapDatabase.open(map_file, expected_config_hash=model.config_hash()) as db:
+        assert len(db) == len(ds.session("s0"))
+        np.testing.assert_allclose(db.poses, ds.session("s0").poses)
+        assert db.has_bev
+        cfg = model.config
+        assert db.local_descriptors(0).shape == (cfg.num_angles, cfg.channels)
+
+
+def test_map_from_another_model_is_refused(map_file, tmp_path):
+    other = ModelConfig.small()
+    other.channels = 32
+    d = tmp_path / "other"
+    VVLocNet(other).save(d)
+    with pytest.raises(ValueError, match="model"):
+        Localizer.open(map_file, d)
+
+
+def test_localize_poses_are_consistent_and_batch_equals_single(tiny_world, map_file, model_dir):
+    loc = Localizer.open(map_file, model_dir, top_k=5, search=SMALL_SEARCH)
+    frames = [open_dataset(tiny_world).session("s1")[i] for i in (0, 7)]
+    batch = loc.localize_batch(frames)
+    for f, r in zip(frames, batch, strict=True):
+        single = loc.localize(f)
+        assert single.map_row == r.map_row
+        np.testing.assert_allclose(single.relative_pose, r.relative_pose, atol=1e-5)
+        # the global pose is the map keyframe's pose composed with ξ_{m→q}
+        np.testing.assert_allclose(
+            r.global_pose, geometry.compose(loc.map.poses[r.map_row], r.relative_pose), atol=1e-9
+        )
+        assert r.map_row in r.retrieved
+        assert sorted(r.reranked.tolist()) == sorted(r.retrieved.tolist())
+        assert np.all(np.diff(r.rerank_cost) >= 0)
+        assert abs(r.relative_pose[0]) <= 1.2 + 0.6 and abs(r.relative_pose[1]) <= 1.2 + 0.6
+        assert set(r.timings_ms) == {"encode", "retrieve", "rerank", "metric"}
+        assert r.accepted == (r.cost < 0.75)
+
+
+def test_loop_candidates_exclude_temporal_neighbours(map_file):
+    with MapDatabase.open(map_file) as db:
+        cand = loop_candidates(db, radius=2.0, window=3)
+        assert np.all(cand.i < cand.j)
+        same = db.session_index[cand.i] == db.session_index[cand.j]
+        assert np.all(np.abs(db.seq[cand.i] - db.seq[cand.j])[same] > 3)
+
+
+def test_cli_map_localize_loops_end_to_end(tiny_world, model_dir, tmp_path):
+    exe = [sys.executable, "-m", "vvloc.cli"]
+    map_path = tmp_path / "m.h5"
+    run = lambda *a: subprocess.run([*exe, *a], capture_output=True, text=True)  # noqa: E731
+    r = run("map", "build", "--checkpoint", str(model_dir), "--dataset", str(tiny_world),
+            "--sessions", "s0,s1", "--out", str(map_path))
+    assert r.returncode == 0, r.stderr
+    r = run("localize", "--map", str(map_path), "--dataset", str(tiny_world), "--session", "s2",
+            "--checkpoint", str(model_dir), "--out", str(tmp_path / "loc"), "--top_k", "3")
+    assert r.returncode == 0, r.stderr
+    ts, poses = read_tum(tmp_path / "loc" / "poses.tum")
+    assert len(ts) == len(open_dataset(tiny_world).session("s2"))
+    assert (tmp_path / "loc" / "queries.csv").read_text().startswith("# vvloc localize")
+    r = run("loops", "--map", str(map_path), "--checkpoint", str(model_dir), "--out",
+            str(tmp_path / "loops"), "--radius", "0.5", "--max_pairs", "3")
+    assert r.returncode == 0, r.stderr
+    loops = read_loop_csv(tmp_path / "loops" / "loops.csv")
+    graph = read_g2o(tmp_path / "loops" / "graph.g2o")
+    assert len(graph.vertex_ids) == 2 * len(open_dataset(tiny_world).session("s0"))
+    n_acc = int(loops.accepted.sum())
+    assert len(graph.edges) == 2 * (len(graph.vertex_ids) // 2 - 1) + n_acc
+    assert len(loops.i) <= 3
+    # bad input: exit code 2 and a message naming the problem
+    r = run("localize", "--map", str(tmp_path / "missing.h5"), "--dataset", str(tiny_world),
+            "--session", "s2", "--checkpoint", str(model_dir), "--out", str(tmp_path / "x"))
+    assert r.returncode == 2 and "missing.h5" in r.stderr
+
+
+def test_detect_loops_api_returns_ids_and_costs(map_file, model_dir):
+    model = VVLocNet.load(model_dir)
+    with MapDatabase.open(map_file) as db:
+        found = detect_loops(model, db, radius=2.0, window=3, max_pairs=2, search=SMALL_SEARCH,
+                             progress=False)
+        assert len(found.i) == len(found.costs) <= 2
+        assert set(found.i.tolist()) <= set(db.ids.tolist())
+        assert np.all(found.accepted == (found.costs < 0.75))
