@@ -101,17 +101,51 @@ def test_cli_map_localize_loops_end_to_end(tiny_world, model_dir, tmp_path):
     exe = [sys.executable, "-m", "vvloc.cli"]
     map_path = tmp_path / "m.h5"
     run = lambda *a: subprocess.run([*exe, *a], capture_output=True, text=True)  # noqa: E731
-    r = run("map", "build", "--checkpoint", str(model_dir), "--dataset", str(tiny_world),
-            "--sessions", "s0,s1", "--out", str(map_path))
+    r = run(
+        "map",
+        "build",
+        "--checkpoint",
+        str(model_dir),
+        "--dataset",
+        str(tiny_world),
+        "--sessions",
+        "s0,s1",
+        "--out",
+        str(map_path),
+    )
     assert r.returncode == 0, r.stderr
-    r = run("localize", "--map", str(map_path), "--dataset", str(tiny_world), "--session", "s2",
-            "--checkpoint", str(model_dir), "--out", str(tmp_path / "loc"), "--top_k", "3")
+    r = run(
+        "localize",
+        "--map",
+        str(map_path),
+        "--dataset",
+        str(tiny_world),
+        "--session",
+        "s2",
+        "--checkpoint",
+        str(model_dir),
+        "--out",
+        str(tmp_path / "loc"),
+        "--top_k",
+        "3",
+    )
     assert r.returncode == 0, r.stderr
-    ts, poses = read_tum(tmp_path / "loc" / "poses.tum")
+    ts, _poses = read_tum(tmp_path / "loc" / "poses.tum")
     assert len(ts) == len(open_dataset(tiny_world).session("s2"))
     assert (tmp_path / "loc" / "queries.csv").read_text().startswith("# vvloc localize")
-    r = run("loops", "--map", str(map_path), "--checkpoint", str(model_dir), "--out",
-            str(tmp_path / "loops"), "--radius", "0.5", "--max_pairs", "3")
+    r = run(
+        "loops",
+        "--map",
+        str(map_path),
+        "--checkpoint",
+        str(model_dir),
+        "--out",
+        str(tmp_path / "loops"),
+        "--radius",
+        "0.5",
+        "--max_pairs",
+        "3",
+    )
     assert r.returncode == 0, r.stderr
     loops = read_loop_csv(tmp_path / "loops" / "loops.csv")
     graph = read_g2o(tmp_path / "loops" / "graph.g2o")
@@ -120,16 +154,28 @@ def test_cli_map_localize_loops_end_to_end(tiny_world, model_dir, tmp_path):
     assert len(graph.edges) == 2 * (len(graph.vertex_ids) // 2 - 1) + n_acc
     assert len(loops.i) <= 3
     # bad input: exit code 2 and a message naming the problem
-    r = run("localize", "--map", str(tmp_path / "missing.h5"), "--dataset", str(tiny_world),
-            "--session", "s2", "--checkpoint", str(model_dir), "--out", str(tmp_path / "x"))
+    r = run(
+        "localize",
+        "--map",
+        str(tmp_path / "missing.h5"),
+        "--dataset",
+        str(tiny_world),
+        "--session",
+        "s2",
+        "--checkpoint",
+        str(model_dir),
+        "--out",
+        str(tmp_path / "x"),
+    )
     assert r.returncode == 2 and "missing.h5" in r.stderr
 
 
 def test_detect_loops_api_returns_ids_and_costs(map_file, model_dir):
     model = VVLocNet.load(model_dir)
     with MapDatabase.open(map_file) as db:
-        found = detect_loops(model, db, radius=2.0, window=3, max_pairs=2, search=SMALL_SEARCH,
-                             progress=False)
+        found = detect_loops(
+            model, db, radius=2.0, window=3, max_pairs=2, search=SMALL_SEARCH, progress=False
+        )
         assert len(found.i) == len(found.costs) <= 2
         assert set(found.i.tolist()) <= set(db.ids.tolist())
         assert np.all(found.accepted == (found.costs < 0.75))

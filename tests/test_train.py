@@ -21,8 +21,14 @@ def _one_torch_thread():
 
 def _config(root, **kw) -> TrainConfig:
     base = dict(
-        dataset=str(root), model="small", stage1_epochs=1, stage2_epochs=1,
-        steps_per_epoch=2, batch_size=2, num_workers=0, seed=3,
+        dataset=str(root),
+        model="small",
+        stage1_epochs=1,
+        stage2_epochs=1,
+        steps_per_epoch=2,
+        batch_size=2,
+        num_workers=0,
+        seed=3,
     )
     base.update(kw)
     return TrainConfig.from_dict(base)
@@ -32,10 +38,12 @@ def test_a_few_steps_on_fixed_triplets_lower_every_loss(tiny_world):
     cfg = _config(tiny_world)
     tr = Trainer(cfg, "unused")
     triplets = tr.sampler.sample_random(2)
-    batch = torch.utils.data.default_collate([TripletFrames(tr.sampler, triplets)[k] for k in (0, 1)])
+    batch = torch.utils.data.default_collate(
+        [TripletFrames(tr.sampler, triplets)[k] for k in (0, 1)]
+    )
     opt = torch.optim.Adam(tr.model.parameters(), lr=1e-3)
     first = last = None
-    for step in range(25):
+    for _step in range(25):
         loss, parts, _ = training_losses(tr.model, batch, cfg, stage=2, step=0, device=tr.device)
         opt.zero_grad()
         loss.backward()

@@ -67,8 +67,8 @@ def __getattr__(name: str) -> object:
 __all__ = [
     "DescriptorIndex",
     "Exclusion",
-    "Localizer",
     "LocalizationResult",
+    "Localizer",
     "MapDatabase",
     "__version__",
     "get_num_threads",

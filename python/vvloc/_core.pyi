@@ -93,8 +93,6 @@ class TranslationSearch:
 
 # --- retrieval -------------------------------------------------------------------------------
 
-import numpy as np  # noqa: E402
-import numpy.typing as npt  # noqa: E402
 from typing_extensions import final  # noqa: E402
 
 # The extension's runtime __all__ (PyModule.add appends every name): keep in sync.

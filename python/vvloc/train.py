@@ -128,7 +128,9 @@ class TrainConfig:
         """The :class:`ModelConfig` this run trains."""
         if isinstance(self.model, str):
             if self.model not in ("small", "paper"):
-                raise ValueError(f"model: expected 'small', 'paper' or a mapping, got {self.model!r}")
+                raise ValueError(
+                    f"model: expected 'small', 'paper' or a mapping, got {self.model!r}"
+                )
             base = ModelConfig.small() if self.model == "small" else ModelConfig.paper()
             d = base.to_dict()
         elif isinstance(self.model, dict):
@@ -159,7 +161,7 @@ def pick_device(name: str = "auto") -> torch.device:
 def seed_everything(seed: int) -> None:
     """Seed Python, numpy and torch."""
     random.seed(seed)
-    np.random.seed(seed % 2**32)
+    np.random.seed(seed % 2**32)  # noqa: NPY002 (seed the legacy global RNG too)
     torch.manual_seed(seed)
 
 
@@ -368,11 +370,21 @@ class Trainer:
             persistent_workers=False,
         )
         self.model.train()
-        sums: dict[str, float] = {"total": 0.0, "triplet": 0.0, "hinge": 0.0, "yaw": 0.0, "tbias": 0.0}
+        sums: dict[str, float] = {
+            "total": 0.0,
+            "triplet": 0.0,
+            "hinge": 0.0,
+            "yaw": 0.0,
+            "tbias": 0.0,
+        }
         violated = 0
         t0 = time.perf_counter()
-        bar = tqdm(loader, desc=f"epoch {self.epoch + 1}/{cfg.epochs} (stage {stage})",
-                   disable=not progress, leave=False)
+        bar = tqdm(
+            loader,
+            desc=f"epoch {self.epoch + 1}/{cfg.epochs} (stage {stage})",
+            disable=not progress,
+            leave=False,
+        )
         n = 0
         for batch in bar:
             loss, parts, correct = training_losses(
@@ -389,8 +401,12 @@ class Trainer:
             violated += parts.violated
             n += 1
             self.step += 1
-            bar.set_postfix(loss=f"{parts.total:.3f}", tri=f"{parts.triplet:.3f}",
-                            yaw=f"{parts.yaw:.3f}", hard=len(self.sampler.hard))
+            bar.set_postfix(
+                loss=f"{parts.total:.3f}",
+                tri=f"{parts.triplet:.3f}",
+                yaw=f"{parts.yaw:.3f}",
+                hard=len(self.sampler.hard),
+            )
         record: dict[str, Any] = {
             "epoch": self.epoch + 1,
             "stage": stage,

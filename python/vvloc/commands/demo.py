@@ -41,8 +41,9 @@ def demo(
         data = out / "data"
         if not (data / "rig.json").exists():
             typer.echo(f"rendering a synthetic parking lot ({frames} keyframes x 2 sessions)...")
-            simulate_dataset(data, scene="parking", sessions=2, frames=frames, seed=seed,
-                             overwrite=True)
+            simulate_dataset(
+                data, scene="parking", sessions=2, frames=frames, seed=seed, overwrite=True
+            )
         warning = None
         ckpt = checkpoint or DEFAULT_MODEL
         if checkpoint is None and not (DEFAULT_MODEL / "config.json").exists():
@@ -50,8 +51,9 @@ def demo(
             typer.secho(warning, fg=typer.colors.RED, err=True)
             ckpt = out / "untrained-checkpoint"
             VVLocNet(ModelConfig.small()).save(ckpt)
-        metrics = run_evaluation(ckpt, data, "s0", ["s1"], out, every=every,
-                                 untrained_warning=warning)
+        metrics = run_evaluation(
+            ckpt, data, "s0", ["s1"], out, every=every, untrained_warning=warning
+        )
     rec = metrics["global_localization"]
     typer.echo("")
     typer.echo(f"{'method':<10} {'R@1 2m':>8} {'R@5 2m':>8} {'R@1 5m':>8}")
@@ -59,12 +61,16 @@ def demo(
         cells = [r.at(1, 2.0), r.at(5, 2.0) if 5 in r.top_n else float("nan"), r.at(1, 5.0)]
         typer.echo(f"{name:<10} " + " ".join(f"{100 * c:7.1f}%" for c in cells))
     pa = metrics["pose_accuracy"]["VVLoc-ML"]["true_revisit"]
-    typer.echo(f"AOE@50 {pa.get('AOE@50', float('nan')):.2f} deg, "
-               f"APE@50 {pa.get('APE@50', float('nan')):.2f} m (queries with a correct top-1)")
+    typer.echo(
+        f"AOE@50 {pa.get('AOE@50', float('nan')):.2f} deg, "
+        f"APE@50 {pa.get('APE@50', float('nan')):.2f} m (queries with a correct top-1)"
+    )
     typer.echo(f"accepted share: {metrics['accepted_share']:.1%}")
     lat = metrics["latency"]
-    typer.echo("median latency per query: " + ", ".join(
-        f"{k} {v['median_ms']:.1f} ms" for k, v in lat.items()))
+    typer.echo(
+        "median latency per query: "
+        + ", ".join(f"{k} {v['median_ms']:.1f} ms" for k, v in lat.items())
+    )
     typer.echo(f"report: {out / 'report.md'} (plots beside it); {time.perf_counter() - t0:.0f} s")
     if warning:
         typer.secho(warning, fg=typer.colors.RED, err=True)

@@ -19,7 +19,9 @@ def eval_command(
     checkpoint: Annotated[Path, typer.Option("--checkpoint", help="Checkpoint or run folder.")],
     dataset: Annotated[Path, typer.Option("--dataset", help="Dataset folder.")],
     database: Annotated[str, typer.Option("--database", help="Map session.")] = "s0",
-    queries: Annotated[str, typer.Option("--queries", help="Query sessions, comma-separated.")] = "s1",
+    queries: Annotated[
+        str, typer.Option("--queries", help="Query sessions, comma-separated.")
+    ] = "s1",
     out: Annotated[Path, typer.Option("--out", help="Report folder.")] = Path("runs/eval"),
     top_k: Annotated[int, typer.Option("--top_k", min=1, help="Retrieved candidates.")] = 20,
     every: Annotated[int, typer.Option("--every", min=1, help="Use every n-th query.")] = 1,
@@ -32,6 +34,14 @@ def eval_command(
         names = split_names(queries)
         if not names:
             raise ValueError("--queries: expected at least one session name")
-        run_evaluation(_checkpoint_dir(checkpoint), dataset, database, names, out,
-                       top_k=top_k, every=every, device=device)
+        run_evaluation(
+            _checkpoint_dir(checkpoint),
+            dataset,
+            database,
+            names,
+            out,
+            top_k=top_k,
+            every=every,
+            device=device,
+        )
     typer.echo(f"report: {out / 'report.md'}")

@@ -41,17 +41,29 @@ def localize(
     with cli_errors("localize"):
         if checkpoint is None:
             raise ValueError("--checkpoint: required (the model that built the map)")
-        loc = Localizer.open(map_path, _checkpoint_dir(checkpoint), device=device,
-                             top_k=top_k, accept_threshold=threshold)
+        loc = Localizer.open(
+            map_path,
+            _checkpoint_dir(checkpoint),
+            device=device,
+            top_k=top_k,
+            accept_threshold=threshold,
+        )
         sess = open_dataset(dataset).session(session)
         frames = list(sess)
         results = loc.localize_batch(frames, progress=True)
         out.mkdir(parents=True, exist_ok=True)
         poses = np.stack([r.global_pose for r in results])
-        write_tum(out / "poses.tum", np.array([f.t for f in frames]), poses,
-                  comments=[HEADER.lstrip("# ")])
-        lines = [HEADER, "index,timestamp,map_row,map_id,map_session,relative_x,relative_y,"
-                 "relative_yaw_deg,global_x,global_y,global_yaw_deg,cost,accepted"]
+        write_tum(
+            out / "poses.tum",
+            np.array([f.t for f in frames]),
+            poses,
+            comments=[HEADER.lstrip("# ")],
+        )
+        lines = [
+            HEADER,
+            "index,timestamp,map_row,map_id,map_session,relative_x,relative_y,"
+            "relative_yaw_deg,global_x,global_y,global_yaw_deg,cost,accepted",
+        ]
         for f, r in zip(frames, results, strict=True):
             rel, g = r.relative_pose, r.global_pose
             lines.append(

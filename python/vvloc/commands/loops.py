@@ -41,12 +41,24 @@ def loops(
             raise ValueError("--checkpoint: required (the model that built the map)")
         model = VVLocNet.load(_checkpoint_dir(checkpoint)).to(torch.device(device))
         db = MapDatabase.open(map_path, expected_config_hash=model.config_hash())
-        found = detect_loops(model, db, radius=radius, window=window, cost_threshold=threshold,
-                             max_pairs=max_pairs or None)
+        found = detect_loops(
+            model,
+            db,
+            radius=radius,
+            window=window,
+            cost_threshold=threshold,
+            max_pairs=max_pairs or None,
+        )
         out.mkdir(parents=True, exist_ok=True)
         write_loop_csv(out / "loops.csv", found)
-        write_g2o(out / "graph.g2o", db.poses, found, ids=db.ids,
-                  sessions=[db.session_of(i) for i in range(len(db))], seq=db.seq)
+        write_g2o(
+            out / "graph.g2o",
+            db.poses,
+            found,
+            ids=db.ids,
+            sessions=[db.session_of(i) for i in range(len(db))],
+            seq=db.seq,
+        )
         for name in db.sessions:
             rows = db.session_rows(name)
             write_tum(out / f"trajectory_{name}.tum", db.timestamps[rows], db.poses[rows])

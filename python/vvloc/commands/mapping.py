@@ -19,7 +19,9 @@ def build(
     dataset: Annotated[Path, typer.Option("--dataset", help="Dataset folder.")],
     sessions: Annotated[str, typer.Option("--sessions", help="Sessions, comma-separated.")],
     out: Annotated[Path, typer.Option("--out", help="Map file (.h5), written atomically.")],
-    float16: Annotated[bool, typer.Option("--float16", help="Store descriptors as float16.")] = False,
+    float16: Annotated[
+        bool, typer.Option("--float16", help="Store descriptors as float16.")
+    ] = False,
     no_bev: Annotated[
         bool, typer.Option("--no_bev", help="Do not store BEVs (then no loop detection).")
     ] = False,
@@ -35,6 +37,12 @@ def build(
     with cli_errors("map build"):
         model = VVLocNet.load(_checkpoint_dir(checkpoint)).to(torch.device(device))
         ds = open_dataset(dataset)
-        path = build_map(model, ds, split_names(sessions), out,
-                         dtype="float16" if float16 else "float32", store_bev=not no_bev)
+        path = build_map(
+            model,
+            ds,
+            split_names(sessions),
+            out,
+            dtype="float16" if float16 else "float32",
+            store_bev=not no_bev,
+        )
     typer.echo(f"map: {path}")

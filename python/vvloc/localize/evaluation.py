@@ -20,7 +20,7 @@ import torch
 
 from vvloc import evaluate, viz
 from vvloc.data import open_dataset
-from vvloc.localize.localizer import Localizer, LocalizationResult, build_map
+from vvloc.localize.localizer import LocalizationResult, Localizer, build_map
 from vvloc.localize.mapdb import MapDatabase
 from vvloc.localize.metric import SearchConfig
 from vvloc.nets import VVLocNet
@@ -60,8 +60,9 @@ def run_evaluation(
     ds = open_dataset(dataset)
     for name in [database, *queries]:
         ds.session(name)  # KeyError naming the known sessions
-    map_path = build_map(model, ds, [database], out_dir / "map.h5", store_bev=False,
-                         progress=progress)
+    map_path = build_map(
+        model, ds, [database], out_dir / "map.h5", store_bev=False, progress=progress
+    )
     mapdb = MapDatabase.open(map_path, expected_config_hash=model.config_hash())
     loc = Localizer(model, mapdb, top_k=top_k, search=search)
     frames = [ds.session(s)[i] for s in queries for i in range(0, len(ds.session(s)), every)]
@@ -74,7 +75,11 @@ def run_evaluation(
     k = min(top_k, len(mapdb))
     retrieved = _ranked(results, "retrieved", k)
     reranked = _ranked(results, "reranked", k)
-    kw = {"query_floors": q_floor, "db_floors": db_floor, "top_n": tuple(n for n in (1, 5) if n <= k)}
+    kw = {
+        "query_floors": q_floor,
+        "db_floors": db_floor,
+        "top_n": tuple(n for n in (1, 5) if n <= k),
+    }
     rec_g = evaluate.recall_at_n(q_pose[:, :2], db_pose[:, :2], retrieved, **kw)
     rec_ml = evaluate.recall_at_n(q_pose[:, :2], db_pose[:, :2], reranked, **kw)
     est = np.stack([r.global_pose for r in results])
@@ -84,7 +89,7 @@ def run_evaluation(
     latency = evaluate.latency_summary(
         {s: [r.timings_ms.get(s, np.nan) for r in results] for s in stages}
     )
-    costs = np.array([r.cost for r in results])
+    np.array([r.cost for r in results])
     accepted = np.array([r.accepted for r in results])
     notes = [
         f"{len(frames)} queries from {list(queries)}, map = {database} ({len(mapdb)} keyframes)",
@@ -119,8 +124,9 @@ def run_evaluation(
         "session,index,map_row,est_x,est_y,est_yaw_deg,gt_x,gt_y,gt_yaw_deg,pos_err_m,"
         "yaw_err_deg,cost,accepted,top1_correct",
     ]
-    for f, r, e, g, pe, ye, c in zip(frames, results, est, q_pose, pos_err, yaw_err, correct,
-                                     strict=True):
+    for f, r, e, g, pe, ye, c in zip(
+        frames, results, est, q_pose, pos_err, yaw_err, correct, strict=True
+    ):
         lines.append(
             f"{f.session},{f.index},{r.map_row},{e[0]:.4f},{e[1]:.4f},{np.degrees(e[2]):.3f},"
             f"{g[0]:.4f},{g[1]:.4f},{np.degrees(g[2]):.3f},{pe:.4f},{ye:.3f},{r.cost:.5f},"

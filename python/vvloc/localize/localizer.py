@@ -280,9 +280,7 @@ class Localizer:
             assert enc.bev is not None
             for i in range(len(chunk)):
                 results.append(
-                    self._localize_encoded(
-                        enc.global_desc[i], enc.local_desc[i], enc.bev[i], t_enc
-                    )
+                    self._localize_encoded(enc.global_desc[i], enc.local_desc[i], enc.bev[i], t_enc)
                 )
         return results
 
@@ -296,8 +294,19 @@ class Localizer:
         if len(rows) == 0:
             nan3 = np.full(3, np.nan)
             return LocalizationResult(
-                -1, -1, "", nan3, nan3, float("inf"), False, rows, dist, rows,
-                np.zeros(0), timings, None,
+                -1,
+                -1,
+                "",
+                nan3,
+                nan3,
+                float("inf"),
+                False,
+                rows,
+                dist,
+                rows,
+                np.zeros(0),
+                timings,
+                None,
             )
         t0 = time.perf_counter()
         if self.rerank_enabled:
