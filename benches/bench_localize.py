@@ -1,0 +1,116 @@
+"""End-to-end localization latency per stage (encode, retrieve, re-rank K=20, metric search).
+
+Usage: ``python benches/bench_localize.py [--json PATH] [--map_size N] [--queries Q]``.
+
+A small model (``ModelConfig.small()``; weights do not change the timing) localizes Q query
+frames (4 cameras of 96×160) against a map of N keyframes whose descriptors are random unit
+vectors (only their count matters for the timing). Reported: median milliseconds per query and
+stage, and the share of the metric stage spent in the Rust kernels (``pad_polar`` +
+``estimate_yaw`` + search bookkeeping) versus the networks (decoder + interactor). The paper
+reports 261 ms re-ranking and 238 ms metric localization on an A100 with its full model.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from _common import print_table, write_json
+from vvloc import kernels
+from vvloc.data import Frame
+from vvloc.localize.localizer import Localizer
+from vvloc.localize.mapdb import MapDatabase
+from vvloc.nets import ModelConfig, VVLocNet
+
+
+def _frame(rng: np.random.Generator, cfg: ModelConfig, cameras: int = 4) -> Frame:
+    h, w = cfg.image_height, cfg.image_width
+    k = np.array([[w / 2, 0.0, (w - 1) / 2], [0.0, w / 2, (h - 1) / 2], [0.0, 0.0, 1.0]])
+    axes = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+    ext = np.repeat(np.eye(4)[None], cameras, 0)
+    for m in range(cameras):
+        a = 2 * math.pi * m / cameras
+        rz = np.array([[math.cos(a), -math.sin(a), 0], [math.sin(a), math.cos(a), 0], [0, 0, 1]])
+        ext[m, :3, :3] = rz @ axes
+        ext[m, 2, 3] = 1.5
+    images = rng.integers(0, 255, (cameras, 3, h, w), dtype=np.uint8)
+    return Frame(images, np.repeat(k[None], cameras, 0), ext, np.zeros(3), 0.0, 0)
+
+
+def main(argv: list[str]) -> int:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--map_size", type=int, default=2000)
+    ap.add_argument("--queries", type=int, default=5)
+    args = ap.parse_args(argv)
+    torch.manual_seed(0)
+    rng = np.random.default_rng(0)
+    model = VVLocNet(ModelConfig.small()).eval()
+    cfg = model.config
+    n = args.map_size
+    g = rng.standard_normal((n, model.global_dim)).astype(np.float32)
+    g /= np.linalg.norm(g, axis=1, keepdims=True)
+    loc_desc = rng.standard_normal((n, cfg.num_angles, cfg.channels)).astype(np.float32)
+    loc_desc /= np.linalg.norm(loc_desc, axis=2, keepdims=True)
+    db = MapDatabase.from_arrays(
+        poses=rng.uniform(-50, 50, (n, 3)),
+        timestamps=np.arange(n, dtype=np.float64),
+        sessions="s0",
+        global_descriptors=g,
+        local_descriptors=loc_desc,
+        model_config=cfg.to_dict(),
+        grid_size=cfg.grid_size,
+        config_hash=model.config_hash(),
+    )
+    with tempfile.TemporaryDirectory() as tmp:
+        path = db.save(Path(tmp) / "map.h5")
+        mapdb = MapDatabase.open(path, expected_config_hash=model.config_hash())
+        loc = Localizer(model, mapdb, top_k=20)
+        # time the Rust part of the metric stage by wrapping the kernel entry points
+        spent = {"kernels": 0.0}
+
+        def timed(fn):  # type: ignore[no-untyped-def]
+            def inner(*a, **k):  # type: ignore[no-untyped-def]
+                t0 = time.perf_counter()
+                try:
+                    return fn(*a, **k)
+                finally:
+                    spent["kernels"] += time.perf_counter() - t0
+
+            return inner
+
+        kernels.pad_polar = timed(kernels.pad_polar)  # type: ignore[assignment]
+        kernels.estimate_yaw = timed(kernels.estimate_yaw)  # type: ignore[assignment]
+        frames = [_frame(rng, cfg) for _ in range(args.queries + 1)]
+        loc.localize(frames[0])  # warm-up
+        rows, shares = [], []
+        per_stage: dict[str, list[float]] = {}
+        for f in frames[1:]:
+            spent["kernels"] = 0.0
+            r = loc.localize(f)
+            for k, v in r.timings_ms.items():
+                per_stage.setdefault(k, []).append(v)
+            shares.append(1e3 * spent["kernels"] / r.timings_ms["metric"])
+        mapdb.close()
+    for stage, v in per_stage.items():
+        rows.append({"stage": stage, "median_ms": float(np.median(v)), "queries": len(v)})
+    total = sum(r["median_ms"] for r in rows)
+    rows.append({"stage": "total", "median_ms": total, "queries": args.queries})
+    print(f"small model, map of {n} keyframes, K=20, {torch.get_num_threads()} torch threads")
+    print_table(rows, ["stage", "median_ms", "queries"])
+    share = float(np.median(shares))
+    print(f"Rust kernels' share of the metric stage: {share:.1%} (the rest: decoder + interactor)")
+    if args.json:
+        write_json(args.json, "localize", [*rows, {"stage": "metric_kernel_share", "share": share}])
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main(sys.argv[1:]))
