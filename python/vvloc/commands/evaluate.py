@@ -26,6 +26,15 @@ def eval_command(
     top_k: Annotated[int, typer.Option("--top_k", min=1, help="Retrieved candidates.")] = 20,
     every: Annotated[int, typer.Option("--every", min=1, help="Use every n-th query.")] = 1,
     device: Annotated[str, typer.Option("--device", help="cpu or cuda.")] = "cpu",
+    robustness: Annotated[
+        bool, typer.Option("--robustness", help="Also score retrieval under perturbations.")
+    ] = False,
+    loops: Annotated[
+        bool, typer.Option("--loops", help="Also evaluate loop closure (P/R, CFER, poses).")
+    ] = False,
+    loop_pairs: Annotated[
+        int, typer.Option("--loop_pairs", min=1, help="Detected pairs to verify metrically.")
+    ] = 200,
 ) -> None:
     """Write report.md/report.json/plots with Recall@N, AOE/APE and per-stage latency."""
     from vvloc.localize.evaluation import run_evaluation

@@ -18,14 +18,120 @@ from typing import Any
 import numpy as np
 import torch
 
-from vvloc import evaluate, viz
-from vvloc.data import open_dataset
-from vvloc.localize.localizer import LocalizationResult, Localizer, build_map
+from vvloc import evaluate, geometry, kernels, viz
+from vvloc.data import Frame, open_dataset
+from vvloc.data.perturb import perturb_frame
+from vvloc.localize.localizer import (
+    LocalizationResult,
+    Localizer,
+    build_map,
+    encode_frames,
+    interacting_decoder,
+)
+from vvloc.localize.loops import loop_candidates
 from vvloc.localize.mapdb import MapDatabase
-from vvloc.localize.metric import SearchConfig
+from vvloc.localize.metric import SearchConfig, metric_localize
 from vvloc.nets import VVLocNet
 
 log = logging.getLogger("vvloc.evaluate")
+
+
+#: Perturbations of the robustness evaluation (name → perturb_frame arguments), seeded.
+ROBUSTNESS: dict[str, tuple[str, dict[str, Any]]] = {
+    "one camera masked": ("mask_cameras", {"count": 1, "seed": 0}),
+    "motion blur": ("motion_blur", {"length": 9}),
+    "regions masked": ("mask_regions", {"count": 2, "size": 0.3, "seed": 0}),
+    "under-exposed": ("exposure", {"gain": 0.4}),
+    "noise": ("noise", {"sigma": 12.0, "seed": 0}),
+}
+
+
+def loc_desc_of(loc: Localizer, frame: Frame) -> np.ndarray:
+    """The local-view descriptor (T, C) of one frame under the localizer's model."""
+    return encode_frames(loc.model, [frame]).local_desc[0]
+
+
+def _robustness(
+    loc: Localizer,
+    frames: Sequence[Frame],
+    q_pose: np.ndarray,
+    q_floor: np.ndarray,
+    db_pose: np.ndarray,
+    db_floor: np.ndarray,
+    k: int,
+) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    top_n = tuple(n for n in (1, 5) if n <= k)
+    for label, (name, kw) in ROBUSTNESS.items():
+        enc = encode_frames(loc.model, [perturb_frame(f, name, **kw) for f in frames])
+        idx, _ = loc.index.topk(enc.global_desc, k)
+        out[label] = evaluate.recall_at_n(
+            q_pose[:, :2],
+            db_pose[:, :2],
+            idx,
+            query_floors=q_floor,
+            db_floors=db_floor,
+            top_n=top_n,
+        )
+    return out
+
+
+def _loops(
+    model: VVLocNet,
+    ds: Any,
+    sessions: Sequence[str],
+    out_dir: Path,
+    loop_pairs: int,
+    search: SearchConfig | None,
+    progress: bool,
+) -> tuple[dict[str, Any], dict[str, Any]]:
+    """Loop closure over all frames of ``sessions`` (one map with BEVs)."""
+    path = build_map(model, ds, list(sessions), out_dir / "loops_map.h5", progress=progress)
+    with MapDatabase.open(path, expected_config_hash=model.config_hash()) as db:
+        pos = np.asarray(db.poses)[:, :2]
+        floors = np.asarray(db.floors)
+        # every pair within a generous descriptor radius: the sweep's candidates
+        cand = loop_candidates(db, radius=0.5, window=10)
+        pairs = np.stack([cand.i, cand.j], axis=1)
+        # frames of one session within ±10 keyframes never count (temporal neighbours)
+        times = np.asarray(db.seq, dtype=np.float64) + 1e6 * np.asarray(db.session_index)
+        curve = evaluate.loop_closure_curve(
+            pairs,
+            cand.distance,
+            pos,
+            pos,
+            query_floors=floors,
+            db_floors=floors,
+            query_times=times,
+            db_times=times,
+            time_window=10,
+        )
+        closure = {"VVLoc (descriptor radius)": curve.summary(0.1)}
+        order = np.argsort(cand.distance, kind="stable")[:loop_pairs]
+        order = order[cand.distance[order] < 0.1] if np.any(cand.distance < 0.1) else order[:0]
+        cfg = model.config
+        est, gt, costs = [], [], []
+        for k in order:
+            i, j = int(cand.i[k]), int(cand.j[k])
+            tgt = db.local_descriptors(j)
+            res = metric_localize(
+                db.bev(i),
+                tgt,
+                interacting_decoder(model, tgt),
+                search or SearchConfig(),
+                float(cfg.grid_size),
+                int(cfg.num_angles),
+                int(cfg.num_radii),
+            )
+            est.append(res.pose)
+            costs.append(res.cost)
+            gt.append(geometry.relative(db.poses[i], db.poses[j]))
+        pose = evaluate.loop_pose_metrics(
+            np.asarray(est).reshape(-1, 3),
+            np.asarray(gt).reshape(-1, 3),
+            np.asarray(costs, dtype=np.float64),
+        )
+    return closure, {"VVLoc": pose}
 
 
 def _ranked(results: Sequence[LocalizationResult], attr: str, k: int) -> np.ndarray:
@@ -49,6 +155,9 @@ def run_evaluation(
     search: SearchConfig | None = None,
     progress: bool = True,
     untrained_warning: str | None = None,
+    robustness: bool = False,
+    loops: bool = False,
+    loop_pairs: int = 200,
 ) -> dict[str, Any]:
     """Evaluate a checkpoint on ``dataset``: map = ``database`` session, queries = every
     ``every``-th frame of each session in ``queries``. Writes ``out/map.h5``,
@@ -116,6 +225,13 @@ def run_evaluation(
         "accepted_share": float(accepted.mean()),
     }
 
+    if robustness:
+        metrics["robustness"] = _robustness(loc, frames, q_pose, q_floor, db_pose, db_floor, k)
+    if loops:
+        metrics["loop_closure"], metrics["loop_pose"] = _loops(
+            model, ds, [database, *queries], out_dir, loop_pairs, search, progress
+        )
+
     # per-query CSV
     yaw_err, pos_err = evaluate.pose_errors(est, q_pose)
     lines = [
@@ -150,6 +266,17 @@ def run_evaluation(
     if h is not None and len(h.cost):
         figures["Translation cost (sample query)"] = viz.plot_translation_costs(
             out_dir / "translation_costs.png", h.xy, h.cost
+        )
+    if len(results):
+        r = results[sample]
+        a, b = loc.model.interact(
+            torch.from_numpy(loc_desc_of(loc, frames[sample]))[None],
+            torch.from_numpy(mapdb.local_descriptors(int(r.reranked[0])))[None],
+        )
+        curve = kernels.yaw_costs(a.detach().numpy(), b.detach().numpy())[0]
+        true_rel = geometry.relative(q_pose[sample], db_pose[int(r.reranked[0])])
+        figures["Yaw cost curve (sample query, no padding)"] = viz.plot_yaw_cost_curve(
+            out_dir / "yaw_cost_curve.png", curve, true_yaw=float(true_rel[2])
         )
     evaluate.write_report(out_dir, metrics, title="vvloc evaluation", figures=figures)
     mapdb.close()
