@@ -22,6 +22,23 @@ def _require_egl() -> None:
         pytest.skip(msg)
 
 
+@pytest.fixture(scope="module")
+def egl() -> None:
+    """Skip (or fail under VVLOC_REQUIRE_EGL=1) when headless EGL is unavailable."""
+    _require_egl()
+
+
+@pytest.fixture
+def one_torch_thread():
+    """Run a test with one torch thread (2 contended cores make torch's default threads slow)."""
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
 @pytest.fixture(scope="session")
 def tiny_world(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A 3-session, 40-keyframe parking-lot dataset (vvloc format), rendered once per run."""

@@ -14,15 +14,7 @@ from nets_helpers import make_rig, random_images, tiny_config
 from vvloc import losses
 from vvloc.nets import ModelConfig, VVLocNet, polar_sample
 
-
-@pytest.fixture(autouse=True, scope="module")
-def _one_torch_thread():
-    """Small tensors: one intra-op thread is much faster on a shared, oversubscribed machine."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 # --- triplet and hinge --------------------------------------------------------------------
 

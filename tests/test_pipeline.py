@@ -25,12 +25,7 @@ from vvloc.nets import ModelConfig, VVLocNet
 SMALL_SEARCH = SearchConfig(half_range=1.2, step=0.6, fine_samples=8, stages=2)
 
 
-@pytest.fixture(autouse=True)
-def _one_torch_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")

@@ -20,7 +20,6 @@ from vvloc.data import open_dataset
 from vvloc.sim import (
     Lighting,
     Renderer,
-    egl_status,
     garage_world,
     make_rig,
     parking_world,
@@ -30,20 +29,6 @@ from vvloc.sim import (
 from vvloc.sim.render import ego_to_world
 from vvloc.sim.sequences import Drive, drive_keyframes, sample_loop
 from vvloc.sim.world import MARKER, MeshBuilder
-
-
-@pytest.fixture(scope="module")
-def egl() -> None:
-    ok, why = egl_status()
-    if not ok:
-        msg = (
-            "headless EGL unavailable (apt-get install libegl1 libegl-mesa0 libgl1-mesa-dri "
-            f"libgl1): {why}"
-        )
-        if os.environ.get("VVLOC_REQUIRE_EGL") == "1":
-            pytest.fail(f"VVLOC_REQUIRE_EGL=1 but {msg}")
-        pytest.skip(msg)
-
 
 BLACK = Lighting("black", sun=(0, 0, 0), ambient=(0, 0, 0), sky=(0, 0, 0), fog_density=0.0)
 

@@ -10,13 +10,7 @@ import torch
 
 from vvloc.train import TrainConfig, Trainer, TripletFrames, train, training_losses
 
-
-@pytest.fixture(autouse=True)
-def _one_torch_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def _config(root, **kw) -> TrainConfig:

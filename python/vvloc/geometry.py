@@ -19,10 +19,10 @@ def wrap_angle(angle: npt.ArrayLike) -> F64Array:
     """Wrap angles (radians) to the half-open interval (−π, π], elementwise.
 
     ``wrap_angle(π) == π`` and ``wrap_angle(−π) == π``; ``wrap_angle(3π/2) == −π/2``.
+    Angles already in (−π, π] are returned bit-exactly (no round trip through a modulo).
     """
     a = np.asarray(angle, dtype=np.float64)
-    wrapped = np.mod(a + np.pi, 2.0 * np.pi) - np.pi  # in [−π, π)
-    return np.where(wrapped <= -np.pi, wrapped + 2.0 * np.pi, wrapped)
+    return a - 2.0 * np.pi * np.ceil((a - np.pi) / (2.0 * np.pi))
 
 
 def _as_pose(pose: npt.ArrayLike, name: str) -> F64Array:

@@ -26,11 +26,10 @@ from vvloc.localize.localizer import (
     Localizer,
     build_map,
     encode_frames,
-    interacting_decoder,
 )
-from vvloc.localize.loops import loop_candidates
+from vvloc.localize.loops import loop_candidates, verify_pairs
 from vvloc.localize.mapdb import MapDatabase
-from vvloc.localize.metric import SearchConfig, metric_localize
+from vvloc.localize.metric import SearchConfig
 from vvloc.nets import VVLocNet
 
 log = logging.getLogger("vvloc.evaluate")
@@ -109,28 +108,9 @@ def _loops(
         closure = {"VVLoc (descriptor radius)": curve.summary(0.1)}
         order = np.argsort(cand.distance, kind="stable")[:loop_pairs]
         order = order[cand.distance[order] < 0.1] if np.any(cand.distance < 0.1) else order[:0]
-        cfg = model.config
-        est, gt, costs = [], [], []
-        for k in order:
-            i, j = int(cand.i[k]), int(cand.j[k])
-            tgt = db.local_descriptors(j)
-            res = metric_localize(
-                db.bev(i),
-                tgt,
-                interacting_decoder(model, tgt),
-                search or SearchConfig(),
-                float(cfg.grid_size),
-                int(cfg.num_angles),
-                int(cfg.num_radii),
-            )
-            est.append(res.pose)
-            costs.append(res.cost)
-            gt.append(geometry.relative(db.poses[i], db.poses[j]))
-        pose = evaluate.loop_pose_metrics(
-            np.asarray(est).reshape(-1, 3),
-            np.asarray(gt).reshape(-1, 3),
-            np.asarray(costs, dtype=np.float64),
-        )
+        est, costs = verify_pairs(model, db, cand.i[order], cand.j[order], search=search)
+        gt = geometry.relative(db.poses[cand.i[order]], db.poses[cand.j[order]])
+        pose = evaluate.loop_pose_metrics(est, gt.reshape(-1, 3), costs)
     return closure, {"VVLoc": pose}
 
 

@@ -27,6 +27,8 @@ from typing import Any
 import numpy as np
 
 from vvloc._io import atomic_write
+from vvloc.geometry import relative as relative_pose
+from vvloc.geometry import wrap_angle
 
 __all__ = [
     "DEFAULT_LOOP_SIGMAS",
@@ -75,32 +77,6 @@ _FRAME_COMMENTS = (
 def _r(x: float) -> str:
     """Shortest text that parses back to the same float64."""
     return repr(float(x))
-
-
-def wrap_angle(a: Any) -> np.ndarray:
-    """Wrap angles (radians) to (−π, π]."""
-    a = np.asarray(a, dtype=np.float64)
-    return a - 2.0 * np.pi * np.ceil((a - np.pi) / (2.0 * np.pi))
-
-
-def relative_pose(source: Any, target: Any) -> np.ndarray:
-    """ξ_{s→t}: the target pose expressed in the source frame (DESIGN.md §3).
-
-    ``source``, ``target``: (..., 3) world poses (x, y, yaw). Returns (..., 3) float64 with
-    T_world_t = T_world_s · ξ and the yaw difference wrapped to (−π, π].
-    """
-    s = np.asarray(source, dtype=np.float64)
-    t = np.asarray(target, dtype=np.float64)
-    dx = t[..., 0] - s[..., 0]
-    dy = t[..., 1] - s[..., 1]
-    c, si = np.cos(s[..., 2]), np.sin(s[..., 2])
-    return np.stack(
-        [c * dx + si * dy, -si * dx + c * dy, wrap_angle(t[..., 2] - s[..., 2])], axis=-1
-    )
-
-
-# ---------------------------------------------------------------------------------------------
-# Validation helpers
 
 
 def _to_array(x: Any, name: str) -> np.ndarray:

@@ -53,6 +53,37 @@ def loop_candidates(mapdb: MapDatabase, radius: float = 0.1, window: int = 10) -
     return LoopCandidates(qi[keep], idx[keep], dist[keep])
 
 
+def verify_pairs(
+    model: VVLocNet,
+    mapdb: MapDatabase,
+    rows_i: np.ndarray,
+    rows_j: np.ndarray,
+    *,
+    search: SearchConfig | None = None,
+    progress: bool = False,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Metric pose ξ_{i→j} (P, 3) and matching cost (P,) of map row pairs: keyframe i's stored
+    BEV is the padded source, keyframe j's local-view descriptor the target."""
+    cfg = model.config
+    poses = np.zeros((len(rows_i), 3))
+    costs = np.zeros(len(rows_i))
+    pairs = zip(rows_i, rows_j, strict=True)
+    for k, (i, j) in enumerate(tqdm(pairs, total=len(rows_i), desc="loops", disable=not progress)):
+        tgt = mapdb.local_descriptors(int(j))
+        res = metric_localize(
+            mapdb.bev(int(i)),
+            tgt,
+            interacting_decoder(model, tgt),
+            search or SearchConfig(),
+            float(cfg.grid_size),
+            int(cfg.num_angles),
+            int(cfg.num_radii),
+        )
+        poses[k] = res.pose
+        costs[k] = res.cost
+    return poses, costs
+
+
 def detect_loops(
     model: VVLocNet,
     mapdb: MapDatabase,
@@ -80,30 +111,17 @@ def detect_loops(
     order = np.argsort(cand.distance, kind="stable")
     if max_pairs is not None:
         order = order[:max_pairs]
-    cfg = model.config
-    poses, costs = [], []
-    for k in tqdm(order, desc="loops", disable=not progress):
-        i, j = int(cand.i[k]), int(cand.j[k])
-        tgt = mapdb.local_descriptors(j)
-        res = metric_localize(
-            mapdb.bev(i),
-            tgt,
-            interacting_decoder(model, tgt),
-            search or SearchConfig(),
-            float(cfg.grid_size),
-            int(cfg.num_angles),
-            int(cfg.num_radii),
-        )
-        poses.append(res.pose)
-        costs.append(res.cost)
+    poses, costs = verify_pairs(
+        model, mapdb, cand.i[order], cand.j[order], search=search, progress=progress
+    )
     ids = np.asarray(mapdb.ids, dtype=np.int64)
     sel_i = ids[cand.i[order]]
     sel_j = ids[cand.j[order]]
-    cost_arr = np.asarray(costs, dtype=np.float64)
+    cost_arr = costs
     return LoopClosures(
         i=sel_i,
         j=sel_j,
-        relative_poses=np.asarray(poses, dtype=np.float64).reshape(-1, 3),
+        relative_poses=poses,
         costs=cost_arr,
         accepted=cost_arr < cost_threshold,
     )
