@@ -37,6 +37,7 @@ use half::{bf16, f16};
 use kernels::{Level, BLOCK};
 use rayon::prelude::*;
 use select::{BelowSink, Excluder, Hit, ShortlistSink, Sink, TopK, TopKSink};
+use std::sync::Mutex;
 
 /// Storage type of the scanned copy of the map.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -119,6 +120,8 @@ const MIN_CHUNK_BLOCKS: usize = 64;
 const SUPER_BLOCKS: usize = 4;
 /// Query tile of the batch kernel.
 const QT: usize = 8;
+/// Segment boundaries tested by the early-abandoning float32 scan (at d/8, 2d/8, 3d/8).
+const SEGMENTS: usize = 3;
 
 /// A query prepared for the compressed scan of its index's dtype.
 enum PackedQuery<'q> {
@@ -146,9 +149,11 @@ pub struct DescriptorIndex {
     scales: Vec<f32>,
     absmax: Vec<f32>,
     resid_dim: Vec<f64>,
-    /// Leading dimensions tested first by the early-abandoning float32 scans (0: off), the
-    /// squared norm of each row's leading part (same fma order as the dot products) and the
-    /// norm of its remaining part (f64, rounded to f32), padded like `norms`.
+    /// Segment length of the early-abandoning float32 scans (0: off): a row is tested after
+    /// each of the first [`SEGMENTS`] segments of `head` dimensions. Per block and segment
+    /// boundary h (block-major, `(b * SEGMENTS + s) * 16 + l`): the squared norm of the row's
+    /// first h dimensions (same fma order as the dot products) and the norm of the others (f64,
+    /// rounded to f32).
     head: usize,
     head_norms: Vec<f32>,
     tail_norms: Vec<f32>,
@@ -160,6 +165,8 @@ pub struct DescriptorIndex {
     groups: Vec<i64>,
     seqs: Vec<i64>,
     level: Level,
+    /// Scans with less work (blocks × query dimensions) run as one chunk (tests lower it).
+    min_parallel_work: usize,
 }
 
 impl DescriptorIndex {
@@ -188,6 +195,7 @@ impl DescriptorIndex {
             groups: Vec::new(),
             seqs: Vec::new(),
             level: kernels::detect(),
+            min_parallel_work: 1 << 21,
         })
     }
 
@@ -332,20 +340,23 @@ impl DescriptorIndex {
         for i in old..self.len {
             self.max_norm = self.max_norm.max(self.norms[i].sqrt());
         }
-        self.head_norms.resize(nb * BLOCK, 0.0);
-        self.tail_norms.resize(nb * BLOCK, 0.0);
+        self.head_norms.resize(nb * SEGMENTS * BLOCK, 0.0);
+        self.tail_norms.resize(nb * SEGMENTS * BLOCK, 0.0);
         if self.head > 0 {
-            let h = self.head;
-            for b in old / BLOCK..nb {
-                let norms = kernels::block_norms(self.level, &self.data[b * d * BLOCK..], h);
-                self.head_norms[b * BLOCK..][..BLOCK].copy_from_slice(&norms);
-            }
-            for i in old..self.len {
-                let tail = self.row(i)[h..]
-                    .iter()
-                    .map(|&v| (v as f64).powi(2))
-                    .sum::<f64>();
-                self.tail_norms[i] = tail.sqrt() as f32;
+            for s in 0..SEGMENTS {
+                let h = self.head * (s + 1);
+                for b in old / BLOCK..nb {
+                    let norms = kernels::block_norms(self.level, &self.data[b * d * BLOCK..], h);
+                    self.head_norms[(b * SEGMENTS + s) * BLOCK..][..BLOCK].copy_from_slice(&norms);
+                }
+                for i in old..self.len {
+                    let tail = self.row(i)[h..]
+                        .iter()
+                        .map(|&v| (v as f64).powi(2))
+                        .sum::<f64>();
+                    self.tail_norms[((i / BLOCK) * SEGMENTS + s) * BLOCK + i % BLOCK] =
+                        tail.sqrt() as f32;
+                }
             }
         }
         let mut rescale = false;
@@ -607,13 +618,14 @@ impl DescriptorIndex {
     }
 
     /// Splits blocks into chunks for the parallel scans (one chunk for small work).
-    fn chunks(&self, work_per_block: usize) -> Vec<(usize, usize)> {
+    fn chunks(&self, work_per_block: usize, per_thread: usize) -> Vec<(usize, usize)> {
         let nb = self.nblocks();
         let threads = rayon::current_num_threads().max(1);
-        if threads == 1 || nb * work_per_block < (1 << 21) || nb < 2 * MIN_CHUNK_BLOCKS {
+        if threads == 1 || nb * work_per_block < self.min_parallel_work || nb < 2 * MIN_CHUNK_BLOCKS
+        {
             return vec![(0, nb)];
         }
-        let target = (threads * 4).min(nb / MIN_CHUNK_BLOCKS).max(1);
+        let target = (threads * per_thread).min(nb / MIN_CHUNK_BLOCKS).max(1);
         let size = nb.div_ceil(target);
         (0..nb)
             .step_by(size)
@@ -752,12 +764,12 @@ impl DescriptorIndex {
     }
 
     /// Exact float32 scan of blocks `b0..b1` for query `q` alone that abandons a block early:
-    /// the leading `head` dimensions give, for each row, the lower bound
-    /// ‖q_h − x_h‖² + (‖q_t‖ − ‖x_t‖)² ≤ ‖q − x‖² (Cauchy–Schwarz on the tail t); when no row
-    /// of the block can pass `sink.threshold` (with a margin covering every float32 rounding of
-    /// both sides) the tail is never read. Kept blocks finish the same fma sequence, so the
-    /// distances are bitwise those of [`Self::scan_f32`].
-    #[allow(clippy::too_many_arguments)]
+    /// after each of the first [`SEGMENTS`] segments of `head` dimensions (h dimensions read so
+    /// far) it bounds, for each row, ‖q − x‖² ≥ ‖q_h − x_h‖² + (‖q_t‖ − ‖x_t‖)² (Cauchy–Schwarz
+    /// on the unread tail t); when no row of the block can pass `sink.threshold` (with a margin
+    /// covering every float32 rounding of both sides) the rest of the block is never read.
+    /// Kept blocks finish the same fma sequence, so distances are bitwise those of
+    /// [`Self::scan_f32`].
     fn scan_abandon<S: Sink>(
         &self,
         q: &[f32],
@@ -767,40 +779,49 @@ impl DescriptorIndex {
         b1: usize,
         sink: &mut S,
     ) {
-        let (d, h) = (self.dim, self.head);
-        let qh2 = kernels::norm_sq(self.level, &q[..h]);
-        let qt = q[h..]
-            .iter()
-            .map(|&v| (v as f64).powi(2))
-            .sum::<f64>()
-            .sqrt() as f32;
+        let d = self.dim;
+        let bounds: [usize; SEGMENTS] = std::array::from_fn(|s| self.head * (s + 1));
+        let qh2 = bounds.map(|h| kernels::norm_sq(self.level, &q[..h]));
+        let qt = bounds.map(|h| {
+            q[h..]
+                .iter()
+                .map(|&v| (v as f64).powi(2))
+                .sum::<f64>()
+                .sqrt() as f32
+        });
         let u = 2f64.powi(-24);
         let gamma = d as f64 * u / (1.0 - d as f64 * u);
         let big = (qn as f64).sqrt() * (1.0 + 1e-6) + self.max_norm as f64 * (1.0 + 1e-6);
         let margin = (4.0 * gamma + 16.0 * u) * big * big + d as f64 * 2f64.powi(-100);
         let mut acc = [0f32; BLOCK];
-        for b in b0..b1 {
+        'blocks: for b in b0..b1 {
             let blk = &self.data[b * d * BLOCK..][..d * BLOCK];
             acc.fill(0.0);
-            kernels::dot_range(self.level, q, blk, 0, h, &mut acc);
-            let thr = sink.threshold(qi);
-            if thr.is_finite() {
+            let mut j = 0;
+            for (s, &h) in bounds.iter().enumerate() {
+                kernels::dot_range(self.level, q, blk, j, h, &mut acc);
+                j = h;
+                let thr = sink.threshold(qi);
+                if !thr.is_finite() {
+                    break;
+                }
                 let cut = ((thr as f64 + margin) as f32).next_up();
+                let at = (b * SEGMENTS + s) * BLOCK;
                 let (hn, tn) = (
-                    &self.head_norms[b * BLOCK..][..BLOCK],
-                    &self.tail_norms[b * BLOCK..][..BLOCK],
+                    &self.head_norms[at..][..BLOCK],
+                    &self.tail_norms[at..][..BLOCK],
                 );
                 let mut keep = false;
                 for l in 0..BLOCK {
-                    let dt = qt - tn[l];
-                    let lb = ((qh2 + hn[l]) - 2.0 * acc[l]) + dt * dt;
+                    let dt = qt[s] - tn[l];
+                    let lb = ((qh2[s] + hn[l]) - 2.0 * acc[l]) + dt * dt;
                     keep |= lb <= cut;
                 }
                 if !keep {
-                    continue;
+                    continue 'blocks;
                 }
             }
-            kernels::dot_range(self.level, q, blk, h, d, &mut acc);
+            kernels::dot_range(self.level, q, blk, j, d, &mut acc);
             self.emit(sink, qi, qn, b, &acc);
         }
     }
@@ -858,15 +879,29 @@ impl DescriptorIndex {
                 .map(|qi| self.topk_packed(queries, &qn, qi, k, ex))
                 .collect()
         } else {
-            let chunks = self.chunks(nq * self.dim);
+            // Single queries abandon blocks early against their threshold: more, smaller chunks
+            // share a tighter one. Each chunk starts from the k-th of the chunks finished so far
+            // (`shared`, disjoint rows): a row farther than that k-th can never be in the result.
+            let per_thread = if nq < QT && self.head > 0 { 16 } else { 4 };
+            let chunks = self.chunks(nq * self.dim, per_thread);
+            let shared: Vec<Mutex<TopK>> = (0..nq).map(|_| Mutex::new(TopK::new(k))).collect();
+            let lock = |m: &Mutex<TopK>| m.lock().unwrap_or_else(|e| e.into_inner()).clone();
             let sinks: Vec<TopKSink> = chunks
                 .par_iter()
                 .map(|&(b0, b1)| {
                     let mut s = TopKSink {
                         heaps: vec![TopK::new(k); nq],
+                        floor: shared
+                            .iter()
+                            .map(|m| lock(m).threshold().next_up())
+                            .collect(),
                         ex,
                     };
                     self.scan_f32(queries, &qn, b0, b1, &mut s);
+                    for (m, h) in shared.iter().zip(&s.heaps) {
+                        let mut g = m.lock().unwrap_or_else(|e| e.into_inner());
+                        h.iter().for_each(|&hit| g.push(hit));
+                    }
                     s
                 })
                 .collect();
@@ -913,7 +948,7 @@ impl DescriptorIndex {
         let (pq, eps) = self.packed_query(q);
         let slack = 2.0 * eps;
         let sinks: Vec<ShortlistSink> = self
-            .chunks(self.dim)
+            .chunks(self.dim, 4)
             .par_iter()
             .map(|&(b0, b1)| {
                 let mut s = ShortlistSink {
@@ -967,8 +1002,10 @@ impl DescriptorIndex {
         let qn = self.query_norms(queries);
         // Squared-distance prefilter that keeps every row with sqrt(sq) < r (checked after).
         let r2 = ((r as f64 * r as f64) * (1.0 + 1e-6)) as f32;
-        let packed = self.use_packed(nq);
-        let chunks = self.chunks(nq * self.dim);
+        // The early-abandoning float32 scan reads ~1/8 of the float32 bytes for most blocks,
+        // less than any compressed copy: single radius queries use it for every dtype.
+        let packed = self.use_packed(nq) && self.head == 0;
+        let chunks = self.chunks(nq * self.dim, 4);
         let scan = |packed: Option<(usize, &PackedQuery<'_>)>, bound: f32| -> Vec<Vec<Hit>> {
             let sinks: Vec<BelowSink> = chunks
                 .par_iter()

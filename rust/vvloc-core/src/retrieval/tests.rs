@@ -190,7 +190,8 @@ fn results_do_not_depend_on_thread_count() {
     let data = clustered(n, d, 11);
     let queries = clustered(10, d, 12);
     for dtype in [Dtype::F32, Dtype::BF16, Dtype::I8] {
-        let idx = DescriptorIndex::from_rows(&data, d, dtype, None, None).unwrap();
+        let mut idx = DescriptorIndex::from_rows(&data, d, dtype, None, None).unwrap();
+        idx.min_parallel_work = 1; // many chunks (shared top-k floor, merges) even here
         let run = |t: usize| {
             let pool = rayon::ThreadPoolBuilder::new()
                 .num_threads(t)
@@ -199,12 +200,23 @@ fn results_do_not_depend_on_thread_count() {
             pool.install(|| {
                 (
                     idx.topk(&queries, 20, None).unwrap(),
-                    idx.topk(&queries[..d], 20, None).unwrap(),
+                    (0..10)
+                        .map(|qi| idx.topk(&queries[qi * d..(qi + 1) * d], 20, None).unwrap())
+                        .collect::<Vec<_>>(),
                     idx.radius(&queries, 0.4, None).unwrap(),
                 )
             })
         };
-        assert_eq!(run(1), run(3));
+        let (batch, single, radius) = run(1);
+        assert_eq!(run(3), (batch.clone(), single.clone(), radius));
+        for (qi, s) in single.iter().enumerate() {
+            assert_eq!(
+                s.indices,
+                batch.indices[qi * 20..(qi + 1) * 20],
+                "{dtype:?}"
+            );
+            assert_eq!(s.distances, batch.distances[qi * 20..(qi + 1) * 20]);
+        }
     }
 }
 
