@@ -130,6 +130,11 @@ enum PackedQuery<'q> {
     I8(kernels::QueryI8),
 }
 
+/// Locks `m`, also after a panic elsewhere (a `TopK` is always consistent).
+fn lock(m: &Mutex<TopK>) -> std::sync::MutexGuard<'_, TopK> {
+    m.lock().unwrap_or_else(|e| e.into_inner())
+}
+
 /// An exact L2 nearest-neighbour index over N descriptors of dimension d.
 #[derive(Clone, Debug)]
 pub struct DescriptorIndex {
@@ -502,6 +507,7 @@ impl DescriptorIndex {
     /// (γ_n = n·2⁻²⁴ / (1 − n·2⁻²⁴); n = 2d + 2 for `vdpbf16ps`, which may round twice per pair),
     /// the final `‖q‖² + ‖x‖² − 2 q·x` one rounding of at most 2⁻²⁴·(‖q‖ + ‖x‖)² on each side,
     /// and `d·2⁻¹²⁰` covers flushed subnormals. ε = 1.01 × (2·dot error + roundings).
+    /// int8 storage bounds its per-dimension quantisation the same way (see `query_i8`).
     pub fn error_bound(&self, q: &[f32]) -> f32 {
         match self.dtype {
             Dtype::F32 => return 0.0,
@@ -885,7 +891,6 @@ impl DescriptorIndex {
             let per_thread = if nq < QT && self.head > 0 { 16 } else { 4 };
             let chunks = self.chunks(nq * self.dim, per_thread);
             let shared: Vec<Mutex<TopK>> = (0..nq).map(|_| Mutex::new(TopK::new(k))).collect();
-            let lock = |m: &Mutex<TopK>| m.lock().unwrap_or_else(|e| e.into_inner()).clone();
             let sinks: Vec<TopKSink> = chunks
                 .par_iter()
                 .map(|&(b0, b1)| {
@@ -899,7 +904,7 @@ impl DescriptorIndex {
                     };
                     self.scan_f32(queries, &qn, b0, b1, &mut s);
                     for (m, h) in shared.iter().zip(&s.heaps) {
-                        let mut g = m.lock().unwrap_or_else(|e| e.into_inner());
+                        let mut g = lock(m);
                         h.iter().for_each(|&hit| g.push(hit));
                     }
                     s
