@@ -5,7 +5,8 @@ r = 0.1 and 0.2. Realistic descriptors: places (cluster centres) seen by ~100 ke
 (a Gaussian mixture, L2-normalised); queries revisit random keyframes with noise of L2 size
 U(0.05, 0.2). Every cell checks, in the same run, that vvloc's results equal exact search
 (float64 brute force on up to 16 queries; indices identical outside float32 near-ties) and that
-the compressed index returns exactly the float32 index's results (recall@20 = 1.0).
+the compressed indices (bfloat16, float16, int8) return exactly the float32 index's results
+(recall@20 = 1.0).
 
 Usage: ``python benches/bench_retrieval.py [--quick] [--json PATH]`` (faiss-cpu and torch from
 the ``bench`` extra; a missing peer is reported and skipped).
@@ -135,6 +136,7 @@ def bench_size(n: int, budget: float, bw: float, rows: list[dict[str, Any]]) -> 
     f32 = DescriptorIndex(x)
     bf16 = DescriptorIndex(x, dtype="bfloat16")
     f16 = DescriptorIndex(x, dtype="float16")
+    i8 = DescriptorIndex(x, dtype="int8")
     flat = None
     if faiss is not None:
         flat = faiss.IndexFlatL2(D)
@@ -150,12 +152,13 @@ def bench_size(n: int, budget: float, bw: float, rows: list[dict[str, Any]]) -> 
         row["exact"] = topk_is_exact(idx, q, x)
         row["vvloc_ms"] = 1e3 * timed(lambda q=q: f32.topk(q, K), budget)
         if nq == 1:
-            for name, index in (("bf16", bf16), ("f16", f16)):
+            for name, index in (("bf16", bf16), ("f16", f16), ("i8", i8)):
                 got = index.topk(q, K)
                 row["exact"] &= np.array_equal(got[0], idx) and np.array_equal(got[1], dist)
                 row[f"vvloc_{name}_ms"] = 1e3 * timed(lambda q=q, i=index: i.topk(q, K), budget)
             row["floor_f32_ms"] = 1e3 * n * D * 4 / (bw * 1e9)
             row["floor_bf16_ms"] = row["floor_f32_ms"] / 2
+            row["floor_i8_ms"] = row["floor_f32_ms"] / 4
         if flat is not None:
             faiss.cvar.distance_compute_blas_threshold = blas_default
             _, fi = flat.search(q, K)
@@ -168,6 +171,7 @@ def bench_size(n: int, budget: float, bw: float, rows: list[dict[str, Any]]) -> 
             row["x_faiss_blas"] = row["faiss_blas_ms"] / row["vvloc_ms"]
             if nq == 1:
                 row["x_faiss_bf16"] = row["faiss_ms"] / row["vvloc_bf16_ms"]
+                row["x_faiss_i8"] = row["faiss_ms"] / row["vvloc_i8_ms"]
         if torch is not None and nq * n <= 64 * 1_000_000:
             row["torch_ms"] = 1e3 * timed(lambda q=q: torch_topk(x_t, xn, q), budget)
         rows.append(row)
@@ -181,9 +185,12 @@ def bench_size(n: int, budget: float, bw: float, rows: list[dict[str, Any]]) -> 
             row["exact"] = radius_is_exact(res, q, x, r)
             row["vvloc_ms"] = 1e3 * timed(lambda q=q, r=r: f32.radius(q, r), budget)
             if nq == 1:
-                got = bf16.radius(q, r)
-                row["exact"] &= all(np.array_equal(a, b) for a, b in zip(got, res, strict=True))
-                row["vvloc_bf16_ms"] = 1e3 * timed(lambda q=q, r=r: bf16.radius(q, r), budget)
+                for name, index in (("bf16", bf16), ("i8", i8)):
+                    got = index.radius(q, r)
+                    row["exact"] &= all(np.array_equal(a, b) for a, b in zip(got, res, strict=True))
+                    row[f"vvloc_{name}_ms"] = 1e3 * timed(
+                        lambda q=q, r=r, i=index: i.radius(q, r), budget
+                    )
             if flat is not None:
                 row["faiss_ms"] = 1e3 * timed(lambda q=q, r=r: flat.range_search(q, r * r), budget)
                 row["x_faiss"] = row["faiss_ms"] / row["vvloc_ms"]
@@ -214,9 +221,9 @@ def main() -> None:
         bench_size(n, budget, bw, rows)
     print()
     cols = [
-        "task", "N", "nq", "vvloc_ms", "vvloc_bf16_ms", "vvloc_f16_ms", "faiss_ms",
-        "faiss_blas_ms", "torch_ms", "floor_f32_ms", "floor_bf16_ms", "x_faiss",
-        "x_faiss_blas", "x_faiss_bf16", "exact",
+        "task", "N", "nq", "vvloc_ms", "vvloc_bf16_ms", "vvloc_f16_ms", "vvloc_i8_ms",
+        "faiss_ms", "faiss_blas_ms", "torch_ms", "floor_f32_ms", "floor_bf16_ms", "floor_i8_ms",
+        "x_faiss", "x_faiss_blas", "x_faiss_bf16", "x_faiss_i8", "exact",
     ]  # fmt: skip
     print_table(rows, cols)
     if args.json:

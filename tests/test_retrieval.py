@@ -15,7 +15,7 @@ import vvloc
 from vvloc import DescriptorIndex, Exclusion
 from vvloc.reference import retrieval as ref
 
-DTYPES = ["float32", "float16", "bfloat16"]
+DTYPES = ["float32", "float16", "bfloat16", "int8"]
 
 
 def clustered(n: int, d: int, seed: int, clusters: int = 50, spread: float = 0.3) -> np.ndarray:
@@ -98,7 +98,7 @@ def test_k_beyond_n_pads_and_empty_index():
     assert ridx.shape == (0,) and rdist.shape == (0,)
 
 
-@pytest.mark.parametrize("dtype", ["float16", "bfloat16"])
+@pytest.mark.parametrize("dtype", ["float16", "bfloat16", "int8"])
 def test_compressed_is_exact_on_realistic_data(dtype):
     x = clustered(20_000, 256, 1)
     q = revisits(x, 70, 2)  # 64 batched + 6 one by one
@@ -115,6 +115,41 @@ def test_compressed_is_exact_on_realistic_data(dtype):
     np.testing.assert_array_equal(idx, exact_idx)
     np.testing.assert_array_equal(dist, exact_dist)
     np.testing.assert_array_equal(index.topk(q, 20)[0], exact_idx)
+
+
+def test_int8_equals_float32_with_ties_and_radius():
+    """int8 storage + exact re-scoring returns bitwise the float32 index's results, including
+    duplicated rows (ties by lower index) and radius queries."""
+    x = clustered(5_000, 128, 11, clusters=20, spread=0.5)
+    x[[900, 2500, 4999]] = x[7]  # ties with row 7
+    q = np.concatenate([revisits(x, 6, 12, noise=0.05), x[7:8]])
+    f32, i8 = DescriptorIndex(x), DescriptorIndex(x, dtype="int8")
+    for i in range(len(q)):
+        for a, b in zip(i8.topk(q[i], 20), f32.topk(q[i], 20), strict=True):
+            np.testing.assert_array_equal(a, b)
+        for a, b in zip(i8.radius(q[i], 0.7), f32.radius(q[i], 0.7), strict=True):
+            np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(i8.topk(x[7], 4)[0], [[7, 900, 2500, 4999]])
+
+
+@pytest.mark.parametrize("r", [0.1, 0.5, 1.0])
+def test_early_abandon_radius_equals_full_scan(r):
+    """Single float32 queries (early-abandoning scan) equal the batch tile path (which never
+    abandons) bitwise, and the reference set."""
+    x = clustered(6_000, 256, 13, clusters=30, spread=0.4)
+    q = revisits(x, 8, 14, noise=0.03)  # a batch of exactly 8: one tile, no abandoning
+    index = DescriptorIndex(x)
+    batch = index.radius(q, r)
+    full = ref.distances(q, x)
+    for i in range(8):
+        _, idx, dist = index.radius(q[i], r)
+        a, b = batch[0][i], batch[0][i + 1]
+        np.testing.assert_array_equal(idx, batch[1][a:b])
+        np.testing.assert_array_equal(dist, batch[2][a:b])
+        want = np.flatnonzero(full[i] < r)
+        border = set(np.flatnonzero(np.abs(full[i] - r) < 1e-4))
+        assert set(idx) - border == set(want) - border
+        assert len(idx) > 0 or r < 0.5
 
 
 def assert_radius_equal(got, want, r, full):

@@ -6,10 +6,14 @@ A thin validating wrapper around the Rust ``vvloc._core.DescriptorIndex`` (DESIG
 Top-K rows are sorted by distance ascending, ties broken by the lower map index; radius queries
 return every entry with distance ``< r`` as CSR arrays, each query's hits sorted the same way.
 
-Storage ``dtype``: ``"float32"`` scans the float32 map; ``"float16"`` and ``"bfloat16"`` scan a
-compressed copy (half the bytes per single query) and re-score a provably sufficient shortlist
-exactly from the float32 originals, which the index keeps (1.5× the float32 memory): their
-results are identical to ``"float32"``.
+Storage ``dtype``: ``"float32"`` scans the float32 map (single queries test the leading d/8
+dimensions of each block of rows first and skip the rest when a rigorous lower bound already
+rules the whole block out); ``"float16"`` and ``"bfloat16"`` scan a compressed copy (half the
+bytes per single query), ``"int8"`` a copy quantised symmetrically per dimension (a quarter of
+the bytes; the query is quantised with the same per-dimension scales), and re-score a provably
+sufficient shortlist (every row within the approximate k-th distance + 2ε, ε a per-query bound
+on the quantisation and rounding error) exactly from the float32 originals, which the index
+keeps (1.5× resp. 1.25× the float32 memory): their results are identical to ``"float32"``.
 
 Loop closure excludes temporal neighbours with an :class:`Exclusion`: each map entry has a group
 id (e.g. a session; default 0) and a sequence number (default: its index in the map).
@@ -27,7 +31,7 @@ import numpy.typing as npt
 from vvloc import _core
 from vvloc.kernels import _as_f32, _positive_float, _positive_int
 
-DTYPES = ("float32", "float16", "bfloat16")
+DTYPES = ("float32", "float16", "bfloat16", "int8")
 
 
 def _as_i64(x: Any, name: str, n: int) -> npt.NDArray[np.int64]:
@@ -99,7 +103,8 @@ class DescriptorIndex:
     Args:
         descriptors: float array (N, d) (numpy or torch; converted to C-contiguous float32,
             must be finite). N may be 0.
-        dtype: storage of the scanned copy, ``"float32"``, ``"float16"`` or ``"bfloat16"``.
+        dtype: storage of the scanned copy, ``"float32"``, ``"float16"``, ``"bfloat16"`` or
+            ``"int8"`` (d ≤ 65536).
         groups: group id per entry, int (N,); default 0.
         seqs: sequence number per entry, int (N,); default the entry index.
 
@@ -207,7 +212,7 @@ class DescriptorIndex:
 
     @property
     def dtype(self) -> str:
-        """Storage of the scanned copy: ``"float32"``, ``"float16"`` or ``"bfloat16"``."""
+        """Storage of the scanned copy: ``"float32"``, ``"float16"``, ``"bfloat16"``, ``"int8"``."""
         return self._inner.dtype
 
     def __repr__(self) -> str:

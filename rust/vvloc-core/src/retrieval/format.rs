@@ -4,7 +4,7 @@
 //! |--------|-----------|--------------------------------------------------------------|
 //! | 0      | 8         | magic `b"VVLOCIDX"`                                          |
 //! | 8      | 4         | version (u32) = 1                                            |
-//! | 12     | 4         | dtype (u32): 0 float32, 1 float16, 2 bfloat16               |
+//! | 12     | 4         | dtype (u32): 0 float32, 1 float16, 2 bfloat16, 3 int8      |
 //! | 16     | 8         | N (u64), number of entries                                   |
 //! | 24     | 8         | d (u64), dimension                                           |
 //! | 32     | 8         | checksum (u64) of bytes 8..32 and of the payload (below)     |

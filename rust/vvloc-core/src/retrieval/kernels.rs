@@ -28,8 +28,8 @@ pub const BLOCK: usize = 16;
 /// The instruction set the kernels use, detected once at run time.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Level {
-    /// AVX-512F (+ optional AVX-512 BF16 for the bfloat16 scan).
-    Avx512 { bf16: bool },
+    /// AVX-512F (+ optional AVX-512 BF16 for the bfloat16 scan, AVX-512 VNNI + BW for int8).
+    Avx512 { bf16: bool, vnni: bool },
     /// AVX2 + FMA: the generic kernels compiled with these features (auto-vectorised).
     Avx2,
     /// Portable Rust (any CPU).
@@ -45,6 +45,7 @@ pub fn detect() -> Level {
             if is_x86_feature_detected!("avx512f") {
                 return Level::Avx512 {
                     bf16: is_x86_feature_detected!("avx512bf16"),
+                    vnni: has_vnni(),
                 };
             }
             if is_x86_feature_detected!("avx2") && is_x86_feature_detected!("fma") {
@@ -53,6 +54,11 @@ pub fn detect() -> Level {
         }
         Level::Portable
     })
+}
+
+#[cfg(target_arch = "x86_64")]
+fn has_vnni() -> bool {
+    is_x86_feature_detected!("avx512vnni") && is_x86_feature_detected!("avx512bw")
 }
 
 /// Every level this CPU can run (for tests that compare the paths).
@@ -64,9 +70,13 @@ pub fn available_levels() -> Vec<Level> {
             v.push(Level::Avx2);
         }
         if is_x86_feature_detected!("avx512f") {
-            v.push(Level::Avx512 { bf16: false });
-            if is_x86_feature_detected!("avx512bf16") {
-                v.push(Level::Avx512 { bf16: true });
+            v.push(Level::Avx512 {
+                bf16: false,
+                vnni: false,
+            });
+            let (bf16, vnni) = (is_x86_feature_detected!("avx512bf16"), has_vnni());
+            if bf16 || vnni {
+                v.push(Level::Avx512 { bf16, vnni });
             }
         }
     }
@@ -217,6 +227,57 @@ pub fn norm_sq(level: Level, v: &[f32]) -> f32 {
     }
 }
 
+/// Continues the dot products of one query with the 16 rows of one block over dimensions
+/// `j0..j1`: `acc[l] = fma(q[j], x[j][l], acc[l])` for j = j0, …, j1-1. Starting from zeros at
+/// j0 = 0 and continuing to d gives bitwise the [`tile_f32`] result (same fma sequence), so a
+/// scan may test a leading block of dimensions first and finish only the rows it keeps.
+pub fn dot_range(
+    level: Level,
+    q: &[f32],
+    block: &[f32],
+    j0: usize,
+    j1: usize,
+    acc: &mut [f32; BLOCK],
+) {
+    assert!(j0 <= j1 && q.len() >= j1 && block.len() >= j1 * BLOCK);
+    #[inline(always)]
+    fn generic(q: &[f32], block: &[f32], j0: usize, j1: usize, acc: &mut [f32; BLOCK]) {
+        for j in j0..j1 {
+            let x = &block[j * BLOCK..][..BLOCK];
+            for l in 0..BLOCK {
+                acc[l] = q[j].mul_add(x[l], acc[l]);
+            }
+        }
+    }
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,fma")]
+    unsafe fn avx2(q: &[f32], block: &[f32], j0: usize, j1: usize, acc: &mut [f32; BLOCK]) {
+        generic(q, block, j0, j1, acc)
+    }
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx512f")]
+    unsafe fn avx512(q: &[f32], block: &[f32], j0: usize, j1: usize, acc: &mut [f32; BLOCK]) {
+        // SAFETY (all loads/stores): acc holds 16 f32; j < j1 <= q.len() and
+        // j*16 + 16 <= j1*16 <= block.len() (checked by the caller).
+        let mut a = unsafe { _mm512_loadu_ps(acc.as_ptr()) };
+        let bp = block.as_ptr();
+        for j in j0..j1 {
+            let x = unsafe { _mm512_loadu_ps(bp.add(j * BLOCK)) };
+            a = _mm512_fmadd_ps(_mm512_set1_ps(unsafe { *q.get_unchecked(j) }), x, a);
+        }
+        unsafe { _mm512_storeu_ps(acc.as_mut_ptr(), a) };
+    }
+    match level {
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: avx512f detected; lengths checked above.
+        Level::Avx512 { .. } => unsafe { avx512(q, block, j0, j1, acc) },
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: avx2 and fma detected.
+        Level::Avx2 => unsafe { avx2(q, block, j0, j1, acc) },
+        _ => generic(q, block, j0, j1, acc),
+    }
+}
+
 // ---------------------------------------------------------------------------------------------
 // Compressed scans (one query × G blocks). Approximate: callers bound the error and re-score.
 
@@ -292,7 +353,7 @@ pub fn scan_bf16<const G: usize>(
     match level {
         #[cfg(target_arch = "x86_64")]
         // SAFETY: avx512f and avx512bf16 detected; lengths checked above.
-        Level::Avx512 { bf16: true } => unsafe { scan_bf16_avx512::<G>(qp, dp, blocks, out) },
+        Level::Avx512 { bf16: true, .. } => unsafe { scan_bf16_avx512::<G>(qp, dp, blocks, out) },
         _ => {
             let mut acc = [[0f32; BLOCK]; G];
             for p in 0..dp {
@@ -334,5 +395,156 @@ unsafe fn scan_bf16_avx512<const G: usize>(qp: &[u32], dp: usize, blocks: &[u16]
     for g in 0..G {
         // SAFETY: g*16 + 16 <= G*16 <= out.len().
         unsafe { _mm512_storeu_ps(out.as_mut_ptr().add(g * BLOCK), acc[g]) };
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// int8 scan. Layout: element (i, j) stored as the byte `x̃ + 128` (x̃ ∈ [-127, 127] the quantised
+// value) at `((b * d4 + j / 4) * 16 + i % 16) * 4 + j % 4`, `d4 = ceil(d / 4)`, padding 128, so
+// that `vpdpbusd` consumes four dimensions of 16 rows per instruction.
+
+/// A query quantised for [`scan_i8`]: `w̃ = 128·h + l` per dimension (h ∈ [-125, 125],
+/// l ∈ [-64, 63]), the approximate dot product with row x being `t · Σ_j w̃_j x̃_j`.
+#[derive(Clone, Debug)]
+pub struct QueryI8 {
+    /// High parts h, four dimensions per word (low byte first), `d4` words.
+    pub hi: Vec<u32>,
+    /// Low parts l, same packing.
+    pub lo: Vec<u32>,
+    /// `128 · Σ h` and `128 · Σ l` (remove the +128 offset of the map bytes).
+    pub corr: [i32; 2],
+    /// Scale t of w̃.
+    pub t: f64,
+}
+
+/// Largest |w̃| of a quantised query.
+pub const QMAX: f64 = 16000.0;
+
+impl QueryI8 {
+    /// Quantises `w` (the query times the per-dimension map scales) with `t = max|w| / 16000`.
+    /// Returns the query and w̃ (for the error bound).
+    pub fn new(w: &[f64]) -> (Self, Vec<i32>) {
+        let amax = w.iter().fold(0f64, |m, v| m.max(v.abs()));
+        let t = if amax > 0.0 { amax / QMAX } else { 1.0 };
+        let wq: Vec<i32> = w
+            .iter()
+            .map(|&v| (v / t).round().clamp(-QMAX, QMAX) as i32)
+            .collect();
+        let d4 = w.len().div_ceil(4);
+        let (mut hi, mut lo) = (vec![0u32; d4], vec![0u32; d4]);
+        let (mut sh, mut sl) = (0i32, 0i32);
+        for (j, &v) in wq.iter().enumerate() {
+            let h = (v + 64).div_euclid(128);
+            let l = v - 128 * h;
+            sh += h;
+            sl += l;
+            hi[j / 4] |= ((h as i8) as u8 as u32) << (8 * (j % 4));
+            lo[j / 4] |= ((l as i8) as u8 as u32) << (8 * (j % 4));
+        }
+        (
+            QueryI8 {
+                hi,
+                lo,
+                corr: [128 * sh, 128 * sl],
+                t,
+            },
+            wq,
+        )
+    }
+}
+
+/// int8 map × quantised query: `out[g * 16 + l] = f32(t · (128·I_h + I_l))` computed in f64,
+/// `I_h = Σ_j x̃_j h_j`, `I_l = Σ_j x̃_j l_j` exact integers (d ≤ 65536), so every level returns
+/// bitwise the same values.
+pub fn scan_i8<const G: usize>(
+    level: Level,
+    q: &QueryI8,
+    d4: usize,
+    blocks: &[u8],
+    out: &mut [f32],
+) {
+    assert!(
+        q.hi.len() >= d4
+            && q.lo.len() >= d4
+            && blocks.len() >= G * d4 * BLOCK * 4
+            && out.len() >= G * BLOCK
+    );
+    match level {
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: avx512f, avx512bw and avx512vnni detected; lengths checked above.
+        Level::Avx512 { vnni: true, .. } => unsafe { scan_i8_vnni::<G>(q, d4, blocks, out) },
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: avx2 detected (every AVX-512F CPU has it too).
+        Level::Avx2 | Level::Avx512 { .. } => unsafe { scan_i8_avx2::<G>(q, d4, blocks, out) },
+        _ => scan_i8_generic::<G>(q, d4, blocks, out),
+    }
+}
+
+#[inline(always)]
+fn scan_i8_generic<const G: usize>(q: &QueryI8, d4: usize, blocks: &[u8], out: &mut [f32]) {
+    for g in 0..G {
+        let mut ih = [0i32; BLOCK];
+        let mut il = [0i32; BLOCK];
+        for p in 0..d4 {
+            let x = &blocks[(g * d4 + p) * BLOCK * 4..][..BLOCK * 4];
+            let (hw, lw) = (q.hi[p].to_le_bytes(), q.lo[p].to_le_bytes());
+            for l in 0..BLOCK {
+                for k in 0..4 {
+                    let xv = x[4 * l + k] as i32 - 128;
+                    ih[l] += xv * (hw[k] as i8 as i32);
+                    il[l] += xv * (lw[k] as i8 as i32);
+                }
+            }
+        }
+        for l in 0..BLOCK {
+            out[g * BLOCK + l] = ((128.0 * ih[l] as f64 + il[l] as f64) * q.t) as f32;
+        }
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn scan_i8_avx2<const G: usize>(q: &QueryI8, d4: usize, blocks: &[u8], out: &mut [f32]) {
+    scan_i8_generic::<G>(q, d4, blocks, out)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512bw,avx512vnni")]
+unsafe fn scan_i8_vnni<const G: usize>(q: &QueryI8, d4: usize, blocks: &[u8], out: &mut [f32]) {
+    let mut ah = [_mm512_setzero_si512(); G];
+    let mut al = [_mm512_setzero_si512(); G];
+    let bp = blocks.as_ptr();
+    for p in 0..d4 {
+        let hv = _mm512_set1_epi32(q.hi[p] as i32);
+        let lv = _mm512_set1_epi32(q.lo[p] as i32);
+        for g in 0..G {
+            // SAFETY: 64 bytes at (g*d4 + p)*64 lie inside blocks (G*d4*64 bytes, checked).
+            let x =
+                unsafe { _mm512_loadu_si512(bp.add((g * d4 + p) * BLOCK * 4) as *const __m512i) };
+            // u8 map bytes × i8 query bytes, 4 products summed into each i32 lane (no saturation).
+            ah[g] = _mm512_dpbusd_epi32(ah[g], x, hv);
+            al[g] = _mm512_dpbusd_epi32(al[g], x, lv);
+        }
+    }
+    let (ch, cl) = (_mm512_set1_epi32(q.corr[0]), _mm512_set1_epi32(q.corr[1]));
+    let (c128, t) = (_mm512_set1_pd(128.0), _mm512_set1_pd(q.t));
+    for g in 0..G {
+        let ih = _mm512_sub_epi32(ah[g], ch);
+        let il = _mm512_sub_epi32(al[g], cl);
+        for half in 0..2 {
+            let (h, l) = if half == 0 {
+                (_mm512_castsi512_si256(ih), _mm512_castsi512_si256(il))
+            } else {
+                (
+                    _mm512_extracti64x4_epi64::<1>(ih),
+                    _mm512_extracti64x4_epi64::<1>(il),
+                )
+            };
+            // 128·I_h + I_l is exact in f64 (|.| < 2^53); then one f64 product, one f32 rounding.
+            let i = _mm512_fmadd_pd(c128, _mm512_cvtepi32_pd(h), _mm512_cvtepi32_pd(l));
+            let v = _mm512_cvtpd_ps(_mm512_mul_pd(i, t));
+            // SAFETY: g*16 + half*8 + 8 <= G*16 <= out.len().
+            unsafe { _mm256_storeu_ps(out.as_mut_ptr().add(g * BLOCK + half * 8), v) };
+        }
     }
 }

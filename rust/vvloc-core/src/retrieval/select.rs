@@ -101,6 +101,11 @@ impl TopK {
         }
     }
 
+    /// The hits held (any order).
+    pub fn iter(&self) -> impl Iterator<Item = &Hit> {
+        self.heap.iter()
+    }
+
     pub fn into_vec(self) -> Vec<Hit> {
         self.heap.into_vec()
     }
@@ -117,13 +122,16 @@ pub(crate) trait Sink {
 /// Exact top-k per query.
 pub(crate) struct TopKSink<'a> {
     pub heaps: Vec<TopK>,
+    /// Per query, rows at squared distances `>= floor` are known to be beaten by k others
+    /// (found by other chunks); `+inf` when nothing is known.
+    pub floor: Vec<f32>,
     pub ex: Excluder<'a>,
 }
 
 impl Sink for TopKSink<'_> {
     #[inline]
     fn threshold(&self, q: usize) -> f32 {
-        self.heaps[q].threshold()
+        self.heaps[q].threshold().min(self.floor[q])
     }
     #[inline]
     fn offer(&mut self, q: usize, row: usize, sq: f32) {

@@ -65,7 +65,7 @@ fn topk_matches_brute_force_for_all_levels_and_dtypes() {
         }
     }
     for level in kernels::available_levels() {
-        for dtype in [Dtype::F32, Dtype::F16, Dtype::BF16] {
+        for dtype in [Dtype::F32, Dtype::F16, Dtype::BF16, Dtype::I8] {
             let idx = DescriptorIndex::from_rows(&data, d, dtype, None, None)
                 .unwrap()
                 .with_level(level)
@@ -114,7 +114,7 @@ fn radius_matches_brute_force_and_exclusion_applies() {
     let data = clustered(n, d, 5);
     let queries = clustered(9, d, 6);
     let r = 0.5f32;
-    for dtype in [Dtype::F32, Dtype::BF16, Dtype::F16] {
+    for dtype in [Dtype::F32, Dtype::BF16, Dtype::F16, Dtype::I8] {
         let idx = DescriptorIndex::from_rows(&data, d, dtype, None, None).unwrap();
         for batch in [true, false] {
             for qi in 0..9 {
@@ -189,8 +189,9 @@ fn results_do_not_depend_on_thread_count() {
     let (n, d) = (20_000, 64);
     let data = clustered(n, d, 11);
     let queries = clustered(10, d, 12);
-    for dtype in [Dtype::F32, Dtype::BF16] {
-        let idx = DescriptorIndex::from_rows(&data, d, dtype, None, None).unwrap();
+    for dtype in [Dtype::F32, Dtype::BF16, Dtype::I8] {
+        let mut idx = DescriptorIndex::from_rows(&data, d, dtype, None, None).unwrap();
+        idx.min_parallel_work = 1; // many chunks (shared top-k floor, merges) even here
         let run = |t: usize| {
             let pool = rayon::ThreadPoolBuilder::new()
                 .num_threads(t)
@@ -199,12 +200,23 @@ fn results_do_not_depend_on_thread_count() {
             pool.install(|| {
                 (
                     idx.topk(&queries, 20, None).unwrap(),
-                    idx.topk(&queries[..d], 20, None).unwrap(),
+                    (0..10)
+                        .map(|qi| idx.topk(&queries[qi * d..(qi + 1) * d], 20, None).unwrap())
+                        .collect::<Vec<_>>(),
                     idx.radius(&queries, 0.4, None).unwrap(),
                 )
             })
         };
-        assert_eq!(run(1), run(3));
+        let (batch, single, radius) = run(1);
+        assert_eq!(run(3), (batch.clone(), single.clone(), radius));
+        for (qi, s) in single.iter().enumerate() {
+            assert_eq!(
+                s.indices,
+                batch.indices[qi * 20..(qi + 1) * 20],
+                "{dtype:?}"
+            );
+            assert_eq!(s.distances, batch.distances[qi * 20..(qi + 1) * 20]);
+        }
     }
 }
 
@@ -254,7 +266,7 @@ fn compressed_error_bound_holds() {
         .for_each(|(i, v)| *v *= 1.0 + (i % 7) as f32); // uneven scales
     let queries = rand_vec(5 * d, 22);
     for level in kernels::available_levels() {
-        for dtype in [Dtype::F16, Dtype::BF16] {
+        for dtype in [Dtype::F16, Dtype::BF16, Dtype::I8] {
             let idx = DescriptorIndex::from_rows(&data, d, dtype, None, None)
                 .unwrap()
                 .with_level(level)
@@ -262,14 +274,15 @@ fn compressed_error_bound_holds() {
             for q in queries.chunks_exact(d) {
                 let qn = kernels::norm_sq(level, q);
                 let eps = idx.error_bound(q);
-                let qpair = kernels::pack_query_bf16(q);
+                let (pq, eps2) = idx.packed_query(q);
+                assert_eq!(eps, eps2);
                 let (mut approx, mut exact): (Vec<Hit>, Vec<Hit>) = (Vec::new(), Vec::new());
                 let mut a = BelowSink {
                     bound: f32::INFINITY,
                     hits: vec![Vec::new(); 1],
                     ex: idx.excluder(1, None).unwrap(),
                 };
-                idx.scan_packed(q, &qpair, 0, qn, 0, idx.nblocks(), &mut a);
+                idx.scan_packed(&pq, 0, qn, 0, idx.nblocks(), &mut a);
                 let mut e = BelowSink {
                     bound: f32::INFINITY,
                     hits: vec![Vec::new(); 1],
@@ -292,4 +305,128 @@ fn compressed_error_bound_holds() {
             }
         }
     }
+}
+
+#[test]
+fn int8_is_exact_on_clustered_data_with_ties_and_appends() {
+    let (n, d, k) = (3000, 64, 20);
+    let mut data = clustered(n, d, 31);
+    // Exact duplicates (ties broken by the lower index) and a far outlier dimension.
+    let dup = data[5 * d..6 * d].to_vec();
+    for r in [700, 1500, 2999] {
+        data[r * d..(r + 1) * d].copy_from_slice(&dup);
+    }
+    data[17 * d + 3] = 4.0;
+    let queries = {
+        let mut q = clustered(9, d, 32);
+        q.extend(&dup);
+        q
+    };
+    let exact = DescriptorIndex::from_rows(&data, d, Dtype::F32, None, None).unwrap();
+    let want = exact.topk(&queries, k, None).unwrap();
+    let want_r = exact.radius(&queries, 0.45, None).unwrap();
+    assert_eq!(&want.indices[9 * k..9 * k + 4], &[5, 700, 1500, 2999]);
+    for level in kernels::available_levels() {
+        let idx = DescriptorIndex::from_rows(&data, d, Dtype::I8, None, None)
+            .unwrap()
+            .with_level(level)
+            .unwrap();
+        // Built in three appends (the scales grow with the outlier): same copy as one shot.
+        let mut inc = DescriptorIndex::new(d, Dtype::I8)
+            .unwrap()
+            .with_level(level)
+            .unwrap();
+        for (a, b) in [(0, 10), (10, 1000), (1000, n)] {
+            inc.add(&data[a * d..b * d], None, None).unwrap();
+        }
+        assert_eq!(inc.packed8, idx.packed8);
+        for qi in 0..10 {
+            let q = &queries[qi * d..(qi + 1) * d];
+            let got = idx.topk(q, k, None).unwrap();
+            assert_eq!(got.indices, want.indices[qi * k..(qi + 1) * k], "{level:?}");
+            assert_eq!(got.distances, want.distances[qi * k..(qi + 1) * k]);
+            let r = idx.radius(q, 0.45, None).unwrap();
+            let (a, b) = (want_r.offsets[qi] as usize, want_r.offsets[qi + 1] as usize);
+            assert_eq!(r.indices, want_r.indices[a..b]);
+            assert_eq!(r.distances, want_r.distances[a..b]);
+        }
+    }
+}
+
+#[test]
+fn int8_scan_is_identical_on_every_level() {
+    let d = 45; // not a multiple of 4: padded dimensions
+    let data = rand_vec(40 * d, 41);
+    let q = rand_vec(d, 42);
+    let outs: Vec<Vec<f32>> = kernels::available_levels()
+        .into_iter()
+        .map(|level| {
+            let idx = DescriptorIndex::from_rows(&data, d, Dtype::I8, None, None)
+                .unwrap()
+                .with_level(level)
+                .unwrap();
+            let (pq, _) = idx.query_i8(&q);
+            let mut out = vec![0f32; 3 * BLOCK];
+            for b in 0..3 {
+                let blocks = &idx.packed8[b * d.div_ceil(4) * BLOCK * 4..];
+                kernels::scan_i8::<1>(level, &pq, d.div_ceil(4), blocks, &mut out[b * BLOCK..]);
+            }
+            out
+        })
+        .collect();
+    assert!(outs.windows(2).all(|w| w[0] == w[1]));
+}
+
+#[test]
+fn early_abandon_radius_and_topk_equal_full_scan() {
+    // d >= 64 enables the early-abandoning single-query scan; compare against the batch
+    // (tile) path, which never abandons, and against brute force.
+    let (n, d) = (4000, 128);
+    let data = clustered(n, d, 51);
+    let idx = DescriptorIndex::from_rows(&data, d, Dtype::F32, None, None).unwrap();
+    assert!(idx.head > 0);
+    let mut queries = clustered(8, d, 52); // exactly one tile of 8: no abandoning
+    queries[..d].copy_from_slice(&data[77 * d..78 * d]); // distance 0 to row 77
+    let all = idx.radius(&queries, 0.6, None).unwrap();
+    let top = idx.topk(&queries, 20, None).unwrap();
+    for qi in 0..8 {
+        let q = &queries[qi * d..(qi + 1) * d];
+        for r in [0.3f32, 0.6] {
+            let one = idx.radius(q, r, None).unwrap();
+            // Same set as brute force (the order may differ from f64 at float32 near-ties).
+            let mut want: Vec<i64> = brute(&data, d, q)
+                .into_iter()
+                .filter(|&(s, _)| s < r as f64)
+                .map(|(_, i)| i as i64)
+                .collect();
+            let mut got = one.indices.clone();
+            want.sort_unstable();
+            got.sort_unstable();
+            assert_eq!(got, want);
+            if r == 0.6 {
+                let (a, b) = (all.offsets[qi] as usize, all.offsets[qi + 1] as usize);
+                assert_eq!(one.indices, all.indices[a..b]);
+                assert_eq!(one.distances, all.distances[a..b]);
+            }
+        }
+        let one = idx.topk(q, 20, None).unwrap();
+        assert_eq!(one.indices, top.indices[qi * 20..(qi + 1) * 20]);
+        assert_eq!(one.distances, top.distances[qi * 20..(qi + 1) * 20]);
+    }
+}
+
+#[test]
+fn int8_save_load_round_trip() {
+    let d = 70;
+    let data = clustered(300, d, 61);
+    let idx = DescriptorIndex::from_rows(&data, d, Dtype::I8, None, None).unwrap();
+    let back = format::from_bytes(&format::to_bytes(&idx)).unwrap();
+    assert_eq!(back.dtype(), Dtype::I8);
+    assert_eq!(back.packed8, idx.packed8);
+    assert_eq!(back.scales, idx.scales);
+    let q = &data[..d];
+    assert_eq!(
+        back.topk(q, 5, None).unwrap(),
+        idx.topk(q, 5, None).unwrap()
+    );
 }
