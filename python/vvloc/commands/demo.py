@@ -46,6 +46,12 @@ def demo(
             )
         warning = None
         ckpt = checkpoint or DEFAULT_MODEL
+        card = DEFAULT_MODEL / "MODEL_CARD.md"
+        if checkpoint is None and card.exists():
+            status = card.read_text().splitlines()[0]
+            if "UNDERTRAINED" in status:
+                warning = f"WARNING: the committed model is {status.removeprefix('status: ')}"
+                typer.secho(warning, fg=typer.colors.RED, err=True)
         if checkpoint is None and not (DEFAULT_MODEL / "config.json").exists():
             warning = UNTRAINED.format(path=DEFAULT_MODEL)
             typer.secho(warning, fg=typer.colors.RED, err=True)

@@ -52,5 +52,8 @@ def eval_command(
             top_k=top_k,
             every=every,
             device=device,
+            robustness=robustness,
+            loops=loops,
+            loop_pairs=loop_pairs,
         )
     typer.echo(f"report: {out / 'report.md'}")
