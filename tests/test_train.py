@@ -64,7 +64,7 @@ def test_fit_writes_checkpoint_log_and_resume_continues_from_the_same_step(tiny_
     with pytest.raises(FileExistsError, match="--resume"):
         train(cfg, out, progress=False)
     # Resume a run with more epochs from the same state: it continues at step 4.
-    cfg3 = _config(tiny_world, stage2_epochs=2)
+    cfg3 = _config(tiny_world, stage1_epochs=2)
     (out / "trainer_state.pt").rename(out / "state_copy.pt")
     (out / "state_copy.pt").rename(out / "trainer_state.pt")
     tr = Trainer(cfg, out)
@@ -74,6 +74,11 @@ def test_fit_writes_checkpoint_log_and_resume_continues_from_the_same_step(tiny_
         assert torch.equal(a, b)
     with pytest.raises(ValueError, match="another config"):
         Trainer(cfg3, out).resume()
+    # more joint epochs extend the run
+    longer = Trainer(_config(tiny_world, stage2_epochs=2), out)
+    assert longer.resume() and longer.epoch == 2
+    longer.fit(progress=False)
+    assert longer.epoch == 3
 
 
 def test_resumed_run_equals_uninterrupted_run(tiny_world, tmp_path):

@@ -329,11 +329,17 @@ class Trainer:
         os.replace(tmp, self._state_path())
 
     def resume(self) -> bool:
-        """Load the last checkpoint and trainer state from ``out_dir``; False if there is none."""
+        """Load the last checkpoint and trainer state from ``out_dir``; False if there is none.
+
+        The config must equal the run's, except ``stage2_epochs``, which may grow (to extend a
+        run with more joint epochs)."""
         if not self._state_path().is_file():
             return False
         state = torch.load(self._state_path(), map_location="cpu", weights_only=False)
-        if state["config"] != self.cfg.to_dict():
+        # Extending a run (more joint epochs) is allowed; any other change is a different run.
+        saved = {k: v for k, v in state["config"].items() if k != "stage2_epochs"}
+        current = {k: v for k, v in self.cfg.to_dict().items() if k != "stage2_epochs"}
+        if saved != current:
             raise ValueError(
                 f"{self._state_path()}: the run in {self.out} was started with another config; "
                 "use a new --out directory or the same config"
