@@ -37,7 +37,7 @@ from tqdm import tqdm
 from vvloc import geometry, kernels
 from vvloc.data import Frame
 from vvloc.localize.mapdb import MapDatabase, MapWriter
-from vvloc.localize.metric import SearchConfig, metric_localize
+from vvloc.localize.metric import RadialMeanDecoder, SearchConfig, metric_localize
 from vvloc.nets import VVLocNet
 from vvloc.retrieval import DescriptorIndex
 
@@ -177,8 +177,10 @@ class Localizer:
         top_k: number of retrieved candidates (K, default 20).
         rerank: re-rank the candidates by yaw matching cost (default True).
         accept_threshold: a result is accepted when its cost is below this (default 0.75).
-        search: the translation search (defaults: ±3 m in steps of one BEV... see
-            :class:`SearchConfig`).
+        search: the translation search (see :class:`SearchConfig`).
+        decoder: ``"learned"`` (the model's decoder + interactor, default) or ``"radial_mean"``
+            (the non-learned :class:`RadialMeanDecoder`, no interactor: a baseline, and the
+            geometry oracle's decoder; the map's local descriptors must then be radial means).
     """
 
     def __init__(
@@ -190,7 +192,10 @@ class Localizer:
         rerank: bool = True,
         accept_threshold: float = 0.75,
         search: SearchConfig | None = None,
+        decoder: str = "learned",
     ) -> None:
+        if decoder not in ("learned", "radial_mean"):
+            raise ValueError(f"decoder: expected 'learned' or 'radial_mean', got {decoder!r}")
         if mapdb.config_hash != model.config_hash():
             raise ValueError(
                 f"map {mapdb.path}: built with model {mapdb.config_hash}, "
@@ -204,6 +209,7 @@ class Localizer:
         self.rerank_enabled = bool(rerank)
         self.accept_threshold = float(accept_threshold)
         self.search = search or SearchConfig()
+        self.decoder = decoder
         self.index = DescriptorIndex(mapdb.global_descriptors)
         cfg = model.config
         self.grid_size = float(cfg.grid_size)
@@ -237,6 +243,9 @@ class Localizer:
         """Re-rank candidate rows by the yaw matching cost between the query's local-view
         descriptor (T, C) and each candidate's, without padding (interactor batched over the
         candidates, exact yaw minimum in Rust)."""
+        if self.decoder == "radial_mean":
+            src = np.broadcast_to(local_desc, (len(rows), *local_desc.shape))
+            return kernels.rerank(src, self.map.local_descriptors(rows))
         device = model_device(self.model)
         tgt = torch.from_numpy(self.map.local_descriptors(rows)).to(device)
         src = torch.from_numpy(local_desc).to(device).expand(len(rows), *local_desc.shape)
@@ -247,10 +256,15 @@ class Localizer:
         """Metric localization of a query BEV (H, W, C) against map row ``row``: returns
         (ξ_{m→q} (3,), cost, search history)."""
         tgt = self.map.local_descriptors(int(row))
+        decode = (
+            RadialMeanDecoder()
+            if self.decoder == "radial_mean"
+            else interacting_decoder(self.model, tgt)
+        )
         res = metric_localize(
             bev,
             tgt,
-            interacting_decoder(self.model, tgt),
+            decode,
             self.search,
             self.grid_size,
             self.num_angles,
@@ -280,13 +294,15 @@ class Localizer:
             assert enc.bev is not None
             for i in range(len(chunk)):
                 results.append(
-                    self._localize_encoded(enc.global_desc[i], enc.local_desc[i], enc.bev[i], t_enc)
+                    self.localize_encoded(enc.global_desc[i], enc.local_desc[i], enc.bev[i], t_enc)
                 )
         return results
 
-    def _localize_encoded(
-        self, g: F32, loc: F32, bev: F32, t_encode_ms: float
+    def localize_encoded(
+        self, g: F32, loc: F32, bev: F32, t_encode_ms: float = 0.0
     ) -> LocalizationResult:
+        """Localize an already encoded query: global descriptor g (Dg,), local-view descriptor
+        loc (T, C), BEV (H, W, C) (e.g. encoded in a batch on a GPU elsewhere)."""
         timings = {"encode": t_encode_ms}
         t0 = time.perf_counter()
         rows, dist = self.retrieve(g)
