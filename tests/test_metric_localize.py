@@ -15,11 +15,6 @@ H = W = 100
 G = 0.3
 T, R, C = 120, 25, 8
 
-needs_spatial = pytest.mark.skipif(
-    not hasattr(K, "pad_polar") or not hasattr(K, "polar_sample"),
-    reason="kernels.pad_polar / polar_sample (spatial branch) not merged yet",
-)
-
 
 def world_field(seed: int):
     """Random Fourier features: C channels, 6 plane waves each, wavelengths 3–10 m."""
@@ -60,7 +55,7 @@ def case(seed: int):
     bev_s = bev_at(field, src_pose)
     bev_t = bev_at(field, compose(src_pose, xi))
     decode = RadialMeanDecoder()
-    desc_t = decode(K.polar_sample(bev_t, T, R, G))  # type: ignore[attr-defined]
+    desc_t = decode(K.polar_sample(bev_t, T, R, G))
     return xi, bev_s, desc_t, decode
 
 
@@ -68,7 +63,6 @@ def wrap(a: float) -> float:
     return float(np.angle(np.exp(1j * a)))
 
 
-@needs_spatial
 @pytest.mark.parametrize("seed", range(8))
 def test_metric_localize_recovers_the_relative_pose(seed):
     xi, bev_s, desc_t, decode = case(seed)
@@ -81,13 +75,12 @@ def test_metric_localize_recovers_the_relative_pose(seed):
     assert set(np.unique(res.history.stage)) == set(range(5))
 
 
-@needs_spatial
 @pytest.mark.parametrize("seed", range(4))
 def test_cost_at_the_true_pose_beats_poses_one_metre_away(seed):
     xi, bev_s, desc_t, decode = case(seed)
     ang = np.arange(8) * np.pi / 4
     xy = np.concatenate([[xi[:2]], np.asarray(xi[:2]) + np.stack([np.cos(ang), np.sin(ang)], 1)])
-    est = K.estimate_yaw(decode(K.pad_polar(bev_s, xy, T, R, G)), desc_t)  # type: ignore[attr-defined]
+    est = K.estimate_yaw(decode(K.pad_polar(bev_s, xy, T, R, G)), desc_t)
     assert np.all(est.cost[0] < est.cost[1:]), est.cost
 
 
