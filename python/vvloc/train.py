@@ -20,7 +20,6 @@ import json
 import logging
 import math
 import os
-import pickle
 import random
 import time
 from dataclasses import dataclass, field
@@ -320,7 +319,8 @@ class Trainer:
             "step": self.step,
             "optimizer": self.optimizer.state_dict(),
             "scheduler": self.scheduler.state_dict(),
-            "sampler": pickle.dumps((self.sampler.rng.bit_generator.state, self.sampler._hard)),
+            "sampler_rng": self.sampler.rng.bit_generator.state,
+            "sampler_hard": self.sampler.hard,
             "torch_rng": torch.get_rng_state(),
             "config": self.cfg.to_dict(),
         }
@@ -348,9 +348,9 @@ class Trainer:
         self.model.load_state_dict(loaded.state_dict())
         self.optimizer.load_state_dict(state["optimizer"])
         self.scheduler.load_state_dict(state["scheduler"])
-        rng_state, hard = pickle.loads(state["sampler"])
-        self.sampler.rng.bit_generator.state = rng_state
-        self.sampler._hard = hard
+        self.sampler.rng.bit_generator.state = state["sampler_rng"]
+        self.sampler.resolve(self.sampler.hard)
+        self.sampler.mark_hard(state["sampler_hard"])
         torch.set_rng_state(state["torch_rng"])
         self.epoch = int(state["epoch"])
         self.step = int(state["step"])

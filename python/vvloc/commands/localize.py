@@ -24,9 +24,11 @@ def localize(
     session: Annotated[str, typer.Option("--session", help="Query session.")],
     out: Annotated[Path, typer.Option("--out", help="Output folder.")],
     checkpoint: Annotated[
-        Path | None,
-        typer.Option("--checkpoint", help="Checkpoint (default: the one beside the map's run)."),
-    ] = None,
+        Path,
+        typer.Option(
+            "--checkpoint", help="The model (run or checkpoint folder) that built the map."
+        ),
+    ],
     top_k: Annotated[int, typer.Option("--top_k", min=1, help="Retrieved candidates.")] = 20,
     threshold: Annotated[float, typer.Option("--threshold", help="Accept cost below.")] = 0.75,
     device: Annotated[str, typer.Option("--device", help="cpu or cuda.")] = "cpu",
@@ -39,8 +41,6 @@ def localize(
     from vvloc.localize.localizer import Localizer
 
     with cli_errors("localize"):
-        if checkpoint is None:
-            raise ValueError("--checkpoint: required (the model that built the map)")
         loc = Localizer.open(
             map_path,
             _checkpoint_dir(checkpoint),

@@ -15,8 +15,11 @@ def loops(
     map_path: Annotated[Path, typer.Option("--map", help="Map file (.h5) with BEVs.")],
     out: Annotated[Path, typer.Option("--out", help="Output folder.")],
     checkpoint: Annotated[
-        Path | None, typer.Option("--checkpoint", help="The model that built the map.")
-    ] = None,
+        Path,
+        typer.Option(
+            "--checkpoint", help="The model (run or checkpoint folder) that built the map."
+        ),
+    ],
     radius: Annotated[float, typer.Option("--radius", help="Descriptor distance radius.")] = 0.1,
     window: Annotated[
         int, typer.Option("--window", min=0, help="Exclude same-session neighbours within.")
@@ -37,8 +40,6 @@ def loops(
     from vvloc.nets import VVLocNet
 
     with cli_errors("loops"):
-        if checkpoint is None:
-            raise ValueError("--checkpoint: required (the model that built the map)")
         model = VVLocNet.load(_checkpoint_dir(checkpoint)).to(torch.device(device))
         db = MapDatabase.open(map_path, expected_config_hash=model.config_hash())
         found = detect_loops(
