@@ -108,3 +108,25 @@ def test_missing_dataset_without_sim_section_is_a_clear_error(tmp_path):
     cfg = TrainConfig.from_dict({"dataset": str(tmp_path / "nope")})
     with pytest.raises(FileNotFoundError, match="sim"):
         Trainer(cfg, tmp_path / "run")
+
+
+def test_augmented_triplets_are_deterministic_per_item_and_keep_poses(tiny_world):
+    cfg = _config(tiny_world, augment={"prob": 1.0})
+    tr = Trainer(cfg, "unused")
+    triplets = tr.sampler.sample_random(2)
+    plain = TripletFrames(tr.sampler, triplets)
+    aug = TripletFrames(tr.sampler, triplets, augment=tr.augment, seed=5)
+    a, b, p = aug[1], aug[1], plain[1]
+    assert torch.equal(a["images"], b["images"])
+    assert not torch.equal(a["images"], p["images"])
+    assert torch.equal(a["poses"], p["poses"]) and torch.equal(a["intrinsics"], p["intrinsics"])
+    assert not torch.equal(
+        TripletFrames(tr.sampler, triplets, tr.augment, 6)[1]["images"], a["images"]
+    )
+
+
+def test_bad_augment_config_is_refused_by_name():
+    with pytest.raises(ValueError, match="augment"):
+        TrainConfig.from_dict({"dataset": "x", "augment": {"brightness": -1}})
+    with pytest.raises(ValueError, match="augment"):
+        TrainConfig.from_dict({"dataset": "x", "augment": [1, 2]})

@@ -35,6 +35,7 @@ from tqdm import tqdm
 
 from vvloc import geometry
 from vvloc.data import TripletSampler, open_dataset
+from vvloc.data.augment import PhotometricAugment
 from vvloc.losses import (
     hinge_loss,
     translation_bias_loss,
@@ -53,7 +54,9 @@ class TrainConfig:
     ``model`` is ``"small"``, ``"paper"`` or a mapping of :class:`ModelConfig` fields;
     ``model_overrides`` are applied on top. ``sim`` (optional) holds the arguments of
     :func:`vvloc.sim.simulate` used to render ``dataset`` when it does not exist yet, so that a
-    committed config reproduces its data and its model with one command.
+    committed config reproduces its data and its model with one command. ``augment`` (optional)
+    holds :class:`vvloc.data.augment.PhotometricAugment` fields (``{}`` = its defaults; absent =
+    no augmentation), applied independently to each frame of every training triplet.
     """
 
     dataset: str = "data/synth"
@@ -84,6 +87,7 @@ class TrainConfig:
     yaw_theta_n: float = 1.4
     tbias_weight: float = 1.0
     tbias_margin: float = 0.1
+    augment: dict[str, Any] | None = None
     threads: int | None = None
 
     @classmethod
@@ -122,6 +126,10 @@ class TrainConfig:
             raise ValueError("lr_decay: expected in (0, 1]")
         if self.num_workers < 0:
             raise ValueError("num_workers: expected >= 0")
+        if self.augment is not None:
+            if not isinstance(self.augment, dict):
+                raise ValueError("augment: expected a mapping of PhotometricAugment fields")
+            PhotometricAugment.from_dict(self.augment)
 
     def model_config(self) -> ModelConfig:
         """The :class:`ModelConfig` this run trains."""
@@ -169,20 +177,36 @@ class TripletFrames(TorchDataset):
 
     Item k is a dict of tensors for frames (anchor, positive, negative): ``images`` (3, M, 3, H,
     W) uint8, ``intrinsics`` (3, M, 3, 3) float32, ``cam_to_ego`` (3, M, 4, 4) float32, ``poses``
-    (3, 3) float64 world (x, y, yaw) and ``triplet`` (3,) int64 ids.
+    (3, 3) float64 world (x, y, yaw) and ``triplet`` (3,) int64 ids. With ``augment``, each
+    frame's images go through it with a generator seeded by ``(seed, k, slot)``, so an item is the
+    same whichever worker process loads it.
     """
 
-    def __init__(self, sampler: TripletSampler, triplets: np.ndarray) -> None:
+    def __init__(
+        self,
+        sampler: TripletSampler,
+        triplets: np.ndarray,
+        augment: PhotometricAugment | None = None,
+        seed: int = 0,
+    ) -> None:
         self.sampler = sampler
         self.triplets = np.asarray(triplets, dtype=np.int64).reshape(-1, 3)
+        self.augment = augment
+        self.seed = int(seed)
 
     def __len__(self) -> int:
         return len(self.triplets)
 
     def __getitem__(self, k: int) -> dict[str, torch.Tensor]:
         frames = [self.sampler.frame(int(g)) for g in self.triplets[k]]
+        images = [f.images for f in frames]
+        if self.augment is not None:
+            images = [
+                self.augment(im, np.random.default_rng([self.seed, k, slot]))
+                for slot, im in enumerate(images)
+            ]
         return {
-            "images": torch.from_numpy(np.stack([f.images for f in frames])),
+            "images": torch.from_numpy(np.stack(images)),
             "intrinsics": torch.from_numpy(np.stack([f.K for f in frames]).astype(np.float32)),
             "cam_to_ego": torch.from_numpy(
                 np.stack([f.cam_to_ego for f in frames]).astype(np.float32)
@@ -293,6 +317,7 @@ class Trainer:
             hard_fraction=cfg.hard_fraction,
         )
         self.model = VVLocNet(cfg.model_config()).to(self.device)
+        self.augment = None if cfg.augment is None else PhotometricAugment.from_dict(cfg.augment)
         self.optimizer = torch.optim.Adam(
             self.model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay
         )
@@ -369,7 +394,12 @@ class Trainer:
         stage = self.stage_of(self.epoch)
         triplets = self.sampler.sample(cfg.steps_per_epoch * cfg.batch_size)
         loader = DataLoader(
-            TripletFrames(self.sampler, triplets),
+            TripletFrames(
+                self.sampler,
+                triplets,
+                augment=self.augment,
+                seed=cfg.seed * 1_000_003 + self.epoch,
+            ),
             batch_size=cfg.batch_size,
             shuffle=False,
             num_workers=cfg.num_workers,

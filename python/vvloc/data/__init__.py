@@ -1,4 +1,5 @@
-"""Datasets: the vvloc format, NCLT and Oxford RobotCar readers, triplet sampling, perturbations.
+"""Datasets: the vvloc format, NCLT and Oxford RobotCar readers, triplet sampling, training
+augmentation, perturbations.
 
 ``open_dataset(path)`` opens any of the three layouts lazily; ``ds.session(name)[i]`` is a
 :class:`Frame` (images (M, 3, H, W) uint8, K (M, 3, 3), cam_to_ego (M, 4, 4), pose (x, y, yaw),
@@ -12,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from vvloc.data import perturb
+from vvloc.data.augment import PhotometricAugment
 from vvloc.data.frame import Camera, Dataset, Frame, Session
 from vvloc.data.nclt import is_nclt, open_nclt
 from vvloc.data.oxford import is_oxford, open_oxford
@@ -58,6 +60,7 @@ __all__ = [
     "DatasetWriter",
     "EvalSplit",
     "Frame",
+    "PhotometricAugment",
     "Session",
     "SessionWriter",
     "TripletSampler",
