@@ -237,3 +237,16 @@ def test_rig_cameras_look_where_their_names_say():
             )
             R = rig[k].cam_to_ego[:3, :3]
             assert np.allclose(R.T @ R, np.eye(3)) and np.linalg.det(R) == pytest.approx(1.0)
+
+
+def test_demo_runs_end_to_end_on_held_out_sessions_through_the_entry_point(egl, tmp_path):
+    out = tmp_path / "demo"
+    cmd = [*_vvloc_exe(), "demo", "--out", str(out), "--frames", "12", "--every", "4"]
+    res = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stderr
+    assert "VVLoc-ML" in res.stdout and "median latency per query" in res.stdout
+    assert open_dataset(out / "data").sessions == ["s0", "s1", "s2", "s3", "s4"]
+    report = (out / "report.md").read_text()
+    assert "s3" in report and "s4" in report
+    rows = (out / "queries.csv").read_text().splitlines()
+    assert len([r for r in rows if r and not r.startswith("#")]) == 1 + 2 * 3  # header + queries
