@@ -33,6 +33,7 @@ import numpy.typing as npt
 from scipy.spatial import cKDTree
 
 from vvloc.geometry import wrap_angle
+from vvloc.kernels import _positive_float
 
 F64Array = npt.NDArray[np.float64]
 I64Array = npt.NDArray[np.int64]
@@ -107,15 +108,6 @@ def _floors(
     if df.shape[0] != num_db:
         raise ValueError(f"db_floors: expected shape ({num_db},), got {df.shape}")
     return qf, df
-
-
-def _positive(x: Any, name: str) -> float:
-    if isinstance(x, bool) or not isinstance(x, (int, float, np.integer, np.floating)):
-        raise TypeError(f"{name}: expected a positive number, got {type(x).__name__}")
-    v = float(x)
-    if not np.isfinite(v) or v <= 0.0:
-        raise ValueError(f"{name}: expected a finite value > 0, got {v}")
-    return v
 
 
 def _ratio(num: float, den: float) -> float:
@@ -285,10 +277,10 @@ def recall_at_n(
     ns = tuple(int(n) for n in top_n)
     if not ns or any(not 1 <= n <= k for n in ns):
         raise ValueError(f"top_n: expected ranks in 1..K = {k}, got {tuple(top_n)}")
-    rs = tuple(_positive(r, "radii") for r in radii)
+    rs = tuple(_positive_float(r, "radii") for r in radii)
     if not rs:
         raise ValueError("radii: expected at least one radius")
-    elig = _positive(eligibility_radius, "eligibility_radius")
+    elig = _positive_float(eligibility_radius, "eligibility_radius")
 
     nearest = nearest_map_distance(q, d, *(floors if floors is not None else (None, None)))
     kept = nearest <= elig
@@ -620,7 +612,7 @@ def loop_closure_curve(
     window = float(time_window)
     if not np.isfinite(window) or window < 0:
         raise ValueError(f"time_window: expected a finite value >= 0, got {time_window}")
-    rad = _positive(radius, "radius")
+    rad = _positive_float(radius, "radius")
 
     def admissible(qi: I64Array, dj: I64Array) -> BoolArray:
         ok = np.ones(qi.shape, dtype=bool)
@@ -709,8 +701,8 @@ def loop_pose_metrics(
     """
     rre, rte = relative_pose_errors(estimated, ground_truth)
     n = rre.shape[0]
-    rot_t = _positive(rot_threshold_deg, "rot_threshold_deg")
-    trans_t = _positive(trans_threshold_m, "trans_threshold_m")
+    rot_t = _positive_float(rot_threshold_deg, "rot_threshold_deg")
+    trans_t = _positive_float(trans_threshold_m, "trans_threshold_m")
     out = {"all": _loop_pose_row(rre, rte, n, rot_t, trans_t)}
     if costs is not None:
         c = _real_array(costs, "costs", f"({n},)", 1)
@@ -748,8 +740,8 @@ def confidence_curve(
         raise ValueError(
             f"costs, rre_deg, rte_m: shapes differ ({c.shape}, {rre.shape}, {rte.shape})"
         )
-    rot_t = _positive(rot_threshold_deg, "rot_threshold_deg")
-    trans_t = _positive(trans_threshold_m, "trans_threshold_m")
+    rot_t = _positive_float(rot_threshold_deg, "rot_threshold_deg")
+    trans_t = _positive_float(trans_threshold_m, "trans_threshold_m")
     order = np.argsort(c, kind="stable")
     c, rre, rte = c[order], rre[order], rte[order]
     last = np.flatnonzero(np.append(np.diff(c) > 0, True)) if c.size else np.zeros(0, np.int64)

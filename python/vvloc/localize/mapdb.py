@@ -52,6 +52,7 @@ import numpy as np
 import numpy.typing as npt
 
 from vvloc._io import AtomicPath
+from vvloc.kernels import _positive_float
 
 __all__ = [
     "FORMAT_NAME",
@@ -186,15 +187,6 @@ def _int_array(x: Any, name: str, rows: int) -> np.ndarray:
     if arr.dtype.kind == "u" and arr.size and arr.max() > np.iinfo(np.int64).max:
         raise ValueError(f"{name}: values exceed the int64 range")
     return np.ascontiguousarray(arr, dtype=np.int64)
-
-
-def _positive_float(x: Any, name: str) -> float:
-    if isinstance(x, bool) or not isinstance(x, (int, float, np.integer, np.floating)):
-        raise TypeError(f"{name}: expected a positive float, got {type(x).__name__}")
-    v = float(x)
-    if not np.isfinite(v) or v <= 0.0:
-        raise ValueError(f"{name}: expected a finite value > 0, got {v}")
-    return v
 
 
 def _check_dtype(dtype: Any) -> DescriptorDType:
