@@ -73,6 +73,8 @@ def test_full_haze_pulls_the_top_rows_to_the_airlight_more_than_the_bottom_rows(
         ({"brightness": -0.1}, "brightness"),
         ({"prob": 1.5}, "prob"),
         ({"noise": float("nan")}, "noise"),
+        ({"haze": "strong"}, "haze"),
+        ({"gamma": True}, "gamma"),
     ],
 )
 def test_bad_parameters_are_refused_by_name(kwargs, match):
@@ -84,6 +86,8 @@ def test_from_dict_rejects_unknown_keys_and_accepts_empty():
     assert PhotometricAugment.from_dict({}) == PhotometricAugment()
     with pytest.raises(ValueError, match="unknown keys"):
         PhotometricAugment.from_dict({"hue": 0.1})
+    with pytest.raises(ValueError, match=r"augment\.brightness"):
+        PhotometricAugment.from_dict({"brightness": "bright"})
 
 
 @pytest.mark.parametrize(

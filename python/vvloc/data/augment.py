@@ -52,7 +52,8 @@ class PhotometricAugment:
     def __post_init__(self) -> None:
         for f in dataclasses.fields(self):
             v = getattr(self, f.name)
-            if not (isinstance(v, int | float) and np.isfinite(v) and v >= 0):
+            ok = isinstance(v, int | float) and not isinstance(v, bool)
+            if not (ok and np.isfinite(v) and v >= 0):
                 raise ValueError(f"augment.{f.name}: expected a finite number >= 0, got {v!r}")
         for name in ("prob", "haze_prob", "haze", "tint"):
             if getattr(self, name) > 1:
@@ -66,7 +67,7 @@ class PhotometricAugment:
         unknown = sorted(set(raw) - names)
         if unknown:
             raise ValueError(f"augment: unknown keys {unknown}; known: {sorted(names)}")
-        return cls(**{k: float(v) for k, v in raw.items()})
+        return cls(**raw)
 
     def __call__(self, images: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """Augmented copy of ``images`` (M, 3, H, W) uint8; random draws come from ``rng``."""
