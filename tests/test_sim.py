@@ -250,3 +250,18 @@ def test_demo_runs_end_to_end_on_held_out_sessions_through_the_entry_point(egl, 
     assert "s3" in report and "s4" in report
     rows = (out / "queries.csv").read_text().splitlines()
     assert len([r for r in rows if r and not r.startswith("#")]) == 1 + 2 * 3  # header + queries
+
+
+def test_demo_queries_sessions_the_committed_model_never_trained_on():
+    import yaml
+
+    from vvloc.commands import demo as demo_cmd
+
+    root = Path(__file__).resolve().parents[1]
+    for cfg_path in (
+        root / "configs" / "synth-small.yaml",
+        demo_cmd.DEFAULT_MODEL / "train_config.yaml",
+    ):
+        cfg = yaml.safe_load(cfg_path.read_text())
+        assert not set(demo_cmd.QUERY_SESSIONS) & set(cfg["train_sessions"]), cfg_path
+        assert cfg["sim"]["sessions"] >= demo_cmd.SESSIONS and cfg["sim"]["seed"] == 0
