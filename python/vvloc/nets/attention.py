@@ -66,6 +66,15 @@ class RelativeSelfAttention(nn.Module):
         return self.out(out)
 
 
+def feed_forward(channels: int) -> nn.Sequential:
+    """The layers' position-wise FFN: Linear(C, 2C), ReLU, Linear(2C, C); (..., C) → (..., C)."""
+    return nn.Sequential(
+        nn.Linear(channels, 2 * channels),
+        nn.ReLU(inplace=True),
+        nn.Linear(2 * channels, channels),
+    )
+
+
 class RelativeAttentionLayer(nn.Module):
     """[relative self-attention, residual, norm, FFN, residual, norm]; (N, S, C) → (N, S, C)."""
 
@@ -73,11 +82,7 @@ class RelativeAttentionLayer(nn.Module):
         super().__init__()
         self.attn = RelativeSelfAttention(channels, num_heads)
         self.norm1 = nn.LayerNorm(channels)
-        self.ffn = nn.Sequential(
-            nn.Linear(channels, 2 * channels),
-            nn.ReLU(inplace=True),
-            nn.Linear(2 * channels, channels),
-        )
+        self.ffn = feed_forward(channels)
         self.norm2 = nn.LayerNorm(channels)
         self.dropout = nn.Dropout(dropout)
 
@@ -93,11 +98,7 @@ class CrossAttentionLayer(nn.Module):
         super().__init__()
         self.attn = nn.MultiheadAttention(channels, num_heads, dropout=dropout, batch_first=True)
         self.norm1 = nn.LayerNorm(channels)
-        self.ffn = nn.Sequential(
-            nn.Linear(channels, 2 * channels),
-            nn.ReLU(inplace=True),
-            nn.Linear(2 * channels, channels),
-        )
+        self.ffn = feed_forward(channels)
         self.norm2 = nn.LayerNorm(channels)
         self.dropout = nn.Dropout(dropout)
 
