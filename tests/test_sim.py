@@ -250,6 +250,11 @@ def test_demo_runs_end_to_end_on_held_out_sessions_through_the_entry_point(egl, 
     assert "s3" in report and "s4" in report
     rows = (out / "queries.csv").read_text().splitlines()
     assert len([r for r in rows if r and not r.startswith("#")]) == 1 + 2 * 3  # header + queries
+    # Another --frames re-renders the demo world instead of silently reusing the cached one.
+    cmd[cmd.index("--frames") + 1] = "10"
+    res = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stderr
+    assert "rendering" in res.stdout and len(open_dataset(out / "data").session("s3")) == 10
 
 
 def test_demo_queries_sessions_the_committed_model_never_trained_on():

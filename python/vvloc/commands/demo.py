@@ -3,6 +3,7 @@ map of another session, print the metrics and write plots to ``runs/demo/``."""
 
 from __future__ import annotations
 
+import json
 import time
 from pathlib import Path
 from typing import Annotated
@@ -29,14 +30,21 @@ UNTRAINED = (
 )
 
 
-def _has_sessions(data: Path, names: list[str]) -> bool:
-    """Whether ``data`` holds a readable dataset with every session in ``names``."""
+def _reusable(data: Path, frames: int, seed: int) -> bool:
+    """Whether ``data`` already holds the demo's world: a readable dataset rendered from parking
+    world ``seed`` with the map and query sessions of ``frames`` keyframes each."""
     from vvloc.data import open_dataset
 
-    if not (data / "rig.json").exists():
-        return False
     try:
-        return set(names) <= set(open_dataset(data).sessions)
+        meta = json.loads((data / "rig.json").read_text()).get("meta", {})
+        ds = open_dataset(data)
+        names = [MAP_SESSION, *QUERY_SESSIONS]
+        return (
+            meta.get("scene") == "parking"
+            and meta.get("seed") == seed
+            and set(names) <= set(ds.sessions)
+            and all(len(ds.session(n)) == frames for n in names)
+        )
     except (OSError, ValueError):
         return False
 
@@ -58,7 +66,7 @@ def demo(
     t0 = time.perf_counter()
     with cli_errors("demo"):
         data = out / "data"
-        if not _has_sessions(data, [MAP_SESSION, *QUERY_SESSIONS]):
+        if not _reusable(data, frames, seed):
             typer.echo(
                 f"rendering a synthetic parking lot ({frames} keyframes x {SESSIONS} sessions)..."
             )
