@@ -8,7 +8,16 @@ import numpy as np
 import pytest
 import torch
 
-from vvloc.train import TrainConfig, Trainer, TripletFrames, train, training_losses
+from vvloc.commands.evaluate import _checkpoint_dir
+from vvloc.nets import VVLocNet
+from vvloc.train import (
+    TrainConfig,
+    Trainer,
+    TripletFrames,
+    train,
+    training_losses,
+    validation_recall,
+)
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -130,3 +139,51 @@ def test_bad_augment_config_is_refused_by_name():
         TrainConfig.from_dict({"dataset": "x", "augment": {"brightness": -1}})
     with pytest.raises(ValueError, match="augment"):
         TrainConfig.from_dict({"dataset": "x", "augment": [1, 2]})
+
+
+def test_validation_of_the_map_session_against_itself_retrieves_every_frame(tiny_world):
+    tr = Trainer(_config(tiny_world), "unused")
+    res = validation_recall(tr.model, tr.ds, "s0", ["s0"], every=2, top_k=5)
+    assert res["queries"] == 20
+    # each query is a map frame: its own global descriptor is nearest (distance 0)
+    assert res["r1_retrieval"] == 1.0 and res["r5_retrieval"] == 1.0
+    assert 0.0 <= res["r1_reranked"] <= 1.0
+    assert validation_recall(tr.model, tr.ds, "s0", ["s0"], every=2, top_k=5) == res
+
+
+def test_fit_with_val_sessions_keeps_the_best_joint_epoch_and_resume_remembers_it(
+    tiny_world, tmp_path
+):
+    cfg = _config(
+        tiny_world, stage2_epochs=2, train_sessions=["s0", "s1"], val_sessions=["s2"], val_every=4
+    )
+    out = tmp_path / "run"
+    tr = train(cfg, out, progress=False)
+    log = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
+    assert "val" not in log[0]  # stage 1: the local-view head is not trained yet
+    scored = [r for r in log if "val" in r]
+    assert [r["epoch"] for r in scored] == [2, 3]
+    best = max(scored, key=lambda r: (r["val"]["r1_reranked"], r["val"]["r1_retrieval"]))
+    assert tr.best is not None and tr.best["epoch"] == best["epoch"] == log[-1]["best_epoch"]
+    assert (out / "best" / "model.safetensors").is_file()
+    # the run folder resolves to best/ for eval, map and localize
+    assert _checkpoint_dir(out) == out / "best"
+    assert _checkpoint_dir(out / "checkpoint") == out / "checkpoint"
+    expected = validation_recall(VVLocNet.load(out / "best"), tr.ds, "s0", ["s2"], every=4)
+    assert expected == {k: v for k, v in best["val"].items() if k != "seconds"}
+    again = Trainer(cfg, out)
+    assert again.resume() and again.best == tr.best
+
+
+@pytest.mark.parametrize(
+    ("kw", "match"),
+    [
+        ({"train_sessions": ["s0", "s1"], "val_sessions": ["s1"]}, "overlap"),
+        ({"val_sessions": ["s1"]}, "train_sessions is unset"),
+        ({"train_sessions": ["s0"], "val_sessions": []}, "non-empty"),
+        ({"val_every": 0}, "val_every"),
+    ],
+)
+def test_bad_validation_config_is_refused(kw, match):
+    with pytest.raises(ValueError, match=match):
+        TrainConfig.from_dict({"dataset": "x", **kw})

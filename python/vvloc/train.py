@@ -11,6 +11,11 @@ triplet margin are re-drawn until they are satisfied). Every random choice is se
 Outputs in ``out_dir``: ``checkpoint/`` (safetensors weights + JSON config, written each epoch),
 ``trainer_state.pt`` (optimizer, scheduler, epoch, step, sampler state, for ``--resume``),
 ``log.jsonl`` (one JSON object per epoch) and ``train_config.yaml`` (the resolved config).
+
+With ``val_sessions``, every joint epoch is scored on those held-out sessions against a map of
+``val_database`` (:func:`validation_recall`: Recall@1 at 2 m after re-ranking, then by retrieval
+alone) and the best epoch so far is kept in ``best/``: checkpoint selection on data that
+neither trains the model nor reports its test figures.
 """
 
 from __future__ import annotations
@@ -57,6 +62,9 @@ class TrainConfig:
     committed config reproduces its data and its model with one command. ``augment`` (optional)
     holds :class:`vvloc.data.augment.PhotometricAugment` fields (``{}`` = its defaults; absent =
     no augmentation), applied independently to each frame of every training triplet.
+    ``val_sessions`` (optional, disjoint from ``train_sessions``) select the checkpoint: every
+    ``val_every``-th frame of each is localized against a map of the ``val_database`` session
+    (re-ranking the ``val_top_k`` retrieved keyframes) after each joint epoch.
     """
 
     dataset: str = "data/synth"
@@ -88,6 +96,10 @@ class TrainConfig:
     tbias_weight: float = 1.0
     tbias_margin: float = 0.1
     augment: dict[str, Any] | None = None
+    val_sessions: list[str] | None = None
+    val_database: str = "s0"
+    val_every: int = 1
+    val_top_k: int = 20
     threads: int | None = None
 
     @classmethod
@@ -126,6 +138,18 @@ class TrainConfig:
             raise ValueError("lr_decay: expected in (0, 1]")
         if self.num_workers < 0:
             raise ValueError("num_workers: expected >= 0")
+        if self.val_sessions is not None:
+            if not isinstance(self.val_sessions, list) or not self.val_sessions:
+                raise ValueError("val_sessions: expected a non-empty list of session names")
+            overlap = sorted(set(self.val_sessions) & set(self.train_sessions or []))
+            if overlap or self.train_sessions is None:
+                raise ValueError(
+                    "val_sessions: must not be trained on (set train_sessions without them); "
+                    f"overlap: {overlap or 'train_sessions is unset (all sessions train)'}"
+                )
+        for name in ("val_every", "val_top_k"):
+            if isinstance(getattr(self, name), bool) or int(getattr(self, name)) < 1:
+                raise ValueError(f"{name}: expected an int >= 1")
         if self.augment is not None:
             if not isinstance(self.augment, dict):
                 raise ValueError("augment: expected a mapping of PhotometricAugment fields")
@@ -282,6 +306,62 @@ def training_losses(
     return total, parts, correct
 
 
+@torch.no_grad()
+def validation_recall(
+    model: VVLocNet,
+    ds: Any,
+    database: str,
+    queries: list[str],
+    *,
+    every: int = 1,
+    top_k: int = 20,
+) -> dict[str, Any]:
+    """Recall@1/@5 at 2 m of ``queries`` against a map of the ``database`` session.
+
+    Every frame of ``database`` is a map keyframe; every ``every``-th frame of each query session
+    is a query. Retrieval ranks the map by global-descriptor distance (``-G``); re-ranking
+    orders its top ``top_k`` by the learned yaw matching cost (``-ML``, the interactor on each
+    pair and the exact yaw minimum, as :meth:`vvloc.localize.Localizer.rerank` does). Recall
+    follows :func:`vvloc.evaluate.recall_at_n` (queries without a map frame within 2 m left out).
+
+    Returns ``{"queries": kept queries, "r1_retrieval", "r5_retrieval", "r1_reranked"}``
+    (shares in [0, 1]).
+    """
+    from vvloc import evaluate, kernels
+    from vvloc.localize.localizer import encode_frames
+
+    db_frames = list(ds.session(database))
+    q_frames = [f for name in queries for f in list(ds.session(name))[::every]]
+    db = encode_frames(model, db_frames)
+    q = encode_frames(model, q_frames)
+    k = min(top_k, len(db_frames))
+    dist = ((q.global_desc[:, None, :] - db.global_desc[None, :, :]) ** 2).sum(-1)
+    retrieved = np.argsort(dist, axis=1, kind="stable")[:, :k]
+    device = next(model.parameters()).device
+    reranked = np.empty_like(retrieved)
+    for i, rows in enumerate(retrieved):
+        tgt = torch.from_numpy(db.local_desc[rows]).to(device)
+        src = torch.from_numpy(q.local_desc[i]).to(device).expand(len(rows), -1, -1)
+        a, b = model.interact(src, tgt)
+        order = kernels.rerank(a.float().cpu().numpy(), b.float().cpu().numpy()).order
+        reranked[i] = rows[order]
+    q_xy = np.stack([f.pose[:2] for f in q_frames])
+    db_xy = np.stack([f.pose[:2] for f in db_frames])
+    floors = {
+        "query_floors": np.array([f.floor for f in q_frames]),
+        "db_floors": np.array([f.floor for f in db_frames]),
+    }
+    top_n = tuple(n for n in (1, 5) if n <= k)
+    rec_g = evaluate.recall_at_n(q_xy, db_xy, retrieved, top_n=top_n, radii=(2.0,), **floors)
+    rec_ml = evaluate.recall_at_n(q_xy, db_xy, reranked, top_n=top_n, radii=(2.0,), **floors)
+    return {
+        "queries": rec_g.num_kept,
+        "r1_retrieval": rec_g.at(1, 2.0),
+        "r5_retrieval": rec_g.at(5, 2.0) if 5 in top_n else float("nan"),
+        "r1_reranked": rec_ml.at(1, 2.0),
+    }
+
+
 def _ensure_dataset(cfg: TrainConfig) -> None:
     root = Path(cfg.dataset)
     if root.exists():
@@ -324,6 +404,7 @@ class Trainer:
         self.scheduler = torch.optim.lr_scheduler.ExponentialLR(self.optimizer, gamma=cfg.lr_decay)
         self.epoch = 0
         self.step = 0
+        self.best: dict[str, Any] | None = None  # the validation record of best/, if any
 
     # --- persistence ---------------------------------------------------------------------
 
@@ -331,6 +412,11 @@ class Trainer:
     def checkpoint_dir(self) -> Path:
         """Where the latest model checkpoint lives (``VVLocNet.load`` reads it)."""
         return self.out / "checkpoint"
+
+    @property
+    def best_dir(self) -> Path:
+        """Where the best checkpoint by validation lives (only with ``val_sessions``)."""
+        return self.out / "best"
 
     def _state_path(self) -> Path:
         return self.out / "trainer_state.pt"
@@ -347,6 +433,7 @@ class Trainer:
             "sampler_rng": self.sampler.rng.bit_generator.state,
             "sampler_hard": self.sampler.hard,
             "torch_rng": torch.get_rng_state(),
+            "best": self.best,
             "config": self.cfg.to_dict(),
         }
         tmp = self._state_path().with_suffix(".tmp")
@@ -379,6 +466,7 @@ class Trainer:
         torch.set_rng_state(state["torch_rng"])
         self.epoch = int(state["epoch"])
         self.step = int(state["step"])
+        self.best = state.get("best")
         log.info("resumed %s at epoch %d, step %d", self.out, self.epoch, self.step)
         return True
 
@@ -458,13 +546,47 @@ class Trainer:
         self.epoch += 1
         return record
 
+    def validates(self, epoch: int) -> bool:
+        """Whether epoch ``epoch`` (0-based) is scored on ``val_sessions``: the joint epochs (the
+        local-view head is untrained before them), or every epoch of a stage-1-only run."""
+        if not self.cfg.val_sessions:
+            return False
+        return self.cfg.stage2_epochs == 0 or self.stage_of(epoch) == 2
+
+    def validate(self) -> dict[str, Any]:
+        """Score the current model on ``val_sessions`` (see :func:`validation_recall`)."""
+        cfg = self.cfg
+        t0 = time.perf_counter()
+        res = validation_recall(
+            self.model,
+            self.ds,
+            cfg.val_database,
+            list(cfg.val_sessions or []),
+            every=cfg.val_every,
+            top_k=cfg.val_top_k,
+        )
+        res["seconds"] = time.perf_counter() - t0
+        return res
+
     def fit(self, progress: bool = True) -> list[dict[str, Any]]:
-        """Train until ``cfg.epochs``; checkpoint and log after every epoch."""
+        """Train until ``cfg.epochs``; checkpoint and log after every epoch (and keep the best
+        epoch by validation in ``best/`` when ``val_sessions`` are set)."""
         self.out.mkdir(parents=True, exist_ok=True)
         (self.out / "train_config.yaml").write_text(yaml.safe_dump(self.cfg.to_dict()))
         records = []
         while self.epoch < self.cfg.epochs:
+            validating = self.validates(self.epoch)
             rec = self.run_epoch(progress=progress)
+            if validating:
+                rec["val"] = self.validate()
+                key = (rec["val"]["r1_reranked"], rec["val"]["r1_retrieval"])
+                if self.best is None or key > (
+                    self.best["val"]["r1_reranked"],
+                    self.best["val"]["r1_retrieval"],
+                ):
+                    self.model.save(self.best_dir)
+                    self.best = {"epoch": rec["epoch"], "val": rec["val"]}
+                rec["best_epoch"] = self.best["epoch"]
             records.append(rec)
             self.save()
             with open(self.out / "log.jsonl", "a") as f:

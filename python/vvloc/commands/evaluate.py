@@ -11,8 +11,12 @@ from vvloc.commands._util import cli_errors, split_names
 
 
 def _checkpoint_dir(path: Path) -> Path:
-    """A run folder (``runs/x``) or a checkpoint folder (``runs/x/checkpoint``)."""
-    return path / "checkpoint" if (path / "checkpoint").is_dir() else path
+    """A checkpoint folder, or a run folder (``runs/x``): its ``best/`` (selected on the
+    validation sessions) when the run has one, else its latest ``checkpoint/``."""
+    for sub in ("best", "checkpoint"):
+        if (path / sub / "config.json").is_file():
+            return path / sub
+    return path
 
 
 def eval_command(

@@ -22,4 +22,11 @@ def train(
 
     with cli_errors("train"):
         trainer = run_training(config, out, resume=resume)
-    typer.echo(f"trained {trainer.epoch} epochs; checkpoint: {trainer.checkpoint_dir}")
+    typer.echo(f"trained {trainer.epoch} epochs; latest checkpoint: {trainer.checkpoint_dir}")
+    if trainer.best is not None:
+        val = trainer.best["val"]
+        typer.echo(
+            f"best by validation: epoch {trainer.best['epoch']} (Recall@1 2 m "
+            f"{val['r1_reranked']:.1%} re-ranked, {val['r1_retrieval']:.1%} retrieval): "
+            f"{trainer.best_dir} (the one `vvloc eval --checkpoint {out}` uses)"
+        )
