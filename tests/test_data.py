@@ -234,3 +234,54 @@ def test_camera_resize_keeps_projection_exact():
     uv2, _ = small.project_ego(pts)
     # pixel-centre convention: u' + 0.5 = (u + 0.5) / 2
     assert np.allclose(uv2 + 0.5, (uv + 0.5) / 2)
+
+
+def test_extra_datasets_are_other_worlds_and_cross_floor_negatives_share_the_place(tmp_path):
+    # two worlds with the same coordinates; the second has a floor above the first's track
+    _write(tmp_path / "lot", {"s0": _line(6), "s1": _line(6, y=0.5)})
+    _write(
+        tmp_path / "garage",
+        {
+            "s0": _line(6),
+            "s1": _line(6, y=0.5),
+            "s2": _line(6, floor=1),
+            "s3": _line(6, y=0.5, floor=1),
+        },
+        seed=1,
+    )
+    lot, garage = open_dataset(tmp_path / "lot"), open_dataset(tmp_path / "garage")
+    sampler = TripletSampler(
+        lot, seed=0, extra=[(garage, None)], hard_fraction=0.0, cross_floor_fraction=1.0
+    )
+    assert sampler.sessions == ["s0", "s1", "garage/s0", "garage/s1", "garage/s2", "garage/s3"]
+    world = sampler.level_of // 1000
+    t = sampler.sample(200)
+    # positives never cross worlds or floors, although the coordinates coincide
+    assert np.all(sampler.level_of[t[:, 0]] == sampler.level_of[t[:, 1]])
+    # in the garage every negative is the look-alike place on the other floor (fraction 1)
+    g = t[world[t[:, 0]] == 1]
+    assert len(g) > 0
+    assert np.all(world[g[:, 2]] == 1) and np.all(
+        sampler.level_of[g[:, 2]] != sampler.level_of[g[:, 0]]
+    )
+    xy = sampler.positions[:, :2]
+    assert np.all(np.linalg.norm(xy[g[:, 2]] - xy[g[:, 0]], axis=1) <= sampler.neg_radius)
+    # the lot has one floor: its negatives are ordinary ones (beyond neg_radius, or in the garage)
+    lt = t[world[t[:, 0]] == 0]
+    d = np.linalg.norm(sampler.positions[lt[:, 0]] - sampler.positions[lt[:, 2]], axis=1)
+    assert np.all(d > sampler.neg_radius)
+    # frames come from their own dataset
+    gid = int(np.flatnonzero(sampler.session_of == 4)[2])
+    assert sampler.locate(gid) == ("garage/s2", 2)
+    f = sampler.frame(gid)
+    assert (f.session, f.index, f.floor) == ("s2", 2, 1)
+    assert np.array_equal(f.images, garage.session("s2")[2].images)
+    # without extra datasets and cross-floor negatives the draws are unchanged
+    assert np.array_equal(
+        TripletSampler(lot, seed=0).sample(16),
+        TripletSampler(lot, seed=0, cross_floor_fraction=0.0).sample(16),
+    )
+    with pytest.raises(ValueError, match="cross_floor_fraction"):
+        TripletSampler(lot, cross_floor_fraction=1.5)
+    with pytest.raises(ValueError, match="collide"):
+        TripletSampler(lot, extra=[(garage, None), (garage, None)])

@@ -187,3 +187,24 @@ def test_fit_with_val_sessions_keeps_the_best_joint_epoch_and_resume_remembers_i
 def test_bad_validation_config_is_refused(kw, match):
     with pytest.raises(ValueError, match=match):
         TrainConfig.from_dict({"dataset": "x", **kw})
+
+
+def test_extra_datasets_are_rendered_and_sampled_as_their_own_world(tiny_world, tmp_path):
+    garage = tmp_path / "garage"
+    sim = {"scene": "garage", "sessions": 2, "frames": 8, "floors": 2, "progress": False}
+    cfg = _config(
+        tiny_world,
+        stage1_epochs=1,
+        stage2_epochs=0,
+        steps_per_epoch=3,
+        extra_datasets=[{"dataset": str(garage), "sim": sim}],
+        cross_floor_fraction=0.5,
+    )
+    tr = train(cfg, tmp_path / "run", progress=False)
+    assert (garage / "sessions" / "s1").is_dir()  # rendered on first use
+    assert tr.sampler.sessions[-2:] == ["garage/s0", "garage/s1"]
+    assert set(np.unique(tr.sampler.level_of)) == {0, 1000, 1001}
+    with pytest.raises(ValueError, match=r"extra_datasets\[0\]: unknown keys \['bogus'\]"):
+        TrainConfig.from_dict({"dataset": "x", "extra_datasets": [{"dataset": "y", "bogus": 1}]})
+    with pytest.raises(ValueError, match="cross_floor_fraction"):
+        TrainConfig.from_dict({"dataset": "x", "cross_floor_fraction": 2})

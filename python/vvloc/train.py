@@ -62,6 +62,11 @@ class TrainConfig:
     committed config reproduces its data and its model with one command. ``augment`` (optional)
     holds :class:`vvloc.data.augment.PhotometricAugment` fields (``{}`` = its defaults; absent =
     no augmentation), applied independently to each frame of every training triplet.
+    ``extra_datasets`` are further training datasets, each a mapping with ``dataset`` (path) and
+    optionally ``sim`` and ``train_sessions`` as above (same rig and image size as ``dataset``);
+    each is its own world (see :class:`vvloc.data.TripletSampler`, which also takes
+    ``cross_floor_fraction``: the share of negatives drawn from another floor at the anchor's
+    x-y in multi-storey worlds). Validation uses ``dataset`` only.
     ``val_sessions`` (optional, disjoint from ``train_sessions``) select the checkpoint: every
     ``val_every``-th frame of each is localized against a map of the ``val_database`` session
     (re-ranking the ``val_top_k`` retrieved keyframes) after each joint epoch.
@@ -96,6 +101,8 @@ class TrainConfig:
     tbias_weight: float = 1.0
     tbias_margin: float = 0.1
     augment: dict[str, Any] | None = None
+    extra_datasets: list[dict[str, Any]] = field(default_factory=list)
+    cross_floor_fraction: float = 0.0
     val_sessions: list[str] | None = None
     val_database: str = "s0"
     val_every: int = 1
@@ -147,6 +154,19 @@ class TrainConfig:
                     "val_sessions: must not be trained on (set train_sessions without them); "
                     f"overlap: {overlap or 'train_sessions is unset (all sessions train)'}"
                 )
+        if not isinstance(self.extra_datasets, list):
+            raise ValueError("extra_datasets: expected a list of mappings")
+        for k, extra in enumerate(self.extra_datasets):
+            if not isinstance(extra, dict) or "dataset" not in extra:
+                raise ValueError(f"extra_datasets[{k}]: expected a mapping with a 'dataset' path")
+            unknown = sorted(set(extra) - {"dataset", "sim", "train_sessions"})
+            if unknown:
+                raise ValueError(
+                    f"extra_datasets[{k}]: unknown keys {unknown}; "
+                    "known: ['dataset', 'sim', 'train_sessions']"
+                )
+        if not 0.0 <= float(self.cross_floor_fraction) <= 1.0:
+            raise ValueError("cross_floor_fraction: expected a value in [0, 1]")
         for name in ("val_every", "val_top_k"):
             if isinstance(getattr(self, name), bool) or int(getattr(self, name)) < 1:
                 raise ValueError(f"{name}: expected an int >= 1")
@@ -362,18 +382,20 @@ def validation_recall(
     }
 
 
-def _ensure_dataset(cfg: TrainConfig) -> None:
-    root = Path(cfg.dataset)
+def _ensure_dataset(dataset: str, sim: dict[str, Any] | None) -> None:
+    """Render ``dataset`` from ``sim`` (arguments of :func:`vvloc.sim.simulate_dataset`) when it
+    does not exist yet."""
+    root = Path(dataset)
     if root.exists():
         return
-    if not cfg.sim:
+    if not sim:
         raise FileNotFoundError(
             f"dataset {root} does not exist and the config has no 'sim' section to render it"
         )
     from vvloc.sim import simulate_dataset
 
     log.info("rendering the training dataset into %s", root)
-    simulate_dataset(root, **cfg.sim)
+    simulate_dataset(root, **sim)
 
 
 class Trainer:
@@ -386,8 +408,12 @@ class Trainer:
         if cfg.threads:
             torch.set_num_threads(int(cfg.threads))
         seed_everything(cfg.seed)
-        _ensure_dataset(cfg)
+        _ensure_dataset(cfg.dataset, cfg.sim)
         self.ds = open_dataset(cfg.dataset)
+        extra = []
+        for e in cfg.extra_datasets:
+            _ensure_dataset(e["dataset"], e.get("sim"))
+            extra.append((open_dataset(e["dataset"]), e.get("train_sessions")))
         self.sampler = TripletSampler(
             self.ds,
             pos_radius=cfg.pos_radius,
@@ -395,6 +421,8 @@ class Trainer:
             seed=cfg.seed,
             sessions=cfg.train_sessions,
             hard_fraction=cfg.hard_fraction,
+            extra=extra,
+            cross_floor_fraction=cfg.cross_floor_fraction,
         )
         self.model = VVLocNet(cfg.model_config()).to(self.device)
         self.augment = None if cfg.augment is None else PhotometricAugment.from_dict(cfg.augment)
@@ -449,7 +477,9 @@ class Trainer:
             return False
         state = torch.load(self._state_path(), map_location="cpu", weights_only=False)
         # Extending a run (more joint epochs) is allowed; any other change is a different run.
-        saved = {k: v for k, v in state["config"].items() if k != "stage2_epochs"}
+        # keys added to TrainConfig after the run started count as their defaults
+        saved = {**TrainConfig().to_dict(), **state["config"]}
+        saved = {k: v for k, v in saved.items() if k != "stage2_epochs"}
         current = {k: v for k, v in self.cfg.to_dict().items() if k != "stage2_epochs"}
         if saved != current:
             raise ValueError(

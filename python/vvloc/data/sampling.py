@@ -1,14 +1,17 @@
 """Ground-truth neighbours: triplet sampling with hard-sample mining, and evaluation splits.
 
-Neighbours are found with ``scipy.spatial.cKDTree`` on (x, y, floor · floor_separation): frames
+Neighbours are found with ``scipy.spatial.cKDTree`` on (x, y, level · floor_separation): frames
 on different storeys of a garage are different places even at the same (x, y), so a large
-``floor_separation`` keeps them apart (and makes them valid negatives).
+``floor_separation`` keeps them apart (and makes them valid negatives). The level is the floor,
+offset by ``WORLD_LEVELS`` per dataset when a sampler draws from several datasets (worlds):
+frames of different worlds are never positives, whatever their coordinates.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -16,6 +19,8 @@ from scipy.spatial import cKDTree
 from vvloc.data.frame import Dataset, Frame
 
 FLOOR_SEPARATION = 1000.0
+#: Levels reserved per world (dataset) when a sampler spans several: floors must stay below it.
+WORLD_LEVELS = 1000
 
 
 def _positions(poses: np.ndarray, floors: np.ndarray, floor_separation: float) -> np.ndarray:
@@ -34,6 +39,13 @@ class TripletSampler:
     :meth:`sample` call draws up to ``hard_fraction`` of its triplets from that pool (oldest
     first, cycling) until :meth:`resolve` removes them, i.e. they are re-drawn until the model
     gets them right. :meth:`update` does both from a per-triplet correctness mask.
+
+    Several datasets: ``extra`` lists further ``(dataset, sessions or None)`` sources (e.g. a
+    garage next to a parking lot, rendered with the same rig). Their sessions are labelled
+    ``"<dataset folder name>/<session>"`` in :attr:`sessions`; each is its own world (never a
+    positive of another). ``cross_floor_fraction`` is the share of negatives drawn, where the
+    anchor's world has other floors, from another floor within ``neg_radius`` metres in x-y of
+    the anchor: the look-alike places a multi-storey loop closure must tell apart.
     """
 
     def __init__(
@@ -47,6 +59,8 @@ class TripletSampler:
         cross_session: bool = True,
         hard_fraction: float = 0.5,
         floor_separation: float = FLOOR_SEPARATION,
+        extra: Sequence[tuple[Dataset, Sequence[str] | None]] = (),
+        cross_floor_fraction: float = 0.0,
     ) -> None:
         if not (pos_radius > 0 and neg_radius >= pos_radius):
             raise ValueError(
@@ -55,24 +69,44 @@ class TripletSampler:
             )
         if not 0.0 <= hard_fraction <= 1.0:
             raise ValueError(f"hard_fraction: expected a value in [0, 1], got {hard_fraction}")
+        if not 0.0 <= cross_floor_fraction <= 1.0:
+            raise ValueError(
+                f"cross_floor_fraction: expected a value in [0, 1], got {cross_floor_fraction}"
+            )
         self.ds = ds
-        self.sessions = list(sessions) if sessions is not None else ds.sessions
-        if not self.sessions:
-            raise ValueError("sessions: expected at least one session")
+        # (dataset, session name, label) of each session slot, the primary dataset's first
+        self._slots: list[tuple[Dataset, str, str]] = []
+        for w, (src, names) in enumerate([(ds, sessions), *extra]):
+            chosen = list(names) if names is not None else src.sessions
+            if not chosen:
+                raise ValueError(f"sessions: expected at least one session of {src.root}")
+            prefix = "" if w == 0 else f"{Path(src.root).name}/"
+            self._slots += [(src, name, prefix + name) for name in chosen]
+        self.sessions = [label for _, _, label in self._slots]
+        if len(set(self.sessions)) != len(self.sessions):
+            raise ValueError(f"extra: session labels collide: {self.sessions}")
         self.pos_radius = float(pos_radius)
         self.neg_radius = float(neg_radius)
         self.hard_fraction = float(hard_fraction)
+        self.cross_floor_fraction = float(cross_floor_fraction)
         self.rng = np.random.default_rng(seed)
-        sess_ids, idx, pos = [], [], []
-        for k, name in enumerate(self.sessions):
-            s = ds.session(name)
+        sess_ids, idx, pos, levels = [], [], [], []
+        worlds = {id(src): w for w, src in enumerate([ds, *(e[0] for e in extra)])}
+        for k, (src, name, _) in enumerate(self._slots):
+            s = src.session(name)
+            if len(s.floors) and (s.floors.min() < 0 or s.floors.max() >= WORLD_LEVELS):
+                raise ValueError(f"session {name!r} of {src.root}: floors must lie in [0, 1000)")
+            level = s.floors + WORLD_LEVELS * worlds[id(src)]
             sess_ids.append(np.full(len(s), k, dtype=np.int64))
             idx.append(np.arange(len(s), dtype=np.int64))
-            pos.append(_positions(s.poses, s.floors, floor_separation))
+            pos.append(_positions(s.poses, level, floor_separation))
+            levels.append(level)
         self.session_of = np.concatenate(sess_ids)
         self.index_of = np.concatenate(idx)
         self.positions = np.concatenate(pos)
+        self.level_of = np.concatenate(levels)
         self.tree = cKDTree(self.positions)
+        self.cross_floor = self._cross_floor_neighbours() if cross_floor_fraction > 0 else None
         near = self.tree.query_ball_point(self.positions, r=self.pos_radius)
         self.positives: list[np.ndarray] = []
         for i, cand in enumerate(near):
@@ -90,20 +124,34 @@ class TripletSampler:
         self._hard: dict[tuple[int, int, int], None] = {}
         self._hard_cursor = 0
 
+    def _cross_floor_neighbours(self) -> list[np.ndarray]:
+        """Per frame, the frames of its world on another floor within ``neg_radius`` in x-y."""
+        xy_tree = cKDTree(self.positions[:, :2])
+        world = self.level_of // WORLD_LEVELS
+        out = []
+        for i, cand in enumerate(xy_tree.query_ball_point(self.positions[:, :2], self.neg_radius)):
+            c = np.asarray(sorted(cand), dtype=np.int64)
+            out.append(c[(world[c] == world[i]) & (self.level_of[c] != self.level_of[i])])
+        return out
+
     def __len__(self) -> int:
         """Number of frames indexed (global ids run from 0 to len - 1)."""
         return len(self.positions)
 
     def locate(self, gid: int) -> tuple[str, int]:
-        """(session name, frame index) of global frame id ``gid``."""
+        """(session label, frame index) of global frame id ``gid``."""
         return self.sessions[int(self.session_of[gid])], int(self.index_of[gid])
 
     def frame(self, gid: int) -> Frame:
         """The :class:`Frame` of global frame id ``gid`` (loads its images)."""
-        name, i = self.locate(gid)
-        return self.ds.session(name)[i]
+        src, name, _ = self._slots[int(self.session_of[gid])]
+        return src.session(name)[int(self.index_of[gid])]
 
     def _negative(self, anchor: int) -> int:
+        if self.cross_floor is not None and len(self.cross_floor[anchor]):
+            if self.rng.random() < self.cross_floor_fraction:
+                near = self.cross_floor[anchor]
+                return int(near[self.rng.integers(len(near))])
         for _ in range(64):
             cand = int(self.rng.integers(len(self.positions)))
             if np.linalg.norm(self.positions[cand] - self.positions[anchor]) > self.neg_radius:
