@@ -548,3 +548,55 @@ def test_loop_sweep_matches_pointwise_definition(seed):
         at = curve.at(t)
         for key in ("precision", "recall", "f1", "cfer"):
             assert at[key] == pytest.approx(sweep[key][k])
+
+
+# ----------------------------------------------------------------------------- acceptance
+
+
+def test_distinctiveness_is_mean_minus_min_per_query():
+    got = ev.distinctiveness([[0.4, 0.1, 0.7], [0.3, 0.3, 0.3], [0.5, 0.9, 0.5]])
+    np.testing.assert_allclose(got, [0.3, 0.0, 0.13333333333333336], atol=1e-12)
+    assert np.all(got >= 0)
+    assert ev.distinctiveness([[0.2]]).tolist() == [0.0]
+    with pytest.raises(ValueError, match="rerank_costs"):
+        ev.distinctiveness(np.zeros((3, 0)))
+    with pytest.raises(ValueError, match="non-finite"):
+        ev.distinctiveness([[0.1, np.nan]])
+
+
+def test_calibration_picks_the_lowest_threshold_meeting_the_target_precision():
+    score = np.arange(20.0)[::-1]  # 19 … 0, most confident first
+    correct = np.array([True] * 12 + [False, True] * 4)
+    cal = ev.calibrate_acceptance(score, correct, target_precision=0.9, min_accepted=5)
+    # accepting score >= 6 keeps 14 results with 13 right (92.9 %); >= 4 would be 14/16 = 87.5 %
+    assert cal["threshold"] == 6.0 and cal["accepted"] == 14
+    assert cal["precision"] == pytest.approx(13 / 14) and cal["accepted_share"] == 0.7
+    assert cal["base_precision"] == pytest.approx(16 / 20)
+    # a target no threshold reaches on enough results accepts nothing
+    none = ev.calibrate_acceptance(score, correct, target_precision=1.0, min_accepted=13)
+    assert none["threshold"] == math.inf and none["accepted"] == 0
+    assert math.isnan(none["precision"])
+    # ties: a threshold accepts every result with that score, never half of a tie (the first
+    # two results alone would be 100 % right, but the third has the same score)
+    tied = ev.calibrate_acceptance(
+        [1.0, 1.0, 1.0, 0.0],
+        np.array([True, True, False, False]),
+        target_precision=0.9,
+        min_accepted=1,
+    )
+    assert tied["threshold"] == math.inf and tied["accepted"] == 0
+
+
+@pytest.mark.parametrize(
+    ("kw", "err", "match"),
+    [
+        ({"target_precision": 0.0}, ValueError, "target_precision"),
+        ({"min_accepted": 0}, ValueError, "min_accepted"),
+        ({"min_accepted": 2.5}, TypeError, "min_accepted"),
+    ],
+)
+def test_calibration_rejects_bad_arguments(kw, err, match):
+    with pytest.raises(err, match=match):
+        ev.calibrate_acceptance([0.1, 0.2], np.array([True, False]), **kw)
+    with pytest.raises(TypeError, match="correct"):
+        ev.calibrate_acceptance([0.1, 0.2], [1, 0])

@@ -174,3 +174,46 @@ def test_detect_loops_api_returns_ids_and_costs(map_file, model_dir):
         assert len(found.i) == len(found.costs) <= 2
         assert set(found.i.tolist()) <= set(db.ids.tolist())
         assert np.all(found.accepted == (found.costs < 0.75))
+
+
+def test_calibration_is_written_by_the_cli_kept_with_the_checkpoint_and_gates_acceptance(
+    tiny_world, map_file, model_dir, tmp_path
+):
+    import json
+
+    ckpt = tmp_path / "model"
+    VVLocNet.load(model_dir).save(ckpt)
+    r = subprocess.run(
+        [sys.executable, "-m", "vvloc.cli", "calibrate", "--checkpoint", str(ckpt),
+         "--dataset", str(tiny_world), "--queries", "s1,s2", "--top_k", "5",
+         "--precision", "0.5", "--min_accepted", "2"],
+        capture_output=True, text=True,
+    )  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    cal = json.loads((ckpt / "calibration.json").read_text())
+    assert cal["sessions"] == ["s1", "s2"] and cal["top_k"] == 5 and cal["database"] == "s0"
+    assert cal["target_precision"] == 0.5 and cal["queries"] > 0
+    model = VVLocNet.load(ckpt)
+    assert model.calibration == cal
+    # the Localizer takes the model's threshold unless told otherwise
+    assert Localizer.open(map_file, ckpt).min_distinctiveness == cal["min_distinctiveness"]
+    frames = [open_dataset(tiny_world).session("s1")[i] for i in range(0, 40, 8)]
+    loc = Localizer.open(map_file, model_dir, top_k=5, search=SMALL_SEARCH)
+    assert loc.min_distinctiveness == 0.0  # an uncalibrated model: the paper's cost rule alone
+    res = loc.localize_batch(frames)
+    d = np.array([x.distinctiveness for x in res])
+    np.testing.assert_allclose(d, [x.rerank_cost.mean() - x.rerank_cost.min() for x in res])
+    assert all(x.accepted == (x.cost < 0.75) for x in res)
+    gate = float(np.median(d))
+    strict = Localizer.open(
+        map_file, model_dir, top_k=5, search=SMALL_SEARCH, min_distinctiveness=gate
+    )
+    for x in strict.localize_batch(frames):
+        assert x.accepted == (x.cost < 0.75 and x.distinctiveness >= gate)
+    for bad, err in ((-0.1, ValueError), ("high", TypeError)):
+        with pytest.raises(err, match="min_distinctiveness"):
+            Localizer.open(map_file, model_dir, min_distinctiveness=bad)
+    # saving weights without a calibration removes a stale one
+    model.calibration = {}
+    model.save(ckpt)
+    assert not (ckpt / "calibration.json").exists()

@@ -8,6 +8,7 @@ import logging
 
 import typer
 
+from vvloc.commands.calibrate import calibrate
 from vvloc.commands.demo import demo
 from vvloc.commands.evaluate import eval_command
 from vvloc.commands.localize import localize
@@ -39,6 +40,7 @@ def _root(
 app.command("sim")(sim)
 app.command("train")(train)
 app.command("eval")(eval_command)
+app.command("calibrate")(calibrate)
 app.add_typer(map_app, name="map")
 app.command("localize")(localize)
 app.command("loops")(loops)

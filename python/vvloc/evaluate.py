@@ -756,6 +756,90 @@ def confidence_curve(
     }
 
 
+def distinctiveness(rerank_costs: npt.ArrayLike) -> F64Array:
+    """How much the best candidate stands out: mean minus minimum of each query's re-ranking
+    costs.
+
+    Definition: for a query whose K retrieved candidates have yaw matching costs c_1..c_K (any
+    order), distinctiveness = mean(c) − min(c) ≥ 0 (0 when K = 1). The absolute cost of the best
+    candidate depends on how textured the place is; how far it lies below the other candidates'
+    costs says whether the place was recognised, which is what a confidence must tell.
+
+    Args:
+        rerank_costs: ``(Q, K)`` finite costs, K ≥ 1.
+
+    Returns:
+        ``(Q,)`` float64, ≥ 0.
+    """
+    c = _real_array(rerank_costs, "rerank_costs", "(Q, K)", 2)
+    if c.shape[1] == 0:
+        raise ValueError(f"rerank_costs: expected shape (Q, K) with K >= 1, got {c.shape}")
+    return np.maximum(c.mean(axis=1) - c.min(axis=1), 0.0)
+
+
+def calibrate_acceptance(
+    score: npt.ArrayLike,
+    correct: npt.ArrayLike,
+    *,
+    target_precision: float = 0.9,
+    min_accepted: int = 10,
+) -> dict[str, Any]:
+    """The lowest score threshold whose accepted results are correct often enough.
+
+    Definition: a result is accepted when ``score ≥ threshold`` (e.g. :func:`distinctiveness`).
+    Over the candidate thresholds (the distinct scores), the smallest one is chosen whose
+    accepted set has at least ``min_accepted`` results and precision (correct / accepted) ≥
+    ``target_precision``; it accepts the most results that meet the target. If none does, the
+    threshold is +inf (accept nothing), and precision is NaN.
+
+    Args:
+        score: ``(Q,)`` finite confidence scores, higher = more confident.
+        correct: ``(Q,)`` bool, whether each result is right (e.g. top-1 within 2 m).
+        target_precision: in (0, 1].
+        min_accepted: the fewest accepted results a threshold may rest on (≥ 1).
+
+    Returns:
+        ``{"threshold", "precision", "accepted_share", "accepted", "queries",
+        "target_precision", "min_accepted", "base_precision"}`` (``base_precision`` = share of
+        correct results when everything is accepted).
+    """
+    sc = _real_array(score, "score", "(Q,)", 1)
+    ok = _bool_array(correct, "correct", sc.shape[0])
+    tp = float(target_precision)
+    if not 0.0 < tp <= 1.0:
+        raise ValueError(f"target_precision: expected a value in (0, 1], got {target_precision!r}")
+    if isinstance(min_accepted, bool) or not isinstance(min_accepted, (int, np.integer)):
+        raise TypeError(f"min_accepted: expected an int, got {type(min_accepted).__name__}")
+    if min_accepted < 1:
+        raise ValueError(f"min_accepted: expected >= 1, got {min_accepted}")
+    order = np.argsort(-sc, kind="stable")
+    hits = np.cumsum(ok[order])
+    n = np.arange(1, len(order) + 1)
+    # the accepted set of threshold sc[order[i]] is everything up to its last tie
+    last = np.append(np.diff(sc[order]) < 0, True) if len(order) else np.zeros(0, bool)
+    good = last & (n >= min_accepted) & (hits >= tp * n - 1e-12)
+    out: dict[str, Any] = {
+        "queries": int(sc.shape[0]),
+        "target_precision": tp,
+        "min_accepted": int(min_accepted),
+        "base_precision": _ratio(float(ok.sum()), float(sc.shape[0])),
+    }
+    if not good.any():
+        return out | {
+            "threshold": float("inf"),
+            "precision": float("nan"),
+            "accepted": 0,
+            "accepted_share": 0.0,
+        }
+    i = int(np.flatnonzero(good)[-1])
+    return out | {
+        "threshold": float(sc[order[i]]),
+        "precision": float(hits[i] / n[i]),
+        "accepted": int(n[i]),
+        "accepted_share": _ratio(float(n[i]), float(sc.shape[0])),
+    }
+
+
 # ----------------------------------------------------------------------------- latency
 
 

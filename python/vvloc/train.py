@@ -326,7 +326,6 @@ def training_losses(
     return total, parts, correct
 
 
-@torch.no_grad()
 def validation_recall(
     model: VVLocNet,
     ds: Any,
@@ -336,49 +335,30 @@ def validation_recall(
     every: int = 1,
     top_k: int = 20,
 ) -> dict[str, Any]:
-    """Recall@1/@5 at 2 m of ``queries`` against a map of the ``database`` session.
+    """Recall@1/@5 at 2 m of ``queries`` against a map of the ``database`` session, and the
+    acceptance calibration they give.
 
     Every frame of ``database`` is a map keyframe; every ``every``-th frame of each query session
     is a query. Retrieval ranks the map by global-descriptor distance (``-G``); re-ranking
-    orders its top ``top_k`` by the learned yaw matching cost (``-ML``, the interactor on each
-    pair and the exact yaw minimum, as :meth:`vvloc.localize.Localizer.rerank` does). Recall
-    follows :func:`vvloc.evaluate.recall_at_n` (queries without a map frame within 2 m left out).
+    orders its top ``top_k`` by the learned yaw matching cost (``-ML``), see
+    :func:`vvloc.localize.calibrate.rerank_split`. Recall follows
+    :func:`vvloc.evaluate.recall_at_n` (queries without a map frame within 2 m left out).
 
-    Returns ``{"queries": kept queries, "r1_retrieval", "r5_retrieval", "r1_reranked"}``
-    (shares in [0, 1]).
+    Returns ``{"queries": kept queries, "r1_retrieval", "r5_retrieval", "r1_reranked",
+    "calibration"}`` (shares in [0, 1]; ``calibration`` from
+    :func:`vvloc.localize.calibrate.calibration_of`).
     """
-    from vvloc import evaluate, kernels
-    from vvloc.localize.localizer import encode_frames
+    from vvloc.localize.calibrate import calibration_of, rerank_split
 
-    db_frames = list(ds.session(database))
-    q_frames = [f for name in queries for f in list(ds.session(name))[::every]]
-    db = encode_frames(model, db_frames)
-    q = encode_frames(model, q_frames)
-    k = min(top_k, len(db_frames))
-    dist = ((q.global_desc[:, None, :] - db.global_desc[None, :, :]) ** 2).sum(-1)
-    retrieved = np.argsort(dist, axis=1, kind="stable")[:, :k]
-    device = next(model.parameters()).device
-    reranked = np.empty_like(retrieved)
-    for i, rows in enumerate(retrieved):
-        tgt = torch.from_numpy(db.local_desc[rows]).to(device)
-        src = torch.from_numpy(q.local_desc[i]).to(device).expand(len(rows), -1, -1)
-        a, b = model.interact(src, tgt)
-        order = kernels.rerank(a.float().cpu().numpy(), b.float().cpu().numpy()).order
-        reranked[i] = rows[order]
-    q_xy = np.stack([f.pose[:2] for f in q_frames])
-    db_xy = np.stack([f.pose[:2] for f in db_frames])
-    floors = {
-        "query_floors": np.array([f.floor for f in q_frames]),
-        "db_floors": np.array([f.floor for f in db_frames]),
-    }
-    top_n = tuple(n for n in (1, 5) if n <= k)
-    rec_g = evaluate.recall_at_n(q_xy, db_xy, retrieved, top_n=top_n, radii=(2.0,), **floors)
-    rec_ml = evaluate.recall_at_n(q_xy, db_xy, reranked, top_n=top_n, radii=(2.0,), **floors)
+    split = rerank_split(model, ds, database, queries, every=every, top_k=top_k)
+    rec_g = split.recall("retrieved")
+    rec_ml = split.recall("reranked")
     return {
         "queries": rec_g.num_kept,
         "r1_retrieval": rec_g.at(1, 2.0),
-        "r5_retrieval": rec_g.at(5, 2.0) if 5 in top_n else float("nan"),
+        "r5_retrieval": rec_g.at(5, 2.0) if 5 in rec_g.top_n else float("nan"),
         "r1_reranked": rec_ml.at(1, 2.0),
+        "calibration": calibration_of(split),
     }
 
 
@@ -603,8 +583,9 @@ class Trainer:
         epoch by validation in ``best/`` when ``val_sessions`` are set)."""
         self.out.mkdir(parents=True, exist_ok=True)
         (self.out / "train_config.yaml").write_text(yaml.safe_dump(self.cfg.to_dict()))
+        cfg = self.cfg
         records = []
-        while self.epoch < self.cfg.epochs:
+        while self.epoch < cfg.epochs:
             validating = self.validates(self.epoch)
             rec = self.run_epoch(progress=progress)
             if validating:
@@ -614,7 +595,15 @@ class Trainer:
                     self.best["val"]["r1_reranked"],
                     self.best["val"]["r1_retrieval"],
                 ):
+                    self.model.calibration = {
+                        **rec["val"]["calibration"],
+                        "dataset": str(cfg.dataset),
+                        "database": cfg.val_database,
+                        "sessions": list(cfg.val_sessions or []),
+                        "every": int(cfg.val_every),
+                    }
                     self.model.save(self.best_dir)
+                    self.model.calibration = {}
                     self.best = {"epoch": rec["epoch"], "val": rec["val"]}
                 rec["best_epoch"] = self.best["epoch"]
             records.append(rec)

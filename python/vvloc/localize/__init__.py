@@ -2,7 +2,8 @@
 
 :mod:`vvloc.localize.mapdb` stores keyframes (poses, descriptors, BEVs) in one HDF5 file;
 :mod:`vvloc.localize.export` writes loop closures (CSV, g2o) and trajectories (TUM);
-:mod:`vvloc.localize.metric` runs metric localization (translation search + exact yaw).
+:mod:`vvloc.localize.metric` runs metric localization (translation search + exact yaw);
+:mod:`vvloc.localize.calibrate` measures on held-out sessions when a localization is accepted.
 """
 
 from vvloc.localize.export import (

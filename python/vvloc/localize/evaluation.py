@@ -178,11 +178,16 @@ def run_evaluation(
     latency = evaluate.latency_summary(
         {s: [r.timings_ms.get(s, np.nan) for r in results] for s in stages}
     )
-    np.array([r.cost for r in results])
-    accepted = np.array([r.accepted for r in results])
+    accepted = np.array([r.accepted for r in results], dtype=bool)
+    kept_acc = accepted & rec_ml.kept
+    rule = f"cost < {loc.accept_threshold}"
+    if loc.min_distinctiveness > 0:
+        rule += f" and distinctiveness >= {loc.min_distinctiveness:.4g} (the model's calibration)"
+    acc_precision = evaluate._ratio(float((kept_acc & correct).sum()), float(kept_acc.sum()))
     notes = [
         f"{len(frames)} queries from {list(queries)}, map = {database} ({len(mapdb)} keyframes)",
-        f"accepted share (cost < {loc.accept_threshold}): {accepted.mean():.1%}",
+        f"accepted ({rule}): {accepted.mean():.1%} of all queries; top-1 within 2 m among the "
+        f"accepted kept queries: {acc_precision:.1%} (among all kept: {rec_ml.at(1, 2.0):.1%})",
     ]
     if untrained_warning:
         notes.insert(0, untrained_warning)
@@ -203,6 +208,8 @@ def run_evaluation(
         "latency": latency,
         "notes": notes,
         "accepted_share": float(accepted.mean()),
+        "accepted_precision": acc_precision,
+        "min_distinctiveness": loc.min_distinctiveness,
     }
 
     if robustness:
@@ -218,7 +225,7 @@ def run_evaluation(
         "# vvloc evaluation per query. Poses: world frame x east, y north (m), yaw CCW from east"
         " (deg). cost: matching cost (lower is better).",
         "session,index,map_row,est_x,est_y,est_yaw_deg,gt_x,gt_y,gt_yaw_deg,pos_err_m,"
-        "yaw_err_deg,cost,accepted,top1_correct",
+        "yaw_err_deg,cost,accepted,top1_correct,distinctiveness",
     ]
     for f, r, e, g, pe, ye, c in zip(
         frames, results, est, q_pose, pos_err, yaw_err, correct, strict=True
@@ -226,7 +233,7 @@ def run_evaluation(
         lines.append(
             f"{f.session},{f.index},{r.map_row},{e[0]:.4f},{e[1]:.4f},{np.degrees(e[2]):.3f},"
             f"{g[0]:.4f},{g[1]:.4f},{np.degrees(g[2]):.3f},{pe:.4f},{ye:.3f},{r.cost:.5f},"
-            f"{int(r.accepted)},{int(c)}"
+            f"{int(r.accepted)},{int(c)},{r.distinctiveness:.5f}"
         )
     (out_dir / "queries.csv").write_text("\n".join(lines) + "\n")
 

@@ -145,12 +145,15 @@ class LocalizationResult:
         relative_pose: ξ_{m→q} (3,) float64: the query frame expressed in the map keyframe's
             frame (x forward m, y left m, yaw CCW rad).
         global_pose: the query's world pose (x, y, yaw) = T_world_m · ξ_{m→q}.
-        cost: matching cost at the estimate (confidence: lower is better).
-        accepted: ``cost < accept_threshold``.
+        cost: matching cost at the estimate (lower is better).
+        accepted: ``cost < accept_threshold`` and ``distinctiveness >= min_distinctiveness``.
         retrieved: (K,) map rows in retrieval order; ``retrieval_dist`` their L2 distances.
         reranked: (K,) map rows after re-ranking by matching cost; ``rerank_cost`` their costs.
         timings_ms: per-stage wall time: encode, retrieve, rerank, metric.
         search: every evaluated translation hypothesis (xy (M, 2), yaw, cost, stage).
+        distinctiveness: mean minus minimum of ``rerank_cost`` (≥ 0; higher = the chosen
+            keyframe stands out more; NaN without re-ranking), the calibrated confidence
+            (:func:`vvloc.evaluate.distinctiveness`).
     """
 
     map_row: int
@@ -166,6 +169,7 @@ class LocalizationResult:
     rerank_cost: npt.NDArray[np.float64]
     timings_ms: dict[str, float] = field(default_factory=dict)
     search: kernels.SearchHistory | None = None
+    distinctiveness: float = float("nan")
 
 
 class Localizer:
@@ -176,7 +180,12 @@ class Localizer:
         mapdb: an opened map.
         top_k: number of retrieved candidates (K, default 20).
         rerank: re-rank the candidates by yaw matching cost (default True).
-        accept_threshold: a result is accepted when its cost is below this (default 0.75).
+        accept_threshold: a result is accepted when its cost is below this (default 0.75, the
+            paper's) and its distinctiveness reaches ``min_distinctiveness``.
+        min_distinctiveness: the calibrated confidence threshold; ``None`` (default) takes the
+            model's calibration (``calibration.json`` beside its weights, written by ``vvloc
+            calibrate`` or by training with validation sessions), and 0 (no check) when the
+            model has none.
         search: the translation search (see :class:`SearchConfig`).
         decoder: ``"learned"`` (the model's decoder + interactor, default) or ``"radial_mean"``
             (the non-learned :class:`RadialMeanDecoder`, no interactor: a baseline, and the
@@ -191,6 +200,7 @@ class Localizer:
         top_k: int = 20,
         rerank: bool = True,
         accept_threshold: float = 0.75,
+        min_distinctiveness: float | None = None,
         search: SearchConfig | None = None,
         decoder: str = "learned",
     ) -> None:
@@ -208,6 +218,17 @@ class Localizer:
         self.top_k = top_k
         self.rerank_enabled = bool(rerank)
         self.accept_threshold = float(accept_threshold)
+        if min_distinctiveness is None:
+            min_distinctiveness = model.calibration.get("min_distinctiveness", 0.0)  # type: ignore[assignment]
+        if isinstance(min_distinctiveness, bool) or not isinstance(
+            min_distinctiveness, (int, float)
+        ):
+            raise TypeError(
+                f"min_distinctiveness: expected a float, got {type(min_distinctiveness).__name__}"
+            )
+        if not min_distinctiveness >= 0:
+            raise ValueError(f"min_distinctiveness: expected >= 0, got {min_distinctiveness}")
+        self.min_distinctiveness = float(min_distinctiveness)
         self.search = search or SearchConfig()
         self.decoder = decoder
         self.index = DescriptorIndex(mapdb.global_descriptors)
@@ -337,6 +358,8 @@ class Localizer:
         xi_mq, cost, history = self.metric(bev, best)
         timings["metric"] = (time.perf_counter() - t0) * 1e3
         map_pose = self.map.poses[best]
+        distinct = max(float(rerank_cost.mean() - rerank_cost.min()), 0.0)
+        confident = self.min_distinctiveness <= 0 or bool(distinct >= self.min_distinctiveness)
         return LocalizationResult(
             map_row=best,
             map_id=int(self.map.ids[best]),
@@ -344,13 +367,14 @@ class Localizer:
             relative_pose=xi_mq,
             global_pose=geometry.compose(map_pose, xi_mq),
             cost=cost,
-            accepted=bool(cost < self.accept_threshold),
+            accepted=bool(cost < self.accept_threshold) and confident,
             retrieved=rows,
             retrieval_dist=dist,
             reranked=reranked,
             rerank_cost=rerank_cost,
             timings_ms=timings,
             search=history,
+            distinctiveness=distinct,
         )
 
 

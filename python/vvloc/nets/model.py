@@ -21,6 +21,8 @@ from vvloc.nets.polar import polar_sample
 
 WEIGHTS_FILE = "model.safetensors"
 CONFIG_FILE = "config.json"
+#: Optional acceptance calibration of a checkpoint (see :func:`vvloc.localize.calibrate`).
+CALIBRATION_FILE = "calibration.json"
 CHECKPOINT_FORMAT = "vvloc.nets.VVLocNet"
 
 
@@ -47,6 +49,9 @@ class VVLocNet(nn.Module):
         if not isinstance(config, ModelConfig):
             raise TypeError(f"config: expected a ModelConfig, got {type(config).__name__}")
         self.config = config
+        #: Acceptance calibration (``{"min_distinctiveness": …, …}``), saved and loaded with the
+        #: checkpoint as ``calibration.json``; empty when the model was never calibrated.
+        self.calibration: dict[str, object] = {}
         self.backbone = ResNetBackbone(config.backbone_widths, config.backbone_blocks)
         self.fpn = FPN(config.backbone_widths, config.channels, config.num_levels)
         self.encoder = BevEncoder(config)
@@ -146,9 +151,9 @@ class VVLocNet(nn.Module):
     # --- checkpoints -----------------------------------------------------------------------
 
     def save(self, directory: str | os.PathLike[str]) -> Path:
-        """Write ``model.safetensors`` and ``config.json`` (format, version, config, hash) into
-        ``directory`` (created if needed). Files are written to temporaries and renamed, so a
-        failure leaves no partial file."""
+        """Write ``model.safetensors``, ``config.json`` (format, version, config, hash) and, when
+        the model is calibrated, ``calibration.json`` into ``directory`` (created if needed).
+        Files are written to temporaries and renamed, so a failure leaves no partial file."""
         out = Path(directory)
         out.mkdir(parents=True, exist_ok=True)
         meta = {
@@ -160,6 +165,11 @@ class VVLocNet(nn.Module):
         tensors = {k: v.detach().cpu().contiguous() for k, v in self.state_dict().items()}
         _atomic_write(out / WEIGHTS_FILE, lambda p: save_file(tensors, str(p)))
         _atomic_write(out / CONFIG_FILE, lambda p: Path(p).write_text(json.dumps(meta, indent=2)))
+        if self.calibration:
+            text = json.dumps(self.calibration, indent=2)
+            _atomic_write(out / CALIBRATION_FILE, lambda p: Path(p).write_text(text))
+        else:  # a stale calibration would describe other weights
+            (out / CALIBRATION_FILE).unlink(missing_ok=True)
         return out
 
     @classmethod
@@ -201,6 +211,12 @@ class VVLocNet(nn.Module):
                 f"shape mismatches {wrong[:5]}"
             )
         model.load_state_dict(state)
+        cal_path = src / CALIBRATION_FILE
+        if cal_path.is_file():
+            cal = json.loads(cal_path.read_text())
+            if not isinstance(cal, dict):
+                raise ValueError(f"{cal_path}: expected a JSON object")
+            model.calibration = cal
         return model.to(map_location)
 
 

@@ -1,0 +1,153 @@
+"""Re-ranking on a held-out split, and calibrating when a localization is accepted.
+
+The paper accepts a result when its matching cost is below 0.75. How low the cost of a right
+match is depends on the model and on how textured the place is, so a fixed cost threshold does
+not carry from one model (or rig, or world) to another: it has to be measured. vvloc measures,
+on sessions the model never trained on, the *distinctiveness* of the re-ranked top-1 (how far
+its cost lies below the mean cost of the retrieved candidates,
+:func:`vvloc.evaluate.distinctiveness`) and keeps the lowest threshold at which accepted
+results are right (top-1 within 2 m) at a target precision. The result is stored with the
+checkpoint (``calibration.json``) and used by :class:`vvloc.localize.Localizer`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+import torch
+
+from vvloc import evaluate, kernels
+from vvloc.localize.localizer import encode_frames
+from vvloc.nets import VVLocNet
+
+
+@dataclass(frozen=True)
+class RerankedSplit:
+    """Retrieval and re-ranking of query frames against a map session.
+
+    Attributes:
+        retrieved: ``(Q, K)`` map rows by global-descriptor distance, best first.
+        reranked: ``(Q, K)`` the same rows ordered by yaw matching cost, lowest first.
+        rerank_cost: ``(Q, K)`` their costs, ascending.
+        query_xy, db_xy: ``(Q, 2)`` / ``(N, 2)`` ground-truth world x, y (m).
+        query_floors, db_floors: ``(Q,)`` / ``(N,)`` floor labels.
+    """
+
+    retrieved: npt.NDArray[np.int64]
+    reranked: npt.NDArray[np.int64]
+    rerank_cost: npt.NDArray[np.float64]
+    query_xy: npt.NDArray[np.float64]
+    db_xy: npt.NDArray[np.float64]
+    query_floors: npt.NDArray[np.int64]
+    db_floors: npt.NDArray[np.int64]
+
+    def recall(self, which: str = "reranked", top_n: Sequence[int] = (1, 5)) -> Any:
+        """:func:`vvloc.evaluate.recall_at_n` of ``"retrieved"`` or ``"reranked"`` at 2 m."""
+        ranked = getattr(self, which)
+        k = ranked.shape[1]
+        return evaluate.recall_at_n(
+            self.query_xy,
+            self.db_xy,
+            ranked,
+            query_floors=self.query_floors,
+            db_floors=self.db_floors,
+            top_n=tuple(n for n in top_n if n <= k) or (1,),
+            radii=(2.0,),
+        )
+
+
+@torch.no_grad()
+def rerank_split(
+    model: VVLocNet,
+    ds: Any,
+    database: str,
+    queries: Sequence[str],
+    *,
+    every: int = 1,
+    top_k: int = 20,
+) -> RerankedSplit:
+    """Retrieve the ``top_k`` nearest map keyframes (every frame of session ``database``) for
+    every ``every``-th frame of each session in ``queries``, and re-rank them by the learned yaw
+    matching cost, exactly as :meth:`vvloc.localize.Localizer.rerank` does (interactor on each
+    pair, exact yaw minimum), without the metric translation search."""
+    if isinstance(every, bool) or not isinstance(every, int) or every < 1:
+        raise ValueError(f"every: expected an int >= 1, got {every!r}")
+    if isinstance(top_k, bool) or not isinstance(top_k, int) or top_k < 1:
+        raise ValueError(f"top_k: expected an int >= 1, got {top_k!r}")
+    db_frames = list(ds.session(database))
+    q_frames = [f for name in queries for f in list(ds.session(name))[::every]]
+    if not db_frames or not q_frames:
+        raise ValueError(f"database {database!r} and queries {list(queries)}: no frames")
+    db = encode_frames(model, db_frames)
+    q = encode_frames(model, q_frames)
+    k = min(top_k, len(db_frames))
+    dist = ((q.global_desc[:, None, :] - db.global_desc[None, :, :]) ** 2).sum(-1)
+    retrieved = np.argsort(dist, axis=1, kind="stable")[:, :k]
+    device = next(model.parameters()).device
+    reranked = np.empty_like(retrieved)
+    costs = np.empty(retrieved.shape, dtype=np.float64)
+    for i, rows in enumerate(retrieved):
+        tgt = torch.from_numpy(db.local_desc[rows]).to(device)
+        src = torch.from_numpy(q.local_desc[i]).to(device).expand(len(rows), -1, -1)
+        a, b = model.interact(src, tgt)
+        rr = kernels.rerank(a.float().cpu().numpy(), b.float().cpu().numpy())
+        reranked[i] = rows[rr.order]
+        costs[i] = rr.cost[rr.order]
+    return RerankedSplit(
+        retrieved=retrieved.astype(np.int64),
+        reranked=reranked.astype(np.int64),
+        rerank_cost=costs,
+        query_xy=np.stack([f.pose[:2] for f in q_frames]),
+        db_xy=np.stack([f.pose[:2] for f in db_frames]),
+        query_floors=np.array([f.floor for f in q_frames], dtype=np.int64),
+        db_floors=np.array([f.floor for f in db_frames], dtype=np.int64),
+    )
+
+
+def calibration_of(
+    split: RerankedSplit, *, target_precision: float = 0.9, min_accepted: int = 10
+) -> dict[str, Any]:
+    """The acceptance calibration of a re-ranked split: ``min_distinctiveness`` (the threshold
+    of :func:`vvloc.evaluate.calibrate_acceptance` on the distinctiveness of each kept query's
+    re-ranked top-1, correct = within 2 m) with the precision and accepted share it reaches
+    there, over the queries that have a map keyframe within 2 m."""
+    rec = split.recall("reranked", top_n=(1,))
+    kept = rec.kept
+    score = evaluate.distinctiveness(split.rerank_cost)[kept]
+    correct = rec.correct(1, 2.0)[kept]
+    cal = evaluate.calibrate_acceptance(
+        score, correct, target_precision=target_precision, min_accepted=min_accepted
+    )
+    cal["min_distinctiveness"] = cal.pop("threshold")
+    cal["top_k"] = int(split.reranked.shape[1])
+    return cal
+
+
+def calibrate(
+    model: VVLocNet,
+    ds: Any,
+    database: str,
+    queries: Sequence[str],
+    *,
+    every: int = 1,
+    top_k: int = 20,
+    target_precision: float = 0.9,
+    min_accepted: int = 10,
+) -> dict[str, Any]:
+    """Calibrate ``model`` on held-out ``queries`` against a map of ``database``: sets and
+    returns ``model.calibration`` (see :func:`calibration_of`; it also records the sessions).
+    Save the model (:meth:`VVLocNet.save`) to keep it with the checkpoint."""
+    split = rerank_split(model, ds, database, queries, every=every, top_k=top_k)
+    cal = calibration_of(split, target_precision=target_precision, min_accepted=min_accepted)
+    cal |= {
+        "dataset": str(getattr(ds, "root", "")),
+        "database": database,
+        "sessions": list(queries),
+        "every": int(every),
+    }
+    model.calibration = cal
+    return cal
