@@ -14,7 +14,9 @@ from vvloc.commands.evaluate import _checkpoint_dir
 HEADER = (
     "# vvloc localize. Frames (DESIGN.md §3): world x east, y north, z up (m); yaw CCW "
     "(deg in this file). relative_* = the query frame expressed in the map keyframe's frame "
-    "(x forward, y left). cost = matching cost, lower is better; accepted = cost < threshold."
+    "(x forward, y left). cost = matching cost, lower is better; distinctiveness = mean minus "
+    "minimum of the re-ranking costs, higher is more confident; accepted = cost < threshold and "
+    "distinctiveness >= min_distinctiveness (the model's calibration, or --min_distinctiveness)."
 )
 
 
@@ -31,6 +33,14 @@ def localize(
     ],
     top_k: Annotated[int, typer.Option("--top_k", min=1, help="Retrieved candidates.")] = 20,
     threshold: Annotated[float, typer.Option("--threshold", help="Accept cost below.")] = 0.75,
+    min_distinctiveness: Annotated[
+        float | None,
+        typer.Option(
+            "--min_distinctiveness",
+            min=0.0,
+            help="Accept distinctiveness at or above (default: the model's calibration, else 0).",
+        ),
+    ] = None,
     device: Annotated[str, typer.Option("--device", help="cpu or cuda.")] = "cpu",
 ) -> None:
     """Write poses.tum (global poses), queries.csv and timings.json into --out."""
@@ -47,6 +57,7 @@ def localize(
             device=device,
             top_k=top_k,
             accept_threshold=threshold,
+            min_distinctiveness=min_distinctiveness,
         )
         sess = open_dataset(dataset).session(session)
         frames = list(sess)
@@ -62,14 +73,14 @@ def localize(
         lines = [
             HEADER,
             "index,timestamp,map_row,map_id,map_session,relative_x,relative_y,"
-            "relative_yaw_deg,global_x,global_y,global_yaw_deg,cost,accepted",
+            "relative_yaw_deg,global_x,global_y,global_yaw_deg,cost,distinctiveness,accepted",
         ]
         for f, r in zip(frames, results, strict=True):
             rel, g = r.relative_pose, r.global_pose
             lines.append(
                 f"{f.index},{f.t:.6f},{r.map_row},{r.map_id},{r.map_session},{rel[0]:.4f},"
                 f"{rel[1]:.4f},{np.degrees(rel[2]):.3f},{g[0]:.4f},{g[1]:.4f},"
-                f"{np.degrees(g[2]):.3f},{r.cost:.5f},{int(r.accepted)}"
+                f"{np.degrees(g[2]):.3f},{r.cost:.5f},{r.distinctiveness:.5f},{int(r.accepted)}"
             )
         (out / "queries.csv").write_text("\n".join(lines) + "\n")
         stages = ("encode", "retrieve", "rerank", "metric")
