@@ -216,3 +216,13 @@ def test_extra_datasets_are_rendered_and_sampled_as_their_own_world(tiny_world, 
         TrainConfig.from_dict({"dataset": "x", "extra_datasets": [{"dataset": "y", "bogus": 1}]})
     with pytest.raises(ValueError, match="cross_floor_fraction"):
         TrainConfig.from_dict({"dataset": "x", "cross_floor_fraction": 2})
+
+
+def test_a_dataset_rendered_by_another_config_or_missing_val_sessions_are_clear_errors(
+    tiny_world, tmp_path
+):
+    sim = {"scene": "parking", "sessions": 5, "frames": 40, "seed": 0}
+    with pytest.raises(ValueError, match=r"lacks sessions \['s3', 's4'\]"):
+        Trainer(_config(tiny_world, sim=sim), tmp_path / "run")
+    with pytest.raises(KeyError, match="s7"):
+        Trainer(_config(tiny_world, train_sessions=["s0", "s1"], val_sessions=["s7"]), "unused")

@@ -367,6 +367,15 @@ def _ensure_dataset(dataset: str, sim: dict[str, Any] | None) -> None:
     does not exist yet."""
     root = Path(dataset)
     if root.exists():
+        if sim and isinstance(sim.get("sessions"), int):
+            have = set(open_dataset(root).sessions)
+            missing = [f"s{i}" for i in range(sim["sessions"]) if f"s{i}" not in have]
+            if missing:
+                raise ValueError(
+                    f"dataset {root} lacks sessions {missing} that the config's sim section "
+                    f"renders ({sim['sessions']} sessions): it was rendered by another config; "
+                    "move it away to re-render it"
+                )
         return
     if not sim:
         raise FileNotFoundError(
@@ -404,6 +413,9 @@ class Trainer:
             extra=extra,
             cross_floor_fraction=cfg.cross_floor_fraction,
         )
+        if cfg.val_sessions:
+            for name in [cfg.val_database, *cfg.val_sessions]:
+                self.ds.session(name)  # KeyError naming the known sessions, before any epoch
         self.model = VVLocNet(cfg.model_config()).to(self.device)
         self.augment = None if cfg.augment is None else PhotometricAugment.from_dict(cfg.augment)
         self.optimizer = torch.optim.Adam(
