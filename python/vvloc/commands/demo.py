@@ -15,7 +15,7 @@ from vvloc.commands._util import cli_errors
 #: Where the committed trained small model lives (relative to the repository root).
 DEFAULT_MODEL = Path(__file__).resolve().parents[3] / "models" / "synth-small"
 
-#: The demo's sessions: the committed model trained on s0, s1, s2, s5..s9 of this world (see
+#: The demo's sessions: the committed model trained on s0, s1, s2, s5..s17 of this world (see
 #: configs/synth-small.yaml), so the queries are the held-out s3 (rain, reversed drive) and s4
 #: (fog, +1.5 m lateral offset), localized against a map of s0 (day).
 SESSIONS = 5
