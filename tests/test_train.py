@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -111,6 +112,21 @@ def test_resumed_run_equals_uninterrupted_run(tiny_world, tmp_path):
 def test_bad_config_is_refused(key, value, match):
     with pytest.raises(ValueError, match=match):
         TrainConfig.from_dict({"dataset": "x", key: value})
+
+
+@pytest.mark.parametrize(
+    "name", sorted(p.name for p in (Path(__file__).parents[1] / "configs").glob("*.yaml"))
+)
+def test_every_committed_config_is_valid_and_keeps_its_held_out_sessions(name):
+    cfg = TrainConfig.from_yaml(Path(__file__).parents[1] / "configs" / name)
+    assert cfg.epochs > 0 and cfg.model_config().grid_size > 0
+    if cfg.train_sessions is not None:
+        # the README's test sessions s3/s4 of the synthetic benchmark are never trained on
+        assert not {"s3", "s4"} & set(cfg.train_sessions), name
+    for extra in cfg.extra_datasets:
+        if "garage" in extra["dataset"]:
+            # the garage test's query session (s1 against a map of s0) is never trained on
+            assert "s1" not in (extra.get("train_sessions") or ["s1"]), name
 
 
 def test_missing_dataset_without_sim_section_is_a_clear_error(tmp_path):
