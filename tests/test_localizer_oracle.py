@@ -28,8 +28,8 @@ def _model() -> VVLocNet:
     return VVLocNet(cfg)
 
 
-@pytest.mark.parametrize("seed", [0, 1, 2])
-def test_localizer_recovers_the_query_world_pose(seed, tmp_path):
+@pytest.mark.parametrize(("seed", "metric_candidates"), [(0, 1), (1, 1), (2, 1), (0, 3)])
+def test_localizer_recovers_the_query_world_pose(seed, metric_candidates, tmp_path):
     rng = np.random.default_rng(seed)
     field = world_field(seed)
     model = _model()
@@ -56,8 +56,28 @@ def test_localizer_recovers_the_query_world_pose(seed, tmp_path):
     q_local = decode(kernels.polar_sample(q_bev, T, R, G))
     search = SearchConfig(half_range=3.0, step=0.6, fine_samples=32, stages=5, seed=seed)
     with MapDatabase.open(path, expected_config_hash=model.config_hash()) as mapdb:
-        loc = Localizer(model, mapdb, top_k=5, search=search, decoder="radial_mean")
+        loc = Localizer(
+            model,
+            mapdb,
+            top_k=5,
+            search=search,
+            decoder="radial_mean",
+            metric_candidates=metric_candidates,
+        )
         res = loc.localize_encoded(np.zeros(16, np.float32), q_local, q_bev)
+        if metric_candidates > 1:
+            # the first M re-ranked candidates are ordered by re-rank + metric cost
+            one = Localizer(model, mapdb, top_k=5, search=search, decoder="radial_mean")
+            ref = one.localize_encoded(np.zeros(16, np.float32), q_local, q_bev)
+            m = metric_candidates
+            score = {
+                int(row): c + one.metric(q_bev, int(row))[1]
+                for row, c in zip(ref.reranked[:m], ref.rerank_cost[:m], strict=True)
+            }
+            assert sorted(res.reranked.tolist()) == sorted(ref.reranked.tolist())
+            assert res.reranked[m:].tolist() == ref.reranked[m:].tolist()
+            assert res.reranked[:m].tolist() == sorted(score, key=score.__getitem__)
+            assert res.cost == pytest.approx(one.metric(q_bev, res.map_row)[1])
     assert res.map_row == target
     assert np.hypot(*(res.global_pose[:2] - q_pose[:2])) < 0.15, (res.global_pose, q_pose)
     assert abs(np.degrees(wrap(res.global_pose[2] - q_pose[2]))) < 1.0
@@ -78,3 +98,6 @@ def test_unknown_decoder_is_refused(tmp_path):
     )
     with pytest.raises(ValueError, match="decoder"):
         Localizer(model, db, decoder="magic")
+    for bad in (0, 2.0, True):
+        with pytest.raises(ValueError, match="metric_candidates"):
+            Localizer(model, db, metric_candidates=bad)

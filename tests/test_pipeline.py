@@ -123,6 +123,8 @@ def test_cli_map_localize_loops_end_to_end(tiny_world, model_dir, tmp_path):
         str(tmp_path / "loc"),
         "--top_k",
         "3",
+        "--metric_candidates",
+        "2",
     )
     assert r.returncode == 0, r.stderr
     ts, _poses = read_tum(tmp_path / "loc" / "poses.tum")

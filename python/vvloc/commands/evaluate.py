@@ -33,6 +33,15 @@ def eval_command(
     robustness: Annotated[
         bool, typer.Option("--robustness", help="Also score retrieval under perturbations.")
     ] = False,
+    metric_candidates: Annotated[
+        int,
+        typer.Option(
+            "--metric_candidates",
+            min=1,
+            help="Metric-localize the top M re-ranked candidates and keep the lowest "
+            "re-rank + metric cost (M times the metric stage's time).",
+        ),
+    ] = 1,
     loops: Annotated[
         bool, typer.Option("--loops", help="Also evaluate loop closure (P/R, CFER, poses).")
     ] = False,
@@ -54,6 +63,7 @@ def eval_command(
             names,
             out,
             top_k=top_k,
+            metric_candidates=metric_candidates,
             every=every,
             device=device,
             robustness=robustness,

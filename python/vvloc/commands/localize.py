@@ -41,6 +41,15 @@ def localize(
             help="Accept distinctiveness at or above (default: the model's calibration, else 0).",
         ),
     ] = None,
+    metric_candidates: Annotated[
+        int,
+        typer.Option(
+            "--metric_candidates",
+            min=1,
+            help="Metric-localize the top M re-ranked candidates and keep the lowest "
+            "re-rank + metric cost (M times the metric stage's time).",
+        ),
+    ] = 1,
     device: Annotated[str, typer.Option("--device", help="cpu or cuda.")] = "cpu",
 ) -> None:
     """Write poses.tum (global poses), queries.csv and timings.json into --out."""
@@ -58,6 +67,7 @@ def localize(
             top_k=top_k,
             accept_threshold=threshold,
             min_distinctiveness=min_distinctiveness,
+            metric_candidates=metric_candidates,
         )
         sess = open_dataset(dataset).session(session)
         frames = list(sess)

@@ -130,6 +130,7 @@ def run_evaluation(
     out: str | os.PathLike[str],
     *,
     top_k: int = 20,
+    metric_candidates: int = 1,
     every: int = 1,
     device: str = "cpu",
     search: SearchConfig | None = None,
@@ -142,6 +143,7 @@ def run_evaluation(
     """Evaluate a checkpoint on ``dataset``: map = ``database`` session, queries = every
     ``every``-th frame of each session in ``queries``. Writes ``out/map.h5``,
     ``out/report.md``, ``out/report.json``, ``out/queries.csv`` and plots; returns the metrics.
+    ``metric_candidates`` is :class:`Localizer`'s (M top re-ranked candidates metric-localized).
     """
     out_dir = Path(out)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -153,7 +155,7 @@ def run_evaluation(
         model, ds, [database], out_dir / "map.h5", store_bev=False, progress=progress
     )
     mapdb = MapDatabase.open(map_path, expected_config_hash=model.config_hash())
-    loc = Localizer(model, mapdb, top_k=top_k, search=search)
+    loc = Localizer(model, mapdb, top_k=top_k, search=search, metric_candidates=metric_candidates)
     frames = [ds.session(s)[i] for s in queries for i in range(0, len(ds.session(s)), every)]
     results = loc.localize_batch(frames, progress=progress)
 
@@ -189,6 +191,11 @@ def run_evaluation(
         f"accepted ({rule}): {accepted.mean():.1%} of all queries; top-1 within 2 m among the "
         f"accepted kept queries: {acc_precision:.1%} (among all kept: {rec_ml.at(1, 2.0):.1%})",
     ]
+    if loc.metric_candidates > 1:
+        notes.append(
+            f"VVLoc-ML: the top-{k} re-ranked by yaw matching cost, then the first "
+            f"{loc.metric_candidates} metric-localized and ordered by re-rank + metric cost"
+        )
     if untrained_warning:
         notes.insert(0, untrained_warning)
     metrics: dict[str, Any] = {
@@ -199,6 +206,7 @@ def run_evaluation(
             "queries": ",".join(queries),
             "model_config_hash": model.config_hash(),
             "top_k": k,
+            "metric_candidates": loc.metric_candidates,
             "device": device,
             "hardware": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores",
             "torch_threads": torch.get_num_threads(),

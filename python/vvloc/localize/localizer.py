@@ -148,7 +148,8 @@ class LocalizationResult:
         cost: matching cost at the estimate (lower is better).
         accepted: ``cost < accept_threshold`` and ``distinctiveness >= min_distinctiveness``.
         retrieved: (K,) map rows in retrieval order; ``retrieval_dist`` their L2 distances.
-        reranked: (K,) map rows after re-ranking by matching cost; ``rerank_cost`` their costs.
+        reranked: (K,) map rows after re-ranking by matching cost (and, with ``metric_candidates``
+            > 1, by re-rank + metric cost among the first M); ``rerank_cost`` their re-rank costs.
         timings_ms: per-stage wall time: encode, retrieve, rerank, metric.
         search: every evaluated translation hypothesis (xy (M, 2), yaw, cost, stage).
         distinctiveness: mean minus minimum of ``rerank_cost`` (≥ 0; higher = the chosen
@@ -187,6 +188,10 @@ class Localizer:
             calibrate`` or by training with validation sessions), and 0 (no check) when the
             model has none.
         search: the translation search (see :class:`SearchConfig`).
+        metric_candidates: M, how many of the re-ranked candidates get a metric localization
+            (default 1: only the top one). With M > 1 each of the top M is metric-localized and
+            the one with the lowest re-rank cost + metric cost is chosen (it moves to the front
+            of ``reranked``); the metric stage then costs M times as much.
         decoder: ``"learned"`` (the model's decoder + interactor, default) or ``"radial_mean"``
             (the non-learned :class:`RadialMeanDecoder`, no interactor: a baseline, and the
             geometry oracle's decoder; the map's local descriptors must then be radial means).
@@ -202,6 +207,7 @@ class Localizer:
         accept_threshold: float = 0.75,
         min_distinctiveness: float | None = None,
         search: SearchConfig | None = None,
+        metric_candidates: int = 1,
         decoder: str = "learned",
     ) -> None:
         if decoder not in ("learned", "radial_mean"):
@@ -229,6 +235,13 @@ class Localizer:
         if not min_distinctiveness >= 0:
             raise ValueError(f"min_distinctiveness: expected >= 0, got {min_distinctiveness}")
         self.min_distinctiveness = float(min_distinctiveness)
+        if (
+            isinstance(metric_candidates, bool)
+            or not isinstance(metric_candidates, int)
+            or metric_candidates < 1
+        ):
+            raise ValueError(f"metric_candidates: expected an int >= 1, got {metric_candidates!r}")
+        self.metric_candidates = metric_candidates
         self.search = search or SearchConfig()
         self.decoder = decoder
         self.index = DescriptorIndex(mapdb.global_descriptors)
@@ -353,9 +366,17 @@ class Localizer:
         else:
             reranked, rerank_cost = rows, np.full(len(rows), np.nan)
         timings["rerank"] = (time.perf_counter() - t0) * 1e3
-        best = int(reranked[0])
         t0 = time.perf_counter()
-        xi_mq, cost, history = self.metric(bev, best)
+        m = min(self.metric_candidates, len(reranked)) if self.rerank_enabled else 1
+        tried = [self.metric(bev, int(row)) for row in reranked[:m]]
+        if m > 1:
+            score = rerank_cost[:m] + np.array([c for _, c, _ in tried])
+            front = np.argsort(score, kind="stable")
+            reranked = np.concatenate([reranked[:m][front], reranked[m:]])
+            rerank_cost = np.concatenate([rerank_cost[:m][front], rerank_cost[m:]])
+            tried = [tried[int(k)] for k in front]
+        best = int(reranked[0])
+        xi_mq, cost, history = tried[0]
         timings["metric"] = (time.perf_counter() - t0) * 1e3
         map_pose = self.map.poses[best]
         distinct = max(float(rerank_cost.mean() - rerank_cost.min()), 0.0)
