@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 from collections.abc import Iterator
+from typing import Annotated
 
 import typer
 
@@ -11,6 +12,17 @@ import typer
 #: checkpoint, malformed data).
 EXIT_FAILURE = 1
 EXIT_USAGE = 2
+
+#: ``--metric_candidates`` of ``eval`` and ``localize`` (see ``Localizer(metric_candidates=)``).
+MetricCandidates = Annotated[
+    int,
+    typer.Option(
+        "--metric_candidates",
+        min=1,
+        help="Metric-localize the top M re-ranked candidates and keep the lowest "
+        "re-rank + metric cost (M times the metric stage's time).",
+    ),
+]
 
 
 @contextlib.contextmanager

@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-from vvloc.commands._util import cli_errors, split_names
+from vvloc.commands._util import MetricCandidates, cli_errors, split_names
 
 
 def _checkpoint_dir(path: Path) -> Path:
@@ -33,15 +33,7 @@ def eval_command(
     robustness: Annotated[
         bool, typer.Option("--robustness", help="Also score retrieval under perturbations.")
     ] = False,
-    metric_candidates: Annotated[
-        int,
-        typer.Option(
-            "--metric_candidates",
-            min=1,
-            help="Metric-localize the top M re-ranked candidates and keep the lowest "
-            "re-rank + metric cost (M times the metric stage's time).",
-        ),
-    ] = 1,
+    metric_candidates: MetricCandidates = 1,
     loops: Annotated[
         bool, typer.Option("--loops", help="Also evaluate loop closure (P/R, CFER, poses).")
     ] = False,

@@ -8,7 +8,7 @@ from typing import Annotated
 import numpy as np
 import typer
 
-from vvloc.commands._util import cli_errors
+from vvloc.commands._util import MetricCandidates, cli_errors
 from vvloc.commands.evaluate import _checkpoint_dir
 
 HEADER = (
@@ -41,15 +41,7 @@ def localize(
             help="Accept distinctiveness at or above (default: the model's calibration, else 0).",
         ),
     ] = None,
-    metric_candidates: Annotated[
-        int,
-        typer.Option(
-            "--metric_candidates",
-            min=1,
-            help="Metric-localize the top M re-ranked candidates and keep the lowest "
-            "re-rank + metric cost (M times the metric stage's time).",
-        ),
-    ] = 1,
+    metric_candidates: MetricCandidates = 1,
     device: Annotated[str, typer.Option("--device", help="cpu or cuda.")] = "cpu",
 ) -> None:
     """Write poses.tum (global poses), queries.csv and timings.json into --out."""
