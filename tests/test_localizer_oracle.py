@@ -70,14 +70,15 @@ def test_localizer_recovers_the_query_world_pose(seed, metric_candidates, tmp_pa
             one = Localizer(model, mapdb, top_k=5, search=search, decoder="radial_mean")
             ref = one.localize_encoded(np.zeros(16, np.float32), q_local, q_bev)
             m = metric_candidates
+            metric_cost = {int(row): one.metric(q_bev, int(row))[1] for row in ref.reranked[:m]}
             score = {
-                int(row): c + one.metric(q_bev, int(row))[1]
+                int(row): c + metric_cost[int(row)]
                 for row, c in zip(ref.reranked[:m], ref.rerank_cost[:m], strict=True)
             }
             assert sorted(res.reranked.tolist()) == sorted(ref.reranked.tolist())
             assert res.reranked[m:].tolist() == ref.reranked[m:].tolist()
             assert res.reranked[:m].tolist() == sorted(score, key=score.__getitem__)
-            assert res.cost == pytest.approx(one.metric(q_bev, res.map_row)[1])
+            assert res.cost == pytest.approx(metric_cost[res.map_row])
     assert res.map_row == target
     assert np.hypot(*(res.global_pose[:2] - q_pose[:2])) < 0.15, (res.global_pose, q_pose)
     assert abs(np.degrees(wrap(res.global_pose[2] - q_pose[2]))) < 1.0
@@ -98,6 +99,8 @@ def test_unknown_decoder_is_refused(tmp_path):
     )
     with pytest.raises(ValueError, match="decoder"):
         Localizer(model, db, decoder="magic")
-    for bad in (0, 2.0, True):
-        with pytest.raises(ValueError, match="metric_candidates"):
+    with pytest.raises(ValueError, match="metric_candidates"):
+        Localizer(model, db, metric_candidates=0)
+    for bad in (2.0, True):
+        with pytest.raises(TypeError, match="metric_candidates"):
             Localizer(model, db, metric_candidates=bad)

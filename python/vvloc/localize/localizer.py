@@ -235,13 +235,7 @@ class Localizer:
         if not min_distinctiveness >= 0:
             raise ValueError(f"min_distinctiveness: expected >= 0, got {min_distinctiveness}")
         self.min_distinctiveness = float(min_distinctiveness)
-        if (
-            isinstance(metric_candidates, bool)
-            or not isinstance(metric_candidates, int)
-            or metric_candidates < 1
-        ):
-            raise ValueError(f"metric_candidates: expected an int >= 1, got {metric_candidates!r}")
-        self.metric_candidates = metric_candidates
+        self.metric_candidates = kernels._positive_int(metric_candidates, "metric_candidates")
         self.search = search or SearchConfig()
         self.decoder = decoder
         self.index = DescriptorIndex(mapdb.global_descriptors)
