@@ -9,7 +9,12 @@ import numpy as np
 import pytest
 
 from vvloc import kernels as K
-from vvloc.localize.metric import RadialMeanDecoder, SearchConfig, metric_localize
+from vvloc.localize.metric import (
+    RadialMeanDecoder,
+    SearchConfig,
+    metric_localize,
+    metric_localize_best,
+)
 
 H = W = 100
 G = 0.3
@@ -102,3 +107,70 @@ def test_metric_localize_rejects_mismatched_target():
         metric_localize(
             np.zeros((10, 10, 4)), np.zeros((7, 4)), RadialMeanDecoder(), None, 0.3, 8, 3
         )
+
+
+def _targets(seed: int, n: int):
+    """A source BEV and n targets around it (offsets within ±2.5 m, any yaw)."""
+    rng = np.random.default_rng(2000 + seed)
+    field = world_field(seed)
+    src_pose = (rng.uniform(-20, 20), rng.uniform(-20, 20), rng.uniform(-np.pi, np.pi))
+    xis = [(*rng.uniform(-2.5, 2.5, 2), rng.uniform(-np.pi, np.pi)) for _ in range(n)]
+    decode = RadialMeanDecoder()
+    tgts = np.stack(
+        [decode(K.polar_sample(bev_at(field, compose(src_pose, xi)), T, R, G)) for xi in xis]
+    )
+    return bev_at(field, src_pose), tgts, xis, decode
+
+
+def test_metric_localize_best_of_one_equals_metric_localize():
+    bev_s, tgts, _, decode = _targets(0, 1)
+    cfg = SearchConfig(stages=3, seed=3)
+    one = metric_localize(bev_s, tgts[0], decode, cfg, G, T, R)
+    best = metric_localize_best(bev_s, tgts, decode, None, cfg, G, T, R)
+    assert best.index == 0
+    assert best.result.pose == one.pose and best.result.cost == one.cost
+    for a, b in zip(best.result.history, one.history, strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert best.coarse_cost[0] == one.history.cost[one.history.stage == 0].min()
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_metric_localize_best_refines_the_target_of_lowest_coarse_cost(seed):
+    bev_s, tgts, xis, decode = _targets(seed, 4)
+    # a fifth target from another place of another world: it must lose
+    other = decode(K.polar_sample(bev_at(world_field(seed + 50), (3.0, -4.0, 1.0)), T, R, G))
+    tgts = np.concatenate([tgts, other[None]])
+    cfg = SearchConfig(stages=4, seed=seed)
+    singles = [metric_localize(bev_s, t, decode, cfg, G, T, R) for t in tgts]
+    coarse = [r.history.cost[r.history.stage == 0].min() for r in singles]
+    best = metric_localize_best(bev_s, tgts, decode, None, cfg, G, T, R)
+    np.testing.assert_array_equal(best.coarse_cost, coarse)
+    assert best.index == int(np.argmin(coarse)) != 4
+    want = singles[best.index]
+    assert best.result.pose == want.pose and best.result.cost == want.cost
+    x, y, yaw = best.result.pose
+    xi = xis[best.index]
+    assert np.hypot(x - xi[0], y - xi[1]) < 0.2 and abs(np.degrees(wrap(yaw - xi[2]))) < 1.5
+
+
+def test_metric_localize_best_calls_the_interactor_per_target():
+    bev_s, tgts, _, decode = _targets(1, 3)
+    seen: list[int] = []
+
+    def interact(ds, k):
+        seen.append(k)
+        return ds, np.broadcast_to(tgts[k], ds.shape)
+
+    cfg = SearchConfig(stages=2, seed=0)
+    plain = metric_localize_best(bev_s, tgts, decode, None, cfg, G, T, R)
+    inter = metric_localize_best(bev_s, tgts, decode, interact, cfg, G, T, R)
+    assert inter.index == plain.index and inter.result.pose == plain.result.pose
+    # the coarse stage once per target, then one fine stage for the chosen one
+    assert seen == [0, 1, 2, plain.index]
+
+
+def test_metric_localize_best_rejects_bad_targets():
+    bev = np.zeros((10, 10, 4), np.float32)
+    for bad in (np.zeros((7, 4)), np.zeros((2, 7, 4)), np.zeros((0, 8, 4))):
+        with pytest.raises(ValueError, match="desc_tgts"):
+            metric_localize_best(bev, bad, RadialMeanDecoder(), None, None, 0.3, 8, 3)

@@ -71,6 +71,53 @@ def _numpy(x: Any) -> npt.NDArray[np.float32]:
     return np.asarray(x, dtype=np.float32)
 
 
+def _search(cfg: SearchConfig, backend: kernels.Backend) -> kernels.TranslationSearch:
+    return kernels.TranslationSearch(
+        cfg.half_range,
+        cfg.step,
+        cfg.fine_samples,
+        cfg.stages,
+        cfg.shrink,
+        cfg.seed,
+        backend=backend,
+    )
+
+
+def _score(
+    desc: Any, tgt: npt.NDArray[np.float32], backend: kernels.Backend
+) -> kernels.YawEstimate:
+    """Exact yaw minimum of decoded hypotheses: ``desc`` is (N, T, C), or the pair (Ds', Dt')
+    of a learned interactor; ``tgt`` (T, C) is used only for a plain (N, T, C)."""
+    if isinstance(desc, tuple):  # a learned decoder + interactor refines both sides
+        src, t = (_numpy(d) for d in desc)
+    else:
+        src, t = _numpy(desc), tgt
+    return kernels.estimate_yaw(src, t, backend=backend)
+
+
+def _finish(
+    search: kernels.TranslationSearch,
+    bev_src: Any,
+    score: Callable[[npt.NDArray[np.float32]], kernels.YawEstimate],
+    num_angles: int,
+    num_radii: int,
+    grid_size: float,
+    backend: kernels.Backend,
+) -> MetricResult:
+    """Run the remaining stages of ``search``: pad + polar-sample the source at each stage's
+    proposals, ``score`` the polar BEVs (N, T, R, C), report; return the best hypothesis."""
+    while not search.done:
+        xy = search.proposals()
+        polar = kernels.pad_polar(  # type: ignore[attr-defined]  # spatial section of kernels
+            bev_src, xy, num_angles, num_radii, grid_size, backend=backend
+        )
+        est = score(polar)
+        search.report(est.cost, est.yaw)
+    best = search.best()
+    assert best is not None  # at least one stage was reported
+    return MetricResult((best.x, best.y, best.yaw), best.cost, search.history())
+
+
 def metric_localize(
     bev_src: Any,
     desc_tgt: Any,
@@ -103,27 +150,90 @@ def metric_localize(
     t = kernels._as_f32(desc_tgt, "desc_tgt", 2, "(T, C)")
     if t.shape[0] != num_angles:
         raise ValueError(f"desc_tgt: expected (T={num_angles}, C), got shape {t.shape}")
-    search = kernels.TranslationSearch(
-        cfg.half_range,
-        cfg.step,
-        cfg.fine_samples,
-        cfg.stages,
-        cfg.shrink,
-        cfg.seed,
-        backend=backend,
+    return _finish(
+        _search(cfg, backend),
+        bev_src,
+        lambda polar: _score(decode(polar), t, backend),
+        num_angles,
+        num_radii,
+        grid_size,
+        backend,
     )
-    while not search.done:
-        xy = search.proposals()
-        polar = kernels.pad_polar(  # type: ignore[attr-defined]  # spatial section of kernels
-            bev_src, xy, num_angles, num_radii, grid_size, backend=backend
-        )
-        desc = decode(polar)
-        if isinstance(desc, tuple):  # a learned decoder + interactor refines both sides
-            src, tgt = (_numpy(d) for d in desc)
-        else:
-            src, tgt = _numpy(desc), t
-        est = kernels.estimate_yaw(src, tgt, backend=backend)
+
+
+class BestMatch(NamedTuple):
+    """Result of :func:`metric_localize_best`: ``index`` of the chosen target, its
+    :class:`MetricResult` (``result``), and every target's lowest coarse-stage cost
+    (``coarse_cost`` (M,) float64)."""
+
+    index: int
+    result: MetricResult
+    coarse_cost: npt.NDArray[np.float64]
+
+
+def metric_localize_best(
+    bev_src: Any,
+    desc_tgts: Any,
+    decode: Decoder,
+    interact: Callable[[Any, int], tuple[Any, Any]] | None = None,
+    config: SearchConfig | None = None,
+    grid_size: float = 0.3,
+    num_angles: int = 120,
+    num_radii: int = 25,
+    *,
+    backend: kernels.Backend = "rust",
+) -> BestMatch:
+    """Metric localization of one source BEV against the best of several targets.
+
+    The coarse stage (the grid of :class:`SearchConfig`) is run against every target with the
+    source padded and decoded once (the decoder's work is shared; only the interactor and the
+    yaw estimation run per target); the target of lowest coarse cost (the first on ties) then
+    goes through the fine stages alone. With one target this equals :func:`metric_localize`.
+
+    Args:
+        bev_src: source BEV queries (H, W, C) float, channels-last, cell size ``grid_size``.
+        desc_tgts: (M, T, C) float: the targets' local-view descriptors, T = ``num_angles``.
+        decode: maps polar BEVs (N, T, R, C) float32 to source descriptors (N, T, C).
+        interact: ``interact(ds, k)`` refines the decoded source descriptors ds (N, T, C)
+            against target k into the pair (Ds', Dt') of (N, T, C) (the learned interactor);
+            None matches ``decode``'s output against ``desc_tgts[k]`` directly.
+        config, grid_size, num_angles, num_radii, backend: as :func:`metric_localize`.
+
+    Returns:
+        :class:`BestMatch`: the chosen target, its pose ξ_{s→t} (metres, radians, source frame)
+        and cost, and each target's coarse-stage cost.
+    """
+    cfg = config or SearchConfig()
+    tgts = kernels._as_f32(desc_tgts, "desc_tgts", 3, "(M, T, C)")
+    if tgts.shape[0] < 1 or tgts.shape[1] != num_angles:
+        raise ValueError(f"desc_tgts: expected (M >= 1, T={num_angles}, C), got shape {tgts.shape}")
+
+    def score_with(k: int) -> Callable[[Any], kernels.YawEstimate]:
+        if interact is None:
+            return lambda ds: _score(ds, tgts[k], backend)
+        return lambda ds: _score(interact(ds, k), tgts[k], backend)
+
+    searches = [_search(cfg, backend) for _ in range(len(tgts))]
+    xy = searches[0].proposals()  # the coarse grid: the same for every search
+    polar = kernels.pad_polar(  # type: ignore[attr-defined]  # spatial section of kernels
+        bev_src, xy, num_angles, num_radii, grid_size, backend=backend
+    )
+    ds = decode(polar)
+    coarse = np.empty(len(tgts))
+    for k, search in enumerate(searches):
+        est = score_with(k)(ds)
         search.report(est.cost, est.yaw)
-    best = search.best()
-    assert best is not None  # at least one stage was reported
-    return MetricResult((best.x, best.y, best.yaw), best.cost, search.history())
+        best = search.best()
+        assert best is not None
+        coarse[k] = best.cost
+    k = int(np.argmin(coarse))
+    result = _finish(
+        searches[k],
+        bev_src,
+        lambda polar: score_with(k)(decode(polar)),
+        num_angles,
+        num_radii,
+        grid_size,
+        backend,
+    )
+    return BestMatch(k, result, coarse)
