@@ -66,20 +66,24 @@ def test_localizer_recovers_the_query_world_pose(seed, metric_candidates, tmp_pa
         )
         res = loc.localize_encoded(np.zeros(16, np.float32), q_local, q_bev)
         if metric_candidates > 1:
-            # the first M re-ranked candidates are ordered by re-rank + metric cost
-            one = Localizer(model, mapdb, top_k=5, search=search, decoder="radial_mean")
+            # the first M re-ranked candidates are ordered by their coarse-stage cost, and the
+            # lowest one is refined (snapping off: the order is the search's alone)
+            kw = {"top_k": 5, "search": search, "decoder": "radial_mean", "snap": False}
+            one = Localizer(model, mapdb, **kw)
             ref = one.localize_encoded(np.zeros(16, np.float32), q_local, q_bev)
+            many = Localizer(model, mapdb, metric_candidates=metric_candidates, **kw)
+            got = many.localize_encoded(np.zeros(16, np.float32), q_local, q_bev)
             m = metric_candidates
-            metric_cost = {int(row): one.metric(q_bev, int(row))[1] for row in ref.reranked[:m]}
-            score = {
-                int(row): c + metric_cost[int(row)]
-                for row, c in zip(ref.reranked[:m], ref.rerank_cost[:m], strict=True)
-            }
-            assert sorted(res.reranked.tolist()) == sorted(ref.reranked.tolist())
-            assert res.reranked[m:].tolist() == ref.reranked[m:].tolist()
-            assert res.reranked[:m].tolist() == sorted(score, key=score.__getitem__)
-            assert res.cost == pytest.approx(metric_cost[res.map_row])
+            coarse = {}
+            for row in ref.reranked[:m]:
+                hist = one.metric(q_bev, int(row))[2]
+                coarse[int(row)] = hist.cost[hist.stage == 0].min()
+            assert got.reranked[m:].tolist() == ref.reranked[m:].tolist()
+            assert got.reranked[:m].tolist() == sorted(coarse, key=coarse.__getitem__)
+            assert got.metric_row == got.map_row == got.reranked[0]
+            assert got.cost == pytest.approx(one.metric(q_bev, got.map_row)[1])
     assert res.map_row == target
+    assert res.metric_row == target  # the query is nearest its own keyframe: no snapping
     assert np.hypot(*(res.global_pose[:2] - q_pose[:2])) < 0.15, (res.global_pose, q_pose)
     assert abs(np.degrees(wrap(res.global_pose[2] - q_pose[2]))) < 1.0
     np.testing.assert_allclose(res.relative_pose[:2], xi[:2], atol=0.15)
@@ -104,3 +108,54 @@ def test_unknown_decoder_is_refused(tmp_path):
     for bad in (2.0, True):
         with pytest.raises(TypeError, match="metric_candidates"):
             Localizer(model, db, metric_candidates=bad)
+    with pytest.raises(TypeError, match="snap"):
+        Localizer(model, db, snap="yes")
+
+
+@pytest.mark.parametrize("upper_floor", [False, True])
+def test_snapping_reports_the_keyframe_nearest_to_the_metric_pose(upper_floor, tmp_path):
+    """Keyframes every 1.5 m along x; the query lies 0.4 m past keyframe 3 but its global
+    descriptor retrieves keyframe 2 first (no re-ranking), so the metric pose is estimated
+    against keyframe 2; snapping must report keyframe 3 (keyframe 4 when 3 is on another
+    floor), with the world pose unchanged and the relative pose in the reported frame."""
+    rng = np.random.default_rng(7)
+    field = world_field(7)
+    model = _model()
+    decode = RadialMeanDecoder()
+    n = 6
+    map_poses = np.array([(1.5 * k, 0.0, rng.uniform(-np.pi, np.pi)) for k in range(n)])
+    local = decode(kernels.polar_sample(np.stack([bev_at(field, p) for p in map_poses]), T, R, G))
+    glob = np.eye(n, 16, dtype=np.float32)
+    floors = np.zeros(n, np.int64)
+    if upper_floor:
+        floors[3] = 1
+    db = MapDatabase.from_arrays(
+        poses=map_poses,
+        timestamps=np.arange(float(n)),
+        sessions="s0",
+        global_descriptors=glob,
+        local_descriptors=local,
+        model_config=model.config.to_dict(),
+        grid_size=G,
+        config_hash=model.config_hash(),
+        floors=floors,
+    )
+    path = db.save(tmp_path / "map.h5")
+    q_pose = np.array([4.9, 0.3, 0.4])
+    q_bev = bev_at(field, q_pose)
+    q_local = decode(kernels.polar_sample(q_bev, T, R, G))
+    search = SearchConfig(half_range=3.0, step=0.6, fine_samples=32, stages=5, seed=0)
+    with MapDatabase.open(path, expected_config_hash=model.config_hash()) as mapdb:
+        kw = {"top_k": n, "search": search, "decoder": "radial_mean", "rerank": False}
+        snapped = Localizer(model, mapdb, **kw).localize_encoded(glob[2], q_local, q_bev)
+        plain = Localizer(model, mapdb, snap=False, **kw).localize_encoded(glob[2], q_local, q_bev)
+    want = 4 if upper_floor else 3
+    assert plain.map_row == plain.metric_row == snapped.metric_row == 2
+    assert snapped.map_row == want and snapped.reranked[0] == want
+    assert sorted(snapped.reranked.tolist()) == list(range(n))
+    np.testing.assert_allclose(snapped.global_pose, plain.global_pose)
+    assert np.hypot(*(snapped.global_pose[:2] - q_pose[:2])) < 0.15
+    back = compose(map_poses[want], snapped.relative_pose)
+    np.testing.assert_allclose(back[:2], snapped.global_pose[:2], atol=1e-9)
+    assert abs(wrap(back[2] - snapped.global_pose[2])) < 1e-9
+    assert snapped.cost == plain.cost

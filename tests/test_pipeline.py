@@ -131,6 +131,25 @@ def test_cli_map_localize_loops_end_to_end(tiny_world, model_dir, tmp_path):
     assert len(ts) == len(open_dataset(tiny_world).session("s2"))
     assert (tmp_path / "loc" / "queries.csv").read_text().startswith("# vvloc localize")
     r = run(
+        "localize",
+        "--map",
+        str(map_path),
+        "--dataset",
+        str(tiny_world),
+        "--session",
+        "s2",
+        "--checkpoint",
+        str(model_dir),
+        "--out",
+        str(tmp_path / "loc-nosnap"),
+        "--no-snap",
+    )
+    assert r.returncode == 0, r.stderr
+    lines = (tmp_path / "loc-nosnap" / "queries.csv").read_text().splitlines()
+    header = lines[1].split(",")
+    rows = [dict(zip(header, line.split(","), strict=True)) for line in lines[2:]]
+    assert rows and all(row["map_row"] == row["metric_row"] for row in rows)
+    r = run(
         "loops",
         "--map",
         str(map_path),

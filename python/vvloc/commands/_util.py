@@ -19,8 +19,17 @@ MetricCandidates = Annotated[
     typer.Option(
         "--metric_candidates",
         min=1,
-        help="Metric-localize the top M re-ranked candidates and keep the lowest "
-        "re-rank + metric cost (M times the metric stage's time).",
+        help="Run the coarse translation search against the top M re-ranked candidates "
+        "(the query decoded once) and refine the lowest-cost one.",
+    ),
+]
+
+#: ``--snap/--no-snap`` of ``eval`` and ``localize`` (see ``Localizer(snap=)``).
+Snap = Annotated[
+    bool,
+    typer.Option(
+        "--snap/--no-snap",
+        help="Report the retrieved keyframe nearest to the metric pose (same floor).",
     ),
 ]
 

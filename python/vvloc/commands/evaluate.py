@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-from vvloc.commands._util import MetricCandidates, cli_errors, split_names
+from vvloc.commands._util import MetricCandidates, Snap, cli_errors, split_names
 
 
 def _checkpoint_dir(path: Path) -> Path:
@@ -34,6 +34,7 @@ def eval_command(
         bool, typer.Option("--robustness", help="Also score retrieval under perturbations.")
     ] = False,
     metric_candidates: MetricCandidates = 1,
+    snap: Snap = True,
     loops: Annotated[
         bool, typer.Option("--loops", help="Also evaluate loop closure (P/R, CFER, poses).")
     ] = False,
@@ -56,6 +57,7 @@ def eval_command(
             out,
             top_k=top_k,
             metric_candidates=metric_candidates,
+            snap=snap,
             every=every,
             device=device,
             robustness=robustness,

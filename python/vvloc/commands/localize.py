@@ -8,7 +8,7 @@ from typing import Annotated
 import numpy as np
 import typer
 
-from vvloc.commands._util import MetricCandidates, cli_errors
+from vvloc.commands._util import MetricCandidates, Snap, cli_errors
 from vvloc.commands.evaluate import _checkpoint_dir
 
 HEADER = (
@@ -16,7 +16,9 @@ HEADER = (
     "(deg in this file). relative_* = the query frame expressed in the map keyframe's frame "
     "(x forward, y left). cost = matching cost, lower is better; distinctiveness = mean minus "
     "minimum of the re-ranking costs, higher is more confident; accepted = cost < threshold and "
-    "distinctiveness >= min_distinctiveness (the model's calibration, or --min_distinctiveness)."
+    "distinctiveness >= min_distinctiveness (the model's calibration, or --min_distinctiveness). "
+    "map_row = the reported keyframe (snapped: the retrieved one nearest the metric pose); "
+    "metric_row = the keyframe the pose was estimated against."
 )
 
 
@@ -42,6 +44,7 @@ def localize(
         ),
     ] = None,
     metric_candidates: MetricCandidates = 1,
+    snap: Snap = True,
     device: Annotated[str, typer.Option("--device", help="cpu or cuda.")] = "cpu",
 ) -> None:
     """Write poses.tum (global poses), queries.csv and timings.json into --out."""
@@ -60,6 +63,7 @@ def localize(
             accept_threshold=threshold,
             min_distinctiveness=min_distinctiveness,
             metric_candidates=metric_candidates,
+            snap=snap,
         )
         sess = open_dataset(dataset).session(session)
         frames = list(sess)
@@ -75,14 +79,16 @@ def localize(
         lines = [
             HEADER,
             "index,timestamp,map_row,map_id,map_session,relative_x,relative_y,"
-            "relative_yaw_deg,global_x,global_y,global_yaw_deg,cost,distinctiveness,accepted",
+            "relative_yaw_deg,global_x,global_y,global_yaw_deg,cost,distinctiveness,accepted,"
+            "metric_row",
         ]
         for f, r in zip(frames, results, strict=True):
             rel, g = r.relative_pose, r.global_pose
             lines.append(
                 f"{f.index},{f.t:.6f},{r.map_row},{r.map_id},{r.map_session},{rel[0]:.4f},"
                 f"{rel[1]:.4f},{np.degrees(rel[2]):.3f},{g[0]:.4f},{g[1]:.4f},"
-                f"{np.degrees(g[2]):.3f},{r.cost:.5f},{r.distinctiveness:.5f},{int(r.accepted)}"
+                f"{np.degrees(g[2]):.3f},{r.cost:.5f},{r.distinctiveness:.5f},{int(r.accepted)},"
+                f"{r.metric_row}"
             )
         (out / "queries.csv").write_text("\n".join(lines) + "\n")
         stages = ("encode", "retrieve", "rerank", "metric")

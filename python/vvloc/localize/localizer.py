@@ -11,6 +11,12 @@ Pipeline per query frame (DESIGN.md §1):
 4. metric localization against the best candidate: the Rust :class:`TranslationSearch` proposes
    translations, ``pad_polar`` pads + polar-samples the query BEV for the whole stage, the
    decoder and the interactor run once per stage (batched), ``estimate_yaw`` scores them.
+   With ``metric_candidates`` M > 1 the coarse stage is run against each of the first M
+   re-ranked candidates (the query decoded once, the interactor per candidate) and the one of
+   lowest coarse cost goes through the fine stages (:func:`metric_localize_best`);
+5. snapping (``snap``, default on): the query's metric world pose picks the reported keyframe,
+   the retrieved candidate nearest to it (on the matched keyframe's floor); the relative pose
+   is re-expressed in that keyframe's frame (the world pose does not change).
 
 Frames: the search estimates ξ_{q→m}, the map keyframe's frame expressed in the query's frame
 (the query BEV is the padded source). Results report ``relative_pose`` = ξ_{m→q} (the query
@@ -37,7 +43,12 @@ from tqdm import tqdm
 from vvloc import geometry, kernels
 from vvloc.data import Frame
 from vvloc.localize.mapdb import MapDatabase, MapWriter
-from vvloc.localize.metric import RadialMeanDecoder, SearchConfig, metric_localize
+from vvloc.localize.metric import (
+    RadialMeanDecoder,
+    SearchConfig,
+    metric_localize,
+    metric_localize_best,
+)
 from vvloc.nets import VVLocNet
 from vvloc.retrieval import DescriptorIndex
 
@@ -149,12 +160,15 @@ class LocalizationResult:
         accepted: ``cost < accept_threshold`` and ``distinctiveness >= min_distinctiveness``.
         retrieved: (K,) map rows in retrieval order; ``retrieval_dist`` their L2 distances.
         reranked: (K,) map rows after re-ranking by matching cost (and, with ``metric_candidates``
-            > 1, by re-rank + metric cost among the first M); ``rerank_cost`` their re-rank costs.
+            > 1, by coarse metric cost among the first M; with ``snap``, the snapped keyframe
+            first); ``rerank_cost`` their re-rank costs, in the same order.
         timings_ms: per-stage wall time: encode, retrieve, rerank, metric.
         search: every evaluated translation hypothesis (xy (M, 2), yaw, cost, stage).
         distinctiveness: mean minus minimum of ``rerank_cost`` (≥ 0; higher = the chosen
             keyframe stands out more; NaN without re-ranking), the calibrated confidence
             (:func:`vvloc.evaluate.distinctiveness`).
+        metric_row: the map row the metric pose was estimated against (equals ``map_row``
+            unless snapping chose a nearer keyframe; -1 when the map is empty).
     """
 
     map_row: int
@@ -171,6 +185,7 @@ class LocalizationResult:
     timings_ms: dict[str, float] = field(default_factory=dict)
     search: kernels.SearchHistory | None = None
     distinctiveness: float = float("nan")
+    metric_row: int = -1
 
 
 class Localizer:
@@ -189,9 +204,15 @@ class Localizer:
             model has none.
         search: the translation search (see :class:`SearchConfig`).
         metric_candidates: M, how many of the re-ranked candidates get a metric localization
-            (default 1: only the top one). With M > 1 each of the top M is metric-localized and
-            the one with the lowest re-rank cost + metric cost is chosen (it moves to the front
-            of ``reranked``); the metric stage then costs M times as much.
+            (default 1: only the top one). With M > 1 the coarse translation stage runs against
+            each of the top M (the query's padded BEVs decoded once, the interactor and the yaw
+            kernel per candidate), the first M are ordered by their coarse cost, and the
+            lowest goes through the fine stages (:func:`metric_localize_best`).
+        snap: report the retrieved keyframe nearest to the query's metric world pose (on the
+            metric-matched keyframe's floor) instead of the matched one (default True): the
+            metric pose says where the query is, so the nearest candidate is the place; the
+            world pose is unchanged and ``relative_pose`` is expressed in the reported
+            keyframe's frame (``metric_row`` keeps the matched one).
         decoder: ``"learned"`` (the model's decoder + interactor, default) or ``"radial_mean"``
             (the non-learned :class:`RadialMeanDecoder`, no interactor: a baseline, and the
             geometry oracle's decoder; the map's local descriptors must then be radial means).
@@ -208,6 +229,7 @@ class Localizer:
         min_distinctiveness: float | None = None,
         search: SearchConfig | None = None,
         metric_candidates: int = 1,
+        snap: bool = True,
         decoder: str = "learned",
     ) -> None:
         if decoder not in ("learned", "radial_mean"):
@@ -236,6 +258,9 @@ class Localizer:
             raise ValueError(f"min_distinctiveness: expected >= 0, got {min_distinctiveness}")
         self.min_distinctiveness = float(min_distinctiveness)
         self.metric_candidates = kernels._positive_int(metric_candidates, "metric_candidates")
+        if not isinstance(snap, (bool, np.bool_)):
+            raise TypeError(f"snap: expected a bool, got {type(snap).__name__}")
+        self.snap = bool(snap)
         self.search = search or SearchConfig()
         self.decoder = decoder
         self.index = DescriptorIndex(mapdb.global_descriptors)
@@ -301,6 +326,58 @@ class Localizer:
         xi_qm = np.asarray(res.pose, dtype=np.float64)
         return geometry.inverse(xi_qm), float(res.cost), res.history
 
+    @torch.no_grad()
+    def metric_best(
+        self, bev: F32, rows: npt.NDArray[np.int64]
+    ) -> tuple[int, npt.NDArray[np.float64], float, Any, npt.NDArray[np.float64]]:
+        """Metric localization of a query BEV (H, W, C) against the best of map ``rows`` (M,)
+        (:func:`metric_localize_best`): returns (index into ``rows``, ξ_{m→q} (3,), cost,
+        search history, each row's coarse-stage cost (M,))."""
+        tgts = self.map.local_descriptors(np.asarray(rows, dtype=np.int64))
+        if self.decoder == "radial_mean":
+            decode: Any = RadialMeanDecoder()
+            interact = None
+        else:
+            device = model_device(self.model)
+            tgt_t = torch.from_numpy(np.ascontiguousarray(tgts, dtype=np.float32)).to(device)
+
+            def decode(polar: F32) -> torch.Tensor:
+                return self.model.decode_polar(torch.from_numpy(polar).to(device))
+
+            def interact(ds: torch.Tensor, k: int) -> tuple[F32, F32]:
+                a, b = self.model.interact(ds, tgt_t[k].expand(ds.shape[0], *tgt_t.shape[1:]))
+                return a.float().cpu().numpy(), b.float().cpu().numpy()
+
+        best = metric_localize_best(
+            bev,
+            tgts,
+            decode,
+            interact,
+            self.search,
+            self.grid_size,
+            self.num_angles,
+            self.num_radii,
+        )
+        xi_qm = np.asarray(best.result.pose, dtype=np.float64)
+        return (
+            best.index,
+            geometry.inverse(xi_qm),
+            float(best.result.cost),
+            best.result.history,
+            best.coarse_cost,
+        )
+
+    def snap_row(self, global_pose: npt.ArrayLike, rows: npt.NDArray[np.int64], floor: int) -> int:
+        """The row among ``rows`` (K,) nearest in x-y (metres, world frame) to ``global_pose``
+        (x, y, yaw) on ``floor`` (the first on ties; -1 when none is on that floor)."""
+        rows = np.asarray(rows, dtype=np.int64)
+        on_floor = rows[self.map.floors[rows] == floor]
+        if len(on_floor) == 0:
+            return -1
+        xy = self.map.poses[on_floor, :2]
+        d = np.hypot(*(xy - np.asarray(global_pose, dtype=np.float64)[:2]).T)
+        return int(on_floor[int(np.argmin(d))])
+
     # --- public --------------------------------------------------------------------------
 
     def localize(self, frame: Frame) -> LocalizationResult:
@@ -362,17 +439,25 @@ class Localizer:
         timings["rerank"] = (time.perf_counter() - t0) * 1e3
         t0 = time.perf_counter()
         m = min(self.metric_candidates, len(reranked)) if self.rerank_enabled else 1
-        tried = [self.metric(bev, int(row)) for row in reranked[:m]]
-        if m > 1:
-            score = rerank_cost[:m] + np.array([c for _, c, _ in tried])
-            front = np.argsort(score, kind="stable")
+        if m == 1:
+            xi_mq, cost, history = self.metric(bev, int(reranked[0]))
+        else:
+            k, xi_mq, cost, history, coarse = self.metric_best(bev, reranked[:m])
+            front = np.argsort(coarse, kind="stable")
+            assert front[0] == k  # both take the first of equal lowest costs
             reranked = np.concatenate([reranked[:m][front], reranked[m:]])
             rerank_cost = np.concatenate([rerank_cost[:m][front], rerank_cost[m:]])
-            tried = [tried[int(k)] for k in front]
-        best = int(reranked[0])
-        xi_mq, cost, history = tried[0]
+        matched = int(reranked[0])
+        global_pose = geometry.compose(self.map.poses[matched], xi_mq)
+        best = matched
+        if self.snap:
+            best = self.snap_row(global_pose, reranked, int(self.map.floors[matched]))
+            if best != matched:
+                xi_mq = geometry.relative(self.map.poses[best], global_pose)
+                front = np.flatnonzero(reranked == best)[0]
+                order = np.r_[front, np.delete(np.arange(len(reranked)), front)]
+                reranked, rerank_cost = reranked[order], rerank_cost[order]
         timings["metric"] = (time.perf_counter() - t0) * 1e3
-        map_pose = self.map.poses[best]
         distinct = max(float(rerank_cost.mean() - rerank_cost.min()), 0.0)
         confident = self.min_distinctiveness <= 0 or bool(distinct >= self.min_distinctiveness)
         return LocalizationResult(
@@ -380,7 +465,7 @@ class Localizer:
             map_id=int(self.map.ids[best]),
             map_session=self.map.session_of(best),
             relative_pose=xi_mq,
-            global_pose=geometry.compose(map_pose, xi_mq),
+            global_pose=global_pose,
             cost=cost,
             accepted=bool(cost < self.accept_threshold) and confident,
             retrieved=rows,
@@ -390,6 +475,7 @@ class Localizer:
             timings_ms=timings,
             search=history,
             distinctiveness=distinct,
+            metric_row=matched,
         )
 
 
