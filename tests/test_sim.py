@@ -28,6 +28,7 @@ from vvloc.sim import (
 )
 from vvloc.sim.render import ego_to_world
 from vvloc.sim.sequences import Drive, drive_keyframes, sample_loop
+from vvloc.sim.simulate import build_world
 from vvloc.sim.world import MARKER, MeshBuilder
 
 BLACK = Lighting("black", sun=(0, 0, 0), ambient=(0, 0, 0), sky=(0, 0, 0), fog_density=0.0)
@@ -135,6 +136,33 @@ def test_garage_floors_look_alike_but_are_different_places(egl):
     same_floor_elsewhere = np.abs(a - c).mean()
     # not identical (parked cars and level signs differ), yet more alike than another spot
     assert 0.5 < across_floors < same_floor_elsewhere
+
+
+def test_pillar_marking_tells_the_floors_apart_and_changes_nothing_else(egl):
+    walls = garage_world(seed=0, floors=2)
+    pillars = garage_world(seed=0, floors=2, floor_marking="pillars")
+    # the same layout, cars and lights; only the marks are added
+    assert np.array_equal(walls.occupancy, pillars.occupancy)
+    assert np.array_equal(walls.car_colors, pillars.car_colors)
+    assert np.array_equal(walls.lights, pillars.lights)
+    assert [b.x for b in walls.bays] == [b.x for b in pillars.bays]
+    assert len(pillars.static[0]) > len(walls.static[0])
+    r = Renderer(make_rig(4, 80, 48))
+    diffs = {}
+    try:
+        for name, g in (("walls", walls), ("pillars", pillars)):
+            v, i = g.mesh()
+            r.set_mesh(v, i, g.lights, g.light_colors, g.light_floors)
+            a = r.render((20.0, 8.25, 0.0), g.floor_z[0], "garage", floor=0).astype(np.float64)
+            b = r.render((20.0, 8.25, 0.0), g.floor_z[1], "garage", floor=1).astype(np.float64)
+            diffs[name] = np.abs(a - b).mean()
+    finally:
+        r.release()
+    assert diffs["pillars"] > diffs["walls"]  # the level colours differ across floors
+    with pytest.raises(ValueError, match="floor_marking"):
+        garage_world(seed=0, floor_marking="paint")
+    with pytest.raises(ValueError, match="floor_marking"):
+        build_world("parking", floor_marking="pillars")
 
 
 def test_session_plan_covers_offsets_reversals_and_lighting():

@@ -16,6 +16,13 @@ class Scene(str, Enum):
     garage = "garage"
 
 
+class FloorMarking(str, Enum):
+    """How ``vvloc sim --scene garage`` marks its floors."""
+
+    walls = "walls"
+    pillars = "pillars"
+
+
 def sim(
     out: Annotated[Path, typer.Option("--out", help="Output folder (must not exist or be empty).")],
     scene: Annotated[Scene, typer.Option("--scene", help="World to render.")] = Scene.parking,
@@ -26,6 +33,14 @@ def sim(
     floors: Annotated[
         int, typer.Option("--floors", min=1, help="Garage storeys (garage scene only).")
     ] = 2,
+    floor_marking: Annotated[
+        FloorMarking,
+        typer.Option(
+            "--floor_marking",
+            help="Garage only: level signs on the walls alone (look-alike floors), or also a "
+            "level colour and number on every pillar.",
+        ),
+    ] = FloorMarking.walls,
     seed: Annotated[int, typer.Option("--seed", help="World, route and session seed.")] = 0,
     cameras: Annotated[
         int, typer.Option("--cameras", min=1, max=12, help="Cameras in the rig (4, 5, 6, ...).")
@@ -61,6 +76,7 @@ def sim(
             sessions=sessions,
             frames=frames,
             floors=floors,
+            floor_marking=floor_marking.value,
             seed=seed,
             cameras=cameras,
             width=width,

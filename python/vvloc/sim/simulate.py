@@ -68,12 +68,15 @@ def session_plan(
     ]
 
 
-def build_world(scene: str, seed: int = 0, floors: int = 2) -> World:
-    """The world of ``scene`` ("parking" or "garage" with ``floors`` storeys)."""
+def build_world(scene: str, seed: int = 0, floors: int = 2, floor_marking: str = "walls") -> World:
+    """The world of ``scene`` ("parking" or "garage" with ``floors`` storeys marked as
+    ``floor_marking`` says, see :func:`vvloc.sim.world.garage_world`)."""
     if scene == "parking":
+        if floor_marking != "walls":
+            raise ValueError("floor_marking: only the garage scene has floors to mark")
         return parking_world(seed)
     if scene == "garage":
-        return garage_world(seed, floors=floors)
+        return garage_world(seed, floors=floors, floor_marking=floor_marking)
     raise ValueError(f"scene: expected one of {SCENES}, got {scene!r}")
 
 
@@ -84,6 +87,7 @@ def simulate_dataset(
     sessions: int = 3,
     frames: int = 600,
     floors: int = 2,
+    floor_marking: str = "walls",
     seed: int = 0,
     cameras: int = 4,
     width: int = 160,
@@ -98,18 +102,21 @@ def simulate_dataset(
     Each session drives the world's loop(s) for ``frames`` keyframes (garage: split across the
     floors, each floor driving its own copy of the loop), see :func:`session_plan`. Everything is
     a function of ``seed``. The dataset appears atomically: on error nothing is left behind.
+    ``floor_marking`` (garage only): ``"walls"`` or ``"pillars"``, see
+    :func:`vvloc.sim.world.garage_world`; recorded in ``rig.json``'s ``meta``.
     """
     for key, v in (("sessions", sessions), ("frames", frames), ("floors", floors)):
         if isinstance(v, bool) or not isinstance(v, int) or v < 1:
             raise ValueError(f"{key}: expected an int >= 1, got {v!r}")
     plan = session_plan(scene, sessions, seed, lighting)
     rig = make_rig(cameras, width, height)
-    world = build_world(scene, seed, floors)
+    world = build_world(scene, seed, floors, floor_marking)
     loops = [sample_loop(r) for r in world.routes]
     meta = {
         "scene": scene,
         "seed": seed,
         "floors": len(world.floor_z),
+        "floor_marking": floor_marking,
         "texture_strength": texture_strength,
         "generator": "vvloc.sim",
     }

@@ -509,15 +509,40 @@ def _tree(mb: MeshBuilder, x: float, y: float, rng: np.random.Generator) -> None
     mb.cylinder((x, y, h + 1.8), r * 0.6, 1.2, g, FOLIAGE, sides=8)
 
 
+#: Level colours of ``floor_marking="pillars"`` (floor f paints its pillars FLOOR_COLOURS[f % 6]).
+FLOOR_COLOURS = (
+    (0.85, 0.72, 0.1),  # yellow
+    (0.15, 0.35, 0.85),  # blue
+    (0.2, 0.65, 0.25),  # green
+    (0.8, 0.2, 0.15),  # red
+    (0.6, 0.25, 0.7),  # purple
+    (0.9, 0.5, 0.1),  # orange
+)
+FLOOR_MARKINGS = ("walls", "pillars")
+
+
 def garage_world(
-    seed: int = 0, *, floors: int = 2, n_bays: int = 18, occupancy: float = 0.6
+    seed: int = 0,
+    *,
+    floors: int = 2,
+    n_bays: int = 18,
+    occupancy: float = 0.6,
+    floor_marking: str = "walls",
 ) -> World:
     """An underground garage of ``floors`` storeys of the same layout (pillars, bays, ceiling
     lights, walls); the level signs (digits) and a quarter of the parked cars differ between
     floors (the cross-floor look-alikes).
+
+    ``floor_marking`` says how a floor shows its level: ``"walls"`` (default), only four level
+    signs on the south and north walls (visible from few places; every pillar has the same
+    yellow band), or ``"pillars"``, as many real garages do it, additionally a level colour on
+    every pillar (a 1.2 m band of :data:`FLOOR_COLOURS`) with the level number above it on the
+    faces towards the aisles. Geometry, cars and lights are the same for both.
     Floor f's driving surface is at z = −3.2·f."""
     if floors < 1:
         raise ValueError(f"floors: expected >= 1, got {floors}")
+    if floor_marking not in FLOOR_MARKINGS:
+        raise ValueError(f"floor_marking: expected one of {FLOOR_MARKINGS}, got {floor_marking!r}")
     rng = np.random.default_rng([seed, 2])
     mb = MeshBuilder()
     bays: list[Bay] = []
@@ -559,7 +584,21 @@ def garage_world(
                 for k in range(0, n_bays + 1, 3):
                     xp = k * bay_w
                     mb.box((xp, yp, float(z)), (0.6, 0.6, CEILING), (0.7, 0.7, 0.68), CONCRETE)
-                    mb.box((xp, yp, float(z) + 0.9), (0.62, 0.62, 0.4), YELLOW, PAINT)
+                    if floor_marking == "walls":
+                        mb.box((xp, yp, float(z) + 0.9), (0.62, 0.62, 0.4), YELLOW, PAINT)
+                        continue
+                    colour = FLOOR_COLOURS[f % len(FLOOR_COLOURS)]
+                    mb.box((xp, yp, float(z) + 0.5), (0.62, 0.62, 1.2), colour, PAINT)
+                    ny = -float(side)  # the face towards the aisle
+                    ux = ny  # the wall signs' convention for the digit's direction
+                    mb.digit(
+                        f + 1,
+                        (xp - 0.12 * ux, yp + 0.32 * ny, float(z) + 1.8),
+                        (ux, 0.0),
+                        (0.0, ny),
+                        0.4,
+                        (0.95, 0.95, 0.95),
+                    )
         # perimeter walls
         for x0, y0, x1, y1 in (
             (x_min, y_min, x_max, y_min),
