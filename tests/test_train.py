@@ -240,5 +240,41 @@ def test_a_dataset_rendered_by_another_config_or_missing_val_sessions_are_clear_
     sim = {"scene": "parking", "sessions": 5, "frames": 40, "seed": 0}
     with pytest.raises(ValueError, match=r"lacks sessions \['s3', 's4'\]"):
         Trainer(_config(tiny_world, sim=sim), tmp_path / "run")
+    # another world than the one recorded in rig.json: refused, naming both
+    others = ({"seed": 1}, {"scene": "garage"}, {"scene": "garage", "floor_marking": "pillars"})
+    for other in others:
+        with pytest.raises(ValueError, match=r"was rendered as .*'scene': 'parking'"):
+            Trainer(_config(tiny_world, sim={**sim, "sessions": 3, **other}), tmp_path / "run")
     with pytest.raises(KeyError, match="s7"):
         Trainer(_config(tiny_world, train_sessions=["s0", "s1"], val_sessions=["s7"]), "unused")
+
+
+def test_init_checkpoint_starts_from_trained_weights_and_refuses_another_model(
+    tiny_world, tmp_path
+):
+    first = train(_config(tiny_world, stage1_epochs=1, stage2_epochs=0), tmp_path / "a", False)
+    tuned = Trainer(_config(tiny_world, init_checkpoint=str(tmp_path / "a")), tmp_path / "b")
+    for (name, a), b in zip(
+        first.model.state_dict().items(), tuned.model.state_dict().values(), strict=True
+    ):
+        assert torch.equal(a, b), name
+    fresh = Trainer(_config(tiny_world), tmp_path / "c")
+    assert not all(
+        torch.equal(a, b)
+        for a, b in zip(
+            fresh.model.state_dict().values(), tuned.model.state_dict().values(), strict=True
+        )
+    )
+    with pytest.raises(ValueError, match=r"init_checkpoint: .* holds model"):
+        Trainer(
+            _config(
+                tiny_world,
+                init_checkpoint=str(tmp_path / "a"),
+                model_overrides={"num_angles": 30},
+            ),
+            tmp_path / "d",
+        )
+    with pytest.raises(FileNotFoundError, match="init_checkpoint"):
+        Trainer(_config(tiny_world, init_checkpoint=str(tmp_path / "nope")), tmp_path / "e")
+    with pytest.raises(ValueError, match="init_checkpoint"):
+        TrainConfig.from_dict({"dataset": "x", "init_checkpoint": 3})

@@ -67,6 +67,9 @@ class TrainConfig:
     each is its own world (see :class:`vvloc.data.TripletSampler`, which also takes
     ``cross_floor_fraction``: the share of negatives drawn from another floor at the anchor's
     x-y in multi-storey worlds). Validation uses ``dataset`` only.
+    ``init_checkpoint`` (optional): start from these weights (a checkpoint folder, or a run
+    folder: its ``best/``, else its ``checkpoint/``) instead of a random initialisation, to
+    fine-tune a trained model (e.g. on a further world); its model config must equal this run's.
     ``val_sessions`` (optional, disjoint from ``train_sessions``) select the checkpoint: every
     ``val_every``-th frame of each is localized against a map of the ``val_database`` session
     (re-ranking the ``val_top_k`` retrieved keyframes) after each joint epoch.
@@ -103,6 +106,7 @@ class TrainConfig:
     augment: dict[str, Any] | None = None
     extra_datasets: list[dict[str, Any]] = field(default_factory=list)
     cross_floor_fraction: float = 0.0
+    init_checkpoint: str | None = None
     val_sessions: list[str] | None = None
     val_database: str = "s0"
     val_every: int = 1
@@ -154,6 +158,8 @@ class TrainConfig:
                     "val_sessions: must not be trained on (set train_sessions without them); "
                     f"overlap: {overlap or 'train_sessions is unset (all sessions train)'}"
                 )
+        if self.init_checkpoint is not None and not isinstance(self.init_checkpoint, str):
+            raise ValueError("init_checkpoint: expected a checkpoint or run folder path")
         if not isinstance(self.extra_datasets, list):
             raise ValueError("extra_datasets: expected a list of mappings")
         for k, extra in enumerate(self.extra_datasets):
@@ -362,11 +368,32 @@ def validation_recall(
     }
 
 
+def _check_rendered_like(root: Path, sim: dict[str, Any]) -> None:
+    """Refuse a rendered dataset whose recorded world (``rig.json`` ``meta``: scene, seed, and
+    for a garage floors and floor marking) differs from what ``sim`` would render."""
+    rig = root / "rig.json"
+    meta = json.loads(rig.read_text()).get("meta", {}) if rig.is_file() else {}
+    if meta.get("generator") != "vvloc.sim":
+        return
+    want = {"scene": sim.get("scene", "parking"), "seed": sim.get("seed", 0)}
+    have = {"scene": meta.get("scene"), "seed": meta.get("seed")}
+    if want["scene"] == "garage":
+        want |= {"floors": sim.get("floors", 2), "floor_marking": sim.get("floor_marking", "walls")}
+        have |= {"floors": meta.get("floors"), "floor_marking": meta.get("floor_marking", "walls")}
+    if want != have:
+        raise ValueError(
+            f"dataset {root} was rendered as {have}, but the config's sim section renders "
+            f"{want}: move it away to re-render it, or point the config elsewhere"
+        )
+
+
 def _ensure_dataset(dataset: str, sim: dict[str, Any] | None) -> None:
     """Render ``dataset`` from ``sim`` (arguments of :func:`vvloc.sim.simulate_dataset`) when it
     does not exist yet."""
     root = Path(dataset)
     if root.exists():
+        if sim:
+            _check_rendered_like(root, sim)
         if sim and isinstance(sim.get("sessions"), int):
             have = set(open_dataset(root).sessions)
             missing = [f"s{i}" for i in range(sim["sessions"]) if f"s{i}" not in have]
@@ -417,6 +444,8 @@ class Trainer:
             for name in [cfg.val_database, *cfg.val_sessions]:
                 self.ds.session(name)  # KeyError naming the known sessions, before any epoch
         self.model = VVLocNet(cfg.model_config()).to(self.device)
+        if cfg.init_checkpoint is not None:
+            self._load_init(Path(cfg.init_checkpoint))
         self.augment = None if cfg.augment is None else PhotometricAugment.from_dict(cfg.augment)
         self.optimizer = torch.optim.Adam(
             self.model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay
@@ -425,6 +454,24 @@ class Trainer:
         self.epoch = 0
         self.step = 0
         self.best: dict[str, Any] | None = None  # the validation record of best/, if any
+
+    def _load_init(self, path: Path) -> None:
+        """Copy the weights of ``init_checkpoint`` into the fresh model (refused when its model
+        config differs from this run's)."""
+        for sub in ("best", "checkpoint"):
+            if (path / sub / "config.json").is_file():
+                path = path / sub
+                break
+        if not (path / "config.json").is_file():
+            raise FileNotFoundError(f"init_checkpoint: no checkpoint (config.json) in {path}")
+        init = VVLocNet.load(path)
+        if init.config_hash() != self.model.config_hash():
+            raise ValueError(
+                f"init_checkpoint: {path} holds model {init.config_hash()}, but this run trains "
+                f"model {self.model.config_hash()} (model / model_overrides differ)"
+            )
+        self.model.load_state_dict(init.state_dict())
+        log.info("initialised from %s", path)
 
     # --- persistence ---------------------------------------------------------------------
 
