@@ -41,6 +41,15 @@ def eval_command(
     loop_pairs: Annotated[
         int, typer.Option("--loop_pairs", min=1, help="Detected pairs to verify metrically.")
     ] = 200,
+    loop_radius: Annotated[
+        float,
+        typer.Option(
+            "--loop_radius",
+            min=0.0,
+            max=0.5,
+            help="Loop closures accepted below this global-descriptor distance.",
+        ),
+    ] = 0.1,
 ) -> None:
     """Write report.md/report.json/plots with Recall@N, AOE/APE and per-stage latency."""
     from vvloc.localize.evaluation import run_evaluation
@@ -63,5 +72,6 @@ def eval_command(
             robustness=robustness,
             loops=loops,
             loop_pairs=loop_pairs,
+            loop_radius=loop_radius,
         )
     typer.echo(f"report: {out / 'report.md'}")

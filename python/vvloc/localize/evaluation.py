@@ -83,8 +83,10 @@ def _loops(
     loop_pairs: int,
     search: SearchConfig | None,
     progress: bool,
+    radius: float = 0.1,
 ) -> tuple[dict[str, Any], dict[str, Any]]:
-    """Loop closure over all frames of ``sessions`` (one map with BEVs)."""
+    """Loop closure over all frames of ``sessions`` (one map with BEVs), accepted at descriptor
+    distance < ``radius``."""
     path = build_map(model, ds, list(sessions), out_dir / "loops_map.h5", progress=progress)
     with MapDatabase.open(path, expected_config_hash=model.config_hash()) as db:
         pos = np.asarray(db.poses)[:, :2]
@@ -105,9 +107,9 @@ def _loops(
             db_times=times,
             time_window=10,
         )
-        closure = {"VVLoc (descriptor radius)": curve.summary(0.1)}
+        closure = {"VVLoc (descriptor radius)": curve.summary(radius)}
         order = np.argsort(cand.distance, kind="stable")[:loop_pairs]
-        order = order[cand.distance[order] < 0.1] if np.any(cand.distance < 0.1) else order[:0]
+        order = order[cand.distance[order] < radius]
         est, costs = verify_pairs(model, db, cand.i[order], cand.j[order], search=search)
         gt = geometry.relative(db.poses[cand.i[order]], db.poses[cand.j[order]])
         pose = evaluate.loop_pose_metrics(est, gt.reshape(-1, 3), costs)
@@ -140,13 +142,18 @@ def run_evaluation(
     robustness: bool = False,
     loops: bool = False,
     loop_pairs: int = 200,
+    loop_radius: float = 0.1,
 ) -> dict[str, Any]:
     """Evaluate a checkpoint on ``dataset``: map = ``database`` session, queries = every
     ``every``-th frame of each session in ``queries``. Writes ``out/map.h5``,
     ``out/report.md``, ``out/report.json``, ``out/queries.csv`` and plots; returns the metrics.
     ``metric_candidates`` and ``snap`` are :class:`Localizer`'s (the M top re-ranked candidates
     scored by the coarse translation search; the reported keyframe snapped to the metric pose).
+    ``loops``: also loop closure over all frames of ``database`` + ``queries``, accepted at
+    global-descriptor distance < ``loop_radius`` (the first ``loop_pairs`` verified metrically).
     """
+    if not 0 < loop_radius <= 0.5:
+        raise ValueError(f"loop_radius: expected a value in (0, 0.5], got {loop_radius}")
     out_dir = Path(out)
     out_dir.mkdir(parents=True, exist_ok=True)
     model = VVLocNet.load(checkpoint).to(torch.device(device))
@@ -241,7 +248,7 @@ def run_evaluation(
         metrics["robustness"] = _robustness(loc, frames, q_pose, q_floor, db_pose, db_floor, k)
     if loops:
         metrics["loop_closure"], metrics["loop_pose"] = _loops(
-            model, ds, [database, *queries], out_dir, loop_pairs, search, progress
+            model, ds, [database, *queries], out_dir, loop_pairs, search, progress, loop_radius
         )
 
     # per-query CSV
