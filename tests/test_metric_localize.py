@@ -161,16 +161,32 @@ def test_metric_localize_best_calls_the_interactor_per_target():
         seen.append(k)
         return ds, np.broadcast_to(tgts[k], ds.shape)
 
+    decoded: list[int] = []
+
+    def counting(polar):
+        decoded.append(len(polar))
+        return decode(polar)
+
     cfg = SearchConfig(stages=2, seed=0)
     plain = metric_localize_best(bev_s, tgts, decode, None, cfg, G, T, R)
-    inter = metric_localize_best(bev_s, tgts, decode, interact, cfg, G, T, R)
+    inter = metric_localize_best(bev_s, tgts, counting, interact, cfg, G, T, R)
     assert inter.index == plain.index and inter.result.pose == plain.result.pose
     # the coarse stage once per target, then one fine stage for the chosen one
     assert seen == [0, 1, 2, plain.index]
+    # the source is decoded once per stage, whatever the number of targets
+    assert decoded == [121, cfg.fine_samples]
+    with pytest.raises(TypeError, match="decode"):
+        metric_localize_best(bev_s, tgts, lambda p: (decode(p), decode(p)), None, cfg, G, T, R)
 
 
-def test_metric_localize_best_rejects_bad_targets():
-    bev = np.zeros((10, 10, 4), np.float32)
-    for bad in (np.zeros((7, 4)), np.zeros((2, 7, 4)), np.zeros((0, 8, 4))):
-        with pytest.raises(ValueError, match="desc_tgts"):
-            metric_localize_best(bev, bad, RadialMeanDecoder(), None, None, 0.3, 8, 3)
+def test_metric_localize_best_refuses_a_non_finite_cost(monkeypatch):
+    bev_s, tgts, _, decode = _targets(2, 3)
+    real = K.estimate_yaw
+
+    def nan_costs(src, tgt, **kw):
+        est = real(src, tgt, **kw)
+        return est._replace(cost=np.full_like(est.cost, np.nan))
+
+    monkeypatch.setattr(K, "estimate_yaw", nan_costs)
+    with pytest.raises(ValueError, match="costs: contains non-finite"):
+        metric_localize_best(bev_s, tgts, decode, None, SearchConfig(stages=2), G, T, R)

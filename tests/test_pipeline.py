@@ -132,7 +132,9 @@ def test_cli_map_localize_loops_end_to_end(tiny_world, model_dir, tmp_path):
     assert r.returncode == 0, r.stderr
     ts, _poses = read_tum(tmp_path / "loc" / "poses.tum")
     assert len(ts) == len(open_dataset(tiny_world).session("s2"))
-    assert (tmp_path / "loc" / "queries.csv").read_text().startswith("# vvloc localize")
+    text = (tmp_path / "loc" / "queries.csv").read_text()
+    assert text.startswith("# vvloc localize")
+    assert text.splitlines()[1].split(",")[-1] == "metric_row"
     r = run(
         "localize",
         "--map",
@@ -253,5 +255,7 @@ def test_evaluation_scores_loop_closures_at_the_given_radius(tiny_world, model_d
     m = run_evaluation(model_dir, tiny_world, "s0", ["s1"], tmp_path / "ev", loop_radius=0.3, **kw)
     at = m["loop_closure"]["VVLoc (descriptor radius)"]["at_threshold"]
     assert at["threshold"] == 0.3
+    # only pairs accepted at the radius are verified metrically (at most loop_pairs of them)
+    assert m["loop_pose"]["VVLoc"]["all"]["count"] == min(2, at["accepted"])
     assert m["meta"]["snap"] is True and m["meta"]["metric_candidates"] == 1
-    assert (tmp_path / "ev" / "report.md").read_text().count("0.300") >= 1
+    assert "| VVLoc (descriptor radius) | 0.300 |" in (tmp_path / "ev" / "report.md").read_text()

@@ -278,3 +278,19 @@ def test_init_checkpoint_starts_from_trained_weights_and_refuses_another_model(
         Trainer(_config(tiny_world, init_checkpoint=str(tmp_path / "nope")), tmp_path / "e")
     with pytest.raises(ValueError, match="init_checkpoint"):
         TrainConfig.from_dict({"dataset": "x", "init_checkpoint": 3})
+
+
+def test_a_garage_rendered_with_another_floor_marking_is_refused(tmp_path):
+    from vvloc.train import _check_rendered_like
+
+    root = tmp_path / "garage"
+    root.mkdir()
+    meta = {"scene": "garage", "seed": 0, "floors": 2, "generator": "vvloc.sim"}
+    (root / "rig.json").write_text(json.dumps({"meta": meta}))  # before floor_marking existed
+    sim = {"scene": "garage", "seed": 0, "floors": 2}
+    _check_rendered_like(root, sim)  # an unrecorded marking is the default "walls"
+    _check_rendered_like(root, {**sim, "floor_marking": "walls"})
+    with pytest.raises(ValueError, match=r"'floor_marking': 'walls'.*'floor_marking': 'pillars'"):
+        _check_rendered_like(root, {**sim, "floor_marking": "pillars"})
+    with pytest.raises(ValueError, match="'floors': 3"):
+        _check_rendered_like(root, {**sim, "floors": 3})

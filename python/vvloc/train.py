@@ -70,6 +70,7 @@ class TrainConfig:
     ``init_checkpoint`` (optional): start from these weights (a checkpoint folder, or a run
     folder: its ``best/``, else its ``checkpoint/``) instead of a random initialisation, to
     fine-tune a trained model (e.g. on a further world); its model config must equal this run's.
+    Like ``dataset``, a relative path is taken from the working directory.
     ``val_sessions`` (optional, disjoint from ``train_sessions``) select the checkpoint: every
     ``val_every``-th frame of each is localized against a map of the ``val_database`` session
     (re-ranking the ``val_top_k`` retrieved keyframes) after each joint epoch.
@@ -159,7 +160,10 @@ class TrainConfig:
                     f"overlap: {overlap or 'train_sessions is unset (all sessions train)'}"
                 )
         if self.init_checkpoint is not None and not isinstance(self.init_checkpoint, str):
-            raise ValueError("init_checkpoint: expected a checkpoint or run folder path")
+            raise ValueError(
+                "init_checkpoint: expected a checkpoint or run folder path, "
+                f"got {self.init_checkpoint!r}"
+            )
         if not isinstance(self.extra_datasets, list):
             raise ValueError("extra_datasets: expected a list of mappings")
         for k, extra in enumerate(self.extra_datasets):

@@ -47,7 +47,7 @@ def eval_command(
             "--loop_radius",
             min=0.0,
             max=0.5,
-            help="Loop closures accepted below this global-descriptor distance.",
+            help="Loop closures accepted below this global-descriptor distance, in (0, 0.5].",
         ),
     ] = 0.1,
 ) -> None:

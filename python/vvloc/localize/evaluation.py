@@ -257,7 +257,7 @@ def run_evaluation(
         "# vvloc evaluation per query. Poses: world frame x east, y north (m), yaw CCW from east"
         " (deg). cost: matching cost (lower is better).",
         "session,index,map_row,est_x,est_y,est_yaw_deg,gt_x,gt_y,gt_yaw_deg,pos_err_m,"
-        "yaw_err_deg,cost,accepted,top1_correct,distinctiveness",
+        "yaw_err_deg,cost,accepted,top1_correct,distinctiveness,metric_row",
     ]
     for f, r, e, g, pe, ye, c in zip(
         frames, results, est, q_pose, pos_err, yaw_err, correct, strict=True
@@ -265,7 +265,7 @@ def run_evaluation(
         lines.append(
             f"{f.session},{f.index},{r.map_row},{e[0]:.4f},{e[1]:.4f},{np.degrees(e[2]):.3f},"
             f"{g[0]:.4f},{g[1]:.4f},{np.degrees(g[2]):.3f},{pe:.4f},{ye:.3f},{r.cost:.5f},"
-            f"{int(r.accepted)},{int(c)},{r.distinctiveness:.5f}"
+            f"{int(r.accepted)},{int(c)},{r.distinctiveness:.5f},{r.metric_row}"
         )
     (out_dir / "queries.csv").write_text("\n".join(lines) + "\n")
 
@@ -290,10 +290,10 @@ def run_evaluation(
         r = results[sample]
         a, b = loc.model.interact(
             torch.from_numpy(loc_desc_of(loc, frames[sample]))[None],
-            torch.from_numpy(mapdb.local_descriptors(int(r.reranked[0])))[None],
+            torch.from_numpy(mapdb.local_descriptors(int(r.metric_row)))[None],
         )
         curve = kernels.yaw_costs(a.detach().numpy(), b.detach().numpy())[0]
-        true_rel = geometry.relative(q_pose[sample], db_pose[int(r.reranked[0])])
+        true_rel = geometry.relative(q_pose[sample], db_pose[int(r.metric_row)])
         figures["Yaw cost curve (sample query, no padding)"] = viz.plot_yaw_cost_curve(
             out_dir / "yaw_cost_curve.png", curve, true_yaw=float(true_rel[2])
         )

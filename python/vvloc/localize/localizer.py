@@ -156,17 +156,20 @@ class LocalizationResult:
         relative_pose: ξ_{m→q} (3,) float64: the query frame expressed in the map keyframe's
             frame (x forward m, y left m, yaw CCW rad).
         global_pose: the query's world pose (x, y, yaw) = T_world_m · ξ_{m→q}.
-        cost: matching cost at the estimate (lower is better).
+        cost: matching cost at the estimate (lower is better), against ``metric_row``.
         accepted: ``cost < accept_threshold`` and ``distinctiveness >= min_distinctiveness``.
         retrieved: (K,) map rows in retrieval order; ``retrieval_dist`` their L2 distances.
         reranked: (K,) map rows after re-ranking by matching cost (and, with ``metric_candidates``
             > 1, by coarse metric cost among the first M; with ``snap``, the snapped keyframe
             first); ``rerank_cost`` their re-rank costs, in the same order.
         timings_ms: per-stage wall time: encode, retrieve, rerank, metric.
-        search: every evaluated translation hypothesis (xy (M, 2), yaw, cost, stage).
-        distinctiveness: mean minus minimum of ``rerank_cost`` (≥ 0; higher = the chosen
-            keyframe stands out more; NaN without re-ranking), the calibrated confidence
-            (:func:`vvloc.evaluate.distinctiveness`).
+        search: every evaluated translation hypothesis (xy (M, 2), yaw, cost, stage) of the
+            search against ``metric_row`` (ξ_{q→m} hypotheses, query frame).
+        distinctiveness: mean minus minimum of ``rerank_cost`` (≥ 0; higher = the best
+            re-ranked candidate stands out more; NaN without re-ranking), the calibrated
+            confidence (:func:`vvloc.evaluate.distinctiveness`). It and its calibration are
+            about the re-ranking's best candidate, which snapping or ``metric_candidates`` may
+            replace by another keyframe of the same place.
         metric_row: the map row the metric pose was estimated against (equals ``map_row``
             unless snapping chose a nearer keyframe; -1 when the map is empty).
     """
@@ -207,7 +210,8 @@ class Localizer:
             (default 1: only the top one). With M > 1 the coarse translation stage runs against
             each of the top M (the query's padded BEVs decoded once, the interactor and the yaw
             kernel per candidate), the first M are ordered by their coarse cost, and the
-            lowest goes through the fine stages (:func:`metric_localize_best`).
+            lowest goes through the fine stages (:func:`metric_localize_best`). Without
+            re-ranking the first M retrieved candidates are the ones searched.
         snap: report the retrieved keyframe nearest to the query's metric world pose (on the
             metric-matched keyframe's floor) instead of the matched one (default True): the
             metric pose says where the query is, so the nearest candidate is the place; the
@@ -438,13 +442,16 @@ class Localizer:
             reranked, rerank_cost = rows, np.full(len(rows), np.nan)
         timings["rerank"] = (time.perf_counter() - t0) * 1e3
         t0 = time.perf_counter()
-        m = min(self.metric_candidates, len(reranked)) if self.rerank_enabled else 1
+        m = min(self.metric_candidates, len(reranked))
         if m == 1:
             xi_mq, cost, history = self.metric(bev, int(reranked[0]))
         else:
             k, xi_mq, cost, history, coarse = self.metric_best(bev, reranked[:m])
+            # the first M by coarse cost (finite); the stable sort puts the refined one, the
+            # first of the lowest, first
             front = np.argsort(coarse, kind="stable")
-            assert front[0] == k  # both take the first of equal lowest costs
+            if front[0] != k:
+                raise RuntimeError(f"metric_best chose candidate {k}, the ordering {front[0]}")
             reranked = np.concatenate([reranked[:m][front], reranked[m:]])
             rerank_cost = np.concatenate([rerank_cost[:m][front], rerank_cost[m:]])
         matched = int(reranked[0])

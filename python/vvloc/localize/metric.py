@@ -188,7 +188,8 @@ def metric_localize_best(
     The coarse stage (the grid of :class:`SearchConfig`) is run against every target with the
     source padded and decoded once (the decoder's work is shared; only the interactor and the
     yaw estimation run per target); the target of lowest coarse cost (the first on ties) then
-    goes through the fine stages alone. With one target this equals :func:`metric_localize`.
+    goes through the fine stages alone (the first of equal lowest costs). With one target this
+    equals :func:`metric_localize`.
 
     Args:
         bev_src: source BEV queries (H, W, C) float, channels-last, cell size ``grid_size``.
@@ -208,9 +209,16 @@ def metric_localize_best(
     if tgts.shape[0] < 1 or tgts.shape[1] != num_angles:
         raise ValueError(f"desc_tgts: expected (M >= 1, T={num_angles}, C), got shape {tgts.shape}")
 
+    def plain(ds: Any, k: int) -> kernels.YawEstimate:
+        if isinstance(ds, tuple):
+            raise TypeError(
+                "decode: expected source descriptors (N, T, C) when interact is None, got a pair"
+            )
+        return _score(ds, tgts[k], backend)
+
     def score_with(k: int) -> Callable[[Any], kernels.YawEstimate]:
         if interact is None:
-            return lambda ds: _score(ds, tgts[k], backend)
+            return lambda ds: plain(ds, k)
         return lambda ds: _score(interact(ds, k), tgts[k], backend)
 
     searches = [_search(cfg, backend) for _ in range(len(tgts))]
@@ -226,7 +234,7 @@ def metric_localize_best(
         best = search.best()
         assert best is not None
         coarse[k] = best.cost
-    k = int(np.argmin(coarse))
+    k = int(np.argmin(coarse))  # finite: TranslationSearch.report refuses NaN and inf
     result = _finish(
         searches[k],
         bev_src,
