@@ -112,43 +112,19 @@ def test_cli_map_localize_loops_end_to_end(tiny_world, model_dir, tmp_path):
         str(map_path),
     )
     assert r.returncode == 0, r.stderr
-    r = run(
-        "localize",
-        "--map",
-        str(map_path),
-        "--dataset",
-        str(tiny_world),
-        "--session",
-        "s2",
-        "--checkpoint",
-        str(model_dir),
-        "--out",
-        str(tmp_path / "loc"),
-        "--top_k",
-        "3",
-        "--metric_candidates",
-        "2",
-    )
+
+    def localize(out, *extra):
+        common = ["--map", str(map_path), "--dataset", str(tiny_world), "--session", "s2"]
+        return run("localize", *common, "--checkpoint", str(model_dir), "--out", out, *extra)
+
+    r = localize(str(tmp_path / "loc"), "--top_k", "3", "--metric_candidates", "2")
     assert r.returncode == 0, r.stderr
     ts, _poses = read_tum(tmp_path / "loc" / "poses.tum")
     assert len(ts) == len(open_dataset(tiny_world).session("s2"))
     text = (tmp_path / "loc" / "queries.csv").read_text()
     assert text.startswith("# vvloc localize")
     assert text.splitlines()[1].split(",")[-1] == "metric_row"
-    r = run(
-        "localize",
-        "--map",
-        str(map_path),
-        "--dataset",
-        str(tiny_world),
-        "--session",
-        "s2",
-        "--checkpoint",
-        str(model_dir),
-        "--out",
-        str(tmp_path / "loc-nosnap"),
-        "--no-snap",
-    )
+    r = localize(str(tmp_path / "loc-nosnap"), "--no-snap")
     assert r.returncode == 0, r.stderr
     lines = (tmp_path / "loc-nosnap" / "queries.csv").read_text().splitlines()
     header = lines[1].split(",")
