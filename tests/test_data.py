@@ -285,3 +285,24 @@ def test_extra_datasets_are_other_worlds_and_cross_floor_negatives_share_the_pla
         TripletSampler(lot, cross_floor_fraction=1.5)
     with pytest.raises(ValueError, match="collide"):
         TripletSampler(lot, extra=[(garage, None), (garage, None)])
+    # anchor shares: the garage (2/3 of the frames) drawn for a fifth of the anchors
+    weighted = TripletSampler(lot, seed=0, extra=[(garage, None)], anchor_shares=[0.2])
+    a = weighted.sample_random(4000)[:, 0]
+    assert abs(np.mean(world[a] == 1) - 0.2) < 0.03
+    assert (
+        abs(
+            np.mean(
+                world[TripletSampler(lot, seed=0, extra=[(garage, None)]).sample_random(4000)[:, 0]]
+                == 1
+            )
+            - 2 / 3
+        )
+        < 0.03
+    )
+    assert np.array_equal(  # no share set: the draws of a sampler without the argument
+        TripletSampler(lot, seed=0, extra=[(garage, None)], anchor_shares=[None]).sample(16),
+        TripletSampler(lot, seed=0, extra=[(garage, None)]).sample(16),
+    )
+    for bad in ([0.0], [1.0], [True], [0.5, 0.2]):
+        with pytest.raises(ValueError, match="anchor_shares"):
+            TripletSampler(lot, extra=[(garage, None)], anchor_shares=bad)

@@ -63,7 +63,8 @@ class TrainConfig:
     holds :class:`vvloc.data.augment.PhotometricAugment` fields (``{}`` = its defaults; absent =
     no augmentation), applied independently to each frame of every training triplet.
     ``extra_datasets`` are further training datasets, each a mapping with ``dataset`` (path) and
-    optionally ``sim`` and ``train_sessions`` as above (same rig and image size as ``dataset``);
+    optionally ``sim``, ``train_sessions`` as above (same rig and image size as ``dataset``)
+    and ``anchor_share`` (the share of anchors drawn from it; default: by its frame count);
     each is its own world (see :class:`vvloc.data.TripletSampler`, which also takes
     ``cross_floor_fraction``: the share of negatives drawn from another floor at the anchor's
     x-y in multi-storey worlds). Validation uses ``dataset`` only.
@@ -169,11 +170,11 @@ class TrainConfig:
         for k, extra in enumerate(self.extra_datasets):
             if not isinstance(extra, dict) or "dataset" not in extra:
                 raise ValueError(f"extra_datasets[{k}]: expected a mapping with a 'dataset' path")
-            unknown = sorted(set(extra) - {"dataset", "sim", "train_sessions"})
+            unknown = sorted(set(extra) - {"dataset", "sim", "train_sessions", "anchor_share"})
             if unknown:
                 raise ValueError(
                     f"extra_datasets[{k}]: unknown keys {unknown}; "
-                    "known: ['dataset', 'sim', 'train_sessions']"
+                    "known: ['anchor_share', 'dataset', 'sim', 'train_sessions']"
                 )
         if not 0.0 <= float(self.cross_floor_fraction) <= 1.0:
             raise ValueError("cross_floor_fraction: expected a value in [0, 1]")
@@ -443,6 +444,7 @@ class Trainer:
             hard_fraction=cfg.hard_fraction,
             extra=extra,
             cross_floor_fraction=cfg.cross_floor_fraction,
+            anchor_shares=[e.get("anchor_share") for e in cfg.extra_datasets],
         )
         if cfg.val_sessions:
             for name in [cfg.val_database, *cfg.val_sessions]:

@@ -46,6 +46,10 @@ class TripletSampler:
     positive of another). ``cross_floor_fraction`` is the share of negatives drawn, where the
     anchor's world has other floors, from another floor within ``neg_radius`` metres in x-y of
     the anchor: the look-alike places a multi-storey loop closure must tell apart.
+    ``anchor_shares`` (one per ``extra`` source, or empty): the share of fresh anchors drawn from
+    that world (a float in (0, 1)), or None for the default, in proportion to its frames; the
+    primary dataset and the None worlds share the rest in proportion to their frames. With no
+    shares set the draws are exactly those of a sampler without the argument.
     """
 
     def __init__(
@@ -61,6 +65,7 @@ class TripletSampler:
         floor_separation: float = FLOOR_SEPARATION,
         extra: Sequence[tuple[Dataset, Sequence[str] | None]] = (),
         cross_floor_fraction: float = 0.0,
+        anchor_shares: Sequence[float | None] = (),
     ) -> None:
         if not (pos_radius > 0 and neg_radius >= pos_radius):
             raise ValueError(
@@ -121,8 +126,42 @@ class TripletSampler:
                 f"no frame has a positive within {self.pos_radius} m "
                 f"{'in another session ' if cross_session else ''}(sessions {self.sessions})"
             )
+        self._anchor_p = self._anchor_probabilities(anchor_shares, len(extra))
         self._hard: dict[tuple[int, int, int], None] = {}
         self._hard_cursor = 0
+
+    def _anchor_probabilities(
+        self, shares: Sequence[float | None], n_extra: int
+    ) -> np.ndarray | None:
+        """Per-anchor draw probabilities (A,) for ``anchor_shares``, None when none is set."""
+        shares = list(shares)
+        if shares and len(shares) != n_extra:
+            raise ValueError(
+                f"anchor_shares: expected one entry per extra dataset ({n_extra}), "
+                f"got {len(shares)}"
+            )
+        if all(v is None for v in shares):
+            return None
+        for v in shares:
+            if v is not None and (isinstance(v, bool) or not 0.0 < float(v) < 1.0):
+                raise ValueError(f"anchor_shares: expected None or a share in (0, 1), got {v!r}")
+        fixed = sum(float(v) for v in shares if v is not None)
+        if not fixed < 1.0:
+            raise ValueError(
+                f"anchor_shares: the shares must leave some for the primary dataset, sum {fixed}"
+            )
+        world = self.level_of[self.anchors] // WORLD_LEVELS
+        share_of = [None, *shares]  # world 0 is the primary dataset
+        free = np.array([share_of[int(w)] is None for w in world])
+        p = np.empty(len(self.anchors))
+        p[free] = (1.0 - fixed) / max(int(free.sum()), 1)
+        for w, v in enumerate(share_of):
+            here = world == w
+            if v is not None:
+                if not here.any():
+                    raise ValueError(f"anchor_shares: extra dataset {w - 1} has no anchor")
+                p[here] = float(v) / int(here.sum())
+        return p / p.sum()
 
     def _cross_floor_neighbours(self) -> list[np.ndarray]:
         """Per frame, the frames of its world on another floor within ``neg_radius`` in x-y."""
@@ -166,7 +205,10 @@ class TripletSampler:
         """(n, 3) int64 fresh random triplets (no hard ones)."""
         out = np.empty((n, 3), dtype=np.int64)
         for k in range(n):
-            a = int(self.anchors[self.rng.integers(len(self.anchors))])
+            if self._anchor_p is None:
+                a = int(self.anchors[self.rng.integers(len(self.anchors))])
+            else:
+                a = int(self.anchors[self.rng.choice(len(self.anchors), p=self._anchor_p)])
             pos = self.positives[a]
             out[k] = (a, int(pos[self.rng.integers(len(pos))]), self._negative(a))
         return out
