@@ -69,7 +69,7 @@ def test_localizer_recovers_the_query_world_pose(seed, metric_candidates, tmp_pa
             # the first M re-ranked candidates are ordered by their coarse-stage cost, and the
             # lowest one is refined (snapping off: the order is the search's alone)
             kw = {"top_k": 5, "search": search, "decoder": "radial_mean", "snap": False}
-            one = Localizer(model, mapdb, **kw)
+            one = Localizer(model, mapdb, metric_candidates=1, **kw)
             ref = one.localize_encoded(np.zeros(16, np.float32), q_local, q_bev)
             many = Localizer(model, mapdb, metric_candidates=metric_candidates, **kw)
             got = many.localize_encoded(np.zeros(16, np.float32), q_local, q_bev)
@@ -148,6 +148,7 @@ def test_snapping_reports_the_keyframe_nearest_to_the_metric_pose(upper_floor, t
     search = SearchConfig(half_range=3.0, step=0.6, fine_samples=32, stages=5, seed=0)
     with MapDatabase.open(path, expected_config_hash=model.config_hash()) as mapdb:
         kw = {"top_k": n, "search": search, "decoder": "radial_mean", "rerank": False}
+        kw["metric_candidates"] = 1  # the metric pose against the first retrieved: keyframe 2
         snapped = Localizer(model, mapdb, **kw).localize_encoded(glob[2], q_local, q_bev)
         plain = Localizer(model, mapdb, snap=False, **kw).localize_encoded(glob[2], q_local, q_bev)
     want = 4 if upper_floor else 3

@@ -233,5 +233,5 @@ def test_evaluation_scores_loop_closures_at_the_given_radius(tiny_world, model_d
     assert at["threshold"] == 0.3
     # only pairs accepted at the radius are verified metrically (at most loop_pairs of them)
     assert m["loop_pose"]["VVLoc"]["all"]["count"] == min(2, at["accepted"])
-    assert m["meta"]["snap"] is True and m["meta"]["metric_candidates"] == 1
+    assert m["meta"]["snap"] is True and m["meta"]["metric_candidates"] == 3  # the defaults
     assert "| VVLoc (descriptor radius) | 0.300 |" in (tmp_path / "ev" / "report.md").read_text()

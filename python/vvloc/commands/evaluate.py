@@ -33,7 +33,7 @@ def eval_command(
     robustness: Annotated[
         bool, typer.Option("--robustness", help="Also score retrieval under perturbations.")
     ] = False,
-    metric_candidates: MetricCandidates = 1,
+    metric_candidates: MetricCandidates = 3,
     snap: Snap = True,
     loops: Annotated[
         bool, typer.Option("--loops", help="Also evaluate loop closure (P/R, CFER, poses).")

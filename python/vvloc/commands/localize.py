@@ -43,7 +43,7 @@ def localize(
             help="Accept distinctiveness at or above (default: the model's calibration, else 0).",
         ),
     ] = None,
-    metric_candidates: MetricCandidates = 1,
+    metric_candidates: MetricCandidates = 3,
     snap: Snap = True,
     device: Annotated[str, typer.Option("--device", help="cpu or cuda.")] = "cpu",
 ) -> None:

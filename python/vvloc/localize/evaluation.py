@@ -132,7 +132,7 @@ def run_evaluation(
     out: str | os.PathLike[str],
     *,
     top_k: int = 20,
-    metric_candidates: int = 1,
+    metric_candidates: int = 3,
     snap: bool = True,
     every: int = 1,
     device: str = "cpu",

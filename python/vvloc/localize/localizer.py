@@ -207,7 +207,9 @@ class Localizer:
             model has none.
         search: the translation search (see :class:`SearchConfig`).
         metric_candidates: M, how many of the re-ranked candidates get a metric localization
-            (default 1: only the top one). With M > 1 the coarse translation stage runs against
+            (default 3, chosen on validation sessions: 82.8 % → 85.9 % Recall@1 at 2 m for about
+            1.1× the metric stage's time; 1 = only the top one). With M > 1 the coarse
+            translation stage runs against
             each of the top M (the query's padded BEVs decoded once, the interactor and the yaw
             kernel per candidate), the first M are ordered by their coarse cost, and the
             lowest goes through the fine stages (:func:`metric_localize_best`). Without
@@ -232,7 +234,7 @@ class Localizer:
         accept_threshold: float = 0.75,
         min_distinctiveness: float | None = None,
         search: SearchConfig | None = None,
-        metric_candidates: int = 1,
+        metric_candidates: int = 3,
         snap: bool = True,
         decoder: str = "learned",
     ) -> None:
