@@ -30,7 +30,7 @@ import torch
 from _common import print_table, write_json
 from vvloc import kernels
 from vvloc.data import Frame
-from vvloc.localize.localizer import Localizer
+from vvloc.localize.localizer import Localizer, encode_frames
 from vvloc.localize.mapdb import MapDatabase
 from vvloc.nets import ModelConfig, VVLocNet
 
@@ -52,8 +52,6 @@ def _frame(rng: np.random.Generator, cfg: ModelConfig, cameras: int = 4) -> Fram
 @torch.no_grad()
 def loc_bev(model: VVLocNet, frame: Frame) -> np.ndarray:
     """The query BEV (H, W, C) float32 of one frame."""
-    from vvloc.localize.localizer import encode_frames
-
     enc = encode_frames(model, [frame], keep_bev=True)
     assert enc.bev is not None
     return enc.bev[0]

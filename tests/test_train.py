@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from vvloc.commands.evaluate import _checkpoint_dir
+from vvloc.checkpoints import resolve_checkpoint
 from vvloc.nets import VVLocNet
 from vvloc.train import (
     TrainConfig,
@@ -184,8 +184,8 @@ def test_fit_with_val_sessions_keeps_the_best_joint_epoch_and_resume_remembers_i
     assert tr.best is not None and tr.best["epoch"] == best["epoch"] == log[-1]["best_epoch"]
     assert (out / "best" / "model.safetensors").is_file()
     # the run folder resolves to best/ for eval, map and localize
-    assert _checkpoint_dir(out) == out / "best"
-    assert _checkpoint_dir(out / "checkpoint") == out / "checkpoint"
+    assert resolve_checkpoint(out) == out / "best"
+    assert resolve_checkpoint(out / "checkpoint") == out / "checkpoint"
     best_model = VVLocNet.load(out / "best")
     expected = validation_recall(best_model, tr.ds, "s0", ["s2"], every=4)
     for key in ("queries", "r1_retrieval", "r5_retrieval", "r1_reranked"):

@@ -39,6 +39,7 @@ from torch.utils.data import Dataset as TorchDataset
 from tqdm import tqdm
 
 from vvloc import geometry
+from vvloc.checkpoints import resolve_checkpoint
 from vvloc.data import TripletSampler, open_dataset
 from vvloc.data.augment import PhotometricAugment
 from vvloc.losses import (
@@ -464,10 +465,7 @@ class Trainer:
     def _load_init(self, path: Path) -> None:
         """Copy the weights of ``init_checkpoint`` into the fresh model (refused when its model
         config differs from this run's)."""
-        for sub in ("best", "checkpoint"):
-            if (path / sub / "config.json").is_file():
-                path = path / sub
-                break
+        path = resolve_checkpoint(path)
         if not (path / "config.json").is_file():
             raise FileNotFoundError(f"init_checkpoint: no checkpoint (config.json) in {path}")
         init = VVLocNet.load(path)

@@ -8,8 +8,8 @@ from typing import Annotated
 
 import typer
 
+from vvloc.checkpoints import resolve_checkpoint
 from vvloc.commands._util import cli_errors, split_names
-from vvloc.commands.evaluate import _checkpoint_dir
 
 
 def calibrate(
@@ -45,7 +45,7 @@ def calibrate(
         names = split_names(queries)
         if not names:
             raise ValueError("--queries: expected at least one session name")
-        ckpt = _checkpoint_dir(checkpoint)
+        ckpt = resolve_checkpoint(checkpoint)
         model = VVLocNet.load(ckpt).to(torch.device(device))
         cal = run_calibration(
             model,

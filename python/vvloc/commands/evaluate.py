@@ -7,16 +7,8 @@ from typing import Annotated
 
 import typer
 
+from vvloc.checkpoints import resolve_checkpoint
 from vvloc.commands._util import MetricCandidates, Snap, cli_errors, split_names
-
-
-def _checkpoint_dir(path: Path) -> Path:
-    """A checkpoint folder, or a run folder (``runs/x``): its ``best/`` (selected on the
-    validation sessions) when the run has one, else its latest ``checkpoint/``."""
-    for sub in ("best", "checkpoint"):
-        if (path / sub / "config.json").is_file():
-            return path / sub
-    return path
 
 
 def eval_command(
@@ -59,7 +51,7 @@ def eval_command(
         if not names:
             raise ValueError("--queries: expected at least one session name")
         run_evaluation(
-            _checkpoint_dir(checkpoint),
+            resolve_checkpoint(checkpoint),
             dataset,
             database,
             names,

@@ -8,8 +8,8 @@ from typing import Annotated
 import numpy as np
 import typer
 
+from vvloc.checkpoints import resolve_checkpoint
 from vvloc.commands._util import MetricCandidates, Snap, cli_errors
-from vvloc.commands.evaluate import _checkpoint_dir
 
 HEADER = (
     "# vvloc localize. Frames (DESIGN.md §3): world x east, y north, z up (m); yaw CCW "
@@ -57,7 +57,7 @@ def localize(
     with cli_errors("localize"):
         loc = Localizer.open(
             map_path,
-            _checkpoint_dir(checkpoint),
+            resolve_checkpoint(checkpoint),
             device=device,
             top_k=top_k,
             accept_threshold=threshold,

@@ -7,8 +7,8 @@ from typing import Annotated
 
 import typer
 
+from vvloc.checkpoints import resolve_checkpoint
 from vvloc.commands._util import cli_errors
-from vvloc.commands.evaluate import _checkpoint_dir
 
 
 def loops(
@@ -40,7 +40,7 @@ def loops(
     from vvloc.nets import VVLocNet
 
     with cli_errors("loops"):
-        model = VVLocNet.load(_checkpoint_dir(checkpoint)).to(torch.device(device))
+        model = VVLocNet.load(resolve_checkpoint(checkpoint)).to(torch.device(device))
         db = MapDatabase.open(map_path, expected_config_hash=model.config_hash())
         found = detect_loops(
             model,

@@ -7,8 +7,8 @@ from typing import Annotated
 
 import typer
 
+from vvloc.checkpoints import resolve_checkpoint
 from vvloc.commands._util import cli_errors, split_names
-from vvloc.commands.evaluate import _checkpoint_dir
 
 map_app = typer.Typer(help="Build map databases.", no_args_is_help=True)
 
@@ -35,7 +35,7 @@ def build(
     from vvloc.nets import VVLocNet
 
     with cli_errors("map build"):
-        model = VVLocNet.load(_checkpoint_dir(checkpoint)).to(torch.device(device))
+        model = VVLocNet.load(resolve_checkpoint(checkpoint)).to(torch.device(device))
         ds = open_dataset(dataset)
         path = build_map(
             model,

@@ -126,7 +126,8 @@ class TripletSampler:
                 f"no frame has a positive within {self.pos_radius} m "
                 f"{'in another session ' if cross_session else ''}(sessions {self.sessions})"
             )
-        self._anchor_p = self._anchor_probabilities(anchor_shares, len(extra))
+        p = self._anchor_probabilities(anchor_shares, len(extra))
+        self._anchor_cdf = None if p is None else np.cumsum(p)
         self._hard: dict[tuple[int, int, int], None] = {}
         self._hard_cursor = 0
 
@@ -205,10 +206,14 @@ class TripletSampler:
         """(n, 3) int64 fresh random triplets (no hard ones)."""
         out = np.empty((n, 3), dtype=np.int64)
         for k in range(n):
-            if self._anchor_p is None:
-                a = int(self.anchors[self.rng.integers(len(self.anchors))])
-            else:
-                a = int(self.anchors[self.rng.choice(len(self.anchors), p=self._anchor_p)])
+            if self._anchor_cdf is None:
+                pick = int(self.rng.integers(len(self.anchors)))
+            else:  # inverse-CDF draw, O(log A)
+                u = self.rng.random() * self._anchor_cdf[-1]
+                pick = min(
+                    int(np.searchsorted(self._anchor_cdf, u, side="right")), len(self.anchors) - 1
+                )
+            a = int(self.anchors[pick])
             pos = self.positives[a]
             out[k] = (a, int(pos[self.rng.integers(len(pos))]), self._negative(a))
         return out

@@ -83,7 +83,7 @@ def _loops(
     loop_pairs: int,
     search: SearchConfig | None,
     progress: bool,
-    radius: float = 0.1,
+    radius: float,
 ) -> tuple[dict[str, Any], dict[str, Any]]:
     """Loop closure over all frames of ``sessions`` (one map with BEVs), accepted at descriptor
     distance < ``radius``."""

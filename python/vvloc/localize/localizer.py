@@ -43,12 +43,7 @@ from tqdm import tqdm
 from vvloc import geometry, kernels
 from vvloc.data import Frame
 from vvloc.localize.mapdb import MapDatabase, MapWriter
-from vvloc.localize.metric import (
-    RadialMeanDecoder,
-    SearchConfig,
-    metric_localize,
-    metric_localize_best,
-)
+from vvloc.localize.metric import RadialMeanDecoder, SearchConfig, metric_localize_best
 from vvloc.nets import VVLocNet
 from vvloc.retrieval import DescriptorIndex
 
@@ -129,21 +124,32 @@ def encode_frames(
     )
 
 
+def learned_matcher(model: VVLocNet, desc_tgts: F32):  # type: ignore[no-untyped-def]
+    """The ``decode`` and ``interact`` callbacks of :func:`metric_localize_best` for the learned
+    networks: ``decode`` runs the decoder on padded polar BEVs (N, T, R, C) → Ds (N, T, C)
+    (a torch tensor on the model's device), ``interact(ds, k)`` the interactor of Ds against
+    target k of ``desc_tgts`` (M, T, C) → (Ds', Dt') each (N, T, C) float32."""
+    device = model_device(model)
+    tgts = torch.from_numpy(np.ascontiguousarray(desc_tgts, dtype=np.float32)).to(device)
+
+    @torch.no_grad()
+    def decode(polar: F32) -> torch.Tensor:
+        return model.decode_polar(torch.from_numpy(polar).to(device))
+
+    @torch.no_grad()
+    def interact(ds: torch.Tensor, k: int) -> tuple[F32, F32]:
+        a, b = model.interact(ds, tgts[k].expand(ds.shape[0], *tgts.shape[1:]))
+        return a.float().cpu().numpy(), b.float().cpu().numpy()
+
+    return decode, interact
+
+
 def interacting_decoder(model: VVLocNet, desc_tgt: F32):  # type: ignore[no-untyped-def]
     """A ``decode`` callback for :func:`metric_localize` that runs the learned decoder on the
     padded polar BEVs (N, T, R, C) and the interactor against the target descriptor (T, C);
     returns (Ds', Dt') each (N, T, C) float32."""
-    device = model_device(model)
-    tgt = torch.from_numpy(np.ascontiguousarray(desc_tgt, dtype=np.float32)).to(device)
-
-    @torch.no_grad()
-    def decode(polar: F32) -> tuple[F32, F32]:
-        p = torch.from_numpy(polar).to(device)
-        ds = model.decode_polar(p)
-        a, b = model.interact(ds, tgt.expand(ds.shape[0], *tgt.shape))
-        return a.float().cpu().numpy(), b.float().cpu().numpy()
-
-    return decode
+    decode, interact = learned_matcher(model, np.asarray(desc_tgt)[None])
+    return lambda polar: interact(decode(polar), 0)
 
 
 @dataclass
@@ -208,12 +214,12 @@ class Localizer:
         search: the translation search (see :class:`SearchConfig`).
         metric_candidates: M, how many of the re-ranked candidates get a metric localization
             (default 3, chosen on validation sessions: 82.8 % → 85.9 % Recall@1 at 2 m for about
-            1.1× the metric stage's time; 1 = only the top one). With M > 1 the coarse
-            translation stage runs against
-            each of the top M (the query's padded BEVs decoded once, the interactor and the yaw
-            kernel per candidate), the first M are ordered by their coarse cost, and the
-            lowest goes through the fine stages (:func:`metric_localize_best`). Without
-            re-ranking the first M retrieved candidates are the ones searched.
+            1.2× the metric stage's time; 1 = only the top one). With M > 1 the coarse
+            translation stage runs against each of the top M (the query's padded BEVs decoded
+            once, the interactor and the yaw kernel per candidate), the first M are ordered by
+            their coarse cost, and the lowest goes through the fine stages
+            (:func:`metric_localize_best`). Without re-ranking the first M retrieved candidates
+            are the ones searched.
         snap: report the retrieved keyframe nearest to the query's metric world pose (on the
             metric-matched keyframe's floor) instead of the matched one (default True): the
             metric pose says where the query is, so the nearest candidate is the place; the
@@ -314,46 +320,21 @@ class Localizer:
     def metric(self, bev: F32, row: int) -> tuple[npt.NDArray[np.float64], float, Any]:
         """Metric localization of a query BEV (H, W, C) against map row ``row``: returns
         (ξ_{m→q} (3,), cost, search history)."""
-        tgt = self.map.local_descriptors(int(row))
-        decode = (
-            RadialMeanDecoder()
-            if self.decoder == "radial_mean"
-            else interacting_decoder(self.model, tgt)
-        )
-        res = metric_localize(
-            bev,
-            tgt,
-            decode,
-            self.search,
-            self.grid_size,
-            self.num_angles,
-            self.num_radii,
-        )
-        xi_qm = np.asarray(res.pose, dtype=np.float64)
-        return geometry.inverse(xi_qm), float(res.cost), res.history
+        _, xi_mq, cost, history, _ = self.metric_best(bev, np.array([row], dtype=np.int64))
+        return xi_mq, cost, history
 
-    @torch.no_grad()
     def metric_best(
         self, bev: F32, rows: npt.NDArray[np.int64]
     ) -> tuple[int, npt.NDArray[np.float64], float, Any, npt.NDArray[np.float64]]:
         """Metric localization of a query BEV (H, W, C) against the best of map ``rows`` (M,)
-        (:func:`metric_localize_best`): returns (index into ``rows``, ξ_{m→q} (3,), cost,
-        search history, each row's coarse-stage cost (M,))."""
+        (:func:`metric_localize_best`; for one row, :func:`metric_localize`'s search): returns
+        (index into ``rows``, ξ_{m→q} (3,), cost, search history, each row's coarse-stage cost
+        (M,))."""
         tgts = self.map.local_descriptors(np.asarray(rows, dtype=np.int64))
         if self.decoder == "radial_mean":
-            decode: Any = RadialMeanDecoder()
-            interact = None
+            decode, interact = RadialMeanDecoder(), None
         else:
-            device = model_device(self.model)
-            tgt_t = torch.from_numpy(np.ascontiguousarray(tgts, dtype=np.float32)).to(device)
-
-            def decode(polar: F32) -> torch.Tensor:
-                return self.model.decode_polar(torch.from_numpy(polar).to(device))
-
-            def interact(ds: torch.Tensor, k: int) -> tuple[F32, F32]:
-                a, b = self.model.interact(ds, tgt_t[k].expand(ds.shape[0], *tgt_t.shape[1:]))
-                return a.float().cpu().numpy(), b.float().cpu().numpy()
-
+            decode, interact = learned_matcher(self.model, tgts)
         best = metric_localize_best(
             bev,
             tgts,
@@ -445,17 +426,14 @@ class Localizer:
         timings["rerank"] = (time.perf_counter() - t0) * 1e3
         t0 = time.perf_counter()
         m = min(self.metric_candidates, len(reranked))
-        if m == 1:
-            xi_mq, cost, history = self.metric(bev, int(reranked[0]))
-        else:
-            k, xi_mq, cost, history, coarse = self.metric_best(bev, reranked[:m])
-            # the first M by coarse cost (finite); the stable sort puts the refined one, the
-            # first of the lowest, first
-            front = np.argsort(coarse, kind="stable")
-            if front[0] != k:
-                raise RuntimeError(f"metric_best chose candidate {k}, the ordering {front[0]}")
-            reranked = np.concatenate([reranked[:m][front], reranked[m:]])
-            rerank_cost = np.concatenate([rerank_cost[:m][front], rerank_cost[m:]])
+        k, xi_mq, cost, history, coarse = self.metric_best(bev, reranked[:m])
+        # the first M by coarse cost (finite); the stable sort puts the refined one, the first
+        # of the lowest, first
+        front = np.argsort(coarse, kind="stable")
+        if front[0] != k:
+            raise RuntimeError(f"metric_best chose candidate {k}, the ordering {front[0]}")
+        reranked = np.concatenate([reranked[:m][front], reranked[m:]])
+        rerank_cost = np.concatenate([rerank_cost[:m][front], rerank_cost[m:]])
         matched = int(reranked[0])
         global_pose = geometry.compose(self.map.poses[matched], xi_mq)
         best = matched

@@ -209,17 +209,18 @@ def metric_localize_best(
     if tgts.shape[0] < 1 or tgts.shape[1] != num_angles:
         raise ValueError(f"desc_tgts: expected (M >= 1, T={num_angles}, C), got shape {tgts.shape}")
 
-    def plain(ds: Any, k: int) -> kernels.YawEstimate:
-        if isinstance(ds, tuple):
-            raise TypeError(
-                "decode: expected source descriptors (N, T, C) when interact is None, got a pair"
-            )
-        return _score(ds, tgts[k], backend)
-
     def score_with(k: int) -> Callable[[Any], kernels.YawEstimate]:
-        if interact is None:
-            return lambda ds: plain(ds, k)
-        return lambda ds: _score(interact(ds, k), tgts[k], backend)
+        def score(ds: Any) -> kernels.YawEstimate:
+            if interact is not None:
+                return _score(interact(ds, k), tgts[k], backend)
+            if isinstance(ds, tuple):
+                raise TypeError(
+                    "decode: expected source descriptors (N, T, C) when interact is None, "
+                    "got a pair"
+                )
+            return _score(ds, tgts[k], backend)
+
+        return score
 
     searches = [_search(cfg, backend) for _ in range(len(tgts))]
     xy = searches[0].proposals()  # the coarse grid: the same for every search
