@@ -3,13 +3,14 @@
 #   make bench   kernel benchmarks: table on stdout, JSON in bench-results/
 #   make lint    cargo fmt/clippy, ruff, mypy stubtest of the extension
 #   make demo    end-to-end demo (see README)
+#   make model   train the committed small model from scratch (both configs, ≈ 75 min on 2 cores)
 SHELL := /bin/bash
 PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 PYTEST_ARGS ?=
 
-.PHONY: venv develop test test-rust test-python bench lint demo clean
+.PHONY: venv develop test test-rust test-python bench lint demo model clean
 
 $(VENV)/.deps-stamp: pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -48,6 +49,11 @@ lint: develop
 
 demo: develop
 	$(PY) -m vvloc.cli demo
+
+# stages 1-2 (the parking model, GeM head), then the head stage on it (NetVLAD, three worlds)
+model: develop
+	$(PY) -m vvloc.cli train --config configs/synth-small.yaml --out runs/synth-small
+	$(PY) -m vvloc.cli train --config configs/synth-small-head.yaml --out runs/synth-small-head
 
 clean:
 	rm -rf target $(VENV) bench-results

@@ -294,3 +294,87 @@ def test_a_garage_rendered_with_another_floor_marking_is_refused(tmp_path):
         _check_rendered_like(root, {**sim, "floor_marking": "pillars"})
     with pytest.raises(ValueError, match="'floors': 3"):
         _check_rendered_like(root, {**sim, "floors": 3})
+
+
+def test_head_stage_trains_only_the_global_head_and_lowers_its_loss(tiny_world, tmp_path):
+    base = train(_config(tiny_world, stage1_epochs=1, stage2_epochs=0), tmp_path / "a", False)
+    cfg = _config(
+        tiny_world,
+        init_checkpoint=str(tmp_path / "a"),
+        model_overrides={"global_head": "netvlad", "netvlad_clusters": 4, "global_dim": 16},
+        stage1_epochs=0,
+        stage2_epochs=0,
+        head_epochs=3,
+        head_steps_per_epoch=15,
+        head_batch_size=8,
+        head_lr=1e-2,
+        head_negatives=3,
+    )
+    tuned = Trainer(cfg, tmp_path / "b")
+    fixed = tuned.sampler.sample_random(64)  # random negatives, the same before and after
+    tuned.run_epoch(progress=False)  # caches the BEVs, starts the head from k-means
+    with torch.no_grad():
+        first = float(tuned.head_losses(tuned._head_cache, fixed)[0])
+    tuned.fit(progress=False)
+    with torch.no_grad():
+        last = float(tuned.head_losses(tuned._head_cache, fixed)[0])
+    assert last < first
+    log = [json.loads(line) for line in (tmp_path / "b" / "log.jsonl").read_text().splitlines()]
+    assert [r["stage"] for r in log] == [3, 3]  # fit() ran the remaining two epochs
+    before = base.model.state_dict()
+    for name, value in tuned.model.state_dict().items():
+        if not name.startswith("global_head."):
+            assert torch.equal(value, before[name]), name  # the encoder and decoder are frozen
+    saved = VVLocNet.load(tmp_path / "b" / "checkpoint")
+    assert saved.config.global_head == "netvlad" and saved.global_dim == 16
+
+
+def test_head_stage_k_means_start_and_resume_continue_identically(tiny_world, tmp_path):
+    from vvloc.nets import ModelConfig
+    from vvloc.nets.heads import NetVLADHead
+
+    cfg = ModelConfig.small()
+    cfg.netvlad_clusters = 3
+    head = NetVLADHead(cfg)
+    cells = torch.cat([torch.eye(64)[k].repeat(20, 1) * (k + 1) for k in (0, 5, 9)])
+    noise = torch.rand(cells.shape, generator=torch.Generator().manual_seed(0))
+    head.init_from_features(cells + 0.01 * noise)
+    found = sorted(int(i) for i in head.centroids.argmax(dim=1))
+    assert found == [0, 5, 9]
+    with pytest.raises(ValueError, match="cells: expected at least 3"):
+        head.init_from_features(torch.rand(2, 64))
+
+    over = {"global_head": "netvlad", "netvlad_clusters": 4, "global_dim": 16}
+    kw = dict(
+        model_overrides=over,
+        stage1_epochs=1,
+        stage2_epochs=0,
+        head_steps_per_epoch=6,
+        head_batch_size=4,
+        head_negatives=3,
+    )
+    cfg = _config(tiny_world, head_epochs=2, **kw)
+    full = train(cfg, tmp_path / "full", progress=False)
+    part = Trainer(cfg, tmp_path / "part")
+    part.run_epoch(progress=False)  # stage 1
+    part.run_epoch(progress=False)  # the first head epoch (k-means start)
+    part.save()
+    resumed = train(cfg, tmp_path / "part", resume=True, progress=False)
+    assert resumed.step == full.step
+    for a, b in zip(
+        resumed.model.state_dict().values(), full.model.state_dict().values(), strict=True
+    ):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)
+
+
+def test_a_new_global_head_without_a_head_stage_is_refused(tiny_world, tmp_path):
+    train(_config(tiny_world, stage1_epochs=1, stage2_epochs=0), tmp_path / "a", False)
+    with pytest.raises(ValueError, match="set head_epochs > 0"):
+        Trainer(
+            _config(
+                tiny_world,
+                init_checkpoint=str(tmp_path / "a"),
+                model_overrides={"global_head": "netvlad"},
+            ),
+            tmp_path / "b",
+        )

@@ -16,6 +16,18 @@ With ``val_sessions``, every joint epoch is scored on those held-out sessions ag
 ``val_database`` (:func:`validation_recall`: Recall@1 at 2 m after re-ranking, then by retrieval
 alone) and the best epoch so far is kept in ``best/``: checkpoint selection on data that
 neither trains the model nor reports its test figures.
+
+An optional third stage (``head_epochs``) refines the global-descriptor head alone on frozen
+encoder features: every training frame is encoded once (eval mode, no augmentation) and its
+polar BEV cached; each step then draws anchors and positives from the sampler and, as the
+negative, one of the ``head_negatives`` frames nearest the anchor in descriptor space among
+those that are not its positives (beyond ``neg_radius`` or on another floor), the
+descriptors being refreshed every :data:`HEAD_REFRESH` steps. The BEV, the local-view
+descriptors and so the metric localization are unchanged by it; retrieval is what it improves.
+It can run after stages 1-2, or alone on a trained model (``init_checkpoint``), also with a
+different ``global_head`` than the initial model's (a NetVLAD head then starts from a
+spherical k-means of the cached cell features,
+:meth:`vvloc.nets.heads.NetVLADHead.init_from_features`).
 """
 
 from __future__ import annotations
@@ -49,8 +61,14 @@ from vvloc.losses import (
     yaw_matching_loss,
 )
 from vvloc.nets import ModelConfig, VVLocNet
+from vvloc.nets.heads import NetVLADHead
 
 log = logging.getLogger("vvloc.train")
+
+#: Head stage: steps between refreshes of the cached frames' global descriptors (mining).
+HEAD_REFRESH = 200
+#: Model-config fields that only describe the global head (``init_checkpoint`` may differ in them).
+HEAD_FIELDS = ("global_head", "netvlad_clusters", "global_dim", "disco_crop", "gem_p")
 
 
 @dataclass
@@ -76,6 +94,13 @@ class TrainConfig:
     ``val_sessions`` (optional, disjoint from ``train_sessions``) select the checkpoint: every
     ``val_every``-th frame of each is localized against a map of the ``val_database`` session
     (re-ranking the ``val_top_k`` retrieved keyframes) after each joint epoch.
+    ``head_epochs`` (default 0) adds the head stage (module docstring): ``head_steps_per_epoch``
+    steps of ``head_batch_size`` triplets at learning rate ``head_lr`` (Adam, ×``lr_decay`` per
+    epoch), negatives mined among the ``head_negatives`` nearest. Its cache holds every training
+    frame's polar BEV in float16 on the training device: N · T · R · C · 2 bytes (the small
+    model: 123 kB a frame). With ``init_checkpoint`` the model config may differ from the
+    checkpoint's in the global-head fields (:data:`HEAD_FIELDS`) only, and then needs
+    ``head_epochs`` > 0 (the new head is trained there, never left at its initialisation).
     """
 
     dataset: str = "data/synth"
@@ -114,6 +139,11 @@ class TrainConfig:
     val_database: str = "s0"
     val_every: int = 1
     val_top_k: int = 20
+    head_epochs: int = 0
+    head_steps_per_epoch: int = 1000
+    head_batch_size: int = 32
+    head_lr: float = 1e-3
+    head_negatives: int = 10
     threads: int | None = None
 
     @classmethod
@@ -140,14 +170,18 @@ class TrainConfig:
 
     def validate(self) -> None:
         """Raise ``ValueError`` naming the first invalid field."""
-        for name in ("stage1_epochs", "stage2_epochs"):
+        for name in ("stage1_epochs", "stage2_epochs", "head_epochs"):
             if int(getattr(self, name)) < 0:
                 raise ValueError(f"{name}: expected >= 0")
-        for name in ("steps_per_epoch", "batch_size"):
+        for name in ("steps_per_epoch", "batch_size", "head_steps_per_epoch", "head_negatives"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"{name}: expected >= 1")
         if not self.lr > 0:
             raise ValueError("lr: expected > 0")
+        if not self.head_lr > 0:
+            raise ValueError("head_lr: expected > 0")
+        if int(self.head_batch_size) < 2:
+            raise ValueError("head_batch_size: expected >= 2")
         if not 0 < self.lr_decay <= 1:
             raise ValueError("lr_decay: expected in (0, 1]")
         if self.num_workers < 0:
@@ -206,8 +240,8 @@ class TrainConfig:
 
     @property
     def epochs(self) -> int:
-        """Total number of epochs (stage 1 + stage 2)."""
-        return int(self.stage1_epochs) + int(self.stage2_epochs)
+        """Total number of epochs (stage 1 + stage 2 + head stage)."""
+        return int(self.stage1_epochs) + int(self.stage2_epochs) + int(self.head_epochs)
 
     def to_dict(self) -> dict[str, Any]:
         """Plain dict (YAML/JSON serialisable)."""
@@ -451,6 +485,8 @@ class Trainer:
             for name in [cfg.val_database, *cfg.val_sessions]:
                 self.ds.session(name)  # KeyError naming the known sessions, before any epoch
         self.model = VVLocNet(cfg.model_config()).to(self.device)
+        # True while the global head holds no trained weights (the head stage initialises it)
+        self.head_untrained = cfg.stage1_epochs + cfg.stage2_epochs == 0
         if cfg.init_checkpoint is not None:
             self._load_init(Path(cfg.init_checkpoint))
         self.augment = None if cfg.augment is None else PhotometricAugment.from_dict(cfg.augment)
@@ -458,6 +494,11 @@ class Trainer:
             self.model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay
         )
         self.scheduler = torch.optim.lr_scheduler.ExponentialLR(self.optimizer, gamma=cfg.lr_decay)
+        self.head_optimizer = torch.optim.Adam(self.model.global_head.parameters(), lr=cfg.head_lr)
+        self.head_scheduler = torch.optim.lr_scheduler.ExponentialLR(
+            self.head_optimizer, gamma=cfg.lr_decay
+        )
+        self._head_cache: torch.Tensor | None = None  # (N, T, R, C) float16, the head stage's
         self.epoch = 0
         self.step = 0
         self.best: dict[str, Any] | None = None  # the validation record of best/, if any
@@ -469,13 +510,35 @@ class Trainer:
         if not (path / "config.json").is_file():
             raise FileNotFoundError(f"init_checkpoint: no checkpoint (config.json) in {path}")
         init = VVLocNet.load(path)
-        if init.config_hash() != self.model.config_hash():
+        if init.config_hash() == self.model.config_hash():
+            self.model.load_state_dict(init.state_dict())
+            self.head_untrained = False
+            log.info("initialised from %s", path)
+            return
+        mine, theirs = self.model.config.to_dict(), init.config.to_dict()
+        body = [k for k in mine if k not in HEAD_FIELDS and mine[k] != theirs.get(k)]
+        if body:
             raise ValueError(
                 f"init_checkpoint: {path} holds model {init.config_hash()}, but this run trains "
-                f"model {self.model.config_hash()} (model / model_overrides differ)"
+                f"model {self.model.config_hash()} (model / model_overrides differ in {body})"
             )
-        self.model.load_state_dict(init.state_dict())
-        log.info("initialised from %s", path)
+        if self.cfg.head_epochs < 1:
+            raise ValueError(
+                f"init_checkpoint: {path} has another global head "
+                f"({theirs['global_head']}) than this run's ({mine['global_head']}); "
+                "set head_epochs > 0 to train the new head (it is not in the checkpoint)"
+            )
+        weights = {k: v for k, v in init.state_dict().items() if not k.startswith("global_head.")}
+        missing, unexpected = self.model.load_state_dict(weights, strict=False)
+        assert not unexpected and all(k.startswith("global_head.") for k in missing)
+        self.head_untrained = True
+        log.warning(
+            "initialised from %s except the global head (%s there, %s here): the head stage "
+            "trains it from a data-driven start",
+            path,
+            theirs["global_head"],
+            mine["global_head"],
+        )
 
     # --- persistence ---------------------------------------------------------------------
 
@@ -501,6 +564,9 @@ class Trainer:
             "step": self.step,
             "optimizer": self.optimizer.state_dict(),
             "scheduler": self.scheduler.state_dict(),
+            "head_optimizer": self.head_optimizer.state_dict(),
+            "head_scheduler": self.head_scheduler.state_dict(),
+            "head_untrained": self.head_untrained,
             "sampler_rng": self.sampler.rng.bit_generator.state,
             "sampler_hard": self.sampler.hard,
             "torch_rng": torch.get_rng_state(),
@@ -515,7 +581,7 @@ class Trainer:
         """Load the last checkpoint and trainer state from ``out_dir``; False if there is none.
 
         The config must equal the run's, except ``stage2_epochs``, which may grow (to extend a
-        run with more joint epochs)."""
+        run with more joint epochs) while the run has not reached its head stage."""
         if not self._state_path().is_file():
             return False
         state = torch.load(self._state_path(), map_location="cpu", weights_only=False)
@@ -529,10 +595,23 @@ class Trainer:
                 f"{self._state_path()}: the run in {self.out} was started with another config; "
                 "use a new --out directory or the same config"
             )
+        old = {**TrainConfig().to_dict(), **state["config"]}
+        if (
+            old["stage2_epochs"] != self.cfg.stage2_epochs
+            and int(state["epoch"]) > old["stage1_epochs"] + old["stage2_epochs"]
+        ):
+            raise ValueError(
+                f"{self._state_path()}: stage2_epochs can only grow before the head stage; the "
+                f"run in {self.out} is past it (epoch {state['epoch']})"
+            )
         loaded = VVLocNet.load(self.checkpoint_dir)
         self.model.load_state_dict(loaded.state_dict())
         self.optimizer.load_state_dict(state["optimizer"])
         self.scheduler.load_state_dict(state["scheduler"])
+        if "head_optimizer" in state:  # runs saved before the head stage existed have none
+            self.head_optimizer.load_state_dict(state["head_optimizer"])
+            self.head_scheduler.load_state_dict(state["head_scheduler"])
+            self.head_untrained = bool(state["head_untrained"])
         self.sampler.rng.bit_generator.state = state["sampler_rng"]
         self.sampler.resolve(self.sampler.hard)
         self.sampler.mark_hard(state["sampler_hard"])
@@ -546,13 +625,18 @@ class Trainer:
     # --- training ------------------------------------------------------------------------
 
     def stage_of(self, epoch: int) -> int:
-        """1 for the global-descriptor epochs, 2 for the joint epochs."""
-        return 1 if epoch < self.cfg.stage1_epochs else 2
+        """1 for the global-descriptor epochs, 2 for the joint epochs, 3 for the head stage."""
+        if epoch < self.cfg.stage1_epochs:
+            return 1
+        return 2 if epoch < self.cfg.stage1_epochs + self.cfg.stage2_epochs else 3
 
     def run_epoch(self, progress: bool = True) -> dict[str, Any]:
-        """Train one epoch (``steps_per_epoch`` batches); return its log record."""
+        """Train one epoch (``steps_per_epoch`` batches, or the head stage's
+        ``head_steps_per_epoch``); return its log record."""
         cfg = self.cfg
         stage = self.stage_of(self.epoch)
+        if stage == 3:
+            return self._head_epoch(progress)
         triplets = self.sampler.sample(cfg.steps_per_epoch * cfg.batch_size)
         loader = DataLoader(
             TripletFrames(
@@ -619,12 +703,139 @@ class Trainer:
         self.epoch += 1
         return record
 
+    # --- head stage ----------------------------------------------------------------------
+
+    @torch.no_grad()
+    def _build_head_cache(self, progress: bool) -> torch.Tensor:
+        """Encode every sampler frame once (eval mode, no augmentation): (N, T, R, C) float16."""
+        self.model.eval()
+        out = []
+        ids = np.arange(len(self.sampler))
+        bar = tqdm(total=len(ids), desc="head stage: caching polar BEVs", disable=not progress)
+        for a in range(0, len(ids), 16):
+            frames = [self.sampler.frame(int(g)) for g in ids[a : a + 16]]
+            images = torch.from_numpy(np.stack([f.images for f in frames])).to(self.device)
+            k = torch.from_numpy(np.stack([f.K for f in frames]).astype(np.float32))
+            t = torch.from_numpy(np.stack([f.cam_to_ego for f in frames]).astype(np.float32))
+            enc = self.model.encode(images, k.to(self.device), t.to(self.device))
+            out.append(enc.polar.half())
+            bar.update(len(frames))
+        bar.close()
+        cache = torch.cat(out)
+        log.info(
+            "head stage: cached %d polar BEVs %s (%.0f MB)",
+            len(cache),
+            tuple(cache.shape[1:]),
+            cache.numel() * 2 / 1e6,
+        )
+        return cache
+
+    @torch.no_grad()
+    def _head_descriptors(self, cache: torch.Tensor) -> torch.Tensor:
+        """Global descriptors (N, Dg) of the cached frames under the current head."""
+        self.model.global_head.eval()
+        return torch.cat(
+            [self.model.global_head(cache[a : a + 256].float()) for a in range(0, len(cache), 256)]
+        )
+
+    def _mined_negatives(self, g: torch.Tensor, anchors: np.ndarray) -> np.ndarray:
+        """Per anchor, one of the ``head_negatives`` frames nearest in descriptor space among
+        those beyond ``neg_radius`` (floor-separated positions: another floor is far)."""
+        pos = torch.from_numpy(self.sampler.positions).to(g.device)
+        a = torch.from_numpy(anchors).to(g.device)
+        sim = g[a] @ g.T  # (B, N)
+        near = torch.cdist(pos[a], pos) <= self.sampler.neg_radius
+        sim = sim.masked_fill(near, -math.inf)
+        k = min(int(self.cfg.head_negatives), int((~near).sum(dim=1).min()))
+        if k < 1:
+            raise ValueError("head stage: an anchor has no negative beyond neg_radius")
+        top = sim.topk(k, dim=1).indices.cpu().numpy()
+        pick = self.sampler.rng.integers(k, size=len(anchors))
+        return top[np.arange(len(anchors)), pick]
+
+    def head_losses(
+        self, cache: torch.Tensor, triplets: np.ndarray
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, int]:
+        """Head-stage losses of (B, 3) triplets of cached frame ids: (total, triplet, hinge,
+        number violating the triplet margin); the stage-1 losses on the head's descriptors."""
+        cfg = self.cfg
+        idx = torch.from_numpy(np.asarray(triplets).T.reshape(-1)).to(self.device)
+        d = self.model.global_head(cache[idx].float()).view(3, len(triplets), -1)
+        l_tri = triplet_loss(d[0], d[1], d[2], cfg.triplet_margin)
+        d_pos = (d[0] - d[1]).norm(dim=-1)
+        d_neg = (d[0] - d[2]).norm(dim=-1)
+        l_hinge = hinge_loss(d_pos, d_neg, cfg.hinge_pos, cfg.hinge_neg)
+        wrong = int((d_pos + cfg.triplet_margin >= d_neg).sum())
+        return l_tri + l_hinge, l_tri, l_hinge, wrong
+
+    def _head_epoch(self, progress: bool) -> dict[str, Any]:
+        """One epoch of the head stage (see the module docstring); returns its log record."""
+        cfg = self.cfg
+        t0 = time.perf_counter()
+        if self._head_cache is None:
+            self._head_cache = self._build_head_cache(progress).to(self.device)
+        cache = self._head_cache
+        cache_seconds = time.perf_counter() - t0
+        head = self.model.global_head
+        first = self.epoch == cfg.stage1_epochs + cfg.stage2_epochs
+        if first and self.head_untrained and isinstance(head, NetVLADHead):
+            sub = cache[:: max(1, len(cache) // 200)].float().flatten(1, 2)  # ≈ 200 frames' cells
+            head.init_from_features(sub, seed=cfg.seed)
+        self.model.eval()  # BatchNorm & co. of the frozen parts stay as they are
+        head.train()
+        sums = {"total": 0.0, "triplet": 0.0, "hinge": 0.0}
+        violated = 0
+        g = self._head_descriptors(cache)
+        bar = tqdm(
+            range(cfg.head_steps_per_epoch),
+            desc=f"epoch {self.epoch + 1}/{cfg.epochs} (head stage)",
+            disable=not progress,
+            leave=False,
+        )
+        for k in bar:
+            if k and k % HEAD_REFRESH == 0:
+                g = self._head_descriptors(cache)
+                head.train()
+            trip = self.sampler.sample_random(cfg.head_batch_size)
+            trip[:, 2] = self._mined_negatives(g, trip[:, 0])
+            loss, l_tri, l_hinge, wrong = self.head_losses(cache, trip)
+            self.head_optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            if cfg.grad_clip > 0:
+                torch.nn.utils.clip_grad_norm_(head.parameters(), cfg.grad_clip)
+            self.head_optimizer.step()
+            sums["total"] += float(loss.detach())
+            sums["triplet"] += float(l_tri.detach())
+            sums["hinge"] += float(l_hinge.detach())
+            violated += wrong
+            self.step += 1
+            bar.set_postfix(loss=f"{float(loss.detach()):.3f}", tri=f"{float(l_tri.detach()):.3f}")
+        self.head_untrained = False
+        n = cfg.head_steps_per_epoch
+        record: dict[str, Any] = {
+            "epoch": self.epoch + 1,
+            "stage": 3,
+            "step": self.step,
+            "lr": self.head_optimizer.param_groups[0]["lr"],
+            **{f"loss_{k}": v / n for k, v in sums.items()},
+            "loss_yaw": 0.0,
+            "loss_tbias": 0.0,
+            "violated_share": violated / (n * cfg.head_batch_size),
+            "cache_seconds": cache_seconds,
+            "seconds": time.perf_counter() - t0,
+            "device": str(self.device),
+        }
+        self.head_scheduler.step()
+        self.epoch += 1
+        return record
+
     def validates(self, epoch: int) -> bool:
-        """Whether epoch ``epoch`` (0-based) is scored on ``val_sessions``: the joint epochs (the
-        local-view head is untrained before them), or every epoch of a stage-1-only run."""
+        """Whether epoch ``epoch`` (0-based) is scored on ``val_sessions``: the joint and head
+        epochs (the local-view head is untrained before them), or every epoch of a run without
+        joint epochs."""
         if not self.cfg.val_sessions:
             return False
-        return self.cfg.stage2_epochs == 0 or self.stage_of(epoch) == 2
+        return self.cfg.stage2_epochs == 0 or self.stage_of(epoch) >= 2
 
     def validate(self) -> dict[str, Any]:
         """Score the current model on ``val_sessions`` (see :func:`validation_recall`)."""

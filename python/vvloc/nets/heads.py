@@ -43,6 +43,33 @@ class NetVLADHead(nn.Module):
         self.proj: nn.Linear | None = nn.Linear(k * c, cfg.global_dim) if cfg.global_dim else None
         self.out_dim = cfg.global_dim or k * c
 
+    @torch.no_grad()
+    def init_from_features(
+        self, cells: Tensor, iterations: int = 20, alpha: float = 10.0, seed: int = 0
+    ) -> None:
+        """Data-driven initialisation: spherical k-means (k-means++ seeding) of ``cells`` (P, C)
+        polar-cell features (any scale; L2-normalised here) gives the K centroids, and the soft
+        assignment starts as ``alpha`` · cosine similarity to them (bias 0). Seeded; P ≥ K."""
+        k = self.centroids.shape[0]
+        x = F.normalize(cells.float().reshape(-1, cells.shape[-1]), dim=-1)
+        if x.shape[0] < k:
+            raise ValueError(f"cells: expected at least {k} rows (clusters), got {x.shape[0]}")
+        gen = torch.Generator().manual_seed(seed)
+        # k-means++ seeding: each next centroid drawn in proportion to its cosine distance
+        c = x[torch.randint(x.shape[0], (1,), generator=gen)].clone()
+        for _ in range(1, k):
+            far = (1.0 - (x @ c.T).max(dim=1).values).clamp(min=0.0) + 1e-12
+            c = torch.cat([c, x[torch.multinomial(far, 1, generator=gen)]])
+        for _ in range(iterations):
+            assign = (x @ c.T).argmax(dim=1)
+            for j in range(k):
+                members = x[assign == j]
+                if len(members):
+                    c[j] = F.normalize(members.mean(dim=0), dim=0)
+        self.centroids.copy_(c.to(self.centroids))
+        self.assign.weight.copy_((alpha * c).to(self.assign.weight))
+        self.assign.bias.zero_()
+
     def forward(self, polar: Tensor) -> Tensor:
         x = F.normalize(polar.flatten(1, 2), dim=-1)  # (B, N, C)
         a = self.assign(x).softmax(dim=-1)  # (B, N, K)
