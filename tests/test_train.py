@@ -367,6 +367,13 @@ def test_head_stage_k_means_start_and_resume_continue_identically(tiny_world, tm
         torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)
 
 
+def test_a_head_stage_alone_without_a_trained_encoder_is_refused():
+    with pytest.raises(ValueError, match=r"head_epochs: .*needs init_checkpoint"):
+        TrainConfig.from_dict(
+            {"dataset": "x", "stage1_epochs": 0, "stage2_epochs": 0, "head_epochs": 1}
+        )
+
+
 def test_a_new_global_head_without_a_head_stage_is_refused(tiny_world, tmp_path):
     train(_config(tiny_world, stage1_epochs=1, stage2_epochs=0), tmp_path / "a", False)
     with pytest.raises(ValueError, match="set head_epochs > 0"):

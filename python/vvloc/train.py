@@ -182,6 +182,15 @@ class TrainConfig:
             raise ValueError("head_lr: expected > 0")
         if int(self.head_batch_size) < 2:
             raise ValueError("head_batch_size: expected >= 2")
+        if (
+            int(self.head_epochs) > 0
+            and int(self.stage1_epochs) + int(self.stage2_epochs) == 0
+            and self.init_checkpoint is None
+        ):
+            raise ValueError(
+                "head_epochs: a head stage without stages 1-2 needs init_checkpoint (the trained "
+                "encoder whose features it pools)"
+            )
         if not 0 < self.lr_decay <= 1:
             raise ValueError("lr_decay: expected in (0, 1]")
         if self.num_workers < 0:
