@@ -92,10 +92,17 @@ def test_fit_writes_checkpoint_log_and_resume_continues_from_the_same_step(tiny_
 
 
 def test_resumed_run_equals_uninterrupted_run(tiny_world, tmp_path):
-    cfg = _config(tiny_world, stage1_epochs=1, stage2_epochs=1)
+    _assert_resumed_run_equals_uninterrupted(
+        _config(tiny_world, stage1_epochs=1, stage2_epochs=1), tmp_path, cut=1
+    )
+
+
+def _assert_resumed_run_equals_uninterrupted(cfg: TrainConfig, tmp_path: Path, cut: int) -> None:
+    """A run stopped after ``cut`` epochs and resumed ends with the uninterrupted run's weights."""
     full = train(cfg, tmp_path / "full", progress=False)
     part = Trainer(cfg, tmp_path / "part")
-    part.run_epoch(progress=False)
+    for _ in range(cut):
+        part.run_epoch(progress=False)
     part.save()
     resumed = train(cfg, tmp_path / "part", resume=True, progress=False)
     assert resumed.step == full.step
@@ -344,27 +351,81 @@ def test_head_stage_k_means_start_and_resume_continue_identically(tiny_world, tm
     with pytest.raises(ValueError, match="cells: expected at least 3"):
         head.init_from_features(torch.rand(2, 64))
 
-    over = {"global_head": "netvlad", "netvlad_clusters": 4, "global_dim": 16}
+    base = tmp_path / "base"
+    train(_config(tiny_world, stage1_epochs=1, stage2_epochs=0), base, progress=False)
     kw = dict(
-        model_overrides=over,
-        stage1_epochs=1,
+        init_checkpoint=str(base),
+        model_overrides={"global_head": "netvlad", "netvlad_clusters": 4, "global_dim": 16},
+        stage1_epochs=0,
         stage2_epochs=0,
+        head_epochs=2,
         head_steps_per_epoch=6,
         head_batch_size=4,
         head_negatives=3,
     )
-    cfg = _config(tiny_world, head_epochs=2, **kw)
-    full = train(cfg, tmp_path / "full", progress=False)
-    part = Trainer(cfg, tmp_path / "part")
-    part.run_epoch(progress=False)  # stage 1
-    part.run_epoch(progress=False)  # the first head epoch (k-means start)
-    part.save()
-    resumed = train(cfg, tmp_path / "part", resume=True, progress=False)
-    assert resumed.step == full.step
-    for a, b in zip(
-        resumed.model.state_dict().values(), full.model.state_dict().values(), strict=True
-    ):
-        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)
+    # stopped after the first head epoch (the k-means start), resumed for the second: the
+    # resumed run must not restart the head from k-means
+    _assert_resumed_run_equals_uninterrupted(_config(tiny_world, **kw), tmp_path, cut=1)
+
+
+def test_the_k_means_start_replaces_only_an_untrained_head(tiny_world, tmp_path, monkeypatch):
+    from vvloc.nets.heads import NetVLADHead
+
+    calls = []
+    real = NetVLADHead.init_from_features
+    monkeypatch.setattr(
+        NetVLADHead,
+        "init_from_features",
+        lambda self, *a, **k: calls.append(1) or real(self, *a, **k),
+    )
+    over = {"global_head": "netvlad", "netvlad_clusters": 4, "global_dim": 16}
+    kw = dict(head_epochs=2, head_steps_per_epoch=3, head_batch_size=4, head_negatives=3)
+    base = tmp_path / "base"
+    train(_config(tiny_world, stage1_epochs=1, stage2_epochs=0), base, progress=False)
+    head_only = _config(
+        tiny_world,
+        init_checkpoint=str(base),
+        model_overrides=over,
+        stage1_epochs=0,
+        stage2_epochs=0,
+        **kw,
+    )
+    train(head_only, tmp_path / "a", progress=False)
+    assert len(calls) == 1  # the new head starts from k-means once, not every head epoch
+    # a NetVLAD head trained in stage 1 is refined, never reset
+    train(
+        _config(tiny_world, model_overrides=over, stage1_epochs=1, stage2_epochs=0, **kw),
+        tmp_path / "b",
+        progress=False,
+    )
+    assert len(calls) == 1
+
+
+def test_mined_negatives_are_never_positives_and_are_the_nearest(tiny_world, tmp_path):
+    base = tmp_path / "base"
+    train(_config(tiny_world, stage1_epochs=1, stage2_epochs=0), base, progress=False)
+    cfg = _config(
+        tiny_world,
+        init_checkpoint=str(base),
+        stage1_epochs=0,
+        stage2_epochs=0,
+        head_epochs=1,
+        head_negatives=1,
+    )
+    tr = Trainer(cfg, tmp_path / "a")
+    tr._head_cache = tr._build_head_cache(progress=False)
+    tr._head_positions = torch.from_numpy(tr.sampler.positions).float()
+    g = tr._head_descriptors(tr._head_cache)
+    anchors = tr.sampler.anchors[:: max(1, len(tr.sampler.anchors) // 40)]
+    neg = tr._mined_negatives(g, anchors)
+    pos = tr.sampler.positions
+    gap = np.linalg.norm(pos[neg] - pos[anchors], axis=1)
+    assert (gap > cfg.neg_radius).all()
+    # with head_negatives = 1 the pick is the nearest non-positive in descriptor space
+    for a, n in zip(anchors, neg, strict=True):
+        far = np.linalg.norm(pos - pos[a], axis=1) > cfg.neg_radius
+        sims = (g @ g[a]).numpy()
+        assert sims[n] == pytest.approx(sims[far].max())
 
 
 def test_a_head_stage_alone_without_a_trained_encoder_is_refused():

@@ -22,7 +22,8 @@ encoder features: every training frame is encoded once (eval mode, no augmentati
 polar BEV cached; each step then draws anchors and positives from the sampler and, as the
 negative, one of the ``head_negatives`` frames nearest the anchor in descriptor space among
 those that are not its positives (beyond ``neg_radius`` or on another floor), the
-descriptors being refreshed every :data:`HEAD_REFRESH` steps. The BEV, the local-view
+descriptors being refreshed every :data:`HEAD_REFRESH` steps (the sampler's hard pool and
+``cross_floor_fraction`` play no part there: mining finds the look-alikes). The BEV, the local-view
 descriptors and so the metric localization are unchanged by it; retrieval is what it improves.
 It can run after stages 1-2, or alone on a trained model (``init_checkpoint``), also with a
 different ``global_head`` than the initial model's (a NetVLAD head then starts from a
@@ -176,6 +177,12 @@ class TrainConfig:
         for name in ("steps_per_epoch", "batch_size", "head_steps_per_epoch", "head_negatives"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"{name}: expected >= 1")
+        for name in ("lr", "lr_decay", "head_lr"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise ValueError(
+                    f"{name}: expected a number, got {value!r} (in YAML write 1.0e-3, not 1e-3)"
+                )
         if not self.lr > 0:
             raise ValueError("lr: expected > 0")
         if not self.head_lr > 0:
@@ -508,6 +515,7 @@ class Trainer:
             self.head_optimizer, gamma=cfg.lr_decay
         )
         self._head_cache: torch.Tensor | None = None  # (N, T, R, C) float16, the head stage's
+        self._head_positions: torch.Tensor | None = None  # (N, 3) sampler positions, on device
         self.epoch = 0
         self.step = 0
         self.best: dict[str, Any] | None = None  # the validation record of best/, if any
@@ -531,22 +539,22 @@ class Trainer:
                 f"init_checkpoint: {path} holds model {init.config_hash()}, but this run trains "
                 f"model {self.model.config_hash()} (model / model_overrides differ in {body})"
             )
+        differ = {k: (theirs.get(k), mine[k]) for k in HEAD_FIELDS if mine[k] != theirs.get(k)}
         if self.cfg.head_epochs < 1:
             raise ValueError(
-                f"init_checkpoint: {path} has another global head "
-                f"({theirs['global_head']}) than this run's ({mine['global_head']}); "
-                "set head_epochs > 0 to train the new head (it is not in the checkpoint)"
+                f"init_checkpoint: {path} has another global head than this run's "
+                f"(checkpoint, run: {differ}); set head_epochs > 0 to train the new head (it is "
+                "not in the checkpoint)"
             )
         weights = {k: v for k, v in init.state_dict().items() if not k.startswith("global_head.")}
         missing, unexpected = self.model.load_state_dict(weights, strict=False)
         assert not unexpected and all(k.startswith("global_head.") for k in missing)
         self.head_untrained = True
         log.warning(
-            "initialised from %s except the global head (%s there, %s here): the head stage "
+            "initialised from %s except the global head (checkpoint, run: %s): the head stage "
             "trains it from a data-driven start",
             path,
-            theirs["global_head"],
-            mine["global_head"],
+            differ,
         )
 
     # --- persistence ---------------------------------------------------------------------
@@ -590,7 +598,7 @@ class Trainer:
         """Load the last checkpoint and trainer state from ``out_dir``; False if there is none.
 
         The config must equal the run's, except ``stage2_epochs``, which may grow (to extend a
-        run with more joint epochs) while the run has not reached its head stage."""
+        run with more joint epochs) while the run has not passed into its head stage."""
         if not self._state_path().is_file():
             return False
         state = torch.load(self._state_path(), map_location="cpu", weights_only=False)
@@ -605,13 +613,14 @@ class Trainer:
                 "use a new --out directory or the same config"
             )
         old = {**TrainConfig().to_dict(), **state["config"]}
-        if (
-            old["stage2_epochs"] != self.cfg.stage2_epochs
-            and int(state["epoch"]) > old["stage1_epochs"] + old["stage2_epochs"]
+        if old["stage2_epochs"] != self.cfg.stage2_epochs and (
+            self.cfg.stage2_epochs < old["stage2_epochs"]
+            or int(state["epoch"]) > old["stage1_epochs"] + old["stage2_epochs"]
         ):
             raise ValueError(
-                f"{self._state_path()}: stage2_epochs can only grow before the head stage; the "
-                f"run in {self.out} is past it (epoch {state['epoch']})"
+                f"{self._state_path()}: stage2_epochs can only grow, and only before the head "
+                f"stage (run in {self.out}: {old['stage2_epochs']} joint epochs, at epoch "
+                f"{state['epoch']}; asked for {self.cfg.stage2_epochs})"
             )
         loaded = VVLocNet.load(self.checkpoint_dir)
         self.model.load_state_dict(loaded.state_dict())
@@ -710,6 +719,7 @@ class Trainer:
         }
         self.scheduler.step()
         self.epoch += 1
+        self.head_untrained = False  # stages 1-2 train the global head too
         return record
 
     # --- head stage ----------------------------------------------------------------------
@@ -726,8 +736,10 @@ class Trainer:
             images = torch.from_numpy(np.stack([f.images for f in frames])).to(self.device)
             k = torch.from_numpy(np.stack([f.K for f in frames]).astype(np.float32))
             t = torch.from_numpy(np.stack([f.cam_to_ego for f in frames]).astype(np.float32))
-            enc = self.model.encode(images, k.to(self.device), t.to(self.device))
-            out.append(enc.polar.half())
+            feats = self.model.image_features(images)
+            size = (int(images.shape[-2]), int(images.shape[-1]))
+            bev = self.model.bev_from_features(feats, k.to(self.device), t.to(self.device), size)
+            out.append(self.model.polar(bev).half())
             bar.update(len(frames))
         bar.close()
         cache = torch.cat(out)
@@ -750,7 +762,8 @@ class Trainer:
     def _mined_negatives(self, g: torch.Tensor, anchors: np.ndarray) -> np.ndarray:
         """Per anchor, one of the ``head_negatives`` frames nearest in descriptor space among
         those beyond ``neg_radius`` (floor-separated positions: another floor is far)."""
-        pos = torch.from_numpy(self.sampler.positions).to(g.device)
+        pos = self._head_positions
+        assert pos is not None  # set with the cache
         a = torch.from_numpy(anchors).to(g.device)
         sim = g[a] @ g.T  # (B, N)
         near = torch.cdist(pos[a], pos) <= self.sampler.neg_radius
@@ -782,19 +795,20 @@ class Trainer:
         cfg = self.cfg
         t0 = time.perf_counter()
         if self._head_cache is None:
-            self._head_cache = self._build_head_cache(progress).to(self.device)
+            self._head_cache = self._build_head_cache(progress)
+            # float32 (any device has it); floor separation 1000 m keeps 1e-4 m resolution
+            self._head_positions = torch.from_numpy(self.sampler.positions).float().to(self.device)
         cache = self._head_cache
         cache_seconds = time.perf_counter() - t0
         head = self.model.global_head
-        first = self.epoch == cfg.stage1_epochs + cfg.stage2_epochs
-        if first and self.head_untrained and isinstance(head, NetVLADHead):
+        if self.head_untrained and isinstance(head, NetVLADHead):
             sub = cache[:: max(1, len(cache) // 200)].float().flatten(1, 2)  # ≈ 200 frames' cells
             head.init_from_features(sub, seed=cfg.seed)
         self.model.eval()  # BatchNorm & co. of the frozen parts stay as they are
-        head.train()
         sums = {"total": 0.0, "triplet": 0.0, "hinge": 0.0}
         violated = 0
         g = self._head_descriptors(cache)
+        head.train()
         bar = tqdm(
             range(cfg.head_steps_per_epoch),
             desc=f"epoch {self.epoch + 1}/{cfg.epochs} (head stage)",

@@ -51,7 +51,8 @@ class NetVLADHead(nn.Module):
         polar-cell features (any scale; L2-normalised here) gives the K centroids, and the soft
         assignment starts as ``alpha`` · cosine similarity to them (bias 0). Seeded; P ≥ K."""
         k = self.centroids.shape[0]
-        x = F.normalize(cells.float().reshape(-1, cells.shape[-1]), dim=-1)
+        # on the CPU: the same seeded result on every device (the generator is a CPU one)
+        x = F.normalize(cells.detach().float().cpu().reshape(-1, cells.shape[-1]), dim=-1)
         if x.shape[0] < k:
             raise ValueError(f"cells: expected at least {k} rows (clusters), got {x.shape[0]}")
         gen = torch.Generator().manual_seed(seed)
