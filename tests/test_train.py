@@ -321,10 +321,10 @@ def test_head_stage_trains_only_the_global_head_and_lowers_its_loss(tiny_world, 
     fixed = tuned.sampler.sample_random(64)  # random negatives, the same before and after
     tuned.run_epoch(progress=False)  # caches the BEVs, starts the head from k-means
     with torch.no_grad():
-        first = float(tuned.head_losses(tuned._head_cache, fixed)[0])
+        first = float(tuned.head_losses(tuned.head_cache(), fixed)[0])
     tuned.fit(progress=False)
     with torch.no_grad():
-        last = float(tuned.head_losses(tuned._head_cache, fixed)[0])
+        last = float(tuned.head_losses(tuned.head_cache(), fixed)[0])
     assert last < first
     log = [json.loads(line) for line in (tmp_path / "b" / "log.jsonl").read_text().splitlines()]
     assert [r["stage"] for r in log] == [3, 3]  # fit() ran the remaining two epochs
@@ -411,11 +411,11 @@ def test_mined_negatives_are_never_positives_and_are_the_nearest(tiny_world, tmp
         stage2_epochs=0,
         head_epochs=1,
         head_negatives=1,
+        # the same world once more as a second world: 10⁶ m away in z, precision must hold
+        extra_datasets=[{"dataset": str(tiny_world)}],
     )
     tr = Trainer(cfg, tmp_path / "a")
-    tr._head_cache = tr._build_head_cache(progress=False)
-    tr._head_positions = torch.from_numpy(tr.sampler.positions).float()
-    g = tr._head_descriptors(tr._head_cache)
+    g = tr._head_descriptors(tr.head_cache())
     anchors = tr.sampler.anchors[:: max(1, len(tr.sampler.anchors) // 40)]
     neg = tr._mined_negatives(g, anchors)
     pos = tr.sampler.positions

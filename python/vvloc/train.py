@@ -751,6 +751,16 @@ class Trainer:
         )
         return cache
 
+    def head_cache(self, progress: bool = False) -> torch.Tensor:
+        """The head stage's cache of polar BEVs (N, T, R, C) float16, built on first use
+        (with the sampler positions the mining needs, kept on the device beside it)."""
+        if self._head_cache is None:
+            self._head_cache = self._build_head_cache(progress)
+            # float64: with floors and worlds 1 000 m / 10⁶ m apart in z, float32 distances
+            # would lose the metres that decide a negative
+            self._head_positions = torch.from_numpy(self.sampler.positions).to(self.device)
+        return self._head_cache
+
     @torch.no_grad()
     def _head_descriptors(self, cache: torch.Tensor) -> torch.Tensor:
         """Global descriptors (N, Dg) of the cached frames under the current head."""
@@ -794,11 +804,7 @@ class Trainer:
         """One epoch of the head stage (see the module docstring); returns its log record."""
         cfg = self.cfg
         t0 = time.perf_counter()
-        if self._head_cache is None:
-            self._head_cache = self._build_head_cache(progress)
-            # float32 (any device has it); floor separation 1000 m keeps 1e-4 m resolution
-            self._head_positions = torch.from_numpy(self.sampler.positions).float().to(self.device)
-        cache = self._head_cache
+        cache = self.head_cache(progress)
         cache_seconds = time.perf_counter() - t0
         head = self.model.global_head
         if self.head_untrained and isinstance(head, NetVLADHead):
