@@ -446,3 +446,93 @@ def test_a_new_global_head_without_a_head_stage_is_refused(tiny_world, tmp_path)
             ),
             tmp_path / "b",
         )
+
+
+def test_loop_validation_counts_every_admissible_pair_and_the_cross_floor_ones(tmp_path):
+    from vvloc.data import open_dataset
+    from vvloc.sim import simulate_dataset
+    from vvloc.train import loop_validation
+
+    garage = tmp_path / "garage"
+    simulate_dataset(garage, scene="garage", sessions=2, frames=16, floors=2, progress=False)
+    ds = open_dataset(garage)
+    model = VVLocNet(TrainConfig().model_config()).eval()
+    # a radius beyond any distance of unit descriptors (≤ 2) accepts every admissible pair
+    res = loop_validation(model, ds, ["s0", "s1"], radius=2.5, window=2)
+    fl = np.concatenate([ds.session(s).floors for s in ("s0", "s1")])
+    sess = np.repeat([0, 1], 16)
+    seq = np.tile(np.arange(16), 2)
+    i, j = np.triu_indices(32, 1)
+    admissible = ~((sess[i] == sess[j]) & (np.abs(seq[i] - seq[j]) <= 2))
+    assert res["frames"] == 32
+    assert res["accepted"] == int(admissible.sum())
+    assert res["cross_floor"] == int((admissible & (fl[i] != fl[j])).sum()) > 0
+    assert res["cfer"] == pytest.approx(res["cross_floor"] / res["accepted"])
+    tight = loop_validation(model, ds, ["s0", "s1"], radius=1e-6, window=2)
+    assert tight["accepted"] == 0 and tight["cross_floor"] == 0
+
+
+def test_best_epoch_has_the_fewest_cross_floor_loops_then_the_highest_recall():
+    key = Trainer.selection_key
+    plain = {"r1_reranked": 0.8, "r1_retrieval": 0.7}
+    assert key(plain) > key({"r1_reranked": 0.8, "r1_retrieval": 0.6})
+    two = {**plain, "loops": [{"cross_floor": 1}, {"cross_floor": 1}]}
+    one = {
+        "r1_reranked": 0.7,
+        "r1_retrieval": 0.5,
+        "loops": [{"cross_floor": 0}, {"cross_floor": 1}],
+    }
+    assert key(one) > key(two)  # a cross-floor loop closure weighs more than recall
+    assert key({**one, "r1_reranked": 0.75}) > key(one)
+
+
+def test_bad_val_loops_are_refused_by_name():
+    base = {"dataset": "x", "train_sessions": ["s0"], "val_sessions": ["s1"]}
+    with pytest.raises(ValueError, match=r"val_loops: needs val_sessions"):
+        TrainConfig.from_dict({"dataset": "x", "val_loops": [{"dataset": "g", "sessions": ["s5"]}]})
+    with pytest.raises(ValueError, match=r"val_loops\[0\]: expected a mapping"):
+        TrainConfig.from_dict({**base, "val_loops": [{"dataset": "g"}]})
+    with pytest.raises(ValueError, match=r"val_loops\[0\]: unknown keys \['bogus'\]"):
+        TrainConfig.from_dict(
+            {**base, "val_loops": [{"dataset": "g", "sessions": ["s5"], "bogus": 1}]}
+        )
+    with pytest.raises(ValueError, match=r"val_loops\[0\]\.radius"):
+        TrainConfig.from_dict(
+            {**base, "val_loops": [{"dataset": "g", "sessions": ["s5"], "radius": 0}]}
+        )
+    with pytest.raises(ValueError, match=r"val_loops\[0\]\.sessions: must not be trained on"):
+        TrainConfig.from_dict(
+            {
+                **base,
+                "extra_datasets": [{"dataset": "g", "train_sessions": ["s0", "s5"]}],
+                "val_loops": [{"dataset": "g", "sessions": ["s5"]}],
+            }
+        )
+
+
+def test_fit_with_val_loops_logs_them_and_selects_by_them(tiny_world, tmp_path):
+    loops = [{"dataset": str(tiny_world), "sessions": ["s2"], "radius": 0.5, "window": 2}]
+    cfg = _config(
+        tiny_world,
+        stage1_epochs=2,
+        stage2_epochs=0,
+        train_sessions=["s0", "s1"],
+        val_sessions=["s2"],
+        val_every=4,
+        val_loops=loops,
+    )
+    tr = train(cfg, tmp_path / "run", progress=False)
+    log = [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
+    for rec in log:
+        (entry,) = rec["val"]["loops"]
+        assert entry["frames"] == 40 and entry["cross_floor"] == 0  # one floor
+        assert entry["dataset"] == str(tiny_world)
+    best = max(log, key=lambda r: Trainer.selection_key(r["val"]))
+    assert tr.best is not None and tr.best["epoch"] == best["epoch"]
+    with pytest.raises(ValueError, match=r"val_loops\[0\]\.sessions: must not be trained on"):
+        _config(
+            tiny_world,
+            train_sessions=["s0", "s1"],
+            val_sessions=["s2"],
+            val_loops=[{"dataset": str(tiny_world), "sessions": ["s1"]}],
+        )

@@ -95,6 +95,13 @@ class TrainConfig:
     ``val_sessions`` (optional, disjoint from ``train_sessions``) select the checkpoint: every
     ``val_every``-th frame of each is localized against a map of the ``val_database`` session
     (re-ranking the ``val_top_k`` retrieved keyframes) after each joint epoch.
+    ``val_loops`` (optional): multi-storey loop-closure validation, a list of mappings with
+    ``dataset``, ``sessions`` (never trained on) and optionally ``radius`` (descriptor distance,
+    default 0.1) and ``window`` (same-session neighbours excluded, default 10 keyframes): each
+    validated epoch then also counts the loop closures that all frames of those sessions accept
+    at ``radius`` and how many join two floors (:func:`loop_validation`), and ``best/`` goes to
+    the epoch with the fewest such cross-floor pairs (summed over the entries), ties by the
+    Recall@1 figures above. Needs ``val_sessions``.
     ``head_epochs`` (default 0) adds the head stage (module docstring): ``head_steps_per_epoch``
     steps of ``head_batch_size`` triplets at learning rate ``head_lr`` (Adam, ×``lr_decay`` per
     epoch), negatives mined among the ``head_negatives`` nearest. Its cache holds every training
@@ -140,6 +147,7 @@ class TrainConfig:
     val_database: str = "s0"
     val_every: int = 1
     val_top_k: int = 20
+    val_loops: list[dict[str, Any]] = field(default_factory=list)
     head_epochs: int = 0
     head_steps_per_epoch: int = 1000
     head_batch_size: int = 32
@@ -216,6 +224,38 @@ class TrainConfig:
                 "init_checkpoint: expected a checkpoint or run folder path, "
                 f"got {self.init_checkpoint!r}"
             )
+        if not isinstance(self.val_loops, list):
+            raise ValueError("val_loops: expected a list of mappings")
+        for k, entry in enumerate(self.val_loops):
+            if not isinstance(entry, dict) or not {"dataset", "sessions"} <= set(entry):
+                raise ValueError(
+                    f"val_loops[{k}]: expected a mapping with 'dataset' and 'sessions'"
+                )
+            unknown = sorted(set(entry) - {"dataset", "sessions", "radius", "window"})
+            if unknown:
+                raise ValueError(
+                    f"val_loops[{k}]: unknown keys {unknown}; "
+                    "known: ['dataset', 'radius', 'sessions', 'window']"
+                )
+            if not isinstance(entry["sessions"], list) or not entry["sessions"]:
+                raise ValueError(f"val_loops[{k}].sessions: expected a non-empty list")
+            radius = entry.get("radius", 0.1)
+            if isinstance(radius, bool) or not isinstance(radius, (int, float)) or radius <= 0:
+                raise ValueError(f"val_loops[{k}].radius: expected a number > 0, got {radius!r}")
+            window = entry.get("window", 10)
+            if isinstance(window, bool) or not isinstance(window, int) or window < 0:
+                raise ValueError(f"val_loops[{k}].window: expected an int >= 0, got {window!r}")
+            sources = [{"dataset": self.dataset, "train_sessions": self.train_sessions}]
+            for extra in [*sources, *self.extra_datasets]:
+                if isinstance(extra, dict) and extra.get("dataset") == entry["dataset"]:
+                    trained = set(extra.get("train_sessions") or []) & set(entry["sessions"])
+                    if trained or extra.get("train_sessions") is None:
+                        raise ValueError(
+                            f"val_loops[{k}].sessions: must not be trained on ({entry['dataset']} "
+                            f"trains {sorted(trained) or 'all its sessions'})"
+                        )
+        if self.val_loops and not self.val_sessions:
+            raise ValueError("val_loops: needs val_sessions (the Recall@1 validation) as well")
         if not isinstance(self.extra_datasets, list):
             raise ValueError("extra_datasets: expected a list of mappings")
         for k, extra in enumerate(self.extra_datasets):
@@ -424,6 +464,58 @@ def validation_recall(
     }
 
 
+def loop_validation(
+    model: VVLocNet, ds: Any, sessions: list[str], *, radius: float = 0.1, window: int = 10
+) -> dict[str, Any]:
+    """Loop closures among all frames of ``sessions`` accepted at global-descriptor distance
+    < ``radius`` (same-session pairs within ``window`` keyframes excluded), scored as
+    :func:`vvloc.evaluate.loop_closure_curve` does (true loop: ≤ 2 m, same floor).
+
+    Returns ``{"frames", "accepted", "cross_floor" (accepted pairs joining two floors),
+    "cfer", "precision", "recall"}`` (shares in [0, 1], ``nan`` when nothing is accepted).
+    """
+    from vvloc import evaluate
+    from vvloc.localize.localizer import encode_frames
+    from vvloc.retrieval import DescriptorIndex, Exclusion
+
+    frames, group, seq = [], [], []
+    for k, name in enumerate(sessions):
+        sess = list(ds.session(name))
+        frames += sess
+        group += [k] * len(sess)
+        seq += list(range(len(sess)))
+    g = encode_frames(model, frames).global_desc
+    groups, seqs = np.asarray(group, np.int64), np.asarray(seq, np.int64)
+    index = DescriptorIndex(g, groups=groups, seqs=seqs)
+    offsets, idx, dist = index.radius(g, radius, exclude=Exclusion(groups, seqs, window=window))
+    qi = np.repeat(np.arange(len(frames), dtype=np.int64), np.diff(offsets))
+    keep = qi < idx
+    pos = np.stack([f.pose[:2] for f in frames])
+    floors = np.asarray([f.floor for f in frames], np.int64)
+    times = seqs.astype(np.float64) + 1e6 * groups
+    curve = evaluate.loop_closure_curve(
+        np.stack([qi[keep], idx[keep]], axis=1),
+        dist[keep],
+        pos,
+        pos,
+        query_floors=floors,
+        db_floors=floors,
+        query_times=times,
+        db_times=times,
+        time_window=window,
+    )
+    at = curve.at(radius)
+    cross = int(curve.is_cross_floor[: int(at["accepted"])].sum())  # pairs sorted by distance
+    return {
+        "frames": len(frames),
+        "accepted": int(at["accepted"]),
+        "cross_floor": cross,
+        "cfer": at["cfer"],
+        "precision": at["precision"],
+        "recall": at["recall"],
+    }
+
+
 def _check_rendered_like(root: Path, sim: dict[str, Any]) -> None:
     """Refuse a rendered dataset whose recorded world (``rig.json`` ``meta``: scene, seed, and
     for a garage floors and floor marking) differs from what ``sim`` would render."""
@@ -500,6 +592,12 @@ class Trainer:
         if cfg.val_sessions:
             for name in [cfg.val_database, *cfg.val_sessions]:
                 self.ds.session(name)  # KeyError naming the known sessions, before any epoch
+        self.loop_sets = []  # (dataset, entry) of val_loops, opened before any epoch
+        for entry in cfg.val_loops:
+            loop_ds = open_dataset(entry["dataset"])
+            for name in entry["sessions"]:
+                loop_ds.session(name)
+            self.loop_sets.append((loop_ds, entry))
         self.model = VVLocNet(cfg.model_config()).to(self.device)
         # True while the global head holds no trained weights (the head stage initialises it)
         self.head_untrained = cfg.stage1_epochs + cfg.stage2_epochs == 0
@@ -878,8 +976,29 @@ class Trainer:
             every=cfg.val_every,
             top_k=cfg.val_top_k,
         )
+        if self.loop_sets:
+            res["loops"] = [
+                {
+                    "dataset": str(entry["dataset"]),
+                    **loop_validation(
+                        self.model,
+                        loop_ds,
+                        list(entry["sessions"]),
+                        radius=float(entry.get("radius", 0.1)),
+                        window=int(entry.get("window", 10)),
+                    ),
+                }
+                for loop_ds, entry in self.loop_sets
+            ]
         res["seconds"] = time.perf_counter() - t0
         return res
+
+    @staticmethod
+    def selection_key(val: dict[str, Any]) -> tuple[float, ...]:
+        """How validated epochs compare for ``best/`` (higher is better): fewer cross-floor loop
+        closures on ``val_loops`` (when set), then Recall@1 (2 m) re-ranked, then retrieval."""
+        cross = -sum(e["cross_floor"] for e in val.get("loops", []))
+        return (float(cross), val["r1_reranked"], val["r1_retrieval"])
 
     def fit(self, progress: bool = True) -> list[dict[str, Any]]:
         """Train until ``cfg.epochs``; checkpoint and log after every epoch (and keep the best
@@ -893,11 +1012,8 @@ class Trainer:
             rec = self.run_epoch(progress=progress)
             if validating:
                 rec["val"] = self.validate()
-                key = (rec["val"]["r1_reranked"], rec["val"]["r1_retrieval"])
-                if self.best is None or key > (
-                    self.best["val"]["r1_reranked"],
-                    self.best["val"]["r1_retrieval"],
-                ):
+                key = self.selection_key(rec["val"])
+                if self.best is None or key > self.selection_key(self.best["val"]):
                     self.model.calibration = {
                         **rec["val"]["calibration"],
                         "dataset": str(cfg.dataset),
