@@ -303,19 +303,34 @@ def test_a_garage_rendered_with_another_floor_marking_is_refused(tmp_path):
         _check_rendered_like(root, {**sim, "floors": 3})
 
 
-def test_head_stage_trains_only_the_global_head_and_lowers_its_loss(tiny_world, tmp_path):
-    base = train(_config(tiny_world, stage1_epochs=1, stage2_epochs=0), tmp_path / "a", False)
-    cfg = _config(
-        tiny_world,
-        init_checkpoint=str(tmp_path / "a"),
-        model_overrides={"global_head": "netvlad", "netvlad_clusters": 4, "global_dim": 16},
+NETVLAD_SMALL = {"global_head": "netvlad", "netvlad_clusters": 4, "global_dim": 16}
+
+
+def _head_only_config(root, base: Path, **kw) -> TrainConfig:
+    """A head-stage-only run on the weights of ``base`` (a NetVLAD head unless overridden)."""
+    opts = dict(
+        init_checkpoint=str(base),
+        model_overrides=NETVLAD_SMALL,
         stage1_epochs=0,
         stage2_epochs=0,
+        head_epochs=2,
+        head_steps_per_epoch=6,
+        head_batch_size=4,
+        head_negatives=3,
+    )
+    opts.update(kw)
+    return _config(root, **opts)
+
+
+def test_head_stage_trains_only_the_global_head_and_lowers_its_loss(tiny_world, tmp_path):
+    base = train(_config(tiny_world, stage1_epochs=1, stage2_epochs=0), tmp_path / "a", False)
+    cfg = _head_only_config(
+        tiny_world,
+        tmp_path / "a",
         head_epochs=3,
         head_steps_per_epoch=15,
         head_batch_size=8,
         head_lr=1e-2,
-        head_negatives=3,
     )
     tuned = Trainer(cfg, tmp_path / "b")
     fixed = tuned.sampler.sample_random(64)  # random negatives, the same before and after
@@ -353,19 +368,9 @@ def test_head_stage_k_means_start_and_resume_continue_identically(tiny_world, tm
 
     base = tmp_path / "base"
     train(_config(tiny_world, stage1_epochs=1, stage2_epochs=0), base, progress=False)
-    kw = dict(
-        init_checkpoint=str(base),
-        model_overrides={"global_head": "netvlad", "netvlad_clusters": 4, "global_dim": 16},
-        stage1_epochs=0,
-        stage2_epochs=0,
-        head_epochs=2,
-        head_steps_per_epoch=6,
-        head_batch_size=4,
-        head_negatives=3,
-    )
     # stopped after the first head epoch (the k-means start), resumed for the second: the
     # resumed run must not restart the head from k-means
-    _assert_resumed_run_equals_uninterrupted(_config(tiny_world, **kw), tmp_path, cut=1)
+    _assert_resumed_run_equals_uninterrupted(_head_only_config(tiny_world, base), tmp_path, cut=1)
 
 
 def test_the_k_means_start_replaces_only_an_untrained_head(tiny_world, tmp_path, monkeypatch):
@@ -378,23 +383,14 @@ def test_the_k_means_start_replaces_only_an_untrained_head(tiny_world, tmp_path,
         "init_from_features",
         lambda self, *a, **k: calls.append(1) or real(self, *a, **k),
     )
-    over = {"global_head": "netvlad", "netvlad_clusters": 4, "global_dim": 16}
     kw = dict(head_epochs=2, head_steps_per_epoch=3, head_batch_size=4, head_negatives=3)
     base = tmp_path / "base"
     train(_config(tiny_world, stage1_epochs=1, stage2_epochs=0), base, progress=False)
-    head_only = _config(
-        tiny_world,
-        init_checkpoint=str(base),
-        model_overrides=over,
-        stage1_epochs=0,
-        stage2_epochs=0,
-        **kw,
-    )
-    train(head_only, tmp_path / "a", progress=False)
+    train(_head_only_config(tiny_world, base, **kw), tmp_path / "a", progress=False)
     assert len(calls) == 1  # the new head starts from k-means once, not every head epoch
     # a NetVLAD head trained in stage 1 is refined, never reset
     train(
-        _config(tiny_world, model_overrides=over, stage1_epochs=1, stage2_epochs=0, **kw),
+        _config(tiny_world, model_overrides=NETVLAD_SMALL, stage1_epochs=1, stage2_epochs=0, **kw),
         tmp_path / "b",
         progress=False,
     )
@@ -404,11 +400,10 @@ def test_the_k_means_start_replaces_only_an_untrained_head(tiny_world, tmp_path,
 def test_mined_negatives_are_never_positives_and_are_the_nearest(tiny_world, tmp_path):
     base = tmp_path / "base"
     train(_config(tiny_world, stage1_epochs=1, stage2_epochs=0), base, progress=False)
-    cfg = _config(
+    cfg = _head_only_config(
         tiny_world,
-        init_checkpoint=str(base),
-        stage1_epochs=0,
-        stage2_epochs=0,
+        base,
+        model_overrides={},
         head_epochs=1,
         head_negatives=1,
         # the same world once more as a second world: 10⁶ m away in z, precision must hold

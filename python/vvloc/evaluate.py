@@ -661,6 +661,33 @@ def loop_closure_curve(
 # ----------------------------------------------------------------------------- pose on loop pairs
 
 
+def self_loop_closure_curve(
+    pairs: npt.ArrayLike,
+    distances: npt.ArrayLike,
+    positions: npt.ArrayLike,
+    floors: npt.ArrayLike,
+    times: npt.ArrayLike,
+    time_window: float,
+    radius: float = 2.0,
+) -> LoopClosureCurve:
+    """:func:`loop_closure_curve` for loop closure within one set of frames (every frame is
+    both query and map entry): ``positions`` (N, 2) world x, y (m), ``floors`` (N,),
+    ``times`` (N,) and ``time_window`` in one unit (e.g. frame numbers, with sessions offset
+    far apart so that only same-session neighbours fall inside the window)."""
+    return loop_closure_curve(
+        pairs,
+        distances,
+        positions,
+        positions,
+        query_floors=floors,
+        db_floors=floors,
+        query_times=times,
+        db_times=times,
+        time_window=time_window,
+        radius=radius,
+    )
+
+
 def _loop_pose_row(
     rre: F64Array, rte: F64Array, total: int, rot_threshold_deg: float, trans_threshold_m: float
 ) -> dict[str, Any]:

@@ -493,17 +493,8 @@ def loop_validation(
     pos = np.stack([f.pose[:2] for f in frames])
     floors = np.asarray([f.floor for f in frames], np.int64)
     times = seqs.astype(np.float64) + 1e6 * groups
-    curve = evaluate.loop_closure_curve(
-        np.stack([qi[keep], idx[keep]], axis=1),
-        dist[keep],
-        pos,
-        pos,
-        query_floors=floors,
-        db_floors=floors,
-        query_times=times,
-        db_times=times,
-        time_window=window,
-    )
+    pairs = np.stack([qi[keep], idx[keep]], axis=1)
+    curve = evaluate.self_loop_closure_curve(pairs, dist[keep], pos, floors, times, window)
     at = curve.at(radius)
     cross = int(curve.is_cross_floor[: int(at["accepted"])].sum())  # pairs sorted by distance
     return {

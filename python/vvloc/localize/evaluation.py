@@ -96,17 +96,7 @@ def _loops(
         pairs = np.stack([cand.i, cand.j], axis=1)
         # frames of one session within ±10 keyframes never count (temporal neighbours)
         times = np.asarray(db.seq, dtype=np.float64) + 1e6 * np.asarray(db.session_index)
-        curve = evaluate.loop_closure_curve(
-            pairs,
-            cand.distance,
-            pos,
-            pos,
-            query_floors=floors,
-            db_floors=floors,
-            query_times=times,
-            db_times=times,
-            time_window=10,
-        )
+        curve = evaluate.self_loop_closure_curve(pairs, cand.distance, pos, floors, times, 10)
         closure = {"VVLoc (descriptor radius)": curve.summary(radius)}
         order = np.argsort(cand.distance, kind="stable")[:loop_pairs]
         order = order[cand.distance[order] < radius]
