@@ -666,14 +666,18 @@ def self_loop_closure_curve(
     distances: npt.ArrayLike,
     positions: npt.ArrayLike,
     floors: npt.ArrayLike,
-    times: npt.ArrayLike,
-    time_window: float,
+    sessions: npt.ArrayLike,
+    seqs: npt.ArrayLike,
+    window: int,
     radius: float = 2.0,
 ) -> LoopClosureCurve:
     """:func:`loop_closure_curve` for loop closure within one set of frames (every frame is
-    both query and map entry): ``positions`` (N, 2) world x, y (m), ``floors`` (N,),
-    ``times`` (N,) and ``time_window`` in one unit (e.g. frame numbers, with sessions offset
-    far apart so that only same-session neighbours fall inside the window)."""
+    both query and map entry): ``positions`` (N, 2) world x, y (m); ``floors``, ``sessions``
+    and ``seqs`` (N,) integers. Pairs of one session within ``window`` sequence numbers are
+    temporal neighbours (not admissible); pairs of two sessions always are admissible."""
+    seq = np.asarray(seqs, dtype=np.float64)
+    span = float(np.abs(seq).max(initial=0.0)) + float(window) + 1.0
+    times = seq + 2.0 * span * np.asarray(sessions, dtype=np.float64)  # sessions never overlap
     return loop_closure_curve(
         pairs,
         distances,
@@ -683,7 +687,7 @@ def self_loop_closure_curve(
         db_floors=floors,
         query_times=times,
         db_times=times,
-        time_window=time_window,
+        time_window=window,
         radius=radius,
     )
 

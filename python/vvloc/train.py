@@ -55,6 +55,7 @@ from vvloc import geometry
 from vvloc.checkpoints import resolve_checkpoint
 from vvloc.data import TripletSampler, open_dataset
 from vvloc.data.augment import PhotometricAugment
+from vvloc.localize.localizer import frames_to_tensors
 from vvloc.losses import (
     hinge_loss,
     translation_bias_loss,
@@ -374,6 +375,19 @@ class StepLosses:
     violated: int
 
 
+def global_losses(
+    g: torch.Tensor, cfg: TrainConfig
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The global-descriptor losses of triplets ``g`` (3, B, Dg) (anchor, positive, negative
+    descriptors): (triplet loss, hinge loss, correct (B,) bool); a triplet is correct for
+    hard mining when ‖g_a − g_p‖ + margin < ‖g_a − g_n‖."""
+    d_pos = (g[0] - g[1]).norm(dim=-1)
+    d_neg = (g[0] - g[2]).norm(dim=-1)
+    l_tri = triplet_loss(g[0], g[1], g[2], cfg.triplet_margin)
+    l_hinge = hinge_loss(d_pos, d_neg, cfg.hinge_pos, cfg.hinge_neg)
+    return l_tri, l_hinge, (d_pos + cfg.triplet_margin < d_neg).detach()
+
+
 def training_losses(
     model: VVLocNet,
     batch: dict[str, torch.Tensor],
@@ -394,11 +408,7 @@ def training_losses(
     b = images.shape[0]
     flat = lambda x: x.to(device).transpose(0, 1).reshape(3 * b, *x.shape[2:])  # noqa: E731
     out = model.encode(flat(images), flat(batch["intrinsics"]), flat(batch["cam_to_ego"]))
-    g = out.global_desc.view(3, b, -1)
-    l_tri = triplet_loss(g[0], g[1], g[2], cfg.triplet_margin)
-    d_pos = (g[0] - g[1]).norm(dim=-1)
-    d_neg = (g[0] - g[2]).norm(dim=-1)
-    l_hinge = hinge_loss(d_pos, d_neg, cfg.hinge_pos, cfg.hinge_neg)
+    l_tri, l_hinge, correct_t = global_losses(out.global_desc.view(3, b, -1), cfg)
     total = l_tri + l_hinge
     l_yaw = torch.zeros((), device=device)
     l_tb = torch.zeros((), device=device)
@@ -416,7 +426,7 @@ def training_losses(
             model, bev[0], loc[1], t, yaw, margin=cfg.tbias_margin, seed=cfg.seed * 1_000_003 + step
         )
         total = total + cfg.yaw_weight * l_yaw + cfg.tbias_weight * l_tb
-    correct = (d_pos + cfg.triplet_margin < d_neg).detach().cpu().numpy()
+    correct = correct_t.cpu().numpy()
     parts = StepLosses(
         total=float(total.detach()),
         triplet=float(l_tri.detach()),
@@ -476,7 +486,7 @@ def loop_validation(
     """
     from vvloc import evaluate
     from vvloc.localize.localizer import encode_frames
-    from vvloc.retrieval import DescriptorIndex, Exclusion
+    from vvloc.localize.loops import descriptor_loop_candidates
 
     frames, group, seq = [], [], []
     for k, name in enumerate(sessions):
@@ -485,16 +495,12 @@ def loop_validation(
         group += [k] * len(sess)
         seq += list(range(len(sess)))
     g = encode_frames(model, frames).global_desc
-    groups, seqs = np.asarray(group, np.int64), np.asarray(seq, np.int64)
-    index = DescriptorIndex(g, groups=groups, seqs=seqs)
-    offsets, idx, dist = index.radius(g, radius, exclude=Exclusion(groups, seqs, window=window))
-    qi = np.repeat(np.arange(len(frames), dtype=np.int64), np.diff(offsets))
-    keep = qi < idx
+    cand = descriptor_loop_candidates(g, np.asarray(group), np.asarray(seq), radius, window)
     pos = np.stack([f.pose[:2] for f in frames])
     floors = np.asarray([f.floor for f in frames], np.int64)
-    times = seqs.astype(np.float64) + 1e6 * groups
-    pairs = np.stack([qi[keep], idx[keep]], axis=1)
-    curve = evaluate.self_loop_closure_curve(pairs, dist[keep], pos, floors, times, window)
+    curve = evaluate.self_loop_closure_curve(
+        np.stack([cand.i, cand.j], axis=1), cand.distance, pos, floors, group, seq, window
+    )
     at = curve.at(radius)
     cross = int(curve.is_cross_floor[: int(at["accepted"])].sum())  # pairs sorted by distance
     return {
@@ -614,7 +620,11 @@ class Trainer:
         config differs from this run's)."""
         path = resolve_checkpoint(path)
         if not (path / "config.json").is_file():
-            raise FileNotFoundError(f"init_checkpoint: no checkpoint (config.json) in {path}")
+            raise FileNotFoundError(
+                f"init_checkpoint: no checkpoint (config.json) in {path}: train that run first "
+                "(see the config's header), or point init_checkpoint at a checkpoint folder "
+                "such as models/synth-small-base"
+            )
         init = VVLocNet.load(path)
         if init.config_hash() == self.model.config_hash():
             self.model.load_state_dict(init.state_dict())
@@ -822,12 +832,10 @@ class Trainer:
         bar = tqdm(total=len(ids), desc="head stage: caching polar BEVs", disable=not progress)
         for a in range(0, len(ids), 16):
             frames = [self.sampler.frame(int(g)) for g in ids[a : a + 16]]
-            images = torch.from_numpy(np.stack([f.images for f in frames])).to(self.device)
-            k = torch.from_numpy(np.stack([f.K for f in frames]).astype(np.float32))
-            t = torch.from_numpy(np.stack([f.cam_to_ego for f in frames]).astype(np.float32))
+            images, k, t = frames_to_tensors(frames, self.device)
             feats = self.model.image_features(images)
             size = (int(images.shape[-2]), int(images.shape[-1]))
-            bev = self.model.bev_from_features(feats, k.to(self.device), t.to(self.device), size)
+            bev = self.model.bev_from_features(feats, k, t, size)
             out.append(self.model.polar(bev).half())
             bar.update(len(frames))
         bar.close()
@@ -879,15 +887,10 @@ class Trainer:
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, int]:
         """Head-stage losses of (B, 3) triplets of cached frame ids: (total, triplet, hinge,
         number violating the triplet margin); the stage-1 losses on the head's descriptors."""
-        cfg = self.cfg
         idx = torch.from_numpy(np.asarray(triplets).T.reshape(-1)).to(self.device)
-        d = self.model.global_head(cache[idx].float()).view(3, len(triplets), -1)
-        l_tri = triplet_loss(d[0], d[1], d[2], cfg.triplet_margin)
-        d_pos = (d[0] - d[1]).norm(dim=-1)
-        d_neg = (d[0] - d[2]).norm(dim=-1)
-        l_hinge = hinge_loss(d_pos, d_neg, cfg.hinge_pos, cfg.hinge_neg)
-        wrong = int((d_pos + cfg.triplet_margin >= d_neg).sum())
-        return l_tri + l_hinge, l_tri, l_hinge, wrong
+        g = self.model.global_head(cache[idx].float()).view(3, len(triplets), -1)
+        l_tri, l_hinge, correct = global_losses(g, self.cfg)
+        return l_tri + l_hinge, l_tri, l_hinge, int((~correct).sum())
 
     def _head_epoch(self, progress: bool) -> dict[str, Any]:
         """One epoch of the head stage (see the module docstring); returns its log record."""

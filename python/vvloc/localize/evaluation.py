@@ -95,8 +95,9 @@ def _loops(
         cand = loop_candidates(db, radius=0.5, window=10)
         pairs = np.stack([cand.i, cand.j], axis=1)
         # frames of one session within ±10 keyframes never count (temporal neighbours)
-        times = np.asarray(db.seq, dtype=np.float64) + 1e6 * np.asarray(db.session_index)
-        curve = evaluate.self_loop_closure_curve(pairs, cand.distance, pos, floors, times, 10)
+        curve = evaluate.self_loop_closure_curve(
+            pairs, cand.distance, pos, floors, db.session_index, db.seq, 10
+        )
         closure = {"VVLoc (descriptor radius)": curve.summary(radius)}
         order = np.argsort(cand.distance, kind="stable")[:loop_pairs]
         order = order[cand.distance[order] < radius]

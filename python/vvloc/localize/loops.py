@@ -35,22 +35,37 @@ class LoopCandidates:
     distance: np.ndarray
 
 
-def loop_candidates(mapdb: MapDatabase, radius: float = 0.1, window: int = 10) -> LoopCandidates:
-    """All pairs i < j with descriptor distance < ``radius``, excluding same-session pairs
-    within ``window`` sequence numbers (one radius query per keyframe, Rust index)."""
+def descriptor_loop_candidates(
+    descriptors: np.ndarray,
+    sessions: np.ndarray,
+    seqs: np.ndarray,
+    radius: float = 0.1,
+    window: int = 10,
+) -> LoopCandidates:
+    """All pairs i < j of ``descriptors`` (N, D) with L2 distance < ``radius``, excluding pairs
+    of one session (``sessions`` (N,) int) within ``window`` sequence numbers (``seqs`` (N,)
+    int): one radius query per row on the Rust index."""
     if not radius > 0:
         raise ValueError(f"radius: expected > 0, got {radius}")
     if window < 0:
         raise ValueError(f"window: expected >= 0, got {window}")
-    groups = mapdb.session_index.astype(np.int64)
-    seqs = np.asarray(mapdb.seq, dtype=np.int64)
-    index = DescriptorIndex(mapdb.global_descriptors, groups=groups, seqs=seqs)
+    groups = np.asarray(sessions, dtype=np.int64)
+    seq = np.asarray(seqs, dtype=np.int64)
+    index = DescriptorIndex(descriptors, groups=groups, seqs=seq)
     offsets, idx, dist = index.radius(
-        mapdb.global_descriptors, radius, exclude=Exclusion(groups, seqs, window=int(window))
+        descriptors, radius, exclude=Exclusion(groups, seq, window=int(window))
     )
-    qi = np.repeat(np.arange(len(mapdb), dtype=np.int64), np.diff(offsets))
+    qi = np.repeat(np.arange(len(groups), dtype=np.int64), np.diff(offsets))
     keep = qi < idx
     return LoopCandidates(qi[keep], idx[keep], dist[keep])
+
+
+def loop_candidates(mapdb: MapDatabase, radius: float = 0.1, window: int = 10) -> LoopCandidates:
+    """:func:`descriptor_loop_candidates` of a map's keyframes (rows, their sessions and
+    sequence numbers)."""
+    return descriptor_loop_candidates(
+        mapdb.global_descriptors, mapdb.session_index, mapdb.seq, radius, window
+    )
 
 
 def verify_pairs(
