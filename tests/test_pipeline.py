@@ -176,6 +176,19 @@ def test_detect_loops_api_returns_ids_and_costs(map_file, model_dir):
         assert len(found.i) == len(found.costs) <= 2
         assert set(found.i.tolist()) <= set(db.ids.tolist())
         assert np.all(found.accepted == (found.costs < 0.75))
+        # the sequence check (default ±1 keyframe) keeps a subset of the single-keyframe pairs
+        kw = {"radius": 2.0, "window": 3, "search": SMALL_SEARCH, "progress": False}
+        checked = detect_loops(model, db, max_pairs=4, **kw)
+        every = loop_candidates(db, radius=2.0, window=3)
+        seq = loop_candidates(db, radius=2.0, window=3, sequence=1)
+        assert len(seq.i) < len(every.i)
+        assert set(zip(seq.i.tolist(), seq.j.tolist(), strict=True)) <= set(
+            zip(every.i.tolist(), every.j.tolist(), strict=True)
+        )
+        ids = np.asarray(db.ids)
+        seq_ids = set(zip(ids[seq.i].tolist(), ids[seq.j].tolist(), strict=True))
+        assert len(checked.i) == min(4, len(seq.i))
+        assert set(zip(checked.i.tolist(), checked.j.tolist(), strict=True)) <= seq_ids
 
 
 def test_calibration_is_written_by_the_cli_kept_with_the_checkpoint_and_gates_acceptance(
@@ -229,9 +242,14 @@ def test_evaluation_scores_loop_closures_at_the_given_radius(tiny_world, model_d
         run_evaluation(model_dir, tiny_world, "s0", ["s1"], tmp_path / "bad", loop_radius=0.0, **kw)
     assert not (tmp_path / "bad").exists()
     m = run_evaluation(model_dir, tiny_world, "s0", ["s1"], tmp_path / "ev", loop_radius=0.3, **kw)
-    at = m["loop_closure"]["VVLoc (descriptor radius)"]["at_threshold"]
-    assert at["threshold"] == 0.3
-    # only pairs accepted at the radius are verified metrically (at most loop_pairs of them)
-    assert m["loop_pose"]["VVLoc"]["all"]["count"] == min(2, at["accepted"])
+    for name in ("VVLoc (descriptor radius)", "VVLoc + sequence (±1 keyframes)"):
+        at = m["loop_closure"][name]["at_threshold"]
+        assert at["threshold"] == 0.3
+        # only pairs accepted at the radius are verified metrically (at most loop_pairs of them)
+        assert m["loop_pose"][name]["all"]["count"] == min(2, at["accepted"])
+    single = m["loop_closure"]["VVLoc (descriptor radius)"]["at_threshold"]["accepted"]
+    assert (
+        m["loop_closure"]["VVLoc + sequence (±1 keyframes)"]["at_threshold"]["accepted"] <= single
+    )
     assert m["meta"]["snap"] is True and m["meta"]["metric_candidates"] == 3  # the defaults
     assert "| VVLoc (descriptor radius) | 0.300 |" in (tmp_path / "ev" / "report.md").read_text()

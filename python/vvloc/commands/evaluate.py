@@ -42,6 +42,14 @@ def eval_command(
             help="Loop closures accepted below this global-descriptor distance, in (0, 0.5].",
         ),
     ] = 0.1,
+    loop_sequence: Annotated[
+        int,
+        typer.Option(
+            "--loop_sequence",
+            min=0,
+            help="Also score loops whose ±L neighbouring keyframes match too (0: off).",
+        ),
+    ] = 1,
 ) -> None:
     """Write report.md/report.json/plots with Recall@N, AOE/APE and per-stage latency."""
     from vvloc.localize.evaluation import run_evaluation
@@ -65,5 +73,6 @@ def eval_command(
             loops=loops,
             loop_pairs=loop_pairs,
             loop_radius=loop_radius,
+            loop_sequence=loop_sequence,
         )
     typer.echo(f"report: {out / 'report.md'}")

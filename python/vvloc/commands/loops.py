@@ -24,6 +24,14 @@ def loops(
     window: Annotated[
         int, typer.Option("--window", min=0, help="Exclude same-session neighbours within.")
     ] = 10,
+    sequence: Annotated[
+        int,
+        typer.Option(
+            "--sequence",
+            min=0,
+            help="Half-window L: the ±L neighbouring keyframe pairs must match too (0: off).",
+        ),
+    ] = 1,
     threshold: Annotated[float, typer.Option("--threshold", help="Accept cost below.")] = 0.75,
     max_pairs: Annotated[
         int, typer.Option("--max_pairs", min=0, help="Closest candidates to verify (0: all).")
@@ -47,6 +55,7 @@ def loops(
             db,
             radius=radius,
             window=window,
+            sequence=sequence,
             cost_threshold=threshold,
             max_pairs=max_pairs or None,
         )

@@ -84,27 +84,47 @@ def _loops(
     search: SearchConfig | None,
     progress: bool,
     radius: float,
+    sequence: int,
 ) -> tuple[dict[str, Any], dict[str, Any]]:
     """Loop closure over all frames of ``sessions`` (one map with BEVs), accepted at descriptor
-    distance < ``radius``."""
+    distance < ``radius``: single keyframes (the paper's test) and, for ``sequence = L > 0``,
+    with the sequence-consistency check of half-window L (:mod:`vvloc.localize.loops`)."""
     path = build_map(model, ds, list(sessions), out_dir / "loops_map.h5", progress=progress)
+    closure: dict[str, Any] = {}
+    pose: dict[str, Any] = {}
+    verified: dict[tuple[int, int], tuple[np.ndarray, float]] = {}
     with MapDatabase.open(path, expected_config_hash=model.config_hash()) as db:
         pos = np.asarray(db.poses)[:, :2]
         floors = np.asarray(db.floors)
-        # every pair within a generous descriptor radius: the sweep's candidates
-        cand = loop_candidates(db, radius=0.5, window=10)
-        pairs = np.stack([cand.i, cand.j], axis=1)
-        # frames of one session within ±10 keyframes never count (temporal neighbours)
-        curve = evaluate.self_loop_closure_curve(
-            pairs, cand.distance, pos, floors, db.session_index, db.seq, 10
-        )
-        closure = {"VVLoc (descriptor radius)": curve.summary(radius)}
-        order = np.argsort(cand.distance, kind="stable")[:loop_pairs]
-        order = order[cand.distance[order] < radius]
-        est, costs = verify_pairs(model, db, cand.i[order], cand.j[order], search=search)
-        gt = geometry.relative(db.poses[cand.i[order]], db.poses[cand.j[order]])
-        pose = evaluate.loop_pose_metrics(est, gt.reshape(-1, 3), costs)
-    return closure, {"VVLoc": pose}
+        variants = {"VVLoc (descriptor radius)": 0}
+        if sequence > 0:
+            variants[f"VVLoc + sequence (±{sequence} keyframes)"] = sequence
+        for name, half in variants.items():
+            # every pair within a generous descriptor radius: the sweep's candidates
+            cand = loop_candidates(db, radius=0.5, window=10, sequence=half)
+            pairs = np.stack([cand.i, cand.j], axis=1)
+            # frames of one session within ±10 keyframes never count (temporal neighbours)
+            curve = evaluate.self_loop_closure_curve(
+                pairs, cand.distance, pos, floors, db.session_index, db.seq, 10
+            )
+            closure[name] = curve.summary(radius)
+            order = np.argsort(cand.distance, kind="stable")[:loop_pairs]
+            order = order[cand.distance[order] < radius]
+            rows_i, rows_j = cand.i[order], cand.j[order]
+            todo = [
+                k for k, ij in enumerate(zip(rows_i, rows_j, strict=True)) if ij not in verified
+            ]
+            est, costs = verify_pairs(
+                model, db, rows_i[todo], rows_j[todo], search=search, progress=progress
+            )
+            for k, e, c in zip(todo, est, costs, strict=True):
+                verified[(int(rows_i[k]), int(rows_j[k]))] = (e, float(c))
+            got = [verified[(int(a), int(b))] for a, b in zip(rows_i, rows_j, strict=True)]
+            est = np.array([e for e, _ in got]).reshape(-1, 3)
+            costs = np.array([c for _, c in got])
+            gt = geometry.relative(db.poses[rows_i], db.poses[rows_j])
+            pose[name] = evaluate.loop_pose_metrics(est, gt.reshape(-1, 3), costs)
+    return closure, pose
 
 
 def _ranked(results: Sequence[LocalizationResult], attr: str, k: int) -> np.ndarray:
@@ -134,6 +154,7 @@ def run_evaluation(
     loops: bool = False,
     loop_pairs: int = 200,
     loop_radius: float = 0.1,
+    loop_sequence: int = 1,
 ) -> dict[str, Any]:
     """Evaluate a checkpoint on ``dataset``: map = ``database`` session, queries = every
     ``every``-th frame of each session in ``queries``. Writes ``out/map.h5``,
@@ -141,10 +162,14 @@ def run_evaluation(
     ``metric_candidates`` and ``snap`` are :class:`Localizer`'s (the M top re-ranked candidates
     scored by the coarse translation search; the reported keyframe snapped to the metric pose).
     ``loops``: also loop closure over all frames of ``database`` + ``queries``, accepted at
-    global-descriptor distance < ``loop_radius`` (the first ``loop_pairs`` verified metrically).
+    global-descriptor distance < ``loop_radius`` (the first ``loop_pairs`` verified metrically),
+    for single keyframes and, when ``loop_sequence`` L > 0, with the sequence-consistency check
+    of half-window L as well (:func:`vvloc.localize.loops.sequence_distance`).
     """
     if not 0 < loop_radius <= 0.5:
         raise ValueError(f"loop_radius: expected a value in (0, 0.5], got {loop_radius}")
+    if isinstance(loop_sequence, bool) or not isinstance(loop_sequence, int) or loop_sequence < 0:
+        raise ValueError(f"loop_sequence: expected an int >= 0, got {loop_sequence!r}")
     out_dir = Path(out)
     out_dir.mkdir(parents=True, exist_ok=True)
     model = VVLocNet.load(checkpoint).to(torch.device(device))
@@ -210,6 +235,19 @@ def run_evaluation(
             "(snapping, same floor)"
         )
     notes.append(ml)
+    if loops:
+        notes.append(
+            f"loop closure over all frames of {[database, *queries]}: pairs within "
+            f"{loop_radius} in descriptor distance, same-session pairs within 10 keyframes "
+            f"excluded; the {loop_pairs} closest verified metrically"
+        )
+        if loop_sequence > 0:
+            notes.append(
+                f"VVLoc + sequence (±{loop_sequence} keyframes): a pair is kept only if the "
+                f"mean descriptor distance of its {2 * loop_sequence + 1} neighbouring keyframe "
+                "pairs (i + k, j ± k), in the better traversal direction, is below the "
+                "threshold as well (vvloc.localize.loops.sequence_distance)"
+            )
     if untrained_warning:
         notes.insert(0, untrained_warning)
     metrics: dict[str, Any] = {
@@ -239,7 +277,15 @@ def run_evaluation(
         metrics["robustness"] = _robustness(loc, frames, q_pose, q_floor, db_pose, db_floor, k)
     if loops:
         metrics["loop_closure"], metrics["loop_pose"] = _loops(
-            model, ds, [database, *queries], out_dir, loop_pairs, search, progress, loop_radius
+            model,
+            ds,
+            [database, *queries],
+            out_dir,
+            loop_pairs,
+            search,
+            progress,
+            loop_radius,
+            loop_sequence,
         )
 
     # per-query CSV

@@ -2,7 +2,11 @@
 
 Candidates are map keyframe pairs (i, j), i < j, whose global descriptors lie within
 ``radius`` (L2, default 0.1 as in the paper) of each other, excluding temporal neighbours of the
-same session (``|seq_i − seq_j| <= window``). Each candidate gets a metric pose by the same
+same session (``|seq_i − seq_j| <= window``). With ``sequence = L > 0`` a candidate must also be
+matched by its neighbours: the mean descriptor distance over the 2L + 1 keyframe pairs
+(i + k, j ± k), k = −L..L, of the better of the two traversal directions must be below the
+radius as well (:func:`sequence_distance`); an isolated look-alike, such as a view of the other
+floor of a garage, is not. Each candidate gets a metric pose by the same
 search as localization, with keyframe i's stored BEV as the padded source and keyframe j's
 local-view descriptor as the target: ξ_{i→j} (frame j expressed in frame i, DESIGN.md §3). A
 loop is accepted when its matching cost is below ``cost_threshold`` (0.75).
@@ -28,11 +32,84 @@ log = logging.getLogger("vvloc.localize")
 
 @dataclass(frozen=True)
 class LoopCandidates:
-    """Candidate pairs (i < j map rows) and their global-descriptor L2 distances, (P,) each."""
+    """Candidate pairs (i < j map rows) and their scores, (P,) each: ``distance`` is the
+    global-descriptor L2 distance of the pair, or with sequence consistency the larger of that
+    and the pair's :func:`sequence_distance`; a candidate has ``distance < radius``."""
 
     i: np.ndarray
     j: np.ndarray
     distance: np.ndarray
+
+
+def _check_sequence(sequence: int) -> int:
+    if isinstance(sequence, bool) or not isinstance(sequence, int | np.integer):
+        raise TypeError(f"sequence: expected an int >= 0, got {type(sequence).__name__}")
+    if sequence < 0:
+        raise ValueError(f"sequence: expected an int >= 0, got {sequence}")
+    return int(sequence)
+
+
+def sequence_distance(
+    descriptors: np.ndarray,
+    sessions: np.ndarray,
+    seqs: np.ndarray,
+    i: np.ndarray,
+    j: np.ndarray,
+    half_window: int,
+) -> np.ndarray:
+    """Sequence-consistent descriptor distance of row pairs (i, j), (P,) float64.
+
+    Keyframes are ordered by ``seqs`` within their session (``sessions``, (N,) ints); the k-th
+    neighbour of row r is the keyframe k places after it in that order (before it for k < 0),
+    whatever the gaps between sequence numbers. For the pair (i, j) this is the smaller, over
+    the two traversal directions s = +1 (driving the same way) and s = −1 (the opposite way), of
+    the mean L2 distance between ``descriptors`` (N, D) of neighbours (i + k, j + s·k),
+    k = −L..L with L = ``half_window``. A pair whose window leaves either session in both
+    directions gets +inf (not enough context to confirm it). ``half_window = 0`` gives the
+    pair's own descriptor distance.
+    """
+    L = _check_sequence(half_window)
+    g = np.asarray(descriptors, dtype=np.float64)
+    if g.ndim != 2:
+        raise ValueError(f"descriptors: expected (N, D), got shape {g.shape}")
+    n = len(g)
+    sess = np.asarray(sessions, dtype=np.int64)
+    seq = np.asarray(seqs, dtype=np.int64)
+    if sess.shape != (n,) or seq.shape != (n,):
+        raise ValueError(f"sessions, seqs: expected ({n},) each, got {sess.shape} and {seq.shape}")
+    i = np.asarray(i, dtype=np.int64)
+    j = np.asarray(j, dtype=np.int64)
+    if i.shape != j.shape or i.ndim != 1:
+        raise ValueError(f"i, j: expected (P,) each, got {i.shape} and {j.shape}")
+    if i.size and (min(i.min(), j.min()) < 0 or max(i.max(), j.max()) >= n):
+        raise ValueError(f"i, j: expected row indices in [0, {n}), got values outside it")
+    order = np.lexsort((seq, sess))  # rows by session, then sequence number
+    where = np.empty(n, dtype=np.int64)
+    where[order] = np.arange(n)
+    sorted_sess = sess[order]
+
+    def neighbour(rows: np.ndarray, k: int) -> np.ndarray:
+        """Row k places from each of ``rows`` in its session, −1 where there is none."""
+        p = where[rows] + k
+        inside = (p >= 0) & (p < n)
+        p = np.clip(p, 0, max(n - 1, 0))
+        ok = inside & (sorted_sess[p] == sess[rows])
+        return np.where(ok, order[p], -1)
+
+    best = np.full(i.shape, np.inf)
+    for sign in (1, -1):
+        total = np.zeros(i.shape)
+        complete = np.ones(i.shape, dtype=bool)
+        for k in range(-L, L + 1):
+            a, b = neighbour(i, k), neighbour(j, sign * k)
+            ok = (a >= 0) & (b >= 0)
+            complete &= ok
+            diff = g[np.where(ok, a, 0)] - g[np.where(ok, b, 0)]
+            total += np.where(ok, np.sqrt((diff * diff).sum(axis=1)), 0.0)
+        best = np.minimum(best, np.where(complete, total / (2 * L + 1), np.inf))
+        if L == 0:
+            break
+    return best
 
 
 def descriptor_loop_candidates(
@@ -41,14 +118,17 @@ def descriptor_loop_candidates(
     seqs: np.ndarray,
     radius: float = 0.1,
     window: int = 10,
+    sequence: int = 0,
 ) -> LoopCandidates:
     """All pairs i < j of ``descriptors`` (N, D) with L2 distance < ``radius``, excluding pairs
     of one session (``sessions`` (N,) int) within ``window`` sequence numbers (``seqs`` (N,)
-    int): one radius query per row on the Rust index."""
+    int): one radius query per row on the Rust index. ``sequence = L > 0`` also requires the
+    pair's :func:`sequence_distance` with half-window L to be below ``radius``."""
     if not radius > 0:
         raise ValueError(f"radius: expected > 0, got {radius}")
     if window < 0:
         raise ValueError(f"window: expected >= 0, got {window}")
+    sequence = _check_sequence(sequence)
     groups = np.asarray(sessions, dtype=np.int64)
     seq = np.asarray(seqs, dtype=np.int64)
     index = DescriptorIndex(descriptors, groups=groups, seqs=seq)
@@ -57,14 +137,23 @@ def descriptor_loop_candidates(
     )
     qi = np.repeat(np.arange(len(groups), dtype=np.int64), np.diff(offsets))
     keep = qi < idx
-    return LoopCandidates(qi[keep], idx[keep], dist[keep])
+    cand = LoopCandidates(qi[keep], idx[keep], dist[keep])
+    if sequence == 0:
+        return cand
+    score = np.maximum(
+        cand.distance, sequence_distance(descriptors, groups, seq, cand.i, cand.j, sequence)
+    )
+    ok = score < radius
+    return LoopCandidates(cand.i[ok], cand.j[ok], score[ok])
 
 
-def loop_candidates(mapdb: MapDatabase, radius: float = 0.1, window: int = 10) -> LoopCandidates:
+def loop_candidates(
+    mapdb: MapDatabase, radius: float = 0.1, window: int = 10, sequence: int = 0
+) -> LoopCandidates:
     """:func:`descriptor_loop_candidates` of a map's keyframes (rows, their sessions and
     sequence numbers)."""
     return descriptor_loop_candidates(
-        mapdb.global_descriptors, mapdb.session_index, mapdb.seq, radius, window
+        mapdb.global_descriptors, mapdb.session_index, mapdb.seq, radius, window, sequence
     )
 
 
@@ -105,6 +194,7 @@ def detect_loops(
     *,
     radius: float = 0.1,
     window: int = 10,
+    sequence: int = 1,
     cost_threshold: float = 0.75,
     search: SearchConfig | None = None,
     max_pairs: int | None = None,
@@ -116,13 +206,15 @@ def detect_loops(
     candidates in descriptor space first.
 
     The map must hold BEVs (built with ``store_bev=True``). ``max_pairs`` keeps only the
-    closest candidates in descriptor space (None: all).
+    closest candidates in descriptor space (None: all). ``sequence``: the half-window L of the
+    sequence-consistency check (default 1: the pairs of the neighbouring keyframes must match
+    too; 0: single keyframes, the paper's test).
     """
     if not mapdb.has_bev:
         raise ValueError(
             f"map {mapdb.path}: has no BEVs; rebuild it with BEVs stored to detect loops"
         )
-    cand = loop_candidates(mapdb, radius, window)
+    cand = loop_candidates(mapdb, radius, window, sequence)
     order = np.argsort(cand.distance, kind="stable")
     if max_pairs is not None:
         order = order[:max_pairs]

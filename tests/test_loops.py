@@ -1,0 +1,130 @@
+"""Sequence-consistent loop candidates (vvloc.localize.loops) on hand-made descriptors."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from vvloc.localize.loops import descriptor_loop_candidates, sequence_distance
+
+
+def brute_sequence_distance(g, sessions, seqs, i, j, half):
+    """Reference: each session's rows sorted by sequence number, neighbours by position."""
+    rows = {s: sorted(np.flatnonzero(sessions == s), key=lambda r: seqs[r]) for s in set(sessions)}
+    place = {r: (s, k) for s, rr in rows.items() for k, r in enumerate(rr)}
+
+    def nb(r, k):
+        s, p = place[r]
+        return rows[s][p + k] if 0 <= p + k < len(rows[s]) else None
+
+    out = []
+    for a, b in zip(i, j, strict=True):
+        best = np.inf
+        for sign in (1, -1):
+            ds = []
+            for k in range(-half, half + 1):
+                x, y = nb(a, k), nb(b, sign * k)
+                if x is None or y is None:
+                    break
+                ds.append(float(np.linalg.norm(g[x] - g[y])))
+            else:
+                best = min(best, sum(ds) / len(ds))
+        out.append(best)
+    return np.array(out)
+
+
+def two_drives(n: int = 12, reverse: bool = False, d: int = 8, seed: int = 0):
+    """Session 0 drives places 0..n-1; session 1 the same places (backwards if ``reverse``) with
+    small descriptor noise; sequence numbers of session 1 have gaps (keyframe selection)."""
+    rng = np.random.default_rng(seed)
+    places = rng.standard_normal((n, d))
+    places /= np.linalg.norm(places, axis=1, keepdims=True)
+    second = places[::-1] if reverse else places
+    g = np.concatenate([places, second + 0.001 * rng.standard_normal((n, d))])
+    sessions = np.repeat([0, 1], n)
+    seqs = np.concatenate([np.arange(n), 3 * np.arange(n) + 100])
+    return g, sessions, seqs
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    st.integers(2, 30),
+    st.integers(1, 3),
+    st.integers(0, 3),
+    st.integers(0, 10_000),
+)
+def test_sequence_distance_matches_the_brute_force_reference(n, n_sessions, half, seed):
+    rng = np.random.default_rng(seed)
+    g = rng.standard_normal((n, 4))
+    sessions = rng.integers(0, n_sessions, n)
+    seqs = rng.permutation(5 * n)[:n]  # unsorted rows, gaps between sequence numbers
+    i, j = rng.integers(0, n, (2, 3 * n))
+    got = sequence_distance(g, sessions, seqs, i, j, half)
+    want = brute_sequence_distance(g, sessions, seqs, i, j, half)
+    np.testing.assert_array_equal(np.isinf(got), np.isinf(want))
+    fin = np.isfinite(want)
+    np.testing.assert_allclose(got[fin], want[fin], rtol=1e-12, atol=1e-12)
+
+
+def test_half_window_zero_is_the_pair_distance():
+    g, sessions, seqs = two_drives()
+    i, j = np.array([0, 3, 11]), np.array([12, 20, 23])
+    got = sequence_distance(g, sessions, seqs, i, j, 0)
+    np.testing.assert_allclose(got, np.linalg.norm(g[i] - g[j], axis=1))
+
+
+@pytest.mark.parametrize("reverse", [False, True])
+def test_a_revisit_in_either_direction_is_consistent(reverse):
+    g, sessions, seqs = two_drives(reverse=reverse)
+    a = 5
+    b = 12 + (12 - 1 - a if reverse else a)  # session 1's row of the same place
+    d = sequence_distance(g, sessions, seqs, np.array([a]), np.array([b]), 2)
+    assert d[0] < 0.01
+    # one place off: every neighbour pair is two different places
+    off = sequence_distance(g, sessions, seqs, np.array([a]), np.array([b + 1]), 2)
+    assert off[0] > 0.5
+
+
+def test_a_window_leaving_the_session_gives_inf():
+    g, sessions, seqs = two_drives(n=6)
+    # row 0 has no predecessor; its revisit (row 6) has none either: no direction is complete
+    d = sequence_distance(g, sessions, seqs, np.array([0, 2]), np.array([6, 8]), 1)
+    assert np.isinf(d[0]) and np.isfinite(d[1])
+
+
+def test_an_isolated_look_alike_is_rejected_by_the_sequence_check():
+    g, sessions, seqs = two_drives(n=12)
+    # session 1's frame at place 7 looks like place 3 (the other floor's copy of it)
+    look = 12 + 7
+    g[look] = g[3] + 1e-4
+    single = descriptor_loop_candidates(g, sessions, seqs, radius=0.1, window=2, sequence=0)
+    pairs = set(zip(single.i.tolist(), single.j.tolist(), strict=True))
+    assert (3, look) in pairs
+    seq = descriptor_loop_candidates(g, sessions, seqs, radius=0.1, window=2, sequence=1)
+    seq_pairs = set(zip(seq.i.tolist(), seq.j.tolist(), strict=True))
+    assert (3, look) not in seq_pairs
+    # the true revisits with a full window survive, scored by max(pair, sequence) distance
+    assert {(p, 12 + p) for p in range(1, 11) if p not in (6, 7, 8)} <= seq_pairs
+    assert np.all(seq.distance < 0.1)
+    full = sequence_distance(g, sessions, seqs, seq.i, seq.j, 1)
+    pair = np.linalg.norm(g[seq.i] - g[seq.j], axis=1)  # the index's distances are float32
+    np.testing.assert_allclose(seq.distance, np.maximum(full, pair), atol=1e-4)
+
+
+def test_bad_arguments_name_the_argument():
+    g, sessions, seqs = two_drives(n=4)
+    one = np.array([0])
+    with pytest.raises(ValueError, match="sequence"):
+        sequence_distance(g, sessions, seqs, one, one, -1)
+    with pytest.raises(TypeError, match="sequence"):
+        descriptor_loop_candidates(g, sessions, seqs, sequence=True)
+    with pytest.raises(ValueError, match="sessions, seqs"):
+        sequence_distance(g, sessions[:3], seqs, one, one, 1)
+    with pytest.raises(ValueError, match="i, j"):
+        sequence_distance(g, sessions, seqs, one, np.array([0, 1]), 1)
+    with pytest.raises(ValueError, match="i, j"):
+        sequence_distance(g, sessions, seqs, one, np.array([8]), 1)
+    with pytest.raises(ValueError, match="descriptors"):
+        sequence_distance(g[0], sessions, seqs, one, one, 1)
