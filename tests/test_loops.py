@@ -10,8 +10,9 @@ from hypothesis import strategies as st
 from vvloc.localize.loops import descriptor_loop_candidates, sequence_distance
 
 
-def brute_sequence_distance(g, sessions, seqs, i, j, half):
-    """Reference: each session's rows sorted by sequence number, neighbours by position."""
+def brute_sequence_distance(g, sessions, seqs, i, j, half, window=0):
+    """Reference: each session's rows sorted by sequence number, neighbours by position; a
+    neighbour pair of one session within ``window`` sequence numbers is not admissible."""
     rows = {s: sorted(np.flatnonzero(sessions == s), key=lambda r: seqs[r]) for s in set(sessions)}
     place = {r: (s, k) for s, rr in rows.items() for k, r in enumerate(rr)}
 
@@ -28,6 +29,8 @@ def brute_sequence_distance(g, sessions, seqs, i, j, half):
                 x, y = nb(a, k), nb(b, sign * k)
                 if x is None or y is None:
                     break
+                if sessions[x] == sessions[y] and abs(seqs[x] - seqs[y]) <= window:
+                    break
                 ds.append(float(np.linalg.norm(g[x] - g[y])))
             else:
                 best = min(best, sum(ds) / len(ds))
@@ -42,7 +45,7 @@ def two_drives(n: int = 12, reverse: bool = False, d: int = 8, seed: int = 0):
     places = rng.standard_normal((n, d))
     places /= np.linalg.norm(places, axis=1, keepdims=True)
     second = places[::-1] if reverse else places
-    g = np.concatenate([places, second + 0.001 * rng.standard_normal((n, d))])
+    g = np.concatenate([places, second + 0.01 * rng.standard_normal((n, d))])
     sessions = np.repeat([0, 1], n)
     seqs = np.concatenate([np.arange(n), 3 * np.arange(n) + 100])
     return g, sessions, seqs
@@ -53,16 +56,17 @@ def two_drives(n: int = 12, reverse: bool = False, d: int = 8, seed: int = 0):
     st.integers(2, 30),
     st.integers(1, 3),
     st.integers(0, 3),
+    st.integers(0, 6),
     st.integers(0, 10_000),
 )
-def test_sequence_distance_matches_the_brute_force_reference(n, n_sessions, half, seed):
+def test_sequence_distance_matches_the_brute_force_reference(n, n_sessions, half, window, seed):
     rng = np.random.default_rng(seed)
     g = rng.standard_normal((n, 4))
     sessions = rng.integers(0, n_sessions, n)
     seqs = rng.permutation(5 * n)[:n]  # unsorted rows, gaps between sequence numbers
     i, j = rng.integers(0, n, (2, 3 * n))
-    got = sequence_distance(g, sessions, seqs, i, j, half)
-    want = brute_sequence_distance(g, sessions, seqs, i, j, half)
+    got = sequence_distance(g, sessions, seqs, i, j, half, window)
+    want = brute_sequence_distance(g, sessions, seqs, i, j, half, window)
     np.testing.assert_array_equal(np.isinf(got), np.isinf(want))
     fin = np.isfinite(want)
     np.testing.assert_allclose(got[fin], want[fin], rtol=1e-12, atol=1e-12)
@@ -81,7 +85,7 @@ def test_a_revisit_in_either_direction_is_consistent(reverse):
     a = 5
     b = 12 + (12 - 1 - a if reverse else a)  # session 1's row of the same place
     d = sequence_distance(g, sessions, seqs, np.array([a]), np.array([b]), 2)
-    assert d[0] < 0.01
+    assert d[0] < 0.05  # noise 0.01 per component, D = 8
     # one place off: every neighbour pair is two different places
     off = sequence_distance(g, sessions, seqs, np.array([a]), np.array([b + 1]), 2)
     assert off[0] > 0.5
@@ -113,11 +117,49 @@ def test_an_isolated_look_alike_is_rejected_by_the_sequence_check():
     np.testing.assert_allclose(seq.distance, np.maximum(full, pair), atol=1e-4)
 
 
+def test_neighbour_pairs_inside_the_temporal_window_do_not_count():
+    """Rows of one session, keyframes 10 sequence numbers apart, the pair (3, 6) and L = 1: the
+    reverse direction pairs (2, 7), (3, 6), (4, 5), and (4, 5) are temporal neighbours at
+    window 10; the forward direction pairs (2, 5), (3, 6), (4, 7), 30 sequence numbers apart."""
+    rng = np.random.default_rng(1)
+    g = rng.standard_normal((9, 4))
+    g[6], g[5] = g[3], g[4]  # the reverse direction looks good: two of its pairs are equal
+    sessions = np.zeros(9, dtype=np.int64)
+    seqs = 10 * np.arange(9)
+    forward = np.mean([np.linalg.norm(g[a] - g[a + 3]) for a in (2, 3, 4)])
+    reverse = np.linalg.norm(g[2] - g[7]) / 3
+    assert reverse < forward
+    i, j = np.array([3]), np.array([6])
+    assert sequence_distance(g, sessions, seqs, i, j, 1)[0] == pytest.approx(reverse)
+    assert sequence_distance(g, sessions, seqs, i, j, 1, window=10)[0] == pytest.approx(forward)
+    # with window 30 the forward pairs are temporal neighbours too: no complete direction
+    assert np.isinf(sequence_distance(g, sessions, seqs, i, j, 1, window=30)[0])
+    # a keyframe is never compared with itself: (4, 4) in the reverse direction of (3, 5)
+    g[5] = g[3]
+    fwd_35 = np.mean([np.linalg.norm(g[a] - g[a + 2]) for a in (2, 3, 4)])
+    got = sequence_distance(g, sessions, seqs, i, np.array([5]), 1)[0]
+    assert got == pytest.approx(fwd_35)
+
+
+def test_a_window_longer_than_every_session_gives_inf():
+    g, sessions, seqs = two_drives(n=4)
+    d = sequence_distance(g, sessions, seqs, np.array([1, 2]), np.array([5, 6]), 2)
+    assert np.isinf(d).all() and d.dtype == np.float64
+    empty = sequence_distance(g, sessions, seqs, np.array([], np.int64), np.array([], np.int64), 1)
+    assert empty.shape == (0,)
+
+
 def test_bad_arguments_name_the_argument():
     g, sessions, seqs = two_drives(n=4)
     one = np.array([0])
-    with pytest.raises(ValueError, match="sequence"):
+    with pytest.raises(ValueError, match="half_window"):
         sequence_distance(g, sessions, seqs, one, one, -1)
+    with pytest.raises(ValueError, match="window"):
+        sequence_distance(g, sessions, seqs, one, one, 1, window=-1)
+    with pytest.raises(TypeError, match="i: expected integers"):
+        sequence_distance(g, sessions, seqs, np.array([0.9]), one, 1)
+    with pytest.raises(TypeError, match="sessions: expected integers"):
+        sequence_distance(g, sessions + 0.5, seqs, one, one, 1)
     with pytest.raises(TypeError, match="sequence"):
         descriptor_loop_candidates(g, sessions, seqs, sequence=True)
     with pytest.raises(ValueError, match="sessions, seqs"):

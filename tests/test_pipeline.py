@@ -152,6 +152,19 @@ def test_cli_map_localize_loops_end_to_end(tiny_world, model_dir, tmp_path):
     assert len(loops.i) <= 3
     # bad input: exit code 2 and a message naming the problem
     r = run(
+        "loops",
+        "--map",
+        str(map_path),
+        "--checkpoint",
+        str(model_dir),
+        "--out",
+        str(tmp_path / "loops-bad"),
+        "--sequence",
+        "-1",
+    )
+    assert r.returncode == 2 and "--sequence" in r.stderr
+    assert not (tmp_path / "loops-bad").exists()
+    r = run(
         "localize",
         "--map",
         str(tmp_path / "missing.h5"),
@@ -240,6 +253,14 @@ def test_evaluation_scores_loop_closures_at_the_given_radius(tiny_world, model_d
     kw = {"every": 10, "search": SMALL_SEARCH, "progress": False, "loops": True, "loop_pairs": 2}
     with pytest.raises(ValueError, match="loop_radius"):
         run_evaluation(model_dir, tiny_world, "s0", ["s1"], tmp_path / "bad", loop_radius=0.0, **kw)
+    with pytest.raises(ValueError, match="loop_sequence"):
+        run_evaluation(
+            model_dir, tiny_world, "s0", ["s1"], tmp_path / "bad", loop_sequence=-1, **kw
+        )
+    with pytest.raises(TypeError, match="loop_sequence"):
+        run_evaluation(
+            model_dir, tiny_world, "s0", ["s1"], tmp_path / "bad", loop_sequence=1.0, **kw
+        )
     assert not (tmp_path / "bad").exists()
     m = run_evaluation(model_dir, tiny_world, "s0", ["s1"], tmp_path / "ev", loop_radius=0.3, **kw)
     for name in ("VVLoc (descriptor radius)", "VVLoc + sequence (±1 keyframes)"):

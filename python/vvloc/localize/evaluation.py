@@ -27,7 +27,7 @@ from vvloc.localize.localizer import (
     build_map,
     encode_frames,
 )
-from vvloc.localize.loops import loop_candidates, verify_pairs
+from vvloc.localize.loops import check_half_window, loop_candidates, verify_pairs
 from vvloc.localize.mapdb import MapDatabase
 from vvloc.localize.metric import SearchConfig
 from vvloc.nets import VVLocNet
@@ -168,8 +168,7 @@ def run_evaluation(
     """
     if not 0 < loop_radius <= 0.5:
         raise ValueError(f"loop_radius: expected a value in (0, 0.5], got {loop_radius}")
-    if isinstance(loop_sequence, bool) or not isinstance(loop_sequence, int) or loop_sequence < 0:
-        raise ValueError(f"loop_sequence: expected an int >= 0, got {loop_sequence!r}")
+    loop_sequence = check_half_window(loop_sequence, "loop_sequence")
     out_dir = Path(out)
     out_dir.mkdir(parents=True, exist_ok=True)
     model = VVLocNet.load(checkpoint).to(torch.device(device))

@@ -18,6 +18,7 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
+import numpy.typing as npt
 from tqdm import tqdm
 
 from vvloc.localize.export import LoopClosures
@@ -32,30 +33,44 @@ log = logging.getLogger("vvloc.localize")
 
 @dataclass(frozen=True)
 class LoopCandidates:
-    """Candidate pairs (i < j map rows) and their scores, (P,) each: ``distance`` is the
-    global-descriptor L2 distance of the pair, or with sequence consistency the larger of that
-    and the pair's :func:`sequence_distance`; a candidate has ``distance < radius``."""
+    """Candidate pairs (i < j map rows, int64) and their scores (float64), (P,) each:
+    ``distance`` is the global-descriptor L2 distance of the pair, or with sequence consistency
+    the larger of that and the pair's :func:`sequence_distance`; a candidate has
+    ``distance < radius``."""
 
     i: np.ndarray
     j: np.ndarray
     distance: np.ndarray
 
 
-def _check_sequence(sequence: int) -> int:
-    if isinstance(sequence, bool) or not isinstance(sequence, int | np.integer):
-        raise TypeError(f"sequence: expected an int >= 0, got {type(sequence).__name__}")
-    if sequence < 0:
-        raise ValueError(f"sequence: expected an int >= 0, got {sequence}")
-    return int(sequence)
+#: Pairs per block in :func:`sequence_distance` (bounds its temporaries to BLOCK · D floats).
+BLOCK = 65_536
+
+
+def check_half_window(value: object, name: str) -> int:
+    """``value`` as an int >= 0 (a sequence half-window); TypeError/ValueError naming ``name``."""
+    if isinstance(value, bool) or not isinstance(value, int | np.integer):
+        raise TypeError(f"{name}: expected an int >= 0, got {type(value).__name__}")
+    if value < 0:
+        raise ValueError(f"{name}: expected an int >= 0, got {value}")
+    return int(value)
+
+
+def _int_array(value: npt.ArrayLike, name: str) -> np.ndarray:
+    arr = np.asarray(value)
+    if arr.size and not np.issubdtype(arr.dtype, np.integer):
+        raise TypeError(f"{name}: expected integers, got dtype {arr.dtype}")
+    return arr.astype(np.int64, copy=False)
 
 
 def sequence_distance(
-    descriptors: np.ndarray,
-    sessions: np.ndarray,
-    seqs: np.ndarray,
-    i: np.ndarray,
-    j: np.ndarray,
+    descriptors: npt.ArrayLike,
+    sessions: npt.ArrayLike,
+    seqs: npt.ArrayLike,
+    i: npt.ArrayLike,
+    j: npt.ArrayLike,
     half_window: int,
+    window: int = 0,
 ) -> np.ndarray:
     """Sequence-consistent descriptor distance of row pairs (i, j), (P,) float64.
 
@@ -64,25 +79,35 @@ def sequence_distance(
     whatever the gaps between sequence numbers. For the pair (i, j) this is the smaller, over
     the two traversal directions s = +1 (driving the same way) and s = −1 (the opposite way), of
     the mean L2 distance between ``descriptors`` (N, D) of neighbours (i + k, j + s·k),
-    k = −L..L with L = ``half_window``. A pair whose window leaves either session in both
-    directions gets +inf (not enough context to confirm it). ``half_window = 0`` gives the
-    pair's own descriptor distance.
+    k = −L..L with L = ``half_window``.
+
+    A direction is complete when every one of its 2L + 1 neighbour pairs exists and is
+    admissible: both neighbours inside their sessions, and, for neighbours of one session, more
+    than ``window`` sequence numbers apart (the loop candidates' temporal exclusion; with the
+    default 0 only a keyframe compared with itself is excluded). A pair with no complete
+    direction gets +inf: not enough context to confirm it (e.g. its ±L window leaves i's or j's
+    session). ``half_window = 0`` gives the pair's own descriptor distance (or +inf for an
+    inadmissible pair). ``i`` and ``j``: (P,) row indices.
     """
-    L = _check_sequence(half_window)
-    g = np.asarray(descriptors, dtype=np.float64)
-    if g.ndim != 2:
-        raise ValueError(f"descriptors: expected (N, D), got shape {g.shape}")
+    L = check_half_window(half_window, "half_window")
+    excl = check_half_window(window, "window")
+    g = np.asarray(descriptors)
+    if g.ndim != 2 or not np.issubdtype(g.dtype, np.number):
+        raise ValueError(f"descriptors: expected a numeric (N, D) array, got shape {g.shape}")
     n = len(g)
-    sess = np.asarray(sessions, dtype=np.int64)
-    seq = np.asarray(seqs, dtype=np.int64)
+    sess = _int_array(sessions, "sessions")
+    seq = _int_array(seqs, "seqs")
     if sess.shape != (n,) or seq.shape != (n,):
         raise ValueError(f"sessions, seqs: expected ({n},) each, got {sess.shape} and {seq.shape}")
-    i = np.asarray(i, dtype=np.int64)
-    j = np.asarray(j, dtype=np.int64)
+    i = _int_array(i, "i")
+    j = _int_array(j, "j")
     if i.shape != j.shape or i.ndim != 1:
         raise ValueError(f"i, j: expected (P,) each, got {i.shape} and {j.shape}")
     if i.size and (min(i.min(), j.min()) < 0 or max(i.max(), j.max()) >= n):
         raise ValueError(f"i, j: expected row indices in [0, {n}), got values outside it")
+    best = np.full(i.shape, np.inf)
+    if not i.size or 2 * L + 1 > np.unique(sess, return_counts=True)[1].max():
+        return best  # no pairs, or no session holds a whole window
     order = np.lexsort((seq, sess))  # rows by session, then sequence number
     where = np.empty(n, dtype=np.int64)
     where[order] = np.arange(n)
@@ -92,23 +117,25 @@ def sequence_distance(
         """Row k places from each of ``rows`` in its session, −1 where there is none."""
         p = where[rows] + k
         inside = (p >= 0) & (p < n)
-        p = np.clip(p, 0, max(n - 1, 0))
+        p = np.clip(p, 0, n - 1)
         ok = inside & (sorted_sess[p] == sess[rows])
         return np.where(ok, order[p], -1)
 
-    best = np.full(i.shape, np.inf)
-    for sign in (1, -1):
-        total = np.zeros(i.shape)
-        complete = np.ones(i.shape, dtype=bool)
-        for k in range(-L, L + 1):
-            a, b = neighbour(i, k), neighbour(j, sign * k)
-            ok = (a >= 0) & (b >= 0)
-            complete &= ok
-            diff = g[np.where(ok, a, 0)] - g[np.where(ok, b, 0)]
-            total += np.where(ok, np.sqrt((diff * diff).sum(axis=1)), 0.0)
-        best = np.minimum(best, np.where(complete, total / (2 * L + 1), np.inf))
-        if L == 0:
-            break
+    for lo in range(0, len(i), BLOCK):
+        bi, bj = i[lo : lo + BLOCK], j[lo : lo + BLOCK]
+        for sign in (1, -1) if L else (1,):
+            total = np.zeros(bi.shape)
+            complete = np.ones(bi.shape, dtype=bool)
+            for k in range(-L, L + 1):
+                a, b = neighbour(bi, k), neighbour(bj, sign * k)
+                ok = (a >= 0) & (b >= 0)
+                a, b = np.where(ok, a, 0), np.where(ok, b, 0)
+                ok &= (sess[a] != sess[b]) | (np.abs(seq[a] - seq[b]) > excl)
+                complete &= ok
+                diff = g[a].astype(np.float64) - g[b]
+                total += np.where(ok, np.sqrt((diff * diff).sum(axis=1)), 0.0)
+            mean = np.where(complete, total / (2 * L + 1), np.inf)
+            best[lo : lo + BLOCK] = np.minimum(best[lo : lo + BLOCK], mean)
     return best
 
 
@@ -123,12 +150,13 @@ def descriptor_loop_candidates(
     """All pairs i < j of ``descriptors`` (N, D) with L2 distance < ``radius``, excluding pairs
     of one session (``sessions`` (N,) int) within ``window`` sequence numbers (``seqs`` (N,)
     int): one radius query per row on the Rust index. ``sequence = L > 0`` also requires the
-    pair's :func:`sequence_distance` with half-window L to be below ``radius``."""
+    pair's :func:`sequence_distance` with half-window L (and the same ``window``) to be below
+    ``radius``."""
     if not radius > 0:
         raise ValueError(f"radius: expected > 0, got {radius}")
     if window < 0:
         raise ValueError(f"window: expected >= 0, got {window}")
-    sequence = _check_sequence(sequence)
+    sequence = check_half_window(sequence, "sequence")
     groups = np.asarray(sessions, dtype=np.int64)
     seq = np.asarray(seqs, dtype=np.int64)
     index = DescriptorIndex(descriptors, groups=groups, seqs=seq)
@@ -137,12 +165,11 @@ def descriptor_loop_candidates(
     )
     qi = np.repeat(np.arange(len(groups), dtype=np.int64), np.diff(offsets))
     keep = qi < idx
-    cand = LoopCandidates(qi[keep], idx[keep], dist[keep])
+    cand = LoopCandidates(qi[keep], idx[keep], dist[keep].astype(np.float64))
     if sequence == 0:
         return cand
-    score = np.maximum(
-        cand.distance, sequence_distance(descriptors, groups, seq, cand.i, cand.j, sequence)
-    )
+    seq_dist = sequence_distance(descriptors, groups, seq, cand.i, cand.j, sequence, window)
+    score = np.maximum(cand.distance, seq_dist)
     ok = score < radius
     return LoopCandidates(cand.i[ok], cand.j[ok], score[ok])
 
