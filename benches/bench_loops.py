@@ -1,0 +1,114 @@
+"""Loop-closure candidates: the radius query, the sequence check, and metric verification.
+
+Usage: ``python benches/bench_loops.py [--json PATH] [--sessions S] [--frames F]``.
+
+S sessions of F keyframes each drive the same loop of F places (session s starts s·F/S places
+later, so revisits pair different sequence numbers); descriptors are the places' random unit
+vectors (D = 64, the committed model's) plus noise of L2 size ≈ 0.05, so each keyframe has about
+S − 1 true revisits within the radius 0.1 and the rest are far. Timed in one run: the Rust
+radius query over all keyframes (``descriptor_loop_candidates``, single keyframes), the
+sequence check (:func:`vvloc.localize.loops.sequence_distance`, numpy) on its candidate pairs
+for L = 1 and 2, and the metric verification of one pair (``verify_pairs``: a small model,
+``ModelConfig.small()``, whose weights do not change the timing, on a stored BEV) — the cost the
+sequence check is compared with, per pair.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from _common import print_table, timeit, write_json
+from vvloc.localize.loops import descriptor_loop_candidates, sequence_distance, verify_pairs
+from vvloc.localize.mapdb import MapDatabase
+from vvloc.nets import ModelConfig, VVLocNet
+
+D = 64
+
+
+def drives(sessions: int, frames: int, seed: int = 0) -> tuple[np.ndarray, ...]:
+    """Descriptors (S·F, D) float32, sessions (S·F,), seqs (S·F,) of S drives around F places."""
+    rng = np.random.default_rng(seed)
+    places = rng.standard_normal((frames, D))
+    places /= np.linalg.norm(places, axis=1, keepdims=True)
+    rows = []
+    for s in range(sessions):
+        order = np.roll(np.arange(frames), -s * frames // sessions)
+        noise = rng.standard_normal((frames, D)) * (0.05 / np.sqrt(D))
+        rows.append(places[order] + noise)
+    g = np.concatenate(rows)
+    g /= np.linalg.norm(g, axis=1, keepdims=True)
+    sess = np.repeat(np.arange(sessions), frames)
+    seq = np.tile(np.arange(frames), sessions)
+    return g.astype(np.float32), sess, seq
+
+
+def pair_verification_ms() -> float:
+    """Median ms of ``verify_pairs`` for one pair of a two-keyframe map with BEVs."""
+    torch.manual_seed(0)
+    rng = np.random.default_rng(0)
+    model = VVLocNet(ModelConfig.small()).eval()
+    cfg = model.config
+    n = 2
+    g = rng.standard_normal((n, model.global_dim)).astype(np.float32)
+    g /= np.linalg.norm(g, axis=1, keepdims=True)
+    loc = rng.standard_normal((n, cfg.num_angles, cfg.channels)).astype(np.float32)
+    loc /= np.linalg.norm(loc, axis=2, keepdims=True)
+    shape = (n, cfg.bev_height, cfg.bev_width, cfg.channels)
+    bevs = rng.standard_normal(shape).astype(np.float16)
+    db = MapDatabase.from_arrays(
+        poses=np.zeros((n, 3)),
+        timestamps=np.arange(n, dtype=np.float64),
+        sessions="s0",
+        global_descriptors=g,
+        local_descriptors=loc,
+        bevs=bevs,
+        model_config=cfg.to_dict(),
+        grid_size=cfg.grid_size,
+        config_hash=model.config_hash(),
+    )
+    with tempfile.TemporaryDirectory() as tmp:
+        path = db.save(Path(tmp) / "map.h5")
+        with MapDatabase.open(path) as mapdb:
+            one = np.array([0]), np.array([1])
+            return 1e3 * timeit(lambda: verify_pairs(model, mapdb, *one), min_time=1.0, repeat=3)
+
+
+def main(argv: list[str]) -> int:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--sessions", type=int, default=20)
+    ap.add_argument("--frames", type=int, default=1000)
+    args = ap.parse_args(argv)
+    g, sess, seq = drives(args.sessions, args.frames)
+    cand = descriptor_loop_candidates(g, sess, seq, radius=0.1, window=10)
+    p = len(cand.i)
+    rows = [
+        {
+            "step": f"radius query, {len(g)} keyframes (Rust)",
+            "ms": 1e3 * timeit(lambda: descriptor_loop_candidates(g, sess, seq, 0.1, 10)),
+            "pairs": p,
+        }
+    ]
+    for half in (1, 2):
+        ms = 1e3 * timeit(lambda h=half: sequence_distance(g, sess, seq, cand.i, cand.j, h, 10))
+        rows.append({"step": f"sequence check L = {half} (numpy)", "ms": ms, "pairs": p})
+    verify = pair_verification_ms()
+    rows.append({"step": "metric verification (one pair)", "ms": verify, "pairs": 1})
+    for r in rows:
+        r["us_per_pair"] = 1e3 * r["ms"] / max(r["pairs"], 1)
+        r["x_verify"] = r["us_per_pair"] / (1e3 * verify)
+    print(f"{args.sessions} sessions × {args.frames} keyframes, D = {D}, {p} candidate pairs")
+    print_table(rows, ["step", "ms", "pairs", "us_per_pair", "x_verify"])
+    if args.json:
+        write_json(args.json, "loops", rows)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main(sys.argv[1:]))
