@@ -465,6 +465,11 @@ def test_loop_validation_counts_every_admissible_pair_and_the_cross_floor_ones(t
     assert res["cfer"] == pytest.approx(res["cross_floor"] / res["accepted"])
     tight = loop_validation(model, ds, ["s0", "s1"], radius=1e-6, window=2)
     assert tight["accepted"] == 0 and tight["cross_floor"] == 0
+    # with the sequence check (±1) a pair needs both neighbours of each keyframe: the pairs with
+    # a session's first or last keyframe drop; for the others driving the same way is complete
+    seq1 = loop_validation(model, ds, ["s0", "s1"], radius=2.5, window=2, sequence=1)
+    inner = admissible & (seq[i] % 15 != 0) & (seq[j] % 15 != 0)
+    assert seq1["accepted"] == int(inner.sum()) > 0
 
 
 def test_best_epoch_has_the_fewest_cross_floor_loops_then_the_highest_recall():
@@ -490,6 +495,10 @@ def test_bad_val_loops_are_refused_by_name():
     with pytest.raises(ValueError, match=r"val_loops\[0\]: unknown keys \['bogus'\]"):
         TrainConfig.from_dict(
             {**base, "val_loops": [{"dataset": "g", "sessions": ["s5"], "bogus": 1}]}
+        )
+    with pytest.raises(ValueError, match=r"val_loops\[0\]\.sequence"):
+        TrainConfig.from_dict(
+            {**base, "val_loops": [{"dataset": "g", "sessions": ["s5"], "sequence": -1}]}
         )
     with pytest.raises(ValueError, match=r"val_loops\[0\]\.radius"):
         TrainConfig.from_dict(

@@ -98,7 +98,9 @@ class TrainConfig:
     (re-ranking the ``val_top_k`` retrieved keyframes) after each joint epoch.
     ``val_loops`` (optional): multi-storey loop-closure validation, a list of mappings with
     ``dataset``, ``sessions`` (never trained on) and optionally ``radius`` (descriptor distance,
-    default 0.1) and ``window`` (same-session neighbours excluded, default 10 keyframes): each
+    default 0.1), ``window`` (same-session neighbours excluded, default 10 keyframes) and
+    ``sequence`` (the loop detector's sequence-check half-window, default 0: single keyframes,
+    the paper's test; :mod:`vvloc.localize.loops`): each
     validated epoch then also counts the loop closures that all frames of those sessions accept
     at ``radius`` and how many join two floors (:func:`loop_validation`), and ``best/`` goes to
     the epoch with the fewest such cross-floor pairs (summed over the entries), ties by the
@@ -232,11 +234,11 @@ class TrainConfig:
                 raise ValueError(
                     f"val_loops[{k}]: expected a mapping with 'dataset' and 'sessions'"
                 )
-            unknown = sorted(set(entry) - {"dataset", "sessions", "radius", "window"})
+            unknown = sorted(set(entry) - {"dataset", "sessions", "radius", "window", "sequence"})
             if unknown:
                 raise ValueError(
                     f"val_loops[{k}]: unknown keys {unknown}; "
-                    "known: ['dataset', 'radius', 'sessions', 'window']"
+                    "known: ['dataset', 'radius', 'sequence', 'sessions', 'window']"
                 )
             if not isinstance(entry["sessions"], list) or not entry["sessions"]:
                 raise ValueError(f"val_loops[{k}].sessions: expected a non-empty list")
@@ -246,6 +248,9 @@ class TrainConfig:
             window = entry.get("window", 10)
             if isinstance(window, bool) or not isinstance(window, int) or window < 0:
                 raise ValueError(f"val_loops[{k}].window: expected an int >= 0, got {window!r}")
+            half = entry.get("sequence", 0)
+            if isinstance(half, bool) or not isinstance(half, int) or half < 0:
+                raise ValueError(f"val_loops[{k}].sequence: expected an int >= 0, got {half!r}")
             sources = [{"dataset": self.dataset, "train_sessions": self.train_sessions}]
             for extra in [*sources, *self.extra_datasets]:
                 if isinstance(extra, dict) and extra.get("dataset") == entry["dataset"]:
@@ -475,10 +480,18 @@ def validation_recall(
 
 
 def loop_validation(
-    model: VVLocNet, ds: Any, sessions: list[str], *, radius: float = 0.1, window: int = 10
+    model: VVLocNet,
+    ds: Any,
+    sessions: list[str],
+    *,
+    radius: float = 0.1,
+    window: int = 10,
+    sequence: int = 0,
 ) -> dict[str, Any]:
     """Loop closures among all frames of ``sessions`` accepted at global-descriptor distance
-    < ``radius`` (same-session pairs within ``window`` keyframes excluded), scored as
+    < ``radius`` (same-session pairs within ``window`` keyframes excluded; with ``sequence`` =
+    L > 0 their ±L neighbouring keyframes must match as well, as the loop detector's sequence
+    check does), scored as
     :func:`vvloc.evaluate.loop_closure_curve` does (true loop: ≤ 2 m, same floor).
 
     Returns ``{"frames", "accepted", "cross_floor" (accepted pairs joining two floors),
@@ -495,7 +508,9 @@ def loop_validation(
         group += [k] * len(sess)
         seq += list(range(len(sess)))
     g = encode_frames(model, frames).global_desc
-    cand = descriptor_loop_candidates(g, np.asarray(group), np.asarray(seq), radius, window)
+    cand = descriptor_loop_candidates(
+        g, np.asarray(group), np.asarray(seq), radius, window, sequence
+    )
     pos = np.stack([f.pose[:2] for f in frames])
     floors = np.asarray([f.floor for f in frames], np.int64)
     curve = evaluate.self_loop_closure_curve(
@@ -980,6 +995,7 @@ class Trainer:
                         list(entry["sessions"]),
                         radius=float(entry.get("radius", 0.1)),
                         window=int(entry.get("window", 10)),
+                        sequence=int(entry.get("sequence", 0)),
                     ),
                 }
                 for loop_ds, entry in self.loop_sets
