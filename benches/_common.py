@@ -32,6 +32,34 @@ def timeit(
     return rounds[len(rounds) // 2]
 
 
+def random_map(model: Any, n: int, rng: Any, *, bevs: bool = False) -> Any:
+    """An in-memory ``MapDatabase`` of ``n`` keyframes for ``model`` (a ``VVLocNet``), one
+    session: random unit global descriptors (n, G) and local-view descriptors (n, T, C),
+    float32, and with ``bevs`` random float16 BEVs (n, H, W, C); poses uniform in ±50 m. Only
+    the sizes matter for the timings these maps serve."""
+    import numpy as np
+
+    from vvloc.localize.mapdb import MapDatabase
+
+    cfg = model.config
+    g = rng.standard_normal((n, model.global_dim)).astype(np.float32)
+    g /= np.linalg.norm(g, axis=1, keepdims=True)
+    loc = rng.standard_normal((n, cfg.num_angles, cfg.channels)).astype(np.float32)
+    loc /= np.linalg.norm(loc, axis=2, keepdims=True)
+    shape = (n, cfg.bev_height, cfg.bev_width, cfg.channels)
+    return MapDatabase.from_arrays(
+        poses=rng.uniform(-50, 50, (n, 3)),
+        timestamps=np.arange(n, dtype=np.float64),
+        sessions="s0",
+        global_descriptors=g,
+        local_descriptors=loc,
+        bevs=rng.standard_normal(shape).astype(np.float16) if bevs else None,
+        model_config=cfg.to_dict(),
+        grid_size=cfg.grid_size,
+        config_hash=model.config_hash(),
+    )
+
+
 def print_table(rows: list[dict[str, Any]], columns: list[str]) -> None:
     """Print ``rows`` as a fixed-width table of ``columns``."""
 

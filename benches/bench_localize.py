@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from _common import print_table, write_json
+from _common import print_table, random_map, write_json
 from vvloc import kernels
 from vvloc.data import Frame
 from vvloc.localize.localizer import Localizer, encode_frames
@@ -70,20 +70,7 @@ def main(argv: list[str]) -> int:
     model = VVLocNet(ModelConfig.small()).eval()
     cfg = model.config
     n = args.map_size
-    g = rng.standard_normal((n, model.global_dim)).astype(np.float32)
-    g /= np.linalg.norm(g, axis=1, keepdims=True)
-    loc_desc = rng.standard_normal((n, cfg.num_angles, cfg.channels)).astype(np.float32)
-    loc_desc /= np.linalg.norm(loc_desc, axis=2, keepdims=True)
-    db = MapDatabase.from_arrays(
-        poses=rng.uniform(-50, 50, (n, 3)),
-        timestamps=np.arange(n, dtype=np.float64),
-        sessions="s0",
-        global_descriptors=g,
-        local_descriptors=loc_desc,
-        model_config=cfg.to_dict(),
-        grid_size=cfg.grid_size,
-        config_hash=model.config_hash(),
-    )
+    db = random_map(model, n, rng)
     with tempfile.TemporaryDirectory() as tmp:
         path = db.save(Path(tmp) / "map.h5")
         mapdb = MapDatabase.open(path, expected_config_hash=model.config_hash())

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from _common import print_table, timeit, write_json
+from _common import print_table, random_map, timeit, write_json
 from vvloc.localize.loops import descriptor_loop_candidates, sequence_distance, verify_pairs
 from vvloc.localize.mapdb import MapDatabase
 from vvloc.nets import ModelConfig, VVLocNet
@@ -53,25 +53,7 @@ def pair_verification_ms() -> float:
     torch.manual_seed(0)
     rng = np.random.default_rng(0)
     model = VVLocNet(ModelConfig.small()).eval()
-    cfg = model.config
-    n = 2
-    g = rng.standard_normal((n, model.global_dim)).astype(np.float32)
-    g /= np.linalg.norm(g, axis=1, keepdims=True)
-    loc = rng.standard_normal((n, cfg.num_angles, cfg.channels)).astype(np.float32)
-    loc /= np.linalg.norm(loc, axis=2, keepdims=True)
-    shape = (n, cfg.bev_height, cfg.bev_width, cfg.channels)
-    bevs = rng.standard_normal(shape).astype(np.float16)
-    db = MapDatabase.from_arrays(
-        poses=np.zeros((n, 3)),
-        timestamps=np.arange(n, dtype=np.float64),
-        sessions="s0",
-        global_descriptors=g,
-        local_descriptors=loc,
-        bevs=bevs,
-        model_config=cfg.to_dict(),
-        grid_size=cfg.grid_size,
-        config_hash=model.config_hash(),
-    )
+    db = random_map(model, 2, rng, bevs=True)
     with tempfile.TemporaryDirectory() as tmp:
         path = db.save(Path(tmp) / "map.h5")
         with MapDatabase.open(path) as mapdb:
