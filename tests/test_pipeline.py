@@ -130,19 +130,10 @@ def test_cli_map_localize_loops_end_to_end(tiny_world, model_dir, tmp_path):
     header = lines[1].split(",")
     rows = [dict(zip(header, line.split(","), strict=True)) for line in lines[2:]]
     assert rows and all(row["map_row"] == row["metric_row"] for row in rows)
-    r = run(
-        "loops",
-        "--map",
-        str(map_path),
-        "--checkpoint",
-        str(model_dir),
-        "--out",
-        str(tmp_path / "loops"),
-        "--radius",
-        "0.5",
-        "--max_pairs",
-        "3",
+    loops_cli = lambda out, *a: run(  # noqa: E731
+        "loops", "--map", str(map_path), "--checkpoint", str(model_dir), "--out", str(out), *a
     )
+    r = loops_cli(tmp_path / "loops", "--radius", "0.5", "--max_pairs", "3")
     assert r.returncode == 0, r.stderr
     loops = read_loop_csv(tmp_path / "loops" / "loops.csv")
     graph = read_g2o(tmp_path / "loops" / "graph.g2o")
@@ -151,17 +142,7 @@ def test_cli_map_localize_loops_end_to_end(tiny_world, model_dir, tmp_path):
     assert len(graph.edges) == 2 * (len(graph.vertex_ids) // 2 - 1) + n_acc
     assert len(loops.i) <= 3
     # bad input: exit code 2 and a message naming the problem
-    r = run(
-        "loops",
-        "--map",
-        str(map_path),
-        "--checkpoint",
-        str(model_dir),
-        "--out",
-        str(tmp_path / "loops-bad"),
-        "--sequence",
-        "-1",
-    )
+    r = loops_cli(tmp_path / "loops-bad", "--sequence", "-1")
     assert r.returncode == 2 and "--sequence" in r.stderr
     assert not (tmp_path / "loops-bad").exists()
     r = run(
