@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import stat
 
 import numpy as np
 import pytest
@@ -413,6 +415,18 @@ def test_write_report_markdown_and_json(tmp_path):
     assert "| s1 | 0.350 | 3 | 66.7 | 66.7 | 0.667 | – | 0.750 | 0.900 |" in text
     assert "| s1 | cost < 0.75 | 2 | 2.50 | 1.20 | 100.0 | 100.0 |" in text
     assert not list(tmp_path.glob(".*.tmp"))
+
+
+def test_report_and_figure_files_get_the_mode_of_a_plain_open(tmp_path):
+    old = os.umask(0o027)
+    try:
+        md, js = ev.write_report(tmp_path, {"notes": ["x"]})
+        fig = viz.plot_recall_curves(tmp_path / "recall.png", {"a": ([1, 5], [0.5, 1.0])})
+    finally:
+        os.umask(old)
+    for p in (md, js, fig):
+        assert stat.S_IMODE(p.stat().st_mode) == 0o640, p.name
+    assert sorted(q.name for q in tmp_path.iterdir()) == ["recall.png", "report.json", "report.md"]
 
 
 def test_report_is_deterministic(tmp_path):

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import stat
 
 import numpy as np
 import pytest
@@ -373,6 +375,17 @@ def test_save_load_roundtrip(tmp_path):
         a, b = _encode(model, 1, 2), _encode(loaded, 1, 2)
     torch.testing.assert_close(a.global_desc, b.global_desc, rtol=0, atol=0)
     torch.testing.assert_close(a.local_desc, b.local_desc, rtol=0, atol=0)
+
+
+def test_checkpoint_files_get_the_mode_of_a_plain_open(tmp_path):
+    # atomic writes must not leave 0o600 files behind (shared run folders, committed models)
+    old = os.umask(0o022)
+    try:
+        _model(tiny_config(), seed=0).save(tmp_path / "ckpt")
+    finally:
+        os.umask(old)
+    for p in (tmp_path / "ckpt").iterdir():
+        assert stat.S_IMODE(p.stat().st_mode) == 0o644, p.name
 
 
 def test_load_rejects_mismatched_checkpoints(tmp_path):

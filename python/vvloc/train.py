@@ -52,6 +52,7 @@ from torch.utils.data import Dataset as TorchDataset
 from tqdm import tqdm
 
 from vvloc import geometry
+from vvloc._io import atomic_write
 from vvloc.checkpoints import resolve_checkpoint
 from vvloc.data import TripletSampler, open_dataset
 from vvloc.data.augment import PhotometricAugment
@@ -704,9 +705,8 @@ class Trainer:
             "best": self.best,
             "config": self.cfg.to_dict(),
         }
-        tmp = self._state_path().with_suffix(".tmp")
-        torch.save(state, tmp)
-        os.replace(tmp, self._state_path())
+        with atomic_write(self._state_path(), "wb") as fb:
+            torch.save(state, fb)
 
     def resume(self) -> bool:
         """Load the last checkpoint and trainer state from ``out_dir``; False if there is none.

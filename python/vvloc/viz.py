@@ -12,7 +12,6 @@ said so).
 from __future__ import annotations
 
 import os
-import tempfile
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -22,6 +21,7 @@ from matplotlib.axes import Axes
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
+from vvloc._io import atomic_write
 from vvloc.geometry import wrap_angle
 
 _DPI = 120
@@ -46,14 +46,8 @@ def save_figure(fig: Figure, path: str | os.PathLike[str]) -> Path:
     if fmt not in _METADATA:
         raise ValueError(f"path: expected a .png, .svg or .pdf file name, got {out.name!r}")
     out.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            fig.savefig(f, format=fmt, metadata=_METADATA[fmt])
-        os.replace(tmp, out)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_write(out, "wb") as f:
+        fig.savefig(f, format=fmt, metadata=_METADATA[fmt])
     return out
 
 

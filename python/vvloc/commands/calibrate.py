@@ -36,10 +36,11 @@ def calibrate(
     held-out sessions. The Localizer (and map/localize/eval) then accept only those."""
     import torch
 
+    from vvloc._io import atomic_write
     from vvloc.data import open_dataset
     from vvloc.localize.calibrate import calibrate as run_calibration
     from vvloc.nets import VVLocNet
-    from vvloc.nets.model import CALIBRATION_FILE, _atomic_write
+    from vvloc.nets.model import CALIBRATION_FILE
 
     with cli_errors("calibrate"):
         names = split_names(queries)
@@ -58,7 +59,8 @@ def calibrate(
             min_accepted=min_accepted,
         )
         text = json.dumps(cal, indent=2)
-        _atomic_write(ckpt / CALIBRATION_FILE, lambda p: Path(p).write_text(text))
+        with atomic_write(ckpt / CALIBRATION_FILE) as f:
+            f.write(text)
     if cal["accepted"]:
         typer.echo(
             f"min_distinctiveness {cal['min_distinctiveness']:.4f}: accepts "

@@ -50,6 +50,7 @@ def localize(
     """Write poses.tum (global poses), queries.csv and timings.json into --out."""
     import json
 
+    from vvloc._io import atomic_write
     from vvloc.data import open_dataset
     from vvloc.localize.export import write_tum
     from vvloc.localize.localizer import Localizer
@@ -90,10 +91,12 @@ def localize(
                 f"{np.degrees(g[2]):.3f},{r.cost:.5f},{r.distinctiveness:.5f},{int(r.accepted)},"
                 f"{r.metric_row}"
             )
-        (out / "queries.csv").write_text("\n".join(lines) + "\n")
+        with atomic_write(out / "queries.csv") as f:
+            f.write("\n".join(lines) + "\n")
         stages = ("encode", "retrieve", "rerank", "metric")
         timings = {s: float(np.median([r.timings_ms[s] for r in results])) for s in stages}
-        (out / "timings.json").write_text(json.dumps({"median_ms": timings}, indent=2))
+        with atomic_write(out / "timings.json") as f:
+            f.write(json.dumps({"median_ms": timings}, indent=2))
     acc = np.mean([r.accepted for r in results])
     typer.echo(f"localized {len(results)} frames ({acc:.0%} accepted); outputs in {out}")
     typer.echo("median ms per stage: " + ", ".join(f"{k} {v:.1f}" for k, v in timings.items()))

@@ -19,6 +19,7 @@ import numpy as np
 import torch
 
 from vvloc import evaluate, geometry, kernels, viz
+from vvloc._io import atomic_write
 from vvloc.data import Frame, open_dataset
 from vvloc.data.perturb import perturb_frame
 from vvloc.localize.localizer import (
@@ -303,7 +304,8 @@ def run_evaluation(
             f"{g[0]:.4f},{g[1]:.4f},{np.degrees(g[2]):.3f},{pe:.4f},{ye:.3f},{r.cost:.5f},"
             f"{int(r.accepted)},{int(c)},{r.distinctiveness:.5f},{r.metric_row}"
         )
-    (out_dir / "queries.csv").write_text("\n".join(lines) + "\n")
+    with atomic_write(out_dir / "queries.csv") as f:
+        f.write("\n".join(lines) + "\n")
 
     figures = {}
     figures["Recall@N at 2 m"] = viz.plot_recall_curves(

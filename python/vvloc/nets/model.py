@@ -4,14 +4,14 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import torch
-from safetensors.torch import load_file, save_file
+from safetensors.torch import load_file, save
 from torch import Tensor, nn
 
+from vvloc._io import atomic_write
 from vvloc.nets.backbone import FPN, ResNetBackbone, normalise_images
 from vvloc.nets.config import CONFIG_VERSION, ModelConfig
 from vvloc.nets.decoder import Interactor, LocalViewDecoder
@@ -163,11 +163,14 @@ class VVLocNet(nn.Module):
             "config": self.config.to_dict(),
         }
         tensors = {k: v.detach().cpu().contiguous() for k, v in self.state_dict().items()}
-        _atomic_write(out / WEIGHTS_FILE, lambda p: save_file(tensors, str(p)))
-        _atomic_write(out / CONFIG_FILE, lambda p: Path(p).write_text(json.dumps(meta, indent=2)))
+        # safetensors' save_file replaces its target with a 0o600 file: write its bytes instead
+        with atomic_write(out / WEIGHTS_FILE, "wb") as fb:
+            fb.write(save(tensors))
+        with atomic_write(out / CONFIG_FILE) as f:
+            f.write(json.dumps(meta, indent=2))
         if self.calibration:
-            text = json.dumps(self.calibration, indent=2)
-            _atomic_write(out / CALIBRATION_FILE, lambda p: Path(p).write_text(text))
+            with atomic_write(out / CALIBRATION_FILE) as f:
+                f.write(json.dumps(self.calibration, indent=2))
         else:  # a stale calibration would describe other weights
             (out / CALIBRATION_FILE).unlink(missing_ok=True)
         return out
@@ -218,14 +221,3 @@ class VVLocNet(nn.Module):
                 raise ValueError(f"{cal_path}: expected a JSON object")
             model.calibration = cal
         return model.to(map_location)
-
-
-def _atomic_write(path: Path, write: object) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    os.close(fd)
-    try:
-        write(tmp)  # type: ignore[operator]
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
