@@ -298,3 +298,19 @@ def test_demo_queries_sessions_the_committed_model_never_trained_on():
         cfg = yaml.safe_load(cfg_path.read_text())
         assert not set(demo_cmd.QUERY_SESSIONS) & set(cfg["train_sessions"]), cfg_path
         assert cfg["sim"]["sessions"] >= demo_cmd.SESSIONS and cfg["sim"]["seed"] == 0
+
+
+def test_demo_warns_unless_the_model_card_says_ok():
+    from vvloc.commands.demo import DEFAULT_MODEL, status_warning
+
+    assert status_warning("Status: OK\n# card") is None
+    assert status_warning("status: ok — all targets met") is None
+    assert status_warning("Status: BELOW TARGET — CFER missed\n") == (
+        "WARNING: the committed model is BELOW TARGET — CFER missed"
+    )
+    assert status_warning("") == "WARNING: the committed model is of unknown status"
+    assert status_warning("Status: OKAY-ish") is not None
+    # the committed card is honest about its missed figure, and the demo says so
+    card = (DEFAULT_MODEL / "MODEL_CARD.md").read_text()
+    warning = status_warning(card)
+    assert warning is not None and warning.startswith("WARNING: the committed model is BELOW")

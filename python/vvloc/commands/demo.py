@@ -49,6 +49,19 @@ def _reusable(data: Path, frames: int, seed: int) -> bool:
         return False
 
 
+def status_warning(card: str) -> str | None:
+    """The warning for a model card whose first line (``Status: ...``, any case) is not OK;
+    None when it is."""
+    lines = card.splitlines()
+    status = lines[0].strip() if lines else ""
+    head, sep, rest = status.partition(":")
+    if sep and head.strip().lower() == "status":
+        status = rest.strip()
+    if status.upper() == "OK" or status.upper().startswith(("OK ", "OK:", "OK —", "OK -")):
+        return None
+    return f"WARNING: the committed model is {status or 'of unknown status'}"
+
+
 def demo(
     out: Annotated[Path, typer.Option("--out", help="Output folder.")] = Path("runs/demo"),
     checkpoint: Annotated[
@@ -77,10 +90,8 @@ def demo(
         ckpt = checkpoint or DEFAULT_MODEL
         card = DEFAULT_MODEL / "MODEL_CARD.md"
         if checkpoint is None and card.exists():
-            # The model card's first line is its status; anything but "status: OK" is a warning.
-            status = card.read_text().splitlines()[0]
-            if not status.startswith("status: OK"):
-                warning = f"WARNING: the committed model is {status.removeprefix('status: ')}"
+            warning = status_warning(card.read_text())
+            if warning:
                 typer.secho(warning, fg=typer.colors.RED, err=True)
         if checkpoint is None and not (DEFAULT_MODEL / "config.json").exists():
             warning = UNTRAINED.format(path=DEFAULT_MODEL)
