@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from vvloc.localize.loops import descriptor_loop_candidates, sequence_distance
+from vvloc.localize.loops import descriptor_loop_candidates, sequence_distance, sweep_radius
 
 
 def brute_sequence_distance(g, sessions, seqs, i, j, half, window=0):
@@ -170,3 +170,42 @@ def test_bad_arguments_name_the_argument():
         sequence_distance(g, sessions, seqs, one, np.array([8]), 1)
     with pytest.raises(ValueError, match="descriptors"):
         sequence_distance(g[0], sessions, seqs, one, one, 1)
+
+
+def random_drives(n: int, sessions: int = 3, d: int = 16, seed: int = 0):
+    rng = np.random.default_rng(seed)
+    g = rng.standard_normal((n, d)).astype(np.float32)
+    g /= np.linalg.norm(g, axis=1, keepdims=True)
+    sess = np.arange(n) % sessions
+    seqs = np.arange(n) // sessions
+    return g, sess, seqs
+
+
+@pytest.mark.parametrize("max_pairs", [1, 7, 50, 400])
+def test_sweep_radius_is_exact_on_small_sets(max_pairs):
+    g, sess, seqs = random_drives(60)
+    full = descriptor_loop_candidates(g, sess, seqs, radius=1.2, window=2)
+    r = sweep_radius(g, sess, seqs, max_pairs, window=2, r_max=1.2)
+    got = descriptor_loop_candidates(g, sess, seqs, radius=r, window=2)
+    assert len(got.i) <= max_pairs
+    if len(full.i) <= max_pairs:
+        assert r == 1.2
+    else:  # the largest such radius: one step beyond it holds more pairs than allowed
+        more = descriptor_loop_candidates(g, sess, seqs, radius=r * (1 + 1e-6), window=2)
+        assert len(more.i) > max_pairs
+
+
+def test_sweep_radius_never_goes_below_r_min_and_estimates_large_sets():
+    g, sess, seqs = random_drives(60)
+    assert sweep_radius(g, sess, seqs, 1, window=2, r_max=1.2, r_min=0.9) == 0.9
+    g, sess, seqs = random_drives(3000, d=8, seed=1)
+    budget = 200_000
+    r = sweep_radius(g, sess, seqs, budget, window=2, r_max=1.0, sample=256)
+    n = len(descriptor_loop_candidates(g, sess, seqs, radius=r, window=2).i)
+    assert 0.8 * budget <= n <= 1.2 * budget  # sampled rows scale to all rows
+    with pytest.raises(ValueError, match="max_pairs"):
+        sweep_radius(g, sess, seqs, 0)
+    with pytest.raises(TypeError, match="max_pairs"):
+        sweep_radius(g, sess, seqs, 10.0)  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="r_min, r_max"):
+        sweep_radius(g, sess, seqs, 10, r_min=0.6, r_max=0.5)

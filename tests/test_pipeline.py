@@ -7,6 +7,7 @@ search itself is pinned by the geometry oracle (tests/test_metric_localize.py).
 
 from __future__ import annotations
 
+import inspect
 import subprocess
 import sys
 
@@ -255,3 +256,31 @@ def test_evaluation_scores_loop_closures_at_the_given_radius(tiny_world, model_d
     )
     assert m["meta"]["snap"] is True and m["meta"]["metric_candidates"] == 3  # the defaults
     assert "| VVLoc (descriptor radius) | 0.300 |" in (tmp_path / "ev" / "report.md").read_text()
+    assert m["loop_sweep_radius"] == 0.5  # a tiny world: every pair within 0.5 is scored
+    from vvloc.commands.evaluate import eval_command
+    from vvloc.localize.evaluation import LOOP_SWEEP_PAIRS
+
+    cli_default = inspect.signature(eval_command).parameters["loop_sweep_pairs"].default
+    assert cli_default == LOOP_SWEEP_PAIRS
+    with pytest.raises(ValueError, match="loop_sweep_pairs"):
+        run_evaluation(
+            model_dir, tiny_world, "s0", ["s1"], tmp_path / "bad", loop_sweep_pairs=0, **kw
+        )
+    assert not (tmp_path / "bad").exists()
+    # a memory bound of one pair: the sweep shrinks to the acceptance radius, and says so
+    m1 = run_evaluation(
+        model_dir,
+        tiny_world,
+        "s0",
+        ["s1"],
+        tmp_path / "ev1",
+        loop_radius=0.3,
+        loop_sweep_pairs=1,
+        **kw,
+    )
+    assert m1["loop_sweep_radius"] == pytest.approx(0.3)
+    assert any("sweep" in n and "loop_sweep_pairs" in n for n in m1["notes"])
+    for name, curve in m1["loop_closure"].items():
+        # the figures at the acceptance radius do not depend on the sweep's bound
+        assert curve["at_threshold"] == m["loop_closure"][name]["at_threshold"]
+        assert curve["best_f1"]["threshold"] <= 0.3 + 1e-9

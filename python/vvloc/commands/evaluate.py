@@ -50,6 +50,16 @@ def eval_command(
             help="Also score loops whose ±L neighbouring keyframes match too (0: off).",
         ),
     ] = 1,
+    loop_sweep_pairs: Annotated[
+        int,
+        typer.Option(
+            "--loop_sweep_pairs",
+            min=1,
+            help="Memory bound of the loops' precision-recall sweep, in pairs (≈ 150 B each; "
+            "20 M ≈ 3 GB): beyond it the sweep stops below descriptor distance 0.5 (the report "
+            "says where).",
+        ),
+    ] = 20_000_000,
 ) -> None:
     """Write report.md/report.json/plots with Recall@N, AOE/APE and per-stage latency."""
     from vvloc.localize.evaluation import run_evaluation
@@ -74,5 +84,6 @@ def eval_command(
             loop_pairs=loop_pairs,
             loop_radius=loop_radius,
             loop_sequence=loop_sequence,
+            loop_sweep_pairs=loop_sweep_pairs,
         )
     typer.echo(f"report: {out / 'report.md'}")

@@ -28,10 +28,15 @@ from vvloc.localize.localizer import (
     build_map,
     encode_frames,
 )
-from vvloc.localize.loops import check_half_window, loop_candidates, verify_pairs
+from vvloc.localize.loops import check_half_window, loop_candidates, sweep_radius, verify_pairs
 from vvloc.localize.mapdb import MapDatabase
 from vvloc.localize.metric import SearchConfig
 from vvloc.nets import VVLocNet
+
+#: Loop closure's precision-recall sweep scores the pairs within this descriptor distance...
+LOOP_SWEEP_RADIUS = 0.5
+#: ...unless they are more than about this many (then a smaller radius, see sweep_radius).
+LOOP_SWEEP_PAIRS = 20_000_000
 
 log = logging.getLogger("vvloc.evaluate")
 
@@ -86,10 +91,14 @@ def _loops(
     progress: bool,
     radius: float,
     sequence: int,
-) -> tuple[dict[str, Any], dict[str, Any]]:
+    sweep_pairs: int,
+) -> tuple[dict[str, Any], dict[str, Any], float]:
     """Loop closure over all frames of ``sessions`` (one map with BEVs), accepted at descriptor
     distance < ``radius``: single keyframes (the paper's test) and, for ``sequence = L > 0``,
-    with the sequence-consistency check of half-window L (:mod:`vvloc.localize.loops`)."""
+    with the sequence-consistency check of half-window L (:mod:`vvloc.localize.loops`). The
+    precision-recall sweep scores the pairs within descriptor distance 0.5, or within the
+    smaller radius (never below ``radius``) that keeps them to about ``sweep_pairs``; returns
+    the closure and pose metrics and that sweep radius."""
     path = build_map(model, ds, list(sessions), out_dir / "loops_map.h5", progress=progress)
     closure: dict[str, Any] = {}
     pose: dict[str, Any] = {}
@@ -97,12 +106,21 @@ def _loops(
     with MapDatabase.open(path, expected_config_hash=model.config_hash()) as db:
         pos = np.asarray(db.poses)[:, :2]
         floors = np.asarray(db.floors)
+        sweep = sweep_radius(
+            db.global_descriptors,
+            db.session_index,
+            db.seq,
+            sweep_pairs,
+            window=10,
+            r_max=LOOP_SWEEP_RADIUS,
+            r_min=radius,
+        )
         variants = {"VVLoc (descriptor radius)": 0}
         if sequence > 0:
             variants[f"VVLoc + sequence (±{sequence} keyframes)"] = sequence
         for name, half in variants.items():
             # every pair within a generous descriptor radius: the sweep's candidates
-            cand = loop_candidates(db, radius=0.5, window=10, sequence=half)
+            cand = loop_candidates(db, radius=sweep, window=10, sequence=half)
             pairs = np.stack([cand.i, cand.j], axis=1)
             # frames of one session within ±10 keyframes never count (temporal neighbours)
             curve = evaluate.self_loop_closure_curve(
@@ -125,7 +143,7 @@ def _loops(
             costs = np.array([c for _, c in got])
             gt = geometry.relative(db.poses[rows_i], db.poses[rows_j])
             pose[name] = evaluate.loop_pose_metrics(est, gt.reshape(-1, 3), costs)
-    return closure, pose
+    return closure, pose, sweep
 
 
 def _ranked(results: Sequence[LocalizationResult], attr: str, k: int) -> np.ndarray:
@@ -156,6 +174,7 @@ def run_evaluation(
     loop_pairs: int = 200,
     loop_radius: float = 0.1,
     loop_sequence: int = 1,
+    loop_sweep_pairs: int = LOOP_SWEEP_PAIRS,
 ) -> dict[str, Any]:
     """Evaluate a checkpoint on ``dataset``: map = ``database`` session, queries = every
     ``every``-th frame of each session in ``queries``. Writes ``out/map.h5``,
@@ -165,11 +184,18 @@ def run_evaluation(
     ``loops``: also loop closure over all frames of ``database`` + ``queries``, accepted at
     global-descriptor distance < ``loop_radius`` (the first ``loop_pairs`` verified metrically),
     for single keyframes and, when ``loop_sequence`` L > 0, with the sequence-consistency check
-    of half-window L as well (:func:`vvloc.localize.loops.sequence_distance`).
+    of half-window L as well (:func:`vvloc.localize.loops.sequence_distance`). The loops'
+    precision-recall sweep scores every pair within descriptor distance 0.5, or, when that
+    would be more than about ``loop_sweep_pairs`` pairs (≈ 150 bytes each), the pairs within
+    the radius that keeps to that (at least ``loop_radius``); the report names the radius.
     """
     if not 0 < loop_radius <= 0.5:
         raise ValueError(f"loop_radius: expected a value in (0, 0.5], got {loop_radius}")
     loop_sequence = check_half_window(loop_sequence, "loop_sequence")
+    if isinstance(loop_sweep_pairs, bool) or not isinstance(loop_sweep_pairs, int):
+        raise TypeError(f"loop_sweep_pairs: expected an int, got {type(loop_sweep_pairs).__name__}")
+    if loop_sweep_pairs < 1:
+        raise ValueError(f"loop_sweep_pairs: expected >= 1, got {loop_sweep_pairs}")
     out_dir = Path(out)
     out_dir.mkdir(parents=True, exist_ok=True)
     model = VVLocNet.load(checkpoint).to(torch.device(device))
@@ -276,7 +302,7 @@ def run_evaluation(
     if robustness:
         metrics["robustness"] = _robustness(loc, frames, q_pose, q_floor, db_pose, db_floor, k)
     if loops:
-        metrics["loop_closure"], metrics["loop_pose"] = _loops(
+        metrics["loop_closure"], metrics["loop_pose"], sweep = _loops(
             model,
             ds,
             [database, *queries],
@@ -286,7 +312,15 @@ def run_evaluation(
             progress,
             loop_radius,
             loop_sequence,
+            loop_sweep_pairs,
         )
+        metrics["loop_sweep_radius"] = sweep
+        if sweep < LOOP_SWEEP_RADIUS:
+            notes.append(
+                f"loop precision-recall sweep (best F1) over the pairs within descriptor distance "
+                f"{sweep:.4g} only, not {LOOP_SWEEP_RADIUS}: about {loop_sweep_pairs} pairs, "
+                "the loop_sweep_pairs memory bound"
+            )
 
     # per-query CSV
     yaw_err, pos_err = evaluate.pose_errors(est, q_pose)

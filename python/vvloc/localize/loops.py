@@ -174,6 +174,55 @@ def descriptor_loop_candidates(
     return LoopCandidates(cand.i[ok], cand.j[ok], score[ok])
 
 
+def sweep_radius(
+    descriptors: np.ndarray,
+    sessions: np.ndarray,
+    seqs: np.ndarray,
+    max_pairs: int,
+    *,
+    window: int = 10,
+    r_max: float = 0.5,
+    r_min: float = 0.0,
+    sample: int = 256,
+    seed: int = 0,
+) -> float:
+    """The largest descriptor radius ``r <= r_max`` whose :func:`descriptor_loop_candidates`
+    (same ``window``, no sequence check) is estimated to hold at most ``max_pairs`` pairs, and
+    never below ``r_min``: the bound of a precision-recall sweep that must fit in memory (every
+    pair costs ≈ 150 bytes while it is scored).
+
+    ``descriptors`` (N, D) float, ``sessions`` and ``seqs`` (N,) int as for
+    :func:`descriptor_loop_candidates`. The estimate scales the neighbours within ``r_max`` of
+    ``sample`` rows drawn with ``seed`` by N / sample; with N <= ``sample`` it is exact.
+    """
+    if isinstance(max_pairs, bool) or not isinstance(max_pairs, int | np.integer):
+        raise TypeError(f"max_pairs: expected an int, got {type(max_pairs).__name__}")
+    if max_pairs < 1:
+        raise ValueError(f"max_pairs: expected >= 1, got {max_pairs}")
+    if not 0 <= r_min <= r_max:
+        raise ValueError(f"r_min, r_max: expected 0 <= r_min <= r_max, got {r_min}, {r_max}")
+    if sample < 1:
+        raise ValueError(f"sample: expected >= 1, got {sample}")
+    groups = np.asarray(sessions, dtype=np.int64)
+    seq = np.asarray(seqs, dtype=np.int64)
+    n = len(groups)
+    if n == 0:
+        return float(r_max)
+    rows = np.arange(n) if n <= sample else np.random.default_rng(seed).choice(n, sample, False)
+    index = DescriptorIndex(descriptors, groups=groups, seqs=seq)
+    _, _, dist = index.radius(
+        np.asarray(descriptors)[rows],
+        r_max,
+        exclude=Exclusion(groups[rows], seq[rows], window=int(window)),
+    )
+    # directed neighbours of the sampled rows → undirected pairs of all rows
+    allowed = int(max_pairs * 2 * len(rows) // n)
+    if dist.size <= allowed:
+        return float(r_max)
+    r = float(np.partition(dist.astype(np.float64), allowed)[allowed])  # pairs with d < r ≤ allowed
+    return max(r, float(r_min))
+
+
 def loop_candidates(
     mapdb: MapDatabase, radius: float = 0.1, window: int = 10, sequence: int = 0
 ) -> LoopCandidates:
