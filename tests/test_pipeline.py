@@ -284,3 +284,23 @@ def test_evaluation_scores_loop_closures_at_the_given_radius(tiny_world, model_d
         # the figures at the acceptance radius do not depend on the sweep's bound
         assert curve["at_threshold"] == m["loop_closure"][name]["at_threshold"]
         assert curve["best_f1"]["threshold"] <= 0.3 + 1e-9
+
+
+def test_evaluation_breaks_recall_down_by_query_session(tiny_world, model_dir, tmp_path):
+    from vvloc.localize.evaluation import run_evaluation
+
+    kw = {"every": 5, "search": SMALL_SEARCH, "progress": False}
+    m = run_evaluation(model_dir, tiny_world, "s0", ["s1", "s2"], tmp_path / "ev", **kw)
+    per = m["per_session"]
+    assert list(per) == ["s1, VVLoc-G", "s1, VVLoc-ML", "s2, VVLoc-G", "s2, VVLoc-ML"]
+    for method in ("VVLoc-G", "VVLoc-ML"):
+        whole = m["global_localization"][method]
+        parts = [per[f"{s}, {method}"] for s in ("s1", "s2")]
+        assert sum(p.num_queries for p in parts) == whole.num_queries
+        assert sum(p.num_kept for p in parts) == whole.num_kept
+        # the sessions' correct top-1 add up to the whole's
+        assert sum(int(p.correct(1, 2.0).sum()) for p in parts) == int(whole.correct(1, 2.0).sum())
+    assert "## Global localization per query session" in (tmp_path / "ev" / "report.md").read_text()
+    one = run_evaluation(model_dir, tiny_world, "s0", ["s1"], tmp_path / "one", **kw)
+    assert one["per_session"] == {}
+    assert "per query session" not in (tmp_path / "one" / "report.md").read_text()

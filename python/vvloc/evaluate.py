@@ -1032,6 +1032,7 @@ def _latency_table(results: Mapping[str, Any]) -> list[str]:
 #: Report sections: metrics key → (heading, first column of a Recall table or None).
 _SECTIONS = {
     "global_localization": ("Global localization (Recall@N, %)", "method"),
+    "per_session": ("Global localization per query session (Recall@N, %)", "session, method"),
     "pose_accuracy": ("Metric pose accuracy (AOE / APE percentiles)", None),
     "loop_closure": ("Loop closure", None),
     "loop_pose": ("Relative pose on detected loop pairs", None),
@@ -1098,6 +1099,7 @@ def write_report(
 
     * ``"meta"``: ``{key: value}`` printed as a list (checkpoint, dataset, hardware, seed, ...).
     * ``"global_localization"``: ``{method: RecallResult}`` e.g. ``"VVLoc-G"``, ``"VVLoc-ML"``.
+    * ``"per_session"``: ``{"<session>, <method>": RecallResult}`` (several query sessions).
     * ``"pose_accuracy"``: ``{method: pose_accuracy(...)}``.
     * ``"loop_closure"``: ``{name: LoopClosureCurve.summary(threshold)}``.
     * ``"loop_pose"``: ``{name: loop_pose_metrics(...)}``.

@@ -224,13 +224,24 @@ def run_evaluation(
     k = min(top_k, len(mapdb))
     retrieved = _ranked(results, "retrieved", k)
     reranked = _ranked(results, "reranked", k)
-    kw = {
-        "query_floors": q_floor,
-        "db_floors": db_floor,
-        "top_n": tuple(n for n in (1, 5) if n <= k),
-    }
+    top_n = tuple(n for n in (1, 5) if n <= k)
+    kw = {"query_floors": q_floor, "db_floors": db_floor, "top_n": top_n}
     rec_g = evaluate.recall_at_n(q_pose[:, :2], db_pose[:, :2], retrieved, **kw)
     rec_ml = evaluate.recall_at_n(q_pose[:, :2], db_pose[:, :2], reranked, **kw)
+    per_session: dict[str, Any] = {}
+    if len(queries) > 1:
+        q_session = np.array([f.session for f in frames])
+        for s in queries:
+            sel = q_session == s
+            for label, ranked in (("VVLoc-G", retrieved), ("VVLoc-ML", reranked)):
+                per_session[f"{s}, {label}"] = evaluate.recall_at_n(
+                    q_pose[sel, :2],
+                    db_pose[:, :2],
+                    ranked[sel],
+                    query_floors=q_floor[sel],
+                    db_floors=db_floor,
+                    top_n=top_n,
+                )
     est = np.stack([r.global_pose for r in results])
     correct = rec_ml.correct(1, 2.0)
     pose_acc = evaluate.pose_accuracy(est, q_pose, correct, kept=rec_ml.kept)
@@ -291,6 +302,7 @@ def run_evaluation(
             "torch_threads": torch.get_num_threads(),
         },
         "global_localization": {"VVLoc-G": rec_g, "VVLoc-ML": rec_ml},
+        "per_session": per_session,
         "pose_accuracy": {"VVLoc-ML": pose_acc},
         "latency": latency,
         "notes": notes,
