@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import stat
 from pathlib import Path
 from typing import Any
 
@@ -443,3 +444,21 @@ def test_atomic_write_into_missing_directory_fails_cleanly(tmp_path: Path) -> No
     with pytest.raises(FileNotFoundError), atomic_write(tmp_path / "no" / "x.txt") as f:
         f.write("x")
     assert os.listdir(tmp_path) == []
+
+
+def test_atomic_write_gives_new_files_the_umask_mode_and_keeps_an_existing_files_mode(
+    tmp_path: Path,
+) -> None:
+    old = os.umask(0o022)
+    try:
+        with atomic_write(tmp_path / "new.txt") as f:
+            f.write("x")
+        kept = tmp_path / "private.txt"
+        kept.write_text("old")
+        kept.chmod(0o600)
+        with atomic_write(kept) as f:
+            f.write("new")
+    finally:
+        os.umask(old)
+    assert stat.S_IMODE((tmp_path / "new.txt").stat().st_mode) == 0o644
+    assert stat.S_IMODE(kept.stat().st_mode) == 0o600 and kept.read_text() == "new"

@@ -279,7 +279,7 @@ def test_evaluation_scores_loop_closures_at_the_given_radius(tiny_world, model_d
         **kw,
     )
     assert m1["loop_sweep_radius"] == pytest.approx(0.3)
-    assert any("sweep" in n and "loop_sweep_pairs" in n for n in m1["notes"])
+    assert any("acceptance radius 0.3 only" in n and "loop_sweep_pairs" in n for n in m1["notes"])
     for name, curve in m1["loop_closure"].items():
         # the figures at the acceptance radius do not depend on the sweep's bound
         assert curve["at_threshold"] == m["loop_closure"][name]["at_threshold"]

@@ -310,6 +310,8 @@ def test_demo_warns_unless_the_model_card_says_ok():
     )
     assert status_warning("") == "WARNING: the committed model is of unknown status"
     assert status_warning("Status: OKAY-ish") is not None
+    assert status_warning("**Status:** OK.") is None and status_warning("\ufeffStatus: OK") is None
+    assert status_warning("OK") is not None  # a status line names itself
     # the committed card is honest about its missed figure, and the demo says so
     card = (DEFAULT_MODEL / "MODEL_CARD.md").read_text()
     warning = status_warning(card)

@@ -12,6 +12,7 @@ from __future__ import annotations
 import contextlib
 import os
 import secrets
+import stat
 from collections.abc import Iterator
 from pathlib import Path
 from types import TracebackType
@@ -47,7 +48,8 @@ class AtomicPath:
 
     Use as a context manager: ``with AtomicPath(p) as tmp: write(tmp)`` commits when the block
     ends normally and aborts (removes the temporary file) when it raises. The temporary file is
-    created empty (mode 0o666 minus the umask, like a plain ``open``) with a hidden random name
+    created empty (mode 0o666 minus the umask, like a plain ``open``; replacing an existing file
+    keeps that file's mode, as writing into it would) with a hidden random name
     ``.<name>.<hex>.tmp`` in the destination's directory, so the final rename never crosses file
     systems. :meth:`commit` and :meth:`abort` may also be called explicitly (once).
     """
@@ -78,6 +80,8 @@ class AtomicPath:
         self._done = True
         try:
             _fsync_file(self.tmp)
+            with contextlib.suppress(FileNotFoundError):  # a rewrite keeps the file's mode
+                os.chmod(self.tmp, stat.S_IMODE(os.stat(self.path).st_mode))
             os.replace(self.tmp, self.path)
         except BaseException:
             self._remove_temp()

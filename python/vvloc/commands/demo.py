@@ -4,6 +4,7 @@ map of another session, print the metrics and write plots to ``runs/demo/``."""
 from __future__ import annotations
 
 import json
+import re
 import time
 from pathlib import Path
 from typing import Annotated
@@ -50,15 +51,13 @@ def _reusable(data: Path, frames: int, seed: int) -> bool:
 
 
 def status_warning(card: str) -> str | None:
-    """The warning for a model card whose first line (``Status: ...``, any case) is not OK;
-    None when it is."""
-    lines = card.splitlines()
-    status = lines[0].strip() if lines else ""
-    head, sep, rest = status.partition(":")
-    if sep and head.strip().lower() == "status":
-        status = rest.strip()
-    if status.upper() == "OK" or status.upper().startswith(("OK ", "OK:", "OK —", "OK -")):
+    """The warning for a model card whose first line (``Status: ...``, any case, Markdown
+    emphasis allowed) does not say OK; None when it does."""
+    lines = card.lstrip("\ufeff").splitlines()
+    first = lines[0].strip() if lines else ""
+    if re.match(r"\W*status\W*:\W*ok\b", first, re.IGNORECASE):
         return None
+    status = re.sub(r"^\W*status\W*:\s*", "", first, flags=re.IGNORECASE)
     return f"WARNING: the committed model is {status or 'of unknown status'}"
 
 

@@ -92,13 +92,14 @@ def _loops(
     radius: float,
     sequence: int,
     sweep_pairs: int,
-) -> tuple[dict[str, Any], dict[str, Any], float]:
+) -> tuple[dict[str, Any], dict[str, Any], float, bool]:
     """Loop closure over all frames of ``sessions`` (one map with BEVs), accepted at descriptor
     distance < ``radius``: single keyframes (the paper's test) and, for ``sequence = L > 0``,
     with the sequence-consistency check of half-window L (:mod:`vvloc.localize.loops`). The
     precision-recall sweep scores the pairs within descriptor distance 0.5, or within the
     smaller radius (never below ``radius``) that keeps them to about ``sweep_pairs``; returns
-    the closure and pose metrics and that sweep radius."""
+    the closure and pose metrics, that sweep radius, and whether ``radius`` alone already held
+    more pairs than the bound (the sweep then stops at ``radius``, above the bound)."""
     path = build_map(model, ds, list(sessions), out_dir / "loops_map.h5", progress=progress)
     closure: dict[str, Any] = {}
     pose: dict[str, Any] = {}
@@ -106,15 +107,15 @@ def _loops(
     with MapDatabase.open(path, expected_config_hash=model.config_hash()) as db:
         pos = np.asarray(db.poses)[:, :2]
         floors = np.asarray(db.floors)
-        sweep = sweep_radius(
+        bound = sweep_radius(
             db.global_descriptors,
             db.session_index,
             db.seq,
             sweep_pairs,
             window=10,
             r_max=LOOP_SWEEP_RADIUS,
-            r_min=radius,
         )
+        sweep, over = max(bound, radius), bound < radius
         variants = {"VVLoc (descriptor radius)": 0}
         if sequence > 0:
             variants[f"VVLoc + sequence (±{sequence} keyframes)"] = sequence
@@ -143,7 +144,8 @@ def _loops(
             costs = np.array([c for _, c in got])
             gt = geometry.relative(db.poses[rows_i], db.poses[rows_j])
             pose[name] = evaluate.loop_pose_metrics(est, gt.reshape(-1, 3), costs)
-    return closure, pose, sweep
+            del cand, pairs, curve  # one variant's sweep in memory at a time
+    return closure, pose, sweep, over
 
 
 def _ranked(results: Sequence[LocalizationResult], attr: str, k: int) -> np.ndarray:
@@ -192,7 +194,7 @@ def run_evaluation(
     if not 0 < loop_radius <= 0.5:
         raise ValueError(f"loop_radius: expected a value in (0, 0.5], got {loop_radius}")
     loop_sequence = check_half_window(loop_sequence, "loop_sequence")
-    if isinstance(loop_sweep_pairs, bool) or not isinstance(loop_sweep_pairs, int):
+    if isinstance(loop_sweep_pairs, bool) or not isinstance(loop_sweep_pairs, int | np.integer):
         raise TypeError(f"loop_sweep_pairs: expected an int, got {type(loop_sweep_pairs).__name__}")
     if loop_sweep_pairs < 1:
         raise ValueError(f"loop_sweep_pairs: expected >= 1, got {loop_sweep_pairs}")
@@ -314,7 +316,7 @@ def run_evaluation(
     if robustness:
         metrics["robustness"] = _robustness(loc, frames, q_pose, q_floor, db_pose, db_floor, k)
     if loops:
-        metrics["loop_closure"], metrics["loop_pose"], sweep = _loops(
+        metrics["loop_closure"], metrics["loop_pose"], sweep, over = _loops(
             model,
             ds,
             [database, *queries],
@@ -327,10 +329,16 @@ def run_evaluation(
             loop_sweep_pairs,
         )
         metrics["loop_sweep_radius"] = sweep
-        if sweep < LOOP_SWEEP_RADIUS:
+        if over:
+            notes.append(
+                f"loop precision-recall sweep (best F1) over the pairs within the acceptance "
+                f"radius {loop_radius} only, and those are more than about "
+                f"{loop_sweep_pairs:,} pairs (the loop_sweep_pairs memory bound)"
+            )
+        elif sweep < LOOP_SWEEP_RADIUS:
             notes.append(
                 f"loop precision-recall sweep (best F1) over the pairs within descriptor distance "
-                f"{sweep:.4g} only, not {LOOP_SWEEP_RADIUS}: about {loop_sweep_pairs} pairs, "
+                f"{sweep:.4g} only, not {LOOP_SWEEP_RADIUS}: about {loop_sweep_pairs:,} pairs, "
                 "the loop_sweep_pairs memory bound"
             )
 

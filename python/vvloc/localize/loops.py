@@ -193,7 +193,9 @@ def sweep_radius(
 
     ``descriptors`` (N, D) float, ``sessions`` and ``seqs`` (N,) int as for
     :func:`descriptor_loop_candidates`. The estimate scales the neighbours within ``r_max`` of
-    ``sample`` rows drawn with ``seed`` by N / sample; with N <= ``sample`` it is exact.
+    ``sample`` rows drawn with ``seed`` by N / sample; with N <= ``sample`` it is exact. With
+    ``r_min = 0`` the result may be 0.0 (more pairs at distance 0 than allowed), which no
+    candidate query accepts: the caller decides what then.
     """
     if isinstance(max_pairs, bool) or not isinstance(max_pairs, int | np.integer):
         raise TypeError(f"max_pairs: expected an int, got {type(max_pairs).__name__}")
@@ -216,7 +218,7 @@ def sweep_radius(
         exclude=Exclusion(groups[rows], seq[rows], window=int(window)),
     )
     # directed neighbours of the sampled rows → undirected pairs of all rows
-    allowed = int(max_pairs * 2 * len(rows) // n)
+    allowed = int(max_pairs) * 2 * len(rows) // n
     if dist.size <= allowed:
         return float(r_max)
     r = float(np.partition(dist.astype(np.float64), allowed)[allowed])  # pairs with d < r ≤ allowed
