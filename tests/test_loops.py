@@ -7,7 +7,12 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from vvloc.localize.loops import descriptor_loop_candidates, sequence_distance, sweep_radius
+from vvloc.localize.loops import (
+    confirm_sequence,
+    descriptor_loop_candidates,
+    sequence_distance,
+    sweep_radius,
+)
 
 
 def brute_sequence_distance(g, sessions, seqs, i, j, half, window=0):
@@ -156,9 +161,9 @@ def test_bad_arguments_name_the_argument():
         sequence_distance(g, sessions, seqs, one, one, -1)
     with pytest.raises(ValueError, match="window"):
         sequence_distance(g, sessions, seqs, one, one, 1, window=-1)
-    with pytest.raises(TypeError, match="i: expected integers"):
+    with pytest.raises(TypeError, match="i: expected an integer array"):
         sequence_distance(g, sessions, seqs, np.array([0.9]), one, 1)
-    with pytest.raises(TypeError, match="sessions: expected integers"):
+    with pytest.raises(TypeError, match="sessions: expected an integer array"):
         sequence_distance(g, sessions + 0.5, seqs, one, one, 1)
     with pytest.raises(TypeError, match="sequence"):
         descriptor_loop_candidates(g, sessions, seqs, sequence=True)
@@ -195,9 +200,7 @@ def test_sweep_radius_is_exact_on_small_sets(max_pairs):
         assert len(more.i) > max_pairs
 
 
-def test_sweep_radius_never_goes_below_r_min_and_estimates_large_sets():
-    g, sess, seqs = random_drives(60)
-    assert sweep_radius(g, sess, seqs, 1, window=2, r_max=1.2, r_min=0.9) == 0.9
+def test_sweep_radius_estimates_large_sets():
     g, sess, seqs = random_drives(3000, d=8, seed=1)
     budget = 200_000
     r = sweep_radius(g, sess, seqs, budget, window=2, r_max=1.0, sample=256)
@@ -207,5 +210,19 @@ def test_sweep_radius_never_goes_below_r_min_and_estimates_large_sets():
         sweep_radius(g, sess, seqs, 0)
     with pytest.raises(TypeError, match="max_pairs"):
         sweep_radius(g, sess, seqs, 10.0)  # type: ignore[arg-type]
-    with pytest.raises(ValueError, match="r_min, r_max"):
-        sweep_radius(g, sess, seqs, 10, r_min=0.6, r_max=0.5)
+    with pytest.raises(ValueError, match="r_max"):
+        sweep_radius(g, sess, seqs, 10, r_max=0.0)
+    with pytest.raises(ValueError, match="sample"):
+        sweep_radius(g, sess, seqs, 10, sample=0)
+
+
+@pytest.mark.parametrize("half", [1, 2])
+def test_confirming_single_candidates_equals_the_sequence_query(half):
+    g, sess, seqs = random_drives(90, sessions=3, d=4, seed=2)
+    single = descriptor_loop_candidates(g, sess, seqs, radius=0.9, window=2)
+    got = confirm_sequence(single, g, sess, seqs, 0.9, half, window=2)
+    want = descriptor_loop_candidates(g, sess, seqs, radius=0.9, window=2, sequence=half)
+    assert 0 < len(want.i) < len(single.i)
+    np.testing.assert_array_equal(got.i, want.i)
+    np.testing.assert_array_equal(got.j, want.j)
+    np.testing.assert_array_equal(got.distance, want.distance)

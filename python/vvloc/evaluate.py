@@ -1079,11 +1079,6 @@ def render_markdown(
     return "\n".join(lines).rstrip("\n") + "\n"
 
 
-def _write_atomic(path: Path, text: str) -> None:
-    with atomic_write(path) as f:
-        f.write(text)
-
-
 def write_report(
     out_dir: str | os.PathLike[str],
     metrics: Mapping[str, Any],
@@ -1128,6 +1123,7 @@ def write_report(
     text_md = render_markdown(metrics, title=title, figures=links)
     md_path, json_path = out / f"{stem}.md", out / f"{stem}.json"
     out.mkdir(parents=True, exist_ok=True)
-    _write_atomic(json_path, text_json)
-    _write_atomic(md_path, text_md)
+    for path, text in ((json_path, text_json), (md_path, text_md)):
+        with atomic_write(path) as f:
+            f.write(text)
     return md_path, json_path

@@ -28,7 +28,7 @@ from vvloc.localize.localizer import (
     build_map,
     encode_frames,
 )
-from vvloc.localize.loops import check_half_window, loop_candidates, sweep_radius, verify_pairs
+from vvloc.localize.loops import confirm_sequence, loop_candidates, sweep_radius, verify_pairs
 from vvloc.localize.mapdb import MapDatabase
 from vvloc.localize.metric import SearchConfig
 from vvloc.nets import VVLocNet
@@ -119,9 +119,14 @@ def _loops(
         variants = {"VVLoc (descriptor radius)": 0}
         if sequence > 0:
             variants[f"VVLoc + sequence (±{sequence} keyframes)"] = sequence
+        # every pair within a generous descriptor radius: the sweep's candidates (one radius
+        # query; the sequence check filters the same pairs)
+        single = loop_candidates(db, radius=sweep, window=10)
         for name, half in variants.items():
-            # every pair within a generous descriptor radius: the sweep's candidates
-            cand = loop_candidates(db, radius=sweep, window=10, sequence=half)
+            cand = single
+            if half:
+                g, sess, seq = db.global_descriptors, db.session_index, db.seq
+                cand = confirm_sequence(single, g, sess, seq, sweep, half, window=10)
             pairs = np.stack([cand.i, cand.j], axis=1)
             # frames of one session within ±10 keyframes never count (temporal neighbours)
             curve = evaluate.self_loop_closure_curve(
@@ -144,7 +149,7 @@ def _loops(
             costs = np.array([c for _, c in got])
             gt = geometry.relative(db.poses[rows_i], db.poses[rows_j])
             pose[name] = evaluate.loop_pose_metrics(est, gt.reshape(-1, 3), costs)
-            del cand, pairs, curve  # one variant's sweep in memory at a time
+            del cand, pairs, curve  # one variant's curve in memory at a time
     return closure, pose, sweep, over
 
 
@@ -193,11 +198,8 @@ def run_evaluation(
     """
     if not 0 < loop_radius <= 0.5:
         raise ValueError(f"loop_radius: expected a value in (0, 0.5], got {loop_radius}")
-    loop_sequence = check_half_window(loop_sequence, "loop_sequence")
-    if isinstance(loop_sweep_pairs, bool) or not isinstance(loop_sweep_pairs, int | np.integer):
-        raise TypeError(f"loop_sweep_pairs: expected an int, got {type(loop_sweep_pairs).__name__}")
-    if loop_sweep_pairs < 1:
-        raise ValueError(f"loop_sweep_pairs: expected >= 1, got {loop_sweep_pairs}")
+    loop_sequence = kernels._positive_int(loop_sequence, "loop_sequence", minimum=0)
+    loop_sweep_pairs = kernels._positive_int(loop_sweep_pairs, "loop_sweep_pairs")
     out_dir = Path(out)
     out_dir.mkdir(parents=True, exist_ok=True)
     model = VVLocNet.load(checkpoint).to(torch.device(device))

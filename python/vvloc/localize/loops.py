@@ -21,6 +21,8 @@ import numpy as np
 import numpy.typing as npt
 from tqdm import tqdm
 
+from vvloc.evaluate import _int_array
+from vvloc.kernels import _positive_float, _positive_int
 from vvloc.localize.export import LoopClosures
 from vvloc.localize.localizer import interacting_decoder
 from vvloc.localize.mapdb import MapDatabase
@@ -45,22 +47,6 @@ class LoopCandidates:
 
 #: Pairs per block in :func:`sequence_distance` (bounds its temporaries to BLOCK · D floats).
 BLOCK = 65_536
-
-
-def check_half_window(value: object, name: str) -> int:
-    """``value`` as an int >= 0 (a sequence half-window); TypeError/ValueError naming ``name``."""
-    if isinstance(value, bool) or not isinstance(value, int | np.integer):
-        raise TypeError(f"{name}: expected an int >= 0, got {type(value).__name__}")
-    if value < 0:
-        raise ValueError(f"{name}: expected an int >= 0, got {value}")
-    return int(value)
-
-
-def _int_array(value: npt.ArrayLike, name: str) -> np.ndarray:
-    arr = np.asarray(value)
-    if arr.size and not np.issubdtype(arr.dtype, np.integer):
-        raise TypeError(f"{name}: expected integers, got dtype {arr.dtype}")
-    return arr.astype(np.int64, copy=False)
 
 
 def sequence_distance(
@@ -89,18 +75,18 @@ def sequence_distance(
     session). ``half_window = 0`` gives the pair's own descriptor distance (or +inf for an
     inadmissible pair). ``i`` and ``j``: (P,) row indices.
     """
-    L = check_half_window(half_window, "half_window")
-    excl = check_half_window(window, "window")
+    L = _positive_int(half_window, "half_window", minimum=0)
+    excl = _positive_int(window, "window", minimum=0)
     g = np.asarray(descriptors)
     if g.ndim != 2 or not np.issubdtype(g.dtype, np.number):
         raise ValueError(f"descriptors: expected a numeric (N, D) array, got shape {g.shape}")
     n = len(g)
-    sess = _int_array(sessions, "sessions")
-    seq = _int_array(seqs, "seqs")
+    sess = _int_array(sessions, "sessions", "(N,)", 1)
+    seq = _int_array(seqs, "seqs", "(N,)", 1)
     if sess.shape != (n,) or seq.shape != (n,):
         raise ValueError(f"sessions, seqs: expected ({n},) each, got {sess.shape} and {seq.shape}")
-    i = _int_array(i, "i")
-    j = _int_array(j, "j")
+    i = _int_array(i, "i", "(P,)", 1)
+    j = _int_array(j, "j", "(P,)", 1)
     if i.shape != j.shape or i.ndim != 1:
         raise ValueError(f"i, j: expected (P,) each, got {i.shape} and {j.shape}")
     if i.size and (min(i.min(), j.min()) < 0 or max(i.max(), j.max()) >= n):
@@ -156,7 +142,7 @@ def descriptor_loop_candidates(
         raise ValueError(f"radius: expected > 0, got {radius}")
     if window < 0:
         raise ValueError(f"window: expected >= 0, got {window}")
-    sequence = check_half_window(sequence, "sequence")
+    sequence = _positive_int(sequence, "sequence", minimum=0)
     groups = np.asarray(sessions, dtype=np.int64)
     seq = np.asarray(seqs, dtype=np.int64)
     index = DescriptorIndex(descriptors, groups=groups, seqs=seq)
@@ -168,7 +154,23 @@ def descriptor_loop_candidates(
     cand = LoopCandidates(qi[keep], idx[keep], dist[keep].astype(np.float64))
     if sequence == 0:
         return cand
-    seq_dist = sequence_distance(descriptors, groups, seq, cand.i, cand.j, sequence, window)
+    return confirm_sequence(cand, descriptors, groups, seq, radius, sequence, window)
+
+
+def confirm_sequence(
+    cand: LoopCandidates,
+    descriptors: npt.ArrayLike,
+    sessions: npt.ArrayLike,
+    seqs: npt.ArrayLike,
+    radius: float,
+    half_window: int,
+    window: int = 10,
+) -> LoopCandidates:
+    """The candidates of ``cand`` (single keyframes, within ``radius``) whose
+    :func:`sequence_distance` with ``half_window`` (and ``window``) is below ``radius`` too,
+    scored by the larger of the two distances: what :func:`descriptor_loop_candidates` returns
+    with ``sequence = half_window``, without a second radius query."""
+    seq_dist = sequence_distance(descriptors, sessions, seqs, cand.i, cand.j, half_window, window)
     score = np.maximum(cand.distance, seq_dist)
     ok = score < radius
     return LoopCandidates(cand.i[ok], cand.j[ok], score[ok])
@@ -182,34 +184,28 @@ def sweep_radius(
     *,
     window: int = 10,
     r_max: float = 0.5,
-    r_min: float = 0.0,
     sample: int = 256,
     seed: int = 0,
 ) -> float:
     """The largest descriptor radius ``r <= r_max`` whose :func:`descriptor_loop_candidates`
-    (same ``window``, no sequence check) is estimated to hold at most ``max_pairs`` pairs, and
-    never below ``r_min``: the bound of a precision-recall sweep that must fit in memory (every
-    pair costs ≈ 150 bytes while it is scored).
+    (same ``window``, no sequence check) is estimated to hold at most ``max_pairs`` pairs: the
+    bound of a precision-recall sweep that must fit in memory (every pair costs ≈ 150 bytes
+    while it is scored).
 
     ``descriptors`` (N, D) float, ``sessions`` and ``seqs`` (N,) int as for
     :func:`descriptor_loop_candidates`. The estimate scales the neighbours within ``r_max`` of
-    ``sample`` rows drawn with ``seed`` by N / sample; with N <= ``sample`` it is exact. With
-    ``r_min = 0`` the result may be 0.0 (more pairs at distance 0 than allowed), which no
-    candidate query accepts: the caller decides what then.
+    ``sample`` rows drawn with ``seed`` by N / sample; with N <= ``sample`` it is exact. The
+    result may lie below the radius the caller must cover, or be 0.0 (more pairs at distance 0
+    than allowed): the caller decides what then.
     """
-    if isinstance(max_pairs, bool) or not isinstance(max_pairs, int | np.integer):
-        raise TypeError(f"max_pairs: expected an int, got {type(max_pairs).__name__}")
-    if max_pairs < 1:
-        raise ValueError(f"max_pairs: expected >= 1, got {max_pairs}")
-    if not 0 <= r_min <= r_max:
-        raise ValueError(f"r_min, r_max: expected 0 <= r_min <= r_max, got {r_min}, {r_max}")
-    if sample < 1:
-        raise ValueError(f"sample: expected >= 1, got {sample}")
+    max_pairs = _positive_int(max_pairs, "max_pairs")
+    sample = _positive_int(sample, "sample")
+    r_max = _positive_float(r_max, "r_max")
     groups = np.asarray(sessions, dtype=np.int64)
     seq = np.asarray(seqs, dtype=np.int64)
     n = len(groups)
     if n == 0:
-        return float(r_max)
+        return r_max
     rows = np.arange(n) if n <= sample else np.random.default_rng(seed).choice(n, sample, False)
     index = DescriptorIndex(descriptors, groups=groups, seqs=seq)
     _, _, dist = index.radius(
@@ -218,11 +214,10 @@ def sweep_radius(
         exclude=Exclusion(groups[rows], seq[rows], window=int(window)),
     )
     # directed neighbours of the sampled rows → undirected pairs of all rows
-    allowed = int(max_pairs) * 2 * len(rows) // n
+    allowed = max_pairs * 2 * len(rows) // n
     if dist.size <= allowed:
-        return float(r_max)
-    r = float(np.partition(dist.astype(np.float64), allowed)[allowed])  # pairs with d < r ≤ allowed
-    return max(r, float(r_min))
+        return r_max
+    return float(np.partition(dist.astype(np.float64), allowed)[allowed])  # pairs with d < r ≤ it
 
 
 def loop_candidates(
