@@ -259,6 +259,47 @@ def test_cfer_counts_accepted_pairs_across_floors():
     np.testing.assert_allclose(curve.sweep()["cfer"], [0, 1 / 2, 1 / 3, 1 / 2])
 
 
+def test_cross_floor_events_count_runs_of_pairs_once():
+    # frames: session 0 (rows 0-3) and session 1 (rows 4-7); floors 0, 0, 1, 0 in each
+    pos = np.array([[1.0, 1.0], [3.0, 1.0], [1.0, 1.0], [25.0, 1.0]] * 2)
+    floors = np.array([0, 0, 1, 0] * 2)
+    sessions = np.repeat([0, 1], 4)
+    pairs = np.array(
+        [
+            [0, 4],  # event A: sessions (0, 1), floor 0, cell (0, 0)
+            [1, 4],  # same event (same cell)
+            [1, 6],  # joins floors 0 and 1: event A becomes cross-floor
+            [4, 0],  # event A again (the session pair is unordered, first keyframe in cell 0, 0)
+            [3, 7],  # event B: floor 0, cell (2, 0)
+            [0, 1],  # event C: session pair (0, 0)
+        ]
+    )
+    r = ev.cross_floor_events(pairs, pos, floors, sessions)
+    assert r["events"] == 3 and r["cross_floor_events"] == 1
+    assert r["cfer"] == pytest.approx(1 / 3)
+    # no cross-floor event among n: the exact bound 1 - 0.05^(1/n) (rule of three: ≈ 3/n)
+    clean = ev.cross_floor_events(pairs[[0, 4, 5]], pos, floors, sessions)
+    assert clean["cross_floor_events"] == 0
+    assert clean["cfer_upper"] == pytest.approx(1 - 0.05 ** (1 / 3))
+    assert r["cfer_upper"] > clean["cfer_upper"]
+    bigger = ev.cross_floor_events(pairs, pos, floors, sessions, cell=100.0)
+    assert bigger["events"] == 2  # events A and B share a 100 m cell
+    none = ev.cross_floor_events(np.zeros((0, 2), np.int64), pos, floors, sessions)
+    assert none["events"] == 0 and np.isnan(none["cfer"]) and np.isnan(none["cfer_upper"])
+
+
+def test_cross_floor_events_rejects_bad_input():
+    pos, fl, ses = np.zeros((2, 2)), np.zeros(2, np.int64), np.zeros(2, np.int64)
+    with pytest.raises(ValueError, match="pairs"):
+        ev.cross_floor_events([[0, 2]], pos, fl, ses)
+    with pytest.raises(ValueError, match="floors, sessions"):
+        ev.cross_floor_events([[0, 1]], pos, fl[:1], ses)
+    with pytest.raises(ValueError, match="confidence"):
+        ev.cross_floor_events([[0, 1]], pos, fl, ses, confidence=1.0)
+    with pytest.raises(ValueError, match="cell"):
+        ev.cross_floor_events([[0, 1]], pos, fl, ses, cell=0.0)
+
+
 def test_temporal_window_and_causality_define_the_ground_truth():
     pos = np.column_stack([np.r_[np.arange(10.0), 0.5], np.zeros(11)])
     t = np.arange(11.0)
@@ -412,7 +453,7 @@ def test_write_report_markdown_and_json(tmp_path):
         assert heading in text, heading
     assert "| VVLoc-G | 9/10 | 88.9 | 88.9 | 100.0 | 100.0 | 100.0 |" in text
     assert "| VVLoc-ML | 9/10 | 100.0 |" in text
-    assert "| s1 | 0.350 | 3 | 66.7 | 66.7 | 0.667 | – | 0.750 | 0.900 |" in text
+    assert "| s1 | 0.350 | 3 | 66.7 | 66.7 | 0.667 | – | – | – | 0.750 | 0.900 |" in text
     assert "| s1 | cost < 0.75 | 2 | 2.50 | 1.20 | 100.0 | 100.0 |" in text
     assert not list(tmp_path.glob(".*.tmp"))
 

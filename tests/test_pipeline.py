@@ -250,6 +250,9 @@ def test_evaluation_scores_loop_closures_at_the_given_radius(tiny_world, model_d
         assert at["threshold"] == 0.3
         # only pairs accepted at the radius are verified metrically (at most loop_pairs of them)
         assert m["loop_pose"][name]["all"]["count"] == min(2, at["accepted"])
+        events = m["loop_closure"][name]["events"]
+        assert 0 < events["events"] <= at["accepted"] or at["accepted"] == 0
+        assert events["cross_floor_events"] <= events["events"]
     single = m["loop_closure"]["VVLoc (descriptor radius)"]["at_threshold"]["accepted"]
     assert (
         m["loop_closure"]["VVLoc + sequence (±1 keyframes)"]["at_threshold"]["accepted"] <= single

@@ -9,7 +9,8 @@ localizer, then hands positions, retrieved indices, estimated poses and matching
 
 * Global localization — :func:`recall_at_n` (Recall@N at revisit radii), :func:`pose_accuracy`
   (AOE/APE percentiles), :func:`evaluate_robustness` (the same per perturbation).
-* Loop closure — :func:`loop_closure_curve` (Precision/Recall@2m, PR sweep, best F1, CFER).
+* Loop closure — :func:`loop_closure_curve` (Precision/Recall@2m, PR sweep, best F1, CFER),
+  :func:`cross_floor_events` (CFER over distinct events, with an upper confidence bound).
 * Pose on loop pairs — :func:`loop_pose_metrics` (mRRE, mRTE, RR, confidence filter) and
   :func:`confidence_curve`.
 * Latency — :func:`latency_summary`.
@@ -692,6 +693,76 @@ def self_loop_closure_curve(
     )
 
 
+def cross_floor_events(
+    pairs: npt.ArrayLike,
+    positions: npt.ArrayLike,
+    floors: npt.ArrayLike,
+    sessions: npt.ArrayLike,
+    *,
+    cell: float = 10.0,
+    confidence: float = 0.95,
+) -> dict[str, Any]:
+    """CFER over distinct loop *events*, with its one-sided upper confidence bound.
+
+    Accepted loop pairs come in runs (neighbouring keyframes of the same two drives), so they are
+    not independent trials and a bound counted over pairs is too optimistic. An event is a
+    distinct (unordered session pair, floor of the pair's first keyframe, ``cell``-metre grid
+    cell of the first keyframe's x, y); it joins two floors when any of its pairs does.
+
+    Args:
+        pairs: ``(P, 2)`` integer indices of accepted pairs into the frame arrays; the first
+            column is the pair's first keyframe.
+        positions: ``(N, 2)`` world x, y (m); ``floors`` and ``sessions``: ``(N,)`` integers.
+        cell: event grid size, m.
+        confidence: level of the one-sided Clopper–Pearson upper bound (for no cross-floor event
+            among n it is 1 − (1 − confidence)^(1/n), ≈ 3/n at 95 %).
+
+    Returns ``{"events", "cross_floor_events", "cfer", "cfer_upper", "confidence", "cell_m"}``:
+    CFER = cross-floor events / events and its bound (``nan`` without events).
+    """
+    pos = _real_array(positions, "positions", "(N, 2)", 2, 2)
+    n = pos.shape[0]
+    fl = _int_array(floors, "floors", "(N,)", 1)
+    ses = _int_array(sessions, "sessions", "(N,)", 1)
+    if fl.shape != (n,) or ses.shape != (n,):
+        raise ValueError(f"floors, sessions: expected ({n},) each, got {fl.shape} and {ses.shape}")
+    pr = (
+        _int_array(pairs, "pairs", "(P, 2)", 2, 2) if np.size(pairs) else np.zeros((0, 2), np.int64)
+    )
+    if pr.size and (pr.min() < 0 or pr.max() >= n):
+        raise ValueError(f"pairs: expected indices in [0, {n}), got values outside it")
+    cell = _positive_float(cell, "cell")
+    if not 0.0 < confidence < 1.0:
+        raise ValueError(f"confidence: expected a value in (0, 1), got {confidence}")
+    a, b = pr[:, 0], pr[:, 1]
+    grid = np.floor(pos[a] / cell).astype(np.int64)
+    keys = np.stack(
+        [np.minimum(ses[a], ses[b]), np.maximum(ses[a], ses[b]), fl[a], grid[:, 0], grid[:, 1]],
+        axis=1,
+    )
+    _, event = np.unique(keys, axis=0, return_inverse=True)
+    num = int(event.max()) + 1 if event.size else 0
+    cross = np.zeros(num, dtype=bool)
+    np.logical_or.at(cross, event.reshape(-1), fl[a] != fl[b])
+    k = int(cross.sum())
+    if num == 0:
+        upper = float("nan")
+    elif k == num:
+        upper = 1.0
+    else:
+        from scipy.stats import beta
+
+        upper = float(beta.ppf(confidence, k + 1, num - k))
+    return {
+        "events": num,
+        "cross_floor_events": k,
+        "cfer": _ratio(k, num),
+        "cfer_upper": upper,
+        "confidence": float(confidence),
+        "cell_m": cell,
+    }
+
+
 def _loop_pose_row(
     rre: F64Array, rte: F64Array, total: int, rot_threshold_deg: float, trans_threshold_m: float
 ) -> dict[str, Any]:
@@ -976,12 +1047,15 @@ def _loop_table(results: Mapping[str, Any]) -> list[str]:
         "Recall@2m (%)",
         "F1",
         "CFER (%)",
+        "events",
+        "CFER 95 % bound, events (%)",
         "best F1",
         "best-F1 threshold",
     ]
     rows = []
     for name, res in results.items():
         at, best = res["at_threshold"], res["best_f1"]
+        ev = res.get("events", {})
         rows.append(
             [
                 name,
@@ -991,6 +1065,8 @@ def _loop_table(results: Mapping[str, Any]) -> list[str]:
                 _pct(at["recall"]),
                 _num(at["f1"], 3),
                 _pct(at["cfer"]),
+                str(ev["events"]) if ev else "–",
+                "–" if ev.get("cfer_upper") is None else _num(100.0 * ev["cfer_upper"]),
                 _num(best["f1"], 3),
                 _num(best["threshold"], 3),
             ]

@@ -133,6 +133,10 @@ def _loops(
                 pairs, cand.distance, pos, floors, db.session_index, db.seq, 10
             )
             closure[name] = curve.summary(radius)
+            accepted = cand.distance < radius
+            closure[name]["events"] = evaluate.cross_floor_events(
+                pairs[accepted], pos, floors, db.session_index
+            )
             order = np.argsort(cand.distance, kind="stable")[:loop_pairs]
             order = order[cand.distance[order] < radius]
             rows_i, rows_j = cand.i[order], cand.j[order]
