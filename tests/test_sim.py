@@ -6,6 +6,7 @@ VVLOC_REQUIRE_EGL=1 (CI), where a missing EGL is a failure.
 
 from __future__ import annotations
 
+import itertools
 import math
 import os
 import shutil
@@ -316,3 +317,72 @@ def test_demo_warns_unless_the_model_card_says_ok():
     card = (DEFAULT_MODEL / "MODEL_CARD.md").read_text()
     warning = status_warning(card)
     assert warning is not None and warning.startswith("WARNING: the committed model is BELOW")
+
+
+def test_world_cars_and_level_signs():
+    g = garage_world(seed=0, floors=2)
+    occ, colors = g.cars()
+    assert np.array_equal(occ, g.occupancy) and np.array_equal(colors, g.car_colors)
+    occ2, _ = g.cars(0.15, session_seed=7)
+    assert np.array_equal(occ2, g.cars(0.15, session_seed=7)[0])  # drawn from the seed
+    assert 0.05 < np.mean(occ2 != occ) < 0.3
+    assert g.level_signs.shape == (8, 4)  # four wall signs per floor
+    assert g.level_signs[:, 3].tolist() == [0] * 4 + [1] * 4
+    np.testing.assert_allclose(g.level_signs[:, 2], np.repeat(g.floor_z, 4) + 1.55)
+    assert build_world("parking").level_signs.shape == (0, 4)
+
+
+def test_floor_cues_of_a_rendered_garage(egl, tmp_path):
+    from vvloc.sim import floor_cues
+
+    out = tmp_path / "garage"
+    simulate_dataset(
+        out, scene="garage", sessions=2, frames=80, width=32, height=24, progress=False
+    )
+    r = floor_cues.analyse(str(out), ["s0", "s1"])
+    pairs = r["pairs"]
+    assert pairs["other floor, one session"]["pairs"] > 0
+    assert pairs["true revisit, two sessions, other lighting"]["pairs"] > 0
+    # s0 drives the base cars: the layout difference of its cross-floor pairs is the floors' own
+    s0 = open_dataset(out).session("s0")
+    world = build_world("garage", 0, 2, "walls")
+    half = len(world.bays) // 2
+    a = int(np.flatnonzero(s0.floors == 0)[5])
+    dist = np.linalg.norm(s0.poses[:, :2] - s0.poses[a, :2], axis=1)
+    b = int(np.argmin(np.where(s0.floors == 1, dist, np.inf)))
+    kf = floor_cues.keyframes(str(out), ["s0"])
+    vis = floor_cues.visible_bays(world, kf)
+    occ, col = world.occupancy, world.car_colors
+    differ = (occ[:half] != occ[half:]) | (occ[:half] & np.any(col[:half] != col[half:], axis=1))
+    states = floor_cues.bay_states(world, session_plan("garage", 2, 0), ["s0"])
+    got = floor_cues.layout_difference(states, kf, vis, np.array([a, a]), np.array([b, a]))
+    union = vis[a] | vis[b]
+    assert got[0] == pytest.approx(differ[union].mean()) and got[0] > 0
+    assert got[1] == 0.0  # a keyframe against itself
+    oracle = r["oracle"]["at"]
+    assert all(0.0 <= o["cfer"] <= 1.0 for o in oracle)
+    assert all(o["accepted"] <= p["accepted"] for o, p in itertools.pairwise(oracle))
+    assert 0.0 <= r["oracle"]["zero_cfer_recall"] <= 1.0
+    assert all(0.0 <= v <= 1.0 for v in r["sees_level_sign"].values())
+    assert not floor_cues.sees_sign(world, kf, s0.cameras, min_px=1e6).any()
+    text = floor_cues.markdown(r)
+    assert "| other floor, one session |" in text and "CFER" in text
+    park = tmp_path / "park"
+    simulate_dataset(park, sessions=1, frames=4, width=16, height=16, progress=False)
+    with pytest.raises(ValueError, match="garage"):
+        floor_cues.analyse(str(park), ["s0"])
+
+
+def test_car_oracle_accepts_the_purest_cells_first():
+    from vvloc.sim.floor_cues import car_oracle
+
+    # cells (one session?, bays seen, bays differing): A = (1, 2, 0) three true revisits;
+    # B = (0, 2, 1) one true, one cross-floor; C = (0, 2, 2) one cross-floor
+    cross = np.array([False, False, False, False, True, True])
+    same = np.array([True, True, True, False, False, False])
+    union = np.ones((6, 2), dtype=bool)
+    diff = np.array([0.0, 0.0, 0.0, 0.5, 0.5, 1.0])
+    r = car_oracle(cross, same, union, diff, recalls=(0.5, 0.75, 1.0))
+    assert r["zero_cfer_recall"] == pytest.approx(3 / 4)
+    assert [(o["accepted"], o["cross_floor"]) for o in r["at"]] == [(3, 0), (3, 0), (5, 1)]
+    assert r["at"][2]["cfer"] == pytest.approx(1 / 5)

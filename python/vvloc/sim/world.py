@@ -217,6 +217,8 @@ class World:
             ``light_floors`` (L,) the storey each light is on.
         routes: per floor, a closed loop of waypoints (K, 2) along the aisle centres.
         floor_z: (F,) height of each floor's driving surface.
+        level_signs: (S, 4) float64 centres (x, y, z) and storey of the garage's wall level-sign
+            panels (1.4 × 1.3 m, the storey's digit 0.9 m tall on it); (0, 4) elsewhere.
     """
 
     kind: str
@@ -231,12 +233,14 @@ class World:
     routes: list[np.ndarray]
     floor_z: np.ndarray
     extra: dict[str, float] = field(default_factory=dict)
+    level_signs: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
 
-    def mesh(
+    def cars(
         self, change_fraction: float = 0.0, session_seed: int = 0
     ) -> tuple[np.ndarray, np.ndarray]:
-        """The full mesh with parked cars; ``change_fraction`` of the bays toggle occupancy
-        (cars that left or arrived), drawn from ``session_seed``."""
+        """The parked cars of a session: occupancy (B,) bool and colours (B, 3) of ``bays``, with
+        ``change_fraction`` of the bays toggled (cars that left or arrived, new colours), drawn
+        from ``session_seed``."""
         occ = self.occupancy.copy()
         colors = self.car_colors.copy()
         if change_fraction > 0:
@@ -244,6 +248,13 @@ class World:
             flip = rng.random(len(occ)) < change_fraction
             occ ^= flip
             colors[flip] = rng.choice(CAR_PALETTE, size=int(flip.sum()))
+        return occ, colors
+
+    def mesh(
+        self, change_fraction: float = 0.0, session_seed: int = 0
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The full mesh with the parked cars of :meth:`cars` (same arguments)."""
+        occ, colors = self.cars(change_fraction, session_seed)
         mb = MeshBuilder()
         rng = np.random.default_rng([self.seed, 11])
         jitter = rng.uniform(-1, 1, size=(len(self.bays), 3))
@@ -555,6 +566,7 @@ def garage_world(
     wall_col = tuple(rng.uniform(0.55, 0.7, 3))
     sign_pos = [(float(rng.uniform(3, length - 3))) for _ in range(4)]
     floor_z = np.array([-FLOOR_HEIGHT * f for f in range(floors)])
+    signs: list[tuple[float, float, float, int]] = []
     for f, z in enumerate(floor_z):
         # floor slab (top surface) and ceiling (underside of the slab above)
         mb.quad(
@@ -628,6 +640,7 @@ def garage_world(
                 ]
             )
             mb.quad(pts, (0.1, 0.35, 0.7), SIGN)
+            signs.append((xs + 0.7 * ux, wall_y, z + 1.55, f))
             mb.digit(
                 f + 1,
                 (xs + 0.4 * ux, wall_y + 0.01 * ny, z + 1.1),
@@ -653,5 +666,16 @@ def garage_world(
     loop = np.array([(xw, y_aisles[0]), (xe, y_aisles[0]), (xe, y_aisles[1]), (xw, y_aisles[1])])
     lights, lcols, lfloors = _collect_lights(mb)
     return World(
-        "garage", seed, static, bays, occ, colors, lights, lcols, lfloors, [loop] * floors, floor_z
+        "garage",
+        seed,
+        static,
+        bays,
+        occ,
+        colors,
+        lights,
+        lcols,
+        lfloors,
+        [loop] * floors,
+        floor_z,
+        level_signs=np.array(signs, dtype=np.float64).reshape(-1, 4),
     )

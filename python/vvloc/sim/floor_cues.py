@@ -1,0 +1,289 @@
+"""How much a rendered garage tells its floors apart, whatever the model: an exact analysis.
+
+For a garage dataset written by ``vvloc sim`` this rebuilds its world and session plan (from
+``rig.json``'s ``meta``) and asks what *any* loop detector could use to keep two floors apart:
+
+1. Parked cars. Floor f ≥ 1 starts from floor 0's cars with a quarter of the bays toggled;
+   every query session toggles 15 % of the bays again. For each pair of keyframes that lie
+   within ``--radius`` metres of each other in (x, y) (a true revisit when both are on one floor,
+   a look-alike when not) the *layout difference* is the share of the bays in the keyframes'
+   BEV squares (±12 m in the ego frame, the small model's BEV) whose state differs: one
+   occupied and the other not, or both occupied by cars of different colours. The *oracle*
+   knows, for every pair, whether its keyframes come from one session, how many bays they see
+   (n) and how many of those differ (k); it accepts the (one session?, n, k) cells in order of
+   their share of cross-floor pairs, counted on these very pairs. No rule that decides by those
+   features does better on these pairs, so its cross-floor error rate (CFER) at a given recall
+   of the true revisits bounds what a detector can reach from the parked cars alone (lighting,
+   viewpoint offsets and rendering, which only make it harder, are ignored).
+2. Level signs. The share of keyframes that see a wall level sign of their own floor with its
+   digit at least ``--min_px`` pixels tall in some camera (0.9 m digit; occlusion by parked cars
+   is ignored, so this is an upper bound).
+
+Usage (from the repository root, on a dataset of ``vvloc sim --scene garage``)::
+
+    .venv/bin/python -m vvloc.sim.floor_cues --dataset data/synth-garage-12 \
+        --sessions s0,s1,s6,s7,s8,s9,s10,s11
+
+Prints a Markdown summary; ``--json`` also writes the figures.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from vvloc.data import Camera, open_dataset
+from vvloc.sim.simulate import SessionSpec, build_world, session_plan
+from vvloc.sim.world import World
+
+BEV_HALF = 12.0  # m: the small model's BEV, 40 cells × 0.6 m
+WINDOW = 10  # keyframes: same-session temporal neighbours are not loop candidates
+DIGIT_HEIGHT = 0.9  # m
+
+
+def keyframes(dataset: str, sessions: list[str]) -> dict[str, np.ndarray]:
+    """The frames of ``sessions``: ``pose`` (N, 3) world (x, y, yaw) m/rad, ``z`` (N,) m,
+    ``floor``, ``session`` (position in ``sessions``) and ``seq`` (N,) int."""
+    ds = open_dataset(dataset)
+    parts: dict[str, list[np.ndarray]] = {k: [] for k in ("pose", "z", "floor", "session", "seq")}
+    for k, name in enumerate(sessions):
+        s = ds.session(name)
+        parts["pose"].append(s.poses)
+        parts["z"].append(s.z)
+        parts["floor"].append(s.floors)
+        parts["session"].append(np.full(len(s), k))
+        parts["seq"].append(np.arange(len(s)))
+    return {k: np.concatenate(v) for k, v in parts.items()}
+
+
+def bay_states(world: World, plan: list[SessionSpec], sessions: list[str]) -> np.ndarray:
+    """(S, B) int64: per session of ``sessions``, the state of each of ``world.bays`` (−1 empty,
+    else the car's colour as a 24-bit RGB number)."""
+    specs = {s.name: s for s in plan}
+    out = []
+    for name in sessions:
+        occ, colors = world.cars(specs[name].change_fraction, specs[name].seed)
+        key = np.round(colors * 255).astype(np.int64) @ np.array([1 << 16, 1 << 8, 1])
+        out.append(np.where(occ, key, -1))
+    return np.stack(out)
+
+
+def visible_bays(world: World, kf: dict[str, np.ndarray]) -> np.ndarray:
+    """(N, B/F) bool: bay k of the keyframe's floor has its centre inside the keyframe's BEV
+    square (±``BEV_HALF`` m along ego x and y, DESIGN.md §3)."""
+    floors = len(world.floor_z)
+    per_floor = len(world.bays) // floors
+    xy = np.array([(b.x, b.y) for b in world.bays[:per_floor]])  # every floor has this layout
+    d = xy[None, :, :] - kf["pose"][:, None, :2]
+    c, s = np.cos(kf["pose"][:, 2])[:, None], np.sin(kf["pose"][:, 2])[:, None]
+    ex = c * d[..., 0] + s * d[..., 1]
+    ey = -s * d[..., 0] + c * d[..., 1]
+    return (np.abs(ex) <= BEV_HALF) & (np.abs(ey) <= BEV_HALF)
+
+
+def layout_difference(
+    states: np.ndarray,
+    kf: dict[str, np.ndarray],
+    visible: np.ndarray,
+    a: np.ndarray,
+    b: np.ndarray,
+    block: int = 20_000,
+) -> np.ndarray:
+    """(P,) float64 in [0, 1]: for keyframe pairs (a, b) ((P,) rows of ``kf``), the share of the
+    bays visible from either (``visible``, :func:`visible_bays`) whose state (``states``,
+    :func:`bay_states`, indexed by ``kf["session"]``) differs between a's session and floor and
+    b's session and floor (bay k of one floor against bay k of the other)."""
+    per_floor = visible.shape[1]
+    idx = np.arange(per_floor)
+    diff = np.empty(len(a))
+    for lo in range(0, len(a), block):
+        sa, sb = a[lo : lo + block], b[lo : lo + block]
+        st_a = states[kf["session"][sa][:, None], kf["floor"][sa][:, None] * per_floor + idx]
+        st_b = states[kf["session"][sb][:, None], kf["floor"][sb][:, None] * per_floor + idx]
+        union = visible[sa] | visible[sb]
+        diff[lo : lo + block] = ((st_a != st_b) & union).sum(1) / np.maximum(union.sum(1), 1)
+    return diff
+
+
+def sees_sign(
+    world: World, kf: dict[str, np.ndarray], cameras: Sequence[Camera], min_px: float
+) -> np.ndarray:
+    """(N,) bool: a level sign of the keyframe's floor projects into some camera with its digit
+    at least ``min_px`` pixels tall (occlusion ignored)."""
+    seen = np.zeros(len(kf["z"]), dtype=bool)
+    for sx, sy, sz, f in world.level_signs:
+        on = kf["floor"] == int(f)
+        d = np.stack([sx - kf["pose"][:, 0], sy - kf["pose"][:, 1]], axis=1)
+        c, s = np.cos(kf["pose"][:, 2]), np.sin(kf["pose"][:, 2])
+        ego = np.stack(
+            [c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], sz - kf["z"]], axis=1
+        )
+        for cam in cameras:
+            uv, depth = cam.project_ego(ego)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                px = DIGIT_HEIGHT * cam.K[1, 1] / depth
+            inside = (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0)
+            inside &= uv[:, 1] < cam.height
+            seen |= on & (depth > 0) & inside & (px >= min_px)
+    return seen
+
+
+def car_oracle(
+    cross: np.ndarray,
+    same_session: np.ndarray,
+    union: np.ndarray,
+    diff: np.ndarray,
+    recalls: Sequence[float] = (0.01, 0.05, 0.1, 0.2, 0.5),
+) -> dict[str, Any]:
+    """The parked-car oracle of the module docstring over P keyframe pairs: ``cross`` (P,) bool
+    (the pair joins two floors, else it is a true revisit), ``same_session`` (P,) bool, ``union``
+    (P, B) bool (bays seen by either keyframe) and ``diff`` (P,) (:func:`layout_difference`).
+
+    Returns ``{"zero_cfer_recall", "at"}``: the largest recall of the true revisits reached
+    without a cross-floor pair, and per recall in ``recalls`` the accepted and cross-floor pairs
+    and the CFER (share of accepted pairs joining two floors)."""
+    n = union.sum(axis=1)
+    k = np.round(diff * n).astype(np.int64)
+    key = np.stack([same_session.astype(np.int64), n, k], axis=1)
+    _, cell = np.unique(key, axis=0, return_inverse=True)
+    cell = cell.reshape(-1)
+    n_true = np.bincount(cell, weights=~cross)
+    n_cross = np.bincount(cell, weights=cross)
+    # purest cells first; among equally pure ones, those with more true revisits
+    order = np.lexsort((-n_true, n_cross / (n_true + n_cross)))
+    acc_true, acc_cross = np.cumsum(n_true[order]), np.cumsum(n_cross[order])
+    total = max(float(n_true.sum()), 1.0)
+    clean = acc_cross == 0
+    at = []
+    for recall in recalls:
+        i = min(int(np.searchsorted(acc_true, recall * total)), len(order) - 1)
+        accepted = acc_true[i] + acc_cross[i]
+        at.append(
+            {
+                "recall": float(recall),
+                "accepted": int(accepted),
+                "cross_floor": int(acc_cross[i]),
+                "cfer": float(acc_cross[i] / accepted) if accepted else float("nan"),
+            }
+        )
+    return {
+        "zero_cfer_recall": float(acc_true[clean].max() / total) if clean.any() else 0.0,
+        "at": at,
+    }
+
+
+def analyse(
+    dataset: str, sessions: list[str], radius: float = 2.0, min_px: float = 6.0
+) -> dict[str, Any]:
+    """The figures described in the module docstring, as a JSON-friendly dict: ``pairs`` (count
+    and mean layout difference, a share in [0, 1], per kind of keyframe pair), ``oracle`` (per
+    recall of true revisits: accepted pairs, cross-floor pairs, CFER) and ``sees_level_sign``
+    (share of keyframes)."""
+    meta = json.loads((Path(dataset) / "rig.json").read_text())["meta"]
+    if meta.get("scene") != "garage":
+        raise ValueError(f"dataset: expected a garage of vvloc sim, got scene {meta.get('scene')}")
+    world = build_world("garage", meta["seed"], meta["floors"], meta["floor_marking"])
+    ds = open_dataset(dataset)
+    plan = session_plan("garage", len(ds.sessions), meta["seed"])
+    kf = keyframes(dataset, sessions)
+    states = bay_states(world, plan, sessions)  # (S, B)
+    vis = visible_bays(world, kf)
+    pairs = cKDTree(kf["pose"][:, :2]).query_pairs(radius, output_type="ndarray")
+    a, b = pairs[:, 0], pairs[:, 1]
+    keep = (kf["session"][a] != kf["session"][b]) | (np.abs(kf["seq"][a] - kf["seq"][b]) > WINDOW)
+    a, b = a[keep], b[keep]
+    cross = kf["floor"][a] != kf["floor"][b]
+    same_session = kf["session"][a] == kf["session"][b]
+    lighting = {s.name: s.lighting for s in plan}
+    light = np.array([lighting[s] for s in sessions])
+    same_light = light[kf["session"][a]] == light[kf["session"][b]]
+    diff = layout_difference(states, kf, vis, a, b)
+    kinds = {
+        "true revisit, one session": ~cross & same_session,
+        "true revisit, two sessions, same lighting": ~cross & ~same_session & same_light,
+        "true revisit, two sessions, other lighting": ~cross & ~same_session & ~same_light,
+        "other floor, one session": cross & same_session,
+        "other floor, two sessions": cross & ~same_session,
+    }
+    summary = {
+        k: {"pairs": int(m.sum()), "mean_difference": float(diff[m].mean()) if m.any() else None}
+        for k, m in kinds.items()
+    }
+    oracle = car_oracle(cross, same_session, vis[a] | vis[b], diff)
+    seen = {
+        px: float(sees_sign(world, kf, ds.session(sessions[0]).cameras, px).mean())
+        for px in (min_px, 2 * min_px)
+    }
+    return {
+        "dataset": dataset,
+        "floor_marking": meta["floor_marking"],
+        "sessions": sessions,
+        "keyframes": len(kf["z"]),
+        "pair_radius_m": radius,
+        "pairs": summary,
+        "oracle": oracle,
+        "sees_level_sign": {f"digit >= {px:g} px": v for px, v in seen.items()},
+    }
+
+
+def markdown(r: dict[str, Any]) -> str:
+    """The figures of :func:`analyse` as Markdown."""
+    lines = [
+        f"# Floor cues of {r['dataset']} (floor marking: {r['floor_marking']})",
+        "",
+        f"{r['keyframes']} keyframes of {', '.join(r['sessions'])}; keyframe pairs within "
+        f"{r['pair_radius_m']} m in (x, y), same-session pairs within {WINDOW} keyframes left out.",
+        "",
+        "| pairs | count | mean layout difference |",
+        "|---|---|---|",
+    ]
+    for k, v in r["pairs"].items():
+        m = "—" if v["mean_difference"] is None else f"{100 * v['mean_difference']:.1f} %"
+        lines.append(f"| {k} | {v['pairs']} | {m} |")
+    lines += [
+        "",
+        "Oracle that knows every parked car (cells of one session?, bays seen, bays differing,"
+        " purest first, fitted to these pairs): no cross-floor pair up to a recall of "
+        f"{100 * r['oracle']['zero_cfer_recall']:.1f} % of the true revisits.",
+        "",
+        "| recall of true revisits | accepted | across floors | CFER |",
+        "|---|---|---|---|",
+    ]
+    for o in r["oracle"]["at"]:
+        lines.append(
+            f"| {100 * o['recall']:g} % | {o['accepted']} | {o['cross_floor']} | "
+            f"{100 * o['cfer']:.2f} % |"
+        )
+    lines += ["", "Keyframes that see a level sign of their floor (occlusion ignored):", ""]
+    lines += [f"- {k}: {100 * v:.1f} %" for k, v in r["sees_level_sign"].items()]
+    if r["floor_marking"] == "pillars":
+        lines += [
+            "",
+            "Not counted here: this garage's level colour and number on every pillar (the cars "
+            "and wall signs above are the same as in the default garage's).",
+        ]
+    return "\n".join(lines) + "\n"
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--dataset", required=True, help="a garage dataset of vvloc sim")
+    p.add_argument("--sessions", required=True, help="comma-separated session names")
+    p.add_argument("--radius", type=float, default=2.0, help="revisit radius in (x, y), m")
+    p.add_argument("--min_px", type=float, default=6.0, help="legible digit height, pixels")
+    p.add_argument("--json", type=Path, help="also write the figures here")
+    a = p.parse_args()
+    r = analyse(a.dataset, a.sessions.split(","), a.radius, a.min_px)
+    print(markdown(r), end="")
+    if a.json:
+        a.json.write_text(json.dumps(r, indent=2) + "\n")
+
+
+if __name__ == "__main__":
+    main()
