@@ -384,5 +384,7 @@ def test_car_oracle_accepts_the_purest_cells_first():
     diff = np.array([0.0, 0.0, 0.0, 0.5, 0.5, 1.0])
     r = car_oracle(cross, same, union, diff, recalls=(0.5, 0.75, 1.0))
     assert r["zero_cfer_recall"] == pytest.approx(3 / 4)
+    assert r["target_recall"] == pytest.approx(3 / 4)  # cell B would make it 1 in 5
+    assert car_oracle(cross, same, union, diff, target=0.2)["target_recall"] == 1.0
     assert [(o["accepted"], o["cross_floor"]) for o in r["at"]] == [(3, 0), (3, 0), (5, 1)]
     assert r["at"][2]["cfer"] == pytest.approx(1 / 5)
