@@ -711,7 +711,8 @@ def cross_floor_events(
 
     Args:
         pairs: ``(P, 2)`` integer indices of accepted pairs into the frame arrays; the first
-            column is the pair's first keyframe.
+            column is the pair's first keyframe (pass every pair in one orientation, e.g. the
+            lower row first, so that a pair and its reverse fall into the same event).
         positions: ``(N, 2)`` world x, y (m); ``floors`` and ``sessions``: ``(N,)`` integers.
         cell: event grid size, m.
         confidence: level of the one-sided Clopper–Pearson upper bound (for no cross-floor event

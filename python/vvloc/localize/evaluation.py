@@ -133,7 +133,7 @@ def _loops(
                 pairs, cand.distance, pos, floors, db.session_index, db.seq, 10
             )
             closure[name] = curve.summary(radius)
-            accepted = cand.distance < radius
+            accepted = cand.distance <= radius  # the pairs the curve accepts at the radius
             closure[name]["events"] = evaluate.cross_floor_events(
                 pairs[accepted], pos, floors, db.session_index
             )
