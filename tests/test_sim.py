@@ -370,6 +370,10 @@ def test_floor_cues_of_a_rendered_garage(egl, tmp_path):
     simulate_dataset(park, sessions=1, frames=4, width=16, height=16, progress=False)
     with pytest.raises(ValueError, match="garage"):
         floor_cues.analyse(str(park), ["s0"])
+    with pytest.raises(KeyError, match="s9"):
+        floor_cues.analyse(str(out), ["s0", "s9"])
+    with pytest.raises(ValueError, match="radius"):
+        floor_cues.analyse(str(out), ["s0"], radius=-1.0)
 
 
 def test_car_reading_detector_assigns_floors_by_the_mapped_cars():

@@ -195,11 +195,15 @@ def analyse(
     and mean layout difference, a share in [0, 1], per kind of keyframe pair),
     ``car_reading_detector`` (:func:`car_reading_detector`) and ``sees_level_sign`` (share of
     keyframes)."""
-    meta = json.loads((Path(dataset) / "rig.json").read_text())["meta"]
-    if meta.get("scene") != "garage":
-        raise ValueError(f"dataset: expected a garage of vvloc sim, got scene {meta.get('scene')}")
+    ds = open_dataset(dataset)  # a clear error for a missing or malformed dataset
+    for name in sessions:
+        ds.session(name)  # KeyError naming the known sessions
+    meta = json.loads((Path(dataset) / "rig.json").read_text()).get("meta") or {}
+    if meta.get("scene") != "garage" or meta.get("generator") != "vvloc.sim":
+        raise ValueError(f"dataset: expected a garage of vvloc sim, got meta {meta}")
+    if not radius > 0 or not min_px > 0:
+        raise ValueError(f"radius, min_px: expected > 0, got {radius} and {min_px}")
     world = build_world("garage", meta["seed"], meta["floors"], meta["floor_marking"])
-    ds = open_dataset(dataset)
     specs = session_specs(dataset, sessions)
     kf = keyframes(dataset, sessions)
     states = bay_states(world, specs)  # (S, B)
@@ -290,7 +294,10 @@ def main() -> None:
     p.add_argument("--min_px", type=float, default=6.0, help="legible digit height, pixels")
     p.add_argument("--json", type=Path, help="also write the figures here")
     a = p.parse_args()
-    r = analyse(a.dataset, a.sessions.split(","), a.radius, a.min_px)
+    try:
+        r = analyse(a.dataset, a.sessions.split(","), a.radius, a.min_px)
+    except (KeyError, OSError, ValueError) as e:
+        p.exit(2, f"floor_cues: {e}\n")
     print(markdown(r), end="")
     if a.json:
         a.json.write_text(json.dumps(r, indent=2) + "\n")
