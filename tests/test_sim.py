@@ -350,7 +350,7 @@ def test_floor_cues_of_a_rendered_garage(egl, tmp_path):
     a = int(np.flatnonzero(s0.floors == 0)[5])
     dist = np.linalg.norm(s0.poses[:, :2] - s0.poses[a, :2], axis=1)
     b = int(np.argmin(np.where(s0.floors == 1, dist, np.inf)))
-    kf = floor_cues.keyframes(str(out), ["s0"])
+    kf = floor_cues.keyframes(open_dataset(out), ["s0"])
     vis = floor_cues.visible_bays(world, kf)
     occ, col = world.occupancy, world.car_colors
     differ = (occ[:half] != occ[half:]) | (occ[:half] & np.any(col[:half] != col[half:], axis=1))

@@ -111,6 +111,13 @@ def _floors(
     return qf, df
 
 
+def _pair_array(pairs: Any) -> I64Array:
+    """``pairs`` as a ``(P, 2)`` int64 array (an empty input of any shape: no pairs)."""
+    if not np.size(pairs):
+        return np.zeros((0, 2), np.int64)
+    return _int_array(pairs, "pairs", "(P, 2)", 2, 2)
+
+
 def _ratio(num: float, den: float) -> float:
     return float(num) / float(den) if den > 0 else float("nan")
 
@@ -587,9 +594,7 @@ def loop_closure_curve(
     q = _real_array(query_positions, "query_positions", "(Q, 2)", 2, 2)
     d = _real_array(db_positions, "db_positions", "(N, 2)", 2, 2)
     num_q, num_db = q.shape[0], d.shape[0]
-    pr = (
-        _int_array(pairs, "pairs", "(P, 2)", 2, 2) if np.size(pairs) else np.zeros((0, 2), np.int64)
-    )
+    pr = _pair_array(pairs)
     dist = _real_array(distances, "distances", "(P,)", 1)
     if dist.shape[0] != pr.shape[0]:
         raise ValueError(f"distances: expected shape ({pr.shape[0]},), got {dist.shape}")
@@ -727,9 +732,7 @@ def cross_floor_events(
     ses = _int_array(sessions, "sessions", "(N,)", 1)
     if fl.shape != (n,) or ses.shape != (n,):
         raise ValueError(f"floors, sessions: expected ({n},) each, got {fl.shape} and {ses.shape}")
-    pr = (
-        _int_array(pairs, "pairs", "(P, 2)", 2, 2) if np.size(pairs) else np.zeros((0, 2), np.int64)
-    )
+    pr = _pair_array(pairs)
     if pr.size and (pr.min() < 0 or pr.max() >= n):
         raise ValueError(f"pairs: expected indices in [0, {n}), got values outside it")
     cell = _positive_float(cell, "cell")

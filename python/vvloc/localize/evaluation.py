@@ -94,7 +94,7 @@ def _loops(
     sweep_pairs: int,
 ) -> tuple[dict[str, Any], dict[str, Any], float, bool]:
     """Loop closure over all frames of ``sessions`` (one map with BEVs), accepted at descriptor
-    distance < ``radius``: single keyframes (the paper's test) and, for ``sequence = L > 0``,
+    distance ≤ ``radius``: single keyframes (the paper's test) and, for ``sequence = L > 0``,
     with the sequence-consistency check of half-window L (:mod:`vvloc.localize.loops`). The
     precision-recall sweep scores the pairs within descriptor distance 0.5, or within the
     smaller radius (never below ``radius``) that keeps them to about ``sweep_pairs``; returns
@@ -122,23 +122,24 @@ def _loops(
         # every pair within a generous descriptor radius: the sweep's candidates (one radius
         # query; the sequence check filters the same pairs)
         single = loop_candidates(db, radius=sweep, window=10)
+        g, sess, seq = db.global_descriptors, db.session_index, db.seq
         for name, half in variants.items():
             cand = single
             if half:
-                g, sess, seq = db.global_descriptors, db.session_index, db.seq
                 cand = confirm_sequence(single, g, sess, seq, sweep, half, window=10)
             pairs = np.stack([cand.i, cand.j], axis=1)
             # frames of one session within ±10 keyframes never count (temporal neighbours)
             curve = evaluate.self_loop_closure_curve(
-                pairs, cand.distance, pos, floors, db.session_index, db.seq, 10
+                pairs, cand.distance, pos, floors, sess, seq, 10
             )
             closure[name] = curve.summary(radius)
             accepted = cand.distance <= radius  # the pairs the curve accepts at the radius
             closure[name]["events"] = evaluate.cross_floor_events(
-                pairs[accepted], pos, floors, db.session_index
+                pairs[accepted], pos, floors, sess
             )
+            # the closest accepted pairs are verified metrically
             order = np.argsort(cand.distance, kind="stable")[:loop_pairs]
-            order = order[cand.distance[order] < radius]
+            order = order[accepted[order]]
             rows_i, rows_j = cand.i[order], cand.j[order]
             todo = [
                 k for k, ij in enumerate(zip(rows_i, rows_j, strict=True)) if ij not in verified
@@ -193,7 +194,7 @@ def run_evaluation(
     ``metric_candidates`` and ``snap`` are :class:`Localizer`'s (the M top re-ranked candidates
     scored by the coarse translation search; the reported keyframe snapped to the metric pose).
     ``loops``: also loop closure over all frames of ``database`` + ``queries``, accepted at
-    global-descriptor distance < ``loop_radius`` (the first ``loop_pairs`` verified metrically),
+    global-descriptor distance ≤ ``loop_radius`` (the first ``loop_pairs`` verified metrically),
     for single keyframes and, when ``loop_sequence`` L > 0, with the sequence-consistency check
     of half-window L as well (:func:`vvloc.localize.loops.sequence_distance`). The loops'
     precision-recall sweep scores every pair within descriptor distance 0.5, or, when that

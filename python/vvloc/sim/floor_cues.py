@@ -40,7 +40,8 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
-from vvloc.data import Camera, open_dataset
+from vvloc import geometry
+from vvloc.data import Camera, Dataset, open_dataset
 from vvloc.sim.simulate import build_world
 from vvloc.sim.world import World
 
@@ -49,10 +50,9 @@ WINDOW = 10  # keyframes: same-session temporal neighbours are not loop candidat
 DIGIT_HEIGHT = 0.9  # m
 
 
-def keyframes(dataset: str, sessions: list[str]) -> dict[str, np.ndarray]:
-    """The frames of ``sessions``: ``pose`` (N, 3) world (x, y, yaw) m/rad, ``z`` (N,) m,
-    ``floor``, ``session`` (position in ``sessions``) and ``seq`` (N,) int."""
-    ds = open_dataset(dataset)
+def keyframes(ds: Dataset, sessions: list[str]) -> dict[str, np.ndarray]:
+    """The frames of ``sessions`` of ``ds``: ``pose`` (N, 3) world (x, y, yaw) m/rad, ``z`` (N,)
+    m, ``floor``, ``session`` (position in ``sessions``) and ``seq`` (N,) int."""
     parts: dict[str, list[np.ndarray]] = {k: [] for k in ("pose", "z", "floor", "session", "seq")}
     for k, name in enumerate(sessions):
         s = ds.session(name)
@@ -83,17 +83,19 @@ def bay_states(world: World, specs: list[dict[str, Any]]) -> np.ndarray:
     return np.stack(out)
 
 
+def _ego_xy(poses: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """(N, K, 2): world points ``xy`` (K, 2) in the ego frames of ``poses`` (N, 3)."""
+    points = np.concatenate([xy, np.zeros((len(xy), 1))], axis=1)
+    return geometry.relative(poses[:, None, :], points[None, :, :])[..., :2]
+
+
 def visible_bays(world: World, kf: dict[str, np.ndarray]) -> np.ndarray:
     """(N, B/F) bool: bay k of the keyframe's floor has its centre inside the keyframe's BEV
     square (±``BEV_HALF`` m along ego x and y, DESIGN.md §3)."""
     floors = len(world.floor_z)
     per_floor = len(world.bays) // floors
     xy = np.array([(b.x, b.y) for b in world.bays[:per_floor]])  # every floor has this layout
-    d = xy[None, :, :] - kf["pose"][:, None, :2]
-    c, s = np.cos(kf["pose"][:, 2])[:, None], np.sin(kf["pose"][:, 2])[:, None]
-    ex = c * d[..., 0] + s * d[..., 1]
-    ey = -s * d[..., 0] + c * d[..., 1]
-    return (np.abs(ex) <= BEV_HALF) & (np.abs(ey) <= BEV_HALF)
+    return (np.abs(_ego_xy(kf["pose"], xy)) <= BEV_HALF).all(axis=-1)
 
 
 def layout_difference(
@@ -128,11 +130,8 @@ def sees_sign(
     seen = np.zeros(len(kf["z"]), dtype=bool)
     for sx, sy, sz, f in world.level_signs:
         on = kf["floor"] == int(f)
-        d = np.stack([sx - kf["pose"][:, 0], sy - kf["pose"][:, 1]], axis=1)
-        c, s = np.cos(kf["pose"][:, 2]), np.sin(kf["pose"][:, 2])
-        ego = np.stack(
-            [c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], sz - kf["z"]], axis=1
-        )
+        ego_xy = _ego_xy(kf["pose"], np.array([[sx, sy]]))[:, 0]
+        ego = np.concatenate([ego_xy, (sz - kf["z"])[:, None]], axis=1)
         for cam in cameras:
             uv, depth = cam.project_ego(ego)
             with np.errstate(divide="ignore", invalid="ignore"):
@@ -205,9 +204,9 @@ def analyse(
         raise ValueError(f"radius, min_px: expected > 0, got {radius} and {min_px}")
     world = build_world("garage", meta["seed"], meta["floors"], meta["floor_marking"])
     specs = session_specs(dataset, sessions)
-    kf = keyframes(dataset, sessions)
+    kf = keyframes(ds, sessions)
     states = bay_states(world, specs)  # (S, B)
-    base = bay_states(world, [{"change_fraction": 0.0}])[0]
+    base = bay_states(world, [{"change_fraction": 0.0}])[0]  # the cars as s0 mapped them
     vis = visible_bays(world, kf)
     pairs = cKDTree(kf["pose"][:, :2]).query_pairs(radius, output_type="ndarray")
     a, b = pairs[:, 0], pairs[:, 1]
@@ -230,10 +229,7 @@ def analyse(
         for k, m in kinds.items()
     }
     detector = car_reading_detector(states, base, kf, vis, a, b)
-    seen = {
-        px: float(sees_sign(world, kf, ds.session(sessions[0]).cameras, px).mean())
-        for px in (min_px, 2 * min_px)
-    }
+    seen = {px: float(sees_sign(world, kf, ds.cameras, px).mean()) for px in (min_px, 2 * min_px)}
     return {
         "dataset": dataset,
         "floor_marking": meta["floor_marking"],
