@@ -435,6 +435,10 @@ def pose_accuracy(
 # ----------------------------------------------------------------------------- loop closure
 
 
+#: Recall levels of the fixed-recall operating points in :meth:`LoopClosureCurve.summary`.
+SUMMARY_RECALLS = (0.05, 0.1, 0.2)
+
+
 @dataclass(frozen=True)
 class LoopClosureCurve:
     """Loop-closure detection scored against ground truth (see :func:`loop_closure_curve`).
@@ -534,8 +538,29 @@ class LoopClosureCurve:
             return {k: nan for k in keys} | {"accepted": 0, "true_accepted": 0}
         return self.at(float(s["threshold"][int(np.nanargmax(s["f1"]))]))
 
-    def summary(self, threshold: float) -> dict[str, Any]:
-        """JSON-friendly: metrics :meth:`at` ``threshold``, ``best_f1`` and the counts."""
+    def at_recall(self, recall: float) -> dict[str, Any]:
+        """:meth:`at` the lowest threshold of the sweep whose recall reaches ``recall`` (a share
+        in (0, 1]), plus ``"target_recall"``: the operating point at a fixed recall, which
+        compares detectors whose descriptor distances have different scales (a fixed radius
+        does not). When no threshold reaches it among the evaluated pairs, every figure is
+        ``nan`` (counts 0)."""
+        r = float(recall)
+        if not 0.0 < r <= 1.0:
+            raise ValueError(f"recall: expected a share in (0, 1], got {recall}")
+        s = self.sweep()
+        reached = np.flatnonzero(s["recall"] >= r) if s["recall"].size else np.zeros(0, int)
+        if reached.size == 0:
+            nan = float("nan")
+            keys = ("threshold", "precision", "recall", "f1", "cfer")
+            counts = {"accepted": 0, "true_accepted": 0}
+            return {"target_recall": r} | {k: nan for k in keys} | counts
+        return {"target_recall": r} | self.at(float(s["threshold"][reached[0]]))
+
+    def summary(
+        self, threshold: float, recalls: tuple[float, ...] = SUMMARY_RECALLS
+    ) -> dict[str, Any]:
+        """JSON-friendly: metrics :meth:`at` ``threshold``, ``best_f1``, :meth:`at_recall` of
+        each of ``recalls`` (``at_recall``, a list) and the counts."""
         return {
             "radius_m": self.radius,
             "num_queries": self.num_queries,
@@ -543,6 +568,7 @@ class LoopClosureCurve:
             "num_pairs": int(self.distances.size),
             "at_threshold": self.at(threshold),
             "best_f1": self.best_f1(),
+            "at_recall": [self.at_recall(r) for r in recalls],
         }
 
 
@@ -1053,6 +1079,7 @@ def _loop_table(results: Mapping[str, Any]) -> list[str]:
         "CFER (%)",
         "events",
         "CFER 95 % bound, events (%)",
+        "CFER at Recall@2m " + " / ".join(f"{100 * r:g}" for r in SUMMARY_RECALLS) + " % (%)",
         "best F1",
         "best-F1 threshold",
     ]
@@ -1071,6 +1098,7 @@ def _loop_table(results: Mapping[str, Any]) -> list[str]:
                 _pct(at["cfer"]),
                 str(ev["events"]) if ev else "–",
                 "–" if ev.get("cfer_upper") is None else _num(100.0 * ev["cfer_upper"]),
+                " / ".join(_pct(o["cfer"]) for o in res.get("at_recall", [])) or "–",
                 _num(best["f1"], 3),
                 _num(best["threshold"], 3),
             ]
