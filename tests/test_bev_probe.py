@@ -104,3 +104,7 @@ def test_probe_of_a_model_on_a_rendered_garage(egl, tmp_path):
         bev_probe.probe(str(ckpt), str(out), ["s0"], ["s7"])
     with pytest.raises(ValueError, match="near"):
         bev_probe.probe(str(ckpt), str(out), ["s0"], ["s1"], near=0.0)
+    park = tmp_path / "park"
+    simulate_dataset(park, sessions=2, frames=4, width=16, height=16, progress=False)
+    with pytest.raises(ValueError, match="garage"):
+        bev_probe.probe(str(ckpt), str(park), ["s0"], ["s1"])

@@ -35,7 +35,6 @@ import torch
 
 from vvloc.data import Dataset, open_dataset
 from vvloc.sim import floor_cues
-from vvloc.sim.simulate import build_world
 from vvloc.sim.world import World
 
 NEAR = 9.0  # m: bays this close to the ego origin are probed (the cameras see them)
@@ -160,10 +159,7 @@ def probe(
     sessions = train + test
     for name in sessions:
         ds.session(name)  # KeyError naming the known sessions
-    meta = json.loads((Path(dataset) / "rig.json").read_text()).get("meta") or {}
-    if meta.get("scene") != "garage" or meta.get("generator") != "vvloc.sim":
-        raise ValueError(f"dataset: expected a garage of vvloc sim, got meta {meta}")
-    world = build_world("garage", meta["seed"], meta["floors"], meta["floor_marking"])
+    _, world = floor_cues.sim_garage(dataset)
     states = floor_cues.bay_states(world, floor_cues.session_specs(dataset, sessions))
     kf = floor_cues.keyframes(ds, sessions)
     model = VVLocNet.load(checkpoint)

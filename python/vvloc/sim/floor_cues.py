@@ -64,6 +64,15 @@ def keyframes(ds: Dataset, sessions: list[str]) -> dict[str, np.ndarray]:
     return {k: np.concatenate(v) for k, v in parts.items()}
 
 
+def sim_garage(dataset: str) -> tuple[dict[str, Any], World]:
+    """``rig.json``'s ``meta`` of a garage dataset written by ``vvloc sim``, and its world
+    rebuilt from it; ``ValueError`` for any other dataset."""
+    meta = json.loads((Path(dataset) / "rig.json").read_text()).get("meta") or {}
+    if meta.get("scene") != "garage" or meta.get("generator") != "vvloc.sim":
+        raise ValueError(f"dataset: expected a garage of vvloc sim, got meta {meta}")
+    return meta, build_world("garage", meta["seed"], meta["floors"], meta["floor_marking"])
+
+
 def session_specs(dataset: str, sessions: list[str]) -> list[dict[str, Any]]:
     """Each session's ``session.json`` (lighting, change_fraction, seed, ...) as written by
     ``vvloc sim``."""
@@ -197,12 +206,9 @@ def analyse(
     ds = open_dataset(dataset)  # a clear error for a missing or malformed dataset
     for name in sessions:
         ds.session(name)  # KeyError naming the known sessions
-    meta = json.loads((Path(dataset) / "rig.json").read_text()).get("meta") or {}
-    if meta.get("scene") != "garage" or meta.get("generator") != "vvloc.sim":
-        raise ValueError(f"dataset: expected a garage of vvloc sim, got meta {meta}")
+    meta, world = sim_garage(dataset)
     if not radius > 0 or not min_px > 0:
         raise ValueError(f"radius, min_px: expected > 0, got {radius} and {min_px}")
-    world = build_world("garage", meta["seed"], meta["floors"], meta["floor_marking"])
     specs = session_specs(dataset, sessions)
     kf = keyframes(ds, sessions)
     states = bay_states(world, specs)  # (S, B)
