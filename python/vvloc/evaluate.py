@@ -529,47 +529,50 @@ class LoopClosureCurve:
             "cfer": cfer,
         }
 
-    def best_f1(self) -> dict[str, Any]:
-        """:meth:`at` the threshold of the sweep with the highest F1 (lowest such threshold)."""
-        s = self.sweep()
+    def best_f1(self, sweep: dict[str, F64Array] | None = None) -> dict[str, Any]:
+        """:meth:`at` the threshold of the sweep with the highest F1 (lowest such threshold).
+        ``sweep``: this curve's :meth:`sweep`, when the caller already has it."""
+        s = self.sweep() if sweep is None else sweep
         if s["f1"].size == 0 or np.isnan(s["f1"]).all():
-            nan = float("nan")
-            keys = ("threshold", "precision", "recall", "f1", "cfer")
-            return {k: nan for k in keys} | {"accepted": 0, "true_accepted": 0}
+            return _undefined_point()
         return self.at(float(s["threshold"][int(np.nanargmax(s["f1"]))]))
 
-    def at_recall(self, recall: float) -> dict[str, Any]:
+    def at_recall(self, recall: float, sweep: dict[str, F64Array] | None = None) -> dict[str, Any]:
         """:meth:`at` the lowest threshold of the sweep whose recall reaches ``recall`` (a share
         in (0, 1]), plus ``"target_recall"``: the operating point at a fixed recall, which
         compares detectors whose descriptor distances have different scales (a fixed radius
         does not). When no threshold reaches it among the evaluated pairs, every figure is
-        ``nan`` (counts 0)."""
+        ``nan`` (counts 0). ``sweep``: this curve's :meth:`sweep`, when the caller has it."""
         r = float(recall)
         if not 0.0 < r <= 1.0:
             raise ValueError(f"recall: expected a share in (0, 1], got {recall}")
-        s = self.sweep()
-        reached = np.flatnonzero(s["recall"] >= r) if s["recall"].size else np.zeros(0, int)
-        if reached.size == 0:
-            nan = float("nan")
-            keys = ("threshold", "precision", "recall", "f1", "cfer")
-            counts = {"accepted": 0, "true_accepted": 0}
-            return {"target_recall": r} | {k: nan for k in keys} | counts
-        return {"target_recall": r} | self.at(float(s["threshold"][reached[0]]))
+        s = self.sweep() if sweep is None else sweep
+        reached = np.flatnonzero(s["recall"] >= r)
+        point = self.at(float(s["threshold"][reached[0]])) if reached.size else _undefined_point()
+        return {"target_recall": r} | point
 
     def summary(
         self, threshold: float, recalls: tuple[float, ...] = SUMMARY_RECALLS
     ) -> dict[str, Any]:
         """JSON-friendly: metrics :meth:`at` ``threshold``, ``best_f1``, :meth:`at_recall` of
-        each of ``recalls`` (``at_recall``, a list) and the counts."""
+        each of ``recalls`` (``at_recall``, a list) and the counts (one sweep for all)."""
+        sweep = self.sweep()
         return {
             "radius_m": self.radius,
             "num_queries": self.num_queries,
             "num_positive_queries": self.num_positive_queries,
             "num_pairs": int(self.distances.size),
             "at_threshold": self.at(threshold),
-            "best_f1": self.best_f1(),
-            "at_recall": [self.at_recall(r) for r in recalls],
+            "best_f1": self.best_f1(sweep),
+            "at_recall": [self.at_recall(r, sweep) for r in recalls],
         }
+
+
+def _undefined_point() -> dict[str, Any]:
+    """A :meth:`LoopClosureCurve.at` result with no threshold: figures ``nan``, counts 0."""
+    nan = float("nan")
+    keys = ("threshold", "precision", "recall", "f1", "cfer")
+    return {k: nan for k in keys} | {"accepted": 0, "true_accepted": 0}
 
 
 def _f1(precision: float, recall: float) -> float:

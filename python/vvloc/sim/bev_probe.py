@@ -60,8 +60,8 @@ def bay_features(
     n, h, w, _ = bevs.shape
     if len(kf["z"]) != n:
         raise ValueError(f"bevs: expected {len(kf['z'])} BEVs (one per keyframe), got {n}")
-    per_floor = len(world.bays) // len(world.floor_z)
-    xy = np.array([(b.x, b.y) for b in world.bays[:per_floor]])  # every floor has this layout
+    xy = floor_cues.bay_centres(world)
+    per_floor = len(xy)
     ego = floor_cues._ego_xy(kf["pose"], xy)  # (N, B/F, 2) m
     if mirror:
         ego = ego * np.array([1.0, -1.0])
@@ -131,17 +131,14 @@ def fit_probe(
     }
 
 
-def encode_bevs(model: Any, ds: Dataset, sessions: list[str]) -> np.ndarray:
-    """(N, H, W, C) float32: the BEV of every frame of ``sessions`` in order (eval mode)."""
+def encode_bevs(model: Any, ds: Dataset, name: str) -> np.ndarray:
+    """(N, H, W, C) float32: the BEV of every frame of session ``name`` in order (eval mode)."""
     from vvloc.localize.localizer import encode_frames
 
-    out = []
-    for name in sessions:
-        s = ds.session(name)
-        bev = encode_frames(model, (s[i] for i in range(len(s))), keep_bev=True).bev
-        assert bev is not None  # keep_bev
-        out.append(bev)
-    return np.concatenate(out)
+    s = ds.session(name)
+    bev = encode_frames(model, (s[i] for i in range(len(s))), keep_bev=True).bev
+    assert bev is not None  # keep_bev
+    return bev
 
 
 def probe(
@@ -163,8 +160,15 @@ def probe(
     states = floor_cues.bay_states(world, floor_cues.session_specs(dataset, sessions))
     kf = floor_cues.keyframes(ds, sessions)
     model = VVLocNet.load(checkpoint)
-    bevs = encode_bevs(model, ds, sessions)
     g = float(model.config.grid_size)
+    # per session: encode, sample the bays, drop the BEVs (123 kB a frame for the small model)
+    samples: dict[bool, list[tuple[np.ndarray, np.ndarray, np.ndarray]]] = {False: [], True: []}
+    for k, name in enumerate(sessions):
+        rows = kf["session"] == k
+        part = {key: v[rows] for key, v in kf.items()}
+        bevs = encode_bevs(model, ds, name)
+        for mirror in (False, True):
+            samples[mirror].append(bay_features(bevs, part, world, states, g, near, mirror))
     result: dict[str, Any] = {
         "checkpoint": checkpoint,
         "dataset": dataset,
@@ -173,7 +177,7 @@ def probe(
         "near_m": near,
     }
     for name, mirror in (("aligned", False), ("control", True)):
-        x, y, s = bay_features(bevs, kf, world, states, g, near, mirror)
+        x, y, s = (np.concatenate(parts) for parts in zip(*samples[mirror], strict=True))
         tr = s < len(train)
         result[name] = fit_probe(x[tr], y[tr], x[~tr], y[~tr]) | {
             "train_samples": int(tr.sum()),
@@ -214,7 +218,6 @@ def main() -> None:
     p.add_argument("--near", type=float, default=NEAR, help="probe bays this close, m")
     p.add_argument("--json", type=Path, help="also write the figures here")
     a = p.parse_args()
-    torch.manual_seed(0)
     try:
         r = probe(a.checkpoint, a.dataset, a.train.split(","), a.test.split(","), a.near)
     except (KeyError, OSError, ValueError) as e:

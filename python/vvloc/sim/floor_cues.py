@@ -98,13 +98,17 @@ def _ego_xy(poses: np.ndarray, xy: np.ndarray) -> np.ndarray:
     return geometry.relative(poses[:, None, :], points[None, :, :])[..., :2]
 
 
+def bay_centres(world: World) -> np.ndarray:
+    """(B/F, 2) world x, y (m) of one floor's bays: every floor has this layout, bay k of floor
+    f being ``world.bays[f * B/F + k]``."""
+    per_floor = len(world.bays) // len(world.floor_z)
+    return np.array([(b.x, b.y) for b in world.bays[:per_floor]])
+
+
 def visible_bays(world: World, kf: dict[str, np.ndarray]) -> np.ndarray:
     """(N, B/F) bool: bay k of the keyframe's floor has its centre inside the keyframe's BEV
     square (±``BEV_HALF`` m along ego x and y, DESIGN.md §3)."""
-    floors = len(world.floor_z)
-    per_floor = len(world.bays) // floors
-    xy = np.array([(b.x, b.y) for b in world.bays[:per_floor]])  # every floor has this layout
-    return (np.abs(_ego_xy(kf["pose"], xy)) <= BEV_HALF).all(axis=-1)
+    return (np.abs(_ego_xy(kf["pose"], bay_centres(world))) <= BEV_HALF).all(axis=-1)
 
 
 def layout_difference(
