@@ -4,13 +4,14 @@
 #   make lint    cargo fmt/clippy, ruff, mypy stubtest of the extension
 #   make demo    end-to-end demo (see README)
 #   make model   train the committed small model from scratch (both configs, ≈ 72 min on 2 cores)
+#   make model-garage  the garage variant models/synth-small-garage from models/synth-small (≈ 50 min)
 SHELL := /bin/bash
 PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 PYTEST_ARGS ?=
 
-.PHONY: venv develop test test-rust test-python bench lint demo model clean
+.PHONY: venv develop test test-rust test-python bench lint demo model model-garage clean
 
 $(VENV)/.deps-stamp: pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -57,6 +58,14 @@ model: develop
 	  $$(test -e runs/synth-small/trainer_state.pt && echo --resume)
 	$(PY) -m vvloc.cli train --config configs/synth-small-head.yaml --out runs/synth-small-head \
 	  $$(test -e runs/synth-small-head/trainer_state.pt && echo --resume)
+
+# the garage variant: two fine-tunes of the committed models/synth-small and a head stage
+model-garage: develop
+	for step in ft ft2 ft-head; do \
+	  out=runs/synth-small-garage-$$step; \
+	  $(PY) -m vvloc.cli train --config configs/synth-small-garage-$$step.yaml --out $$out \
+	    $$(test -e $$out/trainer_state.pt && echo --resume) || exit 1; \
+	done
 
 clean:
 	rm -rf target $(VENV) bench-results
