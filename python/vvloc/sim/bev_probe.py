@@ -62,7 +62,7 @@ def bay_features(
         raise ValueError(f"bevs: expected {len(kf['z'])} BEVs (one per keyframe), got {n}")
     xy = floor_cues.bay_centres(world)
     per_floor = len(xy)
-    ego = floor_cues._ego_xy(kf["pose"], xy)  # (N, B/F, 2) m
+    ego = floor_cues.ego_xy(kf["pose"], xy)  # (N, B/F, 2) m
     if mirror:
         ego = ego * np.array([1.0, -1.0])
     row = np.rint(ego[..., 0] / grid_size + (h - 1) / 2).astype(np.int64)

@@ -92,7 +92,7 @@ def bay_states(world: World, specs: list[dict[str, Any]]) -> np.ndarray:
     return np.stack(out)
 
 
-def _ego_xy(poses: np.ndarray, xy: np.ndarray) -> np.ndarray:
+def ego_xy(poses: np.ndarray, xy: np.ndarray) -> np.ndarray:
     """(N, K, 2): world points ``xy`` (K, 2) in the ego frames of ``poses`` (N, 3)."""
     points = np.concatenate([xy, np.zeros((len(xy), 1))], axis=1)
     return geometry.relative(poses[:, None, :], points[None, :, :])[..., :2]
@@ -108,7 +108,7 @@ def bay_centres(world: World) -> np.ndarray:
 def visible_bays(world: World, kf: dict[str, np.ndarray]) -> np.ndarray:
     """(N, B/F) bool: bay k of the keyframe's floor has its centre inside the keyframe's BEV
     square (±``BEV_HALF`` m along ego x and y, DESIGN.md §3)."""
-    return (np.abs(_ego_xy(kf["pose"], bay_centres(world))) <= BEV_HALF).all(axis=-1)
+    return (np.abs(ego_xy(kf["pose"], bay_centres(world))) <= BEV_HALF).all(axis=-1)
 
 
 def layout_difference(
@@ -143,8 +143,8 @@ def sees_sign(
     seen = np.zeros(len(kf["z"]), dtype=bool)
     for sx, sy, sz, f in world.level_signs:
         on = kf["floor"] == int(f)
-        ego_xy = _ego_xy(kf["pose"], np.array([[sx, sy]]))[:, 0]
-        ego = np.concatenate([ego_xy, (sz - kf["z"])[:, None]], axis=1)
+        sign_xy = ego_xy(kf["pose"], np.array([[sx, sy]]))[:, 0]
+        ego = np.concatenate([sign_xy, (sz - kf["z"])[:, None]], axis=1)
         for cam in cameras:
             uv, depth = cam.project_ego(ego)
             with np.errstate(divide="ignore", invalid="ignore"):
