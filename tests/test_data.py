@@ -283,6 +283,8 @@ def test_extra_datasets_are_other_worlds_and_cross_floor_negatives_share_the_pla
     )
     with pytest.raises(ValueError, match="cross_floor_fraction"):
         TripletSampler(lot, cross_floor_fraction=1.5)
+    with pytest.raises(ValueError, match="cross_floor_same_session"):
+        TripletSampler(lot, cross_floor_same_session=-0.1)
     with pytest.raises(ValueError, match="collide"):
         TripletSampler(lot, extra=[(garage, None), (garage, None)])
     # anchor shares: the garage (2/3 of the frames) drawn for a fifth of the anchors
@@ -306,3 +308,32 @@ def test_extra_datasets_are_other_worlds_and_cross_floor_negatives_share_the_pla
     for bad in ([0.0], [1.0], [True], [0.5, 0.2]):
         with pytest.raises(ValueError, match="anchor_shares"):
             TripletSampler(lot, extra=[(garage, None)], anchor_shares=bad)
+
+
+def _two_floor_drive(n, y=0.0):
+    """One drive along the same line on floor 0, then on floor 1 (as the garage sessions)."""
+    (p0, f0), (p1, f1) = _line(n, y=y), _line(n, y=y, floor=1)
+    return np.concatenate([p0, p1]), np.concatenate([f0, f1])
+
+
+def test_same_session_cross_floor_negatives_come_from_the_anchors_own_drive(tmp_path):
+    _write(tmp_path / "garage", {"s0": _two_floor_drive(6), "s1": _two_floor_drive(6, y=0.5)})
+    garage = open_dataset(tmp_path / "garage")
+    kw = {"seed": 0, "hard_fraction": 0.0, "cross_floor_fraction": 1.0}
+    own = TripletSampler(garage, cross_floor_same_session=1.0, **kw).sample(300)
+    mixed = TripletSampler(garage, **kw)
+    t = mixed.sample(300)
+    s, level = mixed.session_of, mixed.level_of
+    # every negative is the other floor at the anchor's place; with share 1 from its own drive
+    assert np.all(level[own[:, 2]] != level[own[:, 0]])
+    assert np.all(s[own[:, 2]] == s[own[:, 0]])
+    xy = mixed.positions[:, :2]
+    assert np.all(np.linalg.norm(xy[own[:, 2]] - xy[own[:, 0]], axis=1) <= mixed.neg_radius)
+    # by default both drives supply them
+    assert np.all(level[t[:, 2]] != level[t[:, 0]])
+    assert 0.2 < np.mean(s[t[:, 2]] == s[t[:, 0]]) < 0.8
+    # share 0 draws exactly what a sampler without the argument draws
+    assert np.array_equal(
+        TripletSampler(garage, cross_floor_same_session=0.0, **kw).sample(50),
+        TripletSampler(garage, **kw).sample(50),
+    )

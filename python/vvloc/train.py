@@ -89,7 +89,8 @@ class TrainConfig:
     and ``anchor_share`` (the share of anchors drawn from it; default: by its frame count);
     each is its own world (see :class:`vvloc.data.TripletSampler`, which also takes
     ``cross_floor_fraction``: the share of negatives drawn from another floor at the anchor's
-    x-y in multi-storey worlds). Validation uses ``dataset`` only.
+    x-y in multi-storey worlds, and ``cross_floor_same_session``: the share of those drawn from
+    the anchor's own session). Validation uses ``dataset`` only.
     ``init_checkpoint`` (optional): start from these weights (a checkpoint folder, or a run
     folder: its ``best/``, else its ``checkpoint/``) instead of a random initialisation, to
     fine-tune a trained model (e.g. on a further world); its model config must equal this run's.
@@ -146,6 +147,7 @@ class TrainConfig:
     augment: dict[str, Any] | None = None
     extra_datasets: list[dict[str, Any]] = field(default_factory=list)
     cross_floor_fraction: float = 0.0
+    cross_floor_same_session: float = 0.0
     init_checkpoint: str | None = None
     val_sessions: list[str] | None = None
     val_database: str = "s0"
@@ -276,6 +278,8 @@ class TrainConfig:
                 )
         if not 0.0 <= float(self.cross_floor_fraction) <= 1.0:
             raise ValueError("cross_floor_fraction: expected a value in [0, 1]")
+        if not 0.0 <= float(self.cross_floor_same_session) <= 1.0:
+            raise ValueError("cross_floor_same_session: expected a value in [0, 1]")
         for name in ("val_every", "val_top_k"):
             if isinstance(getattr(self, name), bool) or int(getattr(self, name)) < 1:
                 raise ValueError(f"{name}: expected an int >= 1")
@@ -600,6 +604,7 @@ class Trainer:
             hard_fraction=cfg.hard_fraction,
             extra=extra,
             cross_floor_fraction=cfg.cross_floor_fraction,
+            cross_floor_same_session=cfg.cross_floor_same_session,
             anchor_shares=[e.get("anchor_share") for e in cfg.extra_datasets],
         )
         if cfg.val_sessions:

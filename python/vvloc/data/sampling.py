@@ -46,6 +46,10 @@ class TripletSampler:
     positive of another). ``cross_floor_fraction`` is the share of negatives drawn, where the
     anchor's world has other floors, from another floor within ``neg_radius`` metres in x-y of
     the anchor: the look-alike places a multi-storey loop closure must tell apart.
+    ``cross_floor_same_session`` is the share of those cross-floor negatives drawn from the
+    anchor's own session where it has such frames (the same drive on the other floor: same
+    lighting, same path, only the parked cars differ); 0 (default) draws from every session of
+    the world, exactly as a sampler without the argument.
     ``anchor_shares`` (one per ``extra`` source, or empty): the share of fresh anchors drawn from
     that world (a float in (0, 1)), or None for the default, in proportion to its frames; the
     primary dataset and the None worlds share the rest in proportion to their frames. With no
@@ -65,6 +69,7 @@ class TripletSampler:
         floor_separation: float = FLOOR_SEPARATION,
         extra: Sequence[tuple[Dataset, Sequence[str] | None]] = (),
         cross_floor_fraction: float = 0.0,
+        cross_floor_same_session: float = 0.0,
         anchor_shares: Sequence[float | None] = (),
     ) -> None:
         if not (pos_radius > 0 and neg_radius >= pos_radius):
@@ -77,6 +82,11 @@ class TripletSampler:
         if not 0.0 <= cross_floor_fraction <= 1.0:
             raise ValueError(
                 f"cross_floor_fraction: expected a value in [0, 1], got {cross_floor_fraction}"
+            )
+        if not 0.0 <= cross_floor_same_session <= 1.0:
+            raise ValueError(
+                "cross_floor_same_session: expected a value in [0, 1], "
+                f"got {cross_floor_same_session}"
             )
         self.ds = ds
         # (dataset, session name, label) of each session slot, the primary dataset's first
@@ -94,6 +104,7 @@ class TripletSampler:
         self.neg_radius = float(neg_radius)
         self.hard_fraction = float(hard_fraction)
         self.cross_floor_fraction = float(cross_floor_fraction)
+        self.cross_floor_same_session = float(cross_floor_same_session)
         self.rng = np.random.default_rng(seed)
         sess_ids, idx, pos, levels = [], [], [], []
         worlds = {id(src): w for w, src in enumerate([ds, *(e[0] for e in extra)])}
@@ -191,6 +202,10 @@ class TripletSampler:
         if self.cross_floor is not None and len(self.cross_floor[anchor]):
             if self.rng.random() < self.cross_floor_fraction:
                 near = self.cross_floor[anchor]
+                if self.cross_floor_same_session > 0:
+                    own = near[self.session_of[near] == self.session_of[anchor]]
+                    if len(own) and self.rng.random() < self.cross_floor_same_session:
+                        near = own
                 return int(near[self.rng.integers(len(near))])
         for _ in range(64):
             cand = int(self.rng.integers(len(self.positions)))
