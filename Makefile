@@ -61,7 +61,7 @@ model: develop
 
 # the garage variant: two fine-tunes of the committed models/synth-small and a head stage
 model-garage: develop
-	for step in ft ft2 ft-head; do \
+	for step in ft ft2 ft-head64; do \
 	  out=runs/synth-small-garage-$$step; \
 	  $(PY) -m vvloc.cli train --config configs/synth-small-garage-$$step.yaml --out $$out \
 	    $$(test -e $$out/trainer_state.pt && echo --resume) || exit 1; \
