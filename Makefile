@@ -4,7 +4,7 @@
 #   make lint    cargo fmt/clippy, ruff, mypy stubtest of the extension
 #   make demo    end-to-end demo (see README)
 #   make model   train the committed small model from scratch (both configs, ≈ 72 min on 2 cores)
-#   make model-garage  the garage variant models/synth-small-garage from models/synth-small (≈ 50 min)
+#   make model-garage  the garage variant models/synth-small-garage from models/synth-small (≈ 53 min)
 SHELL := /bin/bash
 PYTHON ?= python3
 VENV := .venv
