@@ -63,12 +63,14 @@ def test_localizer_recovers_the_query_world_pose(seed, metric_candidates, tmp_pa
             search=search,
             decoder="radial_mean",
             metric_candidates=metric_candidates,
+            metric_from="rerank",  # the query's global descriptor (zeros) tells nothing
         )
         res = loc.localize_encoded(np.zeros(16, np.float32), q_local, q_bev)
         if metric_candidates > 1:
             # the first M re-ranked candidates are ordered by their coarse-stage cost, and the
             # lowest one is refined (snapping off: the order is the search's alone)
             kw = {"top_k": 5, "search": search, "decoder": "radial_mean", "snap": False}
+            kw["metric_from"] = "rerank"
             one = Localizer(model, mapdb, metric_candidates=1, **kw)
             ref = one.localize_encoded(np.zeros(16, np.float32), q_local, q_bev)
             many = Localizer(model, mapdb, metric_candidates=metric_candidates, **kw)
@@ -88,6 +90,60 @@ def test_localizer_recovers_the_query_world_pose(seed, metric_candidates, tmp_pa
     assert np.hypot(*(res.global_pose[:2] - q_pose[:2])) < 0.15, (res.global_pose, q_pose)
     assert abs(np.degrees(wrap(res.global_pose[2] - q_pose[2]))) < 1.0
     np.testing.assert_allclose(res.relative_pose[:2], xi[:2], atol=0.15)
+
+
+@pytest.mark.parametrize("metric_from", ["retrieval", "rerank"])
+def test_metric_candidates_are_the_first_of_the_chosen_ordering(metric_from, tmp_path):
+    """The M metric candidates are the first M retrieved (``metric_from="retrieval"``) or the
+    first M yaw re-ranked; they lead ``reranked`` by coarse cost, the rest follow in yaw
+    re-ranked order. The query's global descriptor is keyframe 4's, so retrieval puts 4 first
+    while the yaw re-ranking puts the query's own keyframe, 2, first."""
+    rng = np.random.default_rng(0)
+    field = world_field(0)
+    model = _model()
+    decode = RadialMeanDecoder()
+    map_poses = np.array([(4.0 * k, 0.5 * k, rng.uniform(-np.pi, np.pi)) for k in range(5)])
+    local = decode(kernels.polar_sample(np.stack([bev_at(field, p) for p in map_poses]), T, R, G))
+    glob = np.eye(5, 16, dtype=np.float32)
+    glob[3, 4] = glob[1, 3] = 0.5  # retrieval order from keyframe 4's descriptor: 4, 3, ...
+    glob /= np.linalg.norm(glob, axis=1, keepdims=True)
+    db = MapDatabase.from_arrays(
+        poses=map_poses,
+        timestamps=np.arange(5.0),
+        sessions="s0",
+        global_descriptors=glob,
+        local_descriptors=local,
+        model_config=model.config.to_dict(),
+        grid_size=G,
+        config_hash=model.config_hash(),
+    )
+    path = db.save(tmp_path / "map.h5")
+    q_pose = np.array(compose(map_poses[2], (0.7, -0.4, 0.3)))
+    q_bev = bev_at(field, q_pose)
+    q_local = decode(kernels.polar_sample(q_bev, T, R, G))
+    search = SearchConfig(half_range=3.0, step=0.6, fine_samples=32, stages=5, seed=0)
+    kw = {"top_k": 5, "search": search, "decoder": "radial_mean", "snap": False}
+    m = 2
+    with MapDatabase.open(path, expected_config_hash=model.config_hash()) as mapdb:
+        # M = 1 from the re-ranking leaves the yaw re-ranked order as it is
+        yaw = Localizer(model, mapdb, metric_candidates=1, metric_from="rerank", **kw)
+        ref = yaw.localize_encoded(glob[4], q_local, q_bev)
+        yaw_order = ref.reranked.tolist()
+        loc = Localizer(model, mapdb, metric_candidates=m, metric_from=metric_from, **kw)
+        got = loc.localize_encoded(glob[4], q_local, q_bev)
+        coarse = {}
+        for row in range(5):
+            hist = yaw.metric(q_bev, row)[2]
+            coarse[row] = hist.cost[hist.stage == 0].min()
+    assert got.retrieved[:2].tolist() == [4, 3]
+    assert yaw_order[0] == 2
+    pool = got.retrieved[:m].tolist() if metric_from == "retrieval" else yaw_order[:m]
+    assert got.reranked[:m].tolist() == sorted(pool, key=coarse.__getitem__)
+    assert got.reranked[m:].tolist() == [r for r in yaw_order if r not in pool]
+    # rerank_cost follows its rows
+    cost_of = dict(zip(yaw_order, ref.rerank_cost.tolist(), strict=True))
+    assert got.rerank_cost.tolist() == [cost_of[r] for r in got.reranked.tolist()]
+    assert got.metric_row == got.map_row == got.reranked[0]
 
 
 def test_unknown_decoder_is_refused(tmp_path):
@@ -111,6 +167,10 @@ def test_unknown_decoder_is_refused(tmp_path):
             Localizer(model, db, metric_candidates=bad)
     with pytest.raises(TypeError, match="snap"):
         Localizer(model, db, snap="yes")
+    with pytest.raises(ValueError, match="metric_from"):
+        Localizer(model, db, metric_from="global")
+    with pytest.raises(TypeError, match="metric_from"):
+        Localizer(model, db, metric_from=None)
 
 
 @pytest.mark.parametrize("upper_floor", [False, True])

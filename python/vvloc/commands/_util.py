@@ -19,8 +19,18 @@ MetricCandidates = Annotated[
     typer.Option(
         "--metric_candidates",
         min=1,
-        help="Run the coarse translation search against the top M re-ranked candidates "
-        "(the query decoded once) and refine the lowest-cost one.",
+        help="Run the coarse translation search against M candidates (see --metric_from; the "
+        "query decoded once) and refine the lowest-cost one.",
+    ),
+]
+
+#: ``--metric_from`` of ``eval`` and ``localize`` (see ``Localizer(metric_from=)``).
+MetricFrom = Annotated[
+    str,
+    typer.Option(
+        "--metric_from",
+        help="Take the M metric candidates from the retrieval order ('retrieval') or from the "
+        "yaw re-ranking ('rerank').",
     ),
 ]
 

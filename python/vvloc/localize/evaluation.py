@@ -175,6 +175,7 @@ def run_evaluation(
     *,
     top_k: int = 20,
     metric_candidates: int = 3,
+    metric_from: str = "retrieval",
     snap: bool = True,
     every: int = 1,
     device: str = "cpu",
@@ -191,8 +192,9 @@ def run_evaluation(
     """Evaluate a checkpoint on ``dataset``: map = ``database`` session, queries = every
     ``every``-th frame of each session in ``queries``. Writes ``out/map.h5``,
     ``out/report.md``, ``out/report.json``, ``out/queries.csv`` and plots; returns the metrics.
-    ``metric_candidates`` and ``snap`` are :class:`Localizer`'s (the M top re-ranked candidates
-    scored by the coarse translation search; the reported keyframe snapped to the metric pose).
+    ``metric_candidates``, ``metric_from`` and ``snap`` are :class:`Localizer`'s (the M
+    candidates scored by the coarse translation search, the first M of the retrieval order or of
+    the yaw re-ranking; the reported keyframe snapped to the metric pose).
     ``loops``: also loop closure over all frames of ``database`` + ``queries``, accepted at
     global-descriptor distance ≤ ``loop_radius`` (the first ``loop_pairs`` verified metrically),
     for single keyframes and, when ``loop_sequence`` L > 0, with the sequence-consistency check
@@ -221,6 +223,7 @@ def run_evaluation(
         top_k=top_k,
         search=search,
         metric_candidates=metric_candidates,
+        metric_from=metric_from,
         snap=snap,
     )
     frames = [ds.session(s)[i] for s in queries for i in range(0, len(ds.session(s)), every)]
@@ -271,9 +274,11 @@ def run_evaluation(
     ]
     ml = f"VVLoc-ML: the top-{k} re-ranked by yaw matching cost"
     if loc.metric_candidates > 1:
+        source = "retrieved" if loc.metric_from == "retrieval" else "re-ranked"
         ml += (
-            f", then the first {loc.metric_candidates} ordered by the cost of the coarse "
-            "translation search against each (the lowest refined by the fine stages)"
+            f", then the first {loc.metric_candidates} {source} candidates put first, ordered "
+            "by the cost of the coarse translation search against each (the lowest refined by "
+            "the fine stages)"
         )
     if loc.snap:
         ml += (
@@ -305,6 +310,7 @@ def run_evaluation(
             "model_config_hash": model.config_hash(),
             "top_k": k,
             "metric_candidates": loc.metric_candidates,
+            "metric_from": loc.metric_from,
             "snap": loc.snap,
             "device": device,
             "hardware": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores",
