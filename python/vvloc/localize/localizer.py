@@ -170,9 +170,10 @@ class LocalizationResult:
         cost: matching cost at the estimate (lower is better), against ``metric_row``.
         accepted: ``cost < accept_threshold`` and ``distinctiveness >= min_distinctiveness``.
         retrieved: (K,) map rows in retrieval order; ``retrieval_dist`` their L2 distances.
-        reranked: (K,) map rows after re-ranking by matching cost (and, with ``metric_candidates``
-            > 1, by coarse metric cost among the first M; with ``snap``, the snapped keyframe
-            first); ``rerank_cost`` their re-rank costs, in the same order.
+        reranked: (K,) map rows: the M metric candidates (see ``Localizer(metric_from=)``) by
+            coarse metric cost, then the others by yaw matching cost (with ``snap``, the
+            snapped keyframe first); ``rerank_cost`` their yaw matching costs, in the same
+            order.
         timings_ms: per-stage wall time: encode, retrieve, rerank, metric.
         search: every evaluated translation hypothesis (xy (M, 2), yaw, cost, stage) of the
             search against ``metric_row`` (ξ_{q→m} hypotheses, query frame).
