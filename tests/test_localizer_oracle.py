@@ -28,6 +28,23 @@ def _model() -> VVLocNet:
     return VVLocNet(cfg)
 
 
+def _save_map(model, tmp_path, poses, glob, local, floors=None):
+    """A one-session map of keyframes at ``poses`` (N, 3) with global descriptors ``glob``
+    (N, Dg) and local-view descriptors ``local`` (N, T, C), saved in ``tmp_path``."""
+    db = MapDatabase.from_arrays(
+        poses=poses,
+        timestamps=np.arange(float(len(poses))),
+        sessions="s0",
+        global_descriptors=glob,
+        local_descriptors=local,
+        model_config=model.config.to_dict(),
+        grid_size=G,
+        config_hash=model.config_hash(),
+        floors=floors,
+    )
+    return db.save(tmp_path / "map.h5")
+
+
 @pytest.mark.parametrize(("seed", "metric_candidates"), [(0, 1), (1, 1), (2, 1), (0, 3)])
 def test_localizer_recovers_the_query_world_pose(seed, metric_candidates, tmp_path):
     rng = np.random.default_rng(seed)
@@ -38,17 +55,8 @@ def test_localizer_recovers_the_query_world_pose(seed, metric_candidates, tmp_pa
     bevs = np.stack([bev_at(field, p) for p in map_poses])
     local = decode(kernels.polar_sample(bevs, T, R, G))
     glob = rng.standard_normal((5, 16)).astype(np.float32)
-    db = MapDatabase.from_arrays(
-        poses=map_poses,
-        timestamps=np.arange(5.0),
-        sessions="s0",
-        global_descriptors=glob / np.linalg.norm(glob, axis=1, keepdims=True),
-        local_descriptors=local,
-        model_config=model.config.to_dict(),
-        grid_size=G,
-        config_hash=model.config_hash(),
-    )
-    path = db.save(tmp_path / "map.h5")
+    glob /= np.linalg.norm(glob, axis=1, keepdims=True)
+    path = _save_map(model, tmp_path, map_poses, glob, local)
     target = 2
     xi = (rng.uniform(-2, 2), rng.uniform(-2, 2), rng.uniform(-np.pi, np.pi))
     q_pose = np.array(compose(map_poses[target], xi))
@@ -107,17 +115,7 @@ def test_metric_candidates_are_the_first_of_the_chosen_ordering(metric_from, tmp
     glob = np.eye(5, 16, dtype=np.float32)
     glob[3, 4] = glob[1, 3] = 0.5  # retrieval order from keyframe 4's descriptor: 4, 3, ...
     glob /= np.linalg.norm(glob, axis=1, keepdims=True)
-    db = MapDatabase.from_arrays(
-        poses=map_poses,
-        timestamps=np.arange(5.0),
-        sessions="s0",
-        global_descriptors=glob,
-        local_descriptors=local,
-        model_config=model.config.to_dict(),
-        grid_size=G,
-        config_hash=model.config_hash(),
-    )
-    path = db.save(tmp_path / "map.h5")
+    path = _save_map(model, tmp_path, map_poses, glob, local)
     q_pose = np.array(compose(map_poses[2], (0.7, -0.4, 0.3)))
     q_bev = bev_at(field, q_pose)
     q_local = decode(kernels.polar_sample(q_bev, T, R, G))
@@ -190,18 +188,7 @@ def test_snapping_reports_the_keyframe_nearest_to_the_metric_pose(upper_floor, t
     floors = np.zeros(n, np.int64)
     if upper_floor:
         floors[3] = 1
-    db = MapDatabase.from_arrays(
-        poses=map_poses,
-        timestamps=np.arange(float(n)),
-        sessions="s0",
-        global_descriptors=glob,
-        local_descriptors=local,
-        model_config=model.config.to_dict(),
-        grid_size=G,
-        config_hash=model.config_hash(),
-        floors=floors,
-    )
-    path = db.save(tmp_path / "map.h5")
+    path = _save_map(model, tmp_path, map_poses, glob, local, floors)
     q_pose = np.array([4.9, 0.3, 0.4])
     q_bev = bev_at(field, q_pose)
     q_local = decode(kernels.polar_sample(q_bev, T, R, G))
