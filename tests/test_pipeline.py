@@ -132,6 +132,10 @@ def test_cli_map_localize_loops_end_to_end(tiny_world, model_dir, tmp_path):
     text = (tmp_path / "loc" / "queries.csv").read_text()
     assert text.startswith("# vvloc localize")
     assert text.splitlines()[1].split(",")[-1] == "metric_row"
+    r = localize(str(tmp_path / "loc-rerank"), "--top_k", "3", "--metric_from", "rerank")
+    assert r.returncode == 0, r.stderr
+    r = localize(str(tmp_path / "loc-bad"), "--metric_from", "nearest")
+    assert r.returncode == 2 and "--metric_from" in r.stderr
     r = localize(str(tmp_path / "loc-nosnap"), "--no-snap")
     assert r.returncode == 0, r.stderr
     lines = (tmp_path / "loc-nosnap" / "queries.csv").read_text().splitlines()

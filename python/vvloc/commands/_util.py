@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 from collections.abc import Iterator
+from enum import Enum
 from typing import Annotated
 
 import typer
@@ -24,9 +25,17 @@ MetricCandidates = Annotated[
     ),
 ]
 
+
+class MetricFromChoice(str, Enum):
+    """The orderings ``--metric_from`` takes its candidates from (``Localizer(metric_from=)``)."""
+
+    retrieval = "retrieval"
+    rerank = "rerank"
+
+
 #: ``--metric_from`` of ``eval`` and ``localize`` (see ``Localizer(metric_from=)``).
 MetricFrom = Annotated[
-    str,
+    MetricFromChoice,
     typer.Option(
         "--metric_from",
         help="Take the M metric candidates from the retrieval order ('retrieval') or from the "

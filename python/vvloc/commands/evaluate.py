@@ -8,7 +8,14 @@ from typing import Annotated
 import typer
 
 from vvloc.checkpoints import resolve_checkpoint
-from vvloc.commands._util import MetricCandidates, MetricFrom, Snap, cli_errors, split_names
+from vvloc.commands._util import (
+    MetricCandidates,
+    MetricFrom,
+    MetricFromChoice,
+    Snap,
+    cli_errors,
+    split_names,
+)
 
 
 def eval_command(
@@ -26,7 +33,7 @@ def eval_command(
         bool, typer.Option("--robustness", help="Also score retrieval under perturbations.")
     ] = False,
     metric_candidates: MetricCandidates = 3,
-    metric_from: MetricFrom = "retrieval",
+    metric_from: MetricFrom = MetricFromChoice.retrieval,
     snap: Snap = True,
     loops: Annotated[
         bool, typer.Option("--loops", help="Also evaluate loop closure (P/R, CFER, poses).")
@@ -77,7 +84,7 @@ def eval_command(
             out,
             top_k=top_k,
             metric_candidates=metric_candidates,
-            metric_from=metric_from,
+            metric_from=metric_from.value,
             snap=snap,
             every=every,
             device=device,

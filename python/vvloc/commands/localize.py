@@ -9,7 +9,7 @@ import numpy as np
 import typer
 
 from vvloc.checkpoints import resolve_checkpoint
-from vvloc.commands._util import MetricCandidates, MetricFrom, Snap, cli_errors
+from vvloc.commands._util import MetricCandidates, MetricFrom, MetricFromChoice, Snap, cli_errors
 
 HEADER = (
     "# vvloc localize. Frames (DESIGN.md §3): world x east, y north, z up (m); yaw CCW "
@@ -44,7 +44,7 @@ def localize(
         ),
     ] = None,
     metric_candidates: MetricCandidates = 3,
-    metric_from: MetricFrom = "retrieval",
+    metric_from: MetricFrom = MetricFromChoice.retrieval,
     snap: Snap = True,
     device: Annotated[str, typer.Option("--device", help="cpu or cuda.")] = "cpu",
 ) -> None:
@@ -65,7 +65,7 @@ def localize(
             accept_threshold=threshold,
             min_distinctiveness=min_distinctiveness,
             metric_candidates=metric_candidates,
-            metric_from=metric_from,
+            metric_from=metric_from.value,
             snap=snap,
         )
         sess = open_dataset(dataset).session(session)

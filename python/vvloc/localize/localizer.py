@@ -180,8 +180,8 @@ class LocalizationResult:
         distinctiveness: mean minus minimum of ``rerank_cost`` (≥ 0; higher = the best
             re-ranked candidate stands out more; NaN without re-ranking), the calibrated
             confidence (:func:`vvloc.evaluate.distinctiveness`). It and its calibration are
-            about the re-ranking's best candidate, which snapping or ``metric_candidates`` may
-            replace by another keyframe of the same place.
+            about the re-ranking's best candidate, which the metric stage (its M candidates,
+            ``metric_from``) and snapping may replace by another keyframe.
         metric_row: the map row the metric pose was estimated against (equals ``map_row``
             unless snapping chose a nearer keyframe; -1 when the map is empty).
     """
@@ -221,12 +221,11 @@ class Localizer:
         metric_candidates: M, how many candidates get a metric localization (default 3,
             chosen on validation sessions with the candidates taken from the re-ranking: 82.8 %
             → 85.9 % Recall@1 at 2 m for about 1.2× the metric stage's time; 1 = only the
-            first one). With M > 1 the coarse
-            translation stage runs against each of the top M (the query's padded BEVs decoded
-            once, the interactor and the yaw kernel per candidate), the first M are ordered by
-            their coarse cost, and the lowest goes through the fine stages
-            (:func:`metric_localize_best`). Without re-ranking the first M retrieved candidates
-            are the ones searched.
+            first one). With M > 1 the coarse translation stage runs against each of the M
+            (the first M of ``metric_from``'s ordering; the query's padded BEVs decoded once,
+            the interactor and the yaw kernel per candidate), the M are ordered by their coarse
+            cost, and the lowest goes through the fine stages (:func:`metric_localize_best`).
+            Without re-ranking both orderings are the retrieval's.
         metric_from: which ordering the M metric candidates are the first of: ``"retrieval"``
             (global-descriptor distance) or ``"rerank"`` (the yaw matching cost without
             padding). Either way the M come first in ``reranked``, by coarse metric cost, and
@@ -439,19 +438,19 @@ class Localizer:
         t0 = time.perf_counter()
         if self.rerank_enabled:
             rr = self.rerank(loc, rows)
-            reranked = rows[rr.order]
-            rerank_cost = rr.cost[rr.order]
+            perm = rr.order  # reranked = rows[perm]
+            rerank_cost = rr.cost[perm]
         else:
-            reranked, rerank_cost = rows, np.full(len(rows), np.nan)
+            perm, rerank_cost = np.arange(len(rows)), np.full(len(rows), np.nan)
+        reranked = rows[perm]
         timings["rerank"] = (time.perf_counter() - t0) * 1e3
         t0 = time.perf_counter()
         m = min(self.metric_candidates, len(reranked))
         # the M metric candidates, as positions in ``reranked``
         if self.metric_from == "rerank":
             pool = np.arange(m)
-        else:
-            # reranked is a permutation of rows: pool[i] is where rows[i] went
-            pool = np.argmax(reranked[None, :] == rows[:m, None], axis=1)
+        else:  # where rows[:m] went: the inverse permutation
+            pool = np.argsort(perm, kind="stable")[:m]
         k, xi_mq, cost, history, coarse = self.metric_best(bev, reranked[pool])
         # the M candidates by coarse cost (finite) first, the stable sort putting the refined
         # one, the first of the lowest, first; the others after them in re-ranked order
