@@ -13,7 +13,8 @@ import pytest
 
 from test_metric_localize import bev_at, compose, world_field, wrap
 from vvloc import kernels
-from vvloc.localize.localizer import Localizer
+from vvloc.commands._util import MetricFromChoice
+from vvloc.localize.localizer import METRIC_FROM, Localizer
 from vvloc.localize.mapdb import MapDatabase
 from vvloc.localize.metric import RadialMeanDecoder, SearchConfig
 from vvloc.nets import ModelConfig, VVLocNet
@@ -169,6 +170,8 @@ def test_unknown_decoder_is_refused(tmp_path):
         Localizer(model, db, metric_from="global")
     with pytest.raises(TypeError, match="metric_from"):
         Localizer(model, db, metric_from=None)
+    # the CLI's --metric_from offers exactly the library's choices
+    assert [c.value for c in MetricFromChoice] == list(METRIC_FROM)
 
 
 @pytest.mark.parametrize("upper_floor", [False, True])

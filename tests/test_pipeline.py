@@ -271,7 +271,9 @@ def test_evaluation_scores_loop_closures_at_the_given_radius(tiny_world, model_d
     meta = m["meta"]  # the defaults
     assert meta["snap"] is True and meta["metric_candidates"] == 3
     assert meta["metric_from"] == "retrieval"
-    assert "| VVLoc (descriptor radius) | 0.300 |" in (tmp_path / "ev" / "report.md").read_text()
+    report = (tmp_path / "ev" / "report.md").read_text()
+    assert "then the first 3 retrieved candidates put first" in report
+    assert "| VVLoc (descriptor radius) | 0.300 |" in report
     assert m["loop_sweep_radius"] == 0.5  # a tiny world: every pair within 0.5 is scored
     from vvloc.commands.evaluate import eval_command
     from vvloc.localize.evaluation import LOOP_SWEEP_PAIRS

@@ -280,6 +280,8 @@ def run_evaluation(
             "by the cost of the coarse translation search against each (the lowest refined by "
             "the fine stages)"
         )
+    elif loc.metric_from == "retrieval":
+        ml += ", then the first retrieved candidate put first (the metric pose's keyframe)"
     if loc.snap:
         ml += (
             "; the reported top-1 is the retrieved keyframe nearest to the metric pose "
