@@ -3,8 +3,8 @@
 #   make bench   kernel benchmarks: table on stdout, JSON in bench-results/
 #   make lint    cargo fmt/clippy, ruff, mypy stubtest of the extension
 #   make demo    end-to-end demo (see README)
-#   make model   train the committed small model from scratch (both configs, ≈ 72 min on 2 cores)
-#   make model-garage  the garage variant models/synth-small-garage from models/synth-small (≈ 53 min)
+#   make model   train the committed small model from scratch (four steps, ≈ 88 min on 2 cores)
+#   make model-garage  the garage variant models/synth-small-garage from models/synth-small-v1 (≈ 53 min)
 SHELL := /bin/bash
 PYTHON ?= python3
 VENV := .venv
@@ -51,15 +51,18 @@ lint: develop
 demo: develop
 	$(PY) -m vvloc.cli demo
 
-# stages 1-2 (the parking model, GeM head), then the head stage on it (NetVLAD, three worlds)
+# stages 1-2 (the parking model, GeM head: models/synth-small-base), the head stage on it
+# (NetVLAD, three worlds: models/synth-small-v1), the floor fine-tune (stage 2 on three worlds,
+# 6 epochs) and the head stage again; runs/synth-small-ft-head/best/ is models/synth-small
 # (re-running it resumes or skips what a previous run already did)
 model: develop
-	$(PY) -m vvloc.cli train --config configs/synth-small.yaml --out runs/synth-small \
-	  $$(test -e runs/synth-small/trainer_state.pt && echo --resume)
-	$(PY) -m vvloc.cli train --config configs/synth-small-head.yaml --out runs/synth-small-head \
-	  $$(test -e runs/synth-small-head/trainer_state.pt && echo --resume)
+	for step in synth-small synth-small-head synth-small-ft synth-small-ft-head; do \
+	  $(PY) -m vvloc.cli train --config configs/$$step.yaml --out runs/$$step \
+	    $$(test -e runs/$$step/trainer_state.pt && echo --resume) || exit 1; \
+	done
 
-# the garage variant: two fine-tunes of the committed models/synth-small and a head stage
+# the garage variant: two fine-tunes of the committed models/synth-small-v1 (the default model
+# until 2026-12-02, the output of the first two steps of `make model`) and a head stage
 model-garage: develop
 	for step in ft ft2 ft-head64; do \
 	  out=runs/synth-small-garage-$$step; \

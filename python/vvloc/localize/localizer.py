@@ -232,7 +232,7 @@ class Localizer:
             the other candidates follow in yaw re-ranked order. Default ``"retrieval"``: the
             cost without padding cannot see translation, so it is the poorer pre-filter for the
             metric stage (674 parking validation queries, Recall@1 at 2 m: 83.4 % → 87.7 % for
-            ``models/synth-small``; DESIGN.md §1).
+            ``models/synth-small-v1``; DESIGN.md §1).
         snap: report the retrieved keyframe nearest to the query's metric world pose (on the
             metric-matched keyframe's floor) instead of the matched one (default True): the
             metric pose says where the query is, so the nearest candidate is the place; the
