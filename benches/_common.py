@@ -57,6 +57,7 @@ def random_map(model: Any, n: int, rng: Any, *, bevs: bool = False) -> Any:
         model_config=cfg.to_dict(),
         grid_size=cfg.grid_size,
         config_hash=model.config_hash(),
+        weights_hash=model.weights_hash(),
     )
 
 

@@ -8,14 +8,17 @@ end to end, independently of any training.
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import pytest
+import torch
 
 from test_metric_localize import bev_at, compose, world_field, wrap
 from vvloc import kernels
 from vvloc.commands._util import MetricFromChoice
-from vvloc.localize.localizer import METRIC_FROM, Localizer
-from vvloc.localize.mapdb import MapDatabase
+from vvloc.localize.localizer import METRIC_FROM, Localizer, open_map
+from vvloc.localize.mapdb import MapDatabase, MapError
 from vvloc.localize.metric import RadialMeanDecoder, SearchConfig
 from vvloc.nets import ModelConfig, VVLocNet
 
@@ -41,6 +44,7 @@ def _save_map(model, tmp_path, poses, glob, local, floors=None):
         model_config=model.config.to_dict(),
         grid_size=G,
         config_hash=model.config_hash(),
+        weights_hash=model.weights_hash(),
         floors=floors,
     )
     return db.save(tmp_path / "map.h5")
@@ -156,6 +160,7 @@ def test_unknown_decoder_is_refused(tmp_path):
         model_config=model.config.to_dict(),
         grid_size=G,
         config_hash=model.config_hash(),
+        weights_hash=model.weights_hash(),
     )
     with pytest.raises(ValueError, match="decoder"):
         Localizer(model, db, decoder="magic")
@@ -172,6 +177,45 @@ def test_unknown_decoder_is_refused(tmp_path):
         Localizer(model, db, metric_from=None)
     # the CLI's --metric_from offers exactly the library's choices
     assert [c.value for c in MetricFromChoice] == list(METRIC_FROM)
+
+
+def test_a_map_is_used_only_with_the_weights_that_built_it(tmp_path):
+    model = _model()
+    rng = np.random.default_rng(0)
+    glob = rng.standard_normal((2, model.global_dim)).astype(np.float32)
+    glob /= np.linalg.norm(glob, axis=1, keepdims=True)
+    path = _save_map(model, tmp_path, np.zeros((2, 3)), glob, np.ones((2, T, C), np.float32))
+    # the same architecture, other weights (one bias changed): same config hash
+    other = copy.deepcopy(model)
+    with torch.no_grad():
+        next(other.parameters()).view(-1)[0] += 1.0
+    assert other.config_hash() == model.config_hash()
+    assert other.weights_hash() != model.weights_hash()
+    with MapDatabase.open(path) as mapdb:
+        Localizer(model, mapdb)
+        with pytest.raises(MapError, match=r"map\.h5.*other weights"):
+            Localizer(other, mapdb)
+    with pytest.raises(MapError, match="other weights"):
+        open_map(path, other)
+    open_map(path, model).close()
+    # the fingerprint survives a checkpoint round trip
+    assert VVLocNet.load(model.save(tmp_path / "ckpt")).weights_hash() == model.weights_hash()
+
+
+def test_a_map_without_weights_fingerprint_warns(tmp_path):
+    model = _model()
+    db = MapDatabase.from_arrays(
+        poses=np.zeros((1, 3)),
+        timestamps=np.zeros(1),
+        sessions="s0",
+        global_descriptors=np.ones((1, model.global_dim), np.float32) / model.global_dim**0.5,
+        local_descriptors=np.ones((1, T, C)),
+        model_config=model.config.to_dict(),
+        grid_size=G,
+        config_hash=model.config_hash(),
+    )
+    with pytest.warns(UserWarning, match="no weights fingerprint"):
+        Localizer(model, db)
 
 
 @pytest.mark.parametrize("upper_floor", [False, True])

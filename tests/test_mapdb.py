@@ -327,6 +327,40 @@ def test_map_of_another_model_is_refused(tmp_path: Path) -> None:
     MapDatabase.open(path, expected_config_hash=mine).close()
 
 
+def test_weights_fingerprint_round_trips_and_refuses_other_weights(tmp_path: Path) -> None:
+    mine, other = "a" * 64, "b" * 64
+    db = MapDatabase.from_arrays(
+        **keyframes(), model_config=CONFIG, grid_size=0.3, weights_hash=mine
+    )
+    path = db.save(tmp_path / "map.h5")
+    with MapDatabase.open(path, expected_weights_hash=mine) as opened:
+        assert opened.weights_hash == mine == opened.metadata.model_weights_hash
+        again = opened.save(tmp_path / "copy.h5")  # save keeps the fingerprint
+    with MapDatabase.open(again) as copy:
+        assert copy.weights_hash == mine
+    with pytest.raises(MapError, match=r"map\.h5.*other weights") as err:
+        MapDatabase.open(path, expected_weights_hash=other)
+    assert mine[:16] in str(err.value) and other[:16] in str(err.value)
+    MapDatabase.open(path).close()  # nothing expected: nothing checked
+
+
+def test_map_without_weights_fingerprint_opens_with_a_warning(tmp_path: Path) -> None:
+    path = saved(tmp_path)  # written without weights_hash, like maps of older vvloc
+    with MapDatabase.open(path) as db:
+        assert db.weights_hash is None
+    with pytest.warns(UserWarning, match=r"map\.h5.*no weights fingerprint"):
+        MapDatabase.open(path, expected_weights_hash="a" * 64).close()
+
+
+@pytest.mark.parametrize("bad", ["", 7, b"ab"])
+def test_bad_weights_hash_is_refused(tmp_path: Path, bad: Any) -> None:
+    with pytest.raises(TypeError, match="weights_hash"):
+        MapWriter(tmp_path / "map.h5", model_config=CONFIG, grid_size=0.3, weights_hash=bad)
+    with pytest.raises(TypeError, match="weights_hash"):
+        MapDatabase.from_arrays(**keyframes(), model_config=CONFIG, grid_size=0.3, weights_hash=bad)
+    assert not any(tmp_path.iterdir())
+
+
 def test_inconsistent_lengths_are_refused(tmp_path: Path) -> None:
     path = saved(tmp_path)
 

@@ -43,7 +43,7 @@ from tqdm import tqdm
 
 from vvloc import geometry, kernels
 from vvloc.data import Frame
-from vvloc.localize.mapdb import MapDatabase, MapWriter
+from vvloc.localize.mapdb import MapDatabase, MapError, MapWriter, check_weights
 from vvloc.localize.metric import RadialMeanDecoder, SearchConfig, metric_localize_best
 from vvloc.nets import VVLocNet
 from vvloc.retrieval import DescriptorIndex
@@ -157,6 +157,27 @@ def interacting_decoder(model: VVLocNet, desc_tgt: F32):  # type: ignore[no-unty
     return lambda polar: interact(decode(polar), 0)
 
 
+def check_map_model(mapdb: MapDatabase, model: VVLocNet) -> None:
+    """Refuse a map that ``model`` did not build: :class:`~vvloc.localize.mapdb.MapError` (a
+    ``ValueError``) when its config hash or its weights fingerprint differs from the model's;
+    a ``UserWarning`` when the map records no weights fingerprint (written by an older vvloc).
+    """
+    if mapdb.config_hash != model.config_hash():
+        raise MapError(
+            f"map {mapdb.path}: built with model {mapdb.config_hash}, "
+            f"but the model is {model.config_hash()}; rebuild the map with this model"
+        )
+    check_weights(mapdb.weights_hash, model.weights_hash(), f"map {mapdb.path}")
+
+
+def open_map(path: str | os.PathLike[str], model: VVLocNet) -> MapDatabase:
+    """Open a map file read-only for ``model``, refused (``MapError``) if another model or
+    other weights built it; see :func:`check_map_model`."""
+    return MapDatabase.open(
+        path, expected_config_hash=model.config_hash(), expected_weights_hash=model.weights_hash()
+    )
+
+
 @dataclass
 class LocalizationResult:
     """The localization of one query frame.
@@ -264,11 +285,7 @@ class Localizer:
             raise TypeError(f"metric_from: expected a str, got {type(metric_from).__name__}")
         if metric_from not in METRIC_FROM:
             raise ValueError(f"metric_from: expected one of {METRIC_FROM}, got {metric_from!r}")
-        if mapdb.config_hash != model.config_hash():
-            raise ValueError(
-                f"map {mapdb.path}: built with model {mapdb.config_hash}, "
-                f"but the model is {model.config_hash()}"
-            )
+        check_map_model(mapdb, model)
         if isinstance(top_k, bool) or not isinstance(top_k, int) or top_k < 1:
             raise ValueError(f"top_k: expected an int >= 1, got {top_k!r}")
         self.model = model.eval()
@@ -517,6 +534,7 @@ def build_map(
         model_config=cfg.to_dict(),
         grid_size=float(cfg.grid_size),
         config_hash=model.config_hash(),
+        weights_hash=model.weights_hash(),
         dtype=dtype,  # type: ignore[arg-type]
         expected_keyframes=total,
     ) as writer:

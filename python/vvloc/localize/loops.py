@@ -24,7 +24,7 @@ from tqdm import tqdm
 from vvloc.evaluate import _int_array
 from vvloc.kernels import _positive_float, _positive_int
 from vvloc.localize.export import LoopClosures
-from vvloc.localize.localizer import interacting_decoder
+from vvloc.localize.localizer import check_map_model, interacting_decoder
 from vvloc.localize.mapdb import MapDatabase
 from vvloc.localize.metric import SearchConfig, metric_localize
 from vvloc.nets import VVLocNet
@@ -283,6 +283,7 @@ def detect_loops(
     sequence-consistency check (default 1: the pairs of the neighbouring keyframes must match
     too; 0: single keyframes, the paper's test).
     """
+    check_map_model(mapdb, model)
     if not mapdb.has_bev:
         raise ValueError(
             f"map {mapdb.path}: has no BEVs; rebuild it with BEVs stored to detect loops"

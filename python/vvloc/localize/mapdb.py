@@ -16,7 +16,9 @@ A map holds, per keyframe (row ``i`` of every per-keyframe dataset, ``N`` rows):
 
 and as file attributes: ``format`` (``"vvloc-map"``), ``format_version``, ``vvloc_version``,
 ``created_utc`` (ISO 8601), ``model_config_hash``, ``model_config_json``, ``grid_size`` (BEV
-cell size g, metres), ``descriptor_dtype`` and ``num_keyframes``.
+cell size g, metres), ``descriptor_dtype`` and ``num_keyframes``; optionally
+``model_weights_hash``, the fingerprint of the weights the map was built with (maps written
+before vvloc recorded it lack it; the format version is unchanged).
 
 Integrity: every per-keyframe dataset is chunked with HDF5's Fletcher-32 filter (a corrupted
 chunk fails when it is read), and every dataset carries a ``sha256`` attribute of its stored
@@ -31,7 +33,8 @@ held in memory (poses, global descriptors, ids, ...) are returned as read-only a
 reads (local descriptors, BEVs) as fresh float32 copies.
 
 A map built with another model is refused: pass the model's config hash as
-``expected_config_hash`` to :meth:`MapDatabase.open`.
+``expected_config_hash`` (and its weights fingerprint as ``expected_weights_hash``: two trained
+models of one architecture share a config hash) to :meth:`MapDatabase.open`.
 """
 
 from __future__ import annotations
@@ -40,6 +43,7 @@ import datetime as _dt
 import hashlib
 import json
 import os
+import warnings
 import weakref
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -61,6 +65,7 @@ __all__ = [
     "MapError",
     "MapMetadata",
     "MapWriter",
+    "check_weights",
     "model_config_hash",
 ]
 
@@ -128,6 +133,37 @@ def _canonical_json(config: Mapping[str, Any] | str) -> str:
         raise ValueError(f"model_config: not JSON-serialisable: {e}") from e
 
 
+def _check_weights_hash(weights_hash: str | None) -> str | None:
+    if weights_hash is not None and (not isinstance(weights_hash, str) or not weights_hash):
+        raise TypeError(f"weights_hash: expected a non-empty str or None, got {weights_hash!r}")
+    return weights_hash
+
+
+def check_weights(stored: str | None, expected: str | None, where: object) -> None:
+    """Refuse a map whose weights fingerprint ``stored`` differs from ``expected``.
+
+    Raises :class:`MapError` (naming ``where``, the map) when both are given and differ; warns
+    (``UserWarning``) when ``expected`` is given and the map records no fingerprint (written
+    before vvloc stored one), since such a map cannot be checked; does nothing without
+    ``expected``.
+    """
+    if expected is None:
+        return
+    if stored is None:
+        warnings.warn(
+            f"{where}: the map records no weights fingerprint (written by an older vvloc), so "
+            "it cannot be checked that it was built with these weights; rebuild it to be sure",
+            UserWarning,
+            stacklevel=3,
+        )
+    elif stored != expected:
+        raise MapError(
+            f"{where}: map built with other weights of this architecture (weights "
+            f"{stored[:16]}, the model in use has {expected[:16]}); rebuild the map with this "
+            "model"
+        )
+
+
 @dataclass(frozen=True)
 class MapMetadata:
     """Map-level metadata.
@@ -143,6 +179,7 @@ class MapMetadata:
     format_version: int
     created_utc: str
     descriptor_dtype: str
+    model_weights_hash: str | None = None
 
 
 # ---------------------------------------------------------------------------------------------
@@ -313,10 +350,12 @@ class MapWriter:
 
     ``model_config`` is the model's config (mapping or JSON text), stored as JSON; its hash is
     ``config_hash`` if given (use the model's own hash when it defines one), else
-    :func:`model_config_hash`. ``grid_size`` is the BEV cell size g (metres). ``dtype`` is the
-    stored dtype of the global and local descriptors (``"float32"`` or ``"float16"``); BEVs are
-    always stored as float16. ``expected_keyframes`` (optional, a hint) caps the HDF5 chunk
-    size so that a small map does not occupy whole default-sized chunks.
+    :func:`model_config_hash`. ``weights_hash`` (optional, e.g. ``VVLocNet.weights_hash()``) is
+    stored as the fingerprint of the weights that computed the descriptors. ``grid_size`` is
+    the BEV cell size g (metres). ``dtype`` is the stored dtype of the global and local
+    descriptors (``"float32"`` or ``"float16"``); BEVs are always stored as float16.
+    ``expected_keyframes`` (optional, a hint) caps the HDF5 chunk size so that a small map does
+    not occupy whole default-sized chunks.
 
     Usage::
 
@@ -341,6 +380,7 @@ class MapWriter:
         model_config: Mapping[str, Any] | str,
         grid_size: float,
         config_hash: str | None = None,
+        weights_hash: str | None = None,
         dtype: DescriptorDType = "float32",
         expected_keyframes: int | None = None,
     ) -> None:
@@ -350,6 +390,7 @@ class MapWriter:
         if not isinstance(config_hash, str) or not config_hash:
             raise TypeError("config_hash: expected a non-empty str")
         self._config_hash = config_hash
+        self._weights_hash = _check_weights_hash(weights_hash)
         self._grid_size = _positive_float(grid_size, "grid_size")
         self._dtype = np.dtype(_check_dtype(dtype)).newbyteorder("<")
         if expected_keyframes is not None and (
@@ -526,6 +567,8 @@ class MapWriter:
             attrs["created_utc"] = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
             attrs["model_config_hash"] = self._config_hash
             attrs["model_config_json"] = self._config_json
+            if self._weights_hash is not None:
+                attrs["model_weights_hash"] = self._weights_hash
             attrs["grid_size"] = self._grid_size
             attrs["descriptor_dtype"] = self._dtype.name
             attrs["num_keyframes"] = self._n
@@ -667,6 +710,7 @@ class MapDatabase:
         model_config: Mapping[str, Any] | str,
         grid_size: float,
         config_hash: str | None = None,
+        weights_hash: str | None = None,
         ids: Any = None,
         seq: Any = None,
         floors: Any = None,
@@ -675,8 +719,9 @@ class MapDatabase:
         """Build an in-memory map of N keyframes (see :meth:`MapWriter.append` for the arrays).
 
         Descriptors are held as float32, BEVs as float16. ``model_config`` /
-        ``config_hash`` / ``grid_size`` as for :class:`MapWriter`. Save with :meth:`save`;
-        to build a map too large for memory batch by batch, use :class:`MapWriter`.
+        ``config_hash`` / ``weights_hash`` / ``grid_size`` as for :class:`MapWriter`. Save
+        with :meth:`save`; to build a map too large for memory batch by batch, use
+        :class:`MapWriter`.
         """
         b = _validate_batch(
             poses=poses,
@@ -698,6 +743,7 @@ class MapDatabase:
             config_hash = model_config_hash(config_json)
         if not isinstance(config_hash, str) or not config_hash:
             raise TypeError("config_hash: expected a non-empty str")
+        weights_hash = _check_weights_hash(weights_hash)
         from vvloc import __version__
 
         names: dict[str, int] = {}
@@ -712,6 +758,7 @@ class MapDatabase:
             format_version=FORMAT_VERSION,
             created_utc=_dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
             descriptor_dtype="float32",
+            model_weights_hash=weights_hash,
         )
         return cls(
             metadata=metadata,
@@ -733,6 +780,7 @@ class MapDatabase:
         path: PathLike,
         expected_config_hash: str | None = None,
         *,
+        expected_weights_hash: str | None = None,
         verify: bool = True,
     ) -> MapDatabase:
         """Open a map file read-only.
@@ -741,6 +789,9 @@ class MapDatabase:
             path: the HDF5 map file.
             expected_config_hash: if given, the map must have been built with a model of this
                 config hash (refused otherwise).
+            expected_weights_hash: if given, the map must have been built with weights of this
+                fingerprint (refused otherwise; a map that records none, written before vvloc
+                stored it, is opened with a ``UserWarning`` that it cannot be checked).
             verify: check the SHA-256 of the small datasets (poses, global descriptors, ...);
                 :meth:`verify` checks the lazily read ones too.
 
@@ -748,8 +799,8 @@ class MapDatabase:
             FileNotFoundError: no file at ``path``.
             MapError: not an HDF5 file, not a vvloc map, corrupted or truncated, missing
                 datasets or attributes, another format version, inconsistent lengths, checksum
-                mismatch, or a config hash other than ``expected_config_hash``. The message
-                names the file.
+                mismatch, or a config hash or weights fingerprint other than the expected
+                ones. The message names the file.
         """
         p = Path(os.fspath(path))
         if not p.exists():
@@ -763,7 +814,7 @@ class MapDatabase:
                 raise MapError(f"{p}: not a vvloc map: not an HDF5 file") from e
             raise MapError(f"{p}: cannot open the map: corrupted or truncated file ({e})") from e
         try:
-            return cls._load(h5, p, expected_config_hash, verify)
+            return cls._load(h5, p, expected_config_hash, expected_weights_hash, verify)
         except MapError:
             h5.close()
             raise
@@ -776,7 +827,12 @@ class MapDatabase:
 
     @classmethod
     def _load(
-        cls, h5: h5py.File, p: Path, expected_config_hash: str | None, verify: bool
+        cls,
+        h5: h5py.File,
+        p: Path,
+        expected_config_hash: str | None,
+        expected_weights_hash: str | None,
+        verify: bool,
     ) -> MapDatabase:
         attrs = h5.attrs
         fmt = attrs.get("format")
@@ -798,6 +854,9 @@ class MapDatabase:
                 f"{p}: map built with another model: its model config hash is {config_hash}, "
                 f"the model in use has {expected_config_hash}; rebuild the map with this model"
             )
+        weights_hash = attrs.get("model_weights_hash")
+        weights_hash = None if weights_hash is None else str(weights_hash)
+        check_weights(weights_hash, expected_weights_hash, p)
         descriptor_dtype = str(attrs["descriptor_dtype"])
         if descriptor_dtype not in ("float32", "float16"):
             raise MapError(f"{p}: corrupted map: descriptor dtype {descriptor_dtype!r}")
@@ -862,6 +921,7 @@ class MapDatabase:
             format_version=version,
             created_utc=str(attrs["created_utc"]),
             descriptor_dtype=descriptor_dtype,
+            model_weights_hash=weights_hash,
         )
         return cls(
             metadata=metadata,
@@ -899,6 +959,7 @@ class MapDatabase:
             model_config=meta.model_config,
             grid_size=meta.grid_size,
             config_hash=meta.model_config_hash,
+            weights_hash=meta.model_weights_hash,
             dtype=dtype,
             expected_keyframes=len(self),
         ) as w:
@@ -988,6 +1049,11 @@ class MapDatabase:
     def config_hash(self) -> str:
         """The model config hash the map was built with."""
         return self._metadata.model_config_hash
+
+    @property
+    def weights_hash(self) -> str | None:
+        """The fingerprint of the weights the map was built with (``None``: not recorded)."""
+        return self._metadata.model_weights_hash
 
     @property
     def model_config(self) -> dict[str, Any]:

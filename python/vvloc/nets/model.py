@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 from dataclasses import dataclass
@@ -67,6 +68,19 @@ class VVLocNet(nn.Module):
     def config_hash(self) -> str:
         """Stable hash of the architecture (the config's canonical JSON)."""
         return self.config.config_hash()
+
+    def weights_hash(self) -> str:
+        """SHA-256 (64 hex digits) of the weights: every state-dict entry in name order, with
+        its name, dtype, shape and raw bytes (little-endian on the platforms vvloc builds for).
+        Two trained models of one architecture share :meth:`config_hash` but not this; maps
+        record it so that a map is only used with the weights that built it. Computed afresh
+        on each call (the weights may change)."""
+        h = hashlib.sha256()
+        for name, tensor in sorted(self.state_dict().items()):
+            t = tensor.detach().cpu().contiguous()
+            h.update(f"{name}|{t.dtype}|{tuple(t.shape)}|".encode())
+            h.update(t.reshape(-1).view(torch.uint8).numpy().tobytes())
+        return h.hexdigest()
 
     # --- forward pieces --------------------------------------------------------------------
 
