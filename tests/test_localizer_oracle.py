@@ -149,19 +149,25 @@ def test_metric_candidates_are_the_first_of_the_chosen_ordering(metric_from, tmp
     assert got.metric_row == got.map_row == got.reranked[0]
 
 
-def test_unknown_decoder_is_refused(tmp_path):
-    model = _model()
-    db = MapDatabase.from_arrays(
+def _one_keyframe_map(model, *, fingerprint=True):
+    """An in-memory map of one keyframe at the origin for ``model``; with ``fingerprint`` it
+    records the model's weights fingerprint, without it it is like a map of an older vvloc."""
+    return MapDatabase.from_arrays(
         poses=np.zeros((1, 3)),
         timestamps=np.zeros(1),
         sessions="s0",
-        global_descriptors=np.ones((1, 4), np.float32) / 2,
+        global_descriptors=np.ones((1, model.global_dim), np.float32) / model.global_dim**0.5,
         local_descriptors=np.ones((1, T, C)),
         model_config=model.config.to_dict(),
         grid_size=G,
         config_hash=model.config_hash(),
-        weights_hash=model.weights_hash(),
+        weights_hash=model.weights_hash() if fingerprint else None,
     )
+
+
+def test_unknown_decoder_is_refused():
+    model = _model()
+    db = _one_keyframe_map(model)
     with pytest.raises(ValueError, match="decoder"):
         Localizer(model, db, decoder="magic")
     with pytest.raises(ValueError, match="metric_candidates"):
@@ -185,7 +191,7 @@ def test_a_map_is_used_only_with_the_weights_that_built_it(tmp_path):
     glob = rng.standard_normal((2, model.global_dim)).astype(np.float32)
     glob /= np.linalg.norm(glob, axis=1, keepdims=True)
     path = _save_map(model, tmp_path, np.zeros((2, 3)), glob, np.ones((2, T, C), np.float32))
-    # the same architecture, other weights (one bias changed): same config hash
+    # the same architecture, other weights (one weight changed): the same config hash
     other = copy.deepcopy(model)
     with torch.no_grad():
         next(other.parameters()).view(-1)[0] += 1.0
@@ -202,18 +208,9 @@ def test_a_map_is_used_only_with_the_weights_that_built_it(tmp_path):
     assert VVLocNet.load(model.save(tmp_path / "ckpt")).weights_hash() == model.weights_hash()
 
 
-def test_a_map_without_weights_fingerprint_warns(tmp_path):
+def test_a_map_without_weights_fingerprint_warns():
     model = _model()
-    db = MapDatabase.from_arrays(
-        poses=np.zeros((1, 3)),
-        timestamps=np.zeros(1),
-        sessions="s0",
-        global_descriptors=np.ones((1, model.global_dim), np.float32) / model.global_dim**0.5,
-        local_descriptors=np.ones((1, T, C)),
-        model_config=model.config.to_dict(),
-        grid_size=G,
-        config_hash=model.config_hash(),
-    )
+    db = _one_keyframe_map(model, fingerprint=False)
     with pytest.warns(UserWarning, match="no weights fingerprint"):
         Localizer(model, db)
 
