@@ -352,6 +352,15 @@ def test_map_without_weights_fingerprint_opens_with_a_warning(tmp_path: Path) ->
         MapDatabase.open(path, expected_weights_hash="a" * 64).close()
 
 
+def test_bad_expected_or_stored_weights_hash_is_refused(tmp_path: Path) -> None:
+    path = saved(tmp_path)
+    with pytest.raises(TypeError, match="expected_weights_hash"):
+        MapDatabase.open(path, expected_weights_hash=7)  # type: ignore[arg-type]
+    edit(path, lambda f: f.attrs.__setitem__("model_weights_hash", ""))
+    with pytest.raises(MapError, match=r"map\.h5: corrupted map: model_weights_hash"):
+        MapDatabase.open(path)
+
+
 @pytest.mark.parametrize("bad", ["", 7, b"ab"])
 def test_bad_weights_hash_is_refused(tmp_path: Path, bad: Any) -> None:
     with pytest.raises(TypeError, match="weights_hash"):

@@ -43,13 +43,14 @@ def loops(
     import torch
 
     from vvloc.localize.export import write_g2o, write_loop_csv, write_tum
-    from vvloc.localize.localizer import open_map
     from vvloc.localize.loops import detect_loops
+    from vvloc.localize.mapdb import MapDatabase
     from vvloc.nets import VVLocNet
 
     with cli_errors("loops"):
         model = VVLocNet.load(resolve_checkpoint(checkpoint)).to(torch.device(device))
-        db = open_map(map_path, model)
+        # detect_loops checks the weights fingerprint (once, so an old map warns once)
+        db = MapDatabase.open(map_path, expected_config_hash=model.config_hash())
         found = detect_loops(
             model,
             db,

@@ -310,7 +310,7 @@ def run_evaluation(
             "database": database,
             "queries": ",".join(queries),
             "model_config_hash": model.config_hash(),
-            "model_weights_hash": model.weights_hash()[:16],
+            "model_weights_hash": model.weights_hash(),
             "top_k": k,
             "metric_candidates": loc.metric_candidates,
             "metric_from": loc.metric_from,

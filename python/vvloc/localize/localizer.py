@@ -162,17 +162,19 @@ def check_map_model(mapdb: MapDatabase, model: VVLocNet) -> None:
     ``ValueError``) when its config hash or its weights fingerprint differs from the model's;
     a ``UserWarning`` when the map records no weights fingerprint (written by an older vvloc).
     """
+    where = "in-memory map" if mapdb.path is None else f"map {mapdb.path}"
     if mapdb.config_hash != model.config_hash():
         raise MapError(
-            f"map {mapdb.path}: built with model {mapdb.config_hash}, "
+            f"{where}: built with model {mapdb.config_hash}, "
             f"but the model is {model.config_hash()}; rebuild the map with this model"
         )
-    check_weights(mapdb.weights_hash, model.weights_hash(), f"map {mapdb.path}")
+    check_weights(mapdb.weights_hash, model.weights_hash(), where)
 
 
 def open_map(path: str | os.PathLike[str], model: VVLocNet) -> MapDatabase:
-    """Open a map file read-only for ``model``, refused (``MapError``) if another model or
-    other weights built it; see :func:`check_map_model`."""
+    """Open a map file read-only for ``model``: ``MapError`` if another model or other weights
+    built it, a ``UserWarning`` if it records no weights fingerprint (see
+    :func:`check_map_model`)."""
     return MapDatabase.open(
         path, expected_config_hash=model.config_hash(), expected_weights_hash=model.weights_hash()
     )
@@ -228,7 +230,8 @@ class Localizer:
     """Localizes query frames against a :class:`MapDatabase` with a :class:`VVLocNet`.
 
     Args:
-        model: the network (its ``config_hash`` must match the map's).
+        model: the network that built the map (config hash and weights fingerprint are
+            checked: :func:`check_map_model`).
         mapdb: an opened map.
         top_k: number of retrieved candidates (K, default 20).
         rerank: re-rank the candidates by yaw matching cost (default True).
@@ -326,10 +329,15 @@ class Localizer:
         device: str | torch.device = "cpu",
         **kwargs: Any,
     ) -> Localizer:
-        """Load a checkpoint directory and open a map built with it (refused otherwise)."""
+        """Load a checkpoint directory and open a map built with it (refused otherwise, see
+        :func:`check_map_model`; the map is closed again when the localizer cannot be made)."""
         model = VVLocNet.load(checkpoint).to(torch.device(device))
         mapdb = MapDatabase.open(map_path, expected_config_hash=model.config_hash())
-        return cls(model, mapdb, **kwargs)
+        try:
+            return cls(model, mapdb, **kwargs)
+        except BaseException:
+            mapdb.close()
+            raise
 
     # --- stages --------------------------------------------------------------------------
 

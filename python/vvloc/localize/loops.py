@@ -239,8 +239,11 @@ def verify_pairs(
     search: SearchConfig | None = None,
     progress: bool = False,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Metric pose ξ_{i→j} (P, 3) and matching cost (P,) of map row pairs: keyframe i's stored
-    BEV is the padded source, keyframe j's local-view descriptor the target."""
+    """Metric pose ξ_{i→j} (P, 3) and matching cost (P,) of map row pairs (``rows_i``,
+    ``rows_j`` (P,) ints): keyframe i's stored BEV is the padded source, keyframe j's
+    local-view descriptor the target. It does not check that ``model`` built the map (the
+    caller does, once: :func:`~vvloc.localize.localizer.check_map_model`, as
+    :func:`detect_loops` does)."""
     cfg = model.config
     poses = np.zeros((len(rows_i), 3))
     costs = np.zeros(len(rows_i))
@@ -278,10 +281,11 @@ def detect_loops(
     Returns :class:`LoopClosures` whose ``i``/``j`` are keyframe *ids* (``mapdb.ids``), closest
     candidates in descriptor space first.
 
-    The map must hold BEVs (built with ``store_bev=True``). ``max_pairs`` keeps only the
-    closest candidates in descriptor space (None: all). ``sequence``: the half-window L of the
-    sequence-consistency check (default 1: the pairs of the neighbouring keyframes must match
-    too; 0: single keyframes, the paper's test).
+    The map must hold BEVs (built with ``store_bev=True``) and have been built by ``model``
+    (:func:`~vvloc.localize.localizer.check_map_model`: ``MapError`` otherwise). ``max_pairs``
+    keeps only the closest candidates in descriptor space (None: all). ``sequence``: the
+    half-window L of the sequence-consistency check (default 1: the pairs of the neighbouring
+    keyframes must match too; 0: single keyframes, the paper's test).
     """
     check_map_model(mapdb, model)
     if not mapdb.has_bev:

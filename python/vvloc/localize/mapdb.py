@@ -133,20 +133,24 @@ def _canonical_json(config: Mapping[str, Any] | str) -> str:
         raise ValueError(f"model_config: not JSON-serialisable: {e}") from e
 
 
-def _check_weights_hash(weights_hash: str | None) -> str | None:
+def _check_weights_hash(weights_hash: str | None, name: str = "weights_hash") -> str | None:
+    """``weights_hash`` (a non-empty str, e.g. the 64 hex digits of ``VVLocNet.weights_hash()``,
+    or None) unchanged; ``TypeError`` naming ``name`` otherwise."""
     if weights_hash is not None and (not isinstance(weights_hash, str) or not weights_hash):
-        raise TypeError(f"weights_hash: expected a non-empty str or None, got {weights_hash!r}")
+        raise TypeError(f"{name}: expected a non-empty str or None, got {weights_hash!r}")
     return weights_hash
 
 
 def check_weights(stored: str | None, expected: str | None, where: object) -> None:
-    """Refuse a map whose weights fingerprint ``stored`` differs from ``expected``.
+    """Refuse a map whose weights fingerprint ``stored`` differs from ``expected`` (both the
+    full strings, e.g. 64 hex digits, or None).
 
     Raises :class:`MapError` (naming ``where``, the map) when both are given and differ; warns
     (``UserWarning``) when ``expected`` is given and the map records no fingerprint (written
     before vvloc stored one), since such a map cannot be checked; does nothing without
     ``expected``.
     """
+    expected = _check_weights_hash(expected, "expected_weights_hash")
     if expected is None:
         return
     if stored is None:
@@ -154,13 +158,14 @@ def check_weights(stored: str | None, expected: str | None, where: object) -> No
             f"{where}: the map records no weights fingerprint (written by an older vvloc), so "
             "it cannot be checked that it was built with these weights; rebuild it to be sure",
             UserWarning,
-            stacklevel=3,
+            # this function, then MapDatabase._load or check_map_model, then MapDatabase.open,
+            # Localizer() or detect_loops: the warning names their caller
+            stacklevel=4,
         )
     elif stored != expected:
         raise MapError(
-            f"{where}: map built with other weights of this architecture (weights "
-            f"{stored[:16]}, the model in use has {expected[:16]}); rebuild the map with this "
-            "model"
+            f"{where}: map built with other weights of this architecture (weights {stored}, "
+            f"the model in use has {expected}); rebuild the map with this model"
         )
 
 
@@ -169,7 +174,9 @@ class MapMetadata:
     """Map-level metadata.
 
     ``grid_size`` is the BEV cell size g in metres; ``created_utc`` an ISO 8601 UTC time;
-    ``descriptor_dtype`` the stored dtype of the global and local descriptors.
+    ``descriptor_dtype`` the stored dtype of the global and local descriptors;
+    ``model_weights_hash`` the fingerprint of the weights that built the map (``None`` for maps
+    written before vvloc recorded it).
     """
 
     model_config_hash: str
@@ -797,11 +804,13 @@ class MapDatabase:
 
         Raises:
             FileNotFoundError: no file at ``path``.
+            TypeError: ``expected_weights_hash`` neither a non-empty str nor None.
             MapError: not an HDF5 file, not a vvloc map, corrupted or truncated, missing
                 datasets or attributes, another format version, inconsistent lengths, checksum
                 mismatch, or a config hash or weights fingerprint other than the expected
                 ones. The message names the file.
         """
+        _check_weights_hash(expected_weights_hash, "expected_weights_hash")
         p = Path(os.fspath(path))
         if not p.exists():
             raise FileNotFoundError(f"map file not found: {p}")
@@ -855,7 +864,8 @@ class MapDatabase:
                 f"the model in use has {expected_config_hash}; rebuild the map with this model"
             )
         weights_hash = attrs.get("model_weights_hash")
-        weights_hash = None if weights_hash is None else str(weights_hash)
+        if weights_hash is not None and (not isinstance(weights_hash, str) or not weights_hash):
+            raise MapError(f"{p}: corrupted map: model_weights_hash is {weights_hash!r}")
         check_weights(weights_hash, expected_weights_hash, p)
         descriptor_dtype = str(attrs["descriptor_dtype"])
         if descriptor_dtype not in ("float32", "float16"):
