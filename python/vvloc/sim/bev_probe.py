@@ -17,7 +17,7 @@ car comes and goes independently): what a probe finds without looking at the car
 
 Usage (from the repository root)::
 
-    .venv/bin/python -m vvloc.sim.bev_probe --checkpoint models/synth-small \
+    .venv/bin/python -m vvloc.sim.bev_probe --checkpoint models/synth-small-v1 \
         --dataset data/synth-garage-12 --train s0,s2,s3,s4 --test s5
 
 Prints a Markdown summary; ``--json`` also writes the figures.
