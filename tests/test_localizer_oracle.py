@@ -17,7 +17,7 @@ import torch
 from test_metric_localize import bev_at, compose, world_field, wrap
 from vvloc import kernels
 from vvloc.commands._util import MetricFromChoice
-from vvloc.localize.localizer import METRIC_FROM, Localizer, open_map
+from vvloc.localize.localizer import METRIC_FROM, Localizer
 from vvloc.localize.mapdb import MapDatabase, MapError
 from vvloc.localize.metric import RadialMeanDecoder, SearchConfig
 from vvloc.nets import ModelConfig, VVLocNet
@@ -202,8 +202,8 @@ def test_a_map_is_used_only_with_the_weights_that_built_it(tmp_path):
         with pytest.raises(MapError, match=r"map\.h5.*other weights"):
             Localizer(other, mapdb)
     with pytest.raises(MapError, match="other weights"):
-        open_map(path, other)
-    open_map(path, model).close()
+        MapDatabase.open(path, expected_weights_hash=other.weights_hash())
+    MapDatabase.open(path, expected_weights_hash=model.weights_hash()).close()
     # the fingerprint survives a checkpoint round trip
     assert VVLocNet.load(model.save(tmp_path / "ckpt")).weights_hash() == model.weights_hash()
 

@@ -27,9 +27,9 @@ from vvloc.localize.localizer import (
     Localizer,
     build_map,
     encode_frames,
-    open_map,
 )
 from vvloc.localize.loops import confirm_sequence, loop_candidates, sweep_radius, verify_pairs
+from vvloc.localize.mapdb import MapDatabase
 from vvloc.localize.metric import SearchConfig
 from vvloc.nets import VVLocNet
 
@@ -104,7 +104,7 @@ def _loops(
     closure: dict[str, Any] = {}
     pose: dict[str, Any] = {}
     verified: dict[tuple[int, int], tuple[np.ndarray, float]] = {}
-    with open_map(path, model) as db:
+    with MapDatabase.open(path, expected_config_hash=model.config_hash()) as db:
         pos = np.asarray(db.poses)[:, :2]
         floors = np.asarray(db.floors)
         bound = sweep_radius(
@@ -216,7 +216,7 @@ def run_evaluation(
     map_path = build_map(
         model, ds, [database], out_dir / "map.h5", store_bev=False, progress=progress
     )
-    mapdb = open_map(map_path, model)
+    mapdb = MapDatabase.open(map_path, expected_config_hash=model.config_hash())
     loc = Localizer(
         model,
         mapdb,

@@ -171,15 +171,6 @@ def check_map_model(mapdb: MapDatabase, model: VVLocNet) -> None:
     check_weights(mapdb.weights_hash, model.weights_hash(), where)
 
 
-def open_map(path: str | os.PathLike[str], model: VVLocNet) -> MapDatabase:
-    """Open a map file read-only for ``model``: ``MapError`` if another model or other weights
-    built it, a ``UserWarning`` if it records no weights fingerprint (see
-    :func:`check_map_model`)."""
-    return MapDatabase.open(
-        path, expected_config_hash=model.config_hash(), expected_weights_hash=model.weights_hash()
-    )
-
-
 @dataclass
 class LocalizationResult:
     """The localization of one query frame.
