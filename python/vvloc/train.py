@@ -11,6 +11,8 @@ triplet margin are re-drawn until they are satisfied). Every random choice is se
 Outputs in ``out_dir``: ``checkpoint/`` (safetensors weights + JSON config, written each epoch),
 ``trainer_state.pt`` (optimizer, scheduler, epoch, step, sampler state, for ``--resume``),
 ``log.jsonl`` (one JSON object per epoch) and ``train_config.yaml`` (the resolved config).
+Every checkpoint it writes holds a ``training.json`` (:mod:`vvloc.provenance`): the hardware,
+device and wall time of this run and of the runs that produced its ``init_checkpoint``.
 
 With ``val_sessions``, every joint epoch is scored on those held-out sessions against a map of
 ``val_database`` (:func:`validation_recall`: Recall@1 at 2 m after re-ranking, then by retrieval
@@ -51,6 +53,7 @@ from torch.utils.data import DataLoader
 from torch.utils.data import Dataset as TorchDataset
 from tqdm import tqdm
 
+import vvloc
 from vvloc import geometry
 from vvloc._io import atomic_write
 from vvloc.checkpoints import resolve_checkpoint
@@ -65,6 +68,7 @@ from vvloc.losses import (
 )
 from vvloc.nets import ModelConfig, VVLocNet
 from vvloc.nets.heads import NetVLADHead
+from vvloc.provenance import TRAINING_FILE, hardware
 
 log = logging.getLogger("vvloc.train")
 
@@ -583,6 +587,7 @@ class Trainer:
     """Runs (or resumes) a training run described by a :class:`TrainConfig` into ``out_dir``."""
 
     def __init__(self, cfg: TrainConfig, out_dir: str | os.PathLike[str]) -> None:
+        t_setup = time.perf_counter()
         self.cfg = cfg
         self.out = Path(out_dir)
         self.device = pick_device(cfg.device)
@@ -619,6 +624,8 @@ class Trainer:
         self.model = VVLocNet(cfg.model_config()).to(self.device)
         # True while the global head holds no trained weights (the head stage initialises it)
         self.head_untrained = cfg.stage1_epochs + cfg.stage2_epochs == 0
+        self.init_weights_hash: str | None = None
+        self.earlier_runs: list[dict[str, Any]] = []  # the init checkpoint's training record
         if cfg.init_checkpoint is not None:
             self._load_init(Path(cfg.init_checkpoint))
         self.augment = None if cfg.augment is None else PhotometricAugment.from_dict(cfg.augment)
@@ -635,6 +642,9 @@ class Trainer:
         self.epoch = 0
         self.step = 0
         self.best: dict[str, Any] | None = None  # the validation record of best/, if any
+        # wall seconds of this run so far (set-up of each process included; None when resumed
+        # from a trainer state that did not count them): the training record's "seconds"
+        self.elapsed: float | None = time.perf_counter() - t_setup
 
     def _load_init(self, path: Path) -> None:
         """Copy the weights of ``init_checkpoint`` into the fresh model (refused when its model
@@ -647,6 +657,10 @@ class Trainer:
                 "such as models/synth-small-base"
             )
         init = VVLocNet.load(path)
+        self.init_weights_hash = init.weights_hash()
+        self.earlier_runs = list(init.training_record.get("runs", [])) or [
+            {"recorded": False, "checkpoint": str(path), "weights_hash": self.init_weights_hash}
+        ]
         if init.config_hash() == self.model.config_hash():
             self.model.load_state_dict(init.state_dict())
             self.head_untrained = False
@@ -692,10 +706,47 @@ class Trainer:
     def _state_path(self) -> Path:
         return self.out / "trainer_state.pt"
 
+    def training_record(self, weights_epoch: int) -> dict[str, Any]:
+        """The training record (:mod:`vvloc.provenance`) of weights this run produced at
+        ``weights_epoch`` (1-based), as of now: the init checkpoint's runs, then this one."""
+        if self.device.type == "cuda":
+            device = f"cuda ({torch.cuda.get_device_name(self.device)})"
+        else:
+            device = self.device.type
+        run = {
+            "out": str(self.out),
+            "config": self.cfg.to_dict(),
+            "hardware": hardware(),
+            "device": device,
+            "torch": torch.__version__,
+            "vvloc": vvloc.__version__,
+            "epochs_run": self.epoch,
+            "epochs": self.cfg.epochs,
+            "weights_epoch": weights_epoch,
+            "complete": self.epoch >= self.cfg.epochs,
+            "seconds": None if self.elapsed is None else round(self.elapsed, 1),
+            "init_weights_hash": self.init_weights_hash,
+        }
+        return {"runs": [*self.earlier_runs, run]}
+
+    def _finish_best(self) -> None:
+        """Bring ``best/training.json`` up to the whole run (its epochs and seconds), the time
+        it took to produce and select those weights; the weights themselves are unchanged."""
+        path = self.best_dir / TRAINING_FILE
+        if self.best is None or not path.is_file():
+            return
+        record = json.loads(path.read_text())
+        record["runs"] = self.training_record(int(self.best["epoch"]))["runs"]
+        with atomic_write(path) as f:
+            f.write(json.dumps(record, indent=2))
+
     def save(self) -> None:
-        """Write the model checkpoint and the trainer state (atomically, each file)."""
+        """Write the model checkpoint (with its training record) and the trainer state
+        (atomically, each file)."""
         self.out.mkdir(parents=True, exist_ok=True)
+        self.model.training_record = self.training_record(self.epoch)
         self.model.save(self.checkpoint_dir)
+        self.model.training_record = {}
         state = {
             "epoch": self.epoch,
             "step": self.step,
@@ -709,6 +760,7 @@ class Trainer:
             "torch_rng": torch.get_rng_state(),
             "best": self.best,
             "config": self.cfg.to_dict(),
+            "elapsed_seconds": self.elapsed,
         }
         with atomic_write(self._state_path(), "wb") as fb:
             torch.save(state, fb)
@@ -756,6 +808,8 @@ class Trainer:
         self.epoch = int(state["epoch"])
         self.step = int(state["step"])
         self.best = state.get("best")
+        before = state.get("elapsed_seconds")  # absent in states saved before it was counted
+        self.elapsed = None if before is None or self.elapsed is None else before + self.elapsed
         log.info("resumed %s at epoch %d, step %d", self.out, self.epoch, self.step)
         return True
 
@@ -1023,10 +1077,15 @@ class Trainer:
         cfg = self.cfg
         records = []
         while self.epoch < cfg.epochs:
+            t0 = time.perf_counter()
             validating = self.validates(self.epoch)
             rec = self.run_epoch(progress=progress)
             if validating:
                 rec["val"] = self.validate()
+            if self.elapsed is not None:  # the saves below record it
+                self.elapsed += time.perf_counter() - t0
+            t0 = time.perf_counter()
+            if validating:
                 key = self.selection_key(rec["val"])
                 if self.best is None or key > self.selection_key(self.best["val"]):
                     self.model.calibration = {
@@ -1036,17 +1095,22 @@ class Trainer:
                         "sessions": list(cfg.val_sessions or []),
                         "every": int(cfg.val_every),
                     }
+                    self.model.training_record = self.training_record(self.epoch)
                     self.model.save(self.best_dir)
-                    self.model.calibration = {}
+                    self.model.calibration, self.model.training_record = {}, {}
                     self.best = {"epoch": rec["epoch"], "val": rec["val"]}
                 rec["best_epoch"] = self.best["epoch"]
             records.append(rec)
             self.save()
+            if self.elapsed is not None:
+                self.elapsed += time.perf_counter() - t0
             with open(self.out / "log.jsonl", "a") as f:
                 f.write(json.dumps(rec) + "\n")
             log.info("epoch %d: %s", rec["epoch"], {k: v for k, v in rec.items() if "loss" in k})
             if not all(math.isfinite(v) for k, v in rec.items() if k.startswith("loss_")):
                 raise FloatingPointError(f"non-finite loss in epoch {rec['epoch']}: {rec}")
+        if records:  # a finished run resumed again trains nothing and changes no record
+            self._finish_best()
         return records
 
 

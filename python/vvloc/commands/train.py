@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Annotated
 
 import typer
 
+from vvloc.checkpoints import resolve_checkpoint
 from vvloc.commands._util import cli_errors
+from vvloc.provenance import TRAINING_FILE, summarize
 
 
 def train(
@@ -30,3 +33,5 @@ def train(
             f"{val['r1_reranked']:.1%} re-ranked, {val['r1_retrieval']:.1%} retrieval): "
             f"{trainer.best_dir} (the one `vvloc eval --checkpoint {out}` uses)"
         )
+    record = resolve_checkpoint(out) / TRAINING_FILE  # as written, also for a finished run
+    typer.echo(f"trained on: {summarize(json.loads(record.read_text()))}")

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import logging
 import os
-import platform
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -18,7 +17,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from vvloc import evaluate, geometry, kernels, viz
+from vvloc import evaluate, geometry, kernels, provenance, viz
 from vvloc._io import atomic_write
 from vvloc.data import Frame, open_dataset
 from vvloc.data.perturb import perturb_frame
@@ -32,6 +31,7 @@ from vvloc.localize.loops import confirm_sequence, loop_candidates, sweep_radius
 from vvloc.localize.mapdb import MapDatabase
 from vvloc.localize.metric import SearchConfig
 from vvloc.nets import VVLocNet
+from vvloc.provenance import hardware
 
 #: Loop closure's precision-recall sweep scores the pairs within this descriptor distance...
 LOOP_SWEEP_RADIUS = 0.5
@@ -192,6 +192,9 @@ def run_evaluation(
     """Evaluate a checkpoint on ``dataset``: map = ``database`` session, queries = every
     ``every``-th frame of each session in ``queries``. Writes ``out/map.h5``,
     ``out/report.md``, ``out/report.json``, ``out/queries.csv`` and plots; returns the metrics.
+    The report's meta names this machine (``hardware``) and, from the checkpoint's
+    ``training.json``, the hardware and wall time that produced the weights (``trained_on``,
+    :func:`vvloc.provenance.summarize`; the whole record is the JSON's ``training``).
     ``metric_candidates``, ``metric_from`` and ``snap`` are :class:`Localizer`'s (the M
     candidates scored by the coarse translation search, the first M of the retrieval order or of
     the yaw re-ranking; the reported keyframe snapped to the metric pose).
@@ -316,9 +319,11 @@ def run_evaluation(
             "metric_from": loc.metric_from,
             "snap": loc.snap,
             "device": device,
-            "hardware": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores",
+            "hardware": hardware(),
             "torch_threads": torch.get_num_threads(),
+            "trained_on": provenance.summarize(model.training_record),
         },
+        "training": model.training_record or None,
         "global_localization": {"VVLoc-G": rec_g, "VVLoc-ML": rec_ml},
         "per_session": per_session,
         "pose_accuracy": {"VVLoc-ML": pose_acc},

@@ -5,8 +5,10 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import torch
 from safetensors.torch import load_file, save
@@ -19,6 +21,7 @@ from vvloc.nets.decoder import Interactor, LocalViewDecoder
 from vvloc.nets.encoder import BevEncoder
 from vvloc.nets.heads import make_global_head
 from vvloc.nets.polar import polar_sample
+from vvloc.provenance import TRAINING_FILE, TRAINING_FORMAT, TRAINING_VERSION, validate_record
 
 WEIGHTS_FILE = "model.safetensors"
 CONFIG_FILE = "config.json"
@@ -53,6 +56,9 @@ class VVLocNet(nn.Module):
         #: Acceptance calibration (``{"min_distinctiveness": …, …}``), saved and loaded with the
         #: checkpoint as ``calibration.json``; empty when the model was never calibrated.
         self.calibration: dict[str, object] = {}
+        #: Training record (:mod:`vvloc.provenance`: ``{"runs": [...]}``, the runs that produced
+        #: these weights), saved and loaded as ``training.json``; empty when none was recorded.
+        self.training_record: dict[str, Any] = {}
         self.backbone = ResNetBackbone(config.backbone_widths, config.backbone_blocks)
         self.fpn = FPN(config.backbone_widths, config.channels, config.num_levels)
         self.encoder = BevEncoder(config)
@@ -165,8 +171,10 @@ class VVLocNet(nn.Module):
     # --- checkpoints -----------------------------------------------------------------------
 
     def save(self, directory: str | os.PathLike[str]) -> Path:
-        """Write ``model.safetensors``, ``config.json`` (format, version, config, hash) and, when
-        the model is calibrated, ``calibration.json`` into ``directory`` (created if needed).
+        """Write ``model.safetensors``, ``config.json`` (format, version, config, hash), when
+        the model is calibrated ``calibration.json``, and when it has a training record
+        ``training.json`` (:mod:`vvloc.provenance`, stamped with :meth:`weights_hash`) into
+        ``directory`` (created if needed).
         Files are written to temporaries and renamed, so a failure leaves no partial file."""
         out = Path(directory)
         out.mkdir(parents=True, exist_ok=True)
@@ -187,6 +195,17 @@ class VVLocNet(nn.Module):
                 f.write(json.dumps(self.calibration, indent=2))
         else:  # a stale calibration would describe other weights
             (out / CALIBRATION_FILE).unlink(missing_ok=True)
+        if self.training_record:
+            record = {
+                "format": TRAINING_FORMAT,
+                "version": TRAINING_VERSION,
+                "weights_hash": self.weights_hash(),
+                "runs": self.training_record["runs"],
+            }
+            with atomic_write(out / TRAINING_FILE) as f:
+                f.write(json.dumps(record, indent=2))
+        else:  # likewise a stale training record
+            (out / TRAINING_FILE).unlink(missing_ok=True)
         return out
 
     @classmethod
@@ -194,7 +213,8 @@ class VVLocNet(nn.Module):
         cls, directory: str | os.PathLike[str], map_location: str | torch.device = "cpu"
     ) -> VVLocNet:
         """Load a checkpoint written by :meth:`save`; raises ``ValueError`` on a wrong format,
-        version, or weights that do not match the architecture (names and shapes listed)."""
+        version, or weights that do not match the architecture (names and shapes listed). A
+        ``training.json`` that describes other weights is ignored with a ``UserWarning``."""
         src = Path(directory)
         cfg_path, w_path = src / CONFIG_FILE, src / WEIGHTS_FILE
         for p in (cfg_path, w_path):
@@ -234,4 +254,17 @@ class VVLocNet(nn.Module):
             if not isinstance(cal, dict):
                 raise ValueError(f"{cal_path}: expected a JSON object")
             model.calibration = cal
+        train_path = src / TRAINING_FILE
+        if train_path.is_file():
+            record = validate_record(json.loads(train_path.read_text()), str(train_path))
+            if record["weights_hash"] == model.weights_hash():
+                model.training_record = {"runs": record["runs"]}
+            else:
+                theirs, mine = record["weights_hash"][:16], model.weights_hash()[:16]
+                warnings.warn(
+                    f"{train_path}: describes other weights (weights_hash {theirs}, the "
+                    f"checkpoint's {mine}); ignored",
+                    UserWarning,
+                    stacklevel=2,
+                )
         return model.to(map_location)
