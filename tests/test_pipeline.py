@@ -274,7 +274,8 @@ def test_evaluation_scores_loop_closures_at_the_given_radius(tiny_world, model_d
     # the report names the weights, not only the architecture (trained models share the latter)
     assert meta["model_weights_hash"] == VVLocNet.load(model_dir).weights_hash()
     # ... and says what produced them: here nothing recorded (weights saved outside a run)
-    assert meta["trained_on"].startswith("not recorded") and m["training"] is None
+    assert meta["trained_on"] == "no training record for these weights"
+    assert m["training"] is None
     report = (tmp_path / "ev" / "report.md").read_text()
     assert "then the first 3 retrieved candidates put first" in report
     assert "| VVLoc (descriptor radius) | 0.300 |" in report
@@ -292,7 +293,8 @@ def test_evaluation_scores_loop_closures_at_the_given_radius(tiny_world, model_d
     # a memory bound of one pair: the sweep shrinks to the acceptance radius, and says so;
     # these weights carry a training record, which the report summarises and keeps whole
     recorded = VVLocNet.load(model_dir)
-    recorded.training_record = {"runs": [{"hardware": "h", "device": "cpu", "seconds": 120.0}]}
+    proc = {"hardware": "h", "device": "cpu", "device_name": None}
+    recorded.training_record = {"runs": [{"seconds": 120.0, "processes": [proc]}]}
     recorded_dir = recorded.save(tmp_path / "recorded")
     m1 = run_evaluation(
         recorded_dir,
@@ -304,10 +306,10 @@ def test_evaluation_scores_loop_closures_at_the_given_radius(tiny_world, model_d
         loop_sweep_pairs=1,
         **kw,
     )
-    assert m1["meta"]["trained_on"] == "h (cpu); 1 run, 2.0 min"
+    assert m1["meta"]["trained_on"] == "cpu on h; 1 run, 2.0 min"
     assert m1["training"] == recorded.training_record
     report1 = (tmp_path / "ev1" / "report.md").read_text()
-    assert "- **trained_on**: h (cpu); 1 run, 2.0 min" in report1
+    assert "- **trained_on**: cpu on h; 1 run, 2.0 min" in report1
     assert m1["loop_sweep_radius"] == pytest.approx(0.3)
     assert any("acceptance radius 0.3 only" in n and "loop_sweep_pairs" in n for n in m1["notes"])
     for name, curve in m1["loop_closure"].items():

@@ -2,35 +2,46 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 
-from vvloc.provenance import summarize, validate_record
+from vvloc.provenance import json_safe, summarize, validate_record
+
+CPU = {"hardware": "x86_64, 2 cores", "device": "cpu", "device_name": None}
+H200 = {"hardware": "x86_64, 16 cores", "device": "cuda", "device_name": "NVIDIA H200"}
 
 
-def _run(seconds: float, device: str = "cpu", **kw) -> dict:
-    return {"hardware": "x86_64, 2 cores", "device": device, "seconds": seconds} | kw
+def _run(seconds: float | None, *procs: dict, **kw) -> dict:
+    return {"seconds": seconds, "processes": list(procs or [CPU])} | kw
 
 
 def test_summary_names_hardware_runs_and_minutes():
-    assert summarize(None).startswith("not recorded")
-    assert summarize({}).startswith("not recorded")
-    one = {"runs": [_run(90.0)]}
-    assert summarize(one) == "x86_64, 2 cores (cpu); 1 run, 1.5 min"
+    assert summarize(None) == summarize({}) == "no training record for these weights"
+    assert summarize({"runs": [_run(90.0)]}) == "cpu on x86_64, 2 cores; 1 run, 1.5 min"
     four = {"runs": [_run(4020.0), _run(252.0), _run(684.0), _run(294.0)]}
-    assert summarize(four) == "x86_64, 2 cores (cpu); 4 runs, 87.5 min (67.0 + 4.2 + 11.4 + 4.9)"
-    mixed = {"runs": [_run(60.0), _run(30.0, "cuda (NVIDIA H200)")]}
+    assert summarize(four) == "cpu on x86_64, 2 cores; 4 runs, 87.5 min (67.0 + 4.2 + 11.4 + 4.9)"
+    # a run resumed on another machine names both
+    mixed = {"runs": [_run(60.0), _run(30.0, CPU, H200)]}
     assert summarize(mixed) == (
-        "x86_64, 2 cores (cpu); x86_64, 2 cores (cuda (NVIDIA H200)); 2 runs, 1.5 min (1.0 + 0.5)"
+        "NVIDIA H200 (cuda) on x86_64, 16 cores and cpu on x86_64, 2 cores; "
+        "2 runs, 1.5 min (1.0 + 0.5)"
     )
     partial = {"runs": [{"recorded": False, "weights_hash": "ab"}, _run(60.0, complete=False)]}
     assert summarize(partial) == (
-        "x86_64, 2 cores (cpu); 1 run, 1.0 min, after 1 earlier run not recorded "
-        "(a run still in progress)"
+        "cpu on x86_64, 2 cores; 1 run, 1.0 min, after an init checkpoint without a record "
+        "(1 run unfinished)"
     )
-    unknown = {"runs": [_run(60.0), {"hardware": "x86_64, 2 cores", "device": "cpu"}]}
+    unknown = {"runs": [_run(60.0), _run(None)]}
     assert summarize(unknown) == (
-        "x86_64, 2 cores (cpu); 2 runs, 1.0 min, time not recorded for 1 run"
+        "cpu on x86_64, 2 cores; 2 runs, 1.0 min, time not measured for 1 run"
     )
+    assert summarize({"runs": [{"seconds": 6.0}]}) == "unknown hardware; 1 run, 0.1 min"
+
+
+def test_json_safe_replaces_non_finite_floats_only():
+    value = {"a": [1.0, math.nan, (math.inf, 2)], "b": "nan", "c": None, "d": 3}
+    assert json_safe(value) == {"a": [1.0, None, [None, 2]], "b": "nan", "c": None, "d": 3}
 
 
 @pytest.mark.parametrize(
@@ -38,10 +49,13 @@ def test_summary_names_hardware_runs_and_minutes():
     [
         ([], "expected a JSON object"),
         ({"format": "other", "version": 1}, "expected format"),
+        ({"format": "vvloc.training", "version": 2}, "expected format"),
         ({"format": "vvloc.training", "version": 1, "runs": {}}, "'runs' must be a list"),
+        ({"format": "vvloc.training", "version": 1, "runs": [{"processes": 3}]}, "processes"),
+        ({"format": "vvloc.training", "version": 1, "runs": [{"seconds": "1"}]}, "'seconds'"),
         ({"format": "vvloc.training", "version": 1, "runs": []}, "'weights_hash'"),
     ],
 )
 def test_a_malformed_record_is_refused_naming_its_source(record, match):
-    with pytest.raises(ValueError, match=f"src.json: {match}"):
+    with pytest.raises(ValueError, match=f"src.json: .*{match}"):
         validate_record(record, "src.json")

@@ -546,23 +546,29 @@ def _record(path: Path) -> dict:
     return json.loads((path / "training.json").read_text())
 
 
-def test_every_checkpoint_records_the_runs_that_produced_it(tiny_world, tmp_path):
+def test_every_checkpoint_records_the_runs_that_produced_it(tiny_world, tmp_path, monkeypatch):
     from vvloc.provenance import hardware, summarize
 
-    first = train(_config(tiny_world, stage1_epochs=1, stage2_epochs=0), tmp_path / "a", False)
+    cfg_a = _config(tiny_world, stage1_epochs=1, stage2_epochs=0, device="cpu")
+    first = train(cfg_a, tmp_path / "a", progress=False)
     rec_a = _record(tmp_path / "a" / "checkpoint")
     assert rec_a["format"] == "vvloc.training" and rec_a["version"] == 1
     assert rec_a["weights_hash"] == first.model.weights_hash()
     (run,) = rec_a["runs"]
-    assert run["hardware"] == hardware() and run["device"] == "cpu"
     assert (run["epochs_run"], run["epochs"], run["weights_epoch"]) == (1, 1, 1)
     assert run["complete"] and run["init_weights_hash"] is None and run["seconds"] > 0
     assert run["config"] == first.cfg.to_dict() and run["out"] == str(tmp_path / "a")
+    (proc,) = run["processes"]
+    assert proc["hardware"] == hardware() and proc["device"] == "cpu"
+    assert proc["device_name"] is None and proc["torch_threads"] == torch.get_num_threads()
+    assert proc["epochs"] == [0, 1] and proc["seconds"] == run["seconds"]
     # loading keeps the record, saving elsewhere keeps it with the weights
     loaded = VVLocNet.load(tmp_path / "a" / "checkpoint")
     assert loaded.training_record == {"runs": rec_a["runs"]}
     assert _record(loaded.save(tmp_path / "copy")) == rec_a
-    # a run from that checkpoint carries its record first, then its own run
+    # a run from that checkpoint carries its record first, then its own run; best/ is kept at
+    # the first validated epoch (2 of 3) here
+    monkeypatch.setattr(Trainer, "selection_key", staticmethod(lambda val: (0.0,)))
     cfg_b = _config(
         tiny_world,
         stage2_epochs=2,
@@ -570,67 +576,90 @@ def test_every_checkpoint_records_the_runs_that_produced_it(tiny_world, tmp_path
         train_sessions=["s0", "s1"],
         val_sessions=["s2"],
         val_every=4,
+        device="cpu",
     )
     tr = train(cfg_b, tmp_path / "b", progress=False)
+    assert tr.best is not None and tr.best["epoch"] == 2
     rec_b = _record(tmp_path / "b" / "checkpoint")
     assert rec_b["runs"][0] == run
     mine = rec_b["runs"][1]
     assert mine["init_weights_hash"] == first.model.weights_hash()
     assert (mine["epochs_run"], mine["weights_epoch"], mine["complete"]) == (3, 3, True)
-    # best/: its weights' epoch, and the whole run's time (the time to produce and select them)
+    # best/: its weights' epoch, and the whole run's time (to produce and to select them)
     best = _record(tmp_path / "b" / "best")
-    assert tr.best is not None
     assert best["weights_hash"] == VVLocNet.load(tmp_path / "b" / "best").weights_hash()
-    assert best["runs"][1]["weights_epoch"] == tr.best["epoch"]
-    assert best["runs"][1]["epochs_run"] == 3 and best["runs"][1]["complete"]
-    assert best["runs"][1]["seconds"] == pytest.approx(mine["seconds"], abs=5.0)
-    line = summarize(best)
-    assert line.startswith(f"{hardware()} (cpu); 2 runs, ") and " + " in line
+    assert best["runs"][1] == {**mine, "weights_epoch": 2}
+    assert summarize(best).startswith(f"cpu on {hardware()}; 2 runs, ")
     # resuming a finished run trains nothing and leaves every record as it was
-    before = (tmp_path / "b" / "best" / "training.json").read_text()
+    before = [(tmp_path / "b" / d / "training.json").read_text() for d in ("best", "checkpoint")]
     train(cfg_b, tmp_path / "b", resume=True, progress=False)
-    assert (tmp_path / "b" / "best" / "training.json").read_text() == before
+    after = [(tmp_path / "b" / d / "training.json").read_text() for d in ("best", "checkpoint")]
+    assert after == before
 
 
-def test_training_time_survives_resume_and_an_unrecorded_init_is_named(tiny_world, tmp_path):
+def test_training_time_adds_up_over_resumed_processes(tiny_world, tmp_path):
     from vvloc.provenance import summarize
 
-    cfg = _config(tiny_world, stage1_epochs=1, stage2_epochs=1)
-    part = Trainer(cfg, tmp_path / "part")
-    part.run_epoch(progress=False)
-    part.save()
-    first_seconds = _record(tmp_path / "part" / "checkpoint")["runs"][0]["seconds"]
-    assert not _record(tmp_path / "part" / "checkpoint")["runs"][0]["complete"]
-    train(cfg, tmp_path / "part", resume=True, progress=False)
-    (run,) = _record(tmp_path / "part" / "checkpoint")["runs"]
-    assert run["complete"] and run["epochs_run"] == 2 and run["seconds"] > first_seconds
-    # an init checkpoint without a record (written by an earlier vvloc) is named, not invented
-    (tmp_path / "part" / "checkpoint" / "training.json").unlink()
-    init = str(tmp_path / "part" / "checkpoint")
-    tr = Trainer(_config(tiny_world, stage1_epochs=1, stage2_epochs=0, init_checkpoint=init), "x")
-    rec = {"format": "vvloc.training", "version": 1, "weights_hash": "0"} | tr.training_record(1)
-    assert rec["runs"][0] == {
+    out = tmp_path / "run"
+    train(_config(tiny_world, stage2_epochs=0, device="cpu"), out, progress=False)
+    (p1,) = _record(out / "checkpoint")["runs"][0]["processes"]
+    assert p1["epochs"] == [0, 1] and p1["seconds"] > 0
+    # extended by a joint epoch in a second process: both processes are in the record
+    train(_config(tiny_world, stage2_epochs=1, device="cpu"), out, resume=True, progress=False)
+    (run,) = _record(out / "checkpoint")["runs"]
+    first, second = run["processes"]
+    assert first == p1 and second["epochs"] == [1, 2] and second["seconds"] > 0
+    assert run["seconds"] == pytest.approx(first["seconds"] + second["seconds"], abs=0.11)
+    assert run["complete"] and run["epochs_run"] == 2
+    # a trainer state of an earlier vvloc measured no time: the record says so
+    state = torch.load(out / "trainer_state.pt", weights_only=False)
+    for key in ("processes", "earlier_runs", "init_weights_hash"):
+        del state[key]
+    torch.save(state, out / "trainer_state.pt")
+    again = Trainer(_config(tiny_world, stage2_epochs=1, device="cpu"), out)
+    assert again.resume()
+    (old,) = again.record_for(2)["runs"]
+    assert old["processes"][0] == {"epochs": [0, 2], "seconds": None} and old["seconds"] is None
+    assert summarize({"runs": [old]}).endswith("1 run, time not measured for 1 run")
+    # an init checkpoint without a record (saved outside a run, or by an earlier vvloc) is
+    # named, not invented
+    (out / "checkpoint" / "training.json").unlink()
+    init = str(out / "checkpoint")
+    cfg = _config(tiny_world, stage2_epochs=0, init_checkpoint=init, device="cpu")
+    runs = Trainer(cfg, tmp_path / "x").record_for(0)["runs"]
+    assert runs[0] == {
         "recorded": False,
         "checkpoint": init,
         "weights_hash": VVLocNet.load(init).weights_hash(),
     }
-    line = summarize(rec)
-    assert "; 1 run, 0.0 min, after 1 earlier run not recorded (a run still in progress)" in line
+    assert summarize({"runs": runs}).endswith(
+        "1 run, 0.0 min, after an init checkpoint without a record (1 run unfinished)"
+    )
 
 
-def test_a_training_record_of_other_weights_is_ignored_with_a_warning(tiny_world, tmp_path):
+def test_a_bad_training_record_is_ignored_with_a_warning_and_never_blocks_the_weights(
+    tiny_world, tmp_path
+):
     train(_config(tiny_world, stage1_epochs=1, stage2_epochs=0), tmp_path / "a", False)
+    record = (tmp_path / "a" / "checkpoint" / "training.json").read_text()
     other = tmp_path / "other"
     torch.manual_seed(1)
     VVLocNet(TrainConfig.from_dict({"dataset": "x", "model": "small"}).model_config()).save(other)
     assert not (other / "training.json").exists()
-    record = (tmp_path / "a" / "checkpoint" / "training.json").read_text()
-    (other / "training.json").write_text(record)
-    with pytest.warns(UserWarning, match="describes other weights"):
-        assert VVLocNet.load(other).training_record == {}
-    (other / "training.json").write_text(json.dumps({"format": "vvloc.training", "version": 9}))
-    with pytest.raises(ValueError, match=r"training\.json: expected format"):
-        VVLocNet.load(other)
+    bad = {
+        record: "describes other weights",
+        json.dumps({"format": "vvloc.training", "version": 9}): "expected format",
+        "{": "not JSON",
+    }
+    for text, match in bad.items():
+        (other / "training.json").write_text(text)
+        with pytest.warns(UserWarning, match=match):
+            assert VVLocNet.load(other).training_record == {}
+    model = VVLocNet.load(tmp_path / "a" / "checkpoint")
+    model.training_record = {"runs": "all of them"}
+    with pytest.raises(TypeError, match="training_record"):
+        model.save(tmp_path / "never")
+    assert not (tmp_path / "never").exists()
 
 
 def test_cli_train_says_what_the_weights_were_trained_on(tiny_world, tmp_path):
@@ -641,9 +670,15 @@ def test_cli_train_says_what_the_weights_were_trained_on(tiny_world, tmp_path):
 
     from vvloc.provenance import hardware
 
-    cfg = _config(tiny_world, stage1_epochs=1, stage2_epochs=0).to_dict()
+    cfg = _config(tiny_world, stage1_epochs=1, stage2_epochs=0, device="cpu").to_dict()
     (tmp_path / "cfg.yaml").write_text(yaml.safe_dump(cfg))
     exe = [sys.executable, "-m", "vvloc.cli", "train", "--config", str(tmp_path / "cfg.yaml")]
-    r = subprocess.run([*exe, "--out", str(tmp_path / "run")], capture_output=True, text=True)
+    exe += ["--out", str(tmp_path / "run")]
+    r = subprocess.run(exe, capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
-    assert f"trained on: {hardware()} (cpu); 1 run, " in r.stdout
+    assert f"trained on: cpu on {hardware()}; 1 run, " in r.stdout
+    # a finished run of an earlier vvloc (no record), resumed: it says so, and exits cleanly
+    (tmp_path / "run" / "checkpoint" / "training.json").unlink()
+    r = subprocess.run([*exe, "--resume"], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert "trained on: no training record for these weights" in r.stdout

@@ -1,33 +1,48 @@
 """Which hardware produced a checkpoint's weights, and in how long: its training record.
 
 ``vvloc train`` writes ``training.json`` beside ``model.safetensors`` in every checkpoint it
-saves (``checkpoint/`` and ``best/``), and ``vvloc eval`` puts it in the report. The record
+saves (``checkpoint/`` and ``best/``), ``vvloc train`` prints its summary when it ends, and
+``vvloc eval`` reports it (``trained_on`` in the meta, the runs under ``training``). The file
 (format ``vvloc.training``, version 1) is a JSON object::
 
     {"format": "vvloc.training", "version": 1,
      "weights_hash": "<VVLocNet.weights_hash() of the weights it describes>",
      "runs": [<run>, ...]}          # oldest first: the init_checkpoint chain, then this run
 
-A *run* is one ``vvloc train`` run (resumed runs count as one)::
+A *run* is one ``vvloc train --out DIR`` run, resumed or not::
 
-    {"out": "runs/synth-small", "config": {... the resolved TrainConfig ...},
-     "hardware": "x86_64, 2 cores", "device": "cpu" | "cuda (NVIDIA H200)",
-     "torch": "2.5.1", "vvloc": "0.1.0",
-     "epochs_run": 15, "epochs": 15, "weights_epoch": 12, "complete": true,
-     "seconds": 4021.3,                        # wall time of the whole run, set-up included (s)
-     "init_weights_hash": "<hash of init_checkpoint's weights>" | null}
+    {"out": "runs/synth-small",           # --out as given (relative to where training ran)
+     "config": {...},                     # the resolved TrainConfig (paths as given)
+     "epochs": 29,                        # the config's epochs: stage 1 + stage 2 + head stage
+     "epochs_run": 29,                    # epochs trained when this file was written
+     "weights_epoch": 27,                 # the epoch (1-based) these weights are from
+     "complete": true,                    # epochs_run == epochs
+     "seconds": 4021.3,                   # wall time of the run, s (null: not all measured)
+     "processes": [<process>, ...],       # one per process that trained it (resume: several)
+     "init_weights_hash": "<hash of the init_checkpoint's weights>" | null}
 
-``seconds`` counts every epoch the run has trained so far, validation and saving included,
-plus each process's set-up (rendering missing datasets, opening them, building the model):
-the time to *produce* these weights with the recipe, also for ``best/`` (whose
-``weights_epoch`` may be earlier than the last epoch). A checkpoint whose ``init_checkpoint``
-had no record gets one ``{"recorded": false, "weights_hash": ...}`` entry in its place.
+    <process> = {"hardware": "x86_64, 2 cores", "device": "cpu" | "cuda",
+                 "device_name": null | "NVIDIA H200", "torch_threads": 2,
+                 "torch": "2.5.1", "vvloc": "0.1.0",
+                 "epochs": [0, 29],      # epochs done when it started and at its last save
+                 "seconds": 4021.3}      # its set-up (rendering and opening the datasets,
+                                         # building the model, resuming) and its epochs,
+                                         # validation and saving included (null: not measured)
+
+``seconds`` is the time to *produce* the weights with the recipe: for ``best/`` too it counts
+the whole run (its ``weights_epoch`` may be earlier than the last epoch, but the later epochs
+were needed to select it). It is measured by ``Trainer.fit`` and the set-up; a process killed
+between two saves loses the time since its last save. A run resumed from a trainer state of an
+earlier vvloc, which did not measure time, has a ``{"seconds": null}`` process first. An init
+checkpoint without a record (written outside a run or by an earlier vvloc, or whose record was
+ignored) appears as one ``{"recorded": false, "checkpoint": ..., "weights_hash": ...}`` run.
 
 This module imports no torch: the CLI and the report use it before (or without) a model.
 """
 
 from __future__ import annotations
 
+import math
 import os
 import platform
 from typing import Any
@@ -37,6 +52,7 @@ __all__ = [
     "TRAINING_FORMAT",
     "TRAINING_VERSION",
     "hardware",
+    "json_safe",
     "summarize",
     "validate_record",
 ]
@@ -48,8 +64,29 @@ TRAINING_VERSION = 1
 
 
 def hardware() -> str:
-    """This machine, as reports name it: ``"<processor or architecture>, <N> cores"``."""
-    return f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores"
+    """This machine, as reports name it: ``"<processor or architecture>, <N> cores"``, N the
+    cores this process may run on (its CPU affinity where the platform has one)."""
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        cores = os.cpu_count() or 0
+    return f"{platform.processor() or platform.machine()}, {cores} cores"
+
+
+def json_safe(value: Any) -> Any:
+    """``value`` (JSON-like: dicts, lists, str, numbers, None) with every non-finite float
+    replaced by None, so that it writes as standard JSON."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: json_safe(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [json_safe(v) for v in value]
+    return value
+
+
+def _seconds_ok(value: Any) -> bool:
+    return value is None or (isinstance(value, int | float) and not isinstance(value, bool))
 
 
 def validate_record(record: Any, source: str) -> dict[str, Any]:
@@ -65,31 +102,46 @@ def validate_record(record: Any, source: str) -> dict[str, Any]:
     runs = record.get("runs")
     if not isinstance(runs, list) or not all(isinstance(r, dict) for r in runs):
         raise ValueError(f"{source}: 'runs' must be a list of objects")
+    for k, run in enumerate(runs):
+        procs = run.get("processes", [])
+        if not isinstance(procs, list) or not all(isinstance(p, dict) for p in procs):
+            raise ValueError(f"{source}: runs[{k}].processes must be a list of objects")
+        if not all(_seconds_ok(x.get("seconds")) for x in [run, *procs]):
+            raise ValueError(f"{source}: runs[{k}]: 'seconds' must be a number or null")
     if not isinstance(record.get("weights_hash"), str):
         raise ValueError(f"{source}: 'weights_hash' must be a string")
     return record
 
 
+def _where(process: dict[str, Any]) -> str:
+    device = process.get("device", "?")
+    name = process.get("device_name")
+    return f"{name} ({device})" if name else str(device)
+
+
 def summarize(record: dict[str, Any] | None) -> str:
-    """One line for a report: the hardware and the wall time of the runs that produced the
-    weights, e.g. ``"x86_64, 2 cores (cpu); 4 runs, 88.4 min (67.0 + 4.2 + 11.4 + 5.8)"``.
-    ``None`` (a checkpoint without a record) gives ``"not recorded"``."""
+    """One line for a report: where and in how long the runs of ``record`` (a training record,
+    or just its ``{"runs": [...]}``) produced the weights, e.g. ``"cpu on x86_64, 2 cores;
+    4 runs, 88.4 min (67.0 + 4.2 + 11.4 + 5.8)"`` (minutes of wall time, oldest run first).
+    ``None`` or ``{}`` gives ``"no training record for these weights"``."""
     if not record:
-        return "not recorded (the checkpoint has no training.json)"
+        return "no training record for these weights"
     runs = record["runs"]
     recorded = [r for r in runs if r.get("recorded", True)]
-    where = sorted({f"{r.get('hardware', '?')} ({r.get('device', '?')})" for r in recorded})
+    procs = [p for r in recorded for p in r.get("processes", [])]
+    where = sorted({f"{_where(p)} on {p['hardware']}" for p in procs if "hardware" in p})
     minutes = [float(r["seconds"]) / 60.0 for r in recorded if r.get("seconds") is not None]
-    line = f"{'; '.join(where) or 'no recorded run'}; {_count(len(recorded), 'run')}"
+    line = f"{' and '.join(where) or 'unknown hardware'}; {_count(len(recorded), 'run')}"
     if minutes:
         parts = " + ".join(f"{m:.1f}" for m in minutes)
         line += f", {sum(minutes):.1f} min" + (f" ({parts})" if len(minutes) > 1 else "")
     if len(minutes) < len(recorded):
-        line += f", time not recorded for {_count(len(recorded) - len(minutes), 'run')}"
+        line += f", time not measured for {_count(len(recorded) - len(minutes), 'run')}"
     if len(runs) > len(recorded):
-        line += f", after {_count(len(runs) - len(recorded), 'earlier run')} not recorded"
-    if any(not r.get("complete", True) for r in recorded):
-        line += " (a run still in progress)"
+        line += ", after an init checkpoint without a record"
+    unfinished = sum(not r.get("complete", True) for r in recorded)
+    if unfinished:
+        line += f" ({_count(unfinished, 'run')} unfinished)"
     return line
 
 

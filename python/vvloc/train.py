@@ -68,7 +68,7 @@ from vvloc.losses import (
 )
 from vvloc.nets import ModelConfig, VVLocNet
 from vvloc.nets.heads import NetVLADHead
-from vvloc.provenance import TRAINING_FILE, hardware
+from vvloc.provenance import TRAINING_FILE, hardware, json_safe
 
 log = logging.getLogger("vvloc.train")
 
@@ -642,9 +642,21 @@ class Trainer:
         self.epoch = 0
         self.step = 0
         self.best: dict[str, Any] | None = None  # the validation record of best/, if any
-        # wall seconds of this run so far (set-up of each process included; None when resumed
-        # from a trainer state that did not count them): the training record's "seconds"
-        self.elapsed: float | None = time.perf_counter() - t_setup
+        # the training record's processes (vvloc.provenance): earlier ones (from the trainer
+        # state on resume), then this one, whose seconds grow with its set-up and epochs
+        self.earlier_processes: list[dict[str, Any]] = []
+        self.process: dict[str, Any] = {
+            "hardware": hardware(),
+            "device": self.device.type,
+            "device_name": (
+                torch.cuda.get_device_name(self.device) if self.device.type == "cuda" else None
+            ),
+            "torch_threads": torch.get_num_threads(),
+            "torch": torch.__version__,
+            "vvloc": vvloc.__version__,
+            "epochs": [0, 0],
+            "seconds": time.perf_counter() - t_setup,
+        }
 
     def _load_init(self, path: Path) -> None:
         """Copy the weights of ``init_checkpoint`` into the fresh model (refused when its model
@@ -706,47 +718,68 @@ class Trainer:
     def _state_path(self) -> Path:
         return self.out / "trainer_state.pt"
 
-    def training_record(self, weights_epoch: int) -> dict[str, Any]:
-        """The training record (:mod:`vvloc.provenance`) of weights this run produced at
-        ``weights_epoch`` (1-based), as of now: the init checkpoint's runs, then this one."""
-        if self.device.type == "cuda":
-            device = f"cuda ({torch.cuda.get_device_name(self.device)})"
-        else:
-            device = self.device.type
+    def _processes(self) -> list[dict[str, Any]]:
+        """The processes of this run so far, this one last (with its seconds rounded)."""
+        now = {**self.process, "epochs": [self.process["epochs"][0], self.epoch]}
+        now["seconds"] = round(now["seconds"], 1)
+        return [*self.earlier_processes, now]
+
+    def record_for(self, weights_epoch: int) -> dict[str, Any]:
+        """The training record (``{"runs": [...]}``, :mod:`vvloc.provenance`) of weights this
+        run produced at ``weights_epoch`` (1-based), as of now: the init checkpoint's runs,
+        then this run."""
+        procs = self._processes()
+        seconds = [p["seconds"] for p in procs]
         run = {
             "out": str(self.out),
             "config": self.cfg.to_dict(),
-            "hardware": hardware(),
-            "device": device,
-            "torch": torch.__version__,
-            "vvloc": vvloc.__version__,
-            "epochs_run": self.epoch,
             "epochs": self.cfg.epochs,
+            "epochs_run": self.epoch,
             "weights_epoch": weights_epoch,
             "complete": self.epoch >= self.cfg.epochs,
-            "seconds": None if self.elapsed is None else round(self.elapsed, 1),
+            "seconds": None if None in seconds else round(sum(seconds), 1),
+            "processes": procs,
             "init_weights_hash": self.init_weights_hash,
         }
         return {"runs": [*self.earlier_runs, run]}
 
-    def _finish_best(self) -> None:
-        """Bring ``best/training.json`` up to the whole run (its epochs and seconds), the time
-        it took to produce and select those weights; the weights themselves are unchanged."""
-        path = self.best_dir / TRAINING_FILE
-        if self.best is None or not path.is_file():
-            return
-        record = json.loads(path.read_text())
-        record["runs"] = self.training_record(int(self.best["epoch"]))["runs"]
-        with atomic_write(path) as f:
-            f.write(json.dumps(record, indent=2))
+    def _rewrite_records(self) -> None:
+        """Bring ``training.json`` of ``checkpoint/`` and ``best/`` up to the run as it ended
+        (epochs and seconds; for ``best/`` the time to produce *and select* its weights). The
+        weights, and so the records' ``weights_hash``, are unchanged."""
+        targets = [(self.checkpoint_dir, self.epoch)]
+        if self.best is not None:
+            targets.append((self.best_dir, int(self.best["epoch"])))
+        for folder, weights_epoch in targets:
+            path = folder / TRAINING_FILE
+            if not path.is_file():  # weights written by an earlier vvloc: nothing to bring up
+                continue
+            record = json.loads(path.read_text())
+            record["runs"] = json_safe(self.record_for(weights_epoch)["runs"])
+            with atomic_write(path) as f:
+                f.write(json.dumps(record, indent=2, allow_nan=False))
+
+    def _records_unfinished(self) -> bool:
+        """Whether a saved ``training.json`` still calls this (finished) run unfinished: the
+        process that finished it stopped before :meth:`fit` brought the records up."""
+        for folder in (self.checkpoint_dir, self.best_dir):
+            path = folder / TRAINING_FILE
+            if path.is_file() and not json.loads(path.read_text())["runs"][-1].get("complete"):
+                return True
+        return False
+
+    def _save_model(self, folder: Path, weights_epoch: int) -> None:
+        self.model.training_record = self.record_for(weights_epoch)
+        try:
+            self.model.save(folder)
+        finally:
+            self.model.training_record = {}
 
     def save(self) -> None:
         """Write the model checkpoint (with its training record) and the trainer state
         (atomically, each file)."""
         self.out.mkdir(parents=True, exist_ok=True)
-        self.model.training_record = self.training_record(self.epoch)
-        self.model.save(self.checkpoint_dir)
-        self.model.training_record = {}
+        self._save_model(self.checkpoint_dir, self.epoch)
         state = {
             "epoch": self.epoch,
             "step": self.step,
@@ -760,7 +793,9 @@ class Trainer:
             "torch_rng": torch.get_rng_state(),
             "best": self.best,
             "config": self.cfg.to_dict(),
-            "elapsed_seconds": self.elapsed,
+            "processes": self._processes(),
+            "earlier_runs": self.earlier_runs,
+            "init_weights_hash": self.init_weights_hash,
         }
         with atomic_write(self._state_path(), "wb") as fb:
             torch.save(state, fb)
@@ -772,6 +807,7 @@ class Trainer:
         run with more joint epochs) while the run has not passed into its head stage."""
         if not self._state_path().is_file():
             return False
+        t0 = time.perf_counter()
         state = torch.load(self._state_path(), map_location="cpu", weights_only=False)
         # Extending a run (more joint epochs) is allowed; any other change is a different run.
         # keys added to TrainConfig after the run started count as their defaults
@@ -808,8 +844,23 @@ class Trainer:
         self.epoch = int(state["epoch"])
         self.step = int(state["step"])
         self.best = state.get("best")
-        before = state.get("elapsed_seconds")  # absent in states saved before it was counted
-        self.elapsed = None if before is None or self.elapsed is None else before + self.elapsed
+        # the record of the run as it started, not of the init checkpoint as it is now (a run
+        # folder's checkpoint/ moves on); states of an earlier vvloc measured no time
+        self.earlier_processes = state.get("processes", [{"epochs": [0, self.epoch]}])
+        for p in self.earlier_processes:
+            p.setdefault("seconds", None)
+        if "earlier_runs" in state:
+            if state["init_weights_hash"] != self.init_weights_hash:
+                log.warning(
+                    "%s: init_checkpoint %s now holds other weights than the run started from; "
+                    "the training record keeps those it started from",
+                    self.out,
+                    self.cfg.init_checkpoint,
+                )
+            self.earlier_runs = state["earlier_runs"]
+            self.init_weights_hash = state["init_weights_hash"]
+        self.process["epochs"] = [self.epoch, self.epoch]
+        self.process["seconds"] += time.perf_counter() - t0
         log.info("resumed %s at epoch %d, step %d", self.out, self.epoch, self.step)
         return True
 
@@ -1082,8 +1133,7 @@ class Trainer:
             rec = self.run_epoch(progress=progress)
             if validating:
                 rec["val"] = self.validate()
-            if self.elapsed is not None:  # the saves below record it
-                self.elapsed += time.perf_counter() - t0
+            self.process["seconds"] += time.perf_counter() - t0  # the saves below record it
             t0 = time.perf_counter()
             if validating:
                 key = self.selection_key(rec["val"])
@@ -1095,22 +1145,22 @@ class Trainer:
                         "sessions": list(cfg.val_sessions or []),
                         "every": int(cfg.val_every),
                     }
-                    self.model.training_record = self.training_record(self.epoch)
-                    self.model.save(self.best_dir)
-                    self.model.calibration, self.model.training_record = {}, {}
+                    self._save_model(self.best_dir, self.epoch)
+                    self.model.calibration = {}
                     self.best = {"epoch": rec["epoch"], "val": rec["val"]}
                 rec["best_epoch"] = self.best["epoch"]
             records.append(rec)
             self.save()
-            if self.elapsed is not None:
-                self.elapsed += time.perf_counter() - t0
+            self.process["seconds"] += time.perf_counter() - t0
             with open(self.out / "log.jsonl", "a") as f:
                 f.write(json.dumps(rec) + "\n")
             log.info("epoch %d: %s", rec["epoch"], {k: v for k, v in rec.items() if "loss" in k})
             if not all(math.isfinite(v) for k, v in rec.items() if k.startswith("loss_")):
                 raise FloatingPointError(f"non-finite loss in epoch {rec['epoch']}: {rec}")
-        if records:  # a finished run resumed again trains nothing and changes no record
-            self._finish_best()
+        # a finished run resumed again trains nothing and changes no record (unless its last
+        # process stopped between its last save and this line)
+        if records or self._records_unfinished():
+            self._rewrite_records()
         return records
 
 

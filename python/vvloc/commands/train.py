@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Annotated
 
@@ -10,7 +9,7 @@ import typer
 
 from vvloc.checkpoints import resolve_checkpoint
 from vvloc.commands._util import cli_errors
-from vvloc.provenance import TRAINING_FILE, summarize
+from vvloc.provenance import summarize
 
 
 def train(
@@ -33,5 +32,10 @@ def train(
             f"{val['r1_reranked']:.1%} re-ranked, {val['r1_retrieval']:.1%} retrieval): "
             f"{trainer.best_dir} (the one `vvloc eval --checkpoint {out}` uses)"
         )
-    record = resolve_checkpoint(out) / TRAINING_FILE  # as written, also for a finished run
-    typer.echo(f"trained on: {summarize(json.loads(record.read_text()))}")
+    ckpt = resolve_checkpoint(out)
+    if (ckpt / "config.json").is_file():  # none when the config has no epochs
+        from vvloc.nets import VVLocNet
+
+        with cli_errors("train"):  # the record as written (checked against the weights)
+            produced = VVLocNet.load(ckpt).training_record
+        typer.echo(f"trained on: {summarize(produced)}")

@@ -194,7 +194,7 @@ def run_evaluation(
     ``out/report.md``, ``out/report.json``, ``out/queries.csv`` and plots; returns the metrics.
     The report's meta names this machine (``hardware``) and, from the checkpoint's
     ``training.json``, the hardware and wall time that produced the weights (``trained_on``,
-    :func:`vvloc.provenance.summarize`; the whole record is the JSON's ``training``).
+    :func:`vvloc.provenance.summarize`; its runs are the JSON's ``training``, ``{"runs": [...]}``).
     ``metric_candidates``, ``metric_from`` and ``snap`` are :class:`Localizer`'s (the M
     candidates scored by the coarse translation search, the first M of the retrieval order or of
     the yaw re-ranking; the reported keyframe snapped to the metric pose).

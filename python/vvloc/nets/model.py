@@ -21,7 +21,13 @@ from vvloc.nets.decoder import Interactor, LocalViewDecoder
 from vvloc.nets.encoder import BevEncoder
 from vvloc.nets.heads import make_global_head
 from vvloc.nets.polar import polar_sample
-from vvloc.provenance import TRAINING_FILE, TRAINING_FORMAT, TRAINING_VERSION, validate_record
+from vvloc.provenance import (
+    TRAINING_FILE,
+    TRAINING_FORMAT,
+    TRAINING_VERSION,
+    json_safe,
+    validate_record,
+)
 
 WEIGHTS_FILE = "model.safetensors"
 CONFIG_FILE = "config.json"
@@ -176,6 +182,12 @@ class VVLocNet(nn.Module):
         ``training.json`` (:mod:`vvloc.provenance`, stamped with :meth:`weights_hash`) into
         ``directory`` (created if needed).
         Files are written to temporaries and renamed, so a failure leaves no partial file."""
+        runs = self.training_record.get("runs") if isinstance(self.training_record, dict) else None
+        if self.training_record and not isinstance(runs, list):
+            raise TypeError(
+                "training_record: expected {} or {'runs': [...]} (vvloc.provenance), got "
+                f"{self.training_record!r:.80}"
+            )
         out = Path(directory)
         out.mkdir(parents=True, exist_ok=True)
         meta = {
@@ -200,10 +212,10 @@ class VVLocNet(nn.Module):
                 "format": TRAINING_FORMAT,
                 "version": TRAINING_VERSION,
                 "weights_hash": self.weights_hash(),
-                "runs": self.training_record["runs"],
+                "runs": json_safe(self.training_record["runs"]),
             }
             with atomic_write(out / TRAINING_FILE) as f:
-                f.write(json.dumps(record, indent=2))
+                f.write(json.dumps(record, indent=2, allow_nan=False))
         else:  # likewise a stale training record
             (out / TRAINING_FILE).unlink(missing_ok=True)
         return out
@@ -214,7 +226,8 @@ class VVLocNet(nn.Module):
     ) -> VVLocNet:
         """Load a checkpoint written by :meth:`save`; raises ``ValueError`` on a wrong format,
         version, or weights that do not match the architecture (names and shapes listed). A
-        ``training.json`` that describes other weights is ignored with a ``UserWarning``."""
+        ``training.json`` that is malformed or describes other weights is ignored with a
+        ``UserWarning`` (it is informational; the weights load)."""
         src = Path(directory)
         cfg_path, w_path = src / CONFIG_FILE, src / WEIGHTS_FILE
         for p in (cfg_path, w_path):
@@ -255,16 +268,20 @@ class VVLocNet(nn.Module):
                 raise ValueError(f"{cal_path}: expected a JSON object")
             model.calibration = cal
         train_path = src / TRAINING_FILE
-        if train_path.is_file():
-            record = validate_record(json.loads(train_path.read_text()), str(train_path))
-            if record["weights_hash"] == model.weights_hash():
+        if train_path.is_file():  # informational: a bad record never blocks good weights
+            try:
+                try:
+                    raw = json.loads(train_path.read_text())
+                except json.JSONDecodeError as e:
+                    raise ValueError(f"{train_path}: not JSON ({e})") from e
+                record = validate_record(raw, str(train_path))
+                theirs, mine = record["weights_hash"], model.weights_hash()
+                if theirs != mine:
+                    raise ValueError(
+                        f"{train_path}: describes other weights (weights_hash {theirs[:16]}, "
+                        f"the checkpoint's {mine[:16]})"
+                    )
                 model.training_record = {"runs": record["runs"]}
-            else:
-                theirs, mine = record["weights_hash"][:16], model.weights_hash()[:16]
-                warnings.warn(
-                    f"{train_path}: describes other weights (weights_hash {theirs}, the "
-                    f"checkpoint's {mine}); ignored",
-                    UserWarning,
-                    stacklevel=2,
-                )
+            except ValueError as e:
+                warnings.warn(f"{e}; the training record is ignored", UserWarning, stacklevel=2)
         return model.to(map_location)
