@@ -21,7 +21,7 @@ A *run* is one ``vvloc train --out DIR`` run, resumed or not::
      "processes": [<process>, ...],       # one per process that trained it (resume: several)
      "init_weights_hash": "<hash of the init_checkpoint's weights>" | null}
 
-    <process> = {"hardware": "x86_64, 2 cores", "device": "cpu" | "cuda",
+    <process> = {"hardware": "x86_64, 2 cores", "device": "cpu" | "cuda" (torch's type),
                  "device_name": null | "NVIDIA H200", "torch_threads": 2,
                  "torch": "2.5.1", "vvloc": "0.1.0",
                  "epochs": [0, 29],      # epochs done when it started and at its last save
@@ -29,13 +29,16 @@ A *run* is one ``vvloc train --out DIR`` run, resumed or not::
                                          # building the model, resuming) and its epochs,
                                          # validation and saving included (null: not measured)
 
-``seconds`` is the time to *produce* the weights with the recipe: for ``best/`` too it counts
-the whole run (its ``weights_epoch`` may be earlier than the last epoch, but the later epochs
-were needed to select it). It is measured by ``Trainer.fit`` and the set-up; a process killed
-between two saves loses the time since its last save. A run resumed from a trainer state of an
-earlier vvloc, which did not measure time, has a ``{"seconds": null}`` process first. An init
-checkpoint without a record (written outside a run or by an earlier vvloc, or whose record was
-ignored) appears as one ``{"recorded": false, "checkpoint": ..., "weights_hash": ...}`` run.
+``seconds`` is the time to *produce* the weights with the recipe: once the run has ended, the
+record of ``best/`` too counts the whole run (its ``weights_epoch`` may be earlier than the
+last epoch, but the later epochs were needed to select it; while the run goes on, it stops at
+its own epoch). It is measured by ``Trainer`` (set-up, resume, and ``fit``'s epochs,
+validation and saves); a process stopped between two saves loses the time since its last
+save. On resume the run's record so far is read from its ``checkpoint/``; a checkpoint of an
+earlier vvloc has none, and the run's processes then begin with ``{"epochs": [0, E],
+"seconds": null}`` (not measured). An init checkpoint without a record (written outside a run
+or by an earlier vvloc, or whose record was ignored) appears as one ``{"recorded": false,
+"checkpoint": "<its resolved folder>", "weights_hash": ...}`` run.
 
 This module imports no torch: the CLI and the report use it before (or without) a model.
 """

@@ -718,17 +718,19 @@ class Trainer:
     def _state_path(self) -> Path:
         return self.out / "trainer_state.pt"
 
-    def _processes(self) -> list[dict[str, Any]]:
+    def _processes(self, include_current: bool = True) -> list[dict[str, Any]]:
         """The processes of this run so far, this one last (with its seconds rounded)."""
+        if not include_current:
+            return list(self.earlier_processes)
         now = {**self.process, "epochs": [self.process["epochs"][0], self.epoch]}
         now["seconds"] = round(now["seconds"], 1)
         return [*self.earlier_processes, now]
 
-    def record_for(self, weights_epoch: int) -> dict[str, Any]:
+    def record_for(self, weights_epoch: int, include_current: bool = True) -> dict[str, Any]:
         """The training record (``{"runs": [...]}``, :mod:`vvloc.provenance`) of weights this
         run produced at ``weights_epoch`` (1-based), as of now: the init checkpoint's runs,
-        then this run."""
-        procs = self._processes()
+        then this run (without this process when ``include_current`` is False)."""
+        procs = self._processes(include_current)
         seconds = [p["seconds"] for p in procs]
         run = {
             "out": str(self.out),
@@ -743,30 +745,53 @@ class Trainer:
         }
         return {"runs": [*self.earlier_runs, run]}
 
-    def _rewrite_records(self) -> None:
+    def _saved_record(self, folder: Path) -> dict[str, Any] | None:
+        """``folder``'s ``training.json`` as this trainer wrote it, or None (with a warning when
+        it is there but unreadable: the weights stay as they are)."""
+        path = folder / TRAINING_FILE
+        if not path.is_file():  # weights written by an earlier vvloc
+            return None
+        try:
+            record = json.loads(path.read_text())
+            if not isinstance(record["runs"][-1], dict) or "weights_hash" not in record:
+                raise ValueError("not a training record")
+            return record
+        except (ValueError, KeyError, IndexError, TypeError) as e:
+            log.warning("%s: unreadable (%s); left as it is", path, e)
+            return None
+
+    def _rewrite_records(self, include_current: bool = True) -> None:
         """Bring ``training.json`` of ``checkpoint/`` and ``best/`` up to the run as it ended
-        (epochs and seconds; for ``best/`` the time to produce *and select* its weights). The
-        weights, and so the records' ``weights_hash``, are unchanged."""
+        (epochs and seconds; for ``best/`` the time to produce *and select* its weights), from
+        one snapshot of the processes. The weights, and so the records' ``weights_hash``, are
+        unchanged. A ``best/`` whose record names another epoch than the trainer's best (a
+        process stopped between saving ``best/`` and its state) is left as it is."""
         targets = [(self.checkpoint_dir, self.epoch)]
         if self.best is not None:
             targets.append((self.best_dir, int(self.best["epoch"])))
+        runs = self.record_for(self.epoch, include_current)["runs"]
         for folder, weights_epoch in targets:
-            path = folder / TRAINING_FILE
-            if not path.is_file():  # weights written by an earlier vvloc: nothing to bring up
+            record = self._saved_record(folder)
+            if record is None:
                 continue
-            record = json.loads(path.read_text())
-            record["runs"] = json_safe(self.record_for(weights_epoch)["runs"])
-            with atomic_write(path) as f:
+            if record["runs"][-1].get("weights_epoch") != weights_epoch:
+                log.warning(
+                    "%s: its training record names epoch %s, the run's state epoch %d; left "
+                    "as it is",
+                    folder,
+                    record["runs"][-1].get("weights_epoch"),
+                    weights_epoch,
+                )
+                continue
+            record["runs"] = json_safe([*runs[:-1], {**runs[-1], "weights_epoch": weights_epoch}])
+            with atomic_write(folder / TRAINING_FILE) as f:
                 f.write(json.dumps(record, indent=2, allow_nan=False))
 
-    def _records_unfinished(self) -> bool:
-        """Whether a saved ``training.json`` still calls this (finished) run unfinished: the
-        process that finished it stopped before :meth:`fit` brought the records up."""
-        for folder in (self.checkpoint_dir, self.best_dir):
-            path = folder / TRAINING_FILE
-            if path.is_file() and not json.loads(path.read_text())["runs"][-1].get("complete"):
-                return True
-        return False
+    def _best_record_unfinished(self) -> bool:
+        """Whether ``best/training.json`` still calls this finished run unfinished: the process
+        that finished it stopped before :meth:`fit` brought the records up."""
+        record = self._saved_record(self.best_dir) if self.best is not None else None
+        return record is not None and not record["runs"][-1].get("complete")
 
     def _save_model(self, folder: Path, weights_epoch: int) -> None:
         self.model.training_record = self.record_for(weights_epoch)
@@ -793,9 +818,6 @@ class Trainer:
             "torch_rng": torch.get_rng_state(),
             "best": self.best,
             "config": self.cfg.to_dict(),
-            "processes": self._processes(),
-            "earlier_runs": self.earlier_runs,
-            "init_weights_hash": self.init_weights_hash,
         }
         with atomic_write(self._state_path(), "wb") as fb:
             torch.save(state, fb)
@@ -844,21 +866,25 @@ class Trainer:
         self.epoch = int(state["epoch"])
         self.step = int(state["step"])
         self.best = state.get("best")
-        # the record of the run as it started, not of the init checkpoint as it is now (a run
-        # folder's checkpoint/ moves on); states of an earlier vvloc measured no time
-        self.earlier_processes = state.get("processes", [{"epochs": [0, self.epoch]}])
-        for p in self.earlier_processes:
-            p.setdefault("seconds", None)
-        if "earlier_runs" in state:
-            if state["init_weights_hash"] != self.init_weights_hash:
+        # The run's record so far is its latest checkpoint's (written with the state, brought
+        # up at the end of fit): its processes, and the init checkpoint's runs as they were when
+        # the run started (a run folder given as init_checkpoint moves on). A checkpoint of an
+        # earlier vvloc has none: its time was not measured.
+        saved = loaded.training_record.get("runs")
+        if saved:
+            mine = saved[-1]
+            if self.init_weights_hash not in (None, mine.get("init_weights_hash")):
                 log.warning(
                     "%s: init_checkpoint %s now holds other weights than the run started from; "
                     "the training record keeps those it started from",
                     self.out,
                     self.cfg.init_checkpoint,
                 )
-            self.earlier_runs = state["earlier_runs"]
-            self.init_weights_hash = state["init_weights_hash"]
+            self.earlier_runs = saved[:-1]
+            self.init_weights_hash = mine.get("init_weights_hash")
+            self.earlier_processes = [dict(p) for p in mine.get("processes", [])]
+        else:
+            self.earlier_processes = [{"epochs": [0, self.epoch], "seconds": None}]
         self.process["epochs"] = [self.epoch, self.epoch]
         self.process["seconds"] += time.perf_counter() - t0
         log.info("resumed %s at epoch %d, step %d", self.out, self.epoch, self.step)
@@ -1157,10 +1183,11 @@ class Trainer:
             log.info("epoch %d: %s", rec["epoch"], {k: v for k, v in rec.items() if "loss" in k})
             if not all(math.isfinite(v) for k, v in rec.items() if k.startswith("loss_")):
                 raise FloatingPointError(f"non-finite loss in epoch {rec['epoch']}: {rec}")
-        # a finished run resumed again trains nothing and changes no record (unless its last
-        # process stopped between its last save and this line)
-        if records or self._records_unfinished():
+        if records:
             self._rewrite_records()
+        elif self._best_record_unfinished():  # its last process stopped before this line
+            self._rewrite_records(include_current=False)  # this one trained nothing
+        # (otherwise a finished run resumed again trains nothing and changes no record)
         return records
 
 
