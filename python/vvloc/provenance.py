@@ -45,10 +45,14 @@ This module imports no torch: the CLI and the report use it before (or without) 
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import platform
+from pathlib import Path
 from typing import Any
+
+from vvloc._io import atomic_write
 
 __all__ = [
     "TRAINING_FILE",
@@ -56,8 +60,10 @@ __all__ = [
     "TRAINING_VERSION",
     "hardware",
     "json_safe",
+    "read_record",
     "summarize",
     "validate_record",
+    "write_record",
 ]
 
 #: The training record's file name inside a checkpoint folder.
@@ -114,6 +120,30 @@ def validate_record(record: Any, source: str) -> dict[str, Any]:
     if not isinstance(record.get("weights_hash"), str):
         raise ValueError(f"{source}: 'weights_hash' must be a string")
     return record
+
+
+def read_record(path: Path) -> dict[str, Any]:
+    """The training record in the file ``path``, validated (:func:`validate_record`);
+    ``ValueError`` naming the file when it is not JSON or not a record of this format."""
+    try:
+        raw = json.loads(Path(path).read_text())
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{path}: not JSON ({e})") from e
+    return validate_record(raw, str(path))
+
+
+def write_record(path: Path, weights_hash: str, runs: list[dict[str, Any]]) -> None:
+    """Write the training record of the weights with fingerprint ``weights_hash`` (see the
+    module docstring) and ``runs`` to ``path``, atomically, as standard JSON (non-finite
+    floats become null: :func:`json_safe`)."""
+    record = {
+        "format": TRAINING_FORMAT,
+        "version": TRAINING_VERSION,
+        "weights_hash": weights_hash,
+        "runs": json_safe(runs),
+    }
+    with atomic_write(path) as f:
+        f.write(json.dumps(record, indent=2, allow_nan=False))
 
 
 def _where(process: dict[str, Any]) -> str:

@@ -68,7 +68,7 @@ from vvloc.losses import (
 )
 from vvloc.nets import ModelConfig, VVLocNet
 from vvloc.nets.heads import NetVLADHead
-from vvloc.provenance import TRAINING_FILE, hardware, json_safe
+from vvloc.provenance import TRAINING_FILE, hardware, read_record, write_record
 
 log = logging.getLogger("vvloc.train")
 
@@ -752,12 +752,12 @@ class Trainer:
         if not path.is_file():  # weights written by an earlier vvloc
             return None
         try:
-            record = json.loads(path.read_text())
-            if not isinstance(record["runs"][-1], dict) or "weights_hash" not in record:
-                raise ValueError("not a training record")
+            record = read_record(path)
+            if not record["runs"]:
+                raise ValueError(f"{path}: no runs")
             return record
-        except (ValueError, KeyError, IndexError, TypeError) as e:
-            log.warning("%s: unreadable (%s); left as it is", path, e)
+        except ValueError as e:
+            log.warning("%s; left as it is", e)
             return None
 
     def _rewrite_records(self, include_current: bool = True) -> None:
@@ -783,9 +783,8 @@ class Trainer:
                     weights_epoch,
                 )
                 continue
-            record["runs"] = json_safe([*runs[:-1], {**runs[-1], "weights_epoch": weights_epoch}])
-            with atomic_write(folder / TRAINING_FILE) as f:
-                f.write(json.dumps(record, indent=2, allow_nan=False))
+            mine = {**runs[-1], "weights_epoch": weights_epoch}
+            write_record(folder / TRAINING_FILE, record["weights_hash"], [*runs[:-1], mine])
 
     def _best_record_unfinished(self) -> bool:
         """Whether ``best/training.json`` still calls this finished run unfinished: the process

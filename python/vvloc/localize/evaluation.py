@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from vvloc import evaluate, geometry, kernels, provenance, viz
+from vvloc import evaluate, geometry, kernels, viz
 from vvloc._io import atomic_write
 from vvloc.data import Frame, open_dataset
 from vvloc.data.perturb import perturb_frame
@@ -31,7 +31,7 @@ from vvloc.localize.loops import confirm_sequence, loop_candidates, sweep_radius
 from vvloc.localize.mapdb import MapDatabase
 from vvloc.localize.metric import SearchConfig
 from vvloc.nets import VVLocNet
-from vvloc.provenance import hardware
+from vvloc.provenance import hardware, summarize
 
 #: Loop closure's precision-recall sweep scores the pairs within this descriptor distance...
 LOOP_SWEEP_RADIUS = 0.5
@@ -321,7 +321,7 @@ def run_evaluation(
             "device": device,
             "hardware": hardware(),
             "torch_threads": torch.get_num_threads(),
-            "trained_on": provenance.summarize(model.training_record),
+            "trained_on": summarize(model.training_record),
         },
         "training": model.training_record or None,
         "global_localization": {"VVLoc-G": rec_g, "VVLoc-ML": rec_ml},

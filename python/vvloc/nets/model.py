@@ -21,13 +21,7 @@ from vvloc.nets.decoder import Interactor, LocalViewDecoder
 from vvloc.nets.encoder import BevEncoder
 from vvloc.nets.heads import make_global_head
 from vvloc.nets.polar import polar_sample
-from vvloc.provenance import (
-    TRAINING_FILE,
-    TRAINING_FORMAT,
-    TRAINING_VERSION,
-    json_safe,
-    validate_record,
-)
+from vvloc.provenance import TRAINING_FILE, read_record, write_record
 
 WEIGHTS_FILE = "model.safetensors"
 CONFIG_FILE = "config.json"
@@ -208,14 +202,7 @@ class VVLocNet(nn.Module):
         else:  # a stale calibration would describe other weights
             (out / CALIBRATION_FILE).unlink(missing_ok=True)
         if self.training_record:
-            record = {
-                "format": TRAINING_FORMAT,
-                "version": TRAINING_VERSION,
-                "weights_hash": self.weights_hash(),
-                "runs": json_safe(self.training_record["runs"]),
-            }
-            with atomic_write(out / TRAINING_FILE) as f:
-                f.write(json.dumps(record, indent=2, allow_nan=False))
+            write_record(out / TRAINING_FILE, self.weights_hash(), runs)
         else:  # likewise a stale training record
             (out / TRAINING_FILE).unlink(missing_ok=True)
         return out
@@ -270,11 +257,7 @@ class VVLocNet(nn.Module):
         train_path = src / TRAINING_FILE
         if train_path.is_file():  # informational: a bad record never blocks good weights
             try:
-                try:
-                    raw = json.loads(train_path.read_text())
-                except json.JSONDecodeError as e:
-                    raise ValueError(f"{train_path}: not JSON ({e})") from e
-                record = validate_record(raw, str(train_path))
+                record = read_record(train_path)
                 theirs, mine = record["weights_hash"], model.weights_hash()
                 if theirs != mine:
                     raise ValueError(
