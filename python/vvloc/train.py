@@ -394,10 +394,15 @@ def global_losses(
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """The global-descriptor losses of triplets ``g`` (3, B, Dg) (anchor, positive, negative
     descriptors): (triplet loss, hinge loss, correct (B,) bool); a triplet is correct for
-    hard mining when ‖g_a − g_p‖ + margin < ‖g_a − g_n‖."""
+    hard mining when ‖g_a − g_p‖ + margin < ‖g_a − g_n‖.
+
+    The terms are built in this order (triplet, then the distances and the hinge) on purpose:
+    autograd sums the gradients of ``g`` in the reverse order of the graph, so another order
+    changes the weights' last bits, and over a training run the weights themselves; this is
+    the order that trained the committed models (see models/synth-small/MODEL_CARD.md)."""
+    l_tri = triplet_loss(g[0], g[1], g[2], cfg.triplet_margin)
     d_pos = (g[0] - g[1]).norm(dim=-1)
     d_neg = (g[0] - g[2]).norm(dim=-1)
-    l_tri = triplet_loss(g[0], g[1], g[2], cfg.triplet_margin)
     l_hinge = hinge_loss(d_pos, d_neg, cfg.hinge_pos, cfg.hinge_neg)
     return l_tri, l_hinge, (d_pos + cfg.triplet_margin < d_neg).detach()
 
