@@ -3,7 +3,7 @@
 #   make bench   kernel benchmarks: table on stdout, JSON in bench-results/
 #   make lint    cargo fmt/clippy, ruff, mypy stubtest of the extension
 #   make demo    end-to-end demo (see README)
-#   make model   train the committed small model from scratch (four steps, ≈ 88 min on 2 cores)
+#   make model   train the committed small model from scratch (four steps, ≈ 71-85 min on 2 cores)
 #   make model-garage  the garage variant models/synth-small-garage from models/synth-small-v1 (≈ 53 min)
 SHELL := /bin/bash
 PYTHON ?= python3
