@@ -22,6 +22,7 @@ from vvloc.localize.localizer import Localizer, build_map
 from vvloc.localize.loops import detect_loops, loop_candidates
 from vvloc.localize.metric import SearchConfig
 from vvloc.nets import ModelConfig, VVLocNet
+from vvloc.provenance import cpu_model
 
 SMALL_SEARCH = SearchConfig(half_range=1.2, step=0.6, fine_samples=8, stages=2)
 
@@ -271,6 +272,7 @@ def test_evaluation_scores_loop_closures_at_the_given_radius(tiny_world, model_d
     meta = m["meta"]  # the defaults
     assert meta["snap"] is True and meta["metric_candidates"] == 3
     assert meta["metric_from"] == "retrieval"
+    assert meta["cpu"] == cpu_model()  # the processor that evaluated
     # the report names the weights, not only the architecture (trained models share the latter)
     assert meta["model_weights_hash"] == VVLocNet.load(model_dir).weights_hash()
     # ... and says what produced them: here nothing recorded (weights saved outside a run)

@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from vvloc.provenance import json_safe, summarize, validate_record
+from vvloc.provenance import describe_cpuinfo, json_safe, libraries, summarize, validate_record
 
 CPU = {"hardware": "x86_64, 2 cores", "device": "cpu", "device_name": None}
 H200 = {"hardware": "x86_64, 16 cores", "device": "cuda", "device_name": "NVIDIA H200"}
@@ -37,6 +37,28 @@ def test_summary_names_hardware_runs_and_minutes():
         "cpu on x86_64, 2 cores; 2 runs, 1.0 min, time not measured for 1 run"
     )
     assert summarize({"runs": [{"seconds": 6.0}]}) == "unknown hardware; 1 run, 0.1 min"
+
+
+def test_the_cpu_is_described_by_its_first_processor_and_widest_vector_extension():
+    genoa = (
+        "processor\t: 0\nvendor_id\t: AuthenticAMD\ncpu family\t: 25\nmodel\t\t: 17\n"
+        "model name\t: AMD EPYC\nflags\t\t: fpu sse2 avx avx2 avx512f avx512bw\n\n"
+        "processor\t: 1\nmodel name\t: other\nflags\t\t: sse2\n"
+    )
+    assert describe_cpuinfo(genoa) == "AMD EPYC, family 25 model 17, avx512"
+    avx2 = "model name : Intel(R) Xeon(R) CPU\ncpu family : 6\nmodel : 85\nflags : sse2 avx2\n"
+    assert describe_cpuinfo(avx2) == "Intel(R) Xeon(R) CPU, family 6 model 85, avx2"
+    # an Arm machine's cpuinfo names no model, family or x86 extension
+    arm = "processor : 0\nBogoMIPS : 50.00\nFeatures : fp asimd\n"
+    assert describe_cpuinfo(arm) == describe_cpuinfo("")
+    assert "," not in describe_cpuinfo("")
+
+
+def test_libraries_name_the_installed_versions():
+    import numpy as np
+
+    versions = libraries()
+    assert versions["numpy"] == np.__version__ and set(versions) >= {"numpy", "scipy"}
 
 
 def test_json_safe_replaces_non_finite_floats_only():

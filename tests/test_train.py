@@ -548,7 +548,7 @@ def _record(path: Path) -> dict:
 
 
 def test_every_checkpoint_records_the_runs_that_produced_it(tiny_world, tmp_path, monkeypatch):
-    from vvloc.provenance import hardware, summarize
+    from vvloc.provenance import cpu_model, hardware, libraries, summarize
 
     cfg_a = _config(tiny_world, stage1_epochs=1, stage2_epochs=0, device="cpu")
     first = train(cfg_a, tmp_path / "a", progress=False)
@@ -563,6 +563,10 @@ def test_every_checkpoint_records_the_runs_that_produced_it(tiny_world, tmp_path
     assert proc["hardware"] == hardware() and proc["device"] == "cpu"
     assert proc["device_name"] is None and proc["torch_threads"] == torch.get_num_threads()
     assert proc["epochs"] == [0, 1] and proc["seconds"] == run["seconds"]
+    # what a retraining must match to give these bytes: processor, kernels, library versions
+    assert proc["cpu"] == cpu_model() and proc["libraries"] == libraries()
+    assert proc["torch_cpu_capability"] == torch.backends.cpu.get_cpu_capability()
+    assert proc["libraries"]["numpy"] == np.__version__
     # loading keeps the record, saving elsewhere keeps it with the weights
     loaded = VVLocNet.load(tmp_path / "a" / "checkpoint")
     assert loaded.training_record == {"runs": rec_a["runs"]}

@@ -24,10 +24,19 @@ A *run* is one ``vvloc train --out DIR`` run, resumed or not::
     <process> = {"hardware": "x86_64, 2 cores", "device": "cpu" | "cuda" (torch's type),
                  "device_name": null | "NVIDIA H200", "torch_threads": 2,
                  "torch": "2.5.1", "vvloc": "0.1.0",
+                 "cpu": "AMD EPYC, family 25 model 17, avx512",   # cpu_model()
+                 "torch_cpu_capability": "AVX512",  # the ATen kernels torch dispatched to
+                 "libraries": {"numpy": "2.4.6", "scipy": "1.17.1", ...},  # libraries()
                  "epochs": [0, 29],      # epochs done when it started and at its last save
                  "seconds": 4021.3}      # its set-up (rendering and opening the datasets,
                                          # building the model, resuming) and its epochs,
                                          # validation and saving included (null: not measured)
+
+``cpu``, ``torch_cpu_capability`` and ``libraries`` (absent in records written before
+2026-12-03) say what a retraining must match to give the same bytes: the trainer is
+deterministic on one machine, but the same code, config and data trained on another processor
+or with other library versions gives other weights from the first epoch on (the default model's
+card, "Retraining on another machine").
 
 ``seconds`` is the time to *produce* the weights with the recipe: once the run has ended, the
 record of ``best/`` too counts the whole run (its ``weights_epoch`` may be earlier than the
@@ -45,6 +54,7 @@ This module imports no torch: the CLI and the report use it before (or without) 
 
 from __future__ import annotations
 
+import importlib.metadata
 import json
 import math
 import os
@@ -58,8 +68,11 @@ __all__ = [
     "TRAINING_FILE",
     "TRAINING_FORMAT",
     "TRAINING_VERSION",
+    "cpu_model",
+    "describe_cpuinfo",
     "hardware",
     "json_safe",
+    "libraries",
     "read_record",
     "summarize",
     "validate_record",
@@ -80,6 +93,51 @@ def hardware() -> str:
     except (AttributeError, OSError):
         cores = os.cpu_count() or 0
     return f"{platform.processor() or platform.machine()}, {cores} cores"
+
+
+#: The libraries whose versions a training record names (besides torch): the ones whose
+#: arithmetic or random streams the trainer's results depend on.
+RECORDED_LIBRARIES = ("numpy", "scipy", "pillow", "safetensors")
+
+
+def cpu_model() -> str:
+    """This machine's processor as the OS reports it, e.g. ``"AMD EPYC, family 25 model 17,
+    avx512"`` (Linux: :func:`describe_cpuinfo` of ``/proc/cpuinfo``); elsewhere
+    ``platform.processor()`` or the architecture."""
+    try:
+        return describe_cpuinfo(Path("/proc/cpuinfo").read_text())
+    except OSError:
+        return platform.processor() or platform.machine() or "unknown"
+
+
+def describe_cpuinfo(text: str) -> str:
+    """The first processor of a Linux ``/proc/cpuinfo`` text: its model name, x86 family and
+    model numbers when given, and the widest x86 vector extension it has (``avx512`` or
+    ``avx2``; none named otherwise), comma-separated."""
+    fields: dict[str, str] = {}
+    for line in text.strip().split("\n\n")[0].splitlines():
+        key, sep, value = line.partition(":")
+        if sep:
+            fields.setdefault(key.strip(), value.strip())
+    parts = [fields.get("model name") or platform.machine() or "unknown"]
+    if "cpu family" in fields and "model" in fields:
+        parts.append(f"family {fields['cpu family']} model {fields['model']}")
+    flags = set(fields.get("flags", "").split())
+    widest = next((f for f in ("avx512f", "avx2") if f in flags), None)
+    if widest:
+        parts.append(widest.removesuffix("f"))
+    return ", ".join(parts)
+
+
+def libraries() -> dict[str, str | None]:
+    """The installed versions of :data:`RECORDED_LIBRARIES` (None: not installed)."""
+    versions: dict[str, str | None] = {}
+    for name in RECORDED_LIBRARIES:
+        try:
+            versions[name] = importlib.metadata.version(name)
+        except importlib.metadata.PackageNotFoundError:
+            versions[name] = None
+    return versions
 
 
 def json_safe(value: Any) -> Any:

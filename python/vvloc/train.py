@@ -68,7 +68,14 @@ from vvloc.losses import (
 )
 from vvloc.nets import ModelConfig, VVLocNet
 from vvloc.nets.heads import NetVLADHead
-from vvloc.provenance import TRAINING_FILE, hardware, read_record, write_record
+from vvloc.provenance import (
+    TRAINING_FILE,
+    cpu_model,
+    hardware,
+    libraries,
+    read_record,
+    write_record,
+)
 
 log = logging.getLogger("vvloc.train")
 
@@ -659,6 +666,9 @@ class Trainer:
             "torch_threads": torch.get_num_threads(),
             "torch": torch.__version__,
             "vvloc": vvloc.__version__,
+            "cpu": cpu_model(),
+            "torch_cpu_capability": torch.backends.cpu.get_cpu_capability(),
+            "libraries": libraries(),
             "epochs": [0, 0],
             "seconds": time.perf_counter() - t_setup,
         }

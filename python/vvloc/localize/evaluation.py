@@ -31,7 +31,7 @@ from vvloc.localize.loops import confirm_sequence, loop_candidates, sweep_radius
 from vvloc.localize.mapdb import MapDatabase
 from vvloc.localize.metric import SearchConfig
 from vvloc.nets import VVLocNet
-from vvloc.provenance import hardware, summarize
+from vvloc.provenance import cpu_model, hardware, summarize
 
 #: Loop closure's precision-recall sweep scores the pairs within this descriptor distance...
 LOOP_SWEEP_RADIUS = 0.5
@@ -320,6 +320,7 @@ def run_evaluation(
             "snap": loc.snap,
             "device": device,
             "hardware": hardware(),
+            "cpu": cpu_model(),
             "torch_threads": torch.get_num_threads(),
             "trained_on": summarize(model.training_record),
         },
