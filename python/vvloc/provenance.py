@@ -34,9 +34,9 @@ A *run* is one ``vvloc train --out DIR`` run, resumed or not::
 
 ``cpu``, ``torch_cpu_capability`` and ``libraries`` (absent in records written before
 2026-12-03) say what a retraining must match to give the same bytes: the trainer is
-deterministic on one machine, but the same code, config and data trained on another processor
-or with other library versions gives other weights from the first epoch on (the default model's
-card, "Retraining on another machine").
+deterministic on one machine, but the same code, config and data trained with other CPU kernels
+(another processor, or torch limited to other instructions) give other weights from the first
+epoch on (the default model's card, "Retraining on another machine").
 
 ``seconds`` is the time to *produce* the weights with the recipe: once the run has ended, the
 record of ``best/`` too counts the whole run (its ``weights_epoch`` may be earlier than the
@@ -96,7 +96,7 @@ def hardware() -> str:
 
 
 #: The libraries whose versions a training record names (besides torch): the ones whose
-#: arithmetic or random streams the trainer's results depend on.
+#: arithmetic or random streams the trainer's results may depend on.
 RECORDED_LIBRARIES = ("numpy", "scipy", "pillow", "safetensors")
 
 
