@@ -92,7 +92,12 @@ def hardware() -> str:
         cores = len(os.sched_getaffinity(0))
     except (AttributeError, OSError):
         cores = os.cpu_count() or 0
-    return f"{platform.processor() or platform.machine()}, {cores} cores"
+    return f"{_processor()}, {cores} cores"
+
+
+def _processor() -> str:
+    """The platform's word for the processor, or the architecture, or ``"unknown"``."""
+    return platform.processor() or platform.machine() or "unknown"
 
 
 #: The libraries whose versions a training record names (besides torch): the ones whose
@@ -102,24 +107,25 @@ RECORDED_LIBRARIES = ("numpy", "scipy", "pillow", "safetensors")
 
 def cpu_model() -> str:
     """This machine's processor as the OS reports it, e.g. ``"AMD EPYC, family 25 model 17,
-    avx512"`` (Linux: :func:`describe_cpuinfo` of ``/proc/cpuinfo``); elsewhere
-    ``platform.processor()`` or the architecture."""
+    avx512"``: :func:`describe_cpuinfo` of Linux's ``/proc/cpuinfo`` (elsewhere, of nothing)."""
     try:
-        return describe_cpuinfo(Path("/proc/cpuinfo").read_text())
+        text = Path("/proc/cpuinfo").read_text()
     except OSError:
-        return platform.processor() or platform.machine() or "unknown"
+        text = ""
+    return describe_cpuinfo(text)
 
 
 def describe_cpuinfo(text: str) -> str:
     """The first processor of a Linux ``/proc/cpuinfo`` text: its model name, x86 family and
     model numbers when given, and the widest x86 vector extension it has (``avx512`` or
-    ``avx2``; none named otherwise), comma-separated."""
+    ``avx2``; none named otherwise), comma-separated. Without a model name the platform's word
+    for the processor stands first (as in :func:`hardware`)."""
     fields: dict[str, str] = {}
     for line in text.strip().split("\n\n")[0].splitlines():
         key, sep, value = line.partition(":")
         if sep:
             fields.setdefault(key.strip(), value.strip())
-    parts = [fields.get("model name") or platform.machine() or "unknown"]
+    parts = [fields.get("model name") or _processor()]
     if "cpu family" in fields and "model" in fields:
         parts.append(f"family {fields['cpu family']} model {fields['model']}")
     flags = set(fields.get("flags", "").split())
