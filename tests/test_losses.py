@@ -82,6 +82,59 @@ def test_yaw_circle_loss_zero_when_margins_met_and_gradients_only_for_violations
     assert src.grad[0, 2:].abs().sum() == 0
 
 
+# --- re-ranking loss (ours) --------------------------------------------------------------
+
+
+class _IdentityInteractor:
+    """A stand-in for VVLocNet whose interactor passes the pair through unchanged."""
+
+    def interact(self, src: Tensor, tgt: Tensor) -> tuple[Tensor, Tensor]:
+        return src, tgt
+
+
+def test_roll_min_cost_is_the_lowest_integer_roll_of_the_reference():
+    from vvloc.reference.matching import yaw_costs
+
+    gen = torch.Generator().manual_seed(4)
+    src = F.normalize(torch.randn(5, 12, 6, generator=gen), dim=-1)
+    tgt = F.normalize(torch.randn(5, 12, 6, generator=gen), dim=-1)
+    want = yaw_costs(src.double().numpy(), tgt.double().numpy()).min(axis=1)
+    got = losses.roll_min_cost(src, tgt)
+    assert got.shape == (5,)
+    assert torch.allclose(got.double(), torch.from_numpy(want), atol=1e-5)
+    # a rolled copy costs (almost) nothing, whatever the roll
+    assert losses.roll_min_cost(src, torch.roll(src, 7, dims=1)).max().item() < 1e-5
+
+
+def test_rerank_loss_hand_computed_and_zero_when_the_margin_is_met():
+    model = _IdentityInteractor()
+    a = torch.tensor([[[1.0, 0.0], [0.0, 1.0]]])
+    pos = torch.roll(a, 1, dims=1)  # the anchor seen under another yaw: cost 0
+    neg = torch.tensor([[[0.6, 0.8], [0.6, 0.8]]])
+    # the negative's best roll: rows (1,0)->(0.6,0.8) sqrt(0.8), (0,1)->(0.6,0.8) sqrt(0.4)
+    c_neg = (math.sqrt(0.8) + math.sqrt(0.4)) / 2
+    assert losses.rerank_loss(model, a, pos, neg).item() == 0.0  # c_neg > 0 + 0.1
+    assert losses.rerank_loss(model, a, neg, pos).item() == pytest.approx(c_neg + 0.1, abs=1e-6)
+    assert losses.rerank_loss(model, a, pos, neg, margin=1.0).item() == pytest.approx(
+        1.0 - c_neg, abs=1e-6
+    )
+
+
+def test_rerank_loss_gradient_pulls_the_positive_and_pushes_the_negative():
+    model = _IdentityInteractor()
+    gen = torch.Generator().manual_seed(5)
+    a = F.normalize(torch.randn(2, 8, 4, generator=gen), dim=-1)
+    pos = F.normalize(torch.randn(2, 8, 4, generator=gen), dim=-1).requires_grad_()
+    neg = (a + 0.01 * torch.randn(2, 8, 4, generator=gen)).requires_grad_()
+    loss = losses.rerank_loss(model, a, pos, neg)
+    assert loss.item() > 0
+    loss.backward()
+    step = 0.05
+    with torch.no_grad():
+        after = losses.rerank_loss(model, a, pos - step * pos.grad, neg - step * neg.grad)
+    assert after.item() < loss.item()
+
+
 # --- the yaw-matching path: a geometric oracle for the pose signs ---------------------------
 
 

@@ -39,8 +39,9 @@ def _config(root, **kw) -> TrainConfig:
     return TrainConfig.from_dict(base)
 
 
-def test_a_few_steps_on_fixed_triplets_lower_every_loss(tiny_world):
-    cfg = _config(tiny_world)
+@pytest.mark.parametrize("rerank_weight", [0.0, 1.0])
+def test_a_few_steps_on_fixed_triplets_lower_every_loss(tiny_world, rerank_weight):
+    cfg = _config(tiny_world, rerank_weight=rerank_weight)
     tr = Trainer(cfg, "unused")
     triplets = tr.sampler.sample_random(2)
     batch = torch.utils.data.default_collate(
@@ -56,7 +57,9 @@ def test_a_few_steps_on_fixed_triplets_lower_every_loss(tiny_world):
         first = first or parts
         last = parts
     assert first is not None and last is not None
-    for name in ("triplet", "hinge", "yaw", "tbias"):
+    if rerank_weight == 0:  # off: not built, logged as 0
+        assert first.rerank == last.rerank == 0.0
+    for name in ("triplet", "hinge", "yaw", "tbias", "rerank"):
         a, b = getattr(first, name), getattr(last, name)
         if a > 0:
             assert b < a, f"{name} did not fall: {a} -> {b}"
@@ -115,7 +118,12 @@ def _assert_resumed_run_equals_uninterrupted(cfg: TrainConfig, tmp_path: Path, c
 
 @pytest.mark.parametrize(
     ("key", "value", "match"),
-    [("batch_size", 0, "batch_size"), ("lr", -1.0, "lr"), ("bogus", 1, "unknown keys")],
+    [
+        ("batch_size", 0, "batch_size"),
+        ("lr", -1.0, "lr"),
+        ("rerank_weight", -1.0, "rerank_weight"),
+        ("bogus", 1, "unknown keys"),
+    ],
 )
 def test_bad_config_is_refused(key, value, match):
     with pytest.raises(ValueError, match=match):

@@ -7,6 +7,8 @@
   relative pose and the target's local descriptor.
 * :func:`translation_bias_loss` — the matching cost at the true translation must beat a randomly
   biased translation by a margin (0.1).
+* :func:`rerank_loss` — ours, not the paper's (off unless ``rerank_weight`` > 0): the re-ranking
+  cost of the anchor against its positive must beat its cost against the negative by a margin.
 
 Poses follow DESIGN.md §3: ξ_{s→t} = (x, y, φ) is the target pose in the source frame; padding the
 source BEV with t = (x, y) re-centres it at the target origin and Dt ≈ ρ(Ds, φ·T/2π).
@@ -170,3 +172,39 @@ def translation_bias_loss(
     cost_true = matching_cost(*aligned_descriptors(model, bev_src, local_tgt, t, yaw))
     cost_bias = matching_cost(*aligned_descriptors(model, bev_src, local_tgt, t + delta, yaw))
     return F.relu(cost_true - cost_bias + margin).mean()
+
+
+def roll_min_cost(src: Tensor, tgt: Tensor) -> Tensor:
+    """Lowest matching cost over the T integer rolls of pairs (P, T, C) → (P,):
+    min_k δ(ρ(src, k), tgt), ρ(D, k)[i] = D[(i − k) mod T] (DESIGN.md §3).
+
+    This is the re-ranking cost (:func:`vvloc.kernels.rerank`) without its sub-bin refinement:
+    the Rust kernel's exact minimum is at most the integer one and within one bin's
+    interpolation of it. The gradient flows through the best roll only."""
+    t = src.shape[1]
+    k = torch.arange(t, device=src.device)
+    rolled = src[:, (k[None, :] - k[:, None]) % t]  # (P, K, T, C): row k is ρ(src, k)
+    return matching_cost(rolled, tgt[:, None]).min(dim=-1).values
+
+
+def rerank_loss(
+    model: VVLocNet,
+    local_anchor: Tensor,
+    local_pos: Tensor,
+    local_neg: Tensor,
+    margin: float = 0.1,
+) -> Tensor:
+    """Re-ranking loss (ours; the paper trains no such term): the anchor's re-ranking cost
+    against its positive must be lower, by ``margin``, than against its negative.
+
+    local_anchor, local_pos, local_neg (B, T, C) local-view descriptors (the anchor is the
+    query, the others map keyframes, as in :meth:`vvloc.localize.Localizer.rerank`: the
+    interactor on the unpadded pair, then the lowest cost over yaw rolls,
+    :func:`roll_min_cost`). L = mean(max(0, c(a, p) − c(a, n) + margin)).
+
+    Why: the yaw and translation-bias losses only see positive pairs at or near their true
+    pose, so nothing in the paper's losses asks the cost of a wrong place to be high, yet
+    re-ranking orders candidates by exactly that cost."""
+    cost_pos = roll_min_cost(*model.interact(local_anchor, local_pos))
+    cost_neg = roll_min_cost(*model.interact(local_anchor, local_neg))
+    return F.relu(cost_pos - cost_neg + margin).mean()

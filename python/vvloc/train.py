@@ -62,6 +62,7 @@ from vvloc.data.augment import PhotometricAugment
 from vvloc.localize.localizer import frames_to_tensors
 from vvloc.losses import (
     hinge_loss,
+    rerank_loss,
     translation_bias_loss,
     triplet_loss,
     yaw_matching_loss,
@@ -95,6 +96,9 @@ class TrainConfig:
     committed config reproduces its data and its model with one command. ``augment`` (optional)
     holds :class:`vvloc.data.augment.PhotometricAugment` fields (``{}`` = its defaults; absent =
     no augmentation), applied independently to each frame of every training triplet.
+    ``rerank_weight`` (default 0: off, the paper's losses only) adds, in stage 2, our
+    :func:`vvloc.losses.rerank_loss` (margin ``rerank_margin``): the anchor's re-ranking cost
+    against its positive must beat its cost against the triplet's negative.
     ``extra_datasets`` are further training datasets, each a mapping with ``dataset`` (path) and
     optionally ``sim``, ``train_sessions`` as above (same rig and image size as ``dataset``)
     and ``anchor_share`` (the share of anchors drawn from it; default: by its frame count);
@@ -155,6 +159,8 @@ class TrainConfig:
     yaw_theta_n: float = 1.4
     tbias_weight: float = 1.0
     tbias_margin: float = 0.1
+    rerank_weight: float = 0.0
+    rerank_margin: float = 0.1
     augment: dict[str, Any] | None = None
     extra_datasets: list[dict[str, Any]] = field(default_factory=list)
     cross_floor_fraction: float = 0.0
@@ -223,6 +229,10 @@ class TrainConfig:
                 "head_epochs: a head stage without stages 1-2 needs init_checkpoint (the trained "
                 "encoder whose features it pools)"
             )
+        for name in ("rerank_weight", "rerank_margin"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not value >= 0:
+                raise ValueError(f"{name}: expected a number >= 0, got {value!r}")
         if not 0 < self.lr_decay <= 1:
             raise ValueError("lr_decay: expected in (0, 1]")
         if self.num_workers < 0:
@@ -394,6 +404,7 @@ class StepLosses:
     yaw: float
     tbias: float
     violated: int
+    rerank: float = 0.0
 
 
 def global_losses(
@@ -427,7 +438,8 @@ def training_losses(
     The three frames of each triplet are encoded in one call (3B samples). Stage 1 uses the
     triplet and hinge losses of the global descriptors; stage 2 adds the yaw matching loss and
     the translation bias loss (weights ``yaw_weight``, ``tbias_weight``) on (anchor, positive)
-    with the ground-truth relative pose ξ_{a→p}. A triplet is "correct" for hard mining when
+    with the ground-truth relative pose ξ_{a→p}, and, when ``rerank_weight`` > 0, the
+    re-ranking loss on (anchor, positive, negative). A triplet is "correct" for hard mining when
     ‖g_a − g_p‖ + margin < ‖g_a − g_n‖.
     """
     images = batch["images"].to(device)  # (B, 3, M, 3, H, W)
@@ -438,6 +450,7 @@ def training_losses(
     total = l_tri + l_hinge
     l_yaw = torch.zeros((), device=device)
     l_tb = torch.zeros((), device=device)
+    l_rr = torch.zeros((), device=device)
     if stage == 2:
         poses = batch["poses"].numpy()
         xi = geometry.relative(poses[:, 0], poses[:, 1])  # (B, 3): positive in anchor frame
@@ -452,6 +465,9 @@ def training_losses(
             model, bev[0], loc[1], t, yaw, margin=cfg.tbias_margin, seed=cfg.seed * 1_000_003 + step
         )
         total = total + cfg.yaw_weight * l_yaw + cfg.tbias_weight * l_tb
+        if cfg.rerank_weight > 0:  # built only when on: the graph of the committed recipes
+            l_rr = rerank_loss(model, loc[0], loc[1], loc[2], cfg.rerank_margin)
+            total = total + cfg.rerank_weight * l_rr
     correct = correct_t.cpu().numpy()
     parts = StepLosses(
         total=float(total.detach()),
@@ -460,6 +476,7 @@ def training_losses(
         yaw=float(l_yaw.detach()),
         tbias=float(l_tb.detach()),
         violated=int((~correct).sum()),
+        rerank=float(l_rr.detach()),
     )
     return total, parts, correct
 
@@ -939,6 +956,7 @@ class Trainer:
             "hinge": 0.0,
             "yaw": 0.0,
             "tbias": 0.0,
+            "rerank": 0.0,
         }
         violated = 0
         t0 = time.perf_counter()
@@ -1106,6 +1124,7 @@ class Trainer:
             **{f"loss_{k}": v / n for k, v in sums.items()},
             "loss_yaw": 0.0,
             "loss_tbias": 0.0,
+            "loss_rerank": 0.0,
             "violated_share": violated / (n * cfg.head_batch_size),
             "cache_seconds": cache_seconds,
             "seconds": time.perf_counter() - t0,
