@@ -465,7 +465,7 @@ def training_losses(
             model, bev[0], loc[1], t, yaw, margin=cfg.tbias_margin, seed=cfg.seed * 1_000_003 + step
         )
         total = total + cfg.yaw_weight * l_yaw + cfg.tbias_weight * l_tb
-        if cfg.rerank_weight > 0:  # built only when on: the graph of the committed recipes
+        if cfg.rerank_weight > 0:  # only when on: any extra term would move the committed weights
             l_rr = rerank_loss(model, loc[0], loc[1], loc[2], cfg.rerank_margin)
             total = total + cfg.rerank_weight * l_rr
     correct = correct_t.cpu().numpy()
