@@ -13,6 +13,7 @@ from torch import Tensor
 from nets_helpers import make_rig, random_images, tiny_config
 from vvloc import losses
 from vvloc.nets import ModelConfig, VVLocNet, polar_sample
+from vvloc.reference.matching import yaw_costs
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -93,8 +94,6 @@ class _IdentityInteractor:
 
 
 def test_roll_min_cost_is_the_lowest_integer_roll_of_the_reference():
-    from vvloc.reference.matching import yaw_costs
-
     gen = torch.Generator().manual_seed(4)
     src = F.normalize(torch.randn(5, 12, 6, generator=gen), dim=-1)
     tgt = F.normalize(torch.randn(5, 12, 6, generator=gen), dim=-1)

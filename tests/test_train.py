@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import re
 from pathlib import Path
@@ -59,6 +60,8 @@ def test_a_few_steps_on_fixed_triplets_lower_every_loss(tiny_world, rerank_weigh
     assert first is not None and last is not None
     if rerank_weight == 0:  # off: not built, logged as 0
         assert first.rerank == last.rerank == 0.0
+    else:  # on: the untrained interactor does not yet rank the positive first by the margin
+        assert first.rerank > 0
     for name in ("triplet", "hinge", "yaw", "tbias", "rerank"):
         a, b = getattr(first, name), getattr(last, name)
         if a > 0:
@@ -143,6 +146,14 @@ def test_every_committed_config_is_valid_and_keeps_its_held_out_sessions(name):
         if "garage" in extra["dataset"]:
             # the garage test's query session (s1 against a map of s0) is never trained on
             assert "s1" not in (extra.get("train_sessions") or ["s1"]), name
+
+
+def test_rerank_candidate_is_step_one_plus_the_rerank_loss_only():
+    configs = Path(__file__).parents[1] / "configs"
+    step1 = dataclasses.asdict(TrainConfig.from_yaml(configs / "synth-small.yaml"))
+    cand = dataclasses.asdict(TrainConfig.from_yaml(configs / "synth-small-rerank.yaml"))
+    changed = {k for k in step1 if step1[k] != cand[k]}
+    assert changed == {"rerank_weight"} and cand["rerank_weight"] > 0
 
 
 def test_missing_dataset_without_sim_section_is_a_clear_error(tmp_path):

@@ -179,8 +179,8 @@ def roll_min_cost(src: Tensor, tgt: Tensor) -> Tensor:
     min_k δ(ρ(src, k), tgt), ρ(D, k)[i] = D[(i − k) mod T] (DESIGN.md §3).
 
     This is the re-ranking cost (:func:`vvloc.kernels.rerank`) without its sub-bin refinement:
-    the Rust kernel's exact minimum is at most the integer one and within one bin's
-    interpolation of it. The gradient flows through the best roll only."""
+    the kernel minimises over real shifts, a superset of these, so its cost is at most this one.
+    The gradient flows through the best roll only."""
     t = src.shape[1]
     k = torch.arange(t, device=src.device)
     rolled = src[:, (k[None, :] - k[:, None]) % t]  # (P, K, T, C): row k is ρ(src, k)

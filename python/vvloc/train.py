@@ -403,8 +403,8 @@ class StepLosses:
     hinge: float
     yaw: float
     tbias: float
+    rerank: float
     violated: int
-    rerank: float = 0.0
 
 
 def global_losses(
@@ -475,8 +475,8 @@ def training_losses(
         hinge=float(l_hinge.detach()),
         yaw=float(l_yaw.detach()),
         tbias=float(l_tb.detach()),
-        violated=int((~correct).sum()),
         rerank=float(l_rr.detach()),
+        violated=int((~correct).sum()),
     )
     return total, parts, correct
 
