@@ -3,7 +3,7 @@
 #   make bench   kernel benchmarks: table on stdout, JSON in bench-results/
 #   make lint    cargo fmt/clippy, ruff, mypy stubtest of the extension
 #   make demo    end-to-end demo (see README)
-#   make model   train the committed small model from scratch (four steps, ≈ 71-85 min on 2 cores)
+#   make model   train the committed small model from scratch (four steps, ≈ 88 min on 2 cores)
 #   make model-garage  the garage variant models/synth-small-garage from models/synth-small-v1 (≈ 53 min)
 SHELL := /bin/bash
 PYTHON ?= python3
@@ -51,14 +51,20 @@ lint: develop
 demo: develop
 	$(PY) -m vvloc.cli demo
 
-# stages 1-2 (the parking model, GeM head: models/synth-small-base), the head stage on it
-# (NetVLAD, three worlds: models/synth-small-v1), the floor fine-tune (stage 2 on three worlds,
-# 6 epochs) and the head stage again; runs/synth-small-ft-head/best/ is models/synth-small
-# (re-running it resumes or skips what a previous run already did)
+# the four steps of models/synth-small, each config:run folder: stages 1-2 on the parking lot
+# with the re-ranking loss (GeM head), the head stage on it (NetVLAD, three worlds), the floor
+# fine-tune (stage 2 on three worlds, 6 epochs) and the head stage again;
+# runs/synth-small-ft-head/best/ is models/synth-small (re-running it resumes or skips what a
+# previous run already did). models/synth-small-v3's recipe is the same with
+# configs/synth-small.yaml (the paper's losses only) as step 1.
+MODEL_STEPS = synth-small-rerank:synth-small synth-small-head:synth-small-head \
+  synth-small-ft:synth-small-ft synth-small-ft-head:synth-small-ft-head
+
 model: develop
-	for step in synth-small synth-small-head synth-small-ft synth-small-ft-head; do \
-	  $(PY) -m vvloc.cli train --config configs/$$step.yaml --out runs/$$step \
-	    $$(test -e runs/$$step/trainer_state.pt && echo --resume) || exit 1; \
+	for step in $(MODEL_STEPS); do \
+	  cfg=$${step%%:*}; out=runs/$${step#*:}; \
+	  $(PY) -m vvloc.cli train --config configs/$$cfg.yaml --out $$out \
+	    $$(test -e $$out/trainer_state.pt && echo --resume) || exit 1; \
 	done
 
 # the garage variant: two fine-tunes of the committed models/synth-small-v1 (the default model

@@ -296,7 +296,9 @@ def test_demo_queries_sessions_the_committed_model_never_trained_on():
     root = Path(__file__).resolve().parents[1]
     for cfg_path in (
         root / "configs" / "synth-small.yaml",
+        root / "configs" / "synth-small-rerank.yaml",
         demo_cmd.DEFAULT_MODEL / "train_config.yaml",
+        demo_cmd.DEFAULT_MODEL / "train_config-step1.yaml",
     ):
         cfg = yaml.safe_load(cfg_path.read_text())
         assert not set(demo_cmd.QUERY_SESSIONS) & set(cfg["train_sessions"]), cfg_path

@@ -17,8 +17,9 @@ from vvloc.commands._util import cli_errors
 DEFAULT_MODEL = Path(__file__).resolve().parents[3] / "models" / "synth-small"
 
 #: The demo's sessions: the committed model trained on s0, s1, s2, s5..s17 of this world (see
-#: configs/synth-small.yaml), so the queries are the held-out s3 (rain, reversed drive) and s4
-#: (fog, +1.5 m lateral offset), localized against a map of s0 (day).
+#: configs/synth-small-rerank.yaml, step 1 of `make model`), so the queries are the held-out s3
+#: (rain, reversed drive) and s4 (fog, +1.5 m lateral offset), localized against a map of s0
+#: (day).
 SESSIONS = 5
 MAP_SESSION = "s0"
 QUERY_SESSIONS = ["s3", "s4"]
@@ -26,8 +27,8 @@ QUERY_SESSIONS = ["s3", "s4"]
 UNTRAINED = (
     "WARNING: no trained model found at {path}: this demo runs an UNTRAINED (randomly "
     "initialised) small model, so its retrieval and poses are meaningless. Train one with "
-    "`vvloc train --config configs/synth-small.yaml --out runs/synth-small` and pass "
-    "--checkpoint runs/synth-small."
+    "`vvloc train --config configs/synth-small-rerank.yaml --out runs/synth-small` and pass "
+    "--checkpoint runs/synth-small (`make model` trains all four steps of the committed model)."
 )
 
 
