@@ -3,7 +3,7 @@
 #   make bench   kernel benchmarks: table on stdout, JSON in bench-results/
 #   make lint    cargo fmt/clippy, ruff, mypy stubtest of the extension
 #   make demo    end-to-end demo (see README)
-#   make model   train the committed small model from scratch (four steps, ≈ 88 min on 2 cores)
+#   make model   train the committed small model from scratch (four steps, ≈ 89 min on 2 cores)
 #   make model-garage  the garage variant models/synth-small-garage from models/synth-small-v1 (≈ 53 min)
 SHELL := /bin/bash
 PYTHON ?= python3
@@ -55,8 +55,9 @@ demo: develop
 # with the re-ranking loss (GeM head), the head stage on it (NetVLAD, three worlds), the floor
 # fine-tune (stage 2 on three worlds, 6 epochs) and the head stage again;
 # runs/synth-small-ft-head/best/ is models/synth-small (re-running it resumes or skips what a
-# previous run already did). models/synth-small-v3's recipe is the same with
-# configs/synth-small.yaml (the paper's losses only) as step 1.
+# previous run already did; delete runs/synth-small* left from another recipe first).
+# models/synth-small-v3's recipe is the same with configs/synth-small.yaml (the paper's losses
+# only) as step 1: make model MODEL_STEPS="synth-small:synth-small synth-small-head:..." .
 MODEL_STEPS = synth-small-rerank:synth-small synth-small-head:synth-small-head \
   synth-small-ft:synth-small-ft synth-small-ft-head:synth-small-ft-head
 
@@ -68,7 +69,8 @@ model: develop
 	done
 
 # the garage variant: two fine-tunes of the committed models/synth-small-v1 (the default model
-# until 2026-12-02, the output of the first two steps of `make model`) and a head stage
+# until 2026-12-02, the output of the first two steps of v3's recipe: configs/synth-small.yaml
+# and -head) and a head stage
 model-garage: develop
 	for step in ft ft2 ft-head64; do \
 	  out=runs/synth-small-garage-$$step; \

@@ -417,7 +417,8 @@ def global_losses(
     The terms are built in this order (triplet, then the distances and the hinge) on purpose:
     autograd sums the gradients of ``g`` in the reverse order of the graph, so another order
     changes the weights' last bits, and over a training run the weights themselves; this is
-    the order that trained the committed default's four steps (models/synth-small/MODEL_CARD.md)."""
+    the order that trained the committed models' steps since 2026-12-02
+    (models/synth-small-v3/MODEL_CARD.md)."""
     l_tri = triplet_loss(g[0], g[1], g[2], cfg.triplet_margin)
     d_pos = (g[0] - g[1]).norm(dim=-1)
     d_neg = (g[0] - g[2]).norm(dim=-1)
