@@ -4,6 +4,7 @@
 #   make lint    cargo fmt/clippy, ruff, mypy stubtest of the extension
 #   make demo    end-to-end demo (see README)
 #   make model   train the committed small model from scratch (four steps, ≈ 89 min on 2 cores)
+#   make model-v3  the recipe of the previous default, models/synth-small-v3 (in a clean runs/)
 #   make model-garage  the garage variant models/synth-small-garage from models/synth-small-v1 (≈ 53 min)
 SHELL := /bin/bash
 PYTHON ?= python3
@@ -11,7 +12,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 PYTEST_ARGS ?=
 
-.PHONY: venv develop test test-rust test-python bench lint demo model model-garage clean
+.PHONY: venv develop test test-rust test-python bench lint demo model model-v3 model-garage clean
 
 $(VENV)/.deps-stamp: pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -56,10 +57,12 @@ demo: develop
 # fine-tune (stage 2 on three worlds, 6 epochs) and the head stage again;
 # runs/synth-small-ft-head/best/ is models/synth-small (re-running it resumes or skips what a
 # previous run already did; delete runs/synth-small* left from another recipe first).
-# models/synth-small-v3's recipe is the same with configs/synth-small.yaml (the paper's losses
-# only) as step 1: make model MODEL_STEPS="synth-small:synth-small synth-small-head:..." .
+# `make model-v3` runs models/synth-small-v3's recipe: the same with configs/synth-small.yaml
+# (the paper's losses only) as step 1. tests/test_train.py holds the chain of run folders to the
+# configs' init_checkpoint and to the committed model's training record.
 MODEL_STEPS = synth-small-rerank:synth-small synth-small-head:synth-small-head \
   synth-small-ft:synth-small-ft synth-small-ft-head:synth-small-ft-head
+V3_STEPS = synth-small:synth-small $(wordlist 2,4,$(MODEL_STEPS))
 
 model: develop
 	for step in $(MODEL_STEPS); do \
@@ -67,6 +70,9 @@ model: develop
 	  $(PY) -m vvloc.cli train --config configs/$$cfg.yaml --out $$out \
 	    $$(test -e $$out/trainer_state.pt && echo --resume) || exit 1; \
 	done
+
+model-v3:
+	$(MAKE) model MODEL_STEPS="$(V3_STEPS)"
 
 # the garage variant: two fine-tunes of the committed models/synth-small-v1 (the default model
 # until 2026-12-02, the output of the first two steps of v3's recipe: configs/synth-small.yaml

@@ -148,12 +148,38 @@ def test_every_committed_config_is_valid_and_keeps_its_held_out_sessions(name):
             assert "s1" not in (extra.get("train_sessions") or ["s1"]), name
 
 
-def test_rerank_candidate_is_step_one_plus_the_rerank_loss_only():
+def _make_model_steps() -> list[tuple[str, str]]:
+    """The (config, run folder) steps of `make model`, read from the Makefile's MODEL_STEPS."""
+    text = (Path(__file__).parents[1] / "Makefile").read_text().replace("\\\n", " ")
+    value = re.search(r"^MODEL_STEPS = (.*)$", text, re.M)
+    assert value is not None
+    return [tuple(step.split(":")) for step in value.group(1).split()]
+
+
+def test_make_model_chains_its_run_folders_and_records_the_committed_model():
+    root = Path(__file__).parents[1]
+    steps = _make_model_steps()
+    later = ["synth-small-head", "synth-small-ft", "synth-small-ft-head"]
+    assert [c for c, _ in steps][1:] == later
+    configs = [TrainConfig.from_yaml(root / "configs" / f"{c}.yaml") for c, _ in steps]
+    assert configs[0].init_checkpoint is None
+    for (_, prev_out), cfg in zip(steps[:-1], configs[1:], strict=True):
+        # each step starts from the previous one's run folder (or its best/ or checkpoint/)
+        init = Path(cfg.init_checkpoint)
+        assert init == Path("runs", prev_out) or init.parent == Path("runs", prev_out), init
+    # the committed model's training record holds these configs, in this order
+    record = json.loads((root / "models" / "synth-small" / "training.json").read_text())
+    recorded = [run["config"] for run in record["runs"]]
+    assert recorded == [dataclasses.asdict(cfg) for cfg in configs]
+
+
+def test_the_default_step_one_is_v3s_plus_the_rerank_loss_only():
     configs = Path(__file__).parents[1] / "configs"
-    step1 = dataclasses.asdict(TrainConfig.from_yaml(configs / "synth-small.yaml"))
-    cand = dataclasses.asdict(TrainConfig.from_yaml(configs / "synth-small-rerank.yaml"))
-    changed = {k for k in step1 if step1[k] != cand[k]}
-    assert changed == {"rerank_weight"} and cand["rerank_weight"] > 0
+    assert _make_model_steps()[0] == ("synth-small-rerank", "synth-small")
+    v3 = dataclasses.asdict(TrainConfig.from_yaml(configs / "synth-small.yaml"))
+    step1 = dataclasses.asdict(TrainConfig.from_yaml(configs / "synth-small-rerank.yaml"))
+    changed = {k for k in v3 if v3[k] != step1[k]}
+    assert changed == {"rerank_weight"} and step1["rerank_weight"] > 0
 
 
 def test_missing_dataset_without_sim_section_is_a_clear_error(tmp_path):
