@@ -164,6 +164,28 @@ def test_hard_triplets_are_redrawn_until_resolved(tmp_path):
     assert len(sampler.hard) == 0
 
 
+def test_a_sampler_given_another_ones_state_draws_what_that_one_would(tmp_path):
+    ds = _drive_dataset(tmp_path / "ds")
+    live = TripletSampler(ds, seed=1, hard_fraction=0.5)
+    drawn = live.sample(12)
+    live.update(drawn, np.arange(12) % 3 == 0)  # 8 hard
+    live.sample(6)  # takes 3 of the pool: the next draw starts inside it
+    state = live.state_dict()
+    assert state["hard_cursor"] == 3 and len(state["hard"]) == 8
+    copy = TripletSampler(ds, seed=99, hard_fraction=0.5)
+    copy.mark_hard(copy.sample_random(2))  # a pool of its own, replaced by the state's
+    copy.load_state_dict(state)
+    for _ in range(3):
+        assert np.array_equal(copy.sample(6), live.sample(6))
+    assert np.array_equal(copy.hard, live.hard)
+    # a state saved before the cursor was kept restarts at the pool's first triplet
+    old = TripletSampler(ds, seed=99, hard_fraction=0.5)
+    old.load_state_dict({"rng": state["rng"], "hard": state["hard"]})
+    fresh = TripletSampler(ds, seed=1, hard_fraction=0.5)
+    fresh.load_state_dict({**state, "hard_cursor": 0})
+    assert np.array_equal(old.sample(6), fresh.sample(6))
+
+
 def test_floors_are_different_places(tmp_path):
     root = tmp_path / "ds"
     _write(root, {"s0": _line(5, floor=0), "s1": _line(5, floor=1), "s2": _line(5, y=0.5)})

@@ -845,8 +845,7 @@ class Trainer:
             "head_optimizer": self.head_optimizer.state_dict(),
             "head_scheduler": self.head_scheduler.state_dict(),
             "head_untrained": self.head_untrained,
-            "sampler_rng": self.sampler.rng.bit_generator.state,
-            "sampler_hard": self.sampler.hard,
+            "sampler": self.sampler.state_dict(),
             "torch_rng": torch.get_rng_state(),
             "best": self.best,
             "config": self.cfg.to_dict(),
@@ -891,9 +890,12 @@ class Trainer:
             self.head_optimizer.load_state_dict(state["head_optimizer"])
             self.head_scheduler.load_state_dict(state["head_scheduler"])
             self.head_untrained = bool(state["head_untrained"])
-        self.sampler.rng.bit_generator.state = state["sampler_rng"]
-        self.sampler.resolve(self.sampler.hard)
-        self.sampler.mark_hard(state["sampler_hard"])
+        if "sampler" in state:
+            self.sampler.load_state_dict(state["sampler"])
+        else:  # saved before 2026-12-03: no position in the hard pool (restarts at its first)
+            self.sampler.load_state_dict(
+                {"rng": state["sampler_rng"], "hard": state["sampler_hard"]}
+            )
         torch.set_rng_state(state["torch_rng"])
         self.epoch = int(state["epoch"])
         self.step = int(state["step"])

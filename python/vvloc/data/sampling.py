@@ -9,9 +9,10 @@ frames of different worlds are never positives, whatever their coordinates.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -271,6 +272,26 @@ class TripletSampler:
     def hard(self) -> np.ndarray:
         """(H, 3) int64 triplets currently in the hard pool."""
         return np.array(list(self._hard), dtype=np.int64).reshape(-1, 3)
+
+    def state_dict(self) -> dict[str, Any]:
+        """Everything that decides the next draws: the generator's state, the hard pool in its
+        order ((H, 3) int64) and the position in it from which :meth:`sample` takes next. A
+        sampler built on the same data and given this by :meth:`load_state_dict` draws what this
+        one would (the trainer's ``--resume``)."""
+        return {
+            "rng": self.rng.bit_generator.state,
+            "hard": self.hard,
+            "hard_cursor": self._hard_cursor,
+        }
+
+    def load_state_dict(self, state: Mapping[str, Any]) -> None:
+        """Restore a :meth:`state_dict` (the hard pool replaces this sampler's). A state without
+        ``hard_cursor`` (saved by vvloc before 2026-12-03) starts the pool from its first
+        triplet, as those versions did on resume."""
+        self.rng.bit_generator.state = state["rng"]
+        self._hard = {}
+        self.mark_hard(np.asarray(state["hard"], dtype=np.int64))
+        self._hard_cursor = int(state.get("hard_cursor", 0))
 
 
 @dataclass(frozen=True)
