@@ -3,7 +3,8 @@
 #   make bench   kernel benchmarks: table on stdout, JSON in bench-results/
 #   make lint    cargo fmt/clippy, ruff, mypy stubtest of the extension
 #   make demo    end-to-end demo (see README)
-#   make model   train the committed small model from scratch (four steps, ≈ 89 min on 2 cores)
+#   make model   the committed small model's recipe from scratch (four steps, ≈ 91 min on 2 cores;
+#                not its bytes, whose step 1 was resumed: models/synth-small/MODEL_CARD.md)
 #   make model-v3  the recipe of the previous default, models/synth-small-v3 (in a clean runs/)
 #   make model-garage  the garage variant models/synth-small-garage from models/synth-small-v1 (≈ 53 min)
 SHELL := /bin/bash
@@ -55,8 +56,9 @@ demo: develop
 # the four steps of models/synth-small, each config:run folder: stages 1-2 on the parking lot
 # with the re-ranking loss (GeM head), the head stage on it (NetVLAD, three worlds), the floor
 # fine-tune (stage 2 on three worlds, 6 epochs) and the head stage again;
-# runs/synth-small-ft-head/best/ is models/synth-small (re-running it resumes or skips what a
-# previous run already did; delete runs/synth-small* left from another recipe first).
+# runs/synth-small-ft-head/best/ is the model (models/synth-small came from this recipe with
+# step 1 resumed once). Re-running it resumes or skips what a previous run already did; delete
+# runs/synth-small* left from another recipe first.
 # `make model-v3` runs models/synth-small-v3's recipe: the same with configs/synth-small.yaml
 # (the paper's losses only) as step 1. tests/test_train.py holds the chain of run folders to the
 # configs' init_checkpoint and to the committed model's training record.

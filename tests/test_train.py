@@ -113,6 +113,24 @@ def test_a_run_resumed_inside_its_hard_pool_equals_the_uninterrupted_run(tiny_wo
     assert cut_state["hard_cursor"] > 0 and len(cut_state["hard"]) > cut_state["hard_cursor"]
 
 
+def test_a_trainer_state_saved_before_the_pool_position_was_kept_still_resumes(
+    tiny_world, tmp_path
+):
+    cfg = _config(tiny_world, stage1_epochs=2, stage2_epochs=0, steps_per_epoch=3)
+    tr = Trainer(cfg, tmp_path / "run")
+    tr.run_epoch(progress=False)
+    tr.save()
+    path = tmp_path / "run" / "trainer_state.pt"
+    state = torch.load(path, weights_only=False)
+    sampler = state.pop("sampler")  # the layout written before 2026-12-03
+    torch.save({**state, "sampler_rng": sampler["rng"], "sampler_hard": sampler["hard"]}, path)
+    old = Trainer(cfg, tmp_path / "run")
+    assert old.resume()
+    restored = old.sampler.state_dict()
+    assert restored["rng"] == sampler["rng"] and restored["hard_cursor"] == 0
+    assert np.array_equal(restored["hard"], sampler["hard"])
+
+
 def _assert_resumed_run_equals_uninterrupted(
     cfg: TrainConfig, tmp_path: Path, cut: int
 ) -> tuple[Trainer, dict]:
