@@ -106,10 +106,10 @@ def test_resumed_run_equals_uninterrupted_run(tiny_world, tmp_path):
 
 def test_a_run_resumed_inside_its_hard_pool_equals_the_uninterrupted_run(tiny_world, tmp_path):
     # Cut where the next epoch's hard triplets start inside the pool: the position in the pool
-    # is part of the resumed state (a run resumed at epoch 10 of models/synth-small's step 1
-    # took other hard triplets than the uninterrupted run from epoch 11 on, before it was).
+    # is part of the resumed state (before it was, models/synth-small's step 1, resumed at epoch
+    # 10, took other hard triplets from epoch 11 on than an uninterrupted run).
     cfg = _config(tiny_world, stage1_epochs=3, stage2_epochs=0, steps_per_epoch=3)
-    _, cut_state = _assert_resumed_run_equals_uninterrupted(cfg, tmp_path, cut=2)
+    cut_state = _assert_resumed_run_equals_uninterrupted(cfg, tmp_path, cut=2)
     assert cut_state["hard_cursor"] > 0 and len(cut_state["hard"]) > cut_state["hard_cursor"]
 
 
@@ -131,11 +131,9 @@ def test_a_trainer_state_saved_before_the_pool_position_was_kept_still_resumes(
     assert np.array_equal(restored["hard"], sampler["hard"])
 
 
-def _assert_resumed_run_equals_uninterrupted(
-    cfg: TrainConfig, tmp_path: Path, cut: int
-) -> tuple[Trainer, dict]:
+def _assert_resumed_run_equals_uninterrupted(cfg: TrainConfig, tmp_path: Path, cut: int) -> dict:
     """A run stopped after ``cut`` epochs and resumed ends with the uninterrupted run's weights
-    and hard pool; returns the resumed trainer and the sampler's state at the cut."""
+    and hard pool; returns the sampler's state at the cut."""
     full = train(cfg, tmp_path / "full", progress=False)
     part = Trainer(cfg, tmp_path / "part")
     for _ in range(cut):
@@ -149,7 +147,7 @@ def _assert_resumed_run_equals_uninterrupted(
     ):
         torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)
     assert np.array_equal(resumed.sampler.hard, full.sampler.hard)
-    return resumed, cut_state
+    return cut_state
 
 
 @pytest.mark.parametrize(
