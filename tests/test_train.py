@@ -198,10 +198,21 @@ def test_make_model_chains_its_run_folders_and_records_the_committed_model():
         # each step starts from the previous one's run folder (or its best/ or checkpoint/)
         init = Path(cfg.init_checkpoint)
         assert init == Path("runs", prev_out) or init.parent == Path("runs", prev_out), init
-    # the committed model's training record holds these configs, in this order
+    # the committed model's training record holds these configs, in this order (keys added to
+    # TrainConfig since count as their defaults), but for the early stop step 1 has since
+    # 2026-12-03: patience 5 would have ended its joint stage after epoch 22 (best/: epoch 17)
     record = json.loads((root / "models" / "synth-small" / "training.json").read_text())
-    recorded = [run["config"] for run in record["runs"]]
-    assert recorded == [dataclasses.asdict(cfg) for cfg in configs]
+    defaults = dataclasses.asdict(TrainConfig())
+    recorded = [{**defaults, **run["config"]} for run in record["runs"]]
+    expected = [dataclasses.asdict(cfg) for cfg in configs]
+    assert expected[0]["patience"] == 5 and recorded[0]["patience"] is None
+    expected[0]["patience"] = None
+    assert recorded == expected
+    best = record["runs"][0]["weights_epoch"]
+    log = (root / "models" / "synth-small" / "train_log-step1.jsonl").read_text().splitlines()
+    scored = [json.loads(line) for line in log if "val" in json.loads(line)]
+    later = [r for r in scored if best < r["epoch"] <= best + 5]
+    assert len(later) == 5 and all(r["best_epoch"] == best for r in later)
 
 
 def test_the_default_step_one_is_v3s_plus_the_rerank_loss_only():
@@ -210,7 +221,7 @@ def test_the_default_step_one_is_v3s_plus_the_rerank_loss_only():
     v3 = dataclasses.asdict(TrainConfig.from_yaml(configs / "synth-small.yaml"))
     step1 = dataclasses.asdict(TrainConfig.from_yaml(configs / "synth-small-rerank.yaml"))
     changed = {k for k in v3 if v3[k] != step1[k]}
-    assert changed == {"rerank_weight"} and step1["rerank_weight"] > 0
+    assert changed == {"rerank_weight", "patience"} and step1["rerank_weight"] > 0
 
 
 def test_missing_dataset_without_sim_section_is_a_clear_error(tmp_path):
@@ -281,6 +292,86 @@ def test_fit_with_val_sessions_keeps_the_best_joint_epoch_and_resume_remembers_i
     assert not (out / "checkpoint" / "calibration.json").exists()
     again = Trainer(cfg, out)
     assert again.resume() and json.dumps(again.best) == json.dumps(tr.best)  # NaN-safe
+
+
+_REAL_VALIDATE = Trainer.validate
+
+
+def _scripted_validation(monkeypatch, recalls: list[float]) -> None:
+    """Make every validation score the next of ``recalls`` (Recall@1 re-ranked; retrieval 0)."""
+    scores = iter(recalls)
+
+    def validate(self):
+        res = _REAL_VALIDATE(self)
+        res["r1_reranked"], res["r1_retrieval"] = next(scores), 0.0
+        return res
+
+    monkeypatch.setattr(Trainer, "validate", validate)
+
+
+def test_patience_stops_the_joint_stage_and_the_head_stage_follows(
+    tiny_world, tmp_path, monkeypatch
+):
+    val = dict(train_sessions=["s0", "s1"], val_sessions=["s2"], val_every=4, device="cpu")
+    head = dict(head_steps_per_epoch=2, head_batch_size=4, head_negatives=3)
+    # joint epochs 2-7 score 0.5, 0.7 (best, epoch 3), 0.6, 0.65, ...: two validated epochs
+    # without beating epoch 3 end the joint stage after epoch 5; the head epoch follows as 6
+    _scripted_validation(monkeypatch, [0.5, 0.7, 0.6, 0.65, 0.1])
+    cfg = _config(tiny_world, stage2_epochs=6, patience=2, head_epochs=1, **head, **val)
+    tr = train(cfg, tmp_path / "early", progress=False)
+    log = [json.loads(line) for line in (tmp_path / "early" / "log.jsonl").read_text().splitlines()]
+    assert [(r["epoch"], r["stage"]) for r in log] == [
+        (1, 1),
+        (2, 2),
+        (3, 2),
+        (4, 2),
+        (5, 2),
+        (6, 3),
+    ]
+    assert [r.get("joint_stopped_early", False) for r in log] == [False] * 4 + [True, False]
+    assert tr.best is not None and tr.best["epoch"] == 3 and tr.joint_stopped == 5
+    (run,) = _record(tmp_path / "early" / "checkpoint")["runs"]
+    assert (run["epochs"], run["epochs_run"], run["complete"]) == (8, 6, True)
+    assert run["joint_stopped_early"] == 5
+    # the epochs before the stop are those of a run without patience: the same best/
+    _scripted_validation(monkeypatch, [0.5, 0.7, 0.6, 0.65])
+    plain = train(_config(tiny_world, stage2_epochs=4, **val), tmp_path / "plain", progress=False)
+    assert plain.best is not None and plain.best["epoch"] == 3
+    assert (
+        VVLocNet.load(tmp_path / "early" / "best").weights_hash()
+        == VVLocNet.load(tmp_path / "plain" / "best").weights_hash()
+    )
+    # a run that stopped early is finished: resuming trains nothing, growing it is refused
+    again = train(cfg, tmp_path / "early", resume=True, progress=False)
+    assert again.epoch == 6 and again.joint_stopped == 5
+    longer = dataclasses.replace(cfg, stage2_epochs=9)
+    with pytest.raises(ValueError, match="stopped its joint stage early after epoch 5"):
+        train(longer, tmp_path / "early", resume=True, progress=False)
+
+
+def test_patience_that_never_runs_out_changes_nothing(tiny_world, tmp_path, monkeypatch):
+    val = dict(train_sessions=["s0", "s1"], val_sessions=["s2"], val_every=4, device="cpu")
+    _scripted_validation(monkeypatch, [0.5, 0.6, 0.7])
+    tr = train(_config(tiny_world, stage2_epochs=3, patience=1, **val), tmp_path / "a")
+    assert tr.joint_stopped is None and tr.epoch == 4 and tr.best["epoch"] == 4
+    assert "joint_stopped_early" not in _record(tmp_path / "a" / "checkpoint")["runs"][0]
+
+
+@pytest.mark.parametrize(
+    ("kw", "match"),
+    [
+        ({"patience": 0, "train_sessions": ["s0"], "val_sessions": ["s1"]}, "patience"),
+        ({"patience": 1.5, "train_sessions": ["s0"], "val_sessions": ["s1"]}, "patience"),
+        ({"patience": 2}, "needs val_sessions"),
+        (
+            {"patience": 2, "train_sessions": ["s0"], "val_sessions": ["s1"], "stage2_epochs": 0},
+            "stage2_epochs > 0",
+        ),
+    ],
+)
+def test_bad_patience_is_refused(kw, match):
+    with pytest.raises(ValueError, match=match):
+        TrainConfig.from_dict({"dataset": "x", **kw})
 
 
 @pytest.mark.parametrize(

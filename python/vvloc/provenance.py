@@ -16,7 +16,9 @@ A *run* is one ``vvloc train --out DIR`` run, resumed or not::
      "epochs": 29,                        # the config's epochs: stage 1 + stage 2 + head stage
      "epochs_run": 29,                    # epochs trained when this file was written
      "weights_epoch": 27,                 # the epoch (1-based) these weights are from
-     "complete": true,                    # epochs_run == epochs
+     "complete": true,                    # the run has ended: epochs_run == epochs, or
+                                          # patience stopped its joint stage (then also
+                                          # "joint_stopped_early": <its last joint epoch>)
      "seconds": 4021.3,                   # wall time of the run, s (null: not all measured)
      "processes": [<process>, ...],       # one per process that trained it (resume: several)
      "init_weights_hash": "<hash of the init_checkpoint's weights>" | null}

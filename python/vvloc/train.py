@@ -122,6 +122,13 @@ class TrainConfig:
     at ``radius`` and how many join two floors (:func:`loop_validation`), and ``best/`` goes to
     the epoch with the fewest such cross-floor pairs (summed over the entries), ties by the
     Recall@1 figures above. Needs ``val_sessions``.
+    ``patience`` (optional, needs ``val_sessions`` and joint epochs): early stopping of the
+    joint stage. When ``patience`` validated joint epochs in a row have not beaten ``best/``
+    (by the selection key above), the remaining joint epochs are skipped (the head stage, if
+    any, follows). The epochs trained are the same as without it, up to the stop, so ``best/``
+    changes only if a later epoch would have beaten it. A run that stopped early is finished:
+    growing ``stage2_epochs`` on resume does not restart it (start a new run with
+    ``init_checkpoint`` instead).
     ``head_epochs`` (default 0) adds the head stage (module docstring): ``head_steps_per_epoch``
     steps of ``head_batch_size`` triplets at learning rate ``head_lr`` (Adam, ×``lr_decay`` per
     epoch), negatives mined among the ``head_negatives`` nearest. Its cache holds every training
@@ -171,6 +178,7 @@ class TrainConfig:
     val_every: int = 1
     val_top_k: int = 20
     val_loops: list[dict[str, Any]] = field(default_factory=list)
+    patience: int | None = None
     head_epochs: int = 0
     head_steps_per_epoch: int = 1000
     head_batch_size: int = 32
@@ -284,6 +292,16 @@ class TrainConfig:
                             f"val_loops[{k}].sessions: must not be trained on ({entry['dataset']} "
                             f"trains {sorted(trained) or 'all its sessions'})"
                         )
+        if self.patience is not None:
+            if isinstance(self.patience, bool) or not isinstance(self.patience, int):
+                raise ValueError(f"patience: expected an int >= 1 or null, got {self.patience!r}")
+            if self.patience < 1:
+                raise ValueError(f"patience: expected an int >= 1 or null, got {self.patience}")
+            if not self.val_sessions or int(self.stage2_epochs) == 0:
+                raise ValueError(
+                    "patience: early stopping needs val_sessions and stage2_epochs > 0 (it stops "
+                    "the joint stage when validation stops improving)"
+                )
         if self.val_loops and not self.val_sessions:
             raise ValueError("val_loops: needs val_sessions (the Recall@1 validation) as well")
         if not isinstance(self.extra_datasets, list):
@@ -672,6 +690,8 @@ class Trainer:
         self.epoch = 0
         self.step = 0
         self.best: dict[str, Any] | None = None  # the validation record of best/, if any
+        # the (1-based) last joint epoch when `patience` stopped the joint stage early, else None
+        self.joint_stopped: int | None = None
         # the training record's processes (vvloc.provenance): earlier ones (from the trainer
         # state on resume), then this one, whose seconds grow with its set-up and epochs
         self.earlier_processes: list[dict[str, Any]] = []
@@ -771,11 +791,13 @@ class Trainer:
             "epochs": self.cfg.epochs,
             "epochs_run": self.epoch,
             "weights_epoch": weights_epoch,
-            "complete": self.epoch >= self.cfg.epochs,
+            "complete": self.epoch >= self.total_epochs,
             "seconds": None if None in seconds else round(sum(seconds), 1),
             "processes": procs,
             "init_weights_hash": self.init_weights_hash,
         }
+        if self.joint_stopped is not None:
+            run["joint_stopped_early"] = self.joint_stopped
         return {"runs": [*self.earlier_runs, run]}
 
     def _saved_record(self, folder: Path) -> dict[str, Any] | None:
@@ -848,6 +870,7 @@ class Trainer:
             "sampler": self.sampler.state_dict(),
             "torch_rng": torch.get_rng_state(),
             "best": self.best,
+            "joint_stopped": self.joint_stopped,
             "config": self.cfg.to_dict(),
         }
         with atomic_write(self._state_path(), "wb") as fb:
@@ -881,6 +904,14 @@ class Trainer:
                 f"{self._state_path()}: stage2_epochs can only grow, and only before the head "
                 f"stage (run in {self.out}: {old['stage2_epochs']} joint epochs, at epoch "
                 f"{state['epoch']}; asked for {self.cfg.stage2_epochs})"
+            )
+        self.joint_stopped = state.get("joint_stopped")
+        if self.joint_stopped is not None and old["stage2_epochs"] != self.cfg.stage2_epochs:
+            raise ValueError(
+                f"{self._state_path()}: the run in {self.out} stopped its joint stage early "
+                f"after epoch {self.joint_stopped} (patience {self.cfg.patience}); growing "
+                "stage2_epochs does not restart it: start a new run with init_checkpoint "
+                f"{self.out}"
             )
         loaded = VVLocNet.load(self.checkpoint_dir)
         self.model.load_state_dict(loaded.state_dict())
@@ -926,11 +957,26 @@ class Trainer:
 
     # --- training ------------------------------------------------------------------------
 
+    @property
+    def joint_end(self) -> int:
+        """The number of epochs before the head stage: stages 1-2 as configured, or up to the
+        joint epoch after which ``patience`` stopped the joint stage."""
+        if self.joint_stopped is not None:
+            return self.joint_stopped
+        return int(self.cfg.stage1_epochs) + int(self.cfg.stage2_epochs)
+
+    @property
+    def total_epochs(self) -> int:
+        """The epochs this run trains: ``cfg.epochs``, less the joint epochs skipped by an
+        early stop."""
+        return self.joint_end + int(self.cfg.head_epochs)
+
     def stage_of(self, epoch: int) -> int:
-        """1 for the global-descriptor epochs, 2 for the joint epochs, 3 for the head stage."""
+        """1 for the global-descriptor epochs, 2 for the joint epochs, 3 for the head stage
+        (``epoch`` 0-based)."""
         if epoch < self.cfg.stage1_epochs:
             return 1
-        return 2 if epoch < self.cfg.stage1_epochs + self.cfg.stage2_epochs else 3
+        return 2 if epoch < self.joint_end else 3
 
     def run_epoch(self, progress: bool = True) -> dict[str, Any]:
         """Train one epoch (``steps_per_epoch`` batches, or the head stage's
@@ -965,7 +1011,7 @@ class Trainer:
         t0 = time.perf_counter()
         bar = tqdm(
             loader,
-            desc=f"epoch {self.epoch + 1}/{cfg.epochs} (stage {stage})",
+            desc=f"epoch {self.epoch + 1}/{self.total_epochs} (stage {stage})",
             disable=not progress,
             leave=False,
         )
@@ -1095,7 +1141,7 @@ class Trainer:
         head.train()
         bar = tqdm(
             range(cfg.head_steps_per_epoch),
-            desc=f"epoch {self.epoch + 1}/{cfg.epochs} (head stage)",
+            desc=f"epoch {self.epoch + 1}/{self.total_epochs} (head stage)",
             disable=not progress,
             leave=False,
         )
@@ -1183,13 +1229,14 @@ class Trainer:
         return (float(cross), val["r1_reranked"], val["r1_retrieval"])
 
     def fit(self, progress: bool = True) -> list[dict[str, Any]]:
-        """Train until ``cfg.epochs``; checkpoint and log after every epoch (and keep the best
-        epoch by validation in ``best/`` when ``val_sessions`` are set)."""
+        """Train until ``cfg.epochs`` (fewer when ``patience`` stops the joint stage); checkpoint
+        and log after every epoch (and keep the best epoch by validation in ``best/`` when
+        ``val_sessions`` are set)."""
         self.out.mkdir(parents=True, exist_ok=True)
         (self.out / "train_config.yaml").write_text(yaml.safe_dump(self.cfg.to_dict()))
         cfg = self.cfg
         records = []
-        while self.epoch < cfg.epochs:
+        while self.epoch < self.total_epochs:
             t0 = time.perf_counter()
             validating = self.validates(self.epoch)
             rec = self.run_epoch(progress=progress)
@@ -1211,6 +1258,22 @@ class Trainer:
                     self.model.calibration = {}
                     self.best = {"epoch": rec["epoch"], "val": rec["val"]}
                 rec["best_epoch"] = self.best["epoch"]
+                if (
+                    cfg.patience is not None
+                    and rec["stage"] == 2
+                    and self.epoch < self.joint_end
+                    and self.epoch - int(self.best["epoch"]) >= cfg.patience
+                ):
+                    self.joint_stopped = self.epoch
+                    rec["joint_stopped_early"] = True
+                    log.info(
+                        "epoch %d: %d validated epochs without beating best/ (epoch %d): the "
+                        "joint stage stops here (patience %d)",
+                        self.epoch,
+                        self.epoch - int(self.best["epoch"]),
+                        self.best["epoch"],
+                        cfg.patience,
+                    )
             records.append(rec)
             self.save()
             self.process["seconds"] += time.perf_counter() - t0
