@@ -312,6 +312,11 @@ def _scripted_validation(monkeypatch, recalls: list[float]) -> None:
 def test_patience_stops_the_joint_stage_and_the_head_stage_follows(
     tiny_world, tmp_path, monkeypatch
 ):
+    import subprocess
+    import sys
+
+    import yaml
+
     val = dict(train_sessions=["s0", "s1"], val_sessions=["s2"], val_every=4, device="cpu")
     head = dict(head_steps_per_epoch=2, head_batch_size=4, head_negatives=3)
     # joint epochs 2-7 score 0.5, 0.7 (best, epoch 3), 0.6, 0.65, ...: two validated epochs
@@ -344,6 +349,12 @@ def test_patience_stops_the_joint_stage_and_the_head_stage_follows(
     # a run that stopped early is finished: resuming trains nothing, growing it is refused
     again = train(cfg, tmp_path / "early", resume=True, progress=False)
     assert again.epoch == 6 and again.joint_stopped == 5
+    (tmp_path / "cfg.yaml").write_text(yaml.safe_dump(cfg.to_dict()))
+    exe = [sys.executable, "-m", "vvloc.cli", "train", "--config", str(tmp_path / "cfg.yaml")]
+    r = subprocess.run([*exe, "--out", str(tmp_path / "early"), "--resume"], capture_output=True)
+    assert r.returncode == 0, r.stderr
+    assert b"trained 6 epochs;" in r.stdout
+    assert b"the joint stage stopped early after epoch 5 (patience 2)" in r.stdout
     longer = dataclasses.replace(cfg, stage2_epochs=9)
     with pytest.raises(ValueError, match="stopped its joint stage early after epoch 5"):
         train(longer, tmp_path / "early", resume=True, progress=False)

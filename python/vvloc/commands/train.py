@@ -25,6 +25,11 @@ def train(
     with cli_errors("train"):
         trainer = run_training(config, out, resume=resume)
     typer.echo(f"trained {trainer.epoch} epochs; latest checkpoint: {trainer.checkpoint_dir}")
+    if trainer.joint_stopped is not None:
+        typer.echo(
+            f"the joint stage stopped early after epoch {trainer.joint_stopped} "
+            f"(patience {trainer.cfg.patience})"
+        )
     if trainer.best is not None:
         val = trainer.best["val"]
         typer.echo(
