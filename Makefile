@@ -3,7 +3,7 @@
 #   make bench   kernel benchmarks: table on stdout, JSON in bench-results/
 #   make lint    cargo fmt/clippy, ruff, mypy stubtest of the extension
 #   make demo    end-to-end demo (see README)
-#   make model   the committed small model's recipe from scratch (four steps, ≈ 91 min on 2 cores;
+#   make model   the committed small model's recipe from scratch (four steps, 55-70 min on 2 cores;
 #                not its bytes, whose step 1 was resumed: models/synth-small/MODEL_CARD.md)
 #   make model-v3  the recipe of the previous default, models/synth-small-v3 (in a clean runs/)
 #   make model-garage  the garage variant models/synth-small-garage from models/synth-small-v1 (≈ 53 min)
