@@ -5,6 +5,8 @@
 #   make demo    end-to-end demo (see README)
 #   make model   the committed small model's recipe from scratch (four steps, 55-70 min on 2 cores;
 #                not its bytes, whose step 1 was resumed: models/synth-small/MODEL_CARD.md)
+#   make model-test  the committed model's test on what make model trained (CHECKPOINT=...),
+#                against the issue's targets (≈ 15 min, plus ≈ 25 min rendering the first time)
 #   make model-v3  the recipe of the previous default, models/synth-small-v3 (in a clean runs/)
 #   make model-garage  the garage variant models/synth-small-garage from models/synth-small-v1 (≈ 53 min)
 SHELL := /bin/bash
@@ -13,7 +15,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 PYTEST_ARGS ?=
 
-.PHONY: venv develop test test-rust test-python bench lint demo model model-v3 model-garage clean
+.PHONY: venv develop test test-rust test-python bench lint demo model model-v3 model-test model-garage clean
 
 $(VENV)/.deps-stamp: pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -75,6 +77,31 @@ model: develop
 
 model-v3:
 	$(MAKE) model MODEL_STEPS="$(V3_STEPS)"
+
+# the committed model's test (models/synth-small/MODEL_CARD.md, "Against the issue's targets")
+# on CHECKPOINT (default: what `make model` trained): renders the three test datasets when they
+# are missing (≈ 6-11 min each on 2 cores), evaluates (≈ 15 min) into TEST_OUT and prints the
+# issue's figures against their targets (`vvloc targets`; TEST_OUT/targets.json)
+CHECKPOINT ?= runs/synth-small-ft-head
+TEST_OUT ?= runs/model-test
+model-test: develop
+	test -d data/synth-parking-96 || $(PY) -m vvloc.cli sim --scene parking --sessions 96 \
+	  --frames 300 --seed 0 --out data/synth-parking-96
+	test -d data/synth-garage-pillars-88 || $(PY) -m vvloc.cli sim --scene garage --floors 2 \
+	  --floor_marking pillars --sessions 88 --frames 300 --seed 0 --out data/synth-garage-pillars-88
+	test -d data/synth-garage-56 || $(PY) -m vvloc.cli sim --scene garage --floors 2 \
+	  --sessions 56 --frames 300 --seed 0 --out data/synth-garage-56
+	$(PY) -m vvloc.cli eval --checkpoint $(CHECKPOINT) --dataset data/synth-parking-96 \
+	  --database s0 --queries s81,s82,s83,s84,s86,s87,s88,s89,s91,s92,s93,s94 --every 5 \
+	  --out $(TEST_OUT)/parking
+	$(PY) -m vvloc.cli eval --checkpoint $(CHECKPOINT) --dataset data/synth-garage-pillars-88 \
+	  --database s80 --queries s81,s82,s83,s84,s85,s86,s87 --every 60 --loops \
+	  --out $(TEST_OUT)/pillars
+	$(PY) -m vvloc.cli eval --checkpoint $(CHECKPOINT) --dataset data/synth-garage-56 \
+	  --database s48 --queries s49,s50,s51,s52,s53,s54,s55 --every 60 --loops \
+	  --out $(TEST_OUT)/garage
+	$(PY) -m vvloc.cli targets --parking $(TEST_OUT)/parking --pillars $(TEST_OUT)/pillars \
+	  --garage $(TEST_OUT)/garage --out $(TEST_OUT)/targets.json
 
 # the garage variant: two fine-tunes of the committed models/synth-small-v1 (the default model
 # until 2026-12-02, the output of the first two steps of v3's recipe: configs/synth-small.yaml

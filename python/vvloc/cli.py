@@ -15,6 +15,7 @@ from vvloc.commands.localize import localize
 from vvloc.commands.loops import loops
 from vvloc.commands.mapping import map_app
 from vvloc.commands.sim import sim
+from vvloc.commands.targets import targets
 from vvloc.commands.train import train
 
 app = typer.Typer(
@@ -45,6 +46,7 @@ app.add_typer(map_app, name="map")
 app.command("localize")(localize)
 app.command("loops")(loops)
 app.command("demo")(demo)
+app.command("targets")(targets)
 
 
 def main() -> None:

@@ -1,0 +1,201 @@
+"""The small model's targets on the synthetic benchmark, checked against ``vvloc eval`` reports.
+
+The figures are those the training issue asks of a trained small model (the paper's best NCLT
+figures), read from the ``report.json`` of three evaluations of one checkpoint (the test of
+``models/synth-small/MODEL_CARD.md``, which ``make model-test`` runs):
+
+- ``parking``: ``vvloc eval`` on held-out parking-lot sessions (no ``--loops`` needed):
+  Recall@1 (2 m) after metric re-ranking (``VVLoc-ML``) ≥ 80.6 %, its gain over retrieval alone
+  (``VVLoc-G``) ≥ +3 points, AOE/APE@50 % ≤ 1.6° / 0.7 m and @25 % ≤ 0.7° / 0.3 m over the
+  queries whose top-1 is a true revisit;
+- ``pillars`` and ``garage``: ``vvloc eval --loops`` on a 2-floor garage (with floor-marked
+  pillars, and the default one whose floors differ only in parked cars and wall signs): CFER ≤
+  0.26 % (the share of accepted loop closures that join two floors), for the loop detector with
+  its sequence check and for single keyframes, at the report's descriptor threshold;
+- the training time recorded with the weights (their ``training.json``, as the report carries
+  it) ≤ 90 min (on 2 CPU cores, or the hardware the record names).
+
+Nothing here computes a metric: every value is the report's (:mod:`vvloc.evaluate` defines
+them); this module only compares. It imports no torch.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+REPORT_FILE = "report.json"
+
+
+@dataclass(frozen=True)
+class Figure:
+    """One target figure. ``number`` is the value in the unit of ``target`` (percent, points,
+    degrees, metres or minutes), ``value`` the same as printed; both say "n/a" / None when the
+    report lacks it or was not given, and then ``met`` is None."""
+
+    name: str
+    target: str  # e.g. ">= 80.6 %"
+    value: str  # as printed, e.g. "82.2 %"
+    met: bool | None
+    detail: str = ""
+    number: float | None = None
+
+
+def read_report(path: str | Path) -> dict[str, Any]:
+    """The ``report.json`` of a ``vvloc eval`` report folder (or the file itself)."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / REPORT_FILE
+    if not path.is_file():
+        raise FileNotFoundError(f"no vvloc eval report at {path}: run vvloc eval --out first")
+    report = json.loads(path.read_text())
+    if not isinstance(report, dict) or "meta" not in report:
+        raise ValueError(f"{path}: not a vvloc eval report (no 'meta')")
+    return report
+
+
+def _at_most(name: str, value: float | None, limit: float, unit: str, fmt: str) -> Figure:
+    if value is None or not math.isfinite(value):
+        return Figure(name, f"<= {limit:{fmt}}{unit}", "n/a", None)
+    return Figure(
+        name, f"<= {limit:{fmt}}{unit}", f"{value:{fmt}}{unit}", value <= limit, number=value
+    )
+
+
+def _parking(report: Mapping[str, Any]) -> list[Figure]:
+    gl = report.get("global_localization", {})
+    try:
+        reranked = float(gl["VVLoc-ML"]["recall"]["1"]["2"])
+        retrieval = float(gl["VVLoc-G"]["recall"]["1"]["2"])
+        kept = int(gl["VVLoc-ML"]["num_kept"])
+    except (KeyError, TypeError) as e:
+        raise ValueError(
+            f"parking report: no Recall@1 at 2 m for VVLoc-ML and VVLoc-G ({e})"
+        ) from e
+    figures = [
+        Figure(
+            "parking: Recall@1 (2 m) re-ranked",
+            ">= 80.6 %",
+            f"{100 * reranked:.1f} %",
+            reranked >= 0.806,
+            f"{kept} kept queries",
+            100 * reranked,
+        ),
+        Figure(
+            "parking: gain of re-ranking over retrieval alone",
+            ">= +3.0 points",
+            f"{100 * (reranked - retrieval):+.1f} points",
+            reranked - retrieval >= 0.03 - 1e-12,
+            f"retrieval alone {100 * retrieval:.1f} %",
+            100 * (reranked - retrieval),
+        ),
+    ]
+    pose = report.get("pose_accuracy", {}).get("VVLoc-ML", {}).get("true_revisit", {})
+    count = pose.get("count")
+    for pct, aoe, ape in ((50, 1.6, 0.7), (25, 0.7, 0.3)):
+        for kind, limit, unit in (("AOE", aoe, "°"), ("APE", ape, " m")):
+            fig = _at_most(
+                f"parking: {kind}@{pct} % (true revisits)",
+                pose.get(f"{kind}@{pct}"),
+                limit,
+                unit,
+                ".2f",
+            )
+            figures.append(
+                Figure(fig.name, fig.target, fig.value, fig.met, f"{count} queries", fig.number)
+            )
+    return figures
+
+
+def _cfer(report: Mapping[str, Any], world: str) -> list[Figure]:
+    loops = report.get("loop_closure")
+    if not loops:
+        raise ValueError(f"{world} report: no loop_closure (evaluate it with vvloc eval --loops)")
+    figures = []
+    for key, entry in loops.items():
+        label = "sequence-checked" if "sequence" in key else "single keyframes"
+        at = entry["at_threshold"]
+        accepted, cfer = int(at["accepted"]), at["cfer"]
+        cross = round(cfer * accepted) if accepted and cfer is not None else 0
+        value = None if cfer is None else 100.0 * float(cfer)
+        fig = _at_most(f"{world}: CFER, {label}", value, 0.26, " %", ".2f")
+        detail = f"{cross} of {accepted} accepted loops join two floors (threshold "
+        detail += f"{at['threshold']:g}, precision@2m {100 * float(at['precision']):.1f} %)"
+        figures.append(Figure(fig.name, fig.target, fig.value, fig.met, detail, fig.number))
+    return figures
+
+
+def _training_time(report: Mapping[str, Any]) -> Figure:
+    runs = [r for r in report.get("training", {}).get("runs", []) if r.get("recorded", True)]
+    seconds = [r.get("seconds") for r in runs]
+    name = "training time"
+    if not runs or None in seconds:
+        return Figure(name, "<= 90 min", "n/a", None, "the weights carry no complete record")
+    minutes = sum(float(s) for s in seconds) / 60.0
+    return Figure(
+        name,
+        "<= 90 min",
+        f"{minutes:.1f} min",
+        minutes <= 90.0,
+        str(report.get("meta", {}).get("trained_on", "")),
+        minutes,
+    )
+
+
+def check_targets(
+    parking: Mapping[str, Any],
+    pillars: Mapping[str, Any] | None = None,
+    garage: Mapping[str, Any] | None = None,
+) -> list[Figure]:
+    """Compare the reports of one checkpoint with the targets (module docstring).
+
+    ``parking``, ``pillars``, ``garage``: parsed ``report.json`` of ``vvloc eval`` (the garages
+    evaluated with ``--loops``; either may be None: its CFER is then listed as not evaluated).
+    Raises ``ValueError`` when a report lacks its figures or when the reports are of different
+    weights (``meta.model_weights_hash``)."""
+    reports = {"parking": parking, "pillars": pillars, "garage": garage}
+    hashes = {
+        name: r.get("meta", {}).get("model_weights_hash")
+        for name, r in reports.items()
+        if r is not None
+    }
+    if len(set(hashes.values())) > 1:
+        raise ValueError(f"the reports are of different weights: {hashes}")
+    figures = _parking(parking)
+    for world, report in (("pillar garage", pillars), ("default garage", garage)):
+        if report is None:
+            figures.append(Figure(f"{world}: CFER", "<= 0.26 %", "not evaluated", None))
+        else:
+            figures += _cfer(report, world)
+    figures.append(_training_time(parking))
+    return figures
+
+
+def targets_markdown(figures: list[Figure], weights_hash: str | None = None) -> str:
+    """A Markdown table of ``figures`` (figure, target, value, met, detail)."""
+    lines = []
+    if weights_hash:
+        lines.append(f"Weights `{weights_hash[:16]}`.\n")
+    lines += ["| figure | target | value | | detail |", "|---|---|---|---|---|"]
+    for f in figures:
+        met = {True: "met", False: "**missed**", None: "n/a"}[f.met]
+        lines.append(f"| {f.name} | {f.target} | {f.value} | {met} | {f.detail} |")
+    missed = [f.name for f in figures if f.met is False]
+    lines.append("")
+    lines.append(
+        f"{len(missed)} of {len(figures)} figures missed: {', '.join(missed)}."
+        if missed
+        else f"Every one of the {len(figures)} figures is met."
+        if all(f.met is not None for f in figures)
+        else "No figure is missed, but not every figure was evaluated."
+    )
+    return "\n".join(lines) + "\n"
+
+
+def figures_json(figures: list[Figure]) -> list[dict[str, Any]]:
+    """``figures`` as plain dicts (JSON serialisable)."""
+    return [asdict(f) for f in figures]

@@ -1,0 +1,142 @@
+"""vvloc.targets: the issue's figures read from eval reports and compared with the targets."""
+
+from __future__ import annotations
+
+import copy
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from vvloc.targets import check_targets, read_report, targets_markdown
+
+MODEL = Path(__file__).parents[1] / "models" / "synth-small"
+
+
+def _committed(name: str) -> dict:
+    return read_report(MODEL / name)
+
+
+def _by_name(figures) -> dict:
+    return {f.name: f for f in figures}
+
+
+def test_the_committed_models_reports_give_its_cards_figures():
+    figs = _by_name(
+        check_targets(
+            _committed("report-test96"),
+            _committed("report-test96-pillars"),
+            _committed("report-test96-garage"),
+        )
+    )
+    # models/synth-small/MODEL_CARD.md, "Against the issue's targets"
+    expected = {
+        "parking: Recall@1 (2 m) re-ranked": ("82.2 %", True),
+        "parking: gain of re-ranking over retrieval alone": ("+3.5 points", True),
+        "parking: AOE@50 % (true revisits)": ("0.85°", True),
+        "parking: APE@50 % (true revisits)": ("0.46 m", True),
+        "parking: AOE@25 % (true revisits)": ("0.38°", True),
+        "parking: APE@25 % (true revisits)": ("0.26 m", True),
+        "pillar garage: CFER, sequence-checked": ("0.03 %", True),
+        "pillar garage: CFER, single keyframes": ("0.89 %", False),
+        "default garage: CFER, sequence-checked": ("25.14 %", False),
+        "default garage: CFER, single keyframes": ("28.13 %", False),
+        "training time": ("87.7 min", True),
+    }
+    assert {k: (f.value, f.met) for k, f in figs.items()} == expected
+    assert figs["pillar garage: CFER, sequence-checked"].detail.startswith(
+        "1 of 3601 accepted loops join two floors"
+    )
+    assert figs["parking: Recall@1 (2 m) re-ranked"].detail == "712 kept queries"
+    text = targets_markdown(list(figs.values()))
+    assert "3 of 11 figures missed" in text and "default garage: CFER, sequence-checked" in text
+
+
+def _parking(reranked: float, retrieval: float, aoe50=1.0, ape50=0.5, aoe25=0.5, ape25=0.2):
+    report = copy.deepcopy(_committed("report-test96"))
+    gl = report["global_localization"]
+    gl["VVLoc-ML"]["recall"]["1"]["2"] = reranked
+    gl["VVLoc-G"]["recall"]["1"]["2"] = retrieval
+    pose = report["pose_accuracy"]["VVLoc-ML"]["true_revisit"]
+    pose.update({"AOE@50": aoe50, "APE@50": ape50, "AOE@25": aoe25, "APE@25": ape25})
+    return report
+
+
+def test_figures_on_their_target_are_met_and_just_past_it_missed():
+    on = _by_name(check_targets(_parking(0.806, 0.776, 1.6, 0.7, 0.7, 0.3)))
+    assert all(f.met for k, f in on.items() if k.startswith("parking")), on
+    past = _by_name(check_targets(_parking(0.8059, 0.777, 1.61, 0.71, 0.71, 0.31)))
+    assert not any(f.met for k, f in past.items() if k.startswith("parking")), past
+    assert past["parking: Recall@1 (2 m) re-ranked"].number == pytest.approx(80.59)
+
+
+def test_missing_garages_are_listed_as_not_evaluated_never_as_met():
+    figs = _by_name(check_targets(_parking(0.9, 0.8)))
+    for world in ("pillar garage", "default garage"):
+        assert figs[f"{world}: CFER"].met is None
+        assert figs[f"{world}: CFER"].value == "not evaluated"
+    assert "not every figure was evaluated" in targets_markdown(list(figs.values()))
+
+
+def test_weights_without_a_training_record_have_no_time_figure():
+    report = _parking(0.9, 0.8)
+    report["training"] = {"runs": []}
+    figs = _by_name(check_targets(report))
+    assert figs["training time"].met is None and figs["training time"].value == "n/a"
+
+
+def test_reports_of_other_weights_or_without_loops_are_refused():
+    garage = copy.deepcopy(_committed("report-test96-garage"))
+    garage["meta"]["model_weights_hash"] = "0" * 64
+    with pytest.raises(ValueError, match="different weights"):
+        check_targets(_committed("report-test96"), garage=garage)
+    with pytest.raises(ValueError, match="--loops"):
+        check_targets(_committed("report-test96"), pillars=_committed("report-test96"))
+    broken = _committed("report-test96")
+    del broken["global_localization"]["VVLoc-G"]
+    with pytest.raises(ValueError, match="Recall@1 at 2 m"):
+        check_targets(broken)
+
+
+def test_read_report_names_what_is_missing(tmp_path):
+    with pytest.raises(FileNotFoundError, match="vvloc eval"):
+        read_report(tmp_path)
+    (tmp_path / "report.json").write_text("[1]")
+    with pytest.raises(ValueError, match="not a vvloc eval report"):
+        read_report(tmp_path)
+
+
+def test_cli_prints_the_table_writes_json_and_fails_when_strict_and_missed(tmp_path):
+    exe = [sys.executable, "-m", "vvloc.cli", "targets", "--parking"]
+    exe += [str(MODEL / "report-test96"), "--garage", str(MODEL / "report-test96-garage")]
+    r = subprocess.run([*exe, "--out", str(tmp_path / "t.json")], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert "| parking: Recall@1 (2 m) re-ranked | >= 80.6 % | 82.2 % | met |" in r.stdout
+    saved = json.loads((tmp_path / "t.json").read_text())
+    assert saved["weights_hash"].startswith("a568642af15339fc")
+    assert {f["name"]: f["met"] for f in saved["figures"]}["training time"] is True
+    strict = subprocess.run([*exe, "--strict"], capture_output=True, text=True)
+    assert strict.returncode == 1 and "missed" in strict.stdout
+    bad = subprocess.run(
+        [*exe[:-4], "--parking", str(tmp_path / "none")], capture_output=True, text=True
+    )
+    assert bad.returncode == 2 and "vvloc targets: error" in bad.stderr
+
+
+def test_make_model_test_runs_the_committed_models_test():
+    text = (Path(__file__).parents[1] / "Makefile").read_text().replace("\\\n", " ")
+    recipe = text.split("\nmodel-test:", 1)[1].split("\n\n", 1)[0]
+    evals = [line.split() for line in recipe.splitlines() if " eval " in line]
+    assert len(evals) == 3
+    for args, name in zip(evals, ["", "-pillars", "-garage"], strict=True):
+        meta = _committed(f"report-test96{name}")["meta"]
+        opts = {args[i]: args[i + 1] for i, a in enumerate(args[:-1]) if a.startswith("--")}
+        assert (opts["--dataset"], opts["--database"], opts["--queries"]) == (
+            meta["dataset"],
+            meta["database"],
+            meta["queries"],
+        )
+        assert ("--loops" in args) == bool(name)
+    assert "targets --parking" in recipe
