@@ -24,7 +24,7 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Mapping
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -105,9 +105,7 @@ def _parking(report: Mapping[str, Any]) -> list[Figure]:
                 unit,
                 ".2f",
             )
-            figures.append(
-                Figure(fig.name, fig.target, fig.value, fig.met, f"{count} queries", fig.number)
-            )
+            figures.append(replace(fig, detail=f"{count} queries"))
     return figures
 
 
@@ -125,7 +123,7 @@ def _cfer(report: Mapping[str, Any], world: str) -> list[Figure]:
         fig = _at_most(f"{world}: CFER, {label}", value, 0.26, " %", ".2f")
         detail = f"{cross} of {accepted} accepted loops join two floors (threshold "
         detail += f"{at['threshold']:g}, precision@2m {100 * float(at['precision']):.1f} %)"
-        figures.append(Figure(fig.name, fig.target, fig.value, fig.met, detail, fig.number))
+        figures.append(replace(fig, detail=detail))
     return figures
 
 

@@ -293,10 +293,9 @@ class TrainConfig:
                             f"trains {sorted(trained) or 'all its sessions'})"
                         )
         if self.patience is not None:
-            if isinstance(self.patience, bool) or not isinstance(self.patience, int):
-                raise ValueError(f"patience: expected an int >= 1 or null, got {self.patience!r}")
-            if self.patience < 1:
-                raise ValueError(f"patience: expected an int >= 1 or null, got {self.patience}")
+            p = self.patience
+            if isinstance(p, bool) or not isinstance(p, int) or p < 1:
+                raise ValueError(f"patience: expected an int >= 1 or null, got {p!r}")
             if not self.val_sessions or int(self.stage2_epochs) == 0:
                 raise ValueError(
                     "patience: early stopping needs val_sessions and stage2_epochs > 0 (it stops "
