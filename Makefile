@@ -6,7 +6,7 @@
 #   make model   the committed small model's recipe from scratch (four steps, 55-70 min on 2 cores;
 #                not its bytes, whose step 1 was resumed: models/synth-small/MODEL_CARD.md)
 #   make model-test  the committed model's test on what make model trained (CHECKPOINT=...),
-#                against the issue's targets (≈ 15 min, plus ≈ 25 min rendering the first time)
+#                against the issue's targets (≈ 18 min, plus ≈ 25 min rendering the first time)
 #   make model-v3  the recipe of the previous default, models/synth-small-v3 (in a clean runs/)
 #   make model-garage  the garage variant models/synth-small-garage from models/synth-small-v1 (≈ 53 min)
 SHELL := /bin/bash
@@ -80,7 +80,7 @@ model-v3:
 
 # the committed model's test (models/synth-small/MODEL_CARD.md, "Against the issue's targets")
 # on CHECKPOINT (default: what `make model` trained): renders the three test datasets when they
-# are missing (≈ 6-11 min each on 2 cores), evaluates (≈ 15 min) into TEST_OUT and prints the
+# are missing (≈ 6-11 min each on 2 cores), evaluates (≈ 18 min) into TEST_OUT and prints the
 # issue's figures against their targets (`vvloc targets`; TEST_OUT/targets.json)
 CHECKPOINT ?= runs/synth-small-ft-head
 TEST_OUT ?= runs/model-test

@@ -185,7 +185,7 @@ def targets_markdown(figures: list[Figure], weights_hash: str | None = None) -> 
     missed = [f.name for f in figures if f.met is False]
     lines.append("")
     lines.append(
-        f"{len(missed)} of {len(figures)} figures missed: {', '.join(missed)}."
+        f"{len(missed)} of {len(figures)} figures missed: {'; '.join(missed)}."
         if missed
         else f"Every one of the {len(figures)} figures is met."
         if all(f.met is not None for f in figures)

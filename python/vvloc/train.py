@@ -909,8 +909,8 @@ class Trainer:
             raise ValueError(
                 f"{self._state_path()}: the run in {self.out} stopped its joint stage early "
                 f"after epoch {self.joint_stopped} (patience {self.cfg.patience}); growing "
-                "stage2_epochs does not restart it: start a new run with init_checkpoint "
-                f"{self.out}"
+                "stage2_epochs does not restart it: start a new run (another --out) with "
+                f"init_checkpoint: {self.out}"
             )
         loaded = VVLocNet.load(self.checkpoint_dir)
         self.model.load_state_dict(loaded.state_dict())
