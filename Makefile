@@ -66,7 +66,8 @@ demo: develop
 # configs' init_checkpoint and to the committed model's training record.
 MODEL_STEPS = synth-small-rerank:synth-small synth-small-head:synth-small-head \
   synth-small-ft:synth-small-ft synth-small-ft-head:synth-small-ft-head
-V3_STEPS = synth-small:synth-small $(wordlist 2,4,$(MODEL_STEPS))
+V3_STEPS = synth-small:synth-small v3/synth-small-head:synth-small-head \
+  synth-small-ft:synth-small-ft v3/synth-small-ft-head:synth-small-ft-head
 
 model: develop
 	for step in $(MODEL_STEPS); do \

@@ -164,8 +164,11 @@ def test_bad_config_is_refused(key, value, match):
         TrainConfig.from_dict({"dataset": "x", key: value})
 
 
+_CONFIGS = Path(__file__).parents[1] / "configs"
+
+
 @pytest.mark.parametrize(
-    "name", sorted(p.name for p in (Path(__file__).parents[1] / "configs").glob("*.yaml"))
+    "name", sorted(str(p.relative_to(_CONFIGS)) for p in _CONFIGS.rglob("*.yaml"))
 )
 def test_every_committed_config_is_valid_and_keeps_its_held_out_sessions(name):
     cfg = TrainConfig.from_yaml(Path(__file__).parents[1] / "configs" / name)
@@ -207,6 +210,11 @@ def test_make_model_chains_its_run_folders_and_records_the_committed_model():
     expected = [dataclasses.asdict(cfg) for cfg in configs]
     assert expected[0]["patience"] == 5 and recorded[0]["patience"] is None
     expected[0]["patience"] = None
+    # and its head stages (steps 2 and 4) kept best/ by re-ranked Recall@1 first, as
+    # configs/v3/ still do; `make model` selects them by retrieval first since 2026-12-03
+    for k in (1, 3):
+        assert expected[k]["select_by"] == "retrieval" and recorded[k]["select_by"] == "reranked"
+        expected[k]["select_by"] = "reranked"
     assert recorded == expected
     best = record["runs"][0]["weights_epoch"]
     log = (root / "models" / "synth-small" / "train_log-step1.jsonl").read_text().splitlines()
@@ -297,13 +305,15 @@ def test_fit_with_val_sessions_keeps_the_best_joint_epoch_and_resume_remembers_i
 _REAL_VALIDATE = Trainer.validate
 
 
-def _scripted_validation(monkeypatch, recalls: list[float]) -> None:
-    """Make every validation score the next of ``recalls`` (Recall@1 re-ranked; retrieval 0)."""
+def _scripted_validation(monkeypatch, recalls: list[float] | list[tuple[float, float]]) -> None:
+    """Make every validation score the next of ``recalls``: Recall@1 re-ranked (retrieval 0), or
+    (re-ranked, retrieval) pairs."""
     scores = iter(recalls)
 
     def validate(self):
         res = _REAL_VALIDATE(self)
-        res["r1_reranked"], res["r1_retrieval"] = next(scores), 0.0
+        score = next(scores)
+        res["r1_reranked"], res["r1_retrieval"] = score if isinstance(score, tuple) else (score, 0)
         return res
 
     monkeypatch.setattr(Trainer, "validate", validate)
@@ -383,6 +393,15 @@ def test_patience_that_never_runs_out_changes_nothing(tiny_world, tmp_path, monk
 def test_bad_patience_is_refused(kw, match):
     with pytest.raises(ValueError, match=match):
         TrainConfig.from_dict({"dataset": "x", **kw})
+
+
+def test_bad_select_by_is_refused():
+    val = {"dataset": "x", "train_sessions": ["s0"], "val_sessions": ["s1"]}
+    with pytest.raises(ValueError, match=r"select_by: expected one of \['reranked', 'retrieval'\]"):
+        TrainConfig.from_dict({**val, "select_by": "loss"})
+    with pytest.raises(ValueError, match=r"select_by: .* needs val_sessions"):
+        TrainConfig.from_dict({"dataset": "x", "select_by": "retrieval"})
+    assert TrainConfig.from_dict({**val, "select_by": "retrieval"}).select_by == "retrieval"
 
 
 @pytest.mark.parametrize(
@@ -663,6 +682,26 @@ def test_best_epoch_has_the_fewest_cross_floor_loops_then_the_highest_recall():
     }
     assert key(one) > key(two)  # a cross-floor loop closure weighs more than recall
     assert key({**one, "r1_reranked": 0.75}) > key(one)
+    # select_by: retrieval first, re-ranked breaks ties; loops still come first
+    assert key(plain, "retrieval") > key({"r1_reranked": 0.9, "r1_retrieval": 0.6}, "retrieval")
+    assert key(plain, "retrieval") > key({"r1_reranked": 0.7, "r1_retrieval": 0.7}, "retrieval")
+    assert key(one, "retrieval") > key(two, "retrieval")
+    with pytest.raises(ValueError, match="by: expected one of"):
+        key(plain, "loops")
+
+
+def test_select_by_retrieval_keeps_the_epoch_that_retrieves_best(tiny_world, tmp_path, monkeypatch):
+    val = dict(train_sessions=["s0", "s1"], val_sessions=["s2"], val_every=4, device="cpu")
+    # (re-ranked, retrieval) of the joint epochs 2-4: re-ranking prefers epoch 2, retrieval
+    # ties epochs 3 and 4 and re-ranking breaks the tie for epoch 4
+    scores = [(0.9, 0.1), (0.5, 0.6), (0.6, 0.6)]
+    _scripted_validation(monkeypatch, scores)
+    cfg = _config(tiny_world, stage2_epochs=3, select_by="retrieval", **val)
+    assert train(cfg, tmp_path / "retrieval", progress=False).best["epoch"] == 4
+    _scripted_validation(monkeypatch, scores)
+    plain = _config(tiny_world, stage2_epochs=3, **val)
+    assert plain.select_by == "reranked"
+    assert train(plain, tmp_path / "reranked", progress=False).best["epoch"] == 2
 
 
 def test_bad_val_loops_are_refused_by_name():
@@ -751,7 +790,7 @@ def test_every_checkpoint_records_the_runs_that_produced_it(tiny_world, tmp_path
     assert _record(loaded.save(tmp_path / "copy")) == rec_a
     # a run from that checkpoint carries its record first, then its own run; best/ is kept at
     # the first validated epoch (2 of 3) here
-    monkeypatch.setattr(Trainer, "selection_key", staticmethod(lambda val: (0.0,)))
+    monkeypatch.setattr(Trainer, "selection_key", staticmethod(lambda val, by="reranked": (0.0,)))
     cfg_b = _config(
         tiny_world,
         stage2_epochs=2,

@@ -85,6 +85,9 @@ HEAD_REFRESH = 200
 #: Model-config fields that only describe the global head (``init_checkpoint`` may differ in them).
 HEAD_FIELDS = ("global_head", "netvlad_clusters", "global_dim", "disco_crop", "gem_p")
 
+#: What ``best/`` is selected by first (``TrainConfig.select_by``; :meth:`Trainer.selection_key`).
+SELECT_BY = ("reranked", "retrieval")
+
 
 @dataclass
 class TrainConfig:
@@ -122,6 +125,12 @@ class TrainConfig:
     at ``radius`` and how many join two floors (:func:`loop_validation`), and ``best/`` goes to
     the epoch with the fewest such cross-floor pairs (summed over the entries), ties by the
     Recall@1 figures above. Needs ``val_sessions``.
+    ``select_by`` (``"reranked"``, the default, or ``"retrieval"``): which Recall@1 (2 m)
+    decides ``best/`` first (the other breaks ties; cross-floor loop closures on ``val_loops``
+    come before both). ``"retrieval"`` is for head-stage runs: the head stage changes only the
+    global descriptor, so the re-ranked figure moves only through the candidates retrieval
+    passes on (a few validation queries' worth), while retrieval is what the stage trains and
+    what the localizer's metric candidates are taken from (``metric_from="retrieval"``).
     ``patience`` (optional, needs ``val_sessions`` and joint epochs): early stopping of the
     joint stage. When ``patience`` validated joint epochs in a row have not beaten ``best/``
     (by the selection key above), the remaining joint epochs are skipped (the head stage, if
@@ -179,6 +188,7 @@ class TrainConfig:
     val_top_k: int = 20
     val_loops: list[dict[str, Any]] = field(default_factory=list)
     patience: int | None = None
+    select_by: str = "reranked"
     head_epochs: int = 0
     head_steps_per_epoch: int = 1000
     head_batch_size: int = 32
@@ -301,6 +311,12 @@ class TrainConfig:
                     "patience: early stopping needs val_sessions and stage2_epochs > 0 (it stops "
                     "the joint stage when validation stops improving)"
                 )
+        if self.select_by not in SELECT_BY:
+            raise ValueError(
+                f"select_by: expected one of {list(SELECT_BY)}, got {self.select_by!r}"
+            )
+        if self.select_by != "reranked" and not self.val_sessions:
+            raise ValueError("select_by: selects best/ by validation, so it needs val_sessions")
         if self.val_loops and not self.val_sessions:
             raise ValueError("val_loops: needs val_sessions (the Recall@1 validation) as well")
         if not isinstance(self.extra_datasets, list):
@@ -1221,11 +1237,16 @@ class Trainer:
         return res
 
     @staticmethod
-    def selection_key(val: dict[str, Any]) -> tuple[float, ...]:
+    def selection_key(val: dict[str, Any], by: str = "reranked") -> tuple[float, ...]:
         """How validated epochs compare for ``best/`` (higher is better): fewer cross-floor loop
-        closures on ``val_loops`` (when set), then Recall@1 (2 m) re-ranked, then retrieval."""
+        closures on ``val_loops`` (when set), then Recall@1 (2 m) re-ranked, then retrieval
+        (``by="reranked"``), or retrieval first, then re-ranked (``by="retrieval"``; the
+        config's ``select_by``)."""
+        if by not in SELECT_BY:
+            raise ValueError(f"by: expected one of {list(SELECT_BY)}, got {by!r}")
         cross = -sum(e["cross_floor"] for e in val.get("loops", []))
-        return (float(cross), val["r1_reranked"], val["r1_retrieval"])
+        recall = (val["r1_reranked"], val["r1_retrieval"])
+        return (float(cross), *(recall if by == "reranked" else recall[::-1]))
 
     def fit(self, progress: bool = True) -> list[dict[str, Any]]:
         """Train until ``cfg.epochs`` (fewer when ``patience`` stops the joint stage); checkpoint
@@ -1244,8 +1265,8 @@ class Trainer:
             self.process["seconds"] += time.perf_counter() - t0  # the saves below record it
             t0 = time.perf_counter()
             if validating:
-                key = self.selection_key(rec["val"])
-                if self.best is None or key > self.selection_key(self.best["val"]):
+                key = self.selection_key(rec["val"], cfg.select_by)
+                if self.best is None or key > self.selection_key(self.best["val"], cfg.select_by):
                     self.model.calibration = {
                         **rec["val"]["calibration"],
                         "dataset": str(cfg.dataset),
