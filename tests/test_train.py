@@ -182,6 +182,15 @@ def test_every_committed_config_is_valid_and_keeps_its_held_out_sessions(name):
             assert "s1" not in (extra.get("train_sessions") or ["s1"]), name
 
 
+#: The validation of `make model`'s steps 1, 2 and 4 (since 2026-12-03): ten held-out non-day
+#: parking sessions of a 30-session render, every 6th frame.
+_BROADER_VALIDATION = {
+    "sim": {"scene": "parking", "sessions": 30, "frames": 300, "seed": 0},
+    "val_sessions": ["s18", "s19", "s21", "s22", "s23", "s24", "s26", "s27", "s28", "s29"],
+    "val_every": 6,
+}
+
+
 def _make_model_steps() -> list[tuple[str, str]]:
     """The (config, run folder) steps of `make model`, read from the Makefile's MODEL_STEPS."""
     text = (Path(__file__).parents[1] / "Makefile").read_text().replace("\\\n", " ")
@@ -215,6 +224,12 @@ def test_make_model_chains_its_run_folders_and_records_the_committed_model():
     for k in (1, 3):
         assert expected[k]["select_by"] == "retrieval" and recorded[k]["select_by"] == "reranked"
         expected[k]["select_by"] = "reranked"
+    # and steps 1, 2 and 4 validated on s18 and s19 alone (every 3rd frame of a 20-session
+    # render); `make model` validates on ten sessions since 2026-12-03
+    for k in (0, 1, 3):
+        assert {key: expected[k][key] for key in _BROADER_VALIDATION} == _BROADER_VALIDATION
+        expected[k]["sim"] = {**expected[k]["sim"], "sessions": 20}
+        expected[k]["val_sessions"], expected[k]["val_every"] = ["s18", "s19"], 3
     assert recorded == expected
     best = record["runs"][0]["weights_epoch"]
     log = (root / "models" / "synth-small" / "train_log-step1.jsonl").read_text().splitlines()
@@ -229,7 +244,8 @@ def test_the_default_step_one_is_v3s_plus_the_rerank_loss_only():
     v3 = dataclasses.asdict(TrainConfig.from_yaml(configs / "synth-small.yaml"))
     step1 = dataclasses.asdict(TrainConfig.from_yaml(configs / "synth-small-rerank.yaml"))
     changed = {k for k in v3 if v3[k] != step1[k]}
-    assert changed == {"rerank_weight", "patience"} and step1["rerank_weight"] > 0
+    assert changed == {"rerank_weight", "patience", *_BROADER_VALIDATION}
+    assert step1["rerank_weight"] > 0
 
 
 def test_missing_dataset_without_sim_section_is_a_clear_error(tmp_path):
