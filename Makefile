@@ -3,7 +3,7 @@
 #   make bench   kernel benchmarks: table on stdout, JSON in bench-results/
 #   make lint    cargo fmt/clippy, ruff, mypy stubtest of the extension
 #   make demo    end-to-end demo (see README)
-#   make model   the committed small model's recipe from scratch (four steps, 55-70 min on 2 cores;
+#   make model   the committed small model's recipe from scratch (four steps, 55-75 min on 2 cores;
 #                not its bytes, whose step 1 was resumed and whose head stages were selected
 #                by re-ranked Recall@1: models/synth-small/MODEL_CARD.md)
 #   make model-test  the committed model's test on what make model trained (CHECKPOINT=...),
@@ -64,7 +64,8 @@ demo: develop
 # Re-running it resumes or skips what a previous run already did; delete runs/synth-small* left
 # from another recipe first.
 # `make model-v3` runs models/synth-small-v3's recipe: configs/synth-small.yaml (the paper's
-# losses only) as step 1 and the head stages as v3 selected them (configs/v3/). tests/test_train.py holds the chain of run folders to the
+# losses only) as step 1 and the head stages as v3 selected them (configs/v3/).
+# tests/test_train.py holds the chain of run folders to the
 # configs' init_checkpoint and to the committed model's training record.
 MODEL_STEPS = synth-small-rerank:synth-small synth-small-head:synth-small-head \
   synth-small-ft:synth-small-ft synth-small-ft-head:synth-small-ft-head
