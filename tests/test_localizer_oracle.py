@@ -16,8 +16,15 @@ import torch
 
 from test_metric_localize import bev_at, compose, world_field, wrap
 from vvloc import kernels
+from vvloc.commands._util import METRIC_CANDIDATES as CLI_METRIC_CANDIDATES
+from vvloc.commands._util import RETRIEVAL_WEIGHT as CLI_RETRIEVAL_WEIGHT
 from vvloc.commands._util import MetricFromChoice
-from vvloc.localize.localizer import METRIC_FROM, Localizer
+from vvloc.localize.localizer import (
+    METRIC_CANDIDATES,
+    METRIC_FROM,
+    RETRIEVAL_WEIGHT,
+    Localizer,
+)
 from vvloc.localize.mapdb import MapDatabase, MapError
 from vvloc.localize.metric import RadialMeanDecoder, SearchConfig
 from vvloc.nets import ModelConfig, VVLocNet
@@ -106,11 +113,13 @@ def test_localizer_recovers_the_query_world_pose(seed, metric_candidates, tmp_pa
 
 
 @pytest.mark.parametrize("metric_from", ["retrieval", "rerank"])
-def test_metric_candidates_are_the_first_of_the_chosen_ordering(metric_from, tmp_path):
+@pytest.mark.parametrize("weight", [0.0, 0.3, 100.0])
+def test_metric_candidates_are_the_first_of_the_chosen_ordering(metric_from, weight, tmp_path):
     """The M metric candidates are the first M retrieved (``metric_from="retrieval"``) or the
-    first M yaw re-ranked; they lead ``reranked`` by coarse cost, the rest follow in yaw
-    re-ranked order. The query's global descriptor is keyframe 4's, so retrieval puts 4 first
-    while the yaw re-ranking puts the query's own keyframe, 2, first."""
+    first M yaw re-ranked; they lead ``reranked`` by coarse cost plus ``retrieval_weight`` ×
+    descriptor distance, the rest follow in yaw re-ranked order. The query's global descriptor
+    is keyframe 4's, so retrieval puts 4 first while the yaw re-ranking puts the query's own
+    keyframe, 2, first."""
     rng = np.random.default_rng(0)
     field = world_field(0)
     model = _model()
@@ -132,7 +141,14 @@ def test_metric_candidates_are_the_first_of_the_chosen_ordering(metric_from, tmp
         yaw = Localizer(model, mapdb, metric_candidates=1, metric_from="rerank", **kw)
         ref = yaw.localize_encoded(glob[4], q_local, q_bev)
         yaw_order = ref.reranked.tolist()
-        loc = Localizer(model, mapdb, metric_candidates=m, metric_from=metric_from, **kw)
+        loc = Localizer(
+            model,
+            mapdb,
+            metric_candidates=m,
+            metric_from=metric_from,
+            retrieval_weight=weight,
+            **kw,
+        )
         got = loc.localize_encoded(glob[4], q_local, q_bev)
         coarse = {}
         for row in range(5):
@@ -141,7 +157,13 @@ def test_metric_candidates_are_the_first_of_the_chosen_ordering(metric_from, tmp
     assert got.retrieved[:2].tolist() == [4, 3]
     assert yaw_order[0] == 2
     pool = got.retrieved[:m].tolist() if metric_from == "retrieval" else yaw_order[:m]
-    assert got.reranked[:m].tolist() == sorted(pool, key=coarse.__getitem__)
+    dist = dict(zip(got.retrieved.tolist(), got.retrieval_dist.tolist(), strict=True))
+    score = {r: coarse[r] + weight * dist[r] for r in pool}
+    assert got.reranked[:m].tolist() == sorted(pool, key=score.__getitem__)
+    if weight == 0.0 and metric_from == "rerank":  # the cost alone: the query's own keyframe
+        assert got.reranked[0] == 2
+    if weight == 100.0 and metric_from == "retrieval":  # the distance dominates: 4 (0), 3
+        assert got.reranked[:m].tolist() == [4, 3]
     assert got.reranked[m:].tolist() == [r for r in yaw_order if r not in pool]
     # rerank_cost follows its rows
     cost_of = dict(zip(yaw_order, ref.rerank_cost.tolist(), strict=True))
@@ -181,6 +203,15 @@ def test_unknown_decoder_is_refused():
         Localizer(model, db, metric_from="global")
     with pytest.raises(TypeError, match="metric_from"):
         Localizer(model, db, metric_from=None)
+    for bad in (-0.1, float("inf"), float("nan")):
+        with pytest.raises(ValueError, match="retrieval_weight"):
+            Localizer(model, db, retrieval_weight=bad)
+    for bad in (True, "1", None):
+        with pytest.raises(TypeError, match="retrieval_weight"):
+            Localizer(model, db, retrieval_weight=bad)
+    # the CLI's --retrieval_weight and --metric_candidates default to the library's
+    assert CLI_RETRIEVAL_WEIGHT == RETRIEVAL_WEIGHT == Localizer(model, db).retrieval_weight
+    assert CLI_METRIC_CANDIDATES == METRIC_CANDIDATES == Localizer(model, db).metric_candidates
     # the CLI's --metric_from offers exactly the library's choices
     assert [c.value for c in MetricFromChoice] == list(METRIC_FROM)
 

@@ -153,6 +153,30 @@ def test_metric_localize_best_refines_the_target_of_lowest_coarse_cost(seed):
     assert np.hypot(x - xi[0], y - xi[1]) < 0.2 and abs(np.degrees(wrap(yaw - xi[2]))) < 1.5
 
 
+@pytest.mark.parametrize("seed", range(2))
+def test_metric_localize_best_chooses_by_coarse_cost_plus_bias(seed):
+    bev_s, tgts, _, decode = _targets(seed, 4)
+    cfg = SearchConfig(stages=2, seed=seed)
+    plain = metric_localize_best(bev_s, tgts, decode, None, cfg, G, T, R)
+    np.testing.assert_array_equal(plain.score, plain.coarse_cost)  # no bias: the cost alone
+    # a bias that makes another target the cheapest: it is the one refined
+    want = (plain.index + 1) % len(tgts)
+    bias = np.full(len(tgts), 10.0)
+    bias[want] = 0.0
+    best = metric_localize_best(bev_s, tgts, decode, None, cfg, G, T, R, bias=bias)
+    np.testing.assert_array_equal(best.coarse_cost, plain.coarse_cost)
+    np.testing.assert_array_equal(best.score, plain.coarse_cost + bias)
+    assert best.index == want
+    single = metric_localize(bev_s, tgts[want], decode, cfg, G, T, R)
+    assert best.result.pose == single.pose and best.result.cost == single.cost
+    # a constant bias changes nothing
+    same = metric_localize_best(bev_s, tgts, decode, None, cfg, G, T, R, bias=np.full(4, 0.3))
+    assert same.index == plain.index and same.result.pose == plain.result.pose
+    for bad in (np.zeros(3), np.array([0.0, np.nan, 0.0, 0.0]), np.full(4, np.inf)):
+        with pytest.raises(ValueError, match="bias"):
+            metric_localize_best(bev_s, tgts, decode, None, cfg, G, T, R, bias=bad)
+
+
 def test_metric_localize_best_calls_the_interactor_per_target():
     bev_s, tgts, _, decode = _targets(1, 3)
     seen: list[int] = []

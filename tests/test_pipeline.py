@@ -18,7 +18,12 @@ import torch
 from vvloc import geometry
 from vvloc.data import open_dataset
 from vvloc.localize import MapDatabase, read_g2o, read_loop_csv, read_tum
-from vvloc.localize.localizer import Localizer, build_map
+from vvloc.localize.localizer import (
+    METRIC_CANDIDATES,
+    RETRIEVAL_WEIGHT,
+    Localizer,
+    build_map,
+)
 from vvloc.localize.loops import detect_loops, loop_candidates
 from vvloc.localize.metric import SearchConfig
 from vvloc.nets import ModelConfig, VVLocNet
@@ -137,6 +142,10 @@ def test_cli_map_localize_loops_end_to_end(tiny_world, model_dir, tmp_path):
     assert r.returncode == 0, r.stderr
     r = localize(str(tmp_path / "loc-bad"), "--metric_from", "nearest")
     assert r.returncode == 2 and "--metric_from" in r.stderr
+    r = localize(str(tmp_path / "loc-w"), "--metric_candidates", "2", "--retrieval_weight", "2")
+    assert r.returncode == 0, r.stderr
+    r = localize(str(tmp_path / "loc-bad-weight"), "--retrieval_weight", "-1")
+    assert r.returncode == 2 and "--retrieval_weight" in r.stderr
     r = localize(str(tmp_path / "loc-nosnap"), "--no-snap")
     assert r.returncode == 0, r.stderr
     lines = (tmp_path / "loc-nosnap" / "queries.csv").read_text().splitlines()
@@ -270,8 +279,9 @@ def test_evaluation_scores_loop_closures_at_the_given_radius(tiny_world, model_d
         m["loop_closure"]["VVLoc + sequence (±1 keyframes)"]["at_threshold"]["accepted"] <= single
     )
     meta = m["meta"]  # the defaults
-    assert meta["snap"] is True and meta["metric_candidates"] == 3
+    assert meta["snap"] is True and meta["metric_candidates"] == METRIC_CANDIDATES
     assert meta["metric_from"] == "retrieval"
+    assert meta["retrieval_weight"] == RETRIEVAL_WEIGHT
     assert meta["cpu"] == cpu_model()  # the processor that evaluated
     # the report names the weights, not only the architecture (trained models share the latter)
     assert meta["model_weights_hash"] == VVLocNet.load(model_dir).weights_hash()

@@ -14,14 +14,17 @@ import typer
 EXIT_FAILURE = 1
 EXIT_USAGE = 2
 
-#: ``--metric_candidates`` of ``eval`` and ``localize`` (see ``Localizer(metric_candidates=)``).
+#: ``--metric_candidates`` of ``eval`` and ``localize`` (see ``Localizer(metric_candidates=)``);
+#: its default, ``vvloc.localize.localizer.METRIC_CANDIDATES`` (a test keeps the two equal).
+METRIC_CANDIDATES = 5
 MetricCandidates = Annotated[
     int,
     typer.Option(
         "--metric_candidates",
         min=1,
         help="Run the coarse translation search against M candidates (see --metric_from; the "
-        "query decoded once) and refine the lowest-cost one.",
+        "query decoded once) and refine the one of lowest cost (plus --retrieval_weight × "
+        "descriptor distance).",
     ),
 ]
 
@@ -42,6 +45,20 @@ MetricFrom = Annotated[
         "--metric_from",
         help="Take the M metric candidates from the retrieval order ('retrieval') or from the "
         "yaw re-ranking ('rerank').",
+    ),
+]
+
+#: ``--retrieval_weight`` of ``eval`` and ``localize`` (see ``Localizer(retrieval_weight=)``);
+#: its default, ``vvloc.localize.localizer.RETRIEVAL_WEIGHT`` (the localizer is imported only
+#: when a command runs; a test keeps the two equal).
+RETRIEVAL_WEIGHT = 2.0
+RetrievalWeight = Annotated[
+    float,
+    typer.Option(
+        "--retrieval_weight",
+        min=0.0,
+        help="Order the M metric candidates by coarse matching cost plus this weight times "
+        "their global-descriptor distance (0: the cost alone).",
     ),
 ]
 

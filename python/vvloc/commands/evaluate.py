@@ -9,9 +9,12 @@ import typer
 
 from vvloc.checkpoints import resolve_checkpoint
 from vvloc.commands._util import (
+    METRIC_CANDIDATES,
+    RETRIEVAL_WEIGHT,
     MetricCandidates,
     MetricFrom,
     MetricFromChoice,
+    RetrievalWeight,
     Snap,
     cli_errors,
     split_names,
@@ -32,8 +35,9 @@ def eval_command(
     robustness: Annotated[
         bool, typer.Option("--robustness", help="Also score retrieval under perturbations.")
     ] = False,
-    metric_candidates: MetricCandidates = 3,
+    metric_candidates: MetricCandidates = METRIC_CANDIDATES,
     metric_from: MetricFrom = MetricFromChoice.retrieval,
+    retrieval_weight: RetrievalWeight = RETRIEVAL_WEIGHT,
     snap: Snap = True,
     loops: Annotated[
         bool, typer.Option("--loops", help="Also evaluate loop closure (P/R, CFER, poses).")
@@ -85,6 +89,7 @@ def eval_command(
             top_k=top_k,
             metric_candidates=metric_candidates,
             metric_from=metric_from.value,
+            retrieval_weight=retrieval_weight,
             snap=snap,
             every=every,
             device=device,

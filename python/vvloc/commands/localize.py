@@ -9,7 +9,16 @@ import numpy as np
 import typer
 
 from vvloc.checkpoints import resolve_checkpoint
-from vvloc.commands._util import MetricCandidates, MetricFrom, MetricFromChoice, Snap, cli_errors
+from vvloc.commands._util import (
+    METRIC_CANDIDATES,
+    RETRIEVAL_WEIGHT,
+    MetricCandidates,
+    MetricFrom,
+    MetricFromChoice,
+    RetrievalWeight,
+    Snap,
+    cli_errors,
+)
 
 HEADER = (
     "# vvloc localize. Frames (DESIGN.md §3): world x east, y north, z up (m); yaw CCW "
@@ -43,8 +52,9 @@ def localize(
             help="Accept distinctiveness at or above (default: the model's calibration, else 0).",
         ),
     ] = None,
-    metric_candidates: MetricCandidates = 3,
+    metric_candidates: MetricCandidates = METRIC_CANDIDATES,
     metric_from: MetricFrom = MetricFromChoice.retrieval,
+    retrieval_weight: RetrievalWeight = RETRIEVAL_WEIGHT,
     snap: Snap = True,
     device: Annotated[str, typer.Option("--device", help="cpu or cuda.")] = "cpu",
 ) -> None:
@@ -66,6 +76,7 @@ def localize(
             min_distinctiveness=min_distinctiveness,
             metric_candidates=metric_candidates,
             metric_from=metric_from.value,
+            retrieval_weight=retrieval_weight,
             snap=snap,
         )
         sess = open_dataset(dataset).session(session)

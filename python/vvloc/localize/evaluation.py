@@ -22,6 +22,8 @@ from vvloc._io import atomic_write
 from vvloc.data import Frame, open_dataset
 from vvloc.data.perturb import perturb_frame
 from vvloc.localize.localizer import (
+    METRIC_CANDIDATES,
+    RETRIEVAL_WEIGHT,
     LocalizationResult,
     Localizer,
     build_map,
@@ -174,8 +176,9 @@ def run_evaluation(
     out: str | os.PathLike[str],
     *,
     top_k: int = 20,
-    metric_candidates: int = 3,
+    metric_candidates: int = METRIC_CANDIDATES,
     metric_from: str = "retrieval",
+    retrieval_weight: float = RETRIEVAL_WEIGHT,
     snap: bool = True,
     every: int = 1,
     device: str = "cpu",
@@ -195,9 +198,10 @@ def run_evaluation(
     The report's meta names this machine (``hardware``) and, from the checkpoint's
     ``training.json``, the hardware and wall time that produced the weights (``trained_on``,
     :func:`vvloc.provenance.summarize`; its runs are the JSON's ``training``, ``{"runs": [...]}``).
-    ``metric_candidates``, ``metric_from`` and ``snap`` are :class:`Localizer`'s (the M
-    candidates scored by the coarse translation search, the first M of the retrieval order or of
-    the yaw re-ranking; the reported keyframe snapped to the metric pose).
+    ``metric_candidates``, ``metric_from``, ``retrieval_weight`` and ``snap`` are
+    :class:`Localizer`'s (the M candidates scored by the coarse translation search, the first M
+    of the retrieval order or of the yaw re-ranking, ordered by coarse cost + ``retrieval_weight``
+    × descriptor distance; the reported keyframe snapped to the metric pose).
     ``loops``: also loop closure over all frames of ``database`` + ``queries``, accepted at
     global-descriptor distance ≤ ``loop_radius`` (the first ``loop_pairs`` verified metrically),
     for single keyframes and, when ``loop_sequence`` L > 0, with the sequence-consistency check
@@ -227,6 +231,7 @@ def run_evaluation(
         search=search,
         metric_candidates=metric_candidates,
         metric_from=metric_from,
+        retrieval_weight=retrieval_weight,
         snap=snap,
     )
     frames = [ds.session(s)[i] for s in queries for i in range(0, len(ds.session(s)), every)]
@@ -280,8 +285,13 @@ def run_evaluation(
         source = "retrieved" if loc.metric_from == "retrieval" else "re-ranked"
         ml += (
             f", then the first {loc.metric_candidates} {source} candidates put first, ordered "
-            "by the cost of the coarse translation search against each (the lowest refined by "
-            "the fine stages)"
+            "by the cost of the coarse translation search against each"
+            + (
+                f" plus {loc.retrieval_weight:g} × its global-descriptor distance"
+                if loc.retrieval_weight > 0
+                else ""
+            )
+            + " (the lowest refined by the fine stages)"
         )
     elif loc.metric_from == "retrieval":
         ml += ", then the first retrieved candidate put first (the metric pose's keyframe)"
@@ -317,6 +327,7 @@ def run_evaluation(
             "top_k": k,
             "metric_candidates": loc.metric_candidates,
             "metric_from": loc.metric_from,
+            "retrieval_weight": loc.retrieval_weight,
             "snap": loc.snap,
             "device": device,
             "hardware": hardware(),

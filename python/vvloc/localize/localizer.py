@@ -14,7 +14,8 @@ Pipeline per query frame (DESIGN.md §1):
    With ``metric_candidates`` M > 1 the coarse stage is run against each of the first M
    retrieved candidates (``metric_from="retrieval"``, the default; or the first M re-ranked,
    ``"rerank"``), the query decoded once, the interactor per candidate, and the one of lowest
-   coarse cost goes through the fine stages (:func:`metric_localize_best`);
+   coarse cost plus ``retrieval_weight`` × its global-descriptor distance goes through the fine
+   stages (:func:`metric_localize_best`);
 5. snapping (``snap``, default on): the query's metric world pose picks the reported keyframe,
    the retrieved candidate nearest to it (on the matched keyframe's floor); the relative pose
    is re-expressed in that keyframe's frame (the world pose does not change).
@@ -55,6 +56,14 @@ F32 = npt.NDArray[np.float32]
 #: Where :class:`Localizer`'s M metric candidates come from (``metric_from``): the first M of
 #: the retrieval order, or of the yaw re-ranking.
 METRIC_FROM = ("retrieval", "rerank")
+
+#: :class:`Localizer`'s defaults: M, the metric candidates, ordered by coarse matching cost +
+#: λ × global-descriptor distance (``retrieval_weight``). Chosen together on the parking
+#: validation sessions of two trained models (models/synth-small's card, "Metric candidates
+#: ordered with the descriptor distance"): M = 3, λ = 0 (the defaults before 2026-12-03) gave
+#: 83.5 % and 81.1 % Recall@1 at 2 m, M = 5, λ = 2 85.7 % and 83.9 %.
+METRIC_CANDIDATES = 5
+RETRIEVAL_WEIGHT = 2.0
 
 
 @dataclass
@@ -185,9 +194,9 @@ class LocalizationResult:
         accepted: ``cost < accept_threshold`` and ``distinctiveness >= min_distinctiveness``.
         retrieved: (K,) map rows in retrieval order; ``retrieval_dist`` their L2 distances.
         reranked: (K,) map rows: the M metric candidates (see ``Localizer(metric_from=)``) by
-            coarse metric cost, then the others by yaw matching cost (with ``snap``, the
-            snapped keyframe first); ``rerank_cost`` their yaw matching costs, in the same
-            order.
+            coarse metric cost plus ``retrieval_weight`` × descriptor distance, then the others
+            by yaw matching cost (with ``snap``, the snapped keyframe first); ``rerank_cost``
+            their yaw matching costs, in the same order.
         timings_ms: per-stage wall time: encode, retrieve, rerank, metric.
         search: every evaluated translation hypothesis (xy (M, 2), yaw, cost, stage) of the
             search against ``metric_row`` (ξ_{q→m} hypotheses, query frame).
@@ -233,21 +242,31 @@ class Localizer:
             calibrate`` or by training with validation sessions), and 0 (no check) when the
             model has none.
         search: the translation search (see :class:`SearchConfig`).
-        metric_candidates: M, how many candidates get a metric localization (default 3,
+        metric_candidates: M, how many candidates get a metric localization (default
+            :data:`METRIC_CANDIDATES`, 5, with ``retrieval_weight`` 2; 3 before 2026-12-03,
             chosen on validation sessions with the candidates taken from the re-ranking: 82.8 %
             → 85.9 % Recall@1 at 2 m for about 1.2× the metric stage's time; 1 = only the
-            first one). With M > 1 the coarse translation stage runs against each of the M
-            (the first M of ``metric_from``'s ordering; the query's padded BEVs decoded once,
-            the interactor and the yaw kernel per candidate), the M are ordered by their coarse
-            cost, and the lowest goes through the fine stages (:func:`metric_localize_best`).
-            Without re-ranking both orderings are the retrieval's.
+            first one). Without the descriptor distance more candidates are not better: on
+            the parking validation M = 5 loses 1-2 points to M = 3 at λ = 0. With M > 1 the
+            coarse translation stage runs against each of the M (the first M of
+            ``metric_from``'s ordering; the query's padded BEVs decoded once, the interactor
+            and the yaw kernel per candidate), the M are ordered by their coarse cost plus
+            ``retrieval_weight`` × their global-descriptor distance, and the lowest goes
+            through the fine stages (:func:`metric_localize_best`). Without re-ranking both
+            orderings are the retrieval's.
         metric_from: which ordering the M metric candidates are the first of: ``"retrieval"``
             (global-descriptor distance) or ``"rerank"`` (the yaw matching cost without
-            padding). Either way the M come first in ``reranked``, by coarse metric cost, and
-            the other candidates follow in yaw re-ranked order. Default ``"retrieval"``: the
-            cost without padding cannot see translation, so it is the poorer pre-filter for the
-            metric stage (674 parking validation queries, Recall@1 at 2 m: 83.4 % → 87.7 % for
-            ``models/synth-small-v1``; DESIGN.md §1).
+            padding). Either way the M come first in ``reranked``, by their score (coarse cost +
+            λ·distance), and the other candidates follow in yaw re-ranked order. Default
+            ``"retrieval"``: the cost without padding cannot see translation, so it is the
+            poorer pre-filter for the metric stage (674 parking validation queries, Recall@1
+            at 2 m: 83.4 % → 87.7 % for ``models/synth-small-v1``; DESIGN.md §1).
+        retrieval_weight: λ ≥ 0, the weight of a metric candidate's global-descriptor L2
+            distance (unit-norm descriptors, so in [0, 2]) added to its coarse matching cost
+            when the M candidates are ordered (default :data:`RETRIEVAL_WEIGHT`; 0: the
+            coarse cost alone). The two
+            evidences are independent: the descriptor sees the whole BEV, the cost the local
+            views around one translation.
         snap: report the retrieved keyframe nearest to the query's metric world pose (on the
             metric-matched keyframe's floor) instead of the matched one (default True): the
             metric pose says where the query is, so the nearest candidate is the place; the
@@ -268,8 +287,9 @@ class Localizer:
         accept_threshold: float = 0.75,
         min_distinctiveness: float | None = None,
         search: SearchConfig | None = None,
-        metric_candidates: int = 3,
+        metric_candidates: int = METRIC_CANDIDATES,
         metric_from: str = "retrieval",
+        retrieval_weight: float = RETRIEVAL_WEIGHT,
         snap: bool = True,
         decoder: str = "learned",
     ) -> None:
@@ -300,6 +320,15 @@ class Localizer:
         self.min_distinctiveness = float(min_distinctiveness)
         self.metric_candidates = kernels._positive_int(metric_candidates, "metric_candidates")
         self.metric_from = metric_from
+        if isinstance(retrieval_weight, bool) or not isinstance(retrieval_weight, (int, float)):
+            raise TypeError(
+                f"retrieval_weight: expected a float, got {type(retrieval_weight).__name__}"
+            )
+        if not 0 <= retrieval_weight < float("inf"):
+            raise ValueError(
+                f"retrieval_weight: expected a finite value >= 0, got {retrieval_weight}"
+            )
+        self.retrieval_weight = float(retrieval_weight)
         if not isinstance(snap, (bool, np.bool_)):
             raise TypeError(f"snap: expected a bool, got {type(snap).__name__}")
         self.snap = bool(snap)
@@ -359,12 +388,13 @@ class Localizer:
         return xi_mq, cost, history
 
     def metric_best(
-        self, bev: F32, rows: npt.NDArray[np.int64]
+        self, bev: F32, rows: npt.NDArray[np.int64], bias: npt.ArrayLike | None = None
     ) -> tuple[int, npt.NDArray[np.float64], float, Any, npt.NDArray[np.float64]]:
         """Metric localization of a query BEV (H, W, C) against the best of map ``rows`` (M,)
-        (:func:`metric_localize_best`; for one row, :func:`metric_localize`'s search): returns
-        (index into ``rows``, ξ_{m→q} (3,), cost, search history, each row's coarse-stage cost
-        (M,))."""
+        (:func:`metric_localize_best`; for one row, :func:`metric_localize`'s search), each
+        row's coarse cost offset by ``bias`` (M,) (None: zeros): returns (index into ``rows``,
+        ξ_{m→q} (3,), cost, search history, each row's score (M,): coarse-stage cost + bias,
+        the chosen row the first of the lowest)."""
         tgts = self.map.local_descriptors(np.asarray(rows, dtype=np.int64))
         if self.decoder == "radial_mean":
             decode, interact = RadialMeanDecoder(), None
@@ -379,6 +409,7 @@ class Localizer:
             self.grid_size,
             self.num_angles,
             self.num_radii,
+            bias=bias,
         )
         xi_qm = np.asarray(best.result.pose, dtype=np.float64)
         return (
@@ -386,7 +417,7 @@ class Localizer:
             geometry.inverse(xi_qm),
             float(best.result.cost),
             best.result.history,
-            best.coarse_cost,
+            best.score,
         )
 
     def snap_row(self, global_pose: npt.ArrayLike, rows: npt.NDArray[np.int64], floor: int) -> int:
@@ -467,10 +498,12 @@ class Localizer:
             pool = np.arange(m)
         else:  # where rows[:m] went: the inverse permutation
             pool = np.argsort(perm, kind="stable")[:m]
-        k, xi_mq, cost, history, coarse = self.metric_best(bev, reranked[pool])
-        # the M candidates by coarse cost (finite) first, the stable sort putting the refined
-        # one, the first of the lowest, first; the others after them in re-ranked order
-        front = np.argsort(coarse, kind="stable")
+        bias = self.retrieval_weight * dist[perm[pool]].astype(np.float64)
+        k, xi_mq, cost, history, score = self.metric_best(bev, reranked[pool], bias)
+        # the M candidates by score (coarse cost + λ·distance, finite) first, the stable sort
+        # putting the refined one, the first of the lowest, first; the others after them in
+        # re-ranked order
+        front = np.argsort(score, kind="stable")
         if front[0] != k:
             raise RuntimeError(f"metric_best chose candidate {k}, the ordering {front[0]}")
         order = np.r_[pool[front], np.setdiff1d(np.arange(len(reranked)), pool)]

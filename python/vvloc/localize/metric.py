@@ -163,12 +163,14 @@ def metric_localize(
 
 class BestMatch(NamedTuple):
     """Result of :func:`metric_localize_best`: ``index`` of the chosen target, its
-    :class:`MetricResult` (``result``), and every target's lowest coarse-stage cost
-    (``coarse_cost`` (M,) float64)."""
+    :class:`MetricResult` (``result``), every target's lowest coarse-stage cost
+    (``coarse_cost`` (M,) float64) and the score the target was chosen by (``score`` (M,)
+    float64: ``coarse_cost + bias``; ``index`` is the first of its lowest)."""
 
     index: int
     result: MetricResult
     coarse_cost: npt.NDArray[np.float64]
+    score: npt.NDArray[np.float64]
 
 
 def metric_localize_best(
@@ -181,14 +183,15 @@ def metric_localize_best(
     num_angles: int = 120,
     num_radii: int = 25,
     *,
+    bias: npt.ArrayLike | None = None,
     backend: kernels.Backend = "rust",
 ) -> BestMatch:
     """Metric localization of one source BEV against the best of several targets.
 
     The coarse stage (the grid of :class:`SearchConfig`) is run against every target with the
     source padded and decoded once (the decoder's work is shared; only the interactor and the
-    yaw estimation run per target); the target of lowest coarse cost (the first on ties) then
-    goes through the fine stages alone (the first of equal lowest costs). With one target this
+    yaw estimation run per target); the target of lowest score, its coarse cost plus its
+    ``bias`` (the first on ties), then goes through the fine stages alone. With one target this
     equals :func:`metric_localize`.
 
     Args:
@@ -198,6 +201,9 @@ def metric_localize_best(
         interact: ``interact(ds, k)`` refines the decoded source descriptors ds (N, T, C)
             against target k into the pair (Ds', Dt') of (N, T, C) (the learned interactor);
             None matches ``decode``'s output against ``desc_tgts[k]`` directly.
+        bias: (M,) finite float, added to each target's coarse cost to choose the one refined
+            (e.g. a weighted global-descriptor distance, ``Localizer(retrieval_weight=)``);
+            None = zeros, the coarse cost alone.
         config, grid_size, num_angles, num_radii, backend: as :func:`metric_localize`.
 
     Returns:
@@ -208,6 +214,15 @@ def metric_localize_best(
     tgts = kernels._as_f32(desc_tgts, "desc_tgts", 3, "(M, T, C)")
     if tgts.shape[0] < 1 or tgts.shape[1] != num_angles:
         raise ValueError(f"desc_tgts: expected (M >= 1, T={num_angles}, C), got shape {tgts.shape}")
+    if bias is None:
+        offsets = np.zeros(len(tgts))
+    else:
+        offsets = np.asarray(bias, dtype=np.float64)
+        if offsets.shape != (len(tgts),) or not np.isfinite(offsets).all():
+            raise ValueError(
+                f"bias: expected ({len(tgts)},) finite floats, one per target, got "
+                f"shape {offsets.shape}"
+            )
 
     def score_with(k: int) -> Callable[[Any], kernels.YawEstimate]:
         def score(ds: Any) -> kernels.YawEstimate:
@@ -235,7 +250,8 @@ def metric_localize_best(
         best = search.best()
         assert best is not None
         coarse[k] = best.cost
-    k = int(np.argmin(coarse))  # finite: TranslationSearch.report refuses NaN and inf
+    score = coarse + offsets
+    k = int(np.argmin(score))  # finite: TranslationSearch.report refuses NaN and inf
     result = _finish(
         searches[k],
         bev_src,
@@ -245,4 +261,4 @@ def metric_localize_best(
         grid_size,
         backend,
     )
-    return BestMatch(k, result, coarse)
+    return BestMatch(k, result, coarse, score)
