@@ -289,7 +289,8 @@ def test_evaluation_scores_loop_closures_at_the_given_radius(tiny_world, model_d
     assert meta["trained_on"] == "no training record for these weights"
     assert m["training"] is None
     report = (tmp_path / "ev" / "report.md").read_text()
-    assert "then the first 3 retrieved candidates put first" in report
+    assert f"then the first {METRIC_CANDIDATES} retrieved candidates put first" in report
+    assert f"plus {RETRIEVAL_WEIGHT:g} × its global-descriptor distance" in report
     assert "| VVLoc (descriptor radius) | 0.300 |" in report
     assert m["loop_sweep_radius"] == 0.5  # a tiny world: every pair within 0.5 is scored
     from vvloc.commands.evaluate import eval_command
