@@ -264,9 +264,8 @@ class Localizer:
         retrieval_weight: λ ≥ 0, the weight of a metric candidate's global-descriptor L2
             distance (unit-norm descriptors, so in [0, 2]) added to its coarse matching cost
             when the M candidates are ordered (default :data:`RETRIEVAL_WEIGHT`; 0: the
-            coarse cost alone). The two
-            evidences are independent: the descriptor sees the whole BEV, the cost the local
-            views around one translation.
+            coarse cost alone). The two are separate evidence: the descriptor sees the whole
+            BEV, the cost the local views around one translation.
         snap: report the retrieved keyframe nearest to the query's metric world pose (on the
             metric-matched keyframe's floor) instead of the matched one (default True): the
             metric pose says where the query is, so the nearest candidate is the place; the
