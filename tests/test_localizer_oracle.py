@@ -9,6 +9,7 @@ end to end, independently of any training.
 from __future__ import annotations
 
 import copy
+import inspect
 
 import numpy as np
 import pytest
@@ -16,9 +17,9 @@ import torch
 
 from test_metric_localize import bev_at, compose, world_field, wrap
 from vvloc import kernels
-from vvloc.commands._util import METRIC_CANDIDATES as CLI_METRIC_CANDIDATES
-from vvloc.commands._util import RETRIEVAL_WEIGHT as CLI_RETRIEVAL_WEIGHT
 from vvloc.commands._util import MetricFromChoice
+from vvloc.commands.evaluate import eval_command
+from vvloc.commands.localize import localize as localize_command
 from vvloc.localize.localizer import (
     METRIC_CANDIDATES,
     METRIC_FROM,
@@ -209,9 +210,13 @@ def test_unknown_decoder_is_refused():
     for bad in (True, "1", None):
         with pytest.raises(TypeError, match="retrieval_weight"):
             Localizer(model, db, retrieval_weight=bad)
-    # the CLI's --retrieval_weight and --metric_candidates default to the library's
-    assert CLI_RETRIEVAL_WEIGHT == RETRIEVAL_WEIGHT == Localizer(model, db).retrieval_weight
-    assert CLI_METRIC_CANDIDATES == METRIC_CANDIDATES == Localizer(model, db).metric_candidates
+    # eval's and localize's --retrieval_weight and --metric_candidates default to the library's
+    assert Localizer(model, db).retrieval_weight == RETRIEVAL_WEIGHT
+    assert Localizer(model, db).metric_candidates == METRIC_CANDIDATES
+    for command in (eval_command, localize_command):
+        params = inspect.signature(command).parameters
+        assert params["retrieval_weight"].default == RETRIEVAL_WEIGHT
+        assert params["metric_candidates"].default == METRIC_CANDIDATES
     # the CLI's --metric_from offers exactly the library's choices
     assert [c.value for c in MetricFromChoice] == list(METRIC_FROM)
 

@@ -15,8 +15,7 @@ EXIT_FAILURE = 1
 EXIT_USAGE = 2
 
 #: ``--metric_candidates`` of ``eval`` and ``localize`` (see ``Localizer(metric_candidates=)``);
-#: its default, ``vvloc.localize.localizer.METRIC_CANDIDATES`` (a test keeps the two equal).
-METRIC_CANDIDATES = 5
+#: its default is the library's, :data:`vvloc.localize.metric.METRIC_CANDIDATES`.
 MetricCandidates = Annotated[
     int,
     typer.Option(
@@ -49,9 +48,7 @@ MetricFrom = Annotated[
 ]
 
 #: ``--retrieval_weight`` of ``eval`` and ``localize`` (see ``Localizer(retrieval_weight=)``);
-#: its default, ``vvloc.localize.localizer.RETRIEVAL_WEIGHT`` (the localizer is imported only
-#: when a command runs; a test keeps the two equal).
-RETRIEVAL_WEIGHT = 2.0
+#: its default is the library's, :data:`vvloc.localize.metric.RETRIEVAL_WEIGHT`.
 RetrievalWeight = Annotated[
     float,
     typer.Option(

@@ -9,8 +9,6 @@ import typer
 
 from vvloc.checkpoints import resolve_checkpoint
 from vvloc.commands._util import (
-    METRIC_CANDIDATES,
-    RETRIEVAL_WEIGHT,
     MetricCandidates,
     MetricFrom,
     MetricFromChoice,
@@ -19,6 +17,7 @@ from vvloc.commands._util import (
     cli_errors,
     split_names,
 )
+from vvloc.localize.metric import METRIC_CANDIDATES, RETRIEVAL_WEIGHT
 
 
 def eval_command(

@@ -10,8 +10,6 @@ import typer
 
 from vvloc.checkpoints import resolve_checkpoint
 from vvloc.commands._util import (
-    METRIC_CANDIDATES,
-    RETRIEVAL_WEIGHT,
     MetricCandidates,
     MetricFrom,
     MetricFromChoice,
@@ -19,6 +17,7 @@ from vvloc.commands._util import (
     Snap,
     cli_errors,
 )
+from vvloc.localize.metric import METRIC_CANDIDATES, RETRIEVAL_WEIGHT
 
 HEADER = (
     "# vvloc localize. Frames (DESIGN.md §3): world x east, y north, z up (m); yaw CCW "

@@ -22,8 +22,6 @@ from vvloc._io import atomic_write
 from vvloc.data import Frame, open_dataset
 from vvloc.data.perturb import perturb_frame
 from vvloc.localize.localizer import (
-    METRIC_CANDIDATES,
-    RETRIEVAL_WEIGHT,
     LocalizationResult,
     Localizer,
     build_map,
@@ -31,7 +29,7 @@ from vvloc.localize.localizer import (
 )
 from vvloc.localize.loops import confirm_sequence, loop_candidates, sweep_radius, verify_pairs
 from vvloc.localize.mapdb import MapDatabase
-from vvloc.localize.metric import SearchConfig
+from vvloc.localize.metric import METRIC_CANDIDATES, RETRIEVAL_WEIGHT, SearchConfig
 from vvloc.nets import VVLocNet
 from vvloc.provenance import cpu_model, hardware, summarize
 

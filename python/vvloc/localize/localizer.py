@@ -45,7 +45,13 @@ from tqdm import tqdm
 from vvloc import geometry, kernels
 from vvloc.data import Frame
 from vvloc.localize.mapdb import MapDatabase, MapError, MapWriter, check_weights
-from vvloc.localize.metric import RadialMeanDecoder, SearchConfig, metric_localize_best
+from vvloc.localize.metric import (
+    METRIC_CANDIDATES,
+    RETRIEVAL_WEIGHT,
+    RadialMeanDecoder,
+    SearchConfig,
+    metric_localize_best,
+)
 from vvloc.nets import VVLocNet
 from vvloc.retrieval import DescriptorIndex
 
@@ -56,14 +62,6 @@ F32 = npt.NDArray[np.float32]
 #: Where :class:`Localizer`'s M metric candidates come from (``metric_from``): the first M of
 #: the retrieval order, or of the yaw re-ranking.
 METRIC_FROM = ("retrieval", "rerank")
-
-#: :class:`Localizer`'s defaults: M, the metric candidates, ordered by coarse matching cost +
-#: λ × global-descriptor distance (``retrieval_weight``). Chosen together on the parking
-#: validation sessions of two trained models (models/synth-small's card, "Metric candidates
-#: ordered with the descriptor distance"): M = 3, λ = 0 (the defaults before 2026-12-03) gave
-#: 83.5 % and 81.1 % Recall@1 at 2 m, M = 5, λ = 2 85.7 % and 83.9 %.
-METRIC_CANDIDATES = 5
-RETRIEVAL_WEIGHT = 2.0
 
 
 @dataclass
