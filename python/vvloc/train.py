@@ -138,6 +138,11 @@ class TrainConfig:
     changes only if a later epoch would have beaten it. A run that stopped early is finished:
     growing ``stage2_epochs`` on resume does not restart it (start a new run with
     ``init_checkpoint`` instead).
+    ``hard_pool_restarts`` (1-based epochs, default none): at the start of each of these
+    epochs the hard pool is drawn from its first triplet again instead of where the last epoch
+    left it. This is what a ``--resume`` did before 2026-12-03, when the trainer state did not
+    hold the position in the pool. ``models/synth-small``'s step 1 was resumed that way after
+    epoch 10, and ``hard_pool_restarts: [11]`` trains it again without a break.
     ``head_epochs`` (default 0) adds the head stage (module docstring): ``head_steps_per_epoch``
     steps of ``head_batch_size`` triplets at learning rate ``head_lr`` (Adam, ×``lr_decay`` per
     epoch), negatives mined among the ``head_negatives`` nearest. Its cache holds every training
@@ -189,6 +194,7 @@ class TrainConfig:
     val_loops: list[dict[str, Any]] = field(default_factory=list)
     patience: int | None = None
     select_by: str = "reranked"
+    hard_pool_restarts: list[int] = field(default_factory=list)
     head_epochs: int = 0
     head_steps_per_epoch: int = 1000
     head_batch_size: int = 32
@@ -311,6 +317,14 @@ class TrainConfig:
                     "patience: early stopping needs val_sessions and stage2_epochs > 0 (it stops "
                     "the joint stage when validation stops improving)"
                 )
+        restarts = self.hard_pool_restarts
+        if not isinstance(restarts, list) or not all(
+            isinstance(e, int) and not isinstance(e, bool) and e >= 1 for e in restarts
+        ):
+            raise ValueError(
+                f"hard_pool_restarts: expected a list of 1-based epochs (ints >= 1), got "
+                f"{restarts!r}"
+            )
         if self.select_by not in SELECT_BY:
             raise ValueError(
                 f"select_by: expected one of {list(SELECT_BY)}, got {self.select_by!r}"
@@ -1000,6 +1014,8 @@ class Trainer:
         stage = self.stage_of(self.epoch)
         if stage == 3:
             return self._head_epoch(progress)
+        if self.epoch + 1 in cfg.hard_pool_restarts:
+            self.sampler.restart_hard_pool()
         triplets = self.sampler.sample(cfg.steps_per_epoch * cfg.batch_size)
         loader = DataLoader(
             TripletFrames(

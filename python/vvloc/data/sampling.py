@@ -273,6 +273,11 @@ class TripletSampler:
         """(H, 3) int64 triplets currently in the hard pool."""
         return np.array(list(self._hard), dtype=np.int64).reshape(-1, 3)
 
+    def restart_hard_pool(self) -> None:
+        """Take the next hard triplets from the pool's first (oldest) one again; the pool itself
+        is kept (the trainer's ``hard_pool_restarts``)."""
+        self._hard_cursor = 0
+
     def state_dict(self) -> dict[str, Any]:
         """Everything that decides the next draws: the generator's state, the hard pool in its
         order ((H, 3) int64) and the position in it from which :meth:`sample` takes next. A
