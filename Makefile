@@ -3,8 +3,8 @@
 #   make bench   kernel benchmarks: table on stdout, JSON in bench-results/
 #   make lint    cargo fmt/clippy, ruff, mypy stubtest of the extension
 #   make demo    end-to-end demo (see README)
-#   make model   the committed small model from scratch (four steps, about 60 min on 2 cores; its
-#                bytes on the CPU that trained it, other weights elsewhere:
+#   make model   the committed small model from scratch (four steps, about 75 min on 2 cores; the
+#                committed bytes on the CPU that trained them, other weights elsewhere:
 #                models/synth-small/MODEL_CARD.md)
 #   make model-test  the committed model's test on what make model trained (CHECKPOINT=...),
 #                against the issue's targets (≈ 18 min, plus ≈ 25 min rendering the first time)
