@@ -170,6 +170,14 @@ def test_bad_hard_pool_restarts_are_refused(value):
         TrainConfig.from_dict({"dataset": "x", "hard_pool_restarts": value})
 
 
+def test_hard_pool_restarts_in_the_head_stage_are_refused():
+    # the head stage has no hard pool: a restart there would silently do nothing
+    cfg = {"dataset": "x", "stage1_epochs": 2, "stage2_epochs": 3, "head_epochs": 2}
+    TrainConfig.from_dict({**cfg, "hard_pool_restarts": [5]})
+    with pytest.raises(ValueError, match=r"names an epoch after stages 1-2, which end at epoch 5"):
+        TrainConfig.from_dict({**cfg, "hard_pool_restarts": [6]})
+
+
 def _assert_resumed_run_equals_uninterrupted(cfg: TrainConfig, tmp_path: Path, cut: int) -> dict:
     """A run stopped after ``cut`` epochs and resumed ends with the uninterrupted run's weights
     and hard pool; returns the sampler's state at the cut."""

@@ -138,11 +138,11 @@ class TrainConfig:
     changes only if a later epoch would have beaten it. A run that stopped early is finished:
     growing ``stage2_epochs`` on resume does not restart it (start a new run with
     ``init_checkpoint`` instead).
-    ``hard_pool_restarts`` (1-based epochs, default none): at the start of each of these
-    epochs the hard pool is drawn from its first triplet again instead of where the last epoch
-    left it. This is what a ``--resume`` did before 2026-12-03, when the trainer state did not
-    hold the position in the pool. ``models/synth-small``'s step 1 was resumed that way after
-    epoch 10, and ``hard_pool_restarts: [11]`` trains it again without a break.
+    ``hard_pool_restarts`` (1-based epochs of stages 1-2, default none): at the start of each
+    of these epochs the hard pool is drawn from its first triplet again instead of where the
+    last epoch left it. This is what a ``--resume`` did before 2026-12-03, when the trainer
+    state did not hold the position in the pool. ``models/synth-small``'s step 1 was resumed
+    that way after epoch 10, and ``hard_pool_restarts: [11]`` trains it again without a break.
     ``head_epochs`` (default 0) adds the head stage (module docstring): ``head_steps_per_epoch``
     steps of ``head_batch_size`` triplets at learning rate ``head_lr`` (Adam, ×``lr_decay`` per
     epoch), negatives mined among the ``head_negatives`` nearest. Its cache holds every training
@@ -324,6 +324,13 @@ class TrainConfig:
             raise ValueError(
                 f"hard_pool_restarts: expected a list of 1-based epochs (ints >= 1), got "
                 f"{restarts!r}"
+            )
+        triplet_epochs = int(self.stage1_epochs) + int(self.stage2_epochs)
+        if any(e > triplet_epochs for e in restarts):
+            # the head stage mines its own negatives and has no hard pool to restart
+            raise ValueError(
+                f"hard_pool_restarts: {restarts!r} names an epoch after stages 1-2, which end at "
+                f"epoch {triplet_epochs}: only their epochs draw from the hard pool"
             )
         if self.select_by not in SELECT_BY:
             raise ValueError(
