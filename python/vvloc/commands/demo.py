@@ -92,6 +92,7 @@ def demo(
         if checkpoint is None and card.exists():
             warning = status_warning(card.read_text())
             if warning:
+                warning = f"{warning} (details: {card})"
                 typer.secho(warning, fg=typer.colors.RED, err=True)
         if checkpoint is None and not (DEFAULT_MODEL / "config.json").exists():
             warning = UNTRAINED.format(path=DEFAULT_MODEL)
