@@ -484,9 +484,42 @@ def test_atomic_write_keeps_old_content_on_error(tmp_path: Path) -> None:
 
 
 def test_atomic_write_into_missing_directory_fails_cleanly(tmp_path: Path) -> None:
-    with pytest.raises(FileNotFoundError), atomic_write(tmp_path / "no" / "x.txt") as f:
+    with (
+        pytest.raises(FileNotFoundError, match=r"its folder .* does not exist"),
+        atomic_write(tmp_path / "no" / "x.txt") as f,
+    ):
+        f.write("x")
+    with pytest.raises(IsADirectoryError, match="is a folder"), atomic_write(tmp_path) as f:
         f.write("x")
     assert os.listdir(tmp_path) == []
+
+
+SIGTERM_WRITER = """
+import sys, time
+from vvloc._io import AtomicPath
+from vvloc.cli import _exit_on_sigterm
+_exit_on_sigterm()
+with AtomicPath(sys.argv[1]) as tmp:
+    tmp.write_text("partial")
+    print("ready", flush=True)
+    time.sleep(60)
+"""
+
+
+@pytest.mark.skipif(os.name != "posix", reason="POSIX signals")
+def test_sigterm_in_the_cli_removes_the_temporary_file(tmp_path: Path) -> None:
+    import signal
+    import subprocess
+    import sys
+
+    target = tmp_path / "map.h5"
+    target.write_text("old map")
+    cmd = [sys.executable, "-c", SIGTERM_WRITER, str(target)]
+    with subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True) as proc:
+        assert proc.stdout is not None and proc.stdout.readline().strip() == "ready"
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=30) == 128 + signal.SIGTERM
+    assert os.listdir(tmp_path) == ["map.h5"] and target.read_text() == "old map"
 
 
 def test_atomic_write_gives_new_files_the_umask_mode_and_keeps_an_existing_files_mode(

@@ -408,3 +408,24 @@ def test_load_rejects_mismatched_checkpoints(tmp_path):
         VVLocNet.load(tmp_path)
     with pytest.raises(FileNotFoundError):
         VVLocNet.load(tmp_path / "nothing")
+
+
+def test_resolve_device_names_the_argument_and_refuses_what_torch_cannot_use():
+    import torch
+
+    from vvloc.nets.model import resolve_device
+
+    assert resolve_device("cpu") == torch.device("cpu")
+    assert resolve_device(torch.device("cpu")) == torch.device("cpu")
+    assert resolve_device("auto").type == ("cuda" if torch.cuda.is_available() else "cpu")
+    for bad in ("gpu", "mps", "cuda:x", ""):
+        with pytest.raises(ValueError, match="--device: expected 'cpu'"):
+            resolve_device(bad, argument="--device")
+    with pytest.raises(TypeError, match="device"):
+        resolve_device(0)  # type: ignore[arg-type]
+    if not torch.cuda.is_available():
+        with pytest.raises(ValueError, match="no CUDA device"):
+            resolve_device("cuda")
+    else:
+        with pytest.raises(ValueError, match="CUDA device"):
+            resolve_device(f"cuda:{torch.cuda.device_count()}")

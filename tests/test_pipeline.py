@@ -126,6 +126,21 @@ def test_cli_map_localize_loops_end_to_end(tiny_world, model_dir, tmp_path):
         str(map_path),
     )
     assert r.returncode == 0, r.stderr
+    # bad outputs and inputs: exit code 2, a message naming the problem, no file left
+    bad_map = lambda out, sessions="s0": run(  # noqa: E731
+        "map", "build", "--checkpoint", str(model_dir), "--dataset", str(tiny_world),
+        "--sessions", sessions, "--out", str(out),
+    )  # fmt: skip
+    r = bad_map(tmp_path / "nowhere" / "m.h5")
+    assert r.returncode == 2 and "does not exist" in r.stderr and ".tmp" not in r.stderr
+    r = bad_map(tmp_path)
+    assert r.returncode == 2 and "is a folder" in r.stderr
+    r = bad_map(tmp_path / "twice.h5", "s0,s0")
+    assert r.returncode == 2 and "more than once" in r.stderr
+    assert not list(tmp_path.glob(".*.tmp")) and not (tmp_path / "twice.h5").exists()
+    r = run("map", "build", "--checkpoint", str(model_dir), "--dataset", str(tiny_world),
+            "--sessions", "s0", "--out", str(tmp_path / "gpu.h5"), "--device", "gpu")  # fmt: skip
+    assert r.returncode == 2 and "--device" in r.stderr
 
     def localize(out, *extra):
         common = ["--map", str(map_path), "--dataset", str(tiny_world), "--session", "s2"]
@@ -133,11 +148,24 @@ def test_cli_map_localize_loops_end_to_end(tiny_world, model_dir, tmp_path):
 
     r = localize(str(tmp_path / "loc"), "--top_k", "3", "--metric_candidates", "2")
     assert r.returncode == 0, r.stderr
-    ts, _poses = read_tum(tmp_path / "loc" / "poses.tum")
-    assert len(ts) == len(open_dataset(tiny_world).session("s2"))
+    ts_all, _poses = read_tum(tmp_path / "loc" / "poses-all.tum")
+    assert len(ts_all) == len(open_dataset(tiny_world).session("s2"))
     text = (tmp_path / "loc" / "queries.csv").read_text()
     assert text.startswith("# vvloc localize")
     assert text.splitlines()[1].split(",")[-1] == "metric_row"
+    # poses.tum holds the accepted localizations only (a trajectory evaluator's input)
+    header = text.splitlines()[1].split(",")
+    rows = [dict(zip(header, line.split(","), strict=True)) for line in text.splitlines()[2:]]
+    ts, _poses = read_tum(tmp_path / "loc" / "poses.tum")
+    accepted = [float(row["timestamp"]) for row in rows if row["accepted"] == "1"]
+    np.testing.assert_allclose(ts, accepted, atol=1e-6)
+    r = localize(str(tmp_path / "loc-none"), "--top_k", "3", "--threshold", "-1")
+    assert r.returncode == 0, r.stderr
+    assert len(read_tum(tmp_path / "loc-none" / "poses.tum")[0]) == 0
+    assert len(read_tum(tmp_path / "loc-none" / "poses-all.tum")[0]) == len(ts_all)
+    r = localize(str(tmp_path / "loc-nan"), "--threshold", "nan")
+    assert r.returncode == 2 and "--threshold" in r.stderr
+    assert not (tmp_path / "loc-nan").exists()
     r = localize(str(tmp_path / "loc-rerank"), "--top_k", "3", "--metric_from", "rerank")
     assert r.returncode == 0, r.stderr
     r = localize(str(tmp_path / "loc-bad"), "--metric_from", "nearest")
@@ -207,23 +235,60 @@ def test_detect_loops_api_returns_ids_and_costs(map_file, model_dir):
         assert set(zip(checked.i.tolist(), checked.j.tolist(), strict=True)) <= seq_ids
 
 
-def test_calibration_is_written_by_the_cli_kept_with_the_checkpoint_and_gates_acceptance(
+def test_calibrate_cli_scores_the_localizers_answers_and_never_loses_a_calibration(
+    tiny_world, tmp_path
+):
+    import json
+
+    from vvloc.commands.demo import DEFAULT_MODEL
+
+    # the committed model on the tiny world (its training world, other sessions)
+    ckpt = tmp_path / "model"
+    VVLocNet.load(DEFAULT_MODEL).save(ckpt)
+    before = (ckpt / "calibration.json").read_bytes()
+    exe = [sys.executable, "-m", "vvloc.cli", "calibrate", "--checkpoint", str(ckpt),
+           "--dataset", str(tiny_world), "--queries", "s1,s2", "--every", "4",
+           "--top_k", "5"]  # fmt: skip
+    run = lambda *a: subprocess.run([*exe, *a], capture_output=True, text=True)  # noqa: E731
+    r = run("--precision", "0.5", "--min_accepted", "2")
+    assert r.returncode == 2 and "--overwrite" in r.stderr  # an existing calibration is kept
+    assert (ckpt / "calibration.json").read_bytes() == before
+    r = run("--precision", "1.0", "--min_accepted", "1000", "--overwrite")
+    assert r.returncode == 1 and "no threshold reaches" in r.stderr, r.stderr
+    assert (ckpt / "calibration.json").read_bytes() == before  # nothing written on failure
+    r = run("--precision", "0.5", "--min_accepted", "2", "--overwrite", "--metric_candidates", "3")
+    assert r.returncode == 0, r.stderr
+    text = (ckpt / "calibration.json").read_text()
+    cal = json.loads(text, parse_constant=lambda c: pytest.fail(f"not strict JSON: {c}"))
+    assert cal["sessions"] == ["s1", "s2"] and cal["top_k"] == 5 and cal["database"] == "s0"
+    assert cal["target_precision"] == 0.5 and cal["every"] == 4
+    assert cal["localizer"] == {
+        "metric_candidates": 3,
+        "metric_from": "retrieval",
+        "retrieval_weight": RETRIEVAL_WEIGHT,
+        "snap": True,
+    }
+    assert 2 <= cal["accepted"] <= cal["passing_cost"] <= cal["queries"] <= 20
+    assert cal["precision"] >= 0.5 and cal["min_distinctiveness"] >= 0.0
+    assert VVLocNet.load(ckpt).calibration == cal
+
+
+def test_calibration_is_kept_with_the_checkpoint_and_gates_acceptance(
     tiny_world, map_file, model_dir, tmp_path
 ):
     import json
 
     ckpt = tmp_path / "model"
-    VVLocNet.load(model_dir).save(ckpt)
-    r = subprocess.run(
-        [sys.executable, "-m", "vvloc.cli", "calibrate", "--checkpoint", str(ckpt),
-         "--dataset", str(tiny_world), "--queries", "s1,s2", "--top_k", "5",
-         "--precision", "0.5", "--min_accepted", "2"],
-        capture_output=True, text=True,
-    )  # fmt: skip
-    assert r.returncode == 0, r.stderr
-    cal = json.loads((ckpt / "calibration.json").read_text())
-    assert cal["sessions"] == ["s1", "s2"] and cal["top_k"] == 5 and cal["database"] == "s0"
-    assert cal["target_precision"] == 0.5 and cal["queries"] > 0
+    model = VVLocNet.load(model_dir)
+    # no threshold reached the target: accept nothing; the file stays strict JSON
+    model.calibration = {"min_distinctiveness": float("inf"), "precision": float("nan")}
+    model.save(ckpt)
+    text = (ckpt / "calibration.json").read_text()
+    assert json.loads(text) == {"min_distinctiveness": None, "precision": None}
+    back = VVLocNet.load(ckpt).calibration
+    assert back["min_distinctiveness"] == float("inf") and np.isnan(back["precision"])
+    cal = model.calibration = {"min_distinctiveness": 0.0123, "precision": 0.9, "queries": 40}
+    model.save(ckpt)
     model = VVLocNet.load(ckpt)
     assert model.calibration == cal
     # the Localizer takes the model's threshold unless told otherwise
@@ -244,6 +309,9 @@ def test_calibration_is_written_by_the_cli_kept_with_the_checkpoint_and_gates_ac
     for bad, err in ((-0.1, ValueError), ("high", TypeError)):
         with pytest.raises(err, match="min_distinctiveness"):
             Localizer.open(map_file, model_dir, min_distinctiveness=bad)
+    for bad, err in ((float("nan"), ValueError), ("0.5", TypeError)):
+        with pytest.raises(err, match="accept_threshold"):
+            Localizer.open(map_file, model_dir, accept_threshold=bad)
     # saving weights without a calibration removes a stale one
     model.calibration = {}
     model.save(ckpt)
@@ -349,3 +417,29 @@ def test_evaluation_breaks_recall_down_by_query_session(tiny_world, model_dir, t
     one = run_evaluation(model_dir, tiny_world, "s0", ["s1"], tmp_path / "one", **kw)
     assert one["per_session"] == {}
     assert "per query session" not in (tmp_path / "one" / "report.md").read_text()
+
+
+def test_calibration_of_results_scores_the_reported_keyframe_under_the_cost_rule():
+    from types import SimpleNamespace
+
+    from vvloc.localize.calibrate import calibration_of_results
+
+    db = np.array([[0.0, 0, 0], [10, 0, 0], [20, 0, 0], [30, 0, 0]])
+    q = np.array([[0.5, 0, 0], [10.5, 0, 0], [20.5, 0, 0], [30.5, 0, 0], [100, 0, 0]])
+    res = [  # (reported keyframe, cost, distinctiveness)
+        SimpleNamespace(reranked=np.array([r, 1]), cost=c, distinctiveness=d)
+        for r, c, d in [(0, 0.3, 0.9), (2, 0.3, 0.8), (2, 0.3, 0.7), (3, 0.9, 1.0), (0, 0.1, 5.0)]
+    ]
+    kw = {"query_floors": np.zeros(5, int), "db_poses": db, "db_floors": np.zeros(4, int)}
+    # q3 fails the cost rule, q4 has no map keyframe within 2 m: the others are right, wrong,
+    # right at 0.9, 0.8, 0.7, so 0.7 is the lowest threshold with precision >= 0.6
+    cal = calibration_of_results(res, q, target_precision=0.6, min_accepted=1, **kw)
+    assert cal["min_distinctiveness"] == 0.7 and cal["precision"] == pytest.approx(2 / 3)
+    assert (cal["accepted"], cal["queries"], cal["passing_cost"]) == (3, 4, 3)
+    assert cal["accepted_share"] == 0.75 and cal["base_precision"] == 0.75
+    strict = calibration_of_results(res, q, target_precision=1.0, min_accepted=1, **kw)
+    assert strict["min_distinctiveness"] == 0.9 and strict["accepted"] == 1
+    loose = calibration_of_results(res, q, accept_threshold=1.0, target_precision=1.0, **kw)
+    assert loose["passing_cost"] == 4 and loose["accepted"] == 0  # min_accepted 10 not reached
+    with pytest.raises(ValueError, match="query_poses"):
+        calibration_of_results(res, q[:3], **kw)

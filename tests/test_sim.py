@@ -238,7 +238,7 @@ def test_cli_sim_through_the_installed_entry_point(egl, tmp_path):
     assert again.returncode != 0 and "--overwrite" in again.stderr
 
 
-def test_cli_help_shows_defaults_and_rejects_bad_values():
+def test_cli_help_shows_defaults_and_rejects_bad_values(tmp_path):
     res = subprocess.run(
         [*_vvloc_exe(), "sim", "--help"],
         capture_output=True,
@@ -255,6 +255,22 @@ def test_cli_help_shows_defaults_and_rejects_bad_values():
         text=True,
     )
     assert bad.returncode != 0 and "moon" in bad.stderr
+    for option in (["--floors", "3"], ["--floor_marking", "pillars"]):
+        parking = subprocess.run(
+            [sys.executable, "-m", "vvloc.cli", "sim", "--out", str(tmp_path / "x"), *option],
+            capture_output=True,
+            text=True,
+        )
+        assert parking.returncode == 2 and "garage only" in parking.stderr, parking.stderr
+    assert not (tmp_path / "x").exists()
+    # long option names stay whole on an 80-column terminal
+    narrow = subprocess.run(
+        [*_vvloc_exe(), "eval", "--help"],
+        capture_output=True,
+        text=True,
+        env={**os.environ, "COLUMNS": "80"},
+    )
+    assert "--metric_candidates" in narrow.stdout and "--retrieval_weight" in narrow.stdout
 
 
 def test_rig_cameras_look_where_their_names_say():

@@ -3,8 +3,9 @@
 Every writer of vvloc (maps, CSV, g2o, TUM) writes into a temporary file in the destination's
 directory, flushes it to disk (``fsync``), and renames it over the destination (``os.replace``,
 atomic on POSIX and Windows for paths on one file system), then syncs the directory so that the
-rename itself survives a crash. On any error, including ``KeyboardInterrupt``, the temporary
-file is removed and an existing file at the destination is left untouched.
+rename itself survives a crash. On any error, including ``KeyboardInterrupt`` (and ``SIGTERM``
+in the ``vvloc`` command, which turns it into ``SystemExit``), the temporary file is removed and
+an existing file at the destination is left untouched.
 """
 
 from __future__ import annotations
@@ -58,6 +59,12 @@ class AtomicPath:
         self.path = Path(os.fspath(path))
         if self.path.name in ("", ".", ".."):
             raise ValueError(f"path: expected a file path, got {os.fspath(path)!r}")
+        if self.path.is_dir():
+            raise IsADirectoryError(f"{self.path}: is a folder; expected the path of a file")
+        if not self.path.parent.is_dir():
+            raise FileNotFoundError(
+                f"{self.path}: its folder {self.path.parent} does not exist (create it first)"
+            )
         self.tmp = self._create_temp()
         self._done = False
 

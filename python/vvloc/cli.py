@@ -5,6 +5,9 @@ registered on ``app`` here (add yours with ``app.command("name")(function)``).""
 from __future__ import annotations
 
 import logging
+import os
+import signal
+from types import FrameType
 
 import typer
 
@@ -24,6 +27,8 @@ app = typer.Typer(
     no_args_is_help=True,
     add_completion=False,
     pretty_exceptions_enable=False,
+    # plain help: rich's option table cuts long option names (--metric_candidat…) on 80 columns
+    rich_markup_mode=None,
 )
 
 
@@ -49,8 +54,27 @@ app.command("demo")(demo)
 app.command("targets")(targets)
 
 
+def _exit_on_sigterm() -> None:
+    """Make ``SIGTERM`` (``kill``, ``timeout``, job schedulers) end the command the way Ctrl-C
+    does, by an exception, so that every atomic writer removes its temporary file (a killed
+    ``map build`` leaves no ``.map.h5.*.tmp`` behind). Exit status 143 = 128 + SIGTERM. Child
+    processes (data-loading workers) inherit the handler, so it only acts in the process that
+    installed it; anywhere else it restores the default and re-sends the signal."""
+    pid = os.getpid()
+
+    def handler(signum: int, frame: FrameType | None) -> None:
+        if os.getpid() != pid:
+            signal.signal(signum, signal.SIG_DFL)
+            os.kill(os.getpid(), signum)
+            return
+        raise SystemExit(128 + signum)
+
+    signal.signal(signal.SIGTERM, handler)
+
+
 def main() -> None:
     """Entry point of the ``vvloc`` console script."""
+    _exit_on_sigterm()
     app()
 
 

@@ -69,6 +69,7 @@ from vvloc.losses import (
 )
 from vvloc.nets import ModelConfig, VVLocNet
 from vvloc.nets.heads import NetVLADHead
+from vvloc.nets.model import resolve_device
 from vvloc.provenance import (
     TRAINING_FILE,
     cpu_model,
@@ -391,10 +392,9 @@ class TrainConfig:
 
 
 def pick_device(name: str = "auto") -> torch.device:
-    """``"auto"`` → CUDA when available, else CPU; otherwise ``torch.device(name)``."""
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(name)
+    """``"auto"`` → CUDA when available, else CPU; otherwise ``"cpu"``, ``"cuda"`` or
+    ``"cuda:N"`` (:func:`vvloc.nets.model.resolve_device`; ``ValueError`` naming ``device``)."""
+    return resolve_device(name, argument="device")
 
 
 def seed_everything(seed: int) -> None:

@@ -5,9 +5,12 @@ from __future__ import annotations
 import contextlib
 from collections.abc import Iterator
 from enum import Enum
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
+
+if TYPE_CHECKING:
+    import torch
 
 #: Exit codes: 0 success, 1 runtime failure, 2 bad arguments or inputs (missing file, wrong
 #: checkpoint, malformed data).
@@ -74,13 +77,28 @@ def cli_errors(command: str) -> Iterator[None]:
     """Turn library exceptions into one-line messages and exit code 2 (bad input) or 1."""
     try:
         yield
-    except (FileNotFoundError, FileExistsError, ValueError, KeyError, TypeError) as e:
+    except (
+        FileNotFoundError,
+        FileExistsError,
+        IsADirectoryError,
+        NotADirectoryError,
+        ValueError,
+        KeyError,
+        TypeError,
+    ) as e:
         msg = e.args[0] if isinstance(e, KeyError) and e.args else e
         typer.echo(f"vvloc {command}: error: {msg}", err=True)
         raise typer.Exit(code=EXIT_USAGE) from e
     except (RuntimeError, OSError) as e:
         typer.echo(f"vvloc {command}: failed: {e}", err=True)
         raise typer.Exit(code=EXIT_FAILURE) from e
+
+
+def parse_device(device: str) -> torch.device:
+    """``--device``: ``cpu``, ``cuda`` or ``cuda:N`` (``ValueError`` naming ``--device``)."""
+    from vvloc.nets.model import resolve_device
+
+    return resolve_device(device, argument="--device")
 
 
 def split_names(text: str) -> list[str]:

@@ -2,14 +2,24 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Annotated
 
 import typer
 
 from vvloc.checkpoints import resolve_checkpoint
-from vvloc.commands._util import cli_errors, split_names
+from vvloc.commands._util import (
+    EXIT_FAILURE,
+    MetricCandidates,
+    MetricFrom,
+    MetricFromChoice,
+    RetrievalWeight,
+    Snap,
+    cli_errors,
+    parse_device,
+    split_names,
+)
+from vvloc.localize.metric import METRIC_CANDIDATES, RETRIEVAL_WEIGHT
 
 
 def calibrate(
@@ -29,47 +39,81 @@ def calibrate(
     min_accepted: Annotated[
         int, typer.Option("--min_accepted", min=1, help="Fewest accepted queries to trust.")
     ] = 10,
+    threshold: Annotated[float, typer.Option("--threshold", help="Accept cost below.")] = 0.75,
+    metric_candidates: MetricCandidates = METRIC_CANDIDATES,
+    metric_from: MetricFrom = MetricFromChoice.retrieval,
+    retrieval_weight: RetrievalWeight = RETRIEVAL_WEIGHT,
+    snap: Snap = True,
     device: Annotated[str, typer.Option("--device", help="cpu or cuda.")] = "cpu",
+    overwrite: Annotated[
+        bool, typer.Option("--overwrite", help="Replace the checkpoint's calibration.json.")
+    ] = False,
 ) -> None:
     """Write calibration.json beside the checkpoint's weights: the distinctiveness threshold at
-    which accepted localizations are right (top-1 within 2 m) at the target precision on the
-    held-out sessions. The Localizer (and map/localize/eval) then accept only those."""
-    import torch
+    which the localizer's accepted answers (with these localizer options, which it records) are
+    right (reported keyframe within 2 m) at the target precision on the held-out sessions. The
+    Localizer (and localize/eval) then accept only those.
+    An existing calibration.json is replaced only with --overwrite; when no threshold reaches
+    the target, nothing is written and the command fails (exit 1)."""
+    import tempfile
 
     from vvloc._io import atomic_write
     from vvloc.data import open_dataset
-    from vvloc.localize.calibrate import calibrate as run_calibration
+    from vvloc.localize.calibrate import calibrate_localizer
+    from vvloc.localize.localizer import Localizer, build_map
+    from vvloc.localize.mapdb import MapDatabase
     from vvloc.nets import VVLocNet
-    from vvloc.nets.model import CALIBRATION_FILE
+    from vvloc.nets.model import CALIBRATION_FILE, calibration_json
 
     with cli_errors("calibrate"):
         names = split_names(queries)
         if not names:
             raise ValueError("--queries: expected at least one session name")
         ckpt = resolve_checkpoint(checkpoint)
-        model = VVLocNet.load(ckpt).to(torch.device(device))
-        cal = run_calibration(
-            model,
-            open_dataset(dataset),
-            database,
-            names,
-            every=every,
-            top_k=top_k,
-            target_precision=precision,
-            min_accepted=min_accepted,
-        )
-        text = json.dumps(cal, indent=2)
-        with atomic_write(ckpt / CALIBRATION_FILE) as f:
-            f.write(text)
-    if cal["accepted"]:
-        typer.echo(
-            f"min_distinctiveness {cal['min_distinctiveness']:.4f}: accepts "
-            f"{cal['accepted_share']:.1%} of {cal['queries']} queries at precision "
-            f"{cal['precision']:.1%} (all queries: {cal['base_precision']:.1%})"
-        )
-    else:
-        typer.echo(
-            f"no threshold reaches precision {precision:.0%} on {cal['min_accepted']}+ queries "
-            f"(all queries: {cal['base_precision']:.1%}): nothing will be accepted"
-        )
-    typer.echo(f"calibration: {ckpt / CALIBRATION_FILE}")
+        target = ckpt / CALIBRATION_FILE
+        if target.exists() and not overwrite:
+            raise FileExistsError(
+                f"{target} exists (the checkpoint's calibration): pass --overwrite to replace it"
+            )
+        if threshold != threshold:
+            raise ValueError("--threshold: expected a number, got nan")
+        model = VVLocNet.load(ckpt).to(parse_device(device))
+        ds = open_dataset(dataset)
+        for name in [database, *names]:
+            ds.session(name)  # KeyError naming the known sessions
+        frames = [f for name in names for f in list(ds.session(name))[::every]]
+        with tempfile.TemporaryDirectory(prefix="vvloc-calibrate-") as tmp:
+            map_path = build_map(model, ds, [database], Path(tmp) / "map.h5", store_bev=False)
+            with MapDatabase.open(map_path, expected_config_hash=model.config_hash()) as db:
+                loc = Localizer(
+                    model,
+                    db,
+                    top_k=top_k,
+                    accept_threshold=threshold,
+                    min_distinctiveness=0.0,  # measure every answer, whatever the old threshold
+                    metric_candidates=metric_candidates,
+                    metric_from=metric_from.value,
+                    retrieval_weight=retrieval_weight,
+                    snap=snap,
+                )
+                kw = {"target_precision": precision, "min_accepted": min_accepted}
+                cal = calibrate_localizer(loc, frames, progress=True, **kw)
+        cal |= {"dataset": str(dataset), "database": database, "sessions": names, "every": every}
+        if not cal["accepted"]:
+            typer.echo(
+                f"vvloc calibrate: failed: no threshold reaches precision {precision:.0%} on "
+                f"{cal['min_accepted']}+ of {cal['queries']} queries (all accepted: "
+                f"{cal['base_precision']:.1%} right); "
+                f"{target} is left as it was. Try a lower --precision, more --queries or a "
+                "better-trained checkpoint.",
+                err=True,
+            )
+            raise typer.Exit(code=EXIT_FAILURE)
+        with atomic_write(target) as f:
+            f.write(calibration_json(cal))
+    typer.echo(
+        f"min_distinctiveness {cal['min_distinctiveness']:.4f}: accepts "
+        f"{cal['accepted_share']:.1%} of {cal['queries']} queries at precision "
+        f"{cal['precision']:.1%} (all queries: {cal['base_precision']:.1%})"
+    )
+    typer.echo(f"calibration: {target}")

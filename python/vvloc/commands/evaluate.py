@@ -15,6 +15,7 @@ from vvloc.commands._util import (
     RetrievalWeight,
     Snap,
     cli_errors,
+    parse_device,
     split_names,
 )
 from vvloc.localize.metric import METRIC_CANDIDATES, RETRIEVAL_WEIGHT
@@ -91,7 +92,7 @@ def eval_command(
             retrieval_weight=retrieval_weight,
             snap=snap,
             every=every,
-            device=device,
+            device=parse_device(device),
             robustness=robustness,
             loops=loops,
             loop_pairs=loop_pairs,

@@ -16,6 +16,7 @@ from vvloc.commands._util import (
     RetrievalWeight,
     Snap,
     cli_errors,
+    parse_device,
 )
 from vvloc.localize.metric import METRIC_CANDIDATES, RETRIEVAL_WEIGHT
 
@@ -57,7 +58,8 @@ def localize(
     snap: Snap = True,
     device: Annotated[str, typer.Option("--device", help="cpu or cuda.")] = "cpu",
 ) -> None:
-    """Write poses.tum (global poses), queries.csv and timings.json into --out."""
+    """Write poses.tum (the accepted global poses), poses-all.tum (every frame's), queries.csv
+    and timings.json into --out."""
     import json
 
     from vvloc._io import atomic_write
@@ -66,10 +68,12 @@ def localize(
     from vvloc.localize.localizer import Localizer
 
     with cli_errors("localize"):
+        if threshold != threshold:
+            raise ValueError("--threshold: expected a number, got nan")
         loc = Localizer.open(
             map_path,
             resolve_checkpoint(checkpoint),
-            device=device,
+            device=parse_device(device),
             top_k=top_k,
             accept_threshold=threshold,
             min_distinctiveness=min_distinctiveness,
@@ -83,11 +87,27 @@ def localize(
         results = loc.localize_batch(frames, progress=True)
         out.mkdir(parents=True, exist_ok=True)
         poses = np.stack([r.global_pose for r in results])
+        stamps = np.array([f.t for f in frames])
+        ok = np.array([r.accepted for r in results], dtype=bool)
         write_tum(
             out / "poses.tum",
-            np.array([f.t for f in frames]),
+            stamps[ok],
+            poses[ok],
+            comments=[
+                HEADER.lstrip("# "),
+                f"accepted localizations only: {int(ok.sum())} of {len(frames)} frames "
+                "(every frame: poses-all.tum and queries.csv)",
+            ],
+        )
+        write_tum(
+            out / "poses-all.tum",
+            stamps,
             poses,
-            comments=[HEADER.lstrip("# ")],
+            comments=[
+                HEADER.lstrip("# "),
+                f"every frame, accepted or not ({int(ok.sum())} of {len(frames)} accepted: "
+                "poses.tum; queries.csv has the accepted column)",
+            ],
         )
         lines = [
             HEADER,

@@ -8,7 +8,7 @@ from typing import Annotated
 import typer
 
 from vvloc.checkpoints import resolve_checkpoint
-from vvloc.commands._util import cli_errors
+from vvloc.commands._util import cli_errors, parse_device
 
 
 def loops(
@@ -40,7 +40,6 @@ def loops(
 ) -> None:
     """Write loops.csv, graph.g2o and one TUM trajectory per session into --out."""
     import numpy as np
-    import torch
 
     from vvloc.localize.export import write_g2o, write_loop_csv, write_tum
     from vvloc.localize.loops import detect_loops
@@ -48,7 +47,9 @@ def loops(
     from vvloc.nets import VVLocNet
 
     with cli_errors("loops"):
-        model = VVLocNet.load(resolve_checkpoint(checkpoint)).to(torch.device(device))
+        if threshold != threshold:
+            raise ValueError("--threshold: expected a number, got nan")
+        model = VVLocNet.load(resolve_checkpoint(checkpoint)).to(parse_device(device))
         # detect_loops checks the weights fingerprint (once, so an old map warns once)
         db = MapDatabase.open(map_path, expected_config_hash=model.config_hash())
         found = detect_loops(

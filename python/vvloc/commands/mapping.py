@@ -8,7 +8,7 @@ from typing import Annotated
 import typer
 
 from vvloc.checkpoints import resolve_checkpoint
-from vvloc.commands._util import cli_errors, split_names
+from vvloc.commands._util import cli_errors, parse_device, split_names
 
 map_app = typer.Typer(help="Build map databases.", no_args_is_help=True)
 
@@ -28,14 +28,13 @@ def build(
     device: Annotated[str, typer.Option("--device", help="cpu or cuda.")] = "cpu",
 ) -> None:
     """Build a map (global + local-view descriptors, poses, BEVs) from dataset sessions."""
-    import torch
 
     from vvloc.data import open_dataset
     from vvloc.localize.localizer import build_map
     from vvloc.nets import VVLocNet
 
     with cli_errors("map build"):
-        model = VVLocNet.load(resolve_checkpoint(checkpoint)).to(torch.device(device))
+        model = VVLocNet.load(resolve_checkpoint(checkpoint)).to(parse_device(device))
         ds = open_dataset(dataset)
         path = build_map(
             model,

@@ -31,16 +31,17 @@ def sim(
     ] = 3,
     frames: Annotated[int, typer.Option("--frames", min=1, help="Keyframes per session.")] = 600,
     floors: Annotated[
-        int, typer.Option("--floors", min=1, help="Garage storeys (garage scene only).")
-    ] = 2,
+        int | None,
+        typer.Option("--floors", min=1, help="Garage storeys (garage scene only; default 2)."),
+    ] = None,
     floor_marking: Annotated[
-        FloorMarking,
+        FloorMarking | None,
         typer.Option(
             "--floor_marking",
-            help="Garage only: level signs on the walls alone (look-alike floors), or also a "
-            "level colour and number on every pillar.",
+            help="Garage only: level signs on the walls alone (look-alike floors; the default), "
+            "or also a level colour and number on every pillar.",
         ),
-    ] = FloorMarking.walls,
+    ] = None,
     seed: Annotated[int, typer.Option("--seed", help="World, route and session seed.")] = 0,
     cameras: Annotated[
         int, typer.Option("--cameras", min=1, max=12, help="Cameras in the rig (4, 5, 6, ...).")
@@ -69,14 +70,19 @@ def sim(
     from vvloc.sim import simulate_dataset
 
     presets = [s.strip() for s in lighting.split(",") if s.strip()] or None
+    if scene is not Scene.garage:
+        for option, value in (("--floors", floors), ("--floor_marking", floor_marking)):
+            if value is not None:
+                typer.echo(f"vvloc sim: error: {option} applies to --scene garage only", err=True)
+                raise typer.Exit(code=2)
     try:
         path = simulate_dataset(
             out,
             scene=scene.value,
             sessions=sessions,
             frames=frames,
-            floors=floors,
-            floor_marking=floor_marking.value,
+            floors=2 if floors is None else floors,
+            floor_marking=(floor_marking or FloorMarking.walls).value,
             seed=seed,
             cameras=cameras,
             width=width,

@@ -8,6 +8,12 @@ its cost lies below the mean cost of the retrieved candidates,
 :func:`vvloc.evaluate.distinctiveness`) and keeps the lowest threshold at which accepted
 results are right (top-1 within 2 m) at a target precision. The result is stored with the
 checkpoint (``calibration.json``) and used by :class:`vvloc.localize.Localizer`.
+
+Two measurements: :func:`calibrate_localizer` (``vvloc calibrate``) localizes the held-out
+frames with a :class:`~vvloc.localize.Localizer` and scores the answers that acceptance gates
+(the reported keyframe, after the metric stage and snapping); :func:`calibrate` (the trainer's
+validation, ``best/calibration.json``) scores the yaw re-ranking's top-1 without the metric
+stage, a cheaper stand-in.
 """
 
 from __future__ import annotations
@@ -21,7 +27,8 @@ import numpy.typing as npt
 import torch
 
 from vvloc import evaluate, kernels
-from vvloc.localize.localizer import encode_frames
+from vvloc.data import Frame
+from vvloc.localize.localizer import LocalizationResult, Localizer, encode_frames
 from vvloc.nets import VVLocNet
 
 
@@ -150,4 +157,105 @@ def calibrate(
         "every": int(every),
     }
     model.calibration = cal
+    return cal
+
+
+def calibration_of_results(
+    results: Sequence[LocalizationResult],
+    query_poses: npt.ArrayLike,
+    query_floors: npt.ArrayLike,
+    db_poses: npt.ArrayLike,
+    db_floors: npt.ArrayLike,
+    *,
+    accept_threshold: float = 0.75,
+    target_precision: float = 0.9,
+    min_accepted: int = 10,
+) -> dict[str, Any]:
+    """The acceptance calibration of a :class:`~vvloc.localize.Localizer`'s own answers: the
+    threshold on ``distinctiveness`` at which the accepted results (``cost < accept_threshold``
+    and distinctiveness ≥ the threshold) have their reported keyframe (``reranked[0]``, the one
+    ``vvloc eval`` scores) within 2 m of the query on its floor at ``target_precision``
+    (:func:`vvloc.evaluate.calibrate_acceptance` over the results that pass the cost rule).
+
+    Args:
+        results: ``Q`` results of :meth:`Localizer.localize_batch`.
+        query_poses: ``(Q, 3)`` ground-truth world poses (x, y m; yaw rad); ``query_floors``
+            ``(Q,)`` their floor labels.
+        db_poses, db_floors: ``(N, 3)`` / ``(N,)`` the map's keyframe poses and floors.
+
+    Returns:
+        :func:`~vvloc.evaluate.calibrate_acceptance`'s dict with ``threshold`` renamed
+        ``min_distinctiveness``, over the ``queries`` that have a map keyframe within 2 m on
+        their floor (the kept ones; shares and ``base_precision``, the share right when every
+        one is accepted, are of them), plus ``passing_cost`` (how many of them pass the cost
+        rule) and ``accept_threshold``.
+    """
+    if not results:
+        raise ValueError("results: expected at least one localization result")
+    q_pose = np.asarray(query_poses, dtype=np.float64)
+    if q_pose.shape != (len(results), 3):
+        raise ValueError(f"query_poses: expected shape ({len(results)}, 3), got {q_pose.shape}")
+    top1 = np.array([[r.reranked[0] if len(r.reranked) else -1] for r in results], np.int64)
+    if np.any(top1 < 0):
+        raise ValueError("results: a result without candidates (an empty map?)")
+    rec = evaluate.recall_at_n(
+        q_pose[:, :2],
+        np.asarray(db_poses, dtype=np.float64)[:, :2],
+        top1,
+        query_floors=query_floors,
+        db_floors=db_floors,
+        top_n=(1,),
+        radii=(2.0,),
+    )
+    kept = rec.kept
+    right = rec.correct(1, 2.0)
+    passing = kept & np.array([r.cost < accept_threshold for r in results], dtype=bool)
+    score = np.array([r.distinctiveness for r in results], dtype=np.float64)
+    cal = evaluate.calibrate_acceptance(
+        score[passing], right[passing], target_precision=target_precision, min_accepted=min_accepted
+    )
+    n_kept = int(kept.sum())
+    cal["min_distinctiveness"] = cal.pop("threshold")
+    cal["queries"] = n_kept
+    cal["accepted_share"] = evaluate._ratio(float(cal["accepted"]), float(n_kept))
+    cal["base_precision"] = evaluate._ratio(float(right[kept].sum()), float(n_kept))
+    cal["passing_cost"] = int(passing.sum())
+    cal["accept_threshold"] = float(accept_threshold)
+    return cal
+
+
+def calibrate_localizer(
+    loc: Localizer,
+    frames: Sequence[Frame],
+    *,
+    target_precision: float = 0.9,
+    min_accepted: int = 10,
+    progress: bool = False,
+) -> dict[str, Any]:
+    """Localize held-out ``frames`` with ``loc`` (its settings: candidates, metric stage,
+    snapping, cost rule) and measure its acceptance calibration on them
+    (:func:`calibration_of_results`, which also records the localizer's settings under
+    ``"localizer"``). Unlike :func:`calibrate` (the trainer's validation, which scores the yaw
+    re-ranking's top-1 without the metric stage, a cheaper stand-in), this scores the answers
+    that acceptance gates. Does not change ``loc`` or its model."""
+    if not frames:
+        raise ValueError("frames: expected at least one query frame")
+    results = loc.localize_batch(list(frames), progress=progress)
+    cal = calibration_of_results(
+        results,
+        np.stack([f.pose for f in frames]),
+        np.array([f.floor for f in frames], dtype=np.int64),
+        np.asarray(loc.map.poses),
+        np.asarray(loc.map.floors),
+        accept_threshold=loc.accept_threshold,
+        target_precision=target_precision,
+        min_accepted=min_accepted,
+    )
+    cal["top_k"] = int(loc.top_k)
+    cal["localizer"] = {
+        "metric_candidates": loc.metric_candidates,
+        "metric_from": loc.metric_from,
+        "retrieval_weight": loc.retrieval_weight,
+        "snap": loc.snap,
+    }
     return cal

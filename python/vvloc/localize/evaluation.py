@@ -31,6 +31,7 @@ from vvloc.localize.loops import confirm_sequence, loop_candidates, sweep_radius
 from vvloc.localize.mapdb import MapDatabase
 from vvloc.localize.metric import METRIC_CANDIDATES, RETRIEVAL_WEIGHT, SearchConfig
 from vvloc.nets import VVLocNet
+from vvloc.nets.model import resolve_device
 from vvloc.provenance import cpu_model, hardware, summarize
 
 #: Loop closure's precision-recall sweep scores the pairs within this descriptor distance...
@@ -213,11 +214,11 @@ def run_evaluation(
     loop_sequence = kernels._positive_int(loop_sequence, "loop_sequence", minimum=0)
     loop_sweep_pairs = kernels._positive_int(loop_sweep_pairs, "loop_sweep_pairs")
     out_dir = Path(out)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    model = VVLocNet.load(checkpoint).to(torch.device(device))
+    model = VVLocNet.load(checkpoint).to(resolve_device(device))
     ds = open_dataset(dataset)
     for name in [database, *queries]:
         ds.session(name)  # KeyError naming the known sessions
+    out_dir.mkdir(parents=True, exist_ok=True)  # after the inputs are checked: none left on error
     map_path = build_map(
         model, ds, [database], out_dir / "map.h5", store_bev=False, progress=progress
     )

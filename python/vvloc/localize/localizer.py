@@ -53,6 +53,7 @@ from vvloc.localize.metric import (
     metric_localize_best,
 )
 from vvloc.nets import VVLocNet
+from vvloc.nets.model import resolve_device
 from vvloc.retrieval import DescriptorIndex
 
 log = logging.getLogger("vvloc.localize")
@@ -93,6 +94,16 @@ def frames_to_tensors(
 def model_device(model: torch.nn.Module) -> torch.device:
     """The device of the model's parameters."""
     return next(model.parameters()).device
+
+
+def _cost_threshold(value: Any, name: str) -> float:
+    """A matching-cost acceptance threshold: a real number, not NaN (which would accept nothing
+    without saying so); ±inf are allowed (accept every / no result)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+        raise TypeError(f"{name}: expected a float, got {type(value).__name__}")
+    if np.isnan(value):
+        raise ValueError(f"{name}: expected a number, got NaN")
+    return float(value)
 
 
 @torch.no_grad()
@@ -200,9 +211,10 @@ class LocalizationResult:
             search against ``metric_row`` (ξ_{q→m} hypotheses, query frame).
         distinctiveness: mean minus minimum of ``rerank_cost`` (≥ 0; higher = the best
             re-ranked candidate stands out more; NaN without re-ranking), the calibrated
-            confidence (:func:`vvloc.evaluate.distinctiveness`). It and its calibration are
-            about the re-ranking's best candidate, which the metric stage (its M candidates,
-            ``metric_from``) and snapping may replace by another keyframe.
+            confidence (:func:`vvloc.evaluate.distinctiveness`). It is about the re-ranking's
+            best candidate, which the metric stage (its M candidates, ``metric_from``) and
+            snapping may replace by another keyframe; ``vvloc calibrate`` sets its threshold
+            on the reported keyframes (:func:`vvloc.localize.calibrate.calibrate_localizer`).
         metric_row: the map row the metric pose was estimated against (equals ``map_row``
             unless snapping chose a nearer keyframe; -1 when the map is empty).
     """
@@ -303,7 +315,7 @@ class Localizer:
         self.map = mapdb
         self.top_k = top_k
         self.rerank_enabled = bool(rerank)
-        self.accept_threshold = float(accept_threshold)
+        self.accept_threshold = _cost_threshold(accept_threshold, "accept_threshold")
         if min_distinctiveness is None:
             min_distinctiveness = model.calibration.get("min_distinctiveness", 0.0)  # type: ignore[assignment]
         if isinstance(min_distinctiveness, bool) or not isinstance(
@@ -348,7 +360,7 @@ class Localizer:
     ) -> Localizer:
         """Load a checkpoint directory and open a map built with it (refused otherwise, see
         :func:`check_map_model`; the map is closed again when the localizer cannot be made)."""
-        model = VVLocNet.load(checkpoint).to(torch.device(device))
+        model = VVLocNet.load(checkpoint).to(resolve_device(device))
         mapdb = MapDatabase.open(map_path, expected_config_hash=model.config_hash())
         try:
             return cls(model, mapdb, **kwargs)
@@ -552,6 +564,9 @@ def build_map(
     atomically). ``store_bev`` keeps the float16 BEVs that loop-closure detection needs."""
     if not sessions:
         raise ValueError("sessions: expected at least one session name")
+    repeated = sorted({s for s in sessions if list(sessions).count(s) > 1})
+    if repeated:
+        raise ValueError(f"sessions: {repeated} named more than once (each keyframe once)")
     known = set(dataset.sessions)
     missing = [s for s in sessions if s not in known]
     if missing:

@@ -24,7 +24,7 @@ from tqdm import tqdm
 from vvloc.evaluate import _int_array
 from vvloc.kernels import _positive_float, _positive_int
 from vvloc.localize.export import LoopClosures
-from vvloc.localize.localizer import check_map_model, interacting_decoder
+from vvloc.localize.localizer import _cost_threshold, check_map_model, interacting_decoder
 from vvloc.localize.mapdb import MapDatabase
 from vvloc.localize.metric import SearchConfig, metric_localize
 from vvloc.nets import VVLocNet
@@ -288,6 +288,7 @@ def detect_loops(
     keyframes must match too; 0: single keyframes, the paper's test).
     """
     check_map_model(mapdb, model)
+    cost_threshold = _cost_threshold(cost_threshold, "cost_threshold")
     if not mapdb.has_bev:
         raise ValueError(
             f"map {mapdb.path}: has no BEVs; rebuild it with BEVs stored to detect loops"

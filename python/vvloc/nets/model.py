@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import os
 import warnings
 from dataclasses import dataclass
@@ -27,6 +28,67 @@ WEIGHTS_FILE = "model.safetensors"
 CONFIG_FILE = "config.json"
 #: Optional acceptance calibration of a checkpoint (see :func:`vvloc.localize.calibrate`).
 CALIBRATION_FILE = "calibration.json"
+
+
+def resolve_device(name: str | torch.device = "cpu", *, argument: str = "device") -> torch.device:
+    """The torch device a model runs on: ``"cpu"``, ``"cuda"`` / ``"cuda:N"`` (refused with a
+    ``ValueError`` naming ``argument`` when torch sees no such CUDA device), or ``"auto"`` (CUDA
+    when available, else CPU)."""
+    if isinstance(name, torch.device):
+        dev = name
+    elif isinstance(name, str):
+        if name == "auto":
+            return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+        try:
+            dev = torch.device(name)
+        except RuntimeError:
+            dev = None
+        if dev is None or dev.type not in ("cpu", "cuda"):
+            raise ValueError(
+                f"{argument}: expected 'cpu', 'cuda', 'cuda:N' or 'auto', got {name!r}"
+            )
+    else:
+        raise TypeError(f"{argument}: expected a str or torch.device, got {type(name).__name__}")
+    if dev.type == "cuda":
+        if not torch.cuda.is_available():
+            raise ValueError(f"{argument}: {str(dev)!r} asked for, but torch sees no CUDA device")
+        if dev.index is not None and dev.index >= torch.cuda.device_count():
+            raise ValueError(
+                f"{argument}: {str(dev)!r} asked for, but torch sees "
+                f"{torch.cuda.device_count()} CUDA device(s)"
+            )
+    return dev
+
+
+def calibration_json(cal: dict[str, Any]) -> str:
+    """``calibration.json``'s text: strict JSON, a non-finite number written as ``null``
+    (a calibration that no threshold satisfies has ``min_distinctiveness`` = +inf, accept
+    nothing, and ``precision`` = NaN; :func:`calibration_from_json` reads them back)."""
+
+    def finite(v: Any) -> Any:
+        if isinstance(v, float) and not math.isfinite(v):
+            return None
+        if isinstance(v, dict):
+            return {k: finite(x) for k, x in v.items()}
+        if isinstance(v, list):
+            return [finite(x) for x in v]
+        return v
+
+    return json.dumps(finite(cal), indent=2, allow_nan=False)
+
+
+def calibration_from_json(cal: dict[str, Any]) -> dict[str, Any]:
+    """The calibration of :func:`calibration_json`'s text (``json.loads``'d): a ``null``
+    ``min_distinctiveness`` is +inf (no threshold reached the target: accept nothing) and a
+    ``null`` ``precision`` NaN."""
+    out = dict(cal)
+    if "min_distinctiveness" in out and out["min_distinctiveness"] is None:
+        out["min_distinctiveness"] = math.inf
+    if "precision" in out and out["precision"] is None:
+        out["precision"] = math.nan
+    return out
+
+
 CHECKPOINT_FORMAT = "vvloc.nets.VVLocNet"
 
 
@@ -198,7 +260,7 @@ class VVLocNet(nn.Module):
             f.write(json.dumps(meta, indent=2))
         if self.calibration:
             with atomic_write(out / CALIBRATION_FILE) as f:
-                f.write(json.dumps(self.calibration, indent=2))
+                f.write(calibration_json(self.calibration))
         else:  # a stale calibration would describe other weights
             (out / CALIBRATION_FILE).unlink(missing_ok=True)
         if self.training_record:
@@ -253,7 +315,7 @@ class VVLocNet(nn.Module):
             cal = json.loads(cal_path.read_text())
             if not isinstance(cal, dict):
                 raise ValueError(f"{cal_path}: expected a JSON object")
-            model.calibration = cal
+            model.calibration = calibration_from_json(cal)
         train_path = src / TRAINING_FILE
         if train_path.is_file():  # informational: a bad record never blocks good weights
             try:
