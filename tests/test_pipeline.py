@@ -334,6 +334,8 @@ def test_evaluation_scores_loop_closures_at_the_given_radius(tiny_world, model_d
         )
     assert not (tmp_path / "bad").exists()
     m = run_evaluation(model_dir, tiny_world, "s0", ["s1"], tmp_path / "ev", loop_radius=0.3, **kw)
+    world = {"scene": "parking", "seed": 0, "floors": 1, "floor_marking": "walls"}
+    assert m["meta"]["scene"] == world  # from rig.json, for vvloc targets
     for name in ("VVLoc (descriptor radius)", "VVLoc + sequence (±1 keyframes)"):
         at = m["loop_closure"][name]["at_threshold"]
         assert at["threshold"] == 0.3

@@ -99,6 +99,20 @@ def test_reports_of_other_weights_or_without_loops_are_refused():
     del broken["global_localization"]["VVLoc-G"]
     with pytest.raises(ValueError, match="Recall@1 at 2 m"):
         check_targets(broken)
+    # a report names the world it was rendered from (vvloc eval's meta.scene): a garage report
+    # of the other floor marking, or a garage report as the parking one, is refused
+    parking, pillars, garage = (
+        copy.deepcopy(_committed(n))
+        for n in ("report-test96", "report-test96-pillars", "report-test96-garage")
+    )
+    parking["meta"]["scene"] = {"scene": "parking", "seed": 0}
+    pillars["meta"]["scene"] = {"scene": "garage", "floors": 2, "floor_marking": "pillars"}
+    garage["meta"]["scene"] = {"scene": "garage", "floors": 2, "floor_marking": "walls"}
+    assert len(check_targets(parking, pillars, garage)) == 11
+    with pytest.raises(ValueError, match="--pillars: the report is of"):
+        check_targets(parking, pillars=garage)
+    with pytest.raises(ValueError, match="--parking: the report is of"):
+        check_targets(garage)
 
 
 def test_read_report_names_what_is_missing(tmp_path):

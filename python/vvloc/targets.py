@@ -144,6 +144,26 @@ def _training_time(report: Mapping[str, Any]) -> Figure:
     )
 
 
+#: The world each report must be of, as ``vvloc eval`` records it (``meta.scene``, from the
+#: dataset's ``rig.json``); reports without it (other data, older reports) are not checked.
+WORLDS: dict[str, dict[str, Any]] = {
+    "parking": {"scene": "parking"},
+    "pillars": {"scene": "garage", "floor_marking": "pillars"},
+    "garage": {"scene": "garage", "floor_marking": "walls"},
+}
+
+
+def _check_world(name: str, report: Mapping[str, Any]) -> None:
+    scene = report.get("meta", {}).get("scene")
+    if not isinstance(scene, Mapping):
+        return
+    wrong = {k: scene.get(k) for k, v in WORLDS[name].items() if scene.get(k, v) != v}
+    if wrong:
+        raise ValueError(
+            f"--{name}: the report is of {dict(scene)}, expected a world with {WORLDS[name]}"
+        )
+
+
 def check_targets(
     parking: Mapping[str, Any],
     pillars: Mapping[str, Any] | None = None,
@@ -163,6 +183,9 @@ def check_targets(
     }
     if len(set(hashes.values())) > 1:
         raise ValueError(f"the reports are of different weights: {hashes}")
+    for name, report in reports.items():
+        if report is not None:
+            _check_world(name, report)
     figures = _parking(parking)
     for world, report in (("pillar garage", pillars), ("default garage", garage)):
         if report is None:

@@ -136,11 +136,13 @@ def open_vvloc(root: str | os.PathLike[str]) -> Dataset:
     """Open a vvloc-format dataset lazily and validate its structure.
 
     Reads ``rig.json`` and every ``poses.csv`` and lists the image folders (no image is decoded).
+    ``ds.meta`` is ``rig.json``'s optional ``meta`` object (``vvloc sim`` records its world:
+    scene, seed, floors, floor_marking).
     Raises :class:`DatasetFormatError` (a ``ValueError``) naming the file and line for a malformed
     row, a camera folder that is not in the rig, or a missing image.
     """
     root = Path(root)
-    cameras, _ = read_rig(root / "rig.json")
+    cameras, doc = read_rig(root / "rig.json")
     names = {c.name for c in cameras}
     sess_root = root / "sessions"
     if not sess_root.is_dir():
@@ -164,7 +166,8 @@ def open_vvloc(root: str | os.PathLike[str]) -> Dataset:
                         f"(listed in {poses_path}, line {k + 2})"
                     )
         sessions[d.name] = VvlocSession(d, d.name, cameras, rows)
-    return Dataset(root, cameras, sessions)
+    meta = doc.get("meta")
+    return Dataset(root, cameras, sessions, meta=meta if isinstance(meta, dict) else None)
 
 
 # ------------------------------------------------------------------------------------------ writer

@@ -319,6 +319,11 @@ def run_evaluation(
         "meta": {
             "checkpoint": str(checkpoint),
             "dataset": str(dataset),
+            # the world it was rendered from (vvloc sim's rig.json meta; None for other data)
+            "scene": {
+                k: ds.meta[k] for k in ("scene", "seed", "floors", "floor_marking") if k in ds.meta
+            }
+            or None,
             "database": database,
             "queries": ",".join(queries),
             "model_config_hash": model.config_hash(),
