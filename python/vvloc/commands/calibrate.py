@@ -77,6 +77,8 @@ def calibrate(
             )
         if threshold != threshold:
             raise ValueError("--threshold: expected a number, got nan")
+        if not 0.0 < precision <= 1.0:
+            raise ValueError(f"--precision: expected a value in (0, 1], got {precision}")
         model = VVLocNet.load(ckpt).to(parse_device(device))
         ds = open_dataset(dataset)
         for name in [database, *names]:

@@ -92,7 +92,7 @@ def eval_command(
             retrieval_weight=retrieval_weight,
             snap=snap,
             every=every,
-            device=parse_device(device),
+            device=str(parse_device(device)),
             robustness=robustness,
             loops=loops,
             loop_pairs=loop_pairs,
