@@ -507,7 +507,7 @@ with AtomicPath(sys.argv[1]) as tmp:
 
 
 @pytest.mark.skipif(os.name != "posix", reason="POSIX signals")
-def test_sigterm_in_the_cli_removes_the_temporary_file(tmp_path: Path) -> None:
+def test_the_clis_sigterm_handler_lets_a_writer_remove_its_temporary_file(tmp_path: Path) -> None:
     import signal
     import subprocess
     import sys

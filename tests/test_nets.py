@@ -418,9 +418,12 @@ def test_resolve_device_names_the_argument_and_refuses_what_torch_cannot_use():
     assert resolve_device("cpu") == torch.device("cpu")
     assert resolve_device(torch.device("cpu")) == torch.device("cpu")
     assert resolve_device("auto").type == ("cuda" if torch.cuda.is_available() else "cpu")
-    for bad in ("gpu", "mps", "cuda:x", ""):
+    for bad in ("gpu", "xla", "cuda:x", ""):
         with pytest.raises(ValueError, match="--device: expected 'cpu'"):
             resolve_device(bad, argument="--device")
+    if not torch.backends.mps.is_available():
+        with pytest.raises(ValueError, match="no MPS device"):
+            resolve_device("mps")
     with pytest.raises(TypeError, match="device"):
         resolve_device(0)  # type: ignore[arg-type]
     if not torch.cuda.is_available():

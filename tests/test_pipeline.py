@@ -255,6 +255,7 @@ def test_calibrate_cli_scores_the_localizers_answers_and_never_loses_a_calibrati
     assert (ckpt / "calibration.json").read_bytes() == before
     r = run("--precision", "1.0", "--min_accepted", "1000", "--overwrite")
     assert r.returncode == 1 and "no threshold reaches" in r.stderr, r.stderr
+    assert r.stderr.count("vvloc calibrate:") == 1, r.stderr  # one message, no empty second one
     assert (ckpt / "calibration.json").read_bytes() == before  # nothing written on failure
     r = run("--precision", "0.5", "--min_accepted", "2", "--overwrite", "--metric_candidates", "3")
     assert r.returncode == 0, r.stderr
@@ -445,3 +446,5 @@ def test_calibration_of_results_scores_the_reported_keyframe_under_the_cost_rule
     assert loose["passing_cost"] == 4 and loose["accepted"] == 0  # min_accepted 10 not reached
     with pytest.raises(ValueError, match="query_poses"):
         calibration_of_results(res, q[:3], **kw)
+    with pytest.raises(ValueError, match="no query has a map keyframe within 2 m"):
+        calibration_of_results(res, q + np.array([50.0, 0, 0]), **kw)  # another world

@@ -1163,6 +1163,8 @@ def render_markdown(
     lines = [f"# {title}", ""]
     meta = m.get("meta") or {}
     for k, v in meta.items():
+        if isinstance(v, dict):  # e.g. the world: "scene: parking, seed: 0"
+            v = ", ".join(f"{a}: {b}" for a, b in v.items())
         lines.append(f"- **{k}**: {v}")
     if meta:
         lines.append("")

@@ -154,7 +154,7 @@ WORLDS: dict[str, dict[str, Any]] = {
 
 
 def _check_world(name: str, report: Mapping[str, Any]) -> None:
-    scene = report.get("meta", {}).get("scene")
+    scene = (report.get("meta") or {}).get("scene")
     if not isinstance(scene, Mapping):
         return
     wrong = {k: scene.get(k) for k, v in WORLDS[name].items() if scene.get(k, v) != v}

@@ -77,6 +77,8 @@ def cli_errors(command: str) -> Iterator[None]:
     """Turn library exceptions into one-line messages and exit code 2 (bad input) or 1."""
     try:
         yield
+    except typer.Exit:  # a command's own exit (a RuntimeError subclass): already reported
+        raise
     except (
         FileNotFoundError,
         FileExistsError,
@@ -95,7 +97,8 @@ def cli_errors(command: str) -> Iterator[None]:
 
 
 def parse_device(device: str) -> torch.device:
-    """``--device``: ``cpu``, ``cuda`` or ``cuda:N`` (``ValueError`` naming ``--device``)."""
+    """``--device``: ``cpu``, ``cuda``, ``cuda:N``, ``mps`` or ``auto`` (``ValueError`` naming
+    ``--device`` when torch cannot use it)."""
     from vvloc.nets.model import resolve_device
 
     return resolve_device(device, argument="--device")

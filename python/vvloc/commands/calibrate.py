@@ -44,7 +44,7 @@ def calibrate(
     metric_from: MetricFrom = MetricFromChoice.retrieval,
     retrieval_weight: RetrievalWeight = RETRIEVAL_WEIGHT,
     snap: Snap = True,
-    device: Annotated[str, typer.Option("--device", help="cpu or cuda.")] = "cpu",
+    device: Annotated[str, typer.Option("--device", help="cpu, cuda[:N], mps or auto.")] = "cpu",
     overwrite: Annotated[
         bool, typer.Option("--overwrite", help="Replace the checkpoint's calibration.json.")
     ] = False,
@@ -69,21 +69,21 @@ def calibrate(
         names = split_names(queries)
         if not names:
             raise ValueError("--queries: expected at least one session name")
+        if threshold != threshold:
+            raise ValueError("--threshold: expected a number, got nan")
+        if not 0.0 < precision <= 1.0:
+            raise ValueError(f"--precision: expected a value in (0, 1], got {precision}")
         ckpt = resolve_checkpoint(checkpoint)
         target = ckpt / CALIBRATION_FILE
         if target.exists() and not overwrite:
             raise FileExistsError(
                 f"{target} exists (the checkpoint's calibration): pass --overwrite to replace it"
             )
-        if threshold != threshold:
-            raise ValueError("--threshold: expected a number, got nan")
-        if not 0.0 < precision <= 1.0:
-            raise ValueError(f"--precision: expected a value in (0, 1], got {precision}")
         model = VVLocNet.load(ckpt).to(parse_device(device))
         ds = open_dataset(dataset)
         for name in [database, *names]:
             ds.session(name)  # KeyError naming the known sessions
-        frames = [f for name in names for f in list(ds.session(name))[::every]]
+        frames = [f for name in names for f in ds.session(name)[::every]]  # loads only these
         with tempfile.TemporaryDirectory(prefix="vvloc-calibrate-") as tmp:
             map_path = build_map(model, ds, [database], Path(tmp) / "map.h5", store_bev=False)
             with MapDatabase.open(map_path, expected_config_hash=model.config_hash()) as db:
@@ -102,12 +102,16 @@ def calibrate(
                 cal = calibrate_localizer(loc, frames, progress=True, **kw)
         cal |= {"dataset": str(dataset), "database": database, "sessions": names, "every": every}
         if not cal["accepted"]:
+            why = (
+                f"none of the {cal['queries']} queries passes the cost rule (cost < {threshold})"
+                if not cal["passing_cost"]
+                else f"no threshold reaches precision {precision:.0%} on {min_accepted}+ of "
+                f"{cal['passing_cost']} queries that pass the cost rule (all {cal['queries']} "
+                f"accepted: {cal['base_precision']:.1%} right)"
+            )
             typer.echo(
-                f"vvloc calibrate: failed: no threshold reaches precision {precision:.0%} on "
-                f"{cal['min_accepted']}+ of {cal['queries']} queries (all accepted: "
-                f"{cal['base_precision']:.1%} right); "
-                f"{target} is left as it was. Try a lower --precision, more --queries or a "
-                "better-trained checkpoint.",
+                f"vvloc calibrate: failed: {why}; {target} is left as it was. Try a lower "
+                "--precision, more --queries or a better-trained checkpoint.",
                 err=True,
             )
             raise typer.Exit(code=EXIT_FAILURE)

@@ -25,7 +25,7 @@ def build(
     no_bev: Annotated[
         bool, typer.Option("--no_bev", help="Do not store BEVs (then no loop detection).")
     ] = False,
-    device: Annotated[str, typer.Option("--device", help="cpu or cuda.")] = "cpu",
+    device: Annotated[str, typer.Option("--device", help="cpu, cuda[:N], mps or auto.")] = "cpu",
 ) -> None:
     """Build a map (global + local-view descriptors, poses, BEVs) from dataset sessions."""
 

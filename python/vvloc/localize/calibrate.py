@@ -86,7 +86,7 @@ def rerank_split(
     if isinstance(top_k, bool) or not isinstance(top_k, int) or top_k < 1:
         raise ValueError(f"top_k: expected an int >= 1, got {top_k!r}")
     db_frames = list(ds.session(database))
-    q_frames = [f for name in queries for f in list(ds.session(name))[::every]]
+    q_frames = [f for name in queries for f in ds.session(name)[::every]]
     if not db_frames or not q_frames:
         raise ValueError(f"database {database!r} and queries {list(queries)}: no frames")
     db = encode_frames(model, db_frames)
@@ -208,6 +208,11 @@ def calibration_of_results(
         radii=(2.0,),
     )
     kept = rec.kept
+    if not kept.any():
+        raise ValueError(
+            "query_poses: no query has a map keyframe within 2 m on its floor (another world or "
+            "another map session?): nothing to calibrate on"
+        )
     right = rec.correct(1, 2.0)
     passing = kept & np.array([r.cost < accept_threshold for r in results], dtype=bool)
     score = np.array([r.distinctiveness for r in results], dtype=np.float64)
@@ -251,7 +256,7 @@ def calibrate_localizer(
         target_precision=target_precision,
         min_accepted=min_accepted,
     )
-    cal["top_k"] = int(loc.top_k)
+    cal["top_k"] = int(min(loc.top_k, len(loc.map)))
     cal["localizer"] = {
         "metric_candidates": loc.metric_candidates,
         "metric_from": loc.metric_from,
