@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Annotated
 
@@ -69,7 +70,7 @@ def calibrate(
         names = split_names(queries)
         if not names:
             raise ValueError("--queries: expected at least one session name")
-        if threshold != threshold:
+        if math.isnan(threshold):
             raise ValueError("--threshold: expected a number, got nan")
         if not 0.0 < precision <= 1.0:
             raise ValueError(f"--precision: expected a value in (0, 1], got {precision}")

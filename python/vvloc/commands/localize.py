@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Annotated
 
@@ -68,7 +69,7 @@ def localize(
     from vvloc.localize.localizer import Localizer
 
     with cli_errors("localize"):
-        if threshold != threshold:
+        if math.isnan(threshold):
             raise ValueError("--threshold: expected a number, got nan")
         loc = Localizer.open(
             map_path,

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Annotated
 
@@ -47,7 +48,7 @@ def loops(
     from vvloc.nets import VVLocNet
 
     with cli_errors("loops"):
-        if threshold != threshold:
+        if math.isnan(threshold):
             raise ValueError("--threshold: expected a number, got nan")
         model = VVLocNet.load(resolve_checkpoint(checkpoint)).to(parse_device(device))
         # detect_loops checks the weights fingerprint (once, so an old map warns once)
