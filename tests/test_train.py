@@ -955,3 +955,16 @@ def test_cli_train_says_what_the_weights_were_trained_on(tiny_world, tmp_path):
     r = subprocess.run([*exe, "--resume"], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     assert "trained on: no training record for these weights" in r.stdout
+
+
+def test_the_smoke_config_trains_end_to_end(egl, tmp_path):
+    """configs/smoke.yaml, the README's check of the training pipeline: it renders its data,
+    trains both stages, validates and writes best/ with a calibration."""
+    cfg = TrainConfig.from_yaml(_CONFIGS / "smoke.yaml")
+    cfg = TrainConfig.from_dict({**cfg.to_dict(), "dataset": str(tmp_path / "data")})
+    train(cfg, tmp_path / "run", progress=False)
+    best = tmp_path / "run" / "best"
+    model = VVLocNet.load(best)
+    assert model.calibration["sessions"] == ["s2"]
+    log = [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
+    assert [(rec["epoch"], rec["stage"]) for rec in log] == [(1, 1), (2, 2)]
