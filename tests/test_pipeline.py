@@ -194,6 +194,8 @@ def test_cli_map_localize_loops_end_to_end(tiny_world, model_dir, tmp_path):
     # bad input: exit code 2 and a message naming the problem
     r = loops_cli(tmp_path / "loops-bad", "--sequence", "-1")
     assert r.returncode == 2 and "--sequence" in r.stderr
+    r = loops_cli(tmp_path / "loops-bad", "--threshold", "nan")
+    assert r.returncode == 2 and "--threshold" in r.stderr
     assert not (tmp_path / "loops-bad").exists()
     r = run(
         "localize",

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import math
 from collections.abc import Iterator
 from enum import Enum
 from typing import TYPE_CHECKING, Annotated
@@ -60,6 +61,20 @@ RetrievalWeight = Annotated[
         help="Order the M metric candidates by coarse matching cost plus this weight times "
         "their global-descriptor distance (0: the cost alone).",
     ),
+]
+
+
+def _a_number(value: float) -> float:
+    if math.isnan(value):  # a NaN threshold would accept nothing without saying so
+        raise typer.BadParameter("expected a number, got nan")
+    return value
+
+
+#: ``--threshold`` of ``localize``, ``loops`` and ``calibrate``: a result is accepted when its
+#: matching cost is below it (the paper's 0.75); NaN is refused (exit 2).
+CostThreshold = Annotated[
+    float,
+    typer.Option("--threshold", help="Accept cost below.", callback=_a_number),
 ]
 
 #: ``--snap/--no-snap`` of ``eval`` and ``localize`` (see ``Localizer(snap=)``).

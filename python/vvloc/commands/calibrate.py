@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 from typing import Annotated
 
@@ -11,6 +10,7 @@ import typer
 from vvloc.checkpoints import resolve_checkpoint
 from vvloc.commands._util import (
     EXIT_FAILURE,
+    CostThreshold,
     MetricCandidates,
     MetricFrom,
     MetricFromChoice,
@@ -40,7 +40,7 @@ def calibrate(
     min_accepted: Annotated[
         int, typer.Option("--min_accepted", min=1, help="Fewest accepted queries to trust.")
     ] = 10,
-    threshold: Annotated[float, typer.Option("--threshold", help="Accept cost below.")] = 0.75,
+    threshold: CostThreshold = 0.75,
     metric_candidates: MetricCandidates = METRIC_CANDIDATES,
     metric_from: MetricFrom = MetricFromChoice.retrieval,
     retrieval_weight: RetrievalWeight = RETRIEVAL_WEIGHT,
@@ -70,8 +70,6 @@ def calibrate(
         names = split_names(queries)
         if not names:
             raise ValueError("--queries: expected at least one session name")
-        if math.isnan(threshold):
-            raise ValueError("--threshold: expected a number, got nan")
         if not 0.0 < precision <= 1.0:
             raise ValueError(f"--precision: expected a value in (0, 1], got {precision}")
         ckpt = resolve_checkpoint(checkpoint)

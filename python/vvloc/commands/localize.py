@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 from typing import Annotated
 
@@ -11,6 +10,7 @@ import typer
 
 from vvloc.checkpoints import resolve_checkpoint
 from vvloc.commands._util import (
+    CostThreshold,
     MetricCandidates,
     MetricFrom,
     MetricFromChoice,
@@ -44,7 +44,7 @@ def localize(
         ),
     ],
     top_k: Annotated[int, typer.Option("--top_k", min=1, help="Retrieved candidates.")] = 20,
-    threshold: Annotated[float, typer.Option("--threshold", help="Accept cost below.")] = 0.75,
+    threshold: CostThreshold = 0.75,
     min_distinctiveness: Annotated[
         float | None,
         typer.Option(
@@ -69,8 +69,6 @@ def localize(
     from vvloc.localize.localizer import Localizer
 
     with cli_errors("localize"):
-        if math.isnan(threshold):
-            raise ValueError("--threshold: expected a number, got nan")
         loc = Localizer.open(
             map_path,
             resolve_checkpoint(checkpoint),

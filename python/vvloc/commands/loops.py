@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 from typing import Annotated
 
 import typer
 
 from vvloc.checkpoints import resolve_checkpoint
-from vvloc.commands._util import cli_errors, parse_device
+from vvloc.commands._util import CostThreshold, cli_errors, parse_device
 
 
 def loops(
@@ -33,7 +32,7 @@ def loops(
             help="Half-window L: the ±L neighbouring keyframe pairs must match too (0: off).",
         ),
     ] = 1,
-    threshold: Annotated[float, typer.Option("--threshold", help="Accept cost below.")] = 0.75,
+    threshold: CostThreshold = 0.75,
     max_pairs: Annotated[
         int, typer.Option("--max_pairs", min=0, help="Closest candidates to verify (0: all).")
     ] = 0,
@@ -48,8 +47,6 @@ def loops(
     from vvloc.nets import VVLocNet
 
     with cli_errors("loops"):
-        if math.isnan(threshold):
-            raise ValueError("--threshold: expected a number, got nan")
         model = VVLocNet.load(resolve_checkpoint(checkpoint)).to(parse_device(device))
         # detect_loops checks the weights fingerprint (once, so an old map warns once)
         db = MapDatabase.open(map_path, expected_config_hash=model.config_hash())
