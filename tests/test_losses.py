@@ -273,3 +273,58 @@ def test_tiny_model_overfits_two_triplets():
     for name, v0 in first.items():
         if v0 > 0:
             assert last[name] <= 0.2 * v0, (name, first, last)
+
+
+# --- the near translation loss (ours) -----------------------------------------------------
+
+
+def _near_setup():
+    cfg = tiny_config(bev_height=12, bev_width=12, grid_size=0.5, num_angles=8, num_radii=4)
+    torch.manual_seed(0)
+    model = VVLocNet(cfg).eval()
+    gen = torch.Generator().manual_seed(1)
+    bev = torch.rand(3, 12, 12, cfg.channels, generator=gen)
+    tgt = model.decode_polar(model.polar(torch.rand(3, 12, 12, cfg.channels, generator=gen)))
+    t = torch.tensor([[0.8, -0.3], [0.1, 0.05], [-1.2, 0.4]])
+    yaw = torch.tensor([0.2, -0.1, 0.0])
+    return model, bev, tgt, t, yaw
+
+
+def _cost(model, bev, tgt, t, yaw) -> Tensor:
+    return losses.matching_cost(*losses.aligned_descriptors(model, bev, tgt, t, yaw))
+
+
+def test_near_translation_loss_is_the_hinge_on_offsets_of_the_drawn_length():
+    model, bev, tgt, t, yaw = _near_setup()
+    with torch.no_grad():
+        got = losses.near_translation_loss(model, bev, tgt, t, yaw, 0.1, (0.25, 1.0), seed=5)
+        delta = losses.random_translation_bias(3, (0.25, 1.0), seed=5)
+        assert torch.all((delta.norm(dim=1) >= 0.25) & (delta.norm(dim=1) <= 1.0))
+        margin = 0.1 * delta.norm(dim=1)
+        want = F.relu(
+            _cost(model, bev, tgt, t, yaw) - _cost(model, bev, tgt, t + delta, yaw) + margin
+        )
+    torch.testing.assert_close(got, want.mean())
+
+
+def test_near_translation_loss_compares_with_the_zero_translation_when_asked():
+    model, bev, tgt, t, yaw = _near_setup()
+    with torch.no_grad():
+        got = losses.near_translation_loss(model, bev, tgt, t, yaw, 0.1, (0.25, 1.0), 1.0, seed=5)
+        # every pair is picked, but the second is nearer zero than 0.25 m: it keeps its offset
+        delta = losses.random_translation_bias(3, (0.25, 1.0), seed=5)
+        other = torch.stack([-t[0], delta[1], -t[2]])
+        margin = 0.1 * other.norm(dim=1)
+        want = F.relu(
+            _cost(model, bev, tgt, t, yaw) - _cost(model, bev, tgt, t + other, yaw) + margin
+        )
+    torch.testing.assert_close(got, want.mean())
+
+
+@pytest.mark.parametrize(
+    ("kw", "match"), [({"slope": -0.1}, "slope"), ({"zero_share": 1.5}, "zero_share")]
+)
+def test_near_translation_loss_refuses_bad_settings(kw, match):
+    model, bev, tgt, t, yaw = _near_setup()
+    with pytest.raises(ValueError, match=match):
+        losses.near_translation_loss(model, bev, tgt, t, yaw, **kw)

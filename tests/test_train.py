@@ -40,9 +40,9 @@ def _config(root, **kw) -> TrainConfig:
     return TrainConfig.from_dict(base)
 
 
-@pytest.mark.parametrize("rerank_weight", [0.0, 1.0])
-def test_a_few_steps_on_fixed_triplets_lower_every_loss(tiny_world, rerank_weight):
-    cfg = _config(tiny_world, rerank_weight=rerank_weight)
+@pytest.mark.parametrize(("rerank_weight", "near_weight"), [(0.0, 0.0), (1.0, 0.0), (0.0, 1.0)])
+def test_a_few_steps_on_fixed_triplets_lower_every_loss(tiny_world, rerank_weight, near_weight):
+    cfg = _config(tiny_world, rerank_weight=rerank_weight, tbias_near_weight=near_weight)
     tr = Trainer(cfg, "unused")
     triplets = tr.sampler.sample_random(2)
     batch = torch.utils.data.default_collate(
@@ -62,7 +62,11 @@ def test_a_few_steps_on_fixed_triplets_lower_every_loss(tiny_world, rerank_weigh
         assert first.rerank == last.rerank == 0.0
     else:  # on: the untrained interactor does not yet rank the positive first by the margin
         assert first.rerank > 0
-    for name in ("triplet", "hinge", "yaw", "tbias", "rerank"):
+    if near_weight == 0:
+        assert first.tbias_near == last.tbias_near == 0.0
+    else:  # the untrained matcher does not yet rank the truth first by the offset's margin
+        assert first.tbias_near > 0
+    for name in ("triplet", "hinge", "yaw", "tbias", "rerank", "tbias_near"):
         a, b = getattr(first, name), getattr(last, name)
         if a > 0:
             assert b < a, f"{name} did not fall: {a} -> {b}"
@@ -445,11 +449,15 @@ def test_bad_patience_is_refused(kw, match):
 
 def test_bad_select_by_is_refused():
     val = {"dataset": "x", "train_sessions": ["s0"], "val_sessions": ["s1"]}
-    with pytest.raises(ValueError, match=r"select_by: expected one of \['reranked', 'retrieval'\]"):
+    with pytest.raises(
+        ValueError, match=r"select_by: expected one of \['reranked', 'retrieval', 'last'\]"
+    ):
         TrainConfig.from_dict({**val, "select_by": "loss"})
     with pytest.raises(ValueError, match=r"select_by: .* needs val_sessions"):
         TrainConfig.from_dict({"dataset": "x", "select_by": "retrieval"})
     assert TrainConfig.from_dict({**val, "select_by": "retrieval"}).select_by == "retrieval"
+    with pytest.raises(ValueError, match=r"select_by: 'last' .*patience"):
+        TrainConfig.from_dict({**val, "select_by": "last", "patience": 2, "stage2_epochs": 2})
 
 
 @pytest.mark.parametrize(
@@ -669,6 +677,83 @@ def test_mined_negatives_are_never_positives_and_are_the_nearest(tiny_world, tmp
         assert sims[n] == pytest.approx(sims[far].max())
 
 
+def _local_only_config(root, base: Path, **kw) -> TrainConfig:
+    """A local-stage-only run on the weights of ``base``, the near translation loss on."""
+    opts = dict(
+        init_checkpoint=str(base),
+        stage1_epochs=0,
+        stage2_epochs=0,
+        local_epochs=2,
+        local_steps_per_epoch=4,
+        local_batch_size=4,
+        tbias_near_weight=1.0,
+        tbias_near_zero=0.5,
+    )
+    opts.update(kw)
+    return _config(root, **opts)
+
+
+def test_local_stage_trains_only_the_decoder_and_interactor_and_lowers_its_losses(
+    tiny_world, tmp_path
+):
+    base = train(_config(tiny_world, stage1_epochs=1, stage2_epochs=0), tmp_path / "a", False)
+    cfg = _local_only_config(
+        tiny_world, tmp_path / "a", local_epochs=3, local_steps_per_epoch=10, local_lr=1e-3
+    )
+    tuned = Trainer(cfg, tmp_path / "b")
+    fixed = tuned.sampler.sample_random(16)[:, :2]
+    tuned.run_epoch(progress=False)  # caches the BEVs
+    bevs, poses = tuned.local_cache()
+    assert bevs.dtype == torch.float16 and bevs.shape[0] == len(tuned.sampler) == len(poses)
+    with torch.no_grad():
+        first = [float(x) for x in tuned.local_losses(bevs, poses, fixed, step=0)]
+    tuned.fit(progress=False)
+    with torch.no_grad():
+        last = [float(x) for x in tuned.local_losses(bevs, poses, fixed, step=0)]
+    assert last[0] < first[0]
+    log = [json.loads(line) for line in (tmp_path / "b" / "log.jsonl").read_text().splitlines()]
+    assert [r["stage"] for r in log] == [4, 4]  # fit() ran the remaining two epochs
+    assert all(r["loss_tbias_near"] > 0 for r in log)
+    before = base.model.state_dict()
+    changed = set()
+    for name, value in tuned.model.state_dict().items():
+        if torch.equal(value, before[name]):
+            continue
+        changed.add(name.split(".")[0])
+    assert changed == {"decoder", "interactor"}  # the encoder and the global head are frozen
+
+
+def test_local_stage_resume_continues_identically(tiny_world, tmp_path):
+    base = tmp_path / "base"
+    train(_config(tiny_world, stage1_epochs=1, stage2_epochs=0), base, progress=False)
+    _assert_resumed_run_equals_uninterrupted(_local_only_config(tiny_world, base), tmp_path, cut=1)
+
+
+def test_the_local_stage_follows_the_head_stage(tiny_world):
+    cfg = _config(tiny_world, stage2_epochs=2, head_epochs=1, local_epochs=2)
+    tr = Trainer(cfg, "unused")
+    assert [tr.stage_of(e) for e in range(cfg.epochs)] == [1, 2, 2, 3, 4, 4]
+    assert tr.total_epochs == cfg.epochs == 6
+
+
+@pytest.mark.parametrize(
+    ("kw", "match"),
+    [
+        ({"stage1_epochs": 0, "stage2_epochs": 0, "local_epochs": 1}, "local_epochs: .*needs"),
+        ({"local_lr": 0.0}, "local_lr"),
+        ({"local_batch_size": 0}, "local_batch_size"),
+        ({"tbias_near_weight": -1.0}, "tbias_near_weight"),
+        ({"tbias_near_range": [1.0, 0.5]}, "tbias_near_range"),
+        ({"tbias_near_range": [0.0, 0.5]}, "tbias_near_range"),
+        ({"tbias_near_range": 0.5}, "tbias_near_range"),
+        ({"tbias_near_zero": 2.0}, "tbias_near_zero"),
+    ],
+)
+def test_bad_local_stage_config_is_refused(kw, match):
+    with pytest.raises(ValueError, match=match):
+        TrainConfig.from_dict({"dataset": "x", **kw})
+
+
 def test_a_head_stage_alone_without_a_trained_encoder_is_refused():
     with pytest.raises(ValueError, match=r"head_epochs: .*needs init_checkpoint"):
         TrainConfig.from_dict(
@@ -750,6 +835,9 @@ def test_select_by_retrieval_keeps_the_epoch_that_retrieves_best(tiny_world, tmp
     plain = _config(tiny_world, stage2_epochs=3, **val)
     assert plain.select_by == "reranked"
     assert train(plain, tmp_path / "reranked", progress=False).best["epoch"] == 2
+    _scripted_validation(monkeypatch, scores)
+    last = _config(tiny_world, stage2_epochs=3, select_by="last", **val)
+    assert train(last, tmp_path / "last", progress=False).best["epoch"] == 4  # the worst retriever
 
 
 def test_bad_val_loops_are_refused_by_name():

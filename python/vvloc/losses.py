@@ -7,6 +7,8 @@
   relative pose and the target's local descriptor.
 * :func:`translation_bias_loss` — the matching cost at the true translation must beat a randomly
   biased translation by a margin (0.1).
+* :func:`near_translation_loss` — ours, not the paper's (off unless ``tbias_near_weight`` > 0):
+  the same for nearby translations (0.25-1 m off), with a margin proportional to the offset.
 * :func:`rerank_loss` — ours, not the paper's (off unless ``rerank_weight`` > 0): the re-ranking
   cost of the anchor against its positive must beat its cost against the negative by a margin.
 
@@ -172,6 +174,46 @@ def translation_bias_loss(
     cost_true = matching_cost(*aligned_descriptors(model, bev_src, local_tgt, t, yaw))
     cost_bias = matching_cost(*aligned_descriptors(model, bev_src, local_tgt, t + delta, yaw))
     return F.relu(cost_true - cost_bias + margin).mean()
+
+
+def near_translation_loss(
+    model: VVLocNet,
+    bev_src: Tensor,
+    local_tgt: Tensor,
+    translation: Tensor,
+    yaw: Tensor,
+    slope: float = 0.1,
+    bias_range: tuple[float, float] = (0.25, 1.0),
+    zero_share: float = 0.0,
+    seed: int = 0,
+) -> Tensor:
+    """Ours, not the paper's: the matching cost at the true translation t must be lower than at
+    a nearby t + Δ by a margin proportional to the offset:
+    L = mean(max(0, c(t) − c(t + Δ) + slope·‖Δ‖)), ``slope`` in cost per metre, Δ from
+    :func:`random_translation_bias` with ‖Δ‖ in ``bias_range`` (metres, seeded, same yaw).
+    With ``zero_share`` > 0 that share of the pairs (every k-th, k = round(1 / zero_share)),
+    when ‖t‖ ≥ ``bias_range[0]``, is compared with the zero translation instead (Δ = −t).
+
+    Why: :func:`translation_bias_loss` only asks the truth to beat hypotheses 1-3 m off, so
+    nothing ranks the last metre around the minimum, where the metric pose's error lives; and
+    the zero translation is the one hypothesis whose padded BEV has no padded border (it looks
+    most like the unpadded target), which no training pair shows as wrong unless asked.
+    """
+    if not slope >= 0:
+        raise ValueError(f"slope: expected >= 0, got {slope!r}")
+    if not 0.0 <= zero_share <= 1.0:
+        raise ValueError(f"zero_share: expected a value in [0, 1], got {zero_share!r}")
+    t = torch.as_tensor(translation, dtype=torch.float32, device=bev_src.device)
+    delta = random_translation_bias(t.shape[0], bias_range, seed).to(t.device)
+    if zero_share > 0:
+        every = max(1, round(1.0 / zero_share))
+        pick = (torch.arange(t.shape[0], device=t.device) % every == 0) & (
+            t.norm(dim=1) >= bias_range[0]
+        )
+        delta = torch.where(pick[:, None], -t, delta)
+    cost_true = matching_cost(*aligned_descriptors(model, bev_src, local_tgt, t, yaw))
+    cost_near = matching_cost(*aligned_descriptors(model, bev_src, local_tgt, t + delta, yaw))
+    return F.relu(cost_true - cost_near + slope * delta.norm(dim=1)).mean()
 
 
 def roll_min_cost(src: Tensor, tgt: Tensor) -> Tensor:

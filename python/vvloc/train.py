@@ -31,6 +31,15 @@ It can run after stages 1-2, or alone on a trained model (``init_checkpoint``), 
 different ``global_head`` than the initial model's (a NetVLAD head then starts from a
 spherical k-means of the cached cell features,
 :meth:`vvloc.nets.heads.NetVLADHead.init_from_features`).
+
+An optional fourth stage (``local_epochs``), ours, refines the local-view decoder and the
+interactor alone on frozen BEVs: every training frame is encoded once (eval mode, no
+augmentation) and its BEV cached with its pose; each step draws (anchor, positive) pairs from the
+sampler and applies the yaw matching loss, the translation-bias loss and, with
+``tbias_near_weight`` > 0, :func:`vvloc.losses.near_translation_loss` to the anchor's BEV
+padded at the ground-truth relative pose. The BEV and the global descriptors, and so retrieval
+and loop detection by descriptor, are unchanged by it; the re-ranking and the metric pose are
+what it changes.
 """
 
 from __future__ import annotations
@@ -62,6 +71,7 @@ from vvloc.data.augment import PhotometricAugment
 from vvloc.localize.localizer import frames_to_tensors
 from vvloc.losses import (
     hinge_loss,
+    near_translation_loss,
     rerank_loss,
     translation_bias_loss,
     triplet_loss,
@@ -87,7 +97,7 @@ HEAD_REFRESH = 200
 HEAD_FIELDS = ("global_head", "netvlad_clusters", "global_dim", "disco_crop", "gem_p")
 
 #: What ``best/`` is selected by first (``TrainConfig.select_by``; :meth:`Trainer.selection_key`).
-SELECT_BY = ("reranked", "retrieval")
+SELECT_BY = ("reranked", "retrieval", "last")
 
 
 @dataclass
@@ -132,6 +142,9 @@ class TrainConfig:
     global descriptor, so the re-ranked figure moves only through the candidates retrieval
     passes on (a few validation queries' worth), while retrieval is what the stage trains and
     what the localizer's metric candidates are taken from (``metric_from="retrieval"``).
+    ``"last"`` keeps the last validated epoch in ``best/`` (with its calibration), whatever its
+    figures: for the local stage, whose target (the metric pose) the Recall@1 figures do not
+    measure and which moves them by a query or two either way. Not with ``patience``.
     ``patience`` (optional, needs ``val_sessions`` and joint epochs): early stopping of the
     joint stage. When ``patience`` validated joint epochs in a row have not beaten ``best/``
     (by the selection key above), the remaining joint epochs are skipped (the head stage, if
@@ -151,6 +164,16 @@ class TrainConfig:
     model: 123 kB a frame). With ``init_checkpoint`` the model config may differ from the
     checkpoint's in the global-head fields (:data:`HEAD_FIELDS`) only, and then needs
     ``head_epochs`` > 0 (the new head is trained there, never left at its initialisation).
+    ``tbias_near_weight`` (default 0: off) adds, wherever the translation-bias loss is
+    applied, our :func:`vvloc.losses.near_translation_loss`: offsets of ‖Δ‖ in
+    ``tbias_near_range`` (metres), margin ``tbias_near_slope`` × ‖Δ‖, the zero translation
+    instead for the share ``tbias_near_zero`` of the pairs.
+    ``local_epochs`` (default 0) adds the local stage (module docstring), after the head stage:
+    ``local_steps_per_epoch`` steps of ``local_batch_size`` (anchor, positive) pairs at learning
+    rate ``local_lr`` (Adam, ×``lr_decay`` per epoch), on the decoder and the interactor only,
+    with the stage-2 weights ``yaw_weight``, ``tbias_weight`` and ``tbias_near_weight``. Its
+    cache holds every training frame's BEV in float16 on the training device: N · H · W · C · 2
+    bytes (the small model: 205 kB a frame). Without stages 1-2 it needs ``init_checkpoint``.
     """
 
     dataset: str = "data/synth"
@@ -201,6 +224,14 @@ class TrainConfig:
     head_batch_size: int = 32
     head_lr: float = 1e-3
     head_negatives: int = 10
+    tbias_near_weight: float = 0.0
+    tbias_near_slope: float = 0.1
+    tbias_near_range: list[float] = field(default_factory=lambda: [0.25, 1.0])
+    tbias_near_zero: float = 0.0
+    local_epochs: int = 0
+    local_steps_per_epoch: int = 500
+    local_batch_size: int = 8
+    local_lr: float = 1e-4
     threads: int | None = None
 
     @classmethod
@@ -227,13 +258,20 @@ class TrainConfig:
 
     def validate(self) -> None:
         """Raise ``ValueError`` naming the first invalid field."""
-        for name in ("stage1_epochs", "stage2_epochs", "head_epochs"):
+        for name in ("stage1_epochs", "stage2_epochs", "head_epochs", "local_epochs"):
             if int(getattr(self, name)) < 0:
                 raise ValueError(f"{name}: expected >= 0")
-        for name in ("steps_per_epoch", "batch_size", "head_steps_per_epoch", "head_negatives"):
+        for name in (
+            "steps_per_epoch",
+            "batch_size",
+            "head_steps_per_epoch",
+            "head_negatives",
+            "local_steps_per_epoch",
+            "local_batch_size",
+        ):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"{name}: expected >= 1")
-        for name in ("lr", "lr_decay", "head_lr"):
+        for name in ("lr", "lr_decay", "head_lr", "local_lr"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)):
                 raise ValueError(
@@ -243,6 +281,8 @@ class TrainConfig:
             raise ValueError("lr: expected > 0")
         if not self.head_lr > 0:
             raise ValueError("head_lr: expected > 0")
+        if not self.local_lr > 0:
+            raise ValueError("local_lr: expected > 0")
         if int(self.head_batch_size) < 2:
             raise ValueError("head_batch_size: expected >= 2")
         if (
@@ -254,6 +294,32 @@ class TrainConfig:
                 "head_epochs: a head stage without stages 1-2 needs init_checkpoint (the trained "
                 "encoder whose features it pools)"
             )
+        if (
+            int(self.local_epochs) > 0
+            and int(self.stage1_epochs) + int(self.stage2_epochs) == 0
+            and self.init_checkpoint is None
+        ):
+            raise ValueError(
+                "local_epochs: a local stage without stages 1-2 needs init_checkpoint (the "
+                "trained encoder whose BEVs it pads)"
+            )
+        for name in ("tbias_near_weight", "tbias_near_slope"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not value >= 0:
+                raise ValueError(f"{name}: expected a number >= 0, got {value!r}")
+        near = self.tbias_near_range
+        if (
+            not isinstance(near, (list, tuple))
+            or len(near) != 2
+            or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in near)
+            or not 0 < near[0] <= near[1]
+        ):
+            raise ValueError(
+                f"tbias_near_range: expected [low, high] metres with 0 < low <= high, got {near!r}"
+            )
+        zero = self.tbias_near_zero
+        if isinstance(zero, bool) or not isinstance(zero, (int, float)) or not 0 <= zero <= 1:
+            raise ValueError(f"tbias_near_zero: expected a value in [0, 1], got {zero!r}")
         for name in ("rerank_weight", "rerank_margin"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not value >= 0:
@@ -337,6 +403,11 @@ class TrainConfig:
             raise ValueError(
                 f"select_by: expected one of {list(SELECT_BY)}, got {self.select_by!r}"
             )
+        if self.select_by == "last" and self.patience is not None:
+            raise ValueError(
+                "select_by: 'last' keeps every validated epoch in turn, so patience would never "
+                "stop; drop one of them"
+            )
         if self.select_by != "reranked" and not self.val_sessions:
             raise ValueError("select_by: selects best/ by validation, so it needs val_sessions")
         if self.val_loops and not self.val_sessions:
@@ -383,8 +454,13 @@ class TrainConfig:
 
     @property
     def epochs(self) -> int:
-        """Total number of epochs (stage 1 + stage 2 + head stage)."""
-        return int(self.stage1_epochs) + int(self.stage2_epochs) + int(self.head_epochs)
+        """Total number of epochs (stage 1 + stage 2 + head stage + local stage)."""
+        return (
+            int(self.stage1_epochs)
+            + int(self.stage2_epochs)
+            + int(self.head_epochs)
+            + int(self.local_epochs)
+        )
 
     def to_dict(self) -> dict[str, Any]:
         """Plain dict (YAML/JSON serialisable)."""
@@ -459,6 +535,7 @@ class StepLosses:
     tbias: float
     rerank: float
     violated: int
+    tbias_near: float = 0.0
 
 
 def global_losses(
@@ -493,7 +570,8 @@ def training_losses(
     The three frames of each triplet are encoded in one call (3B samples). Stage 1 uses the
     triplet and hinge losses of the global descriptors; stage 2 adds the yaw matching loss and
     the translation bias loss (weights ``yaw_weight``, ``tbias_weight``) on (anchor, positive)
-    with the ground-truth relative pose ξ_{a→p}, and, when ``rerank_weight`` > 0, the
+    with the ground-truth relative pose ξ_{a→p} (with ``tbias_near_weight`` > 0 also the near
+    translation loss, :func:`near_losses`), and, when ``rerank_weight`` > 0, the
     re-ranking loss on (anchor, positive, negative). A triplet is "correct" for hard mining when
     ‖g_a − g_p‖ + margin < ‖g_a − g_n‖.
     """
@@ -506,6 +584,7 @@ def training_losses(
     l_yaw = torch.zeros((), device=device)
     l_tb = torch.zeros((), device=device)
     l_rr = torch.zeros((), device=device)
+    l_near = torch.zeros((), device=device)
     if stage == 2:
         poses = batch["poses"].numpy()
         xi = geometry.relative(poses[:, 0], poses[:, 1])  # (B, 3): positive in anchor frame
@@ -520,6 +599,9 @@ def training_losses(
             model, bev[0], loc[1], t, yaw, margin=cfg.tbias_margin, seed=cfg.seed * 1_000_003 + step
         )
         total = total + cfg.yaw_weight * l_yaw + cfg.tbias_weight * l_tb
+        if cfg.tbias_near_weight > 0:  # only when on, like the re-ranking loss below
+            l_near = near_losses(model, bev[0], loc[1], t, yaw, cfg, step)
+            total = total + cfg.tbias_near_weight * l_near
         if cfg.rerank_weight > 0:  # only when on: any extra term would move the committed weights
             l_rr = rerank_loss(model, loc[0], loc[1], loc[2], cfg.rerank_margin)
             total = total + cfg.rerank_weight * l_rr
@@ -532,8 +614,35 @@ def training_losses(
         tbias=float(l_tb.detach()),
         rerank=float(l_rr.detach()),
         violated=int((~correct).sum()),
+        tbias_near=float(l_near.detach()),
     )
     return total, parts, correct
+
+
+def near_losses(
+    model: VVLocNet,
+    bev_src: torch.Tensor,
+    local_tgt: torch.Tensor,
+    translation: torch.Tensor,
+    yaw: torch.Tensor,
+    cfg: TrainConfig,
+    step: int,
+) -> torch.Tensor:
+    """:func:`vvloc.losses.near_translation_loss` with the config's ``tbias_near_*`` settings,
+    seeded by the run's seed and ``step``: source BEVs (B, H, W, C), target local-view
+    descriptors (B, T, C), ground-truth ξ_{s→t} translation (B, 2) metres and yaw (B,) radians."""
+    lo, hi = (float(v) for v in cfg.tbias_near_range)
+    return near_translation_loss(
+        model,
+        bev_src,
+        local_tgt,
+        translation,
+        yaw,
+        slope=float(cfg.tbias_near_slope),
+        bias_range=(lo, hi),
+        zero_share=float(cfg.tbias_near_zero),
+        seed=cfg.seed * 1_000_033 + step,
+    )
 
 
 def validation_recall(
@@ -723,6 +832,13 @@ class Trainer:
         )
         self._head_cache: torch.Tensor | None = None  # (N, T, R, C) float16, the head stage's
         self._head_positions: torch.Tensor | None = None  # (N, 3) sampler positions, on device
+        local = [*self.model.decoder.parameters(), *self.model.interactor.parameters()]
+        self.local_optimizer = torch.optim.Adam(local, lr=cfg.local_lr)
+        self.local_scheduler = torch.optim.lr_scheduler.ExponentialLR(
+            self.local_optimizer, gamma=cfg.lr_decay
+        )
+        # the local stage's cache: BEVs (N, H, W, C) float16 on the device, poses (N, 3) float64
+        self._local_cache: tuple[torch.Tensor, np.ndarray] | None = None
         self.epoch = 0
         self.step = 0
         self.best: dict[str, Any] | None = None  # the validation record of best/, if any
@@ -903,6 +1019,8 @@ class Trainer:
             "head_optimizer": self.head_optimizer.state_dict(),
             "head_scheduler": self.head_scheduler.state_dict(),
             "head_untrained": self.head_untrained,
+            "local_optimizer": self.local_optimizer.state_dict(),
+            "local_scheduler": self.local_scheduler.state_dict(),
             "sampler": self.sampler.state_dict(),
             "torch_rng": torch.get_rng_state(),
             "best": self.best,
@@ -957,6 +1075,9 @@ class Trainer:
             self.head_optimizer.load_state_dict(state["head_optimizer"])
             self.head_scheduler.load_state_dict(state["head_scheduler"])
             self.head_untrained = bool(state["head_untrained"])
+        if "local_optimizer" in state:  # nor before the local stage
+            self.local_optimizer.load_state_dict(state["local_optimizer"])
+            self.local_scheduler.load_state_dict(state["local_scheduler"])
         if "sampler" in state:
             self.sampler.load_state_dict(state["sampler"])
         else:  # saved before 2026-12-03: no position in the hard pool (restarts at its first)
@@ -1005,14 +1126,16 @@ class Trainer:
     def total_epochs(self) -> int:
         """The epochs this run trains: ``cfg.epochs``, less the joint epochs skipped by an
         early stop."""
-        return self.joint_end + int(self.cfg.head_epochs)
+        return self.joint_end + int(self.cfg.head_epochs) + int(self.cfg.local_epochs)
 
     def stage_of(self, epoch: int) -> int:
-        """1 for the global-descriptor epochs, 2 for the joint epochs, 3 for the head stage
-        (``epoch`` 0-based)."""
+        """1 for the global-descriptor epochs, 2 for the joint epochs, 3 for the head stage,
+        4 for the local stage (``epoch`` 0-based)."""
         if epoch < self.cfg.stage1_epochs:
             return 1
-        return 2 if epoch < self.joint_end else 3
+        if epoch < self.joint_end:
+            return 2
+        return 3 if epoch < self.joint_end + int(self.cfg.head_epochs) else 4
 
     def run_epoch(self, progress: bool = True) -> dict[str, Any]:
         """Train one epoch (``steps_per_epoch`` batches, or the head stage's
@@ -1021,6 +1144,8 @@ class Trainer:
         stage = self.stage_of(self.epoch)
         if stage == 3:
             return self._head_epoch(progress)
+        if stage == 4:
+            return self._local_epoch(progress)
         if self.epoch + 1 in cfg.hard_pool_restarts:
             self.sampler.restart_hard_pool()
         triplets = self.sampler.sample(cfg.steps_per_epoch * cfg.batch_size)
@@ -1045,6 +1170,8 @@ class Trainer:
             "tbias": 0.0,
             "rerank": 0.0,
         }
+        if cfg.tbias_near_weight > 0:  # logged only when on (the committed runs' logs stay)
+            sums["tbias_near"] = 0.0
         violated = 0
         t0 = time.perf_counter()
         bar = tqdm(
@@ -1221,6 +1348,128 @@ class Trainer:
         self.epoch += 1
         return record
 
+    # --- local stage ---------------------------------------------------------------------
+
+    @torch.no_grad()
+    def _build_local_cache(self, progress: bool) -> tuple[torch.Tensor, np.ndarray]:
+        """Encode every sampler frame once (eval mode, no augmentation): BEVs (N, H, W, C)
+        float16 on the device and poses (N, 3) float64 (x m, y m, yaw rad, world frame)."""
+        self.model.eval()
+        out: list[torch.Tensor] = []
+        poses: list[np.ndarray] = []
+        n = len(self.sampler)
+        bar = tqdm(total=n, desc="local stage: caching BEVs", disable=not progress)
+        for a in range(0, n, 16):
+            frames = [self.sampler.frame(g) for g in range(a, min(a + 16, n))]
+            images, k, t = frames_to_tensors(frames, self.device)
+            feats = self.model.image_features(images)
+            size = (int(images.shape[-2]), int(images.shape[-1]))
+            out.append(self.model.bev_from_features(feats, k, t, size).half())
+            poses.extend(np.asarray(f.pose, dtype=np.float64) for f in frames)
+            bar.update(len(frames))
+        bar.close()
+        cache = torch.cat(out)
+        log.info(
+            "local stage: cached %d BEVs %s (%.0f MB)",
+            len(cache),
+            tuple(cache.shape[1:]),
+            cache.numel() * 2 / 1e6,
+        )
+        return cache, np.stack(poses)
+
+    def local_cache(self, progress: bool = False) -> tuple[torch.Tensor, np.ndarray]:
+        """The local stage's cache (BEVs (N, H, W, C) float16, poses (N, 3)), built on first
+        use."""
+        if self._local_cache is None:
+            self._local_cache = self._build_local_cache(progress)
+        return self._local_cache
+
+    def local_losses(
+        self, bevs: torch.Tensor, poses: np.ndarray, pairs: np.ndarray, step: int
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Local-stage losses of (B, 2) (anchor, positive) pairs of cached frame ids: (total,
+        yaw matching, translation bias, near translation), the anchor's BEV padded at the
+        ground-truth ξ_{a→p} against the positive's local-view descriptor."""
+        cfg = self.cfg
+        a, p = np.asarray(pairs)[:, 0], np.asarray(pairs)[:, 1]
+        xi = geometry.relative(poses[a], poses[p])  # (B, 3): positive in anchor frame
+        t = torch.as_tensor(xi[:, :2], dtype=torch.float32, device=self.device)
+        yaw = torch.as_tensor(xi[:, 2], dtype=torch.float32, device=self.device)
+        bev_a = bevs[torch.from_numpy(a).to(self.device)].float()
+        bev_p = bevs[torch.from_numpy(p).to(self.device)].float()
+        loc_p = self.model.decode_polar(self.model.polar(bev_p))
+        l_yaw = yaw_matching_loss(
+            self.model, bev_a, loc_p, t, yaw, cfg.yaw_gamma, cfg.yaw_theta_p, cfg.yaw_theta_n
+        )
+        l_tb = translation_bias_loss(
+            self.model,
+            bev_a,
+            loc_p,
+            t,
+            yaw,
+            margin=cfg.tbias_margin,
+            seed=cfg.seed * 1_000_003 + step,
+        )
+        total = cfg.yaw_weight * l_yaw + cfg.tbias_weight * l_tb
+        l_near = torch.zeros((), device=self.device)
+        if cfg.tbias_near_weight > 0:
+            l_near = near_losses(self.model, bev_a, loc_p, t, yaw, cfg, step)
+            total = total + cfg.tbias_near_weight * l_near
+        return total, l_yaw, l_tb, l_near
+
+    def _local_epoch(self, progress: bool) -> dict[str, Any]:
+        """One epoch of the local stage (see the module docstring); returns its log record."""
+        cfg = self.cfg
+        t0 = time.perf_counter()
+        bevs, poses = self.local_cache(progress)
+        cache_seconds = time.perf_counter() - t0
+        self.model.eval()  # the frozen parts stay as they are
+        self.model.decoder.train()
+        self.model.interactor.train()
+        params = [p for g in self.local_optimizer.param_groups for p in g["params"]]
+        sums = {"total": 0.0, "yaw": 0.0, "tbias": 0.0, "tbias_near": 0.0}
+        bar = tqdm(
+            range(cfg.local_steps_per_epoch),
+            desc=f"epoch {self.epoch + 1}/{self.total_epochs} (local stage)",
+            disable=not progress,
+            leave=False,
+        )
+        for _ in bar:
+            pairs = self.sampler.sample_random(cfg.local_batch_size)[:, :2]
+            loss, l_yaw, l_tb, l_near = self.local_losses(bevs, poses, pairs, self.step)
+            self.local_optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            if cfg.grad_clip > 0:
+                torch.nn.utils.clip_grad_norm_(params, cfg.grad_clip)
+            self.local_optimizer.step()
+            for key, value in zip(sums, (loss, l_yaw, l_tb, l_near), strict=True):
+                sums[key] += float(value.detach())
+            self.step += 1
+            bar.set_postfix(
+                loss=f"{float(loss.detach()):.3f}", near=f"{float(l_near.detach()):.4f}"
+            )
+        self.model.eval()
+        n = cfg.local_steps_per_epoch
+        record: dict[str, Any] = {
+            "epoch": self.epoch + 1,
+            "stage": 4,
+            "step": self.step,
+            "lr": self.local_optimizer.param_groups[0]["lr"],
+            "loss_total": sums["total"] / n,
+            "loss_triplet": 0.0,
+            "loss_hinge": 0.0,
+            "loss_yaw": sums["yaw"] / n,
+            "loss_tbias": sums["tbias"] / n,
+            "loss_tbias_near": sums["tbias_near"] / n,
+            "loss_rerank": 0.0,
+            "cache_seconds": cache_seconds,
+            "seconds": time.perf_counter() - t0,
+            "device": str(self.device),
+        }
+        self.local_scheduler.step()
+        self.epoch += 1
+        return record
+
     def validates(self, epoch: int) -> bool:
         """Whether epoch ``epoch`` (0-based) is scored on ``val_sessions``: the joint and head
         epochs (the local-view head is untrained before them), or every epoch of a run without
@@ -1263,8 +1512,8 @@ class Trainer:
     def selection_key(val: dict[str, Any], by: str = "reranked") -> tuple[float, ...]:
         """How validated epochs compare for ``best/`` (higher is better): fewer cross-floor loop
         closures on ``val_loops`` (when set), then Recall@1 (2 m) re-ranked, then retrieval
-        (``by="reranked"``), or retrieval first, then re-ranked (``by="retrieval"``; the
-        config's ``select_by``)."""
+        (``by="reranked"``, and ``"last"``, which keeps the last epoch whatever its key), or
+        retrieval first, then re-ranked (``by="retrieval"``; the config's ``select_by``)."""
         if by not in SELECT_BY:
             raise ValueError(f"by: expected one of {list(SELECT_BY)}, got {by!r}")
         cross = -sum(e["cross_floor"] for e in val.get("loops", []))
@@ -1289,7 +1538,11 @@ class Trainer:
             t0 = time.perf_counter()
             if validating:
                 key = self.selection_key(rec["val"], cfg.select_by)
-                if self.best is None or key > self.selection_key(self.best["val"], cfg.select_by):
+                if (
+                    cfg.select_by == "last"
+                    or self.best is None
+                    or key > self.selection_key(self.best["val"], cfg.select_by)
+                ):
                     self.model.calibration = {
                         **rec["val"]["calibration"],
                         "dataset": str(cfg.dataset),
