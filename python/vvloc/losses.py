@@ -171,6 +171,20 @@ def translation_bias_loss(
     state it."""
     t = torch.as_tensor(translation, dtype=torch.float32, device=bev_src.device)
     delta = random_translation_bias(t.shape[0], bias_range, seed).to(t.device)
+    return _offset_hinge(model, bev_src, local_tgt, t, yaw, delta, margin)
+
+
+def _offset_hinge(
+    model: VVLocNet,
+    bev_src: Tensor,
+    local_tgt: Tensor,
+    t: Tensor,
+    yaw: Tensor,
+    delta: Tensor,
+    margin: float | Tensor,
+) -> Tensor:
+    """mean(max(0, c(t) − c(t + Δ) + margin)): translations t and offsets Δ (B, 2) metres,
+    ``margin`` a float or (B,); c = :func:`matching_cost` of :func:`aligned_descriptors`."""
     cost_true = matching_cost(*aligned_descriptors(model, bev_src, local_tgt, t, yaw))
     cost_bias = matching_cost(*aligned_descriptors(model, bev_src, local_tgt, t + delta, yaw))
     return F.relu(cost_true - cost_bias + margin).mean()
@@ -211,9 +225,7 @@ def near_translation_loss(
             t.norm(dim=1) >= bias_range[0]
         )
         delta = torch.where(pick[:, None], -t, delta)
-    cost_true = matching_cost(*aligned_descriptors(model, bev_src, local_tgt, t, yaw))
-    cost_near = matching_cost(*aligned_descriptors(model, bev_src, local_tgt, t + delta, yaw))
-    return F.relu(cost_true - cost_near + slope * delta.norm(dim=1)).mean()
+    return _offset_hinge(model, bev_src, local_tgt, t, yaw, delta, slope * delta.norm(dim=1))
 
 
 def roll_min_cost(src: Tensor, tgt: Tensor) -> Tensor:

@@ -285,24 +285,17 @@ class TrainConfig:
             raise ValueError("local_lr: expected > 0")
         if int(self.head_batch_size) < 2:
             raise ValueError("head_batch_size: expected >= 2")
-        if (
-            int(self.head_epochs) > 0
-            and int(self.stage1_epochs) + int(self.stage2_epochs) == 0
-            and self.init_checkpoint is None
-        ):
-            raise ValueError(
-                "head_epochs: a head stage without stages 1-2 needs init_checkpoint (the trained "
-                "encoder whose features it pools)"
-            )
-        if (
-            int(self.local_epochs) > 0
-            and int(self.stage1_epochs) + int(self.stage2_epochs) == 0
-            and self.init_checkpoint is None
-        ):
-            raise ValueError(
-                "local_epochs: a local stage without stages 1-2 needs init_checkpoint (the "
-                "trained encoder whose BEVs it pads)"
-            )
+        if int(self.stage1_epochs) + int(self.stage2_epochs) == 0 and self.init_checkpoint is None:
+            # the stages on a frozen encoder need a trained one
+            for name, stage, uses in (
+                ("head_epochs", "a head stage", "features it pools"),
+                ("local_epochs", "a local stage", "BEVs it pads"),
+            ):
+                if int(getattr(self, name)) > 0:
+                    raise ValueError(
+                        f"{name}: {stage} without stages 1-2 needs init_checkpoint (the trained "
+                        f"encoder whose {uses})"
+                    )
         for name in ("tbias_near_weight", "tbias_near_slope"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not value >= 0:
