@@ -56,17 +56,19 @@ lint: develop
 demo: develop
 	$(PY) -m vvloc.cli demo
 
-# the four steps of models/synth-small, each config:run folder: stages 1-2 on the parking lot
+# the five steps of models/synth-small, each config:run folder: stages 1-2 on the parking lot
 # with the re-ranking loss (GeM head), the head stage on it (NetVLAD, three worlds), the floor
-# fine-tune (stage 2 on three worlds, 6 epochs) and the head stage again;
-# runs/synth-small-ft-head/best/ is the model (models/synth-small, byte for byte on the machine
-# that trained it). Re-running it resumes or skips what a previous run already did; delete
-# runs/synth-small* left from another recipe first.
+# fine-tune (stage 2 on three worlds, 6 epochs), the head stage again and the local stage
+# (decoder + interactor with the near translation loss); runs/synth-small-local/best/ is the
+# model (models/synth-small, byte for byte on the machine that trained it). Re-running it
+# resumes or skips what a previous run already did; delete runs/synth-small* left from another
+# recipe first.
 # `make model-v3` runs models/synth-small-v3's recipe: configs/synth-small.yaml (the paper's
 # losses only) as step 1. tests/test_train.py holds the chain of run folders to the
 # configs' init_checkpoint and to the committed model's training record.
 MODEL_STEPS = synth-small-rerank:synth-small synth-small-head:synth-small-head \
-  synth-small-ft:synth-small-ft synth-small-ft-head:synth-small-ft-head
+  synth-small-ft:synth-small-ft synth-small-ft-head:synth-small-ft-head \
+  synth-small-local:synth-small-local
 V3_STEPS = synth-small:synth-small $(wordlist 2,4,$(MODEL_STEPS))
 
 model: develop
@@ -83,7 +85,7 @@ model-v3:
 # on CHECKPOINT (default: what `make model` trained): renders the three test datasets when they
 # are missing (≈ 6-11 min each on 2 cores), evaluates (≈ 18 min) into TEST_OUT and prints the
 # issue's figures against their targets (`vvloc targets`; TEST_OUT/targets.json)
-CHECKPOINT ?= runs/synth-small-ft-head
+CHECKPOINT ?= runs/synth-small-local
 TEST_OUT ?= runs/model-test
 model-test: develop
 	test -d data/synth-parking-96 || $(PY) -m vvloc.cli sim --scene parking --sessions 96 \

@@ -55,6 +55,23 @@ def test_the_committed_models_reports_give_its_cards_figures():
     assert "default garage: CFER, sequence-checked" in text
 
 
+def test_step_fives_reports_give_its_cards_figures():
+    # models/synth-small/MODEL_CARD.md, "Step 5": the pre-registered test and the fresh sessions
+    want = {
+        "report-test96-local": ("83.0 %", "+4.4 points", "0.86°", "0.38 m", "0.34°", "0.21 m"),
+        "report-fresh-local": ("81.5 %", "+4.5 points", "0.82°", "0.41 m", "0.41°", "0.26 m"),
+    }
+    for name, values in want.items():
+        report = _committed(name)
+        assert report["meta"]["model_weights_hash"].startswith("8b6bdae7e78224b0")
+        figs = check_targets(report)
+        parking = [f for f in figs if f.name.startswith("parking: ")]
+        assert [f.value for f in parking] == list(values), name
+        assert all(f.met for f in parking), name
+        time = _by_name(figs)["training time"]
+        assert (time.value, time.met) == ("78.6 min", True)
+
+
 def _parking(reranked: float, retrieval: float, aoe50=1.0, ape50=0.5, aoe25=0.5, ape25=0.2):
     report = copy.deepcopy(_committed("report-test96"))
     gl = report["global_localization"]
