@@ -70,6 +70,20 @@ def test_step_fives_reports_give_its_cards_figures():
         assert all(f.met for f in parking), name
         time = _by_name(figs)["training time"]
         assert (time.value, time.met) == ("78.6 min", True)
+    # the garages: step 5 leaves the global descriptors as they were, and so every CFER
+    local = check_targets(
+        _committed("report-test96-local"),
+        _committed("report-test96-pillars-local"),
+        _committed("report-test96-garage-local"),
+    )
+    before = check_targets(
+        _committed("report-test96"),
+        _committed("report-test96-pillars"),
+        _committed("report-test96-garage"),
+    )
+    cfer = [(f.name, f.value, f.met, f.detail) for f in local if "CFER" in f.name]
+    assert cfer == [(f.name, f.value, f.met, f.detail) for f in before if "CFER" in f.name]
+    assert len(cfer) == 4
 
 
 def _parking(reranked: float, retrieval: float, aoe50=1.0, ape50=0.5, aoe25=0.5, ape25=0.2):
