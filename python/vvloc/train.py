@@ -51,6 +51,7 @@ import math
 import os
 import random
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -1214,29 +1215,42 @@ class Trainer:
     # --- head stage ----------------------------------------------------------------------
 
     @torch.no_grad()
-    def _build_head_cache(self, progress: bool) -> torch.Tensor:
-        """Encode every sampler frame once (eval mode, no augmentation): (N, T, R, C) float16."""
+    def _sampler_bevs(self, desc: str, progress: bool) -> Iterator[tuple[list[Any], torch.Tensor]]:
+        """Every sampler frame once, in batches of 16 (eval mode, no augmentation): yields
+        (frames, their BEVs (b, H, W, C) on the device)."""
         self.model.eval()
-        out = []
-        ids = np.arange(len(self.sampler))
-        bar = tqdm(total=len(ids), desc="head stage: caching polar BEVs", disable=not progress)
-        for a in range(0, len(ids), 16):
-            frames = [self.sampler.frame(int(g)) for g in ids[a : a + 16]]
+        n = len(self.sampler)
+        bar = tqdm(total=n, desc=desc, disable=not progress)
+        for a in range(0, n, 16):
+            frames = [self.sampler.frame(g) for g in range(a, min(a + 16, n))]
             images, k, t = frames_to_tensors(frames, self.device)
             feats = self.model.image_features(images)
             size = (int(images.shape[-2]), int(images.shape[-1]))
-            bev = self.model.bev_from_features(feats, k, t, size)
-            out.append(self.model.polar(bev).half())
+            yield frames, self.model.bev_from_features(feats, k, t, size)
             bar.update(len(frames))
         bar.close()
-        cache = torch.cat(out)
+
+    @staticmethod
+    def _joined(parts: list[torch.Tensor], what: str) -> torch.Tensor:
+        """The cache of a stage on the frozen encoder, logged with its size (float16)."""
+        cache = torch.cat(parts)
         log.info(
-            "head stage: cached %d polar BEVs %s (%.0f MB)",
+            "cached %d %s %s (%.0f MB)",
             len(cache),
+            what,
             tuple(cache.shape[1:]),
             cache.numel() * 2 / 1e6,
         )
         return cache
+
+    @torch.no_grad()
+    def _build_head_cache(self, progress: bool) -> torch.Tensor:
+        """Encode every sampler frame once (eval mode, no augmentation): (N, T, R, C) float16."""
+        parts = [
+            self.model.polar(bev).half()
+            for _, bev in self._sampler_bevs("head stage: caching polar BEVs", progress)
+        ]
+        return self._joined(parts, "polar BEVs for the head stage")
 
     def head_cache(self, progress: bool = False) -> torch.Tensor:
         """The head stage's cache of polar BEVs (N, T, R, C) float16, built on first use
@@ -1347,28 +1361,12 @@ class Trainer:
     def _build_local_cache(self, progress: bool) -> tuple[torch.Tensor, np.ndarray]:
         """Encode every sampler frame once (eval mode, no augmentation): BEVs (N, H, W, C)
         float16 on the device and poses (N, 3) float64 (x m, y m, yaw rad, world frame)."""
-        self.model.eval()
-        out: list[torch.Tensor] = []
+        parts: list[torch.Tensor] = []
         poses: list[np.ndarray] = []
-        n = len(self.sampler)
-        bar = tqdm(total=n, desc="local stage: caching BEVs", disable=not progress)
-        for a in range(0, n, 16):
-            frames = [self.sampler.frame(g) for g in range(a, min(a + 16, n))]
-            images, k, t = frames_to_tensors(frames, self.device)
-            feats = self.model.image_features(images)
-            size = (int(images.shape[-2]), int(images.shape[-1]))
-            out.append(self.model.bev_from_features(feats, k, t, size).half())
+        for frames, bev in self._sampler_bevs("local stage: caching BEVs", progress):
+            parts.append(bev.half())
             poses.extend(np.asarray(f.pose, dtype=np.float64) for f in frames)
-            bar.update(len(frames))
-        bar.close()
-        cache = torch.cat(out)
-        log.info(
-            "local stage: cached %d BEVs %s (%.0f MB)",
-            len(cache),
-            tuple(cache.shape[1:]),
-            cache.numel() * 2 / 1e6,
-        )
-        return cache, np.stack(poses)
+        return self._joined(parts, "BEVs for the local stage"), np.stack(poses)
 
     def local_cache(self, progress: bool = False) -> tuple[torch.Tensor, np.ndarray]:
         """The local stage's cache (BEVs (N, H, W, C) float16, poses (N, 3)), built on first
