@@ -565,7 +565,7 @@ def training_losses(
     triplet and hinge losses of the global descriptors; stage 2 adds the yaw matching loss and
     the translation bias loss (weights ``yaw_weight``, ``tbias_weight``) on (anchor, positive)
     with the ground-truth relative pose ξ_{a→p} (with ``tbias_near_weight`` > 0 also the near
-    translation loss; :func:`pose_losses`), and, when ``rerank_weight`` > 0, the
+    translation loss, :func:`near_losses`), and, when ``rerank_weight`` > 0, the
     re-ranking loss on (anchor, positive, negative). A triplet is "correct" for hard mining when
     ‖g_a − g_p‖ + margin < ‖g_a − g_n‖.
     """
@@ -581,13 +581,20 @@ def training_losses(
     l_near = torch.zeros((), device=device)
     if stage == 2:
         poses = batch["poses"].numpy()
+        xi = geometry.relative(poses[:, 0], poses[:, 1])  # (B, 3): positive in anchor frame
+        t = torch.as_tensor(xi[:, :2], dtype=torch.float32, device=device)
+        yaw = torch.as_tensor(xi[:, 2], dtype=torch.float32, device=device)
         bev = out.bev.view(3, b, *out.bev.shape[1:])
         loc = out.local_desc.view(3, b, *out.local_desc.shape[1:])
-        l_yaw, l_tb, l_near = pose_losses(
-            model, bev[0], loc[1], poses[:, 0], poses[:, 1], cfg, step
+        l_yaw = yaw_matching_loss(
+            model, bev[0], loc[1], t, yaw, cfg.yaw_gamma, cfg.yaw_theta_p, cfg.yaw_theta_n
+        )
+        l_tb = translation_bias_loss(
+            model, bev[0], loc[1], t, yaw, margin=cfg.tbias_margin, seed=cfg.seed * 1_000_003 + step
         )
         total = total + cfg.yaw_weight * l_yaw + cfg.tbias_weight * l_tb
         if cfg.tbias_near_weight > 0:  # only when on, like the re-ranking loss below
+            l_near = near_losses(model, bev[0], loc[1], t, yaw, cfg, step)
             total = total + cfg.tbias_near_weight * l_near
         if cfg.rerank_weight > 0:  # only when on: any extra term would move the committed weights
             l_rr = rerank_loss(model, loc[0], loc[1], loc[2], cfg.rerank_margin)
@@ -606,44 +613,30 @@ def training_losses(
     return total, parts, correct
 
 
-def pose_losses(
+def near_losses(
     model: VVLocNet,
     bev_src: torch.Tensor,
     local_tgt: torch.Tensor,
-    pose_src: np.ndarray,
-    pose_tgt: np.ndarray,
+    translation: torch.Tensor,
+    yaw: torch.Tensor,
     cfg: TrainConfig,
     step: int,
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The losses of (source, target) pairs at their ground-truth relative pose ξ_{s→t}:
-    (yaw matching, translation bias, near translation; the last 0 unless
-    ``tbias_near_weight`` > 0), unweighted, seeded by the run's seed and ``step``. Source BEVs
-    (B, H, W, C), target local-view descriptors (B, T, C), world poses (B, 3) (x m, y m,
-    yaw rad) of sources and targets. Stage 2 and the local stage share it."""
-    xi = geometry.relative(pose_src, pose_tgt)  # (B, 3): target in source frame
-    t = torch.as_tensor(xi[:, :2], dtype=torch.float32, device=bev_src.device)
-    yaw = torch.as_tensor(xi[:, 2], dtype=torch.float32, device=bev_src.device)
-    l_yaw = yaw_matching_loss(
-        model, bev_src, local_tgt, t, yaw, cfg.yaw_gamma, cfg.yaw_theta_p, cfg.yaw_theta_n
+) -> torch.Tensor:
+    """:func:`vvloc.losses.near_translation_loss` with the config's ``tbias_near_*`` settings,
+    seeded by the run's seed and ``step``: source BEVs (B, H, W, C), target local-view
+    descriptors (B, T, C), ground-truth ξ_{s→t} translation (B, 2) metres and yaw (B,) radians."""
+    lo, hi = (float(v) for v in cfg.tbias_near_range)
+    return near_translation_loss(
+        model,
+        bev_src,
+        local_tgt,
+        translation,
+        yaw,
+        slope=float(cfg.tbias_near_slope),
+        bias_range=(lo, hi),
+        zero_share=float(cfg.tbias_near_zero),
+        seed=cfg.seed * 1_000_033 + step,
     )
-    l_tb = translation_bias_loss(
-        model, bev_src, local_tgt, t, yaw, margin=cfg.tbias_margin, seed=cfg.seed * 1_000_003 + step
-    )
-    l_near = torch.zeros((), device=bev_src.device)
-    if cfg.tbias_near_weight > 0:
-        lo, hi = (float(v) for v in cfg.tbias_near_range)
-        l_near = near_translation_loss(
-            model,
-            bev_src,
-            local_tgt,
-            t,
-            yaw,
-            slope=float(cfg.tbias_near_slope),
-            bias_range=(lo, hi),
-            zero_share=float(cfg.tbias_near_zero),
-            seed=cfg.seed * 1_000_033 + step,
-        )
-    return l_yaw, l_tb, l_near
 
 
 def validation_recall(
@@ -1390,12 +1383,28 @@ class Trainer:
         ground-truth ξ_{a→p} against the positive's local-view descriptor."""
         cfg = self.cfg
         a, p = np.asarray(pairs)[:, 0], np.asarray(pairs)[:, 1]
+        xi = geometry.relative(poses[a], poses[p])  # (B, 3): positive in anchor frame
+        t = torch.as_tensor(xi[:, :2], dtype=torch.float32, device=self.device)
+        yaw = torch.as_tensor(xi[:, 2], dtype=torch.float32, device=self.device)
         bev_a = bevs[torch.from_numpy(a).to(self.device)].float()
         bev_p = bevs[torch.from_numpy(p).to(self.device)].float()
         loc_p = self.model.decode_polar(self.model.polar(bev_p))
-        l_yaw, l_tb, l_near = pose_losses(self.model, bev_a, loc_p, poses[a], poses[p], cfg, step)
+        l_yaw = yaw_matching_loss(
+            self.model, bev_a, loc_p, t, yaw, cfg.yaw_gamma, cfg.yaw_theta_p, cfg.yaw_theta_n
+        )
+        l_tb = translation_bias_loss(
+            self.model,
+            bev_a,
+            loc_p,
+            t,
+            yaw,
+            margin=cfg.tbias_margin,
+            seed=cfg.seed * 1_000_003 + step,
+        )
         total = cfg.yaw_weight * l_yaw + cfg.tbias_weight * l_tb
+        l_near = torch.zeros((), device=self.device)
         if cfg.tbias_near_weight > 0:
+            l_near = near_losses(self.model, bev_a, loc_p, t, yaw, cfg, step)
             total = total + cfg.tbias_near_weight * l_near
         return total, l_yaw, l_tb, l_near
 
