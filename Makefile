@@ -3,7 +3,7 @@
 #   make bench   kernel benchmarks: table on stdout, JSON in bench-results/
 #   make lint    cargo fmt/clippy, ruff, mypy stubtest of the extension
 #   make demo    end-to-end demo (see README)
-#   make model   the committed small model from scratch (five steps, about 81 min on 2 cores; the
+#   make model   the committed small model from scratch (five steps, 68-80 min on 2 cores; the
 #                committed bytes on the CPU that trained them, other weights elsewhere:
 #                models/synth-small/MODEL_CARD.md)
 #   make model-test  the committed model's test on what make model trained (CHECKPOINT=...),
