@@ -586,6 +586,11 @@ def training_losses(
         yaw = torch.as_tensor(xi[:, 2], dtype=torch.float32, device=device)
         bev = out.bev.view(3, b, *out.bev.shape[1:])
         loc = out.local_desc.view(3, b, *out.local_desc.shape[1:])
+        # Written out here and in Trainer.local_losses on purpose: the same calls made through
+        # one shared function gave the same forward values but gradients that differ in the
+        # last bits (2026-12-04, stage 2 of configs/synth-small-rerank.yaml: step 1's joint
+        # epochs parted from the committed run), so `make model` no longer retrained
+        # models/synth-small's bytes. Check that before refactoring this path.
         l_yaw = yaw_matching_loss(
             model, bev[0], loc[1], t, yaw, cfg.yaw_gamma, cfg.yaw_theta_p, cfg.yaw_theta_n
         )
@@ -1389,6 +1394,7 @@ class Trainer:
         bev_a = bevs[torch.from_numpy(a).to(self.device)].float()
         bev_p = bevs[torch.from_numpy(p).to(self.device)].float()
         loc_p = self.model.decode_polar(self.model.polar(bev_p))
+        # the same calls as training_losses', not shared with it: see the note there
         l_yaw = yaw_matching_loss(
             self.model, bev_a, loc_p, t, yaw, cfg.yaw_gamma, cfg.yaw_theta_p, cfg.yaw_theta_n
         )
