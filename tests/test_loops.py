@@ -8,8 +8,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from vvloc.localize.loops import (
+    FloorOffsets,
+    LoopCandidates,
     confirm_sequence,
     descriptor_loop_candidates,
+    floor_consensus,
+    floor_consistent,
+    floor_offsets,
     sequence_distance,
     sweep_radius,
 )
@@ -226,3 +231,207 @@ def test_confirming_single_candidates_equals_the_sequence_query(half):
     np.testing.assert_array_equal(got.i, want.i)
     np.testing.assert_array_equal(got.j, want.j)
     np.testing.assert_array_equal(got.distance, want.distance)
+
+
+# --- the floor check -------------------------------------------------------------------------
+
+
+def stacked_floors(n: int = 6, d: int = 8, seed: int = 0):
+    """Two sessions that each drive floor 0 and then floor 1 of a garage whose floors look the
+    same: rows of session s are [floor 0: places 0..n-1, floor 1: places 0..n-1], descriptors of
+    a place equal on both floors (small noise per row)."""
+    rng = np.random.default_rng(seed)
+    places = rng.standard_normal((n, d))
+    places /= np.linalg.norm(places, axis=1, keepdims=True)
+    g = np.concatenate([places] * 4) + 0.001 * rng.standard_normal((4 * n, d))
+    sessions = np.repeat([0, 1], 2 * n)
+    floors = np.tile(np.repeat([0, 1], n), 2)
+    seqs = np.tile(np.arange(2 * n) * 20, 2)  # floors far apart in time
+    return g.astype(np.float32), sessions, seqs, floors
+
+
+def test_true_loops_outvote_the_look_alikes_of_each_other_floor():
+    g, sessions, seqs, floors = stacked_floors()
+    cand = descriptor_loop_candidates(g, sessions, seqs, radius=0.1, window=10)
+    # every place matches itself on both floors, in both sessions: 2 + 2 × 2 pairs per place
+    assert len(cand.i) == 6 * 6
+    offsets = floor_offsets(sessions, floors, cand.i, cand.j)
+    # across the sessions: 12 true loops (offset 0) against 6 look-alikes each of +1 and -1
+    assert (offsets.lo.tolist(), offsets.hi.tolist(), offsets.offset.tolist()) == ([0], [1], [0])
+    assert offsets.votes.tolist() == [12]
+    kept = floor_consensus(cand, sessions, floors)
+    assert len(kept.i) == 12
+    assert np.all(floors[kept.i] == floors[kept.j])
+    assert np.all(sessions[kept.i] != sessions[kept.j])  # one session's floors never join
+    assert isinstance(kept, LoopCandidates)
+
+
+def test_pairs_of_one_session_must_join_equal_floor_numbers():
+    sessions = np.array([0, 0, 0, 0])
+    floors = np.array([0, 1, 0, 1])
+    ok = floor_consistent(
+        sessions, floors, [0, 0, 1], [1, 2, 3], floor_offsets(sessions, floors, [], [])
+    )
+    assert ok.tolist() == [False, True, True]
+
+
+def test_an_unclear_or_thin_vote_keeps_no_pair_of_those_sessions():
+    sessions = np.repeat([0, 1], 4)
+    floors = np.tile([0, 0, 1, 1], 2)
+    # rows 0-3 session 0 (floors 0, 0, 1, 1), rows 4-7 session 1 (the same)
+    same = ([0, 1, 2], [4, 5, 6])  # offset 0, three votes
+    other = ([0, 1], [6, 7])  # offset -1, two votes: 3 < 2 × 2, no clear winner
+    i, j = np.r_[same[0], other[0]], np.r_[same[1], other[1]]
+    assert len(floor_offsets(sessions, floors, i, j).lo) == 0
+    assert not floor_consistent(sessions, floors, i, j, floor_offsets(sessions, floors, i, j)).any()
+    # a margin of 1.5 decides it; too few votes (min_votes 4) do not
+    won = floor_offsets(sessions, floors, i, j, margin=1.5)
+    assert won.offset.tolist() == [0]
+    assert floor_consistent(sessions, floors, i, j, won).tolist() == [True] * 3 + [False] * 2
+    assert len(floor_offsets(sessions, floors, i, j, margin=1.5, min_votes=4).lo) == 0
+
+
+def test_sessions_of_one_floor_each_are_not_judged():
+    sessions = np.repeat([0, 1, 2], 3)
+    floors = np.array([0, 0, 0, 7, 7, 7, 0, 1, 0])  # sessions 0 and 1 hold one floor number each
+    i, j = np.array([0, 1, 2]), np.array([3, 4, 8])
+    offsets = floor_offsets(sessions, floors, i, j)
+    # 0-1: not voted, kept whatever their numbers; 0-2: one vote, too few to take
+    assert len(offsets.lo) == 0
+    assert floor_consistent(sessions, floors, i, j, offsets).tolist() == [True, True, False]
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    n=st.integers(2, 40),
+    n_sessions=st.integers(1, 4),
+    n_floors=st.integers(1, 3),
+    seed=st.integers(0, 2**31),
+)
+def test_renumbering_a_sessions_floors_changes_no_decision(n, n_sessions, n_floors, seed):
+    rng = np.random.default_rng(seed)
+    sessions = rng.integers(0, n_sessions, n)
+    floors = rng.integers(0, n_floors, n)
+    p = int(rng.integers(0, 3 * n))
+    i, j = rng.integers(0, n, p), rng.integers(0, n, p)
+    shift = rng.integers(-5, 6, n_sessions)
+    margin = float(rng.choice([1.0, 1.5, 2.0]))
+    votes = int(rng.integers(1, 4))
+    a = floor_offsets(sessions, floors, i, j, margin=margin, min_votes=votes)
+    b = floor_offsets(sessions, floors + shift[sessions], i, j, margin=margin, min_votes=votes)
+    assert a.lo.tolist() == b.lo.tolist() and a.hi.tolist() == b.hi.tolist()
+    assert a.votes.tolist() == b.votes.tolist()
+    assert (b.offset - a.offset).tolist() == (shift[a.lo] - shift[a.hi]).tolist()
+    ok_a = floor_consistent(sessions, floors, i, j, a)
+    ok_b = floor_consistent(sessions, floors + shift[sessions], i, j, b)
+    assert ok_a.tolist() == ok_b.tolist()
+
+
+def brute_floor_offsets(sessions, floors, i, j, margin, min_votes):
+    """Reference: count each session pair's offsets in a dict, take the clear winner."""
+    single = {s: len(set(floors[sessions == s].tolist())) <= 1 for s in set(sessions.tolist())}
+    votes: dict = {}
+    for a, b in zip(i.tolist(), j.tolist(), strict=True):
+        sa, sb = int(sessions[a]), int(sessions[b])
+        if sa == sb or (single[sa] and single[sb]):
+            continue
+        if sa > sb:
+            a, b, sa, sb = b, a, sb, sa
+        votes.setdefault((sa, sb), {}).setdefault(int(floors[a] - floors[b]), 0)
+        votes[(sa, sb)][int(floors[a] - floors[b])] += 1
+    out = {}
+    for key, count in votes.items():
+        ranked = sorted(count.items(), key=lambda kv: -kv[1])
+        top = ranked[0][1]
+        second = ranked[1][1] if len(ranked) > 1 else 0
+        if top >= min_votes and top >= margin * second and top > second:
+            out[key] = (ranked[0][0], top)
+    return out
+
+
+@settings(max_examples=60, deadline=None)
+@given(n=st.integers(2, 30), n_sessions=st.integers(1, 5), seed=st.integers(0, 2**31))
+def test_floor_offsets_match_the_reference(n, n_sessions, seed):
+    rng = np.random.default_rng(seed)
+    sessions = rng.integers(0, n_sessions, n)
+    floors = rng.integers(0, 2, n)
+    p = int(rng.integers(0, 4 * n))
+    i, j = rng.integers(0, n, p), rng.integers(0, n, p)
+    margin, votes = float(rng.choice([1.0, 2.0])), int(rng.integers(1, 3))
+    got = floor_offsets(sessions, floors, i, j, margin=margin, min_votes=votes)
+    ref = brute_floor_offsets(sessions, floors, i, j, margin, votes)
+    table = {
+        (int(a), int(b)): (int(o), int(v))
+        for a, b, o, v in zip(got.lo, got.hi, got.offset, got.votes, strict=True)
+    }
+    assert table == ref
+    assert list(table) == sorted(table)
+
+
+def test_floor_check_bad_arguments_name_the_argument():
+    sessions, floors = np.array([0, 1]), np.array([0, 0])
+    with pytest.raises(ValueError, match="floors"):
+        floor_offsets(sessions, np.array([0]), [0], [1])
+    with pytest.raises(TypeError, match="floors"):
+        floor_offsets(sessions, np.array([0.0, 1.0]), [0], [1])
+    with pytest.raises(ValueError, match="i, j"):
+        floor_offsets(sessions, floors, [0], [2])
+    with pytest.raises(ValueError, match="i, j"):
+        floor_offsets(sessions, floors, [0, 1], [1])
+    with pytest.raises(ValueError, match="sessions"):
+        floor_offsets(np.array([-1, 0]), floors, [0], [1])
+    with pytest.raises(ValueError, match="margin"):
+        floor_offsets(sessions, floors, [0], [1], margin=0.5)
+    with pytest.raises(ValueError, match="min_votes"):
+        floor_offsets(sessions, floors, [0], [1], min_votes=0)
+    empty = np.zeros(0, np.int64)
+    with pytest.raises(ValueError, match="offsets"):
+        bad = FloorOffsets(np.array([0]), np.array([5]), np.array([0]), np.array([3]))
+        floor_consistent(sessions, floors, [0], [1], bad)
+    assert floor_consistent(
+        sessions, floors, [0], [1], FloorOffsets(empty, empty, empty, empty)
+    ).tolist() == [True]
+
+
+def test_loop_candidates_of_a_map_keep_one_floor_with_the_check():
+    from vvloc.localize.loops import loop_candidates
+    from vvloc.localize.mapdb import MapDatabase
+
+    g, sessions, seqs, floors = stacked_floors(n=8)
+    n = len(g)
+    db = MapDatabase.from_arrays(
+        poses=np.zeros((n, 3)),
+        timestamps=np.arange(n, dtype=np.float64),
+        sessions=[f"s{k}" for k in sessions],
+        global_descriptors=g,
+        local_descriptors=np.zeros((n, 4, 2), np.float32),
+        model_config={"test": 1},
+        grid_size=0.3,
+        seq=seqs,
+        floors=floors + 3 * sessions,  # session 1 numbers its floors 3 and 4
+    )
+    every = loop_candidates(db, radius=0.1, window=10)
+    kept = loop_candidates(db, radius=0.1, window=10, check_floors=True)
+    assert len(every.i) == 8 * 6  # each place: 2 + 4 pairs
+    same = floors[kept.i] == floors[kept.j]
+    assert len(kept.i) == 16 and same.all() and (sessions[kept.i] != sessions[kept.j]).all()
+    # with the sequence check the same pairs (but the drives' ends) survive both checks
+    seq_kept = loop_candidates(db, radius=0.1, window=10, sequence=1, check_floors=True)
+    pairs = set(zip(kept.i.tolist(), kept.j.tolist(), strict=True))
+    assert 0 < len(seq_kept.i) < len(kept.i)
+    assert set(zip(seq_kept.i.tolist(), seq_kept.j.tolist(), strict=True)) <= pairs
+    # one floor number per session: nothing to judge, the candidates are those without the check
+    flat = MapDatabase.from_arrays(
+        poses=np.zeros((n, 3)),
+        timestamps=np.arange(n, dtype=np.float64),
+        sessions=[f"s{k}" for k in sessions],
+        global_descriptors=g,
+        local_descriptors=np.zeros((n, 4, 2), np.float32),
+        model_config={"test": 1},
+        grid_size=0.3,
+        seq=seqs,
+    )
+    plain = loop_candidates(flat, radius=0.1, window=10, sequence=1)
+    checked = loop_candidates(flat, radius=0.1, window=10, sequence=1, check_floors=True)
+    assert plain.i.tolist() == checked.i.tolist() and plain.j.tolist() == checked.j.tolist()
+    np.testing.assert_array_equal(plain.distance, checked.distance)

@@ -347,6 +347,17 @@ def test_evaluation_scores_loop_closures_at_the_given_radius(tiny_world, model_d
         events = m["loop_closure"][name]["events"]
         assert 0 < events["events"] <= at["accepted"] or at["accepted"] == 0
         assert events["cross_floor_events"] <= events["events"]
+    # the floor check's rows: a one-floor world gives it nothing to judge
+    for name, checked in (
+        ("VVLoc (descriptor radius)", "VVLoc + floor consensus"),
+        ("VVLoc + sequence (±1 keyframes)", "VVLoc + sequence (±1 keyframes) + floor consensus"),
+    ):
+        a, b = (m["loop_closure"][k]["at_threshold"] for k in (name, checked))
+        assert (a["accepted"], a["precision"], a["recall"]) == (
+            b["accepted"],
+            b["precision"],
+            b["recall"],
+        )
     single = m["loop_closure"]["VVLoc (descriptor radius)"]["at_threshold"]["accepted"]
     assert (
         m["loop_closure"]["VVLoc + sequence (±1 keyframes)"]["at_threshold"]["accepted"] <= single

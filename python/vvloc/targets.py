@@ -116,6 +116,8 @@ def _cfer(report: Mapping[str, Any], world: str) -> list[Figure]:
     figures = []
     for key, entry in loops.items():
         label = "sequence-checked" if "sequence" in key else "single keyframes"
+        if "floor" in key:
+            label += " + floor consensus"
         at = entry["at_threshold"]
         accepted, cfer = int(at["accepted"]), at["cfer"]
         cross = round(cfer * accepted) if accepted and cfer is not None else 0

@@ -32,6 +32,14 @@ def loops(
             help="Half-window L: the ±L neighbouring keyframe pairs must match too (0: off).",
         ),
     ] = 1,
+    check_floors: Annotated[
+        bool,
+        typer.Option(
+            "--check_floors/--no_check_floors",
+            help="Keep only loops that agree with the floors of the map's sessions "
+            "(each session's own floor numbers; a vote per session pair).",
+        ),
+    ] = True,
     threshold: CostThreshold = 0.75,
     max_pairs: Annotated[
         int, typer.Option("--max_pairs", min=0, help="Closest candidates to verify (0: all).")
@@ -56,6 +64,7 @@ def loops(
             radius=radius,
             window=window,
             sequence=sequence,
+            check_floors=check_floors,
             cost_threshold=threshold,
             max_pairs=max_pairs or None,
         )

@@ -27,13 +27,25 @@ from vvloc.localize.localizer import (
     build_map,
     encode_frames,
 )
-from vvloc.localize.loops import confirm_sequence, loop_candidates, sweep_radius, verify_pairs
+from vvloc.localize.loops import (
+    FLOOR_MARGIN,
+    FLOOR_MIN_VOTES,
+    FLOOR_VOTE_FACTOR,
+    LoopCandidates,
+    confirm_sequence,
+    floor_consensus,
+    loop_candidates,
+    sweep_radius,
+    verify_pairs,
+)
 from vvloc.localize.mapdb import MapDatabase
 from vvloc.localize.metric import METRIC_CANDIDATES, RETRIEVAL_WEIGHT, SearchConfig
 from vvloc.nets import VVLocNet
 from vvloc.nets.model import resolve_device
 from vvloc.provenance import cpu_model, hardware, summarize
 
+#: The loop-closure variants with the floor check (vvloc.localize.loops.floor_consensus).
+FLOORS = "floor consensus"
 #: Loop closure's precision-recall sweep scores the pairs within this descriptor distance...
 LOOP_SWEEP_RADIUS = 0.5
 #: ...unless they are more than about this many (then a smaller radius, see sweep_radius).
@@ -96,11 +108,14 @@ def _loops(
 ) -> tuple[dict[str, Any], dict[str, Any], float, bool]:
     """Loop closure over all frames of ``sessions`` (one map with BEVs), accepted at descriptor
     distance ≤ ``radius``: single keyframes (the paper's test) and, for ``sequence = L > 0``,
-    with the sequence-consistency check of half-window L (:mod:`vvloc.localize.loops`). The
-    precision-recall sweep scores the pairs within descriptor distance 0.5, or within the
-    smaller radius (never below ``radius``) that keeps them to about ``sweep_pairs``; returns
-    the closure and pose metrics, that sweep radius, and whether ``radius`` alone already held
-    more pairs than the bound (the sweep then stops at ``radius``, above the bound)."""
+    with the sequence-consistency check of half-window L (:mod:`vvloc.localize.loops`); each
+    also with the floor check (:func:`vvloc.localize.loops.floor_consensus`: the session pairs'
+    floor offsets voted by the single keyframes within ``FLOOR_VOTE_FACTOR`` × ``radius``; the
+    sweep keeps its pairs of those offsets). The precision-recall sweep scores the pairs within
+    descriptor distance 0.5, or within the smaller radius (never below ``radius``) that keeps
+    them to about ``sweep_pairs``; returns the closure and pose metrics, that sweep radius, and
+    whether ``radius`` alone already held more pairs than the bound (the sweep then stops at
+    ``radius``, above the bound)."""
     path = build_map(model, ds, list(sessions), out_dir / "loops_map.h5", progress=progress)
     closure: dict[str, Any] = {}
     pose: dict[str, Any] = {}
@@ -117,17 +132,29 @@ def _loops(
             r_max=LOOP_SWEEP_RADIUS,
         )
         sweep, over = max(bound, radius), bound < radius
-        variants = {"VVLoc (descriptor radius)": 0}
+        variants = {"VVLoc (descriptor radius)": (0, False)}
         if sequence > 0:
-            variants[f"VVLoc + sequence (±{sequence} keyframes)"] = sequence
+            variants[f"VVLoc + sequence (±{sequence} keyframes)"] = (sequence, False)
+        variants[f"VVLoc + {FLOORS}"] = (0, True)
+        if sequence > 0:
+            variants[f"VVLoc + sequence (±{sequence} keyframes) + {FLOORS}"] = (sequence, True)
         # every pair within a generous descriptor radius: the sweep's candidates (one radius
-        # query; the sequence check filters the same pairs)
+        # query; the sequence and floor checks filter the same pairs)
         single = loop_candidates(db, radius=sweep, window=10)
         g, sess, seq = db.global_descriptors, db.session_index, db.seq
-        for name, half in variants.items():
+        # the floor check's voters: the single keyframes within FLOOR_VOTE_FACTOR × the radius
+        vote_radius = FLOOR_VOTE_FACTOR * radius
+        if vote_radius <= sweep:
+            near = single.distance < vote_radius
+            voters = LoopCandidates(single.i[near], single.j[near], single.distance[near])
+        else:
+            voters = loop_candidates(db, radius=vote_radius, window=10)
+        for name, (half, check_floors) in variants.items():
             cand = single
             if half:
                 cand = confirm_sequence(single, g, sess, seq, sweep, half, window=10)
+            if check_floors:
+                cand = floor_consensus(cand, sess, floors, voters)
             pairs = np.stack([cand.i, cand.j], axis=1)
             # frames of one session within ±10 keyframes never count (temporal neighbours)
             curve = evaluate.self_loop_closure_curve(
@@ -313,6 +340,17 @@ def run_evaluation(
                 "pairs (i + k, j ± k), in the better traversal direction, is below the "
                 "threshold as well (vvloc.localize.loops.sequence_distance)"
             )
+        notes.append(
+            f"VVLoc + {FLOORS}: a pair is kept only if it agrees with the floors of the map's "
+            "sessions, in each session's own numbering: within one session the two keyframes' "
+            "floor numbers must be equal; for two sessions, the offset between their numbers "
+            "that the pair implies must be the one most single-keyframe pairs within "
+            f"{FLOOR_VOTE_FACTOR * loop_radius:g} vote for (at least {FLOOR_MIN_VOTES} votes and "
+            f"{FLOOR_MARGIN:g} × any other offset's; otherwise none of the two sessions' pairs "
+            "is kept) "
+            "(vvloc.localize.loops.floor_consensus); the precision-recall sweep keeps the pairs "
+            "of these offsets"
+        )
     if untrained_warning:
         notes.insert(0, untrained_warning)
     metrics: dict[str, Any] = {

@@ -6,7 +6,13 @@ same session (``|seq_i − seq_j| <= window``). With ``sequence = L > 0`` a cand
 matched by its neighbours: the mean descriptor distance over the 2L + 1 keyframe pairs
 (i + k, j ± k), k = −L..L, of the better of the two traversal directions must be below the
 radius as well (:func:`sequence_distance`); an isolated look-alike, such as a view of the other
-floor of a garage, is not. Each candidate gets a metric pose by the same
+floor of a garage, is not. With the floor check (on by default in :func:`detect_loops`) a
+candidate must also agree with the floors of the map's sessions: each session numbers its floors
+by its own odometry, a loop claims its two keyframes are on one floor, so the candidates of two
+sessions vote for the offset between their numberings and only those of the winning offset are
+kept (:func:`floor_offsets`), and candidates within one session must join equal floor numbers;
+a garage's look-alikes of the other floor vote for another offset than the true loops and are
+dropped. Each candidate gets a metric pose by the same
 search as localization, with keyframe i's stored BEV as the padded source and keyframe j's
 local-view descriptor as the target: ξ_{i→j} (frame j expressed in frame i, DESIGN.md §3). A
 loop is accepted when its matching cost is below ``cost_threshold`` (0.75).
@@ -176,6 +182,191 @@ def confirm_sequence(
     return LoopCandidates(cand.i[ok], cand.j[ok], score[ok])
 
 
+#: The floor-consensus check's defaults (:func:`floor_offsets`, :func:`loop_candidates`): the
+#: session pairs' floor offsets are voted by the single-keyframe candidates within
+#: ``FLOOR_VOTE_FACTOR`` × the acceptance radius, and an offset is taken when it has at least
+#: ``FLOOR_MIN_VOTES`` votes and ``FLOOR_MARGIN`` times as many as any other offset of the pair.
+#: Chosen on the default garage's validation sessions (models/synth-small's card, "Loop
+#: closures checked against the sessions' floors").
+FLOOR_VOTE_FACTOR = 2.0
+FLOOR_MARGIN = 2.0
+FLOOR_MIN_VOTES = 3
+
+
+def _session_pair_offsets(
+    sessions: np.ndarray, floors: np.ndarray, i: np.ndarray, j: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Each pair's session-pair key ``lo · S + hi`` (lo <= hi its two sessions, S the number
+    of session ids) and the floor offset it implies, floors of its lo-session keyframe minus
+    floors of its hi-session keyframe."""
+    a, b = sessions[i], sessions[j]
+    span = int(sessions.max(initial=0)) + 1
+    key = np.minimum(a, b) * span + np.maximum(a, b)
+    offset = np.where(a <= b, floors[i] - floors[j], floors[j] - floors[i])
+    return key, offset
+
+
+def _check_floor_inputs(
+    sessions: npt.ArrayLike, floors: npt.ArrayLike, i: npt.ArrayLike, j: npt.ArrayLike
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    sess = _int_array(sessions, "sessions", "(N,)", 1)
+    fl = _int_array(floors, "floors", "(N,)", 1)
+    if fl.shape != sess.shape:
+        raise ValueError(f"floors: expected shape {sess.shape} like sessions, got {fl.shape}")
+    if sess.size and sess.min() < 0:
+        raise ValueError("sessions: expected session ids >= 0")
+    i = _int_array(i, "i", "(P,)", 1)
+    j = _int_array(j, "j", "(P,)", 1)
+    if i.shape != j.shape:
+        raise ValueError(f"i, j: expected (P,) each, got {i.shape} and {j.shape}")
+    n = len(sess)
+    if i.size and (min(i.min(), j.min()) < 0 or max(i.max(), j.max()) >= n):
+        raise ValueError(f"i, j: expected row indices in [0, {n}), got values outside it")
+    return sess, fl, i, j
+
+
+def _single_floor(sessions: np.ndarray, floors: np.ndarray) -> np.ndarray:
+    """(S,) bool over session ids 0..S−1: whether the session holds at most one floor number."""
+    span = int(sessions.max(initial=0)) + 1
+    lo = np.full(span, np.iinfo(np.int64).max)
+    hi = np.full(span, np.iinfo(np.int64).min)
+    np.minimum.at(lo, sessions, floors)
+    np.maximum.at(hi, sessions, floors)
+    return ~(hi > lo)
+
+
+@dataclass(frozen=True)
+class FloorOffsets:
+    """The floor offsets voted for session pairs (:func:`floor_offsets`): for the session pair
+    (``lo[k]``, ``hi[k]``), lo < hi, a keyframe on floor f of session lo is on floor
+    f − ``offset[k]`` of session hi. Pairs absent here had no clear vote; keyframes of one
+    session are always compared at offset 0. (K,) int64 each; ``votes`` (K,) the winning
+    offset's votes. Session pairs that each hold a single floor number are not voted on."""
+
+    lo: np.ndarray
+    hi: np.ndarray
+    offset: np.ndarray
+    votes: np.ndarray
+
+
+def floor_offsets(
+    sessions: npt.ArrayLike,
+    floors: npt.ArrayLike,
+    i: npt.ArrayLike,
+    j: npt.ArrayLike,
+    *,
+    margin: float = FLOOR_MARGIN,
+    min_votes: int = FLOOR_MIN_VOTES,
+) -> FloorOffsets:
+    """The floor offset between each two sessions, voted by candidate loop pairs (i, j).
+
+    Every session numbers the floors it drives on by its own odometry: the numbers agree
+    within a session, but nothing ties one session's numbering to another's. A loop closure
+    claims that its two keyframes are on one floor, so a pair (i, j) of sessions A and B votes
+    for the offset ``floors[i] − floors[j]`` between their numberings. True loops of a session
+    pair agree on one offset; look-alikes of another floor (a garage's stacked floors) vote
+    for the others. The offset with the most votes is taken when it has at least ``min_votes``,
+    at least ``margin`` times as many votes as any other offset of the pair and more than any
+    other (a tie is never taken); otherwise the
+    pair has none (its loops are then refused by :func:`floor_consistent`: an unclear vote
+    does not risk a loop across floors). Pairs of one session take no vote (their offset is 0),
+    nor do pairs of two sessions that each hold a single floor number: their pairs all imply one
+    offset and the floors cannot tell a true loop from a look-alike there
+    (:func:`floor_consistent` keeps them).
+
+    Only differences within a session enter, so renumbering every floor of a session by one
+    constant changes no decision.
+
+    Args:
+        sessions: (N,) int session id of each map row (>= 0).
+        floors: (N,) int floor number of each map row, in its session's own numbering.
+        i, j: (P,) int row indices of the voting pairs (e.g. descriptor candidates).
+        margin: >= 1, the winner's votes over the runner-up's.
+        min_votes: >= 1, the fewest votes an offset is taken with.
+
+    Returns:
+        :class:`FloorOffsets` of the session pairs with a clear vote, sorted by (lo, hi).
+    """
+    sess, fl, i, j = _check_floor_inputs(sessions, floors, i, j)
+    margin = _positive_float(margin, "margin")
+    if margin < 1.0:
+        raise ValueError(f"margin: expected a value >= 1, got {margin}")
+    min_votes = _positive_int(min_votes, "min_votes")
+    span = int(sess.max(initial=0)) + 1
+    key, offset = _session_pair_offsets(sess, fl, i, j)
+    single = _single_floor(sess, fl)
+    # pairs of two sessions vote, unless both sessions hold a single floor number
+    cross = (sess[i] != sess[j]) & ~(single[sess[i]] & single[sess[j]])
+    if not cross.any():
+        empty = np.zeros(0, np.int64)
+        return FloorOffsets(empty, empty, empty, empty)
+    votes, count = np.unique(
+        np.stack([key[cross], offset[cross]], axis=1), axis=0, return_counts=True
+    )
+    order = np.lexsort((-count, votes[:, 0]))  # by key, the most voted offset first
+    votes, count = votes[order], count[order]
+    first = np.r_[True, votes[1:, 0] != votes[:-1, 0]]
+    starts = np.flatnonzero(first)
+    top = count[starts]
+    has_second = np.r_[starts[1:], len(votes)] - starts > 1
+    second = np.where(has_second, count[np.minimum(starts + 1, len(count) - 1)], 0)
+    clear = (top >= min_votes) & (top >= margin * second) & (top > second)  # never a tie
+    keys = votes[starts[clear], 0]
+    return FloorOffsets(
+        lo=keys // span,
+        hi=keys % span,
+        offset=votes[starts[clear], 1],
+        votes=top[clear].astype(np.int64),
+    )
+
+
+def floor_consistent(
+    sessions: npt.ArrayLike,
+    floors: npt.ArrayLike,
+    i: npt.ArrayLike,
+    j: npt.ArrayLike,
+    offsets: FloorOffsets,
+) -> np.ndarray:
+    """(P,) bool: whether each pair (i, j) lies on one floor under ``offsets``
+    (:func:`floor_offsets`): pairs of one session when their floor numbers are equal, pairs of
+    two sessions when their offset is the one voted for that session pair (never when the pair
+    had no clear vote), and always when both sessions hold a single floor number (the floors
+    cannot tell there). ``sessions``, ``floors`` (N,) int and ``i``, ``j`` (P,) int as for
+    :func:`floor_offsets`."""
+    sess, fl, i, j = _check_floor_inputs(sessions, floors, i, j)
+    span = int(sess.max(initial=0)) + 1
+    key, offset = _session_pair_offsets(sess, fl, i, j)
+    voted = np.asarray(offsets.lo, np.int64) * span + np.asarray(offsets.hi, np.int64)
+    if np.any(np.asarray(offsets.hi) >= span) or np.any(np.diff(voted) <= 0):
+        raise ValueError("offsets: expected the FloorOffsets of these sessions (floor_offsets)")
+    at = np.clip(np.searchsorted(voted, key), 0, max(len(voted) - 1, 0))
+    found = (voted[at] == key) if len(voted) else np.zeros(len(key), bool)
+    want = np.where(found, np.asarray(offsets.offset, np.int64)[at] if len(voted) else 0, 0)
+    same = sess[i] == sess[j]
+    single = _single_floor(sess, fl)
+    untold = single[sess[i]] & single[sess[j]]
+    return np.where(same, offset == 0, untold | (found & (offset == want)))
+
+
+def floor_consensus(
+    cand: LoopCandidates,
+    sessions: npt.ArrayLike,
+    floors: npt.ArrayLike,
+    voters: LoopCandidates | None = None,
+    *,
+    margin: float = FLOOR_MARGIN,
+    min_votes: int = FLOOR_MIN_VOTES,
+) -> LoopCandidates:
+    """The candidates of ``cand`` on one floor (:func:`floor_consistent`) under the session
+    pairs' offsets voted by ``voters`` (:func:`floor_offsets`; None: by ``cand`` itself).
+    ``sessions`` and ``floors``: (N,) int of the map's rows (``MapDatabase.session_index``,
+    ``MapDatabase.floors``)."""
+    vote = cand if voters is None else voters
+    offsets = floor_offsets(sessions, floors, vote.i, vote.j, margin=margin, min_votes=min_votes)
+    ok = floor_consistent(sessions, floors, cand.i, cand.j, offsets)
+    return LoopCandidates(cand.i[ok], cand.j[ok], cand.distance[ok])
+
+
 def sweep_radius(
     descriptors: np.ndarray,
     sessions: np.ndarray,
@@ -221,13 +412,27 @@ def sweep_radius(
 
 
 def loop_candidates(
-    mapdb: MapDatabase, radius: float = 0.1, window: int = 10, sequence: int = 0
+    mapdb: MapDatabase,
+    radius: float = 0.1,
+    window: int = 10,
+    sequence: int = 0,
+    check_floors: bool = False,
 ) -> LoopCandidates:
     """:func:`descriptor_loop_candidates` of a map's keyframes (rows, their sessions and
-    sequence numbers)."""
-    return descriptor_loop_candidates(
-        mapdb.global_descriptors, mapdb.session_index, mapdb.seq, radius, window, sequence
-    )
+    sequence numbers). ``check_floors``: keep only the candidates on one floor
+    (:func:`floor_consensus`, the session pairs' offsets voted by the single-keyframe candidates
+    within ``FLOOR_VOTE_FACTOR`` × ``radius``; the map's ``floors`` in each session's own
+    numbering)."""
+    g, sess, seq = mapdb.global_descriptors, mapdb.session_index, mapdb.seq
+    if not check_floors:
+        return descriptor_loop_candidates(g, sess, seq, radius, window, sequence)
+    voters = descriptor_loop_candidates(g, sess, seq, FLOOR_VOTE_FACTOR * radius, window)
+    inside = voters.distance < radius
+    cand = LoopCandidates(voters.i[inside], voters.j[inside], voters.distance[inside])
+    sequence = _positive_int(sequence, "sequence", minimum=0)
+    if sequence:
+        cand = confirm_sequence(cand, g, sess, seq, radius, sequence, window)
+    return floor_consensus(cand, sess, mapdb.floors, voters)
 
 
 def verify_pairs(
@@ -271,6 +476,7 @@ def detect_loops(
     radius: float = 0.1,
     window: int = 10,
     sequence: int = 1,
+    check_floors: bool = True,
     cost_threshold: float = 0.75,
     search: SearchConfig | None = None,
     max_pairs: int | None = None,
@@ -285,7 +491,9 @@ def detect_loops(
     (:func:`~vvloc.localize.localizer.check_map_model`: ``MapError`` otherwise). ``max_pairs``
     keeps only the closest candidates in descriptor space (None: all). ``sequence``: the
     half-window L of the sequence-consistency check (default 1: the pairs of the neighbouring
-    keyframes must match too; 0: single keyframes, the paper's test).
+    keyframes must match too; 0: single keyframes, the paper's test). ``check_floors``
+    (default on): keep only candidates consistent with the floors of the map's sessions
+    (:func:`floor_consensus`; the module docstring).
     """
     check_map_model(mapdb, model)
     cost_threshold = _cost_threshold(cost_threshold, "cost_threshold")
@@ -293,7 +501,7 @@ def detect_loops(
         raise ValueError(
             f"map {mapdb.path}: has no BEVs; rebuild it with BEVs stored to detect loops"
         )
-    cand = loop_candidates(mapdb, radius, window, sequence)
+    cand = loop_candidates(mapdb, radius, window, sequence, check_floors)
     order = np.argsort(cand.distance, kind="stable")
     if max_pairs is not None:
         order = order[:max_pairs]
