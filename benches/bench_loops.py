@@ -8,7 +8,9 @@ vectors (D = 64, the committed model's) plus noise of L2 size ≈ 0.05, so each 
 S − 1 true revisits within the radius 0.1 and the rest are far. Timed in one run: the Rust
 radius query over all keyframes (``descriptor_loop_candidates``, single keyframes), the
 sequence check (:func:`vvloc.localize.loops.sequence_distance`, numpy) on its candidate pairs
-for L = 1 and 2, and the metric verification of one pair (``verify_pairs``: a small model,
+for L = 1 and 2, the floor check (:func:`vvloc.localize.loops.floor_consensus`, numpy: each
+session drives places 0..F/2−1 on floor 0 and the rest on floor 1, the pairs vote on their
+own) on the same pairs, and the metric verification of one pair (``verify_pairs``: a small model,
 ``ModelConfig.small()``, whose weights do not change the timing, on a stored BEV) — the cost the
 sequence check is compared with, per pair.
 """
@@ -24,7 +26,12 @@ import numpy as np
 import torch
 
 from _common import print_table, random_map, timeit, write_json
-from vvloc.localize.loops import descriptor_loop_candidates, sequence_distance, verify_pairs
+from vvloc.localize.loops import (
+    descriptor_loop_candidates,
+    floor_consensus,
+    sequence_distance,
+    verify_pairs,
+)
 from vvloc.localize.mapdb import MapDatabase
 from vvloc.nets import ModelConfig, VVLocNet
 
@@ -80,6 +87,10 @@ def main(argv: list[str]) -> int:
     for half in (1, 2):
         ms = 1e3 * timeit(lambda h=half: sequence_distance(g, sess, seq, cand.i, cand.j, h, 10))
         rows.append({"step": f"sequence check L = {half} (numpy)", "ms": ms, "pairs": p})
+    place = (seq + sess * args.frames // args.sessions) % args.frames  # drives() rolls the loop
+    floors = (place >= args.frames // 2).astype(np.int64)
+    ms = 1e3 * timeit(lambda: floor_consensus(cand, sess, floors))
+    rows.append({"step": "floor check (numpy)", "ms": ms, "pairs": p})
     verify = pair_verification_ms()
     rows.append({"step": "metric verification (one pair)", "ms": verify, "pairs": 1})
     for r in rows:

@@ -191,6 +191,13 @@ def test_cli_map_localize_loops_end_to_end(tiny_world, model_dir, tmp_path):
     n_acc = int(loops.accepted.sum())
     assert len(graph.edges) == 2 * (len(graph.vertex_ids) // 2 - 1) + n_acc
     assert len(loops.i) <= 3
+    # the floor check (on by default) has nothing to judge on a one-floor map
+    r = loops_cli(
+        tmp_path / "loops-all", "--radius", "0.5", "--max_pairs", "3", "--no_check_floors"
+    )
+    assert r.returncode == 0, r.stderr
+    unchecked = read_loop_csv(tmp_path / "loops-all" / "loops.csv")
+    assert (unchecked.i.tolist(), unchecked.j.tolist()) == (loops.i.tolist(), loops.j.tolist())
     # bad input: exit code 2 and a message naming the problem
     r = loops_cli(tmp_path / "loops-bad", "--sequence", "-1")
     assert r.returncode == 2 and "--sequence" in r.stderr

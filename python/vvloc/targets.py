@@ -11,7 +11,9 @@ figures), read from the ``report.json`` of three evaluations of one checkpoint (
 - ``pillars`` and ``garage``: ``vvloc eval --loops`` on a 2-floor garage (with floor-marked
   pillars, and the default one whose floors differ only in parked cars and wall signs): CFER ≤
   0.26 % (the share of accepted loop closures that join two floors), for the loop detector with
-  its sequence check and for single keyframes, at the report's descriptor threshold;
+  its sequence check and for single keyframes, each by descriptors alone and with the floor check
+  (``vvloc.localize.loops.floor_consensus``, the loop detector's default), at the report's
+  descriptor threshold;
 - the training time recorded with the weights (their ``training.json``, as the report carries
   it) ≤ 90 min (on 2 CPU cores, or the hardware the record names).
 
