@@ -424,6 +424,8 @@ def loop_candidates(
     within ``FLOOR_VOTE_FACTOR`` × ``radius``; the map's ``floors`` in each session's own
     numbering)."""
     g, sess, seq = mapdb.global_descriptors, mapdb.session_index, mapdb.seq
+    if not radius > 0:  # before the voters' radius is derived from it
+        raise ValueError(f"radius: expected > 0, got {radius}")
     if not check_floors:
         return descriptor_loop_candidates(g, sess, seq, radius, window, sequence)
     voters = descriptor_loop_candidates(g, sess, seq, FLOOR_VOTE_FACTOR * radius, window)
