@@ -9,8 +9,9 @@ S − 1 true revisits within the radius 0.1 and the rest are far. Timed in one r
 radius query over all keyframes (``descriptor_loop_candidates``, single keyframes), the
 sequence check (:func:`vvloc.localize.loops.sequence_distance`, numpy) on its candidate pairs
 for L = 1 and 2, the floor check (:func:`vvloc.localize.loops.floor_consensus`, numpy: each
-session drives places 0..F/2−1 on floor 0 and the rest on floor 1, the pairs vote on their
-own) on the same pairs, and the metric verification of one pair (``verify_pairs``: a small model,
+session drives places 0..F/2−1 on floor 0 and the rest on floor 1; its
+voters, the pairs within twice the radius, from a second radius query) on the same pairs, and
+the metric verification of one pair (``verify_pairs``: a small model,
 ``ModelConfig.small()``, whose weights do not change the timing, on a stored BEV) — the cost the
 sequence check is compared with, per pair.
 """
@@ -89,7 +90,16 @@ def main(argv: list[str]) -> int:
         rows.append({"step": f"sequence check L = {half} (numpy)", "ms": ms, "pairs": p})
     place = (seq + sess * args.frames // args.sessions) % args.frames  # drives() rolls the loop
     floors = (place >= args.frames // 2).astype(np.int64)
-    ms = 1e3 * timeit(lambda: floor_consensus(cand, sess, floors))
+    voters = descriptor_loop_candidates(g, sess, seq, radius=0.2, window=10)
+    ms = 1e3 * timeit(lambda: descriptor_loop_candidates(g, sess, seq, 0.2, 10))
+    rows.append(
+        {
+            "step": "radius query at 0.2: the floor check's voters (Rust)",
+            "ms": ms,
+            "pairs": len(voters.i),
+        }
+    )
+    ms = 1e3 * timeit(lambda: floor_consensus(cand, sess, floors, voters))
     rows.append({"step": "floor check (numpy)", "ms": ms, "pairs": p})
     verify = pair_verification_ms()
     rows.append({"step": "metric verification (one pair)", "ms": verify, "pairs": 1})

@@ -379,15 +379,31 @@ def test_floor_check_bad_arguments_name_the_argument():
     with pytest.raises(ValueError, match="i, j"):
         floor_offsets(sessions, floors, [0, 1], [1])
     with pytest.raises(ValueError, match="sessions"):
-        floor_offsets(np.array([-1, 0]), floors, [0], [1])
+        floor_offsets(np.array([0, 1, 2]), floors, [0], [1])
     with pytest.raises(ValueError, match="margin"):
         floor_offsets(sessions, floors, [0], [1], margin=0.5)
     with pytest.raises(ValueError, match="min_votes"):
         floor_offsets(sessions, floors, [0], [1], min_votes=0)
     empty = np.zeros(0, np.int64)
-    with pytest.raises(ValueError, match="offsets"):
-        bad = FloorOffsets(np.array([0]), np.array([5]), np.array([0]), np.array([3]))
-        floor_consistent(sessions, floors, [0], [1], bad)
+    one = np.array([0])
+    for bad in (
+        FloorOffsets(one, np.array([5]), one, np.array([3])),  # a session the map lacks
+        FloorOffsets(np.array([1]), one, one, np.array([3])),  # lo > hi
+        FloorOffsets(one, np.array([1, 1]), one, one),  # lengths differ
+    ):
+        with pytest.raises(ValueError, match="offsets"):
+            floor_consistent(sessions, floors, [0], [1], bad)
+    with pytest.raises(TypeError, match="offsets"):
+        floor_consistent(sessions, floors, [0], [1], None)  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match=r"offsets\.lo"):
+        floor_consistent(sessions, floors, [0], [1], FloorOffsets(one * 0.5, one, one, one))
+    cand = LoopCandidates(np.array([0]), np.array([1]), np.array([0.05]))
+    with pytest.raises(TypeError, match="cand"):
+        floor_consensus((cand.i, cand.j, cand.distance), sessions, floors)  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="cand"):
+        floor_consensus(LoopCandidates(cand.i, cand.j, np.zeros(2)), sessions, floors)
+    with pytest.raises(ValueError, match="voters"):
+        floor_consensus(cand, sessions, floors, LoopCandidates(one, one + 7, np.zeros(1)))
     assert floor_consistent(
         sessions, floors, [0], [1], FloorOffsets(empty, empty, empty, empty)
     ).tolist() == [True]
@@ -437,3 +453,14 @@ def test_loop_candidates_of_a_map_keep_one_floor_with_the_check():
     checked = loop_candidates(flat, radius=0.1, window=10, sequence=1, check_floors=True)
     assert plain.i.tolist() == checked.i.tolist() and plain.j.tolist() == checked.j.tolist()
     np.testing.assert_array_equal(plain.distance, checked.distance)
+
+
+def test_session_ids_need_not_be_small_or_contiguous():
+    g, sessions, seqs, floors = stacked_floors()
+    cand = descriptor_loop_candidates(g, sessions, seqs, radius=0.1, window=10)
+    big = np.where(sessions == 0, -7, 4_000_000_000)  # any int64 ids
+    a = floor_consensus(cand, sessions, floors)
+    b = floor_consensus(cand, big, floors)
+    assert a.i.tolist() == b.i.tolist() and a.j.tolist() == b.j.tolist()
+    off = floor_offsets(big, floors, cand.i, cand.j)
+    assert (off.lo.tolist(), off.hi.tolist(), off.offset.tolist()) == ([-7], [4_000_000_000], [0])

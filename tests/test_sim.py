@@ -333,11 +333,10 @@ def test_demo_warns_unless_the_model_card_says_ok():
     assert status_warning("Status: OKAY-ish") is not None
     assert status_warning("**Status:** OK.") is None and status_warning("\ufeffStatus: OK") is None
     assert status_warning("OK") is not None  # a status line names itself
-    # the committed card says OK (the issue's figures, met with the loop detector's defaults:
-    # its "Loop closures checked against the sessions' floors"), and the demo prints no warning
+    # the committed card is honest about its missed figure, and the demo says so
     card = (DEFAULT_MODEL / "MODEL_CARD.md").read_text()
-    assert status_warning(card) is None
-    assert "by descriptors alone" in card.splitlines()[0]  # ... and it names what is still missed
+    warning = status_warning(card)
+    assert warning is not None and warning.startswith("WARNING: the committed model is BELOW")
 
 
 def test_every_committed_model_loads_and_its_card_opens_with_its_status():
@@ -355,9 +354,8 @@ def test_every_committed_model_loads_and_its_card_opens_with_its_status():
         assert card.lower().startswith("status:"), folder
         # a headline that the demo prints as one readable warning; the detail follows it
         assert len(card.splitlines()[0]) <= 260, folder
-        # only the default model meets the targets (with the loop detector's floor check); the
-        # earlier ones' cards say that they do not
-        assert (status_warning(card) is None) == (folder == DEFAULT_MODEL), folder
+        # no committed model meets every target yet: each card's first line says so
+        assert status_warning(card) is not None, folder
         if folder.name == "synth-small-garage":
             # a drop-in for the default model: the same encoder and decoder architecture; only
             # the global head is larger (64 NetVLAD clusters projected to 256-d)

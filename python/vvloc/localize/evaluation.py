@@ -346,10 +346,12 @@ def run_evaluation(
             "floor numbers must be equal; for two sessions, the offset between their numbers "
             "that the pair implies must be the one most single-keyframe pairs within "
             f"{FLOOR_VOTE_FACTOR * loop_radius:g} vote for (at least {FLOOR_MIN_VOTES} votes and "
-            f"{FLOOR_MARGIN:g} × any other offset's; otherwise none of the two sessions' pairs "
-            "is kept) "
+            f"{FLOOR_MARGIN:g} × any other offset's, never a tie; otherwise none of the two "
+            "sessions' pairs is kept; two sessions that each hold one floor number are not "
+            "judged) "
             "(vvloc.localize.loops.floor_consensus); the precision-recall sweep keeps the pairs "
-            "of these offsets"
+            "of these offsets. The check reads the floor numbers the sessions record, here the "
+            "labels CFER is scored against: its rows are not the paper's visual CFER"
         )
     if untrained_warning:
         notes.insert(0, untrained_warning)

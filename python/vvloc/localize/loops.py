@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -193,55 +194,64 @@ FLOOR_MARGIN = 2.0
 FLOOR_MIN_VOTES = 3
 
 
-def _session_pair_offsets(
-    sessions: np.ndarray, floors: np.ndarray, i: np.ndarray, j: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """Each pair's session-pair key ``lo · S + hi`` (lo <= hi its two sessions, S the number
-    of session ids) and the floor offset it implies, floors of its lo-session keyframe minus
-    floors of its hi-session keyframe."""
-    a, b = sessions[i], sessions[j]
-    span = int(sessions.max(initial=0)) + 1
-    key = np.minimum(a, b) * span + np.maximum(a, b)
-    offset = np.where(a <= b, floors[i] - floors[j], floors[j] - floors[i])
-    return key, offset
+@dataclass(frozen=True)
+class _Floors:
+    """Validated inputs of the floor check: ``dense`` (N,) session index 0..S−1 of each row
+    (``ids[dense]`` are the given session ids), ``floors`` (N,), pairs ``i``, ``j`` (P,), all
+    int64, and ``single`` (S,) bool: whether the session holds one floor number only."""
+
+    ids: np.ndarray
+    dense: np.ndarray
+    floors: np.ndarray
+    i: np.ndarray
+    j: np.ndarray
+    single: np.ndarray
+
+    def pair_keys(self) -> tuple[np.ndarray, np.ndarray]:
+        """Each pair's session-pair key ``lo · S + hi`` (lo <= hi its two dense sessions) and
+        the floor offset it implies: floor of its lo-session keyframe minus floor of its
+        hi-session keyframe."""
+        a, b = self.dense[self.i], self.dense[self.j]
+        key = np.minimum(a, b) * len(self.ids) + np.maximum(a, b)
+        fi, fj = self.floors[self.i], self.floors[self.j]
+        return key, np.where(a <= b, fi - fj, fj - fi)
 
 
-def _check_floor_inputs(
-    sessions: npt.ArrayLike, floors: npt.ArrayLike, i: npt.ArrayLike, j: npt.ArrayLike
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _floor_inputs(
+    sessions: npt.ArrayLike,
+    floors: npt.ArrayLike,
+    i: npt.ArrayLike,
+    j: npt.ArrayLike,
+    pairs: str = "i, j",
+) -> _Floors:
     sess = _int_array(sessions, "sessions", "(N,)", 1)
     fl = _int_array(floors, "floors", "(N,)", 1)
     if fl.shape != sess.shape:
         raise ValueError(f"floors: expected shape {sess.shape} like sessions, got {fl.shape}")
-    if sess.size and sess.min() < 0:
-        raise ValueError("sessions: expected session ids >= 0")
-    i = _int_array(i, "i", "(P,)", 1)
-    j = _int_array(j, "j", "(P,)", 1)
+    i = _int_array(i, pairs, "(P,)", 1)
+    j = _int_array(j, pairs, "(P,)", 1)
     if i.shape != j.shape:
-        raise ValueError(f"i, j: expected (P,) each, got {i.shape} and {j.shape}")
+        raise ValueError(f"{pairs}: expected (P,) row indices each, got {i.shape} and {j.shape}")
     n = len(sess)
     if i.size and (min(i.min(), j.min()) < 0 or max(i.max(), j.max()) >= n):
-        raise ValueError(f"i, j: expected row indices in [0, {n}), got values outside it")
-    return sess, fl, i, j
-
-
-def _single_floor(sessions: np.ndarray, floors: np.ndarray) -> np.ndarray:
-    """(S,) bool over session ids 0..S−1: whether the session holds at most one floor number."""
-    span = int(sessions.max(initial=0)) + 1
-    lo = np.full(span, np.iinfo(np.int64).max)
-    hi = np.full(span, np.iinfo(np.int64).min)
-    np.minimum.at(lo, sessions, floors)
-    np.maximum.at(hi, sessions, floors)
-    return ~(hi > lo)
+        raise ValueError(f"{pairs}: expected row indices in [0, {n}), got values outside it")
+    ids, dense = np.unique(sess, return_inverse=True)
+    dense = dense.reshape(-1).astype(np.int64)
+    lo = np.full(len(ids), np.iinfo(np.int64).max)
+    hi = np.full(len(ids), np.iinfo(np.int64).min)
+    np.minimum.at(lo, dense, fl)
+    np.maximum.at(hi, dense, fl)
+    return _Floors(ids.astype(np.int64), dense, fl, i, j, ~(hi > lo))
 
 
 @dataclass(frozen=True)
 class FloorOffsets:
     """The floor offsets voted for session pairs (:func:`floor_offsets`): for the session pair
-    (``lo[k]``, ``hi[k]``), lo < hi, a keyframe on floor f of session lo is on floor
-    f − ``offset[k]`` of session hi. Pairs absent here had no clear vote; keyframes of one
-    session are always compared at offset 0. (K,) int64 each; ``votes`` (K,) the winning
-    offset's votes. Session pairs that each hold a single floor number are not voted on."""
+    (``lo[k]``, ``hi[k]``) (session ids, lo < hi), a keyframe on floor f of session lo is on
+    floor f − ``offset[k]`` of session hi. Pairs absent here had no clear vote; keyframes of
+    one session are always compared at offset 0. (K,) int64 each, sorted by (lo, hi);
+    ``votes`` (K,) the winning offset's votes. Session pairs that each hold a single floor
+    number are not voted on."""
 
     lo: np.ndarray
     hi: np.ndarray
@@ -267,18 +277,18 @@ def floor_offsets(
     pair agree on one offset; look-alikes of another floor (a garage's stacked floors) vote
     for the others. The offset with the most votes is taken when it has at least ``min_votes``,
     at least ``margin`` times as many votes as any other offset of the pair and more than any
-    other (a tie is never taken); otherwise the
-    pair has none (its loops are then refused by :func:`floor_consistent`: an unclear vote
-    does not risk a loop across floors). Pairs of one session take no vote (their offset is 0),
-    nor do pairs of two sessions that each hold a single floor number: their pairs all imply one
-    offset and the floors cannot tell a true loop from a look-alike there
-    (:func:`floor_consistent` keeps them).
+    other (a tie is never taken); otherwise the pair has none (its loops are then refused by
+    :func:`floor_consistent`: an unclear vote does not risk a loop across floors). Pairs of
+    one session take no vote (their offset is 0), nor do pairs of two sessions that each hold
+    a single floor number: their pairs all imply one offset and the floors cannot tell a true
+    loop from a look-alike there (:func:`floor_consistent` keeps them).
 
-    Only differences within a session enter, so renumbering every floor of a session by one
-    constant changes no decision.
+    A vote is a keyframe pair, not a place: the neighbouring keyframes of one look-alike run
+    vote together. Only differences within a session enter, so adding a constant to every
+    floor number of a session changes no decision (the offsets shift by it).
 
     Args:
-        sessions: (N,) int session id of each map row (>= 0).
+        sessions: (N,) int session id of each map row.
         floors: (N,) int floor number of each map row, in its session's own numbering.
         i, j: (P,) int row indices of the voting pairs (e.g. descriptor candidates).
         margin: >= 1, the winner's votes over the runner-up's.
@@ -287,16 +297,16 @@ def floor_offsets(
     Returns:
         :class:`FloorOffsets` of the session pairs with a clear vote, sorted by (lo, hi).
     """
-    sess, fl, i, j = _check_floor_inputs(sessions, floors, i, j)
+    f = _floor_inputs(sessions, floors, i, j)
     margin = _positive_float(margin, "margin")
     if margin < 1.0:
         raise ValueError(f"margin: expected a value >= 1, got {margin}")
     min_votes = _positive_int(min_votes, "min_votes")
-    span = int(sess.max(initial=0)) + 1
-    key, offset = _session_pair_offsets(sess, fl, i, j)
-    single = _single_floor(sess, fl)
+    span = len(f.ids)
+    key, offset = f.pair_keys()
+    a, b = f.dense[f.i], f.dense[f.j]
     # pairs of two sessions vote, unless both sessions hold a single floor number
-    cross = (sess[i] != sess[j]) & ~(single[sess[i]] & single[sess[j]])
+    cross = (a != b) & ~(f.single[a] & f.single[b])
     if not cross.any():
         empty = np.zeros(0, np.int64)
         return FloorOffsets(empty, empty, empty, empty)
@@ -305,19 +315,46 @@ def floor_offsets(
     )
     order = np.lexsort((-count, votes[:, 0]))  # by key, the most voted offset first
     votes, count = votes[order], count[order]
-    first = np.r_[True, votes[1:, 0] != votes[:-1, 0]]
-    starts = np.flatnonzero(first)
+    starts = np.flatnonzero(np.r_[True, votes[1:, 0] != votes[:-1, 0]])
     top = count[starts]
     has_second = np.r_[starts[1:], len(votes)] - starts > 1
     second = np.where(has_second, count[np.minimum(starts + 1, len(count) - 1)], 0)
     clear = (top >= min_votes) & (top >= margin * second) & (top > second)  # never a tie
     keys = votes[starts[clear], 0]
     return FloorOffsets(
-        lo=keys // span,
-        hi=keys % span,
+        lo=f.ids[keys // span],
+        hi=f.ids[keys % span],
         offset=votes[starts[clear], 1],
         votes=top[clear].astype(np.int64),
     )
+
+
+def _offset_keys(offsets: FloorOffsets, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``offsets`` (:class:`FloorOffsets` of sessions ``ids``) as sorted dense session-pair keys
+    and their offsets; ValueError/TypeError naming ``offsets`` when they are not of these."""
+    if not isinstance(offsets, FloorOffsets):
+        raise TypeError(f"offsets: expected FloorOffsets, got {type(offsets).__name__}")
+    lo = _int_array(offsets.lo, "offsets.lo", "(K,)", 1)
+    hi = _int_array(offsets.hi, "offsets.hi", "(K,)", 1)
+    off = _int_array(offsets.offset, "offsets.offset", "(K,)", 1)
+    if not lo.shape == hi.shape == off.shape:
+        raise ValueError(
+            f"offsets: expected lo, hi, offset of one length, got {lo.shape}, {hi.shape}, "
+            f"{off.shape}"
+        )
+    dlo, dhi = np.searchsorted(ids, lo), np.searchsorted(ids, hi)
+    known = (dlo < len(ids)) & (dhi < len(ids))
+    known &= ids[np.minimum(dlo, len(ids) - 1)] == lo
+    known &= ids[np.minimum(dhi, len(ids) - 1)] == hi
+    if len(ids) == 0 and len(lo):
+        known = np.zeros(len(lo), bool)
+    keys = dlo * len(ids) + dhi
+    if not known.all() or np.any(lo >= hi) or np.any(np.diff(keys) <= 0):
+        raise ValueError(
+            "offsets: expected the FloorOffsets of these sessions (floor_offsets: session ids "
+            "of the map, lo < hi, sorted)"
+        )
+    return keys, off
 
 
 def floor_consistent(
@@ -333,19 +370,29 @@ def floor_consistent(
     had no clear vote), and always when both sessions hold a single floor number (the floors
     cannot tell there). ``sessions``, ``floors`` (N,) int and ``i``, ``j`` (P,) int as for
     :func:`floor_offsets`."""
-    sess, fl, i, j = _check_floor_inputs(sessions, floors, i, j)
-    span = int(sess.max(initial=0)) + 1
-    key, offset = _session_pair_offsets(sess, fl, i, j)
-    voted = np.asarray(offsets.lo, np.int64) * span + np.asarray(offsets.hi, np.int64)
-    if np.any(np.asarray(offsets.hi) >= span) or np.any(np.diff(voted) <= 0):
-        raise ValueError("offsets: expected the FloorOffsets of these sessions (floor_offsets)")
-    at = np.clip(np.searchsorted(voted, key), 0, max(len(voted) - 1, 0))
-    found = (voted[at] == key) if len(voted) else np.zeros(len(key), bool)
-    want = np.where(found, np.asarray(offsets.offset, np.int64)[at] if len(voted) else 0, 0)
-    same = sess[i] == sess[j]
-    single = _single_floor(sess, fl)
-    untold = single[sess[i]] & single[sess[j]]
-    return np.where(same, offset == 0, untold | (found & (offset == want)))
+    f = _floor_inputs(sessions, floors, i, j)
+    voted, want_of = _offset_keys(offsets, f.ids)
+    key, offset = f.pair_keys()
+    found = np.zeros(len(key), bool)
+    want = np.zeros(len(key), np.int64)
+    if len(voted):
+        at = np.minimum(np.searchsorted(voted, key), len(voted) - 1)
+        found = voted[at] == key
+        want = want_of[at]
+    a, b = f.dense[f.i], f.dense[f.j]
+    untold = f.single[a] & f.single[b]
+    return np.where(a == b, offset == 0, untold | (found & (offset == want)))
+
+
+def _candidates(x: Any, name: str) -> LoopCandidates:
+    if not isinstance(x, LoopCandidates):
+        raise TypeError(f"{name}: expected LoopCandidates, got {type(x).__name__}")
+    if not np.shape(x.i) == np.shape(x.j) == np.shape(x.distance):
+        raise ValueError(
+            f"{name}: expected i, j, distance of one length, got {np.shape(x.i)}, "
+            f"{np.shape(x.j)}, {np.shape(x.distance)}"
+        )
+    return x
 
 
 def floor_consensus(
@@ -361,7 +408,10 @@ def floor_consensus(
     pairs' offsets voted by ``voters`` (:func:`floor_offsets`; None: by ``cand`` itself).
     ``sessions`` and ``floors``: (N,) int of the map's rows (``MapDatabase.session_index``,
     ``MapDatabase.floors``)."""
-    vote = cand if voters is None else voters
+    cand = _candidates(cand, "cand")
+    vote = cand if voters is None else _candidates(voters, "voters")
+    _floor_inputs(sessions, floors, vote.i, vote.j, "voters")  # errors name the argument
+    _floor_inputs(sessions, floors, cand.i, cand.j, "cand")
     offsets = floor_offsets(sessions, floors, vote.i, vote.j, margin=margin, min_votes=min_votes)
     ok = floor_consistent(sessions, floors, cand.i, cand.j, offsets)
     return LoopCandidates(cand.i[ok], cand.j[ok], cand.distance[ok])
@@ -419,22 +469,28 @@ def loop_candidates(
     check_floors: bool = False,
 ) -> LoopCandidates:
     """:func:`descriptor_loop_candidates` of a map's keyframes (rows, their sessions and
-    sequence numbers). ``check_floors``: keep only the candidates on one floor
-    (:func:`floor_consensus`, the session pairs' offsets voted by the single-keyframe candidates
-    within ``FLOOR_VOTE_FACTOR`` × ``radius``; the map's ``floors`` in each session's own
-    numbering)."""
+    sequence numbers). ``check_floors`` (off here, on by default in :func:`detect_loops`): keep
+    only the candidates on one floor (:func:`floor_consensus`, the session pairs' offsets voted
+    by the single-keyframe candidates within ``FLOOR_VOTE_FACTOR`` × ``radius``; the map's
+    ``floors`` in each session's own numbering). A map built without floor numbers has 0
+    everywhere, which the check reads as one floor per session: it then keeps every candidate,
+    unless some sessions of the map do carry floor numbers (mixing them misjudges the pairs)."""
     g, sess, seq = mapdb.global_descriptors, mapdb.session_index, mapdb.seq
     if not radius > 0:  # before the voters' radius is derived from it
         raise ValueError(f"radius: expected > 0, got {radius}")
     if not check_floors:
         return descriptor_loop_candidates(g, sess, seq, radius, window, sequence)
     voters = descriptor_loop_candidates(g, sess, seq, FLOOR_VOTE_FACTOR * radius, window)
+    # the candidates within the radius itself (the Rust query compares float32 distances, this
+    # float64 ones: a pair at exactly the radius may fall either way)
     inside = voters.distance < radius
     cand = LoopCandidates(voters.i[inside], voters.j[inside], voters.distance[inside])
     sequence = _positive_int(sequence, "sequence", minimum=0)
     if sequence:
         cand = confirm_sequence(cand, g, sess, seq, radius, sequence, window)
-    return floor_consensus(cand, sess, mapdb.floors, voters)
+    kept = floor_consensus(cand, sess, mapdb.floors, voters)
+    log.info("floor check: %d of %d loop candidates kept", len(kept.i), len(cand.i))
+    return kept
 
 
 def verify_pairs(
@@ -499,6 +555,8 @@ def detect_loops(
     """
     check_map_model(mapdb, model)
     cost_threshold = _cost_threshold(cost_threshold, "cost_threshold")
+    if not isinstance(check_floors, (bool, np.bool_)):
+        raise TypeError(f"check_floors: expected a bool, got {type(check_floors).__name__}")
     if not mapdb.has_bev:
         raise ValueError(
             f"map {mapdb.path}: has no BEVs; rebuild it with BEVs stored to detect loops"
