@@ -409,13 +409,13 @@ def test_floor_check_bad_arguments_name_the_argument():
     ).tolist() == [True]
 
 
-def test_loop_candidates_of_a_map_keep_one_floor_with_the_check():
-    from vvloc.localize.loops import loop_candidates
+def descriptor_map(g, sessions, seqs, floors=None):
+    """An in-memory map of global descriptors ``g`` (N, D) alone (poses and local-view
+    descriptors zero), sessions named s<k>; ``floors`` None: all 0."""
     from vvloc.localize.mapdb import MapDatabase
 
-    g, sessions, seqs, floors = stacked_floors(n=8)
     n = len(g)
-    db = MapDatabase.from_arrays(
+    return MapDatabase.from_arrays(
         poses=np.zeros((n, 3)),
         timestamps=np.arange(n, dtype=np.float64),
         sessions=[f"s{k}" for k in sessions],
@@ -424,8 +424,15 @@ def test_loop_candidates_of_a_map_keep_one_floor_with_the_check():
         model_config={"test": 1},
         grid_size=0.3,
         seq=seqs,
-        floors=floors + 3 * sessions,  # session 1 numbers its floors 3 and 4
+        floors=floors,
     )
+
+
+def test_loop_candidates_of_a_map_keep_one_floor_with_the_check():
+    from vvloc.localize.loops import loop_candidates
+
+    g, sessions, seqs, floors = stacked_floors(n=8)
+    db = descriptor_map(g, sessions, seqs, floors + 3 * sessions)  # session 1: floors 3 and 4
     every = loop_candidates(db, radius=0.1, window=10)
     kept = loop_candidates(db, radius=0.1, window=10, check_floors=True)
     assert len(every.i) == 8 * 6  # each place: 2 + 4 pairs
@@ -437,16 +444,7 @@ def test_loop_candidates_of_a_map_keep_one_floor_with_the_check():
     assert 0 < len(seq_kept.i) < len(kept.i)
     assert set(zip(seq_kept.i.tolist(), seq_kept.j.tolist(), strict=True)) <= pairs
     # one floor number per session: nothing to judge, the candidates are those without the check
-    flat = MapDatabase.from_arrays(
-        poses=np.zeros((n, 3)),
-        timestamps=np.arange(n, dtype=np.float64),
-        sessions=[f"s{k}" for k in sessions],
-        global_descriptors=g,
-        local_descriptors=np.zeros((n, 4, 2), np.float32),
-        model_config={"test": 1},
-        grid_size=0.3,
-        seq=seqs,
-    )
+    flat = descriptor_map(g, sessions, seqs)
     with pytest.raises(ValueError, match=r"radius: expected > 0, got -0\.1"):
         loop_candidates(db, radius=-0.1, check_floors=True)
     plain = loop_candidates(flat, radius=0.1, window=10, sequence=1)

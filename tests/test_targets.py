@@ -19,6 +19,11 @@ def _committed(name: str) -> dict:
     return read_report(MODEL / name)
 
 
+def _targets(*names: str) -> list:
+    """check_targets of committed reports (parking, pillar garage, default garage)."""
+    return check_targets(*(_committed(n) for n in names))
+
+
 def _by_name(figures) -> dict:
     return {f.name: f for f in figures}
 
@@ -71,16 +76,10 @@ def test_step_fives_reports_give_its_cards_figures():
         time = _by_name(figs)["training time"]
         assert (time.value, time.met) == ("78.6 min", True)
     # the garages: step 5 leaves the global descriptors as they were, and so every CFER
-    local = check_targets(
-        _committed("report-test96-local"),
-        _committed("report-test96-pillars-local"),
-        _committed("report-test96-garage-local"),
+    local = _targets(
+        "report-test96-local", "report-test96-pillars-local", "report-test96-garage-local"
     )
-    before = check_targets(
-        _committed("report-test96"),
-        _committed("report-test96-pillars"),
-        _committed("report-test96-garage"),
-    )
+    before = _targets("report-test96", "report-test96-pillars", "report-test96-garage")
     cfer = [(f.name, f.value, f.met, f.detail) for f in local if "CFER" in f.name]
     assert cfer == [(f.name, f.value, f.met, f.detail) for f in before if "CFER" in f.name]
     assert len(cfer) == 4
@@ -90,15 +89,11 @@ def test_the_floor_checks_rows_are_not_the_issues_figures():
     # models/synth-small/MODEL_CARD.md, "Loop closures checked against the sessions' floors":
     # its test reports add rows with the floor check, which vvloc targets leaves out; the rest
     # repeats step 5's committed garage reports
-    floors = check_targets(
-        _committed("report-test96-local"),
-        _committed("floor-consensus/test-pillars"),
-        _committed("floor-consensus/test-garage"),
+    floors = _targets(
+        "report-test96-local", "floor-consensus/test-pillars", "floor-consensus/test-garage"
     )
-    step5 = check_targets(
-        _committed("report-test96-local"),
-        _committed("report-test96-pillars-local"),
-        _committed("report-test96-garage-local"),
+    step5 = _targets(
+        "report-test96-local", "report-test96-pillars-local", "report-test96-garage-local"
     )
     assert [(f.name, f.value, f.met, f.detail) for f in floors] == [
         (f.name, f.value, f.met, f.detail) for f in step5
