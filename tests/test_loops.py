@@ -393,6 +393,11 @@ def test_floor_check_bad_arguments_name_the_argument():
     ):
         with pytest.raises(ValueError, match="offsets"):
             floor_consistent(sessions, floors, [0], [1], bad)
+    with pytest.raises(ValueError, match="offsets"):  # a map without rows has no sessions
+        floor_consistent(empty, empty, empty, empty, FloorOffsets(one, one + 1, one, one))
+    assert (
+        floor_consistent(empty, empty, empty, empty, floor_offsets(empty, empty, [], [])).size == 0
+    )
     with pytest.raises(TypeError, match="offsets"):
         floor_consistent(sessions, floors, [0], [1], None)  # type: ignore[arg-type]
     with pytest.raises(TypeError, match=r"offsets\.lo"):

@@ -343,11 +343,10 @@ def _offset_keys(offsets: FloorOffsets, ids: np.ndarray) -> tuple[np.ndarray, np
             f"{off.shape}"
         )
     dlo, dhi = np.searchsorted(ids, lo), np.searchsorted(ids, hi)
-    known = (dlo < len(ids)) & (dhi < len(ids))
-    known &= ids[np.minimum(dlo, len(ids) - 1)] == lo
-    known &= ids[np.minimum(dhi, len(ids) - 1)] == hi
-    if len(ids) == 0 and len(lo):
-        known = np.zeros(len(lo), bool)
+    known = np.zeros(len(lo), bool)
+    if len(ids):
+        known = ids[np.minimum(dlo, len(ids) - 1)] == lo
+        known &= ids[np.minimum(dhi, len(ids) - 1)] == hi
     keys = dlo * len(ids) + dhi
     if not known.all() or np.any(lo >= hi) or np.any(np.diff(keys) <= 0):
         raise ValueError(
