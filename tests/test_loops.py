@@ -452,6 +452,8 @@ def test_loop_candidates_of_a_map_keep_one_floor_with_the_check():
     flat = descriptor_map(g, sessions, seqs)
     with pytest.raises(ValueError, match=r"radius: expected > 0, got -0\.1"):
         loop_candidates(db, radius=-0.1, check_floors=True)
+    with pytest.raises(TypeError, match="check_floors"):
+        loop_candidates(db, radius=0.1, check_floors="false")  # type: ignore[arg-type]
     plain = loop_candidates(flat, radius=0.1, window=10, sequence=1)
     checked = loop_candidates(flat, radius=0.1, window=10, sequence=1, check_floors=True)
     assert plain.i.tolist() == checked.i.tolist() and plain.j.tolist() == checked.j.tolist()

@@ -23,7 +23,6 @@ import numpy as np
 from vvloc import evaluate
 from vvloc.localize.loops import (
     FLOOR_VOTE_FACTOR,
-    LoopCandidates,
     confirm_sequence,
     descriptor_loop_candidates,
     floor_consensus,
@@ -57,8 +56,7 @@ for world in ("test-garage", "test-pillars"):
         g, sess, seq = db.global_descriptors, db.session_index, db.seq
         pos, true = np.asarray(db.poses)[:, :2], np.asarray(db.floors)
     voters = descriptor_loop_candidates(g, sess, seq, FLOOR_VOTE_FACTOR * RADIUS, 10)
-    inside = voters.distance < RADIUS
-    single = LoopCandidates(voters.i[inside], voters.j[inside], voters.distance[inside])
+    single = voters.within(RADIUS)
     seqd = confirm_sequence(single, g, sess, seq, RADIUS, 1, 10)
     print(f"{world}: {len(np.unique(sess))} sessions; single keyframes | sequence-checked")
     print(

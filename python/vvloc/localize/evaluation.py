@@ -31,7 +31,6 @@ from vvloc.localize.loops import (
     FLOOR_MARGIN,
     FLOOR_MIN_VOTES,
     FLOOR_VOTE_FACTOR,
-    LoopCandidates,
     confirm_sequence,
     floor_consensus,
     loop_candidates,
@@ -145,8 +144,7 @@ def _loops(
         # the floor check's voters: the single keyframes within FLOOR_VOTE_FACTOR × the radius
         vote_radius = FLOOR_VOTE_FACTOR * radius
         if vote_radius <= sweep:
-            near = single.distance < vote_radius
-            voters = LoopCandidates(single.i[near], single.j[near], single.distance[near])
+            voters = single.within(vote_radius)
         else:
             voters = loop_candidates(db, radius=vote_radius, window=10)
         for name, (half, check_floors) in variants.items():

@@ -51,6 +51,16 @@ class LoopCandidates:
     j: np.ndarray
     distance: np.ndarray
 
+    def subset(self, keep: np.ndarray) -> LoopCandidates:
+        """The candidates where ``keep`` (P,) bool is true."""
+        return LoopCandidates(self.i[keep], self.j[keep], self.distance[keep])
+
+    def within(self, radius: float) -> LoopCandidates:
+        """The candidates with ``distance < radius`` (the pairs a radius query at ``radius``
+        returns; this compares float64 distances, the Rust query float32 ones, so a pair at
+        exactly the radius may fall either way)."""
+        return self.subset(self.distance < radius)
+
 
 #: Pairs per block in :func:`sequence_distance` (bounds its temporaries to BLOCK · D floats).
 BLOCK = 65_536
@@ -179,8 +189,7 @@ def confirm_sequence(
     with ``sequence = half_window``, without a second radius query."""
     seq_dist = sequence_distance(descriptors, sessions, seqs, cand.i, cand.j, half_window, window)
     score = np.maximum(cand.distance, seq_dist)
-    ok = score < radius
-    return LoopCandidates(cand.i[ok], cand.j[ok], score[ok])
+    return LoopCandidates(cand.i, cand.j, score).within(radius)
 
 
 #: The floor-consensus check's defaults (:func:`floor_offsets`, :func:`loop_candidates`): the
@@ -196,52 +205,50 @@ FLOOR_MIN_VOTES = 3
 
 @dataclass(frozen=True)
 class _Floors:
-    """Validated inputs of the floor check: ``dense`` (N,) session index 0..S−1 of each row
-    (``ids[dense]`` are the given session ids), ``floors`` (N,), pairs ``i``, ``j`` (P,), all
-    int64, and ``single`` (S,) bool: whether the session holds one floor number only."""
+    """A map's validated floor numbers: ``ids`` (S,) its sorted session ids, ``dense`` (N,)
+    each row's session index 0..S−1 (``ids[dense]`` the given ids), ``floors`` (N,), all int64,
+    and ``single`` (S,) bool: whether the session holds one floor number only."""
 
     ids: np.ndarray
     dense: np.ndarray
     floors: np.ndarray
-    i: np.ndarray
-    j: np.ndarray
     single: np.ndarray
 
-    def pair_keys(self) -> tuple[np.ndarray, np.ndarray]:
+    @classmethod
+    def of(cls, sessions: npt.ArrayLike, floors: npt.ArrayLike) -> _Floors:
+        sess = _int_array(sessions, "sessions", "(N,)", 1)
+        fl = _int_array(floors, "floors", "(N,)", 1)
+        if fl.shape != sess.shape:
+            raise ValueError(f"floors: expected shape {sess.shape} like sessions, got {fl.shape}")
+        ids, dense = np.unique(sess, return_inverse=True)
+        dense = dense.reshape(-1).astype(np.int64)
+        lo = np.full(len(ids), np.iinfo(np.int64).max)
+        hi = np.full(len(ids), np.iinfo(np.int64).min)
+        np.minimum.at(lo, dense, fl)
+        np.maximum.at(hi, dense, fl)
+        return cls(ids.astype(np.int64), dense, fl, ~(hi > lo))
+
+    def pairs(
+        self, i: npt.ArrayLike, j: npt.ArrayLike, name: str = "i, j"
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Row-index pairs ``i``, ``j`` (P,) validated against this map (errors name ``name``)."""
+        i = _int_array(i, name, "(P,)", 1)
+        j = _int_array(j, name, "(P,)", 1)
+        if i.shape != j.shape:
+            raise ValueError(f"{name}: expected (P,) row indices each, got {i.shape} and {j.shape}")
+        n = len(self.dense)
+        if i.size and (min(i.min(), j.min()) < 0 or max(i.max(), j.max()) >= n):
+            raise ValueError(f"{name}: expected row indices in [0, {n}), got values outside it")
+        return i, j
+
+    def pair_keys(self, i: np.ndarray, j: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Each pair's session-pair key ``lo · S + hi`` (lo <= hi its two dense sessions) and
         the floor offset it implies: floor of its lo-session keyframe minus floor of its
         hi-session keyframe."""
-        a, b = self.dense[self.i], self.dense[self.j]
+        a, b = self.dense[i], self.dense[j]
         key = np.minimum(a, b) * len(self.ids) + np.maximum(a, b)
-        fi, fj = self.floors[self.i], self.floors[self.j]
+        fi, fj = self.floors[i], self.floors[j]
         return key, np.where(a <= b, fi - fj, fj - fi)
-
-
-def _floor_inputs(
-    sessions: npt.ArrayLike,
-    floors: npt.ArrayLike,
-    i: npt.ArrayLike,
-    j: npt.ArrayLike,
-    pairs: str = "i, j",
-) -> _Floors:
-    sess = _int_array(sessions, "sessions", "(N,)", 1)
-    fl = _int_array(floors, "floors", "(N,)", 1)
-    if fl.shape != sess.shape:
-        raise ValueError(f"floors: expected shape {sess.shape} like sessions, got {fl.shape}")
-    i = _int_array(i, pairs, "(P,)", 1)
-    j = _int_array(j, pairs, "(P,)", 1)
-    if i.shape != j.shape:
-        raise ValueError(f"{pairs}: expected (P,) row indices each, got {i.shape} and {j.shape}")
-    n = len(sess)
-    if i.size and (min(i.min(), j.min()) < 0 or max(i.max(), j.max()) >= n):
-        raise ValueError(f"{pairs}: expected row indices in [0, {n}), got values outside it")
-    ids, dense = np.unique(sess, return_inverse=True)
-    dense = dense.reshape(-1).astype(np.int64)
-    lo = np.full(len(ids), np.iinfo(np.int64).max)
-    hi = np.full(len(ids), np.iinfo(np.int64).min)
-    np.minimum.at(lo, dense, fl)
-    np.maximum.at(hi, dense, fl)
-    return _Floors(ids.astype(np.int64), dense, fl, i, j, ~(hi > lo))
 
 
 @dataclass(frozen=True)
@@ -297,14 +304,19 @@ def floor_offsets(
     Returns:
         :class:`FloorOffsets` of the session pairs with a clear vote, sorted by (lo, hi).
     """
-    f = _floor_inputs(sessions, floors, i, j)
+    f = _Floors.of(sessions, floors)
+    return _vote(f, *f.pairs(i, j), margin, min_votes)
+
+
+def _vote(f: _Floors, i: np.ndarray, j: np.ndarray, margin: float, min_votes: int) -> FloorOffsets:
+    """:func:`floor_offsets` of validated inputs."""
     margin = _positive_float(margin, "margin")
     if margin < 1.0:
         raise ValueError(f"margin: expected a value >= 1, got {margin}")
     min_votes = _positive_int(min_votes, "min_votes")
     span = len(f.ids)
-    key, offset = f.pair_keys()
-    a, b = f.dense[f.i], f.dense[f.j]
+    key, offset = f.pair_keys(i, j)
+    a, b = f.dense[i], f.dense[j]
     # pairs of two sessions vote, unless both sessions hold a single floor number
     cross = (a != b) & ~(f.single[a] & f.single[b])
     if not cross.any():
@@ -369,16 +381,21 @@ def floor_consistent(
     had no clear vote), and always when both sessions hold a single floor number (the floors
     cannot tell there). ``sessions``, ``floors`` (N,) int and ``i``, ``j`` (P,) int as for
     :func:`floor_offsets`."""
-    f = _floor_inputs(sessions, floors, i, j)
+    f = _Floors.of(sessions, floors)
+    return _agree(f, *f.pairs(i, j), offsets)
+
+
+def _agree(f: _Floors, i: np.ndarray, j: np.ndarray, offsets: FloorOffsets) -> np.ndarray:
+    """:func:`floor_consistent` of validated inputs."""
     voted, want_of = _offset_keys(offsets, f.ids)
-    key, offset = f.pair_keys()
+    key, offset = f.pair_keys(i, j)
     found = np.zeros(len(key), bool)
     want = np.zeros(len(key), np.int64)
     if len(voted):
         at = np.minimum(np.searchsorted(voted, key), len(voted) - 1)
         found = voted[at] == key
         want = want_of[at]
-    a, b = f.dense[f.i], f.dense[f.j]
+    a, b = f.dense[i], f.dense[j]
     untold = f.single[a] & f.single[b]
     return np.where(a == b, offset == 0, untold | (found & (offset == want)))
 
@@ -409,11 +426,13 @@ def floor_consensus(
     ``MapDatabase.floors``)."""
     cand = _candidates(cand, "cand")
     vote = cand if voters is None else _candidates(voters, "voters")
-    _floor_inputs(sessions, floors, vote.i, vote.j, "voters")  # errors name the argument
-    _floor_inputs(sessions, floors, cand.i, cand.j, "cand")
-    offsets = floor_offsets(sessions, floors, vote.i, vote.j, margin=margin, min_votes=min_votes)
-    ok = floor_consistent(sessions, floors, cand.i, cand.j, offsets)
-    return LoopCandidates(cand.i[ok], cand.j[ok], cand.distance[ok])
+    f = _Floors.of(sessions, floors)  # the map's sessions validated once, for both steps
+    ok = _agree(
+        f,
+        *f.pairs(cand.i, cand.j, "cand"),
+        _vote(f, *f.pairs(vote.i, vote.j, "voters"), margin, min_votes),
+    )
+    return cand.subset(ok)
 
 
 def sweep_radius(
@@ -477,13 +496,12 @@ def loop_candidates(
     g, sess, seq = mapdb.global_descriptors, mapdb.session_index, mapdb.seq
     if not radius > 0:  # before the voters' radius is derived from it
         raise ValueError(f"radius: expected > 0, got {radius}")
+    if not isinstance(check_floors, (bool, np.bool_)):
+        raise TypeError(f"check_floors: expected a bool, got {type(check_floors).__name__}")
     if not check_floors:
         return descriptor_loop_candidates(g, sess, seq, radius, window, sequence)
     voters = descriptor_loop_candidates(g, sess, seq, FLOOR_VOTE_FACTOR * radius, window)
-    # the candidates within the radius itself (the Rust query compares float32 distances, this
-    # float64 ones: a pair at exactly the radius may fall either way)
-    inside = voters.distance < radius
-    cand = LoopCandidates(voters.i[inside], voters.j[inside], voters.distance[inside])
+    cand = voters.within(radius)
     sequence = _positive_int(sequence, "sequence", minimum=0)
     if sequence:
         cand = confirm_sequence(cand, g, sess, seq, radius, sequence, window)
@@ -554,8 +572,6 @@ def detect_loops(
     """
     check_map_model(mapdb, model)
     cost_threshold = _cost_threshold(cost_threshold, "cost_threshold")
-    if not isinstance(check_floors, (bool, np.bool_)):
-        raise TypeError(f"check_floors: expected a bool, got {type(check_floors).__name__}")
     if not mapdb.has_bev:
         raise ValueError(
             f"map {mapdb.path}: has no BEVs; rebuild it with BEVs stored to detect loops"
