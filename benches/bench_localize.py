@@ -12,7 +12,11 @@ interactor). The paper
 reports 261 ms re-ranking and 238 ms metric localization on an A100 with its full model.
 For each further ``--metric_candidates`` value (default ``1,3,5,10``) the metric stage is timed
 in the same run (``Localizer(metric_candidates=M)``: coarse stage against M candidates with the
-query decoded once), beside M separate metric localizations (the cost without sharing).
+query decoded once), beside M separate metric localizations (the cost without sharing). Each
+query is also localized, in turn, with the library's matcher (decoder in chunks, the
+interactor's one-sided first TASA shared), with the decoder in chunks alone, and with the plain
+matcher before 2026-12-05 (each stage decoded in one batch, the whole interactor per pair); all
+three give the same numbers.
 """
 
 from __future__ import annotations
@@ -30,8 +34,10 @@ import torch
 from _common import print_table, random_map, write_json
 from vvloc import kernels
 from vvloc.data import Frame
+from vvloc.localize import localizer as localizer_module
 from vvloc.localize.localizer import Localizer, encode_frames
 from vvloc.localize.mapdb import MapDatabase
+from vvloc.localize.metric import METRIC_CANDIDATES
 from vvloc.nets import ModelConfig, VVLocNet
 
 
@@ -55,6 +61,56 @@ def loc_bev(model: VVLocNet, frame: Frame) -> np.ndarray:
     enc = encode_frames(model, [frame], keep_bev=True)
     assert enc.bev is not None
     return enc.bev[0]
+
+
+def plain_matcher(model: VVLocNet, desc_tgts: np.ndarray, chunked: bool = False):  # type: ignore[no-untyped-def]
+    """The metric stage's callbacks before 2026-12-05: every search stage decoded in one batch
+    (``chunked``: in the library's chunks) and the whole interactor run for each target on N
+    copies of it; the library's ``learned_matcher`` gives the same numbers."""
+    tgts = torch.from_numpy(np.ascontiguousarray(desc_tgts, dtype=np.float32))
+
+    @torch.no_grad()
+    def decode(polar: np.ndarray) -> torch.Tensor:
+        x = torch.from_numpy(polar)
+        return localizer_module.decode_in_chunks(model, x) if chunked else model.decode_polar(x)
+
+    @torch.no_grad()
+    def interact(ds: torch.Tensor, k: int) -> tuple[np.ndarray, np.ndarray]:
+        a, b = model.interact(ds, tgts[k].expand(ds.shape[0], *tgts.shape[1:]))
+        return a.numpy(), b.numpy()
+
+    return decode, interact
+
+
+#: The matchers compared by :func:`compare_matchers`, and what the localizer runs for each.
+MATCHERS = {
+    "library_ms": localizer_module.learned_matcher,
+    "chunked_decoder_only_ms": lambda m, d: plain_matcher(m, d, chunked=True),
+    "plain_ms": plain_matcher,
+}
+
+
+def compare_matchers(model: VVLocNet, mapdb: MapDatabase, frames: list[Frame]) -> list[dict]:
+    """Median metric stage (ms) of ``frames`` with each of :data:`MATCHERS`, for one metric
+    candidate and for the localizer's default M; each frame goes through the matchers in
+    turn, so that all see the same machine."""
+    library = localizer_module.learned_matcher
+    out = []
+    for m in (1, METRIC_CANDIDATES):
+        loc = Localizer(model, mapdb, top_k=20, metric_candidates=m)
+        times: dict[str, list[float]] = {name: [] for name in MATCHERS}
+        try:
+            for f in frames:
+                for name, matcher in MATCHERS.items():
+                    localizer_module.learned_matcher = matcher  # type: ignore[assignment]
+                    times[name].append(loc.localize(f).timings_ms["metric"])
+        finally:
+            localizer_module.learned_matcher = library
+        row: dict = {"metric_candidates": m}
+        row.update({name: float(np.median(v)) for name, v in times.items()})
+        row["plain_vs_library"] = row["plain_ms"] / row["library_ms"]
+        out.append(row)
+    return out
 
 
 def main(argv: list[str]) -> int:
@@ -100,6 +156,7 @@ def main(argv: list[str]) -> int:
             for k, v in r.timings_ms.items():
                 per_stage.setdefault(k, []).append(v)
             shares.append(1e3 * spent["kernels"] / r.timings_ms["metric"])
+        matchers = compare_matchers(model, mapdb, frames[1:])
         extra = []
         for m in ms:
             if m == 1:
@@ -131,6 +188,11 @@ def main(argv: list[str]) -> int:
     print_table(rows, ["stage", "median_ms", "queries"])
     share = float(np.median(shares))
     print(f"Rust kernels' share of the metric stage: {share:.1%} (the rest: decoder + interactor)")
+    print(
+        "metric stage (ms) with the library's matcher, with the decoder in chunks alone, and "
+        "with the plain matcher (before 2026-12-05), each query in turn:"
+    )
+    print_table(matchers, ["metric_candidates", *MATCHERS, "plain_vs_library"])
     if extra:
         print("metric stage with M candidates (shared coarse stage) vs M separate searches:")
         print_table(extra, ["metric_candidates", "metric_ms", "separate_ms", "vs_one"])
@@ -138,7 +200,7 @@ def main(argv: list[str]) -> int:
         write_json(
             args.json,
             "localize",
-            [*rows, {"stage": "metric_kernel_share", "share": share}, *extra],
+            [*rows, {"stage": "metric_kernel_share", "share": share}, *matchers, *extra],
         )
     return 0
 

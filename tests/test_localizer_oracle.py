@@ -15,11 +15,13 @@ import numpy as np
 import pytest
 import torch
 
+from nets_helpers import tiny_config
 from test_metric_localize import bev_at, compose, world_field, wrap
 from vvloc import kernels
 from vvloc.commands._util import MetricFromChoice
 from vvloc.commands.evaluate import eval_command
 from vvloc.commands.localize import localize as localize_command
+from vvloc.localize import localizer as localizer_module
 from vvloc.localize.localizer import (
     METRIC_CANDIDATES,
     METRIC_FROM,
@@ -288,3 +290,54 @@ def test_snapping_reports_the_keyframe_nearest_to_the_metric_pose(upper_floor, t
     np.testing.assert_allclose(back[:2], snapped.global_pose[:2], atol=1e-9)
     assert abs(wrap(back[2] - snapped.global_pose[2])) < 1e-9
     assert snapped.cost == plain.cost
+
+
+@pytest.mark.parametrize("hypotheses", [1, 7, 16])
+def test_the_decoder_in_chunks_equals_one_batch(hypotheses, monkeypatch):
+    """The metric stage decodes a search stage's hypotheses in chunks on the CPU; the decoder
+    treats each (hypothesis, angle) row alone, so the chunks must give the batch's result (bit
+    for bit with this machine's BLAS; a float tolerance where another BLAS picks other kernels
+    for other batch sizes)."""
+    torch.manual_seed(0)
+    model = VVLocNet(tiny_config()).eval()
+    cfg = model.config
+    polar = torch.randn(hypotheses, cfg.num_angles, cfg.num_radii, cfg.channels)
+    with torch.no_grad():
+        whole = model.decode_polar(polar)
+        per_hypothesis = cfg.num_angles * cfg.num_radii * cfg.channels
+        # chunks of 3 hypotheses (a remainder for 7 and 16), and of one for a budget below one
+        for budget in (3 * per_hypothesis, per_hypothesis // 2):
+            monkeypatch.setattr(localizer_module, "DECODE_CHUNK_ELEMENTS", budget)
+            chunked = localizer_module.decode_in_chunks(model, polar)
+            assert chunked.shape == whole.shape
+            torch.testing.assert_close(chunked, whole, rtol=1e-6, atol=1e-6)
+
+
+@pytest.mark.parametrize("rounds", [1, 2])
+def test_the_interactor_in_parts_equals_the_interactor(rounds):
+    """The metric stage runs the interactor's first TASA once per side (each target once, the
+    hypotheses once for every target) and the rest per pair: the parts must give
+    ``model.interact`` of each (hypothesis, target) pair."""
+    torch.manual_seed(1)
+    model = VVLocNet(tiny_config(interactor_rounds=rounds)).eval()
+    it = model.interactor
+    t, c = model.config.num_angles, model.config.channels
+    ds, tgts = torch.randn(11, t, c), torch.randn(3, t, c)
+    with torch.no_grad():
+        expanded = tgts[1].expand(11, t, c)
+        whole = model.interact(ds, expanded)
+        # the same operations in the same order: equal bit for bit
+        parts = it.after_first_tasa(it.first_tasa(ds), it.first_tasa(expanded))
+        for a, b in zip(parts, whole, strict=True):
+            assert torch.equal(a, b)
+        _, interact = localizer_module.learned_matcher(model, tgts.numpy())
+        fine = torch.randn(4, t, c)  # a later search stage: other hypotheses, fewer
+        # targets in any order, one twice (its first TASA is kept), then new hypotheses
+        for d, k in ((ds, 0), (ds, 2), (ds, 1), (ds, 1), (fine, 1), (fine, 0)):
+            want = model.interact(d, tgts[k].expand(len(d), t, c))
+            got = interact(d, k)
+            for a, b in zip(got, want, strict=True):
+                assert isinstance(a, np.ndarray) and a.dtype == np.float32
+                np.testing.assert_allclose(a, b.numpy(), rtol=1e-5, atol=1e-6)
+        with pytest.raises(ValueError, match="local: expected shape"):
+            it.first_tasa(torch.randn(2, t + 1, c))

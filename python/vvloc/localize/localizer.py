@@ -147,21 +147,67 @@ def encode_frames(
     )
 
 
+#: On the CPU the decoder runs on the hypotheses of a search stage in chunks of about this many
+#: polar-BEV elements (N_chunk · T · R · C; 2^19 = 8 hypotheses of the small model). The
+#: decoder works on each angle of each hypothesis alone, so chunking changes no result (bit for
+#: bit here: the localizer's answers on the demo world are unchanged); a stage's whole batch
+#: (121 coarse hypotheses) allocates activations of 30-60 MB per layer, which the allocator
+#: takes from the OS afresh each time (page faults are slow in a VM) and which overflow the
+#: cache (BENCHMARKS.md, "The metric stage's networks without waste"). On a GPU the batch
+#: stays whole.
+DECODE_CHUNK_ELEMENTS = 1 << 19
+
+
+def decode_in_chunks(model: VVLocNet, polar: torch.Tensor) -> torch.Tensor:
+    """The decoder on polar BEVs (N, T, R, C) → local-view descriptors (N, T, C), N ≥ 1, on the
+    CPU in chunks of about :data:`DECODE_CHUNK_ELEMENTS` elements (the same result as one
+    batch: the decoder treats each (hypothesis, angle) row on its own), elsewhere in one batch."""
+    if polar.device.type != "cpu":
+        return model.decode_polar(polar)
+    per = max(1, DECODE_CHUNK_ELEMENTS // max(1, polar[:1].numel()))
+    if polar.shape[0] <= per:
+        return model.decode_polar(polar)
+    return torch.cat([model.decode_polar(p) for p in polar.split(per)])
+
+
+#: The interactor's first TASA sees one side of a pair alone, so :func:`learned_matcher` runs
+#: it once per target, on this many copies of it, rather than on one copy per hypothesis (121
+#: in the coarse stage). Not on a single copy: for a batch of one or two sequences MKL picks
+#: GEMM kernels that round differently, and from four copies on the rows do not depend on the
+#: batch, so 8 copies give the per-hypothesis batch's result bit for bit here.
+TARGET_COPIES = 8
+
+
 def learned_matcher(model: VVLocNet, desc_tgts: F32):  # type: ignore[no-untyped-def]
     """The ``decode`` and ``interact`` callbacks of :func:`metric_localize_best` for the learned
     networks: ``decode`` runs the decoder on padded polar BEVs (N, T, R, C) → Ds (N, T, C)
-    (a torch tensor on the model's device), ``interact(ds, k)`` the interactor of Ds against
-    target k of ``desc_tgts`` (M, T, C) → (Ds', Dt') each (N, T, C) float32."""
+    (a torch tensor on the model's device; :func:`decode_in_chunks`), ``interact(ds, k)`` the
+    interactor of Ds against target k of ``desc_tgts`` (M, T, C) → (Ds', Dt') each (N, T, C)
+    float32.
+
+    ``interact`` equals ``model.interact(ds, target k repeated N times)`` and shares the parts
+    that see one side alone (:meth:`Interactor.first_tasa`): each target's once per matcher
+    (on :data:`TARGET_COPIES` copies), the hypotheses' once per ``ds`` (the coarse stage
+    matches one ``ds`` against every target)."""
     device = model_device(model)
     tgts = torch.from_numpy(np.ascontiguousarray(desc_tgts, dtype=np.float32)).to(device)
+    interactor = model.interactor
+    tgt_first: dict[int, torch.Tensor] = {}  # target k → its first TASA (T, C)
+    src_first: list[torch.Tensor] = []  # [ds, its first TASA] of the last ds
 
     @torch.no_grad()
     def decode(polar: F32) -> torch.Tensor:
-        return model.decode_polar(torch.from_numpy(polar).to(device))
+        return decode_in_chunks(model, torch.from_numpy(polar).to(device))
 
     @torch.no_grad()
     def interact(ds: torch.Tensor, k: int) -> tuple[F32, F32]:
-        a, b = model.interact(ds, tgts[k].expand(ds.shape[0], *tgts.shape[1:]))
+        if not src_first or src_first[0] is not ds:
+            src_first[:] = [ds, interactor.first_tasa(ds)]
+        if k not in tgt_first:
+            copies = tgts[k].expand(TARGET_COPIES, *tgts.shape[1:])
+            tgt_first[k] = interactor.first_tasa(copies)[0]
+        tgt = tgt_first[k].expand(ds.shape[0], *tgts.shape[1:]).contiguous()
+        a, b = interactor.after_first_tasa(src_first[1], tgt)
         return a.float().cpu().numpy(), b.float().cpu().numpy()
 
     return decode, interact

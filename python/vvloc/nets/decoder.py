@@ -71,19 +71,38 @@ class Interactor(nn.Module):
         self.register_buffer("rel", rel, persistent=False)
         self.shape = (cfg.num_angles, c)
 
+    def _check(self, name: str, d: Tensor) -> None:
+        if d.ndim != 3 or tuple(d.shape[1:]) != self.shape:
+            raise ValueError(
+                f"{name}: expected shape (P, {self.shape[0]}, {self.shape[1]}), "
+                f"got {tuple(d.shape)}"
+            )
+
     def forward(self, src: Tensor, tgt: Tensor) -> tuple[Tensor, Tensor]:
-        for name, d in (("local_src", src), ("local_tgt", tgt)):
-            if d.ndim != 3 or tuple(d.shape[1:]) != self.shape:
-                raise ValueError(
-                    f"{name}: expected shape (P, {self.shape[0]}, {self.shape[1]}), "
-                    f"got {tuple(d.shape)}"
-                )
+        self._check("local_src", src)
+        self._check("local_tgt", tgt)
         if src.shape[0] != tgt.shape[0]:
             raise ValueError(
                 f"local_src, local_tgt: expected the same number of pairs P, got "
                 f"{src.shape[0]} and {tgt.shape[0]}"
             )
-        for tasa, cross in zip(self.tasa, self.cross, strict=True):
-            src, tgt = tasa(src, self.rel), tasa(tgt, self.rel)
+        src = self.first_tasa(src)
+        return self.after_first_tasa(src, self.first_tasa(tgt))
+
+    def first_tasa(self, d: Tensor) -> Tensor:
+        """The first round's TASA, (P, T, C) → (P, T, C): it sees one side alone, so a side
+        shared by many pairs (the source of several targets, a target of many hypotheses) can
+        go through it once. ``forward(s, t) == after_first_tasa(first_tasa(s), first_tasa(t))``,
+        operation for operation."""
+        self._check("local", d)
+        return self.tasa[0](d, self.rel)
+
+    def after_first_tasa(self, src: Tensor, tgt: Tensor) -> tuple[Tensor, Tensor]:
+        """The rest of :meth:`forward` on (P, T, C) pairs that went through
+        :meth:`first_tasa`: the first round's cross-attention, the further rounds, the L2
+        normalisation; → (Ds', Dt') (P, T, C)."""
+        for i, (tasa, cross) in enumerate(zip(self.tasa, self.cross, strict=True)):
+            if i > 0:
+                src, tgt = tasa(src, self.rel), tasa(tgt, self.rel)
             src, tgt = cross(src, tgt), cross(tgt, src)
         return F.normalize(src, dim=-1), F.normalize(tgt, dim=-1)
