@@ -13,7 +13,8 @@ session drives places 0..F/2−1 on floor 0 and the rest on floor 1; its
 voters, the pairs within twice the radius, from a second radius query) on the same pairs, and
 the metric verification of one pair (``verify_pairs``: a small model,
 ``ModelConfig.small()``, whose weights do not change the timing, on a stored BEV) — the cost the
-sequence check is compared with, per pair.
+sequence check is compared with, per pair — alone and per pair of four with one source keyframe
+(which share its coarse stage).
 """
 
 from __future__ import annotations
@@ -56,17 +57,21 @@ def drives(sessions: int, frames: int, seed: int = 0) -> tuple[np.ndarray, ...]:
     return g.astype(np.float32), sess, seq
 
 
-def pair_verification_ms() -> float:
-    """Median ms of ``verify_pairs`` for one pair of a two-keyframe map with BEVs."""
+def pair_verification_ms(shared: int = 4) -> tuple[float, float]:
+    """Median ms of ``verify_pairs`` for one pair of a map of keyframes with BEVs, and per pair
+    for ``shared`` pairs of one source keyframe (which share its coarse stage)."""
     torch.manual_seed(0)
     rng = np.random.default_rng(0)
     model = VVLocNet(ModelConfig.small()).eval()
-    db = random_map(model, 2, rng, bevs=True)
+    db = random_map(model, shared + 1, rng, bevs=True)
     with tempfile.TemporaryDirectory() as tmp:
         path = db.save(Path(tmp) / "map.h5")
         with MapDatabase.open(path) as mapdb:
             one = np.array([0]), np.array([1])
-            return 1e3 * timeit(lambda: verify_pairs(model, mapdb, *one), min_time=1.0, repeat=3)
+            many = np.zeros(shared, np.int64), np.arange(1, shared + 1)
+            t_one = timeit(lambda: verify_pairs(model, mapdb, *one), min_time=1.0, repeat=3)
+            t_many = timeit(lambda: verify_pairs(model, mapdb, *many), min_time=1.0, repeat=3)
+            return 1e3 * t_one, 1e3 * t_many / shared
 
 
 def main(argv: list[str]) -> int:
@@ -101,8 +106,15 @@ def main(argv: list[str]) -> int:
     )
     ms = 1e3 * timeit(lambda: floor_consensus(cand, sess, floors, voters))
     rows.append({"step": "floor check (numpy)", "ms": ms, "pairs": p})
-    verify = pair_verification_ms()
+    verify, verify_shared = pair_verification_ms()
     rows.append({"step": "metric verification (one pair)", "ms": verify, "pairs": 1})
+    rows.append(
+        {
+            "step": "metric verification, per pair of 4 with one source",
+            "ms": verify_shared,
+            "pairs": 1,
+        }
+    )
     for r in rows:
         r["us_per_pair"] = 1e3 * r["ms"] / max(r["pairs"], 1)
         r["x_verify"] = r["us_per_pair"] / (1e3 * verify)

@@ -4,9 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from nets_helpers import tiny_config
+from vvloc.localize.localizer import interacting_decoder
 from vvloc.localize.loops import (
     FloorOffsets,
     LoopCandidates,
@@ -17,7 +20,11 @@ from vvloc.localize.loops import (
     floor_offsets,
     sequence_distance,
     sweep_radius,
+    verify_pairs,
 )
+from vvloc.localize.mapdb import MapDatabase
+from vvloc.localize.metric import SearchConfig, metric_localize
+from vvloc.nets import VVLocNet
 
 
 def brute_sequence_distance(g, sessions, seqs, i, j, half, window=0):
@@ -417,8 +424,6 @@ def test_floor_check_bad_arguments_name_the_argument():
 def descriptor_map(g, sessions, seqs, floors=None):
     """An in-memory map of global descriptors ``g`` (N, D) alone (poses and local-view
     descriptors zero), sessions named s<k>; ``floors`` None: all 0."""
-    from vvloc.localize.mapdb import MapDatabase
-
     n = len(g)
     return MapDatabase.from_arrays(
         poses=np.zeros((n, 3)),
@@ -469,3 +474,49 @@ def test_session_ids_need_not_be_small_or_contiguous():
     assert a.i.tolist() == b.i.tolist() and a.j.tolist() == b.j.tolist()
     off = floor_offsets(big, floors, cand.i, cand.j)
     assert (off.lo.tolist(), off.hi.tolist(), off.offset.tolist()) == ([-7], [4_000_000_000], [0])
+
+
+def test_verify_pairs_shares_each_sources_coarse_stage_and_equals_one_search_per_pair():
+    """Pairs of one source keyframe share its coarse stage (padded and decoded once): every
+    pair must still get the pose and cost of its own metric localization, in the given order."""
+    torch.manual_seed(0)
+    model = VVLocNet(tiny_config()).eval()
+    cfg = model.config
+    rng = np.random.default_rng(0)
+    n = 5
+    db = MapDatabase.from_arrays(
+        poses=np.zeros((n, 3)),
+        timestamps=np.arange(n, dtype=np.float64),
+        sessions="s0",
+        global_descriptors=np.eye(n, 4, dtype=np.float32),
+        local_descriptors=rng.standard_normal((n, cfg.num_angles, cfg.channels)).astype(np.float32),
+        model_config=cfg.to_dict(),
+        grid_size=cfg.grid_size,
+        bevs=rng.standard_normal((n, cfg.bev_height, cfg.bev_width, cfg.channels)).astype(
+            np.float32
+        ),
+    )
+    search = SearchConfig(half_range=2.0, step=1.0, fine_samples=6, stages=3, seed=1)
+    rows_i = np.array([3, 0, 3, 1, 0, 3])  # sources 3 and 0 twice or thrice, interleaved
+    rows_j = np.array([0, 2, 4, 2, 4, 1])
+    poses, costs = verify_pairs(model, db, rows_i, rows_j, search=search)
+    assert poses.shape == (6, 3) and costs.shape == (6,)
+    for k, (i, j) in enumerate(zip(rows_i, rows_j, strict=True)):
+        tgt = db.local_descriptors(int(j))
+        one = metric_localize(
+            db.bev(int(i)),
+            tgt,
+            interacting_decoder(model, tgt),
+            search,
+            cfg.grid_size,
+            cfg.num_angles,
+            cfg.num_radii,
+        )
+        np.testing.assert_allclose(poses[k], one.pose, rtol=0, atol=1e-6)
+        np.testing.assert_allclose(costs[k], one.cost, rtol=1e-6, atol=1e-7)
+    empty = verify_pairs(model, db, np.zeros(0, np.int64), np.zeros(0, np.int64))
+    assert empty[0].shape == (0, 3) and empty[1].shape == (0,)
+    with pytest.raises(ValueError, match="rows_j"):
+        verify_pairs(model, db, rows_i, rows_j[:-1])
+    with pytest.raises(TypeError, match="rows_i"):
+        verify_pairs(model, db, rows_i.astype(float), rows_j)

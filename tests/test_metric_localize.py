@@ -14,6 +14,7 @@ from vvloc.localize.metric import (
     SearchConfig,
     metric_localize,
     metric_localize_best,
+    metric_localize_each,
 )
 
 H = W = 100
@@ -214,3 +215,29 @@ def test_metric_localize_best_refuses_a_non_finite_cost(monkeypatch):
     monkeypatch.setattr(K, "estimate_yaw", nan_costs)
     with pytest.raises(ValueError, match="costs: contains non-finite"):
         metric_localize_best(bev_s, tgts, decode, None, SearchConfig(stages=2), G, T, R)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_metric_localize_each_equals_one_search_per_target(seed):
+    """The targets share the coarse stage's padding and decoding; each result must be the one
+    search of its target alone, history included, and (with a plain match) the true pose."""
+    bev_s, tgts, xis, decode = _targets(seed, 3)
+    cfg = SearchConfig(stages=3, seed=5)
+    calls = []
+
+    def counting(polar):
+        calls.append(len(polar))
+        return decode(polar)
+
+    each = metric_localize_each(bev_s, tgts, counting, None, cfg, G, T, R)
+    # one coarse grid for all three targets, then each target's two fine stages
+    assert calls == [121] + [cfg.fine_samples] * 2 * 3
+    for res, tgt, xi in zip(each, tgts, xis, strict=True):
+        one = metric_localize(bev_s, tgt, decode, cfg, G, T, R)
+        assert res.pose == one.pose and res.cost == one.cost
+        for a, b in zip(res.history, one.history, strict=True):
+            np.testing.assert_array_equal(a, b)
+        assert np.hypot(res.pose[0] - xi[0], res.pose[1] - xi[1]) < 0.3
+        assert abs(wrap(res.pose[2] - xi[2])) < np.deg2rad(3)
+    with pytest.raises(ValueError, match="desc_tgts"):
+        metric_localize_each(bev_s, tgts[:, :7], decode, None, cfg, G, T, R)

@@ -14,7 +14,8 @@ kept (:func:`floor_offsets`), and candidates within one session must join equal 
 a garage's look-alikes of the other floor vote for another offset than the true loops and are
 dropped. Each candidate gets a metric pose by the same
 search as localization, with keyframe i's stored BEV as the padded source and keyframe j's
-local-view descriptor as the target: ξ_{i→j} (frame j expressed in frame i, DESIGN.md §3). A
+local-view descriptor as the target: ξ_{i→j} (frame j expressed in frame i, DESIGN.md §3); the
+candidates of one keyframe i share the search's coarse stage (:func:`verify_pairs`). A
 loop is accepted when its matching cost is below ``cost_threshold`` (0.75).
 """
 
@@ -31,9 +32,9 @@ from tqdm import tqdm
 from vvloc.evaluate import _int_array
 from vvloc.kernels import _positive_float, _positive_int
 from vvloc.localize.export import LoopClosures
-from vvloc.localize.localizer import _cost_threshold, check_map_model, interacting_decoder
+from vvloc.localize.localizer import _cost_threshold, check_map_model, learned_matcher
 from vvloc.localize.mapdb import MapDatabase
-from vvloc.localize.metric import SearchConfig, metric_localize
+from vvloc.localize.metric import SearchConfig, metric_localize_each
 from vvloc.nets import VVLocNet
 from vvloc.retrieval import DescriptorIndex, Exclusion
 
@@ -521,26 +522,36 @@ def verify_pairs(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Metric pose ξ_{i→j} (P, 3) and matching cost (P,) of map row pairs (``rows_i``,
     ``rows_j`` (P,) ints): keyframe i's stored BEV is the padded source, keyframe j's
-    local-view descriptor the target. It does not check that ``model`` built the map (the
-    caller does, once: :func:`~vvloc.localize.localizer.check_map_model`, as
-    :func:`detect_loops` does)."""
+    local-view descriptor the target. Each pair's result is :func:`metric_localize`'s; the
+    pairs of one source share its coarse stage (:func:`metric_localize_each`: padded and
+    decoded once). It does not check that ``model`` built the map (the caller does, once:
+    :func:`~vvloc.localize.localizer.check_map_model`, as :func:`detect_loops` does)."""
     cfg = model.config
+    rows_i = _int_array(rows_i, "rows_i", "(P,)", 1)
+    rows_j = _int_array(rows_j, "rows_j", f"({len(rows_i)},), as rows_i", 1, len(rows_i))
     poses = np.zeros((len(rows_i), 3))
     costs = np.zeros(len(rows_i))
-    pairs = zip(rows_i, rows_j, strict=True)
-    for k, (i, j) in enumerate(tqdm(pairs, total=len(rows_i), desc="loops", disable=not progress)):
-        tgt = mapdb.local_descriptors(int(j))
-        res = metric_localize(
-            mapdb.bev(int(i)),
-            tgt,
-            interacting_decoder(model, tgt),
+    # the pairs of each source, the sources in the order of their first pair
+    order = np.argsort(rows_i, kind="stable")
+    groups = np.split(order, np.flatnonzero(np.diff(rows_i[order]) != 0) + 1) if len(order) else []
+    groups.sort(key=lambda at: int(at[0]))
+    bar = tqdm(total=len(rows_i), desc="loops", disable=not progress)
+    for at in groups:
+        tgts = np.stack([mapdb.local_descriptors(int(j)) for j in rows_j[at]])
+        results = metric_localize_each(
+            mapdb.bev(int(rows_i[at[0]])),
+            tgts,
+            *learned_matcher(model, tgts),
             search or SearchConfig(),
             float(cfg.grid_size),
             int(cfg.num_angles),
             int(cfg.num_radii),
         )
-        poses[k] = res.pose
-        costs[k] = res.cost
+        for k, res in zip(at, results, strict=True):
+            poses[k] = res.pose
+            costs[k] = res.cost
+        bar.update(len(at))
+    bar.close()
     return poses, costs
 
 

@@ -235,41 +235,92 @@ def metric_localize_best(
         if not np.isfinite(offsets).all():
             raise ValueError(f"bias: expected finite values, got {offsets}")
 
-    def score_with(k: int) -> Callable[[Any], kernels.YawEstimate]:
-        def score(ds: Any) -> kernels.YawEstimate:
-            if interact is not None:
-                return _score(interact(ds, k), tgts[k], backend)
-            if isinstance(ds, tuple):
-                raise TypeError(
-                    "decode: expected source descriptors (N, T, C) when interact is None, "
-                    "got a pair"
-                )
-            return _score(ds, tgts[k], backend)
-
-        return score
-
-    searches = [_search(cfg, backend) for _ in range(len(tgts))]
-    xy = searches[0].proposals()  # the coarse grid: the same for every search
-    polar = kernels.pad_polar(  # type: ignore[attr-defined]  # spatial section of kernels
-        bev_src, xy, num_angles, num_radii, grid_size, backend=backend
-    )
-    ds = decode(polar)
-    coarse = np.empty(len(tgts))
-    for k, search in enumerate(searches):
-        est = score_with(k)(ds)
-        search.report(est.cost, est.yaw)
-        best = search.best()
-        assert best is not None
-        coarse[k] = best.cost
-    scores = coarse + offsets
+    shared = _SharedCoarse(bev_src, tgts, decode, interact, cfg, grid_size, num_radii, backend)
+    scores = shared.coarse + offsets
     k = int(np.argmin(scores))  # finite: TranslationSearch.report refuses NaN and inf
-    result = _finish(
-        searches[k],
-        bev_src,
-        lambda polar: score_with(k)(decode(polar)),
-        num_angles,
-        num_radii,
-        grid_size,
-        backend,
-    )
-    return BestMatch(k, result, coarse, scores)
+    return BestMatch(k, shared.finish(k), shared.coarse, scores)
+
+
+def metric_localize_each(
+    bev_src: Any,
+    desc_tgts: Any,
+    decode: Decoder,
+    interact: Callable[[Any, int], tuple[Any, Any]] | None = None,
+    config: SearchConfig | None = None,
+    grid_size: float = 0.3,
+    num_angles: int = 120,
+    num_radii: int = 25,
+    *,
+    backend: kernels.Backend = "rust",
+) -> list[MetricResult]:
+    """Metric localization of one source BEV against each of several targets (e.g. the loop
+    candidates of one keyframe): the coarse stage is shared as in :func:`metric_localize_best`
+    (the source padded and decoded once), then every target goes through the fine stages on its
+    own. Result k is :func:`metric_localize` of ``desc_tgts[k]`` with ``decode`` followed by
+    ``interact(·, k)``.
+
+    Args:
+        bev_src, desc_tgts, decode, interact, config, grid_size, num_angles, num_radii,
+        backend: as :func:`metric_localize_best`.
+
+    Returns:
+        M :class:`MetricResult`: pose ξ_{s→t_k} (metres, radians, source frame), cost, history.
+    """
+    cfg = config or SearchConfig()
+    tgts = kernels._as_f32(desc_tgts, "desc_tgts", 3, "(M, T, C)")
+    if tgts.shape[0] < 1 or tgts.shape[1] != num_angles:
+        raise ValueError(f"desc_tgts: expected (M >= 1, T={num_angles}, C), got shape {tgts.shape}")
+    shared = _SharedCoarse(bev_src, tgts, decode, interact, cfg, grid_size, num_radii, backend)
+    return [shared.finish(k) for k in range(len(tgts))]
+
+
+class _SharedCoarse:
+    """The coarse stage of one source against M targets (M searches, the source padded and
+    decoded once, ``interact`` or the plain match per target; ``coarse`` (M,) their lowest
+    costs); :meth:`finish` runs target k's fine stages."""
+
+    def __init__(
+        self,
+        bev_src: Any,
+        tgts: npt.NDArray[np.float32],
+        decode: Decoder,
+        interact: Callable[[Any, int], tuple[Any, Any]] | None,
+        cfg: SearchConfig,
+        grid_size: float,
+        num_radii: int,
+        backend: kernels.Backend,
+    ) -> None:
+        self.bev_src, self.tgts, self.decode, self.interact = bev_src, tgts, decode, interact
+        self.grid = (tgts.shape[1], num_radii, grid_size)
+        self.backend = backend
+        self.searches = [_search(cfg, backend) for _ in range(len(tgts))]
+        xy = self.searches[0].proposals()  # the coarse grid: the same for every search
+        polar = kernels.pad_polar(  # type: ignore[attr-defined]  # spatial section of kernels
+            bev_src, xy, *self.grid, backend=backend
+        )
+        ds = decode(polar)
+        self.coarse = np.empty(len(tgts))
+        for k, search in enumerate(self.searches):
+            est = self._score(ds, k)
+            search.report(est.cost, est.yaw)
+            best = search.best()
+            assert best is not None
+            self.coarse[k] = best.cost
+
+    def _score(self, ds: Any, k: int) -> kernels.YawEstimate:
+        if self.interact is not None:
+            return _score(self.interact(ds, k), self.tgts[k], self.backend)
+        if isinstance(ds, tuple):
+            raise TypeError(
+                "decode: expected source descriptors (N, T, C) when interact is None, got a pair"
+            )
+        return _score(ds, self.tgts[k], self.backend)
+
+    def finish(self, k: int) -> MetricResult:
+        return _finish(
+            self.searches[k],
+            self.bev_src,
+            lambda polar: self._score(self.decode(polar), k),
+            *self.grid,
+            self.backend,
+        )
