@@ -221,9 +221,7 @@ def metric_localize_best(
         and cost, and each target's coarse-stage cost.
     """
     cfg = config or SearchConfig()
-    tgts = kernels._as_f32(desc_tgts, "desc_tgts", 3, "(M, T, C)")
-    if tgts.shape[0] < 1 or tgts.shape[1] != num_angles:
-        raise ValueError(f"desc_tgts: expected (M >= 1, T={num_angles}, C), got shape {tgts.shape}")
+    tgts = _targets(desc_tgts, num_angles)
     if bias is None:
         offsets = np.zeros(len(tgts))
     else:
@@ -267,11 +265,17 @@ def metric_localize_each(
         M :class:`MetricResult`: pose ξ_{s→t_k} (metres, radians, source frame), cost, history.
     """
     cfg = config or SearchConfig()
+    tgts = _targets(desc_tgts, num_angles)
+    shared = _SharedCoarse(bev_src, tgts, decode, interact, cfg, grid_size, num_radii, backend)
+    return [shared.finish(k) for k in range(len(tgts))]
+
+
+def _targets(desc_tgts: Any, num_angles: int) -> npt.NDArray[np.float32]:
+    """``desc_tgts`` as (M ≥ 1, T = ``num_angles``, C) float32, or a ValueError naming it."""
     tgts = kernels._as_f32(desc_tgts, "desc_tgts", 3, "(M, T, C)")
     if tgts.shape[0] < 1 or tgts.shape[1] != num_angles:
         raise ValueError(f"desc_tgts: expected (M >= 1, T={num_angles}, C), got shape {tgts.shape}")
-    shared = _SharedCoarse(bev_src, tgts, decode, interact, cfg, grid_size, num_radii, backend)
-    return [shared.finish(k) for k in range(len(tgts))]
+    return tgts
 
 
 class _SharedCoarse:
