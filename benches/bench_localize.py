@@ -15,8 +15,8 @@ in the same run (``Localizer(metric_candidates=M)``: coarse stage against M cand
 query decoded once), beside M separate metric localizations (the cost without sharing). Each
 query is also localized, in turn, with the library's matcher (decoder in chunks, the
 interactor's one-sided first TASA shared), with the decoder in chunks alone, and with the plain
-matcher before 2026-12-05 (each stage decoded in one batch, the whole interactor per pair); all
-three give the same numbers.
+matcher before 2026-12-05 (each stage decoded in one batch, the whole interactor per pair),
+and whether all three gave the same answers (``same_answers``).
 """
 
 from __future__ import annotations
@@ -93,22 +93,29 @@ MATCHERS = {
 def compare_matchers(model: VVLocNet, mapdb: MapDatabase, frames: list[Frame]) -> list[dict]:
     """Median metric stage (ms) of ``frames`` with each of :data:`MATCHERS`, for one metric
     candidate and for the localizer's default M; each frame goes through the matchers in
-    turn, so that all see the same machine."""
+    turn, so that all see the same machine; ``same_answers``: whether all gave the library's
+    pose, cost and keyframe for every frame, bit for bit."""
     library = localizer_module.learned_matcher
     out = []
     for m in (1, METRIC_CANDIDATES):
         loc = Localizer(model, mapdb, top_k=20, metric_candidates=m)
         times: dict[str, list[float]] = {name: [] for name in MATCHERS}
+        same = True  # every matcher's pose and cost equal the library's, bit for bit
         try:
             for f in frames:
+                answers = []
                 for name, matcher in MATCHERS.items():
                     localizer_module.learned_matcher = matcher  # type: ignore[assignment]
-                    times[name].append(loc.localize(f).timings_ms["metric"])
+                    r = loc.localize(f)
+                    times[name].append(r.timings_ms["metric"])
+                    answers.append((tuple(r.relative_pose), r.cost, r.map_row))
+                same &= all(a == answers[0] for a in answers)
         finally:
             localizer_module.learned_matcher = library
         row: dict = {"metric_candidates": m}
         row.update({name: float(np.median(v)) for name, v in times.items()})
         row["plain_vs_library"] = row["plain_ms"] / row["library_ms"]
+        row["same_answers"] = same
         out.append(row)
     return out
 
@@ -192,7 +199,7 @@ def main(argv: list[str]) -> int:
         "metric stage (ms) with the library's matcher, with the decoder in chunks alone, and "
         "with the plain matcher (before 2026-12-05), each query in turn:"
     )
-    print_table(matchers, ["metric_candidates", *MATCHERS, "plain_vs_library"])
+    print_table(matchers, ["metric_candidates", *MATCHERS, "plain_vs_library", "same_answers"])
     if extra:
         print("metric stage with M candidates (shared coarse stage) vs M separate searches:")
         print_table(extra, ["metric_candidates", "metric_ms", "separate_ms", "vs_one"])

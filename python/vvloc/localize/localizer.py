@@ -160,8 +160,9 @@ DECODE_CHUNK_ELEMENTS = 1 << 19
 
 def decode_in_chunks(model: VVLocNet, polar: torch.Tensor) -> torch.Tensor:
     """The decoder on polar BEVs (N, T, R, C) → local-view descriptors (N, T, C), N ≥ 1, on the
-    CPU in chunks of about :data:`DECODE_CHUNK_ELEMENTS` elements (the same result as one
-    batch: the decoder treats each (hypothesis, angle) row on its own), elsewhere in one batch."""
+    CPU in chunks of about :data:`DECODE_CHUNK_ELEMENTS` elements, at least one hypothesis each
+    (the same result as one batch: the decoder treats each (hypothesis, angle) row on its own),
+    elsewhere in one batch."""
     if polar.device.type != "cpu":
         return model.decode_polar(polar)
     per = max(1, DECODE_CHUNK_ELEMENTS // max(1, polar[:1].numel()))
@@ -172,9 +173,11 @@ def decode_in_chunks(model: VVLocNet, polar: torch.Tensor) -> torch.Tensor:
 
 #: The interactor's first TASA sees one side of a pair alone, so :func:`learned_matcher` runs
 #: it once per target, on this many copies of it, rather than on one copy per hypothesis (121
-#: in the coarse stage). Not on a single copy: for a batch of one or two sequences MKL picks
-#: GEMM kernels that round differently, and from four copies on the rows do not depend on the
-#: batch, so 8 copies give the per-hypothesis batch's result bit for bit here.
+#: in the coarse stage; a stage of fewer hypotheses N uses N copies, as before). Not on a
+#: single copy: for a batch of one to three sequences MKL picks GEMM kernels that round
+#: differently, and from four copies on the rows do not depend on the batch, so 8 copies give
+#: the per-hypothesis batch's result bit for bit on the CPU with torch's MKL (elsewhere within
+#: float rounding).
 TARGET_COPIES = 8
 
 
@@ -188,11 +191,13 @@ def learned_matcher(model: VVLocNet, desc_tgts: F32):  # type: ignore[no-untyped
     ``interact`` equals ``model.interact(ds, target k repeated N times)`` and shares the parts
     that see one side alone (:meth:`Interactor.first_tasa`): each target's once per matcher
     (on :data:`TARGET_COPIES` copies), the hypotheses' once per ``ds`` (the coarse stage
-    matches one ``ds`` against every target)."""
+    matches one ``ds`` against every target). Puts ``model`` in eval mode, as
+    :func:`encode_frames` does (a dropout sample shared by every hypothesis would be wrong)."""
+    model.eval()
     device = model_device(model)
     tgts = torch.from_numpy(np.ascontiguousarray(desc_tgts, dtype=np.float32)).to(device)
     interactor = model.interactor
-    tgt_first: dict[int, torch.Tensor] = {}  # target k → its first TASA (T, C)
+    tgt_first: dict[tuple[int, int], torch.Tensor] = {}  # (k, copies) → first TASA (T, C)
     src_first: list[torch.Tensor] = []  # [ds, its first TASA] of the last ds
 
     @torch.no_grad()
@@ -203,10 +208,11 @@ def learned_matcher(model: VVLocNet, desc_tgts: F32):  # type: ignore[no-untyped
     def interact(ds: torch.Tensor, k: int) -> tuple[F32, F32]:
         if not src_first or src_first[0] is not ds:
             src_first[:] = [ds, interactor.first_tasa(ds)]
-        if k not in tgt_first:
-            copies = tgts[k].expand(TARGET_COPIES, *tgts.shape[1:])
-            tgt_first[k] = interactor.first_tasa(copies)[0]
-        tgt = tgt_first[k].expand(ds.shape[0], *tgts.shape[1:]).contiguous()
+        copies = min(ds.shape[0], TARGET_COPIES)
+        if (k, copies) not in tgt_first:
+            row = interactor.first_tasa(tgts[k].expand(copies, *tgts.shape[1:]))[0]
+            tgt_first[k, copies] = row.clone()  # not a view that keeps every copy alive
+        tgt = tgt_first[k, copies].expand(ds.shape[0], *tgts.shape[1:]).contiguous()
         a, b = interactor.after_first_tasa(src_first[1], tgt)
         return a.float().cpu().numpy(), b.float().cpu().numpy()
 

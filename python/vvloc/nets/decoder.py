@@ -93,9 +93,9 @@ class Interactor(nn.Module):
         """The first round's TASA, (P, T, C) → (P, T, C): it sees one side alone, so a side
         shared by many pairs (the source of several targets, a target of many hypotheses) can
         go through it once. ``forward(s, t) == after_first_tasa(first_tasa(s), first_tasa(t))``,
-        operation for operation."""
+        operation for operation. With ``interactor_rounds = 0`` it returns ``d``."""
         self._check("local", d)
-        return self.tasa[0](d, self.rel)
+        return self.tasa[0](d, self.rel) if len(self.tasa) else d
 
     def after_first_tasa(self, src: Tensor, tgt: Tensor) -> tuple[Tensor, Tensor]:
         """The rest of :meth:`forward` on (P, T, C) pairs that went through
