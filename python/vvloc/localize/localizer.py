@@ -219,14 +219,6 @@ def learned_matcher(model: VVLocNet, desc_tgts: F32):  # type: ignore[no-untyped
     return decode, interact
 
 
-def interacting_decoder(model: VVLocNet, desc_tgt: F32):  # type: ignore[no-untyped-def]
-    """A ``decode`` callback for :func:`metric_localize` that runs the learned decoder on the
-    padded polar BEVs (N, T, R, C) and the interactor against the target descriptor (T, C);
-    returns (Ds', Dt') each (N, T, C) float32."""
-    decode, interact = learned_matcher(model, np.asarray(desc_tgt)[None])
-    return lambda polar: interact(decode(polar), 0)
-
-
 def check_map_model(mapdb: MapDatabase, model: VVLocNet) -> None:
     """Refuse a map that ``model`` did not build: :class:`~vvloc.localize.mapdb.MapError` (a
     ``ValueError``) when its config hash or its weights fingerprint differs from the model's;
