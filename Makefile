@@ -7,7 +7,7 @@
 #                committed bytes on the CPU that trained them, other weights elsewhere:
 #                models/synth-small/MODEL_CARD.md)
 #   make model-test  the committed model's test on what make model trained (CHECKPOINT=...),
-#                against the issue's targets (≈ 18 min, plus ≈ 25 min rendering the first time)
+#                against the issue's targets (≈ 8 min, plus ≈ 15-25 min rendering the first time)
 #   make model-v3  the recipe of the previous default, models/synth-small-v3 (in a clean runs/)
 #   make model-garage  the garage variant models/synth-small-garage from models/synth-small-v1 (≈ 53 min)
 SHELL := /bin/bash
