@@ -16,7 +16,8 @@ query decoded once), beside M separate metric localizations (the cost without sh
 query is also localized, in turn, with the library's matcher (decoder in chunks, the
 interactor's one-sided first TASA shared), with the decoder in chunks alone, and with the plain
 matcher before 2026-12-05 (each stage decoded in one batch, the whole interactor per pair),
-and whether all three gave the same answers (``same_answers``).
+and whether all three gave the same answers (``same_answers``). The re-ranking of 20 and 100
+candidates is timed with the library's ``rerank_learned`` and with the plain interactor.
 """
 
 from __future__ import annotations
@@ -120,6 +121,41 @@ def compare_matchers(model: VVLocNet, mapdb: MapDatabase, frames: list[Frame]) -
     return out
 
 
+def compare_rerank(
+    model: VVLocNet, ks: tuple[int, ...] = (20, 100), repeat: int = 30
+) -> list[dict]:
+    """Median ms of the learned re-ranking of K candidates (``rerank_learned``: the query's
+    first TASA once) against the plain one (the whole interactor on the query repeated K
+    times, before 2026-12-05), in turn, random descriptors; ``same_answers``: equal results."""
+    cfg = model.config
+    out = []
+    for k in ks:
+        query = torch.randn(cfg.num_angles, cfg.channels)
+        cands = torch.randn(k, cfg.num_angles, cfg.channels)
+
+        @torch.no_grad()
+        def plain(query: torch.Tensor = query, cands: torch.Tensor = cands) -> kernels.Rerank:
+            a, b = model.interact(query.expand(len(cands), *query.shape), cands)
+            return kernels.rerank(a.numpy(), b.numpy())
+
+        def library(query: torch.Tensor = query, cands: torch.Tensor = cands) -> kernels.Rerank:
+            return localizer_module.rerank_learned(model, query, cands)
+
+        same = all(np.array_equal(x, y) for x, y in zip(plain(), library(), strict=True))
+        times: dict[str, list[float]] = {"library_ms": [], "plain_ms": []}
+        for _ in range(repeat):
+            for name, fn in (("library_ms", library), ("plain_ms", plain)):
+                t0 = time.perf_counter()
+                fn()
+                times[name].append(1e3 * (time.perf_counter() - t0))
+        row: dict = {"candidates": k}
+        row.update({name: float(np.median(v)) for name, v in times.items()})
+        row["plain_vs_library"] = row["plain_ms"] / row["library_ms"]
+        row["same_answers"] = same
+        out.append(row)
+    return out
+
+
 def main(argv: list[str]) -> int:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--json", type=Path, default=None)
@@ -164,6 +200,7 @@ def main(argv: list[str]) -> int:
                 per_stage.setdefault(k, []).append(v)
             shares.append(1e3 * spent["kernels"] / r.timings_ms["metric"])
         matchers = compare_matchers(model, mapdb, frames[1:])
+        reranks = compare_rerank(model)
         extra = []
         for m in ms:
             if m == 1:
@@ -200,6 +237,10 @@ def main(argv: list[str]) -> int:
         "with the plain matcher (before 2026-12-05), each query in turn:"
     )
     print_table(matchers, ["metric_candidates", *MATCHERS, "plain_vs_library", "same_answers"])
+    print("re-ranking K candidates (ms), the library's and the plain interactor, in turn:")
+    print_table(
+        reranks, ["candidates", "library_ms", "plain_ms", "plain_vs_library", "same_answers"]
+    )
     if extra:
         print("metric stage with M candidates (shared coarse stage) vs M separate searches:")
         print_table(extra, ["metric_candidates", "metric_ms", "separate_ms", "vs_one"])
@@ -207,7 +248,7 @@ def main(argv: list[str]) -> int:
         write_json(
             args.json,
             "localize",
-            [*rows, {"stage": "metric_kernel_share", "share": share}, *matchers, *extra],
+            [*rows, {"stage": "metric_kernel_share", "share": share}, *matchers, *reranks, *extra],
         )
     return 0
 

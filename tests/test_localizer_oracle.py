@@ -357,3 +357,23 @@ def test_the_interactor_in_parts_equals_the_interactor(rounds):
                     np.testing.assert_allclose(a, b.numpy(), rtol=1e-5, atol=1e-6)
         with pytest.raises(ValueError, match="local: expected shape"):
             it.first_tasa(torch.randn(2, t + 1, c))
+
+
+@pytest.mark.parametrize("k", [3, 11])
+def test_the_learned_rerank_runs_the_querys_first_tasa_once_and_changes_nothing(k):
+    """Re-ranking runs the query's first TASA once (on up to TARGET_COPIES copies) instead of
+    once per candidate: costs, shifts and order must be those of the plain interactor."""
+    torch.manual_seed(2)
+    model = VVLocNet(tiny_config()).eval()
+    t, c = model.config.num_angles, model.config.channels
+    query, cands = torch.randn(t, c), torch.randn(k, t, c)
+    with torch.no_grad():
+        a, b = plain_interactor(model.interactor, query.expand(k, t, c), cands)
+    want = kernels.rerank(a.numpy(), b.numpy())
+    got = localizer_module.rerank_learned(model, query, cands)
+    if torch.backends.mkl.is_available() or k < localizer_module.TARGET_COPIES:
+        for x, y in zip(got, want, strict=True):
+            np.testing.assert_array_equal(x, y)
+    else:
+        np.testing.assert_array_equal(got.order, want.order)
+        np.testing.assert_allclose(got.cost, want.cost, rtol=1e-5, atol=1e-6)

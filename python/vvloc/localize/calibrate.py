@@ -26,9 +26,14 @@ import numpy as np
 import numpy.typing as npt
 import torch
 
-from vvloc import evaluate, kernels
+from vvloc import evaluate
 from vvloc.data import Frame
-from vvloc.localize.localizer import LocalizationResult, Localizer, encode_frames
+from vvloc.localize.localizer import (
+    LocalizationResult,
+    Localizer,
+    encode_frames,
+    rerank_learned,
+)
 from vvloc.nets import VVLocNet
 
 
@@ -99,9 +104,7 @@ def rerank_split(
     costs = np.empty(retrieved.shape, dtype=np.float64)
     for i, rows in enumerate(retrieved):
         tgt = torch.from_numpy(db.local_desc[rows]).to(device)
-        src = torch.from_numpy(q.local_desc[i]).to(device).expand(len(rows), -1, -1)
-        a, b = model.interact(src, tgt)
-        rr = kernels.rerank(a.float().cpu().numpy(), b.float().cpu().numpy())
+        rr = rerank_learned(model, torch.from_numpy(q.local_desc[i]).to(device), tgt)
         reranked[i] = rows[rr.order]
         costs[i] = rr.cost[rr.order]
     return RerankedSplit(

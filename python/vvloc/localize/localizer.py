@@ -181,6 +181,27 @@ def decode_in_chunks(model: VVLocNet, polar: torch.Tensor) -> torch.Tensor:
 TARGET_COPIES = 8
 
 
+def first_tasa_repeated(interactor: Any, row: torch.Tensor, n: int) -> torch.Tensor:
+    """The interactor's first TASA (:meth:`Interactor.first_tasa`) of ``row`` (T, C) as in a
+    batch of ``n`` copies of it → one row (T, C): computed on min(n, :data:`TARGET_COPIES`)
+    copies (at least one), which gives the rows of the n-copy batch bit for bit with MKL."""
+    copies = max(1, min(n, TARGET_COPIES))
+    return interactor.first_tasa(row.expand(copies, *row.shape))[0].clone()
+
+
+@torch.no_grad()
+def rerank_learned(model: VVLocNet, query: torch.Tensor, cands: torch.Tensor) -> kernels.Rerank:
+    """Yaw re-ranking of K candidates by the learned interactor, without padding: the query's
+    local-view descriptor ``query`` (T, C) against the candidates' ``cands`` (K, T, C), on the
+    model's device. Equals ``kernels.rerank`` of ``model.interact(query repeated K times,
+    cands)``, with the query's first TASA run once (:func:`first_tasa_repeated`)."""
+    it = model.interactor
+    k = len(cands)
+    src = first_tasa_repeated(it, query, k).expand(k, *query.shape).contiguous()
+    a, b = it.after_first_tasa(src, it.first_tasa(cands))
+    return kernels.rerank(a.float().cpu().numpy(), b.float().cpu().numpy())
+
+
 def learned_matcher(model: VVLocNet, desc_tgts: F32):  # type: ignore[no-untyped-def]
     """The ``decode`` and ``interact`` callbacks of :func:`metric_localize_best` for the learned
     networks: ``decode`` runs the decoder on padded polar BEVs (N, T, R, C) → Ds (N, T, C)
@@ -208,11 +229,11 @@ def learned_matcher(model: VVLocNet, desc_tgts: F32):  # type: ignore[no-untyped
     def interact(ds: torch.Tensor, k: int) -> tuple[F32, F32]:
         if not src_first or src_first[0] is not ds:
             src_first[:] = [ds, interactor.first_tasa(ds)]
-        copies = min(ds.shape[0], TARGET_COPIES)
-        if (k, copies) not in tgt_first:
-            row = interactor.first_tasa(tgts[k].expand(copies, *tgts.shape[1:]))[0]
-            tgt_first[k, copies] = row.clone()  # not a view that keeps every copy alive
-        tgt = tgt_first[k, copies].expand(ds.shape[0], *tgts.shape[1:]).contiguous()
+        n = ds.shape[0]
+        key = (k, min(n, TARGET_COPIES))  # the copies first_tasa_repeated runs on
+        if key not in tgt_first:
+            tgt_first[key] = first_tasa_repeated(interactor, tgts[k], n)
+        tgt = tgt_first[key].expand(n, *tgts.shape[1:]).contiguous()
         a, b = interactor.after_first_tasa(src_first[1], tgt)
         return a.float().cpu().numpy(), b.float().cpu().numpy()
 
@@ -430,9 +451,7 @@ class Localizer:
             return kernels.rerank(src, self.map.local_descriptors(rows))
         device = model_device(self.model)
         tgt = torch.from_numpy(self.map.local_descriptors(rows)).to(device)
-        src = torch.from_numpy(local_desc).to(device).expand(len(rows), *local_desc.shape)
-        a, b = self.model.interact(src, tgt)
-        return kernels.rerank(a.float().cpu().numpy(), b.float().cpu().numpy())
+        return rerank_learned(self.model, torch.from_numpy(local_desc).to(device), tgt)
 
     def metric(self, bev: F32, row: int) -> tuple[npt.NDArray[np.float64], float, Any]:
         """Metric localization of a query BEV (H, W, C) against map row ``row``: returns
