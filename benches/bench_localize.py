@@ -113,11 +113,7 @@ def compare_matchers(model: VVLocNet, mapdb: MapDatabase, frames: list[Frame]) -
                 same &= all(a == answers[0] for a in answers)
         finally:
             localizer_module.learned_matcher = library
-        row: dict = {"metric_candidates": m}
-        row.update({name: float(np.median(v)) for name, v in times.items()})
-        row["plain_vs_library"] = row["plain_ms"] / row["library_ms"]
-        row["same_answers"] = same
-        out.append(row)
+        out.append(_compared({"metric_candidates": m}, times, same))
     return out
 
 
@@ -148,12 +144,17 @@ def compare_rerank(
                 t0 = time.perf_counter()
                 fn()
                 times[name].append(1e3 * (time.perf_counter() - t0))
-        row: dict = {"candidates": k}
-        row.update({name: float(np.median(v)) for name, v in times.items()})
-        row["plain_vs_library"] = row["plain_ms"] / row["library_ms"]
-        row["same_answers"] = same
-        out.append(row)
+        out.append(_compared({"candidates": k}, times, same))
     return out
+
+
+def _compared(key: dict, times: dict[str, list[float]], same: bool) -> dict:
+    """A comparison's row: ``key``, the median of each of ``times`` (ms), plain ÷ library and
+    whether the answers were the same."""
+    row = {**key, **{name: float(np.median(v)) for name, v in times.items()}}
+    row["plain_vs_library"] = row["plain_ms"] / row["library_ms"]
+    row["same_answers"] = same
+    return row
 
 
 def main(argv: list[str]) -> int:
