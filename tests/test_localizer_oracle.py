@@ -325,9 +325,9 @@ def plain_interactor(it, src, tgt):
 @pytest.mark.parametrize("rounds", [0, 1, 2])
 def test_the_interactor_in_parts_equals_the_interactor(rounds):
     """The metric stage runs the interactor's first TASA once per side (each target once, the
-    hypotheses once for every target) and the rest per pair: the parts must give
-    ``model.interact`` of each (hypothesis, target) pair, and ``model.interact`` (which
-    training runs) the plain loop's numbers."""
+    hypotheses with the decoder, once for every target) and the rest per pair: the matcher must
+    give ``model.interact`` of the decoded hypotheses against each target, and
+    ``model.interact`` (which training runs) the plain loop's numbers."""
     torch.manual_seed(1)
     model = VVLocNet(tiny_config(interactor_rounds=rounds)).eval()
     it = model.interactor
@@ -342,13 +342,16 @@ def test_the_interactor_in_parts_equals_the_interactor(rounds):
             model.interact(ds, expanded), plain_interactor(it, ds, expanded), strict=True
         ):
             assert torch.equal(a, b)  # the same operations in the same order
-        _, interact = localizer_module.learned_matcher(model, tgts.numpy())
-        fine, few = torch.randn(9, t, c), torch.randn(3, t, c)  # later stages: other hypotheses
+        decode, interact = localizer_module.learned_matcher(model, tgts.numpy())
+        r = model.config.num_radii
+        stages = [torch.randn(n, t, r, c) for n in (11, 9, 3)]  # coarse, fine, a small stage
+        decoded = [decode(p.numpy()) for p in stages]
         # targets in any order, one twice (its first TASA is kept), then new hypotheses, and a
         # stage of fewer hypotheses than TARGET_COPIES (its own copies of the target, as before)
-        for d, k in ((ds, 0), (ds, 2), (ds, 1), (ds, 1), (fine, 1), (fine, 0), (few, 1)):
+        for stage, k in ((0, 0), (0, 2), (0, 1), (0, 1), (1, 1), (1, 0), (2, 1)):
+            d = model.decode_polar(stages[stage])
             want = plain_interactor(it, d, tgts[k].expand(len(d), t, c))
-            got = interact(d, k)
+            got = interact(decoded[stage], k)
             for a, b in zip(got, want, strict=True):
                 assert isinstance(a, np.ndarray) and a.dtype == np.float32
                 if exact or len(d) < localizer_module.TARGET_COPIES:

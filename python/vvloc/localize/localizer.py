@@ -172,8 +172,9 @@ def decode_in_chunks(model: VVLocNet, polar: torch.Tensor) -> torch.Tensor:
 
 
 #: The interactor's first TASA sees one side of a pair alone, so :func:`learned_matcher` runs
-#: it once per target, on this many copies of it, rather than on one copy per hypothesis (121
-#: in the coarse stage; a stage of fewer hypotheses N uses N copies, as before). Not on a
+#: it once per target and stage size, on this many copies of it, rather than on one copy per
+#: hypothesis (121 in the coarse stage; a stage of fewer hypotheses N uses N copies, as
+#: before), and :func:`rerank_learned` once per query. Not on a
 #: single copy: for a batch of one to three sequences MKL picks GEMM kernels that round
 #: differently, and from four copies on the rows do not depend on the batch, so 8 copies give
 #: the per-hypothesis batch's result bit for bit on the CPU with torch's MKL (elsewhere within
@@ -204,37 +205,31 @@ def rerank_learned(model: VVLocNet, query: torch.Tensor, cands: torch.Tensor) ->
 
 def learned_matcher(model: VVLocNet, desc_tgts: F32):  # type: ignore[no-untyped-def]
     """The ``decode`` and ``interact`` callbacks of :func:`metric_localize_best` for the learned
-    networks: ``decode`` runs the decoder on padded polar BEVs (N, T, R, C) → Ds (N, T, C)
-    (a torch tensor on the model's device; :func:`decode_in_chunks`), ``interact(ds, k)`` the
-    interactor of Ds against target k of ``desc_tgts`` (M, T, C) → (Ds', Dt') each (N, T, C)
-    float32.
-
-    ``interact`` equals ``model.interact(ds, target k repeated N times)`` and shares the parts
-    that see one side alone (:meth:`Interactor.first_tasa`): each target's once per matcher
-    (on :data:`TARGET_COPIES` copies), the hypotheses' once per ``ds`` (the coarse stage
-    matches one ``ds`` against every target). Puts ``model`` in eval mode, as
-    :func:`encode_frames` does (a dropout sample shared by every hypothesis would be wrong)."""
+    networks (eval mode, as :func:`encode_frames`; no gradients). ``decode`` takes padded polar
+    BEVs (N, T, R, C) float32 through the decoder (:func:`decode_in_chunks`) and the part of the
+    interactor that sees the hypotheses alone (:meth:`Interactor.first_tasa`), once for every
+    target → (N, T, C), a torch tensor on the model's device; ``interact(ds, k)`` finishes the
+    interactor against target k of ``desc_tgts`` (M, T, C) → (Ds', Dt') each (N, T, C)
+    float32. Together they equal ``model.interact(model.decode_polar(polar), target k repeated
+    N times)``; each target's first TASA runs once per stage size
+    (:func:`first_tasa_repeated`)."""
     model.eval()
     device = model_device(model)
     tgts = torch.from_numpy(np.ascontiguousarray(desc_tgts, dtype=np.float32)).to(device)
     interactor = model.interactor
-    tgt_first: dict[tuple[int, int], torch.Tensor] = {}  # (k, copies) → first TASA (T, C)
-    src_first: list[torch.Tensor] = []  # [ds, its first TASA] of the last ds
+    tgt_first: dict[tuple[int, int], torch.Tensor] = {}  # (k, N) → first TASA (T, C)
 
     @torch.no_grad()
     def decode(polar: F32) -> torch.Tensor:
-        return decode_in_chunks(model, torch.from_numpy(polar).to(device))
+        return interactor.first_tasa(decode_in_chunks(model, torch.from_numpy(polar).to(device)))
 
     @torch.no_grad()
     def interact(ds: torch.Tensor, k: int) -> tuple[F32, F32]:
-        if not src_first or src_first[0] is not ds:
-            src_first[:] = [ds, interactor.first_tasa(ds)]
         n = ds.shape[0]
-        key = (k, min(n, TARGET_COPIES))  # the copies first_tasa_repeated runs on
-        if key not in tgt_first:
-            tgt_first[key] = first_tasa_repeated(interactor, tgts[k], n)
-        tgt = tgt_first[key].expand(n, *tgts.shape[1:]).contiguous()
-        a, b = interactor.after_first_tasa(src_first[1], tgt)
+        if (k, n) not in tgt_first:
+            tgt_first[k, n] = first_tasa_repeated(interactor, tgts[k], n)
+        tgt = tgt_first[k, n].expand(n, *tgts.shape[1:]).contiguous()
+        a, b = interactor.after_first_tasa(ds, tgt)
         return a.float().cpu().numpy(), b.float().cpu().numpy()
 
     return decode, interact
