@@ -235,7 +235,29 @@ def test_write_g2o_validates(tmp_path: Path) -> None:
         write_g2o(out, poses, sessions=["a"] * 3)
     with pytest.raises(ValueError, match="poses"):
         write_g2o(out, poses[:, :2])
+    with pytest.raises(ValueError, match=r"ids: g2o vertex ids must lie in \[0, 2147483647\]"):
+        write_g2o(out, poses, ids=np.arange(-1, 11))  # g2o refuses negative vertex ids
+    with pytest.raises(ValueError, match=r"ids: .* got 0\.\.2147483648"):
+        write_g2o(out, poses, ids=np.r_[np.arange(11), 2**31])  # g2o's ids are C ints
+    with pytest.raises(TypeError, match="only_accepted: expected a bool, got str"):
+        write_g2o(out, poses, loops, ids=ids, only_accepted="no")  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match=r"sessions: labels must be hashable.*list at row 0"):
+        write_g2o(out, poses, sessions=[["a"]] * 12)
     assert os.listdir(tmp_path) == []
+
+
+def test_write_g2o_wraps_vertex_theta(tmp_path: Path) -> None:
+    poses = np.array([[0.0, 0.0, 4.0], [1.0, 0.0, -4.0], [2.0, 0.0, math.pi], [3.0, 0.0, 0.5]])
+    g = read_g2o(write_g2o(tmp_path / "g.g2o", poses))
+    np.testing.assert_allclose(
+        g.vertex_poses[:, 2],
+        [4.0 - 2 * math.pi, 2 * math.pi - 4.0, math.pi, 0.5],
+        rtol=0,
+        atol=1e-15,
+    )
+    assert g.vertex_poses[2, 2] == math.pi and g.vertex_poses[3, 2] == 0.5  # in range: exact
+    # the odometry edges are the same as for the unwrapped poses (relative poses wrap anyway)
+    np.testing.assert_allclose(g.measurements, relative_pose(poses[:-1], poses[1:]), atol=1e-12)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -260,6 +282,7 @@ def test_tum_round_trip(tmp_path: Path) -> None:
     np.testing.assert_allclose(np.linalg.norm(table[:, 4:], axis=1), 1.0, atol=1e-15)
     np.testing.assert_array_equal(table[:, 4:6], 0.0)
 
+    assert not any(ln.startswith("# tz = 0") for ln in lines)  # z was given
     t2, poses2 = read_tum(path)
     np.testing.assert_array_equal(t2, t)
     np.testing.assert_array_equal(poses2[:, :2], poses[:, :2])
@@ -301,3 +324,29 @@ def test_tum_validation_leaves_no_file(tmp_path: Path) -> None:
     bad.write_text("0 1 2 3 0 0 0\n")
     with pytest.raises(ValueError, match=r"bad\.txt:1: expected 8 fields"):
         read_tum(bad)
+
+
+def test_tum_planar_header_and_wrapped_yaw(tmp_path: Path) -> None:
+    poses = np.array([[1.0, 2.0, 3 * math.pi / 2], [0.0, 0.0, 0.25]])
+    path = write_tum(tmp_path / "traj.txt", [0.0, 1.0], poses)
+    lines = path.read_text().splitlines()
+    # no height given: the header says tz is 0 because the poses are 3-DoF
+    assert any(ln.startswith("# tz = 0: the poses are 3-DoF") for ln in lines)
+    table = np.loadtxt(path, comments="#")
+    np.testing.assert_array_equal(table[:, 3], 0.0)
+    # 3π/2 is written as −π/2: qw = cos(−π/4) > 0, qz = sin(−π/4) < 0
+    np.testing.assert_allclose(table[0, 6:], [-math.sqrt(0.5), math.sqrt(0.5)], atol=1e-15)
+    np.testing.assert_array_equal(table[1, 6:], [math.sin(0.125), math.cos(0.125)])
+
+
+def test_write_tum_comments_must_be_lines(tmp_path: Path) -> None:
+    with pytest.raises(TypeError, match="comments: expected an iterable of str lines, got int"):
+        write_tum(tmp_path / "t.txt", [0.0], [[0.0, 0.0, 0.0]], comments=5)  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match="comments: expected str lines, got int"):
+        write_tum(tmp_path / "t.txt", [0.0], [[0.0, 0.0, 0.0]], comments=[5])  # type: ignore[list-item]
+    assert os.listdir(tmp_path) == []
+    # one str is one comment (not one line per character)
+    path = write_tum(tmp_path / "t.txt", [0.0], [[0.0, 0.0, 0.0]], comments="session: s1")
+    assert path.read_text().splitlines().count("# session: s1") == 1
+    path = write_loop_csv(tmp_path / "l.csv", loops_fixture(), comments="threshold: 0.75")
+    assert path.read_text().splitlines().count("# threshold: 0.75") == 1

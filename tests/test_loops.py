@@ -527,3 +527,17 @@ def test_verify_pairs_shares_each_sources_coarse_stage_and_equals_one_search_per
         verify_pairs(model, db, rows_i, rows_j[:-1])
     with pytest.raises(TypeError, match="rows_i"):
         verify_pairs(model, db, rows_i.astype(float), rows_j)
+
+
+def test_trajectory_file_names_are_safe_and_distinct():
+    from vvloc.commands.loops import trajectory_file_names
+
+    names = trajectory_file_names(["s0", "2012-01-08", "run/a", "run a", "run_a", "S0"])
+    assert names["s0"] == "trajectory_s0.tum"
+    assert names["2012-01-08"] == "trajectory_2012-01-08.tum"
+    # '/' and ' ' would leave the folder or make an awkward name; each session keeps its file
+    assert names["run/a"] == "trajectory_run_a.tum"
+    assert names["run a"] == "trajectory_run_a-2.tum"
+    assert names["run_a"] == "trajectory_run_a-3.tum"
+    assert names["S0"] == "trajectory_S0-2.tum"  # s0's file on a case-insensitive file system
+    assert len(set(names.values())) == len(names)

@@ -88,12 +88,19 @@ def localize(
         poses = np.stack([r.global_pose for r in results])
         stamps = np.array([f.t for f in frames])
         ok = np.array([r.accepted for r in results], dtype=bool)
+        tum_header = [
+            f"vvloc localize: global poses of session {session} of {dataset}, localized in the "
+            f"map {map_path}",
+            "pose = the map keyframe's pose composed with the estimated relative pose; accepted "
+            "= cost < threshold and distinctiveness >= the model's calibration "
+            "(or --min_distinctiveness)",
+        ]
         write_tum(
             out / "poses.tum",
             stamps[ok],
             poses[ok],
             comments=[
-                HEADER.lstrip("# "),
+                *tum_header,
                 f"accepted localizations only: {int(ok.sum())} of {len(frames)} frames "
                 "(every frame: poses-all.tum and queries.csv)",
             ],
@@ -103,7 +110,7 @@ def localize(
             stamps,
             poses,
             comments=[
-                HEADER.lstrip("# "),
+                *tum_header,
                 f"every frame, accepted or not ({int(ok.sum())} of {len(frames)} accepted: "
                 "poses.tum; queries.csv has the accepted column)",
             ],

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Annotated
 
@@ -9,6 +11,27 @@ import typer
 
 from vvloc.checkpoints import resolve_checkpoint
 from vvloc.commands._util import CostThreshold, cli_errors, parse_device
+
+
+def trajectory_file_names(sessions: Sequence[str]) -> dict[str, str]:
+    """File name ``trajectory_<session>.tum`` of each map session, safe on every file system.
+
+    A session name is used as it is when it holds only letters, digits, ``.``, ``_`` and
+    ``-`` (the usual case: ``s0``, ``2012-01-08``); other characters (``/``, spaces, ...)
+    become ``_``, and a name that would then repeat another's gets ``-2``, ``-3``, ... so that
+    no session's file overwrites another's. The TUM file's header names its session.
+    """
+    names: dict[str, str] = {}
+    taken: set[str] = set()
+    for session in sessions:
+        stem = "trajectory_" + re.sub(r"[^A-Za-z0-9._-]", "_", session)
+        file_name, k = f"{stem}.tum", 1
+        while file_name.lower() in taken:  # case-insensitive file systems too
+            k += 1
+            file_name = f"{stem}-{k}.tum"
+        taken.add(file_name.lower())
+        names[session] = file_name
+    return names
 
 
 def loops(
@@ -68,6 +91,7 @@ def loops(
             cost_threshold=threshold,
             max_pairs=max_pairs or None,
         )
+        trajectories = trajectory_file_names(db.sessions)
         out.mkdir(parents=True, exist_ok=True)
         write_loop_csv(out / "loops.csv", found)
         write_g2o(
@@ -78,8 +102,13 @@ def loops(
             sessions=[db.session_of(i) for i in range(len(db))],
             seq=db.seq,
         )
-        for name in db.sessions:
+        for name, file_name in trajectories.items():
             rows = db.session_rows(name)
-            write_tum(out / f"trajectory_{name}.tum", db.timestamps[rows], db.poses[rows])
+            write_tum(
+                out / file_name,
+                db.timestamps[rows],
+                db.poses[rows],
+                comments=[f"map session {name!r} of {map_path}: its keyframes' poses"],
+            )
         n_acc = int(np.sum(found.accepted))
     typer.echo(f"{len(found.i)} candidates, {n_acc} accepted loop closures; outputs in {out}")

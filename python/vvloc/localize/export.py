@@ -66,12 +66,20 @@ vvloc pose graph (g2o, 2D):
     T_world_j = T_world_i * xi; followed by the upper triangle of the 3x3 information matrix
     (inverse covariance) of (dx, dy, dtheta), row by row.
   Odometry edges link consecutive keyframes of a session; loop-closure edges follow them.
+  Vertex ids are non-negative (g2o refuses negative ones); theta is wrapped to (-pi, pi].
+  No vertex is fixed (the file has no FIX line): anchor the graph's gauge yourself, and note
+  that a session with no accepted loop closure is joined to the others by nothing, so fix one
+  of its vertices too (or leave it out) before optimising.
 """
 
 _FRAME_COMMENTS = (
     "frames (DESIGN.md 3): world x east, y north, z up; vehicle x forward, y left, z up; metres",
     "yaw: counter-clockwise positive about z, radians wrapped to (-pi, pi]",
 )
+
+
+#: The largest g2o vertex id (ids are C ints).
+_G2O_MAX_ID = 2**31 - 1
 
 
 def _r(x: float) -> str:
@@ -136,8 +144,14 @@ def information_from_sigmas(sigma_x: float, sigma_y: float, sigma_yaw: float) ->
 def _comment_lines(comments: Iterable[str]) -> list[str]:
     if isinstance(comments, str):
         comments = [comments]
+    try:
+        lines = list(comments)
+    except TypeError:
+        raise TypeError(
+            f"comments: expected an iterable of str lines, got {type(comments).__name__}"
+        ) from None
     out: list[str] = []
-    for c in comments:
+    for c in lines:
         if not isinstance(c, str):
             raise TypeError(f"comments: expected str lines, got {type(c).__name__}")
         out.extend(f"# {line}".rstrip() for line in c.splitlines() or [""])
@@ -226,9 +240,8 @@ def write_loop_csv(path: PathLike, loops: LoopClosures, *, comments: Iterable[st
             *_FRAME_COMMENTS,
             "yaw_deg: yaw in degrees; cost: matching cost (lower is better); "
             "accepted: 1 if the closure passed the cost threshold, else 0",
-            *comments,
         ]
-    )
+    ) + _comment_lines(comments)
     with atomic_write(path, "w", newline="") as f:
         for line in header:
             f.write(line + "\n")
@@ -317,7 +330,13 @@ def _odometry_pairs(n: int, sessions: Sequence[Any] | None, seq: np.ndarray | No
             raise ValueError(f"sessions: expected {n} session labels, got {len(labels)}")
     groups: dict[Any, list[int]] = {}
     for r, s in enumerate(labels):
-        groups.setdefault(s, []).append(r)
+        try:
+            groups.setdefault(s, []).append(r)
+        except TypeError:
+            raise TypeError(
+                f"sessions: labels must be hashable (str, int, ...), got {type(s).__name__} "
+                f"at row {r}"
+            ) from None
     pairs: list[tuple[int, int]] = []
     for rows_list in groups.values():
         rows = np.array(rows_list, np.int64)
@@ -347,7 +366,8 @@ def write_g2o(
         loops: loop closures; ``loops.i``/``loops.j`` are vertex ids (entries of ``ids``).
             Each becomes ``EDGE_SE2 i j x y yaw`` + information (only the accepted ones unless
             ``only_accepted`` is false).
-        ids: (N,) int vertex ids (keyframe ids); default ``0..N-1``.
+        ids: (N,) int vertex ids (keyframe ids), unique, in [0, 2^31 - 1] (g2o's vertex ids
+            are non-negative C ints); default ``0..N-1``.
         sessions: (N,) session labels (any hashable): an odometry ``EDGE_SE2`` links each pair
             of consecutive keyframes of a session, its measurement the relative pose of the two
             poses (:func:`relative_pose`). Default: all N keyframes form one session.
@@ -359,18 +379,26 @@ def write_g2o(
             :func:`information_from_sigmas` of :data:`DEFAULT_LOOP_SIGMAS`. Constant by
             default because the matching cost is a confidence score, not a calibrated
             covariance; pass per-loop matrices to weight loops by cost or by a learned model.
-        only_accepted: write only loops with ``accepted`` true.
+        only_accepted: write only loops with ``accepted`` true (a bool).
 
-    The file holds ``VERTEX_SE2`` lines, then odometry edges (sessions in order of first
-    appearance), then loop edges, and no comment lines (not every g2o reader skips them); its
-    conventions are in :data:`G2O_CONVENTIONS`. Information matrices are written as the upper
-    triangle I11 I12 I13 I22 I23 I33 of (dx, dy, dtheta).
+    Vertex thetas are written wrapped to (−π, π]. The file holds ``VERTEX_SE2`` lines, then
+    odometry edges (sessions in order of first appearance), then loop edges, and no comment
+    lines (not every g2o reader skips them); its conventions are in :data:`G2O_CONVENTIONS`.
+    Information matrices are written as the upper triangle I11 I12 I13 I22 I23 I33 of
+    (dx, dy, dtheta).
     """
     p = _floats(poses, "poses", "(N, 3)", (None, 3))
     n = p.shape[0]
     vid = np.arange(n, dtype=np.int64) if ids is None else _ints(ids, "ids", n)
     if np.unique(vid).size != n:
         raise ValueError("ids: vertex ids must be unique")
+    if n and (vid.min() < 0 or vid.max() > _G2O_MAX_ID):
+        raise ValueError(
+            f"ids: g2o vertex ids must lie in [0, {_G2O_MAX_ID}], got {int(vid.min())}.."
+            f"{int(vid.max())}"
+        )
+    if not isinstance(only_accepted, (bool, np.bool_)):
+        raise TypeError(f"only_accepted: expected a bool, got {type(only_accepted).__name__}")
     seq_arr = None if seq is None else _ints(seq, "seq", n)
     if isinstance(sessions, str):
         raise TypeError("sessions: expected a sequence of N labels, got a str")
@@ -411,7 +439,7 @@ def write_g2o(
 
     with atomic_write(path, "w") as f:
         for v, (x, y, th) in zip(vid.tolist(), p, strict=True):
-            f.write(f"VERTEX_SE2 {v} {_r(x)} {_r(y)} {_r(th)}\n")
+            f.write(f"VERTEX_SE2 {v} {_r(x)} {_r(y)} {_r(wrap_angle(th))}\n")
         for line in edge_lines:
             f.write(line + "\n")
     return Path(path)
@@ -486,12 +514,13 @@ def write_tum(
     Args:
         timestamps: (N,) seconds.
         poses: (N, 3) world poses (x, y, yaw), metres and radians CCW.
-        z: height tz, a float or (N,) metres (default 0).
+        z: height tz, a float or (N,) metres (default 0: vvloc's poses are 3-DoF; the
+            header then says so, and to compare them in the plane).
         comments: extra ``#`` header lines (e.g. the map, the session).
 
-    The orientation is the rotation by yaw about the world z axis, as a unit quaternion
-    (qx, qy, qz, qw) = (0, 0, sin(yaw/2), cos(yaw/2)). ``#`` header lines state the conventions
-    (TUM/evo readers skip them).
+    The orientation is the rotation by yaw (wrapped to (−π, π]) about the world z axis, as a
+    unit quaternion (qx, qy, qz, qw) = (0, 0, sin(yaw/2), cos(yaw/2)). ``#`` header lines
+    state the conventions (TUM/evo readers skip them).
     """
     t = _floats(timestamps, "timestamps", "(N,)", (None,))
     n = t.shape[0]
@@ -500,21 +529,27 @@ def write_tum(
     if z_arr.ndim == 0:
         z_arr = np.full(n, z_arr)
     zz = _floats(z_arr, "z", f"float or ({n},)", (n,))
+    height = (
+        "tz = 0: the poses are 3-DoF (x, y, yaw), no height is estimated; compare them in the "
+        "x-y plane (e.g. evo's --project_to_plane xy)"
+        if not zz.any()
+        else "tz: height of the vehicle origin, as given with the poses"
+    )
     header = _comment_lines(
         [
             "vvloc trajectory, TUM format: timestamp tx ty tz qx qy qz qw",
             "timestamp: seconds; (tx, ty, tz): vehicle origin in the world frame, metres",
+            height,
             "(qx, qy, qz, qw): unit quaternion (scalar last) of the vehicle-to-world rotation, "
             "a rotation by yaw about z: (0, 0, sin(yaw/2), cos(yaw/2))",
             *_FRAME_COMMENTS,
-            *comments,
         ]
-    )
+    ) + _comment_lines(comments)
     with atomic_write(path, "w") as f:
         for line in header:
             f.write(line + "\n")
         for r in range(n):
-            half = 0.5 * float(p[r, 2])
+            half = 0.5 * float(wrap_angle(p[r, 2]))
             f.write(
                 " ".join(
                     _r(v)
