@@ -11,8 +11,13 @@ from scipy.spatial.transform import Rotation
 
 from vvloc.data import DatasetFormatError, open_dataset
 from vvloc.data.bayer import demosaic_bilinear, mosaic
-from vvloc.data.frame import FRD_TO_FLU, euler_to_matrix
+from vvloc.data.frame import FRD_TO_FLU, Camera, euler_to_matrix, interpolate_rows
 from vvloc.data.nclt import X_BODY_LB3
+
+# NCLT's published calibration of Ladybug camera 5 (the forward one): cam_params/x_lb3_c5.csv
+X_LB3_C5 = (0.041862, -0.001905, -0.000212, 160.868615, 89.914152, 160.619894)
+# the Oxford RobotCar SDK's extrinsics/mono_left.txt
+SDK_MONO_LEFT = "-0.0905 1.6375 0.2803 0.2079 -0.2339 1.2321"
 
 DATE = "2012-01-08"
 
@@ -55,7 +60,8 @@ def _nclt(root, with_map=True):
 
 def test_nclt_reader_converts_frames_and_matches_poses(tmp_path):
     _nclt(tmp_path)
-    ds = open_dataset(tmp_path, cameras=(1, 2))
+    with pytest.warns(UserWarning, match=r"no U2D_Cam2_\*\.txt undistortion map"):
+        ds = open_dataset(tmp_path, cameras=(1, 2), upright=False)  # images as stored
     assert ds.sessions == [DATE]
     s = ds.session(DATE)
     assert len(s) == 2 and list(s.timestamps) == [1_000_000, 1_200_000]
@@ -73,15 +79,102 @@ def test_nclt_reader_converts_frames_and_matches_poses(tmp_path):
     T_lb3_c2 = euler_to_matrix(0.2, 0, 0, 0, 0, np.deg2rad(144.0))
     assert np.allclose(f.cam_to_ego[1], FRD_TO_FLU @ T_body_lb3 @ T_lb3_c2)
     assert np.allclose(f.K[0], [[5, 0, 3.5], [0, 5, 2.5], [0, 0, 1]])
-    small = open_dataset(tmp_path, cameras=(2,), image_size=(4, 3)).session(DATE)[0]
-    assert small.images.shape == (1, 3, 3, 4) and small.K[0, 0, 0] == pytest.approx(2.5)
+    with pytest.warns(UserWarning, match="U2D_Cam2"):
+        small = open_dataset(tmp_path, cameras=(2,), image_size=(4, 3), upright=False)
+    f = small.session(DATE)[0]
+    assert f.images.shape == (1, 3, 3, 4) and f.K[0, 0, 0] == pytest.approx(2.5)
+
+
+def test_nclt_images_are_turned_upright_and_the_ego_origin_lowered(tmp_path):
+    _nclt(tmp_path)
+    np.savetxt(tmp_path / "cam_params" / "x_lb3_c1.csv", [X_LB3_C5], delimiter=",")
+    stored = open_dataset(tmp_path, cameras=(1,), upright=False)
+    ds = open_dataset(tmp_path, cameras=(1,), ego_height=0.4)
+    cam0, cam = stored.cameras[0], ds.cameras[0]
+    T = cam.cam_to_ego
+    # the forward camera looks forward, 1.23 m above NCLT's body origin (+0.4 m: the ground)
+    assert T[0, 2] > 0.99 and T[2, 3] == pytest.approx(1.23 + 0.4, abs=0.01)
+    # stored, its image's rows run sideways (camera y along ego y, not down) ...
+    assert abs(cam0.cam_to_ego[2, 1]) < 0.01
+    # ... upright, right is ego right (-y) and down is ego down (-z)
+    assert T[1, 0] < -0.99 and T[2, 1] < -0.99
+    assert (cam.width, cam.height) == (6, 8)
+    s0, s = stored.session(DATE), ds.session(DATE)
+    np.testing.assert_allclose(s.z, s0.z - 0.4)
+    np.testing.assert_array_equal(s.poses, s0.poses)
+    img0, img = s0[1].images[0], s[1].images[0]  # (3, H, W): stored 6 x 8, upright 8 x 6
+    assert img.shape == (3, 8, 6)
+    # one quarter turn clockwise: upright pixel (u', v') = stored (v', H - 1 - u')
+    np.testing.assert_array_equal(img, np.rot90(img0, -1, axes=(1, 2)))
+    assert np.array_equal(img[0, :, 5], img0[0, 0, :])  # the stored top row is the right column
+    # the calibration follows the pixels: a point seen at stored (u, v) is at (H - 1 - v, u)
+    rng = np.random.default_rng(0)
+    pts = np.column_stack([rng.uniform(3, 9, 20), rng.uniform(-1, 1, 20), rng.uniform(0, 3, 20)])
+    uv0, _ = (
+        Camera("c", cam0.width, cam0.height, cam0.K, cam0.cam_to_ego)
+        .with_ego_origin_lowered(0.4)
+        .project_ego(pts)
+    )
+    uv, _ = cam.project_ego(pts)
+    np.testing.assert_allclose(uv, np.column_stack([cam0.height - 1 - uv0[:, 1], uv0[:, 0]]))
+
+
+@pytest.mark.parametrize("turns", [-1, 0, 1, 2, 3, 5])
+def test_a_turned_camera_sees_each_point_where_np_rot90_puts_its_pixel(turns):
+    rng = np.random.default_rng(turns + 7)
+    w, h = 9, 5
+    K = np.array([[6.0, 0.3, 4.2], [0, 5.5, 1.9], [0, 0, 1]])  # skewed, off-centre
+    R = Rotation.from_euler("xyz", rng.uniform(-0.5, 0.5, 3)).as_matrix()
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, rng.normal(size=3)
+    cam = Camera("c", w, h, K, T)
+    turned = cam.rotated(turns)
+    # the integer pixel (u, v) of every image pixel, moved as np.rot90 moves it
+    index = np.arange(h * w).reshape(h, w)
+    moved = np.rot90(index, turns)
+    assert (turned.height, turned.width) == moved.shape
+    for v in range(h):
+        for u in range(w):
+            # the ego point 4 m along the ray of the pixel's centre
+            ray = np.linalg.solve(K, [u, v, 1.0]) * 4.0
+            p = T[:3, :3] @ ray + T[:3, 3]
+            uv, depth = turned.project_ego(p[None])
+            v2, u2 = np.argwhere(moved == v * w + u)[0]
+            np.testing.assert_allclose(uv[0], [u2, v2], atol=1e-9)
+            assert depth[0] == pytest.approx(4.0)
+    # a level camera looking forward (OpenCV axes in the FLU ego frame) is upright as it is;
+    # turned by k, it needs the turns back
+    level = np.eye(4)
+    level[:3, :3] = [[0, 0, 1], [-1, 0, 0], [0, -1, 0]]
+    forward = Camera("f", w, h, K, level)
+    assert forward.upright_quarter_turns() == 0
+    assert forward.rotated(turns).upright_quarter_turns() == (-turns) % 4
+    with pytest.raises(TypeError, match="quarter_turns"):
+        cam.rotated(1.0)  # type: ignore[arg-type]
+
+
+def test_interpolate_rows_takes_the_shorter_arc_and_keeps_the_ends():
+    t = np.array([0, 100, 200], np.int64)
+    v = np.array([[0.0, 3.0], [10.0, -3.0], [20.0, -2.0]])
+    out, ok = interpolate_rows(t, v, np.array([-5, 25, 150, 200, 260]), 50, angle_columns=(1,))
+    assert ok.tolist() == [True, True, True, True, False]
+    np.testing.assert_allclose(out[:4, 0], [0.0, 2.5, 15.0, 20.0])
+    # from 3 rad to -3 rad the shorter arc passes through pi (0.283 rad long), not through 0
+    arc = 2 * math.pi - 6.0
+    np.testing.assert_allclose(out[1, 1], 3.0 + 0.25 * arc)
+    np.testing.assert_allclose(out[2, 1], -2.5)
+    assert out[0, 1] == 3.0 and out[3, 1] == -2.0  # before the first / at the last row
 
 
 def test_nclt_reader_reports_bad_files(tmp_path):
-    _nclt(tmp_path, with_map=False)
+    _nclt(tmp_path, with_map=True)
     (tmp_path / f"groundtruth_{DATE}.csv").write_text("1,2,3\n")
     with pytest.raises(DatasetFormatError, match=r"groundtruth_2012-01-08\.csv, line 1"):
         open_dataset(tmp_path, cameras=(1,))
+    with pytest.raises(TypeError, match="upright: expected a bool"):
+        open_dataset(tmp_path, cameras=(1,), upright="yes")
+    with pytest.raises(ValueError, match="ego_height"):
+        open_dataset(tmp_path, cameras=(1,), ego_height=float("nan"))
     (tmp_path / "cam_params" / "K_cam1.csv").write_text("1,2\n")
     with pytest.raises(DatasetFormatError, match=r"K_cam1\.csv"):
         open_dataset(tmp_path, cameras=(1,))
@@ -103,6 +196,26 @@ def test_demosaic_is_exact_on_constant_and_linear_images():
 G_CAMERA_IMAGE = [[0, 0, 1, 0], [1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 0, 1]]
 
 
+# the INS in the vehicle frame (x forward, y right, z down: behind, right of and below the
+# stereo camera), and the rows of ins.csv: time, status, northing, easting, yaw
+INS_LEVER = (-1.7132, 0.1181, 1.1948)
+INS_ROWS = (
+    (90, "INS_SOLUTION_GOOD", 5_700_000.0, 620_000.0, 0.2),
+    (100_000, "INS_ALIGNMENT_COMPLETE", 5_700_090.0, 620_090.0, 2.0),  # not a good solution
+    (200_010, "INS_SOLUTION_GOOD", 5_700_001.0, 620_000.5, 0.3),
+)
+
+
+def _vehicle_enu(north, east, yaw):
+    """The stereo camera's (east, north) and ENU yaw for an INS fix, derived by hand: the INS
+    lies at INS_LEVER in the vehicle's forward-right frame, so the vehicle origin is the fix
+    minus the lever arm turned by the heading (yaw clockwise from north)."""
+    fwd, right = -INS_LEVER[0], -INS_LEVER[1]
+    n = north + fwd * math.cos(yaw) - right * math.sin(yaw)
+    e = east + fwd * math.sin(yaw) + right * math.cos(yaw)
+    return e, n, math.pi / 2 - yaw
+
+
 def _oxford(root):
     sess = root / "2019-01-10-11-46-21-radar-oxford-10k"
     (root / "models").mkdir(parents=True)
@@ -110,13 +223,14 @@ def _oxford(root):
     for model, (fx, cx) in (("stereo_narrow_left", (8.0, 3.5)), ("mono_left", (6.0, 2.5))):
         lines = [f"{fx} {fx} {cx} {cx - 1}"] + [" ".join(map(str, r)) for r in G_CAMERA_IMAGE]
         (root / "models" / f"{model}.txt").write_text("\n".join(lines) + "\n")
-    (root / "extrinsics" / "mono_left.txt").write_text(f"0.5 -0.8 0 0 0 {-math.pi / 2}\n")
-    (root / "extrinsics" / "ins.txt").write_text("0 0 0 0 0 0\n")
-    # identity undistortion LUT for mono_left (6x6): source (u, v) of every output pixel
-    vv, uu = np.mgrid[0:6, 0:6].astype(np.float64)
-    np.concatenate([uu.ravel(), vv.ravel()]).tofile(
-        root / "models" / "mono_left_distortion_lut.bin"
-    )
+    (root / "extrinsics" / "mono_left.txt").write_text(SDK_MONO_LEFT + "\n")
+    (root / "extrinsics" / "ins.txt").write_text(" ".join(map(str, INS_LEVER)) + " 0 0 0\n")
+    # identity undistortion LUTs: source (u, v) of every output pixel
+    for model, (w, h) in (("mono_left", (6, 6)), ("stereo_narrow_left", (8, 6))):
+        vv, uu = np.mgrid[0:h, 0:w].astype(np.float64)
+        np.concatenate([uu.ravel(), vv.ravel()]).tofile(
+            root / "models" / f"{model}_distortion_lut.bin"
+        )
     stamps = {"stereo": [100, 200_000, 400_000], "mono_left": [120, 200_030, 400_010]}
     colours = {"stereo": (200, 100, 30), "mono_left": (20, 220, 120)}
     for cam, folder, pattern, (w, h) in (
@@ -136,11 +250,8 @@ def _oxford(root):
         "velocity_north,velocity_east,velocity_down,roll,pitch,yaw"
     )
     rows = [
-        f"{t},INS_SOLUTION_GOOD,51.7,-1.2,100,{n},{e},-100,30U,0,0,0,0,0,{yaw}"
-        for t, n, e, yaw in (
-            (90, 5_700_000.0, 620_000.0, 0.2),
-            (200_010, 5_700_001.0, 620_000.5, 0.3),
-        )
+        f"{t},{status},51.7,-1.2,100,{n},{e},-100,30U,0,0,0,0,0,{yaw}"
+        for t, status, n, e, yaw in INS_ROWS
     ]
     (sess / "gps" / "ins.csv").write_text(header + "\n" + "\n".join(rows) + "\n")
     return sess
@@ -148,30 +259,63 @@ def _oxford(root):
 
 def test_oxford_reader_demosaics_and_converts_frames(tmp_path):
     sess = _oxford(tmp_path)
-    ds = open_dataset(tmp_path, cameras=("stereo_centre", "mono_left"))
+    ds = open_dataset(tmp_path, cameras=("stereo_centre", "mono_left"), ego_height=1.5)
     s = ds.session(sess.name)
     assert len(s) == 2  # the 400_000 frame has no INS row within the tolerance
-    assert np.allclose(ds.meta["origin_enu"][:2], [620_000.0, 5_700_000.0])
-    assert np.allclose(s.poses[0], [0.0, 0.0, math.pi / 2 - 0.2])
-    assert np.allclose(s.poses[1], [0.5, 1.0, math.pi / 2 - 0.3])
+    # poses interpolated in time between the good INS rows (the middle row is left out)
+    (t0, _, n0, e0, y0), _, (t1, _, n1, e1, y1) = INS_ROWS
+    expected = []
+    for t in (100, 200_000):
+        w = (t - t0) / (t1 - t0)
+        expected.append(_vehicle_enu(n0 + w * (n1 - n0), e0 + w * (e1 - e0), y0 + w * (y1 - y0)))
+    (ex0, ny0, yaw0), (ex1, ny1, yaw1) = expected
+    np.testing.assert_allclose(ds.meta["origin_enu"], [ex0, ny0, 100 + INS_LEVER[2] - 1.5])
+    np.testing.assert_allclose(s.poses[0], [0.0, 0.0, yaw0], atol=1e-9)
+    np.testing.assert_allclose(s.poses[1], [ex1 - ex0, ny1 - ny0, yaw1], atol=1e-9)
+    np.testing.assert_allclose(s.z, 0.0, atol=1e-9)
     f = s[1]
     assert f.images.shape == (2, 3, 6, 8)  # mono resized to the stereo camera's size
     assert np.all(f.images[0].transpose(1, 2, 0) == (200, 100, 30))  # GBRG demosaiced
     assert np.all(f.images[1].transpose(1, 2, 0) == (20, 220, 120))  # RGGB demosaiced
-    # stereo (vehicle frame, identity): optical axis forward, image right = ego right (-y)
+    # stereo (the vehicle frame, 1.5 m above the ground): optical axis forward, image right =
+    # ego right (-y)
     assert np.allclose(f.cam_to_ego[0][:3, 2], [1, 0, 0]) and np.allclose(
         f.cam_to_ego[0][:3, 0], [0, -1, 0]
     )
-    # mono_left yawed -90° in the FRD vehicle frame looks left (+y in FLU), sits at y = +0.8
-    assert np.allclose(f.cam_to_ego[1][:3, 2], [0, 1, 0]) and np.allclose(
-        f.cam_to_ego[1][:3, 3], [0.5, 0.8, 0]
-    )
+    np.testing.assert_allclose(f.cam_to_ego[0][:3, 3], [0, 0, 1.5])
+    # the SDK's mono_left.txt puts the camera on the car's left, 1.5 m behind the stereo camera
+    # (robotcar-dataset-sdk issue #22: about (-1.55, 0.59) forward-left), looking 71° left
+    left = f.cam_to_ego[1]
+    assert -1.6 < left[0, 3] < -1.5 and 0.55 < left[1, 3] < 0.65
+    axis = left[:3, 2]
+    assert math.degrees(math.atan2(axis[1], axis[0])) == pytest.approx(70.6, abs=1.0)
     assert np.allclose(f.K[0], [[8, 0, 3.5], [0, 8, 2.5], [0, 0, 1]])
     assert f.K[1, 0, 0] == pytest.approx(6.0 * 8 / 6) and f.K[1, 1, 1] == pytest.approx(6.0)
 
 
+def test_oxford_lut_rows_are_source_u_then_v(tmp_path):
+    from vvloc.data._remap import remap_bilinear
+    from vvloc.data.oxford import read_lut
+
+    w, h = 5, 3
+    vv, uu = np.mgrid[0:h, 0:w].astype(np.float64)
+    path = tmp_path / "m_distortion_lut.bin"
+    np.concatenate([(w - 1 - uu).ravel(), vv.ravel()]).tofile(path)  # mirror left-right
+    img = np.zeros((h, w, 3), np.uint8)
+    img[..., 0] = np.arange(w)[None, :] * 40 + np.arange(h)[:, None]
+    out = remap_bilinear(img, *read_lut(path, w, h))
+    np.testing.assert_array_equal(out, img[:, ::-1])
+    with pytest.raises(DatasetFormatError, match="expected 2x3x6"):
+        read_lut(path, h, w + 1)
+
+
 def test_oxford_reader_reports_bad_files(tmp_path):
     sess = _oxford(tmp_path)
+    (tmp_path / "models" / "stereo_narrow_left_distortion_lut.bin").unlink()
+    with pytest.warns(UserWarning, match="no stereo_narrow_left_distortion_lut.bin"):
+        open_dataset(tmp_path, cameras=("stereo_centre",))
+    with pytest.raises(DatasetFormatError, match="no frame has an image of every camera"):
+        open_dataset(tmp_path, cameras=("mono_left",), tolerance_us=1)
     (sess / "gps" / "ins.csv").write_text("timestamp,northing\n1,2\n")
     with pytest.raises(DatasetFormatError, match=r"ins\.csv, line 1: header lacks"):
         open_dataset(tmp_path, cameras=("stereo_centre",))

@@ -93,6 +93,48 @@ class Camera:
         K[1, 2] = (self.K[1, 2] + 0.5) * sy - 0.5
         return Camera(self.name, width, height, K, self.cam_to_ego)
 
+    def rotated(self, quarter_turns: int) -> Camera:
+        """The same camera for its images turned by ``np.rot90(image, quarter_turns)``.
+
+        ``quarter_turns`` counts counter-clockwise quarter turns of the image (negative:
+        clockwise). Exact: a pixel (u, v) of the turned image sees the ego point that the
+        original image shows at the pixel it came from. Each counter-clockwise turn of a W-wide
+        image maps pixel (u, v) to (v, W − 1 − u) (pixel-centre convention), so K becomes
+        P·K·M with P that pixel map and M = [[0, −1, 0], [1, 0, 0], [0, 0, 1]] the new camera
+        axes in the old camera frame, and ``cam_to_ego`` becomes ``cam_to_ego · M``.
+        """
+        if isinstance(quarter_turns, bool) or not isinstance(quarter_turns, (int, np.integer)):
+            raise TypeError(f"quarter_turns: expected an int, got {type(quarter_turns).__name__}")
+        cam = self
+        for _ in range(int(quarter_turns) % 4):
+            P = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, cam.width - 1.0], [0.0, 0.0, 1.0]])
+            M = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+            T = cam.cam_to_ego.copy()
+            T[:3, :3] = cam.cam_to_ego[:3, :3] @ M
+            cam = Camera(cam.name, cam.height, cam.width, P @ cam.K @ M, T)
+        return cam
+
+    def upright_quarter_turns(self) -> int:
+        """Counter-clockwise quarter turns (0-3) that bring this camera's images upright.
+
+        Upright: the image's downward axis (camera y) points as far down in the ego frame
+        (−z) as any of the four turns allows. 0 for a level camera; NCLT's Ladybug images,
+        stored sideways, need 3 (one clockwise turn).
+        """
+        downs = [float(self.rotated(k).cam_to_ego[2, 1]) for k in range(4)]
+        return int(np.argmin(downs))
+
+    def with_ego_origin_lowered(self, height: float) -> Camera:
+        """The same camera in an ego frame whose origin lies ``height`` metres lower.
+
+        For a dataset whose vehicle frame sits above the ground (a roof camera, a body frame):
+        vvloc's ego origin is on the ground under the vehicle (DESIGN.md §3), so every camera
+        rises by ``height`` in it.
+        """
+        T = self.cam_to_ego.copy()
+        T[2, 3] += float(height)
+        return Camera(self.name, self.width, self.height, self.K, T)
+
 
 @dataclass(frozen=True, eq=False)
 class Frame:
@@ -307,3 +349,50 @@ def nearest_within(
     pick = np.where(np.abs(reference[hi] - queries) < np.abs(reference[lo] - queries), hi, lo)
     ok = np.abs(reference[pick] - queries) <= tolerance
     return pick, ok
+
+
+def interpolate_rows(
+    times: np.ndarray,
+    values: np.ndarray,
+    queries: np.ndarray,
+    tolerance: int,
+    *,
+    angle_columns: Sequence[int] = (),
+) -> tuple[np.ndarray, np.ndarray]:
+    """Rows of ``values`` linearly interpolated at ``queries`` times, and a validity mask.
+
+    Args:
+        times: (N,) sorted int64 times of the rows (e.g. microseconds).
+        values: (N, C) float64 rows.
+        queries: (Q,) int64 times.
+        tolerance: a query is valid when its nearest row lies within it (the unit of times).
+        angle_columns: columns holding angles (radians), interpolated along the shorter arc
+            and wrapped to (−π, π].
+
+    Returns:
+        ((Q, C) float64, (Q,) bool). A valid query between two rows is interpolated between
+        them; one before the first or after the last row takes that row.
+    """
+    t = np.asarray(times, dtype=np.int64)
+    v = np.asarray(values, dtype=np.float64).reshape(len(t), -1)
+    q = np.asarray(queries, dtype=np.int64)
+    _, ok = nearest_within(t, q, tolerance)
+    if len(t) == 0:
+        return np.zeros((len(q), v.shape[1])), ok
+    hi = np.clip(np.searchsorted(t, q, side="right"), 1, max(len(t) - 1, 1))
+    lo = hi - 1
+    if len(t) == 1:
+        lo = hi = np.zeros(len(q), np.int64)
+    span = (t[hi] - t[lo]).astype(np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        w = np.where(span > 0, (q - t[lo]) / span, 0.0)
+    w = np.clip(w, 0.0, 1.0)[:, None]
+    d = v[hi] - v[lo]
+    cols = list(angle_columns)
+    if cols:
+        d[:, cols] = np.angle(np.exp(1j * d[:, cols]))  # the shorter arc
+    out = v[lo] + w * d
+    if cols:
+        out[:, cols] = np.angle(np.exp(1j * out[:, cols]))
+        out[:, cols] = np.where(out[:, cols] <= -np.pi, np.pi, out[:, cols])
+    return out, ok

@@ -18,12 +18,23 @@ Conventions converted from:
   degrees, giving the camera in the Ladybug (lb3) frame; the lb3 frame in the body frame is the
   constant ``X_BODY_LB3`` of NCLT's own projection example.
 * The camera frame that ``K_cam{i}`` projects from is treated as OpenCV (x right, y down,
-  z forward); K applies to the (undistorted) image as stored, with no rotation.
+  z forward); K applies to the (undistorted) image as stored. The Ladybug's images are stored
+  sideways (their columns run down the scene), so by default (``upright=True``) each image is
+  turned a quarter turn clockwise after undistortion, as NCLT's own tools show them, with K and
+  ``cam_to_ego`` following exactly (:meth:`Camera.rotated`): rows then run top to bottom of the
+  scene, as in vvloc's other datasets (the photometric augmentations assume that).
+* The body frame's origin is not on the ground (the Ladybug sits 1.23 m above it); vvloc's ego
+  origin is the ground under the vehicle, so pass ``ego_height`` (the body origin's height above
+  the ground, metres) to move it there: cameras rise by it, pose heights drop by it. The default
+  0 keeps the body origin. Roll and pitch of the Segway are dropped (3-DoF poses); the cameras
+  stay in the tilting body frame.
 * The undistortion map file starts with a header holding two integers ``a b`` (the map is b rows ×
   a columns); each further line ``row col v u`` gives the source pixel (u column, v row) that
   output pixel (row, col) samples — the way NCLT's ``undistort.py`` reads it.
 * Images of one Ladybug capture share a ``utime``; a frame is a utime present for every camera,
   posed by the ground-truth row nearest in time, kept only within ``tolerance_us``.
+* Without a ``U2D_Cam{i}_*.txt`` map the images are used distorted, with a warning: the pinhole
+  K does not describe the Ladybug's wide-angle lenses.
 """
 
 from __future__ import annotations
@@ -31,6 +42,7 @@ from __future__ import annotations
 import csv
 import os
 import re
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -74,7 +86,8 @@ def _read_numbers(path: Path, shape: tuple[int, ...]) -> np.ndarray:
 
 
 def read_undistortion_map(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """Read an NCLT ``U2D_*.txt`` map into source (u, v) arrays shaped like the output image."""
+    """Read an NCLT ``U2D_*.txt`` map into source (u, v) float32 arrays shaped like the output
+    image (float32: 2 × 8 MB for a 1616 × 1232 map; exact to 1e-4 px)."""
     with path.open() as f:
         header = [int(v) for v in re.findall(r"\d+", f.readline())]
         if len(header) < 2:
@@ -85,8 +98,8 @@ def read_undistortion_map(path: Path) -> tuple[np.ndarray, np.ndarray]:
         raise DatasetFormatError(
             f"{path}: expected lines 'row col v u', got {data.shape[1]} columns"
         )
-    mapu = np.full((rows, cols), -1.0)
-    mapv = np.full((rows, cols), -1.0)
+    mapu = np.full((rows, cols), -1.0, dtype=np.float32)
+    mapv = np.full((rows, cols), -1.0, dtype=np.float32)
     r, c = data[:, 0].astype(np.int64), data[:, 1].astype(np.int64)
     if r.min() < 0 or c.min() < 0 or r.max() >= rows or c.max() >= cols:
         raise DatasetFormatError(f"{path}: pixel index outside the {rows}x{cols} map")
@@ -124,6 +137,7 @@ class NcltSession(Session):
         cameras: Sequence[Camera],
         native_size: tuple[int, int],
         maps: list[tuple[np.ndarray, np.ndarray] | None],
+        turns: list[int],
         timestamps: np.ndarray,
         poses: np.ndarray,
         z: np.ndarray,
@@ -132,10 +146,12 @@ class NcltSession(Session):
         self._dirs = image_dirs
         self._native = native_size
         self._maps = maps
+        self._turns = turns
 
     def _load_images(self, index: int) -> np.ndarray:
         out = []
-        for cam, d, m in zip(self.cameras, self._dirs, self._maps, strict=True):
+        parts = zip(self.cameras, self._dirs, self._maps, self._turns, strict=True)
+        for cam, d, m, k in parts:
             path = d / f"{int(self.timestamps[index])}.tiff"
             img = load_rgb(path)
             if m is not None:
@@ -144,6 +160,7 @@ class NcltSession(Session):
                 raise DatasetFormatError(
                     f"{path}: image is {img.shape[1]}x{img.shape[0]}, expected {self._native}"
                 )
+            img = np.ascontiguousarray(np.rot90(img, k))
             out.append(resize_rgb(img, cam.width, cam.height).transpose(2, 0, 1))
         return np.ascontiguousarray(np.stack(out))
 
@@ -169,21 +186,35 @@ def open_nclt(
     cameras: Sequence[int] = DEFAULT_CAMERAS,
     image_size: tuple[int, int] | None = None,
     tolerance_us: int = 50_000,
+    upright: bool = True,
+    ego_height: float = 0.0,
 ) -> Dataset:
     """Open an NCLT raw folder as a :class:`Dataset` (one session per date).
 
     Args:
         root: dataset root (see the module docstring for the layout).
         cameras: Ladybug camera numbers to use, in image order.
-        image_size: (width, height) to resize every image to (K adjusted), or None for native.
+        image_size: (width, height) to resize every image to (K adjusted), or None for native
+            (of the upright image: 1232 × 1616 for NCLT's undistorted images).
         tolerance_us: largest image-to-ground-truth time gap kept, microseconds.
+        upright: turn each camera's images by the quarter turns that make them upright
+            (:meth:`Camera.upright_quarter_turns`; one clockwise turn for NCLT's); False keeps
+            them as stored.
+        ego_height: height of NCLT's body-frame origin above the ground, metres: vvloc's ego
+            origin is moved down there (cameras rise by it, ``Frame.z`` drops by it).
     """
     root = Path(root)
     dates = _find_date_dirs(root)
     if not dates:
         raise DatasetFormatError(f"{root}: no <date>/lb3 folder found (NCLT layout)")
+    if not isinstance(upright, (bool, np.bool_)):
+        raise TypeError(f"upright: expected a bool, got {type(upright).__name__}")
+    height = float(ego_height)
+    if not np.isfinite(height):
+        raise ValueError(f"ego_height: expected a finite height in metres, got {ego_height!r}")
     params = root / "cam_params"
     T_body_lb3 = ssc_degrees_to_matrix(X_BODY_LB3)
+    map_cache: dict[Path, tuple[np.ndarray, np.ndarray]] = {}
     sessions: dict[str, Session] = {}
     rig: list[Camera] | None = None
     for date, lb3 in dates.items():
@@ -199,6 +230,7 @@ def open_nclt(
         if len(utimes) == 0:
             raise DatasetFormatError(f"{lb3}: no <utime>.tiff present for every camera")
         maps: list[tuple[np.ndarray, np.ndarray] | None] = []
+        turns: list[int] = []
         cams = []
         native = load_rgb(dirs[0] / f"{utimes[0]}.tiff").shape[1::-1]
         for i in cameras:
@@ -206,10 +238,23 @@ def open_nclt(
             T_lb3_c = ssc_degrees_to_matrix(_read_numbers(params / f"x_lb3_c{i}.csv", (6,)))
             cam_to_ego = FRD_TO_FLU @ T_body_lb3 @ T_lb3_c
             u2d = sorted(params.glob(f"U2D_Cam{i}_*.txt"))
-            m = read_undistortion_map(u2d[0]) if u2d else None
+            m = None
+            if u2d:
+                if u2d[0] not in map_cache:  # one map per camera, shared by every date
+                    map_cache[u2d[0]] = read_undistortion_map(u2d[0])
+                m = map_cache[u2d[0]]
+            elif rig is None:
+                warnings.warn(
+                    f"{params}: no U2D_Cam{i}_*.txt undistortion map; Cam{i}'s images are used "
+                    "distorted, which its pinhole K does not describe",
+                    stacklevel=2,
+                )
             maps.append(m)
             size = (m[0].shape[1], m[0].shape[0]) if m is not None else tuple(native)
             cam = Camera(f"Cam{i}", size[0], size[1], K, cam_to_ego)
+            k = cam.upright_quarter_turns() if upright else 0
+            turns.append(k)
+            cam = cam.rotated(k).with_ego_origin_lowered(height)
             if image_size is not None:
                 cam = cam.resized(*image_size)
             cams.append(cam)
@@ -235,13 +280,14 @@ def open_nclt(
             T_ned_body = euler_to_matrix(*row[1:7])
             x, y, z, yaw = pose_from_matrix(NED_TO_ENU @ T_ned_body @ FRD_TO_FLU)
             poses.append((x, y, yaw))
-            zs.append(z)
+            zs.append(z - height)
         sessions[date] = NcltSession(
             date,
             dirs,
             cams,
             _native_size(maps, native),
             maps,
+            turns,
             utimes,
             np.array(poses).reshape(-1, 3),
             np.array(zs),

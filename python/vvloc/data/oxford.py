@@ -4,26 +4,41 @@ Layout read (the dataset's own folders plus the SDK's ``models/`` and ``extrinsi
 
     <root>/<session>/stereo/centre/<utime>.png   Bayer GBRG, 8 bit   + <session>/stereo.timestamps
     <root>/<session>/mono_{left,right,rear}/<utime>.png   Bayer RGGB  + <session>/mono_*.timestamps
-    <root>/<session>/gps/ins.csv                 timestamp,..,northing,easting,down,..,yaw
+    <root>/<session>/gps/ins.csv                 timestamp,ins_status,..,northing,easting,down,
+                                                 ..,roll,pitch,yaw
     <models_dir>/<model>.txt                     "fx fy cx cy" then the 4×4 G_camera_image
     <models_dir>/<model>_distortion_lut.bin      optional float64 LUT 2 × (H·W): source u, v rows
-    <extrinsics_dir>/<sensor>.txt                "x y z roll pitch yaw" (m, rad) of the sensor in
-                                                 the vehicle frame (stereo.txt optional: identity)
+    <extrinsics_dir>/<sensor>.txt                "x y z roll pitch yaw" (m, rad); see below for
+                                                 which way each file maps (stereo.txt optional:
+                                                 identity)
 
 Conventions converted from:
 
 * RobotCar's vehicle, INS and camera frames are x forward, y right, z down; poses use
-  R = Rz(yaw)·Ry(pitch)·Rx(roll). ``G_camera_image`` maps the image frame (OpenCV: x right,
-  y down, z forward) into the camera frame, so ``cam_to_ego = FRD_TO_FLU · T_vehicle_camera ·
-  G_camera_image``.
-* The INS pose (northing, easting, down; roll, pitch, yaw in a NED world) is moved to the vehicle
-  frame with ``extrinsics/ins.txt`` and then to ENU/FLU: ``T_world_ego = NED_TO_ENU · T_ned_ins ·
-  T_vehicle_ins⁻¹ · FRD_TO_FLU``. World coordinates are re-centred on the first pose of the first
-  session (``ds.meta["origin_enu"]``) so that float32 consumers keep centimetres.
+  R = Rz(yaw)·Ry(pitch)·Rx(roll). The vehicle frame is the stereo camera's. ``G_camera_image``
+  maps the image frame (OpenCV: x right, y down, z forward) into the camera frame.
+* The camera extrinsics (``mono_*.txt``) hold the *vehicle* in the camera frame,
+  ``T_camera_vehicle``: the SDK's ``project_laser_into_camera`` uses them as ``G_camera_vehicle``,
+  and only their inverse puts ``mono_left`` on the left of the car (robotcar-dataset-sdk issues
+  #22, #40). So ``cam_to_ego = FRD_TO_FLU · T_camera_vehicle⁻¹ · G_camera_image``.
+* ``ins.txt`` holds the INS in the vehicle frame, ``T_vehicle_ins`` (as the SDK's
+  ``build_pointcloud`` uses it). The INS pose (northing, easting, down; roll, pitch, yaw in a NED
+  world) is moved to the vehicle frame and then to ENU/FLU: ``T_world_ego = NED_TO_ENU ·
+  T_ned_ins · T_vehicle_ins⁻¹ · FRD_TO_FLU``. It is interpolated at each frame's time between
+  the two nearest INS rows (linear in position, along the shorter arc in each angle), as the
+  SDK does; rows whose ``ins_status`` is not ``INS_SOLUTION_GOOD`` are left out (when the column
+  is there). World coordinates are re-centred on the first pose of the first session
+  (``ds.meta["origin_enu"]``) so that float32 consumers keep centimetres.
+* The vehicle frame's origin is the stereo camera on the roof; vvloc's ego origin is the ground
+  under the vehicle. Pass ``ego_height`` (the stereo camera's height above the ground, metres)
+  to move it there; the default 0 keeps the roof origin.
 * Mono and stereo intrinsics stay apart: the stereo centre camera uses ``stereo_narrow_left``,
   each mono camera its own model; mono images are RGGB, stereo GBRG.
 * The cameras are not synchronised: a frame is a timestamp of the first camera, joined with the
-  nearest image of each other camera and the nearest INS row, each within ``tolerance_us``.
+  nearest image of each other camera (within ``tolerance_us``, without motion compensation:
+  at 14 m/s a 50 ms gap is 0.7 m), posed at the first camera's time (an INS row within
+  ``tolerance_us``).
+* Without a camera's ``*_distortion_lut.bin`` its images are used distorted, with a warning.
 * Images of different native sizes are resized to ``image_size`` (default: the first camera's),
   with K adjusted exactly.
 """
@@ -33,6 +48,7 @@ from __future__ import annotations
 import csv
 import os
 import re
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -47,6 +63,7 @@ from vvloc.data.frame import (
     Dataset,
     Session,
     euler_to_matrix,
+    interpolate_rows,
     nearest_within,
     pose_from_matrix,
 )
@@ -61,6 +78,7 @@ CAMERA_SPECS = {
     "mono_rear": ("mono_rear", "mono_rear.timestamps", "mono_rear", "mono_rear", "rggb"),
 }
 INS_COLUMNS = ("timestamp", "northing", "easting", "down", "roll", "pitch", "yaw")
+INS_GOOD = "INS_SOLUTION_GOOD"
 
 
 def read_timestamps(path: Path) -> np.ndarray:
@@ -79,8 +97,12 @@ def read_timestamps(path: Path) -> np.ndarray:
     return np.array(sorted(out), dtype=np.int64)
 
 
-def read_ins(path: Path) -> np.ndarray:
-    """(N, 7) float64 rows timestamp, northing, easting, down, roll, pitch, yaw, sorted by time."""
+def read_ins(path: Path, *, good_only: bool = True) -> np.ndarray:
+    """(N, 7) float64 rows timestamp, northing, easting, down, roll, pitch, yaw, sorted by time.
+
+    With ``good_only``, rows whose ``ins_status`` is not ``INS_SOLUTION_GOOD`` are dropped (a
+    file without that column keeps every row).
+    """
     if not path.is_file():
         raise DatasetFormatError(f"{path}: INS file missing")
     rows = []
@@ -89,7 +111,10 @@ def read_ins(path: Path) -> np.ndarray:
         missing = [c for c in INS_COLUMNS if c not in (reader.fieldnames or [])]
         if missing:
             raise DatasetFormatError(f"{path}, line 1: header lacks columns {missing}")
+        has_status = "ins_status" in (reader.fieldnames or [])
         for row in reader:
+            if good_only and has_status and (row["ins_status"] or "").strip() != INS_GOOD:
+                continue
             try:
                 rows.append([float(row[c]) for c in INS_COLUMNS])
             except (TypeError, ValueError) as e:
@@ -119,7 +144,11 @@ def read_model(models_dir: Path, model: str) -> tuple[np.ndarray, np.ndarray, Pa
 
 
 def read_extrinsics(extrinsics_dir: Path, sensor: str, *, required: bool = True) -> np.ndarray:
-    """4×4 pose of ``sensor`` in the RobotCar vehicle frame (identity if optional and missing)."""
+    """The 4×4 transform of an extrinsics file as written (identity if optional and missing).
+
+    Which way it maps depends on the sensor (module docstring): ``ins.txt`` is the INS in the
+    vehicle frame, a camera's file the vehicle in the camera frame.
+    """
     path = extrinsics_dir / f"{sensor}.txt"
     if not path.is_file():
         if required:
@@ -135,11 +164,11 @@ def read_extrinsics(extrinsics_dir: Path, sensor: str, *, required: bool = True)
 
 
 def read_lut(path: Path, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
-    """Source (u, v) maps (height, width) of a RobotCar undistortion LUT."""
+    """Source (u, v) float32 maps (height, width) of a RobotCar undistortion LUT."""
     lut = np.fromfile(path, dtype=np.float64)
     if lut.size != 2 * width * height:
         raise DatasetFormatError(f"{path}: {lut.size} values, expected 2x{width}x{height}")
-    lut = lut.reshape(2, height, width)
+    lut = lut.reshape(2, height, width).astype(np.float32)
     return lut[0], lut[1]
 
 
@@ -195,6 +224,8 @@ def open_oxford(
     extrinsics_dir: str | os.PathLike[str] | None = None,
     image_size: tuple[int, int] | None = None,
     tolerance_us: int = 50_000,
+    ego_height: float = 0.0,
+    ins_good_only: bool = True,
 ) -> Dataset:
     """Open an Oxford RobotCar raw folder as a :class:`Dataset` (one session per folder).
 
@@ -205,6 +236,10 @@ def open_oxford(
             ``<root>/extrinsics``).
         image_size: (width, height) for every camera; default the first camera's native size.
         tolerance_us: largest time gap joined between cameras and to the INS, microseconds.
+        ego_height: height of the stereo camera (the vehicle frame's origin) above the ground,
+            metres: vvloc's ego origin is moved down there (cameras rise by it, ``Frame.z``
+            drops by it).
+        ins_good_only: use only INS rows whose ``ins_status`` is ``INS_SOLUTION_GOOD``.
     """
     from PIL import Image
 
@@ -216,6 +251,9 @@ def open_oxford(
         raise ValueError(
             f"cameras: expected names from {sorted(CAMERA_SPECS)}, got {list(cameras)}"
         )
+    height = float(ego_height)
+    if not np.isfinite(height):
+        raise ValueError(f"ego_height: expected a finite height in metres, got {ego_height!r}")
     dirs = _sessions_in(root)
     if not dirs:
         raise DatasetFormatError(f"{root}: no <session>/gps/ins.csv found (RobotCar layout)")
@@ -223,6 +261,8 @@ def open_oxford(
     sessions: dict[str, Session] = {}
     rig: list[Camera] = []
     origin: np.ndarray | None = None
+    lut_cache: dict[tuple[Path, int, int], tuple[np.ndarray, np.ndarray]] = {}
+    warned: set[str] = set()
     for sdir in dirs:
         stamps = [read_timestamps(sdir / CAMERA_SPECS[c][1]) for c in cameras]
         stamps = [
@@ -238,9 +278,16 @@ def open_oxford(
             p, ok = nearest_within(s, ref, tolerance_us)
             picks.append(p)
             keep &= ok
-        ins = read_ins(sdir / "gps" / "ins.csv")
-        ip, ok = nearest_within(ins[:, 0].astype(np.int64), ref, tolerance_us)
+        ins = read_ins(sdir / "gps" / "ins.csv", good_only=ins_good_only)
+        ins_at, ok = interpolate_rows(
+            ins[:, 0].astype(np.int64), ins[:, 1:7], ref, tolerance_us, angle_columns=(3, 4, 5)
+        )
         keep &= ok
+        if not keep.any():
+            raise DatasetFormatError(
+                f"{sdir}: no frame has an image of every camera {list(cameras)} and an INS row "
+                f"within tolerance_us={tolerance_us}"
+            )
         ref = ref[keep]
         paths = [
             [sdir / CAMERA_SPECS[c][0] / f"{t}.png" for t in s[p[keep]]]
@@ -250,19 +297,33 @@ def open_oxford(
         for c, ps in zip(cameras, paths, strict=True):
             _, _, model, sensor, pattern = CAMERA_SPECS[c]
             K, G, lut_path = read_model(models, model)
-            with Image.open(ps[0] if ps else sdir / CAMERA_SPECS[c][0]) as im:
+            with Image.open(ps[0]) as im:
                 w, h = im.size
-            cam_to_ego = FRD_TO_FLU @ read_extrinsics(extr, sensor, required=sensor != "stereo") @ G
-            cams.append(Camera(c, w, h, K, cam_to_ego))
-            luts.append(read_lut(lut_path, w, h) if lut_path is not None else None)
+            T_camera_vehicle = read_extrinsics(extr, sensor, required=sensor != "stereo")
+            cam_to_ego = FRD_TO_FLU @ np.linalg.inv(T_camera_vehicle) @ G
+            cams.append(Camera(c, w, h, K, cam_to_ego).with_ego_origin_lowered(height))
+            if lut_path is not None:
+                if (lut_path, w, h) not in lut_cache:  # one LUT per camera, every session
+                    lut_cache[(lut_path, w, h)] = read_lut(lut_path, w, h)
+                luts.append(lut_cache[(lut_path, w, h)])
+            else:
+                luts.append(None)
+                if c not in warned:
+                    warned.add(c)
+                    warnings.warn(
+                        f"{models}: no {model}_distortion_lut.bin; {c}'s images are used "
+                        "distorted, which its pinhole K does not describe",
+                        stacklevel=2,
+                    )
             patterns.append(pattern)
         size = image_size or (cams[0].width, cams[0].height)
         cams = [cam.resized(*size) for cam in cams]
         poses, zs = [], []
-        for row in ins[ip[keep]]:
-            T_ned_ins = euler_to_matrix(*row[1:7])
+        for row in ins_at[keep]:
+            T_ned_ins = euler_to_matrix(*row)
             T = NED_TO_ENU @ T_ned_ins @ np.linalg.inv(T_vehicle_ins) @ FRD_TO_FLU
             x, y, z, yaw = pose_from_matrix(T)
+            z -= height  # the ground under the vehicle
             if origin is None:
                 origin = np.array([x, y, z])
             poses.append((x - origin[0], y - origin[1], yaw))
