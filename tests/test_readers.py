@@ -9,7 +9,7 @@ import pytest
 from PIL import Image
 from scipy.spatial.transform import Rotation
 
-from vvloc.data import DatasetFormatError, open_dataset
+from vvloc.data import DatasetFormatError, convert_dataset, open_dataset, select_keyframes
 from vvloc.data.bayer import demosaic_bilinear, mosaic
 from vvloc.data.frame import FRD_TO_FLU, Camera, euler_to_matrix, interpolate_rows
 from vvloc.data.nclt import X_BODY_LB3
@@ -321,3 +321,110 @@ def test_oxford_reader_reports_bad_files(tmp_path):
         open_dataset(tmp_path, cameras=("stereo_centre",))
     with pytest.raises(ValueError, match="cameras"):
         open_dataset(tmp_path, cameras=("roof",))
+
+
+# ---------------------------------------------------------------------------------------------
+# conversion into the vvloc format
+
+
+def test_select_keyframes_by_distance_or_heading():
+    poses = np.array(
+        [[0, 0, 0], [0.4, 0, 0], [1.0, 0, 0], [1.2, 0, 0.3], [1.3, 0, 0.35], [5, 0, 0.35]],
+        dtype=np.float64,
+    )
+    assert select_keyframes(poses).tolist() == [0, 1, 2, 3, 4, 5]
+    assert select_keyframes(poses, min_distance=1.0).tolist() == [0, 2, 5]
+    # 0.3 rad = 17.2°: frame 3 turned far enough; frame 4 moved 0.1 m and turned 2.9° more
+    assert select_keyframes(poses, min_distance=1.0, min_angle_deg=15).tolist() == [0, 2, 3, 5]
+    # headings across ±π are 0.2 rad apart, not 6.08
+    wrap = np.array([[0, 0, 3.04], [0, 0, -3.04]])
+    assert select_keyframes(wrap, min_angle_deg=15).tolist() == [0]
+    assert select_keyframes(np.zeros((0, 3))).tolist() == []
+    with pytest.raises(ValueError, match="min_distance"):
+        select_keyframes(poses, min_distance=-1.0)
+    with pytest.raises(ValueError, match=r"poses: expected shape \(N, 3\)"):
+        select_keyframes(poses[:, :2])
+
+
+def test_convert_nclt_writes_what_the_reader_reads(tmp_path):
+    src = tmp_path / "nclt"
+    _nclt(src)
+    out = tmp_path / "converted"
+    path = convert_dataset(src, out, image_size=(3, 4), ego_height=0.4, cameras=(1,))
+    read = open_dataset(src, image_size=(3, 4), ego_height=0.4, cameras=(1,))
+    conv = open_dataset(path)
+    assert conv.sessions == [DATE]
+    (cam,), (ref,) = conv.cameras, read.cameras
+    assert (cam.width, cam.height, cam.name) == (3, 4, "Cam1")
+    np.testing.assert_allclose(cam.K, ref.K)
+    np.testing.assert_allclose(cam.cam_to_ego, ref.cam_to_ego)
+    s, r = conv.session(DATE), read.session(DATE)
+    np.testing.assert_array_equal(s.timestamps, r.timestamps)
+    np.testing.assert_allclose(s.poses, r.poses)
+    np.testing.assert_allclose(s.z, r.z)
+    np.testing.assert_array_equal(s[1].images, r[1].images)  # PNG is lossless
+    src_meta = conv.meta["converted_from"]
+    assert src_meta["format"] == "nclt" and src_meta["options"]["ego_height"] == 0.4
+    # keyframes: every 2nd frame of the two
+    again = convert_dataset(src, tmp_path / "every2", every=2, cameras=(1,))
+    assert len(open_dataset(again).session(DATE)) == 1
+
+
+def test_convert_oxford_keeps_the_origin_and_resizes_a_vvloc_dataset(tmp_path):
+    src = tmp_path / "oxford"
+    src.mkdir()
+    sess = _oxford(src)
+    oxf = convert_dataset(src, tmp_path / "oxf", cameras=("stereo_centre", "mono_left"))
+    conv = open_dataset(oxf)
+    read = open_dataset(src, cameras=("stereo_centre", "mono_left"))
+    assert conv.meta["origin_enu"] == read.meta["origin_enu"]
+    np.testing.assert_allclose(conv.session(sess.name).poses, read.session(sess.name).poses)
+    # vvloc → vvloc: the images are resized here, the intrinsics with them
+    small = open_dataset(convert_dataset(oxf, tmp_path / "small", image_size=(4, 3)))
+    for c_small, c in zip(small.cameras, conv.cameras, strict=True):
+        np.testing.assert_allclose(c_small.K, c.resized(4, 3).K)
+    assert small.session(sess.name)[0].images.shape == (2, 3, 3, 4)
+
+
+def test_convert_leaves_nothing_behind_on_failure(tmp_path, monkeypatch):
+    from vvloc.data.nclt import NcltSession
+
+    src = tmp_path / "nclt"
+    _nclt(src)
+    with pytest.raises(KeyError, match="no session 'nope'"):
+        convert_dataset(src, tmp_path / "a", sessions=["nope"], cameras=(1,))
+    with pytest.raises(ValueError, match="every"):
+        convert_dataset(src, tmp_path / "a", every=0, cameras=(1,))
+    calls = []
+
+    def failing(self, index):
+        calls.append(index)
+        if len(calls) == 2:
+            raise OSError("disk went away")
+        return original(self, index)
+
+    original = NcltSession._load_images
+    monkeypatch.setattr(NcltSession, "_load_images", failing)
+    with pytest.raises(OSError, match="disk went away"):
+        convert_dataset(src, tmp_path / "a", cameras=(1,))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["nclt"]  # no folder, no partial one
+
+
+def test_cli_convert(tmp_path):
+    import subprocess
+    import sys
+
+    src = tmp_path / "nclt"
+    _nclt(src)
+    exe = [sys.executable, "-m", "vvloc.cli", "convert", "--src", str(src)]
+    run = lambda *a: subprocess.run([*exe, *a], capture_output=True, text=True)  # noqa: E731
+    r = run("--out", str(tmp_path / "c"), "--cameras", "1", "--width", "3", "--height", "4")
+    assert r.returncode == 0, r.stderr
+    assert open_dataset(tmp_path / "c").cameras[0].width == 3
+    r = run("--out", str(tmp_path / "c"), "--cameras", "1")  # exists
+    assert r.returncode == 2 and "exists" in r.stderr
+    r = run("--out", str(tmp_path / "d"), "--cameras", "left")
+    assert r.returncode == 2 and "--cameras: NCLT cameras are numbers" in r.stderr
+    r = run("--out", str(tmp_path / "d"), "--width", "16")
+    assert r.returncode == 2 and "--width and --height go together" in r.stderr
+    assert not (tmp_path / "d").exists()

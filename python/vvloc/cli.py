@@ -12,6 +12,7 @@ from types import FrameType
 import typer
 
 from vvloc.commands.calibrate import calibrate
+from vvloc.commands.convert import convert
 from vvloc.commands.demo import demo
 from vvloc.commands.evaluate import eval_command
 from vvloc.commands.localize import localize
@@ -44,6 +45,7 @@ def _root(
 
 
 app.command("sim")(sim)
+app.command("convert")(convert)
 app.command("train")(train)
 app.command("eval")(eval_command)
 app.command("calibrate")(calibrate)

@@ -14,6 +14,7 @@ from typing import Any
 
 from vvloc.data import perturb
 from vvloc.data.augment import PhotometricAugment
+from vvloc.data.convert import convert_dataset, select_keyframes
 from vvloc.data.frame import Camera, Dataset, Frame, Session
 from vvloc.data.nclt import is_nclt, open_nclt
 from vvloc.data.oxford import is_oxford, open_oxford
@@ -23,27 +24,38 @@ from vvloc.data.vvloc_format import DatasetFormatError, DatasetWriter, SessionWr
 FORMATS = ("auto", "vvloc", "nclt", "oxford")
 
 
-def open_dataset(path: str | os.PathLike[str], format: str = "auto", **kwargs: Any) -> Dataset:
-    """Open a dataset folder lazily: a vvloc-format dataset (``rig.json``), an NCLT raw folder or
-    an Oxford RobotCar raw folder. ``kwargs`` go to the format's reader (``open_nclt``,
-    ``open_oxford``). Raises ``FileNotFoundError`` / ``DatasetFormatError`` naming the problem."""
+def detect_format(path: str | os.PathLike[str], format: str = "auto") -> str:
+    """The format of the dataset folder ``path``: ``vvloc``, ``nclt`` or ``oxford``.
+
+    ``format`` other than ``auto`` is checked and returned as is. Raises ``ValueError`` for an
+    unknown format, ``FileNotFoundError`` / ``DatasetFormatError`` for a folder that is missing
+    or holds none of them.
+    """
     root = Path(path)
     if format not in FORMATS:
         raise ValueError(f"format: expected one of {FORMATS}, got {format!r}")
     if not root.is_dir():
         raise FileNotFoundError(f"{root}: no such dataset folder")
-    if format == "auto":
-        if (root / "rig.json").is_file():
-            format = "vvloc"
-        elif is_nclt(root):
-            format = "nclt"
-        elif is_oxford(root):
-            format = "oxford"
-        else:
-            raise DatasetFormatError(
-                f"{root}: not a dataset: expected rig.json (vvloc), <date>/lb3 + cam_params (NCLT) "
-                f"or <session>/gps/ins.csv (Oxford RobotCar)"
-            )
+    if format != "auto":
+        return format
+    if (root / "rig.json").is_file():
+        return "vvloc"
+    if is_nclt(root):
+        return "nclt"
+    if is_oxford(root):
+        return "oxford"
+    raise DatasetFormatError(
+        f"{root}: not a dataset: expected rig.json (vvloc), <date>/lb3 + cam_params (NCLT) "
+        f"or <session>/gps/ins.csv (Oxford RobotCar)"
+    )
+
+
+def open_dataset(path: str | os.PathLike[str], format: str = "auto", **kwargs: Any) -> Dataset:
+    """Open a dataset folder lazily: a vvloc-format dataset (``rig.json``), an NCLT raw folder or
+    an Oxford RobotCar raw folder. ``kwargs`` go to the format's reader (``open_nclt``,
+    ``open_oxford``). Raises ``FileNotFoundError`` / ``DatasetFormatError`` naming the problem."""
+    root = Path(path)
+    format = detect_format(root, format)
     if format == "vvloc":
         if kwargs:
             raise TypeError(f"the vvloc format takes no options, got {sorted(kwargs)}")
@@ -64,10 +76,13 @@ __all__ = [
     "Session",
     "SessionWriter",
     "TripletSampler",
+    "convert_dataset",
+    "detect_format",
     "evaluation_split",
     "open_dataset",
     "open_nclt",
     "open_oxford",
     "open_vvloc",
     "perturb",
+    "select_keyframes",
 ]

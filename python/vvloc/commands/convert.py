@@ -1,0 +1,120 @@
+"""``vvloc convert``: turn an NCLT / Oxford RobotCar raw folder (or a vvloc dataset) into a
+small vvloc-format dataset of keyframes that every other command reads quickly."""
+
+from __future__ import annotations
+
+from enum import Enum
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+
+from vvloc.commands._util import EXIT_USAGE, cli_errors, split_names
+
+
+class SourceFormat(str, Enum):
+    """Dataset formats ``vvloc convert`` reads (``vvloc.data.FORMATS``)."""
+
+    auto = "auto"
+    vvloc = "vvloc"
+    nclt = "nclt"
+    oxford = "oxford"
+
+
+def _fail(message: str) -> None:
+    typer.echo(f"vvloc convert: error: {message}", err=True)
+    raise typer.Exit(code=EXIT_USAGE)
+
+
+def convert(
+    src: Annotated[Path, typer.Option("--src", help="Dataset folder to read.")],
+    out: Annotated[
+        Path, typer.Option("--out", help="vvloc dataset to write (must not exist or be empty).")
+    ],
+    format: Annotated[
+        SourceFormat, typer.Option("--format", help="Format of --src (auto: detected).")
+    ] = SourceFormat.auto,
+    sessions: Annotated[
+        str, typer.Option("--sessions", help="Comma-separated sessions to convert (default all).")
+    ] = "",
+    every: Annotated[
+        int, typer.Option("--every", min=1, help="Keep every n-th frame of a session first.")
+    ] = 1,
+    min_distance: Annotated[
+        float,
+        typer.Option(
+            "--min_distance",
+            min=0.0,
+            help="Then keep a keyframe once the vehicle has moved this far (m) from the last.",
+        ),
+    ] = 0.0,
+    min_angle: Annotated[
+        float,
+        typer.Option(
+            "--min_angle", min=0.0, help="... or turned this far (degrees) from the last."
+        ),
+    ] = 0.0,
+    width: Annotated[
+        int | None, typer.Option("--width", min=1, help="Image width, pixels (with --height).")
+    ] = None,
+    height: Annotated[
+        int | None, typer.Option("--height", min=1, help="Image height, pixels (with --width).")
+    ] = None,
+    cameras: Annotated[
+        str,
+        typer.Option(
+            "--cameras",
+            help="Comma-separated cameras in image order (NCLT: 1-5, e.g. 1,2,3,4,5; RobotCar: "
+            "stereo_centre,mono_left,mono_rear,mono_right). Default: the reader's.",
+        ),
+    ] = "",
+    ego_height: Annotated[
+        float | None,
+        typer.Option(
+            "--ego_height",
+            help="NCLT / RobotCar: height of the dataset's vehicle-frame origin above the "
+            "ground (m), where vvloc's ego origin goes (default 0: kept).",
+        ),
+    ] = None,
+    overwrite: Annotated[
+        bool, typer.Option("--overwrite", help="Replace an existing --out.")
+    ] = False,
+) -> None:
+    """Convert a dataset into the vvloc format: keyframes, resized images, poses in vvloc's
+    frames (docs/dataset-format.md). Convert a public dataset once, then train, map and
+    evaluate on the result."""
+    from vvloc.data import convert_dataset, detect_format
+
+    if (width is None) != (height is None):
+        _fail("--width and --height go together")
+    with cli_errors("convert"):
+        fmt = detect_format(src, format.value)
+        options: dict[str, Any] = {}
+        if cameras:
+            names = split_names(cameras)
+            if fmt == "nclt":
+                if not all(n.isdigit() for n in names):
+                    _fail(f"--cameras: NCLT cameras are numbers 1-5, got {cameras!r}")
+                options["cameras"] = [int(n) for n in names]
+            elif fmt == "oxford":
+                options["cameras"] = names
+            else:
+                _fail("--cameras applies to NCLT and RobotCar sources only")
+        if ego_height is not None:
+            if fmt == "vvloc":
+                _fail("--ego_height applies to NCLT and RobotCar sources only")
+            options["ego_height"] = ego_height
+        path = convert_dataset(
+            src,
+            out,
+            format=fmt,
+            sessions=split_names(sessions) or None,
+            every=every,
+            min_distance=min_distance,
+            min_angle_deg=min_angle,
+            image_size=(width, height) if width is not None and height is not None else None,
+            overwrite=overwrite,
+            progress=True,
+            **options,
+        )
+    typer.echo(f"wrote {path}")

@@ -1,0 +1,184 @@
+"""Convert any dataset vvloc reads (NCLT, Oxford RobotCar, vvloc) into the vvloc format.
+
+A public dataset's raw folder is slow to read (TIFFs of 1616 × 1232, Bayer PNGs, undistortion
+maps) and dense (NCLT's cameras run at 5 Hz). Training and evaluation want small images at
+keyframes a little apart, read many times: convert once, then point every command at the
+result. :func:`convert_dataset` keeps every n-th frame or keyframes spaced in distance and
+heading, resizes the images (K follows exactly) and writes atomically (a failure leaves no
+partial folder). ``vvloc convert`` is its command line.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from vvloc.data._remap import resize_rgb
+
+__all__ = ["convert_dataset", "select_keyframes"]
+
+
+def select_keyframes(
+    poses: Any, *, min_distance: float = 0.0, min_angle_deg: float = 0.0
+) -> np.ndarray:
+    """Indices of keyframes along a trajectory: the first pose, then each pose that has moved
+    at least ``min_distance`` metres or turned at least ``min_angle_deg`` degrees from the last
+    keyframe kept.
+
+    Args:
+        poses: (N, 3) float (x, y, yaw) in metres and radians, in time order.
+        min_distance: metres (0: no distance criterion).
+        min_angle_deg: degrees (0: no heading criterion). With both 0 every pose is kept.
+
+    Returns:
+        (K,) int64 increasing indices, K ≥ 1 when N ≥ 1.
+    """
+    p = np.asarray(poses, dtype=np.float64)
+    if p.ndim != 2 or p.shape[1] != 3:
+        raise ValueError(f"poses: expected shape (N, 3), got {p.shape}")
+    if not np.isfinite(p).all():
+        raise ValueError("poses: contains non-finite values")
+    for name, v in (("min_distance", min_distance), ("min_angle_deg", min_angle_deg)):
+        if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+            raise ValueError(f"{name}: expected a finite number >= 0, got {v!r}")
+    if len(p) == 0:
+        return np.zeros(0, np.int64)
+    if min_distance == 0 and min_angle_deg == 0:
+        return np.arange(len(p), dtype=np.int64)
+    keep = [0]
+    angle = math.radians(min_angle_deg)
+    for i in range(1, len(p)):
+        last = p[keep[-1]]
+        moved = math.hypot(p[i, 0] - last[0], p[i, 1] - last[1])
+        turned = abs(math.remainder(p[i, 2] - last[2], 2 * math.pi))
+        if (min_distance > 0 and moved >= min_distance) or (min_angle_deg > 0 and turned >= angle):
+            keep.append(i)
+    return np.array(keep, dtype=np.int64)
+
+
+def convert_dataset(
+    src: str | os.PathLike[str],
+    out: str | os.PathLike[str],
+    *,
+    format: str = "auto",
+    sessions: Sequence[str] | None = None,
+    every: int = 1,
+    min_distance: float = 0.0,
+    min_angle_deg: float = 0.0,
+    image_size: tuple[int, int] | None = None,
+    overwrite: bool = False,
+    progress: bool = False,
+    **reader_options: Any,
+) -> Path:
+    """Write the frames of ``src`` chosen as keyframes into a vvloc-format dataset at ``out``.
+
+    Args:
+        src: a dataset :func:`vvloc.data.open_dataset` reads (NCLT or Oxford RobotCar raw
+            folder, or a vvloc dataset).
+        out: the vvloc dataset to write (must not exist or be empty unless ``overwrite``).
+        format: ``auto``, ``nclt``, ``oxford`` or ``vvloc`` (as ``open_dataset``).
+        sessions: the sessions to convert (default all), written under the same names.
+        every: keep every n-th frame of a session first (1: all).
+        min_distance, min_angle_deg: then keep keyframes spaced this far apart in metres or
+            degrees (:func:`select_keyframes`; both 0: all).
+        image_size: (width, height) of the written images (default: the source's); the
+            intrinsics are rescaled exactly (pixel-centre convention).
+        overwrite: replace an existing ``out``.
+        progress: a tqdm progress bar over the written frames.
+        **reader_options: passed to the source's reader (e.g. ``ego_height``, ``cameras``,
+            ``upright`` for NCLT; ``ego_height``, ``cameras``, ``tolerance_us`` for RobotCar).
+
+    Returns:
+        ``out``. Poses, heights (``Frame.z``), floors and microsecond timestamps are copied;
+        ``rig.json``'s meta records the source, its options and the source's own meta (e.g.
+        RobotCar's ``origin_enu``). Nothing is left at ``out`` if any frame fails.
+    """
+    from vvloc.data import detect_format, open_dataset
+    from vvloc.data.vvloc_format import DatasetWriter
+
+    if isinstance(every, bool) or not isinstance(every, int) or every < 1:
+        raise ValueError(f"every: expected an int >= 1, got {every!r}")
+    size = None
+    if image_size is not None:
+        if len(image_size) != 2 or any(
+            isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1 for v in image_size
+        ):
+            raise ValueError(
+                f"image_size: expected (width, height) positive ints, got {image_size}"
+            )
+        size = (int(image_size[0]), int(image_size[1]))
+    options = dict(reader_options)
+    fmt = detect_format(src, format)
+    if size is not None and fmt != "vvloc":
+        if "image_size" in options:
+            raise TypeError("image_size: give it once, not also as a reader option")
+        options["image_size"] = size  # the raw readers resize as they read: one interpolation
+    ds = open_dataset(src, format=fmt, **options)
+    names = list(ds.sessions) if sessions is None else list(sessions)
+    for name in names:
+        ds.session(name)  # a KeyError naming the known sessions, before anything is written
+    cameras = list(ds.cameras)
+    if size is not None and (cameras[0].width, cameras[0].height) != size:
+        cameras = [c.resized(*size) for c in cameras]
+    picks = {}
+    for name in names:
+        s = ds.session(name)
+        strided = np.arange(0, len(s), every, dtype=np.int64)
+        chosen = select_keyframes(
+            s.poses[strided], min_distance=min_distance, min_angle_deg=min_angle_deg
+        )
+        picks[name] = strided[chosen]
+    total = sum(len(v) for v in picks.values())
+    meta = {
+        "converted_from": {
+            "path": str(Path(src).resolve()),
+            "format": fmt,
+            "options": {k: _jsonable(v) for k, v in reader_options.items()},
+            "every": every,
+            "min_distance": min_distance,
+            "min_angle_deg": min_angle_deg,
+        },
+        **ds.meta,
+    }
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=total, desc="vvloc convert", unit="frame")
+    try:
+        with DatasetWriter(out, cameras, overwrite=overwrite, meta=meta) as writer:
+            for name in names:
+                s = ds.session(name)
+                w = writer.add_session(name, meta={"source_session": name})
+                for i in picks[name]:
+                    f = s[int(i)]
+                    images = f.images
+                    if images.shape[2:] != (cameras[0].height, cameras[0].width):
+                        images = np.stack(
+                            [
+                                resize_rgb(
+                                    img.transpose(1, 2, 0), cameras[0].width, cameras[0].height
+                                ).transpose(2, 0, 1)
+                                for img in images
+                            ]
+                        )
+                    w.add(int(s.timestamps[i]), f.pose, images, z=f.z, floor=f.floor)
+                    if bar is not None:
+                        bar.update(1)
+    finally:
+        if bar is not None:
+            bar.close()
+    return Path(out)
+
+
+def _jsonable(v: Any) -> Any:
+    if isinstance(v, (str, int, float, bool)) or v is None:
+        return v
+    if isinstance(v, (list, tuple)):
+        return [_jsonable(x) for x in v]
+    return str(v)
