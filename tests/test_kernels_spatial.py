@@ -275,3 +275,20 @@ def test_extension_rejects_bad_values_without_panicking():
         _core.roll_interp(BEV, 1.0, -1)
     with pytest.raises(ValueError, match=r"^grid_size"):
         _core.bev_pad(BEV, TR, float("inf"))
+
+
+def test_outputs_larger_than_memory_raise_memory_error():
+    q = np.zeros((8, 8, 4), np.float32)
+    cases = [
+        (lambda: K.polar_sample(q, 2**40, 1, 0.3), "num_angles"),
+        (lambda: K.polar_sample(np.zeros((8, 8, 0), np.float32), 2**40, 1, 0.3), "num_angles"),
+        (lambda: K.polar_sample(q, 2**32, 2**32, 0.3), "num_angles"),  # T·R wraps usize
+        (lambda: K.pad_polar(q, [[0.0, 0.0]], 2**62, 4, 0.3), "num_angles"),
+        (
+            lambda: K.bev_pad(np.zeros((1000, 1000, 8), np.float32), np.zeros((1000, 2)), 0.3),
+            "translations",
+        ),  # 32 GB
+    ]
+    for call, name in cases:
+        with pytest.raises(MemoryError, match=f"^{name}: the result needs"):
+            call()

@@ -292,6 +292,57 @@ def test_bad_input_raises_value_error_naming_the_argument():
         index.topk(x[:2], 2, exclude=(0, 0))
 
 
+def test_sizes_and_magnitudes_beyond_the_kernels_are_errors_not_aborts(tmp_path):
+    x = clustered(50, 8, 9)
+    index = DescriptorIndex(x)
+    # squared distances beyond float32: refused (they came back as inf or 0 before)
+    with pytest.raises(ValueError, match=r"^descriptors: values too large"):
+        DescriptorIndex(x * 1e19)
+    with pytest.raises(ValueError, match=r"^queries: values too large"):
+        index.topk(x[:2] * 1e31, 3)
+    # k may exceed N (padding), but not memory: MemoryError, not an abort
+    assert (index.topk(x[:1], 60)[0][0, 50:] == -1).all()
+    for k in (2**40, 2**62):
+        with pytest.raises(MemoryError, match=r"^k: "):
+            index.topk(x[:2], k)
+    # radii float32 cannot hold
+    for r in (1e300, 1e-50):
+        with pytest.raises(ValueError, match=r"^r: expected a radius float32 can hold"):
+            index.radius(x[:2], r)
+    # uint64 ids beyond int64 would wrap to negative numbers
+    with pytest.raises(ValueError, match=r"^groups: values must fit in int64"):
+        DescriptorIndex(x[:2], groups=np.array([1, 2**64 - 1], np.uint64))
+    # a forged header (N = 0, d = 2^40, valid checksum) is refused, not allocated
+    from vvloc import _core
+
+    empty = tmp_path / "empty.vvidx"
+    DescriptorIndex(np.zeros((0, 4), np.float32)).save(empty)
+    data = bytearray(empty.read_bytes())
+    assert len(data) == 40
+    data[24:32] = (2**40).to_bytes(8, "little")
+    h = 0xCBF29CE484222325  # the format's FNV-style sum of 8-byte words over bytes 8..32
+    for i in range(8, 32, 8):
+        h = ((h ^ int.from_bytes(data[i : i + 8], "little")) * 0x100000001B3) % 2**64
+    data[32:40] = h.to_bytes(8, "little")
+    empty.write_bytes(bytes(data))
+    with pytest.raises(ValueError, match="dimension d must be <="):
+        _core.DescriptorIndex.load(str(empty))
+
+
+def test_thread_count_is_bounded():
+    before = vvloc.get_num_threads()
+    try:
+        vvloc.set_num_threads(np.int64(1))
+        assert vvloc.get_num_threads() == 1
+        for n in (0, 1025, 10**6):
+            with pytest.raises(ValueError, match=r"n: expected an int in \[1, 1024\]"):
+                vvloc.set_num_threads(n)
+        with pytest.raises(TypeError, match="n: "):
+            vvloc.set_num_threads(2.0)  # type: ignore[arg-type]
+    finally:
+        vvloc.set_num_threads(before)
+
+
 def test_accepts_torch_float64_and_non_contiguous():
     x = clustered(200, 16, 10)
     index = DescriptorIndex(torch.from_numpy(x.astype(np.float64)))

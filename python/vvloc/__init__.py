@@ -19,14 +19,18 @@ logging.getLogger("vvloc").addHandler(logging.NullHandler())
 
 
 def set_num_threads(n: int) -> None:
-    """Set the number of threads of vvloc's Rust kernel pool (``n >= 1``).
+    """Set the number of threads of vvloc's Rust kernel pool (``1 <= n <= 1024``).
 
     The default is ``VVLOC_NUM_THREADS`` or the number of available cores. Results are identical
     for any thread count.
     """
-    if isinstance(n, bool) or not isinstance(n, int):
-        raise TypeError(f"n: expected an int >= 1, got {type(n).__name__}")
-    _core.set_num_threads(n)
+    import numpy as np
+
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)):
+        raise TypeError(f"n: expected an int in [1, 1024], got {type(n).__name__}")
+    if not 1 <= int(n) <= 1024:
+        raise ValueError(f"n: expected an int in [1, 1024], got {int(n)}")
+    _core.set_num_threads(int(n))
 
 
 def get_num_threads() -> int:

@@ -5,10 +5,17 @@ and the expected shape/dtype), converts them to C-contiguous float32, and dispat
 extension (``backend="rust"``, default) or to the pure-Python reference
 (``backend="reference"``, :mod:`vvloc.reference`). Shapes follow DESIGN.md §4; angles are in
 radians, lengths in metres, BEVs are channels-last (H, W, C) with row i ↔ x, column j ↔ y.
+
+Limits, the same for both backends: descriptor rows whose squared norm exceeds
+:data:`MAX_ROW_SQNORM` (1e37) are refused with ``ValueError`` (float32 Gram products would
+overflow); a search stage holds at most :data:`MAX_STAGE_POINTS` hypotheses. An output or work
+buffer larger than the machine can allocate raises ``MemoryError`` naming the argument that sets
+its size, instead of aborting the process. No Rust panic reaches Python.
 """
 
 from __future__ import annotations
 
+import math
 from typing import Any, Literal, NamedTuple
 
 import numpy as np
@@ -282,6 +289,28 @@ def _f64_vector(x: Any, name: str, n: int) -> npt.NDArray[np.float64]:
     return out
 
 
+#: The largest squared norm of a descriptor row the yaw and retrieval kernels take: their
+#: float32 Gram products would overflow beyond it (``vvloc_core::cost::MAX_ROW_SQNORM``).
+MAX_ROW_SQNORM = 1e37
+#: The most hypotheses one search stage may propose (``vvloc_core::search::MAX_STAGE_POINTS``).
+MAX_STAGE_POINTS = 100_000_000
+
+
+def _check_row_norms(x: F32Array, name: str) -> None:
+    """``ValueError`` naming ``name`` when a row (last axis) of ``x`` has a squared norm above
+    :data:`MAX_ROW_SQNORM` (both backends refuse what float32 arithmetic cannot hold)."""
+    c = max(x.shape[-1], 1) if x.ndim else 1
+    if x.size == 0 or float(np.abs(x).max()) <= math.sqrt(MAX_ROW_SQNORM / c):
+        return
+    sq = np.einsum("...c,...c->...", x.astype(np.float64), x.astype(np.float64))
+    if float(sq.max()) > MAX_ROW_SQNORM:
+        raise ValueError(
+            f"{name}: values too large: a descriptor row's squared norm exceeds "
+            f"{MAX_ROW_SQNORM:.0e}, beyond what float32 arithmetic holds (scale the "
+            "descriptors down)"
+        )
+
+
 def _pairs(src: Any, tgt: Any, *, shared_ok: bool = True) -> tuple[F32Array, F32Array]:
     """Validate descriptor pairs: ``src`` (P, T, C); ``tgt`` (P, T, C), or (1, T, C) / (T, C)
     shared by every pair when ``shared_ok``. Returns both as 3-D C-contiguous float32."""
@@ -299,6 +328,8 @@ def _pairs(src: Any, tgt: Any, *, shared_ok: bool = True) -> tuple[F32Array, F32
     if t.shape[1:] != (nt, c) or t.shape[0] not in ((p, 1) if shared_ok else (p,)):
         want = f"({p}, {nt}, {c})" + (f", (1, {nt}, {c}) or ({nt}, {c})" if shared_ok else "")
         raise ValueError(f"tgt: expected shape {want} to match src, got {t.shape}")
+    _check_row_norms(s, "src")
+    _check_row_norms(t, "tgt")
     return s, t
 
 
@@ -313,6 +344,8 @@ def matching_cost(a: Any, b: Any, *, backend: Backend = "rust") -> npt.NDArray[n
     if y.shape != x.shape:
         raise ValueError(f"b: expected shape {x.shape} like a, got {y.shape}")
     lead, (t, c) = x.shape[:-2], x.shape[-2:]
+    _check_row_norms(x, "a")
+    _check_row_norms(y, "b")
     if backend == "reference":
         return np.asarray(ref_matching.matching_cost(x, y), dtype=np.float64).reshape(lead)
     out = _core.matching_cost(x.reshape(-1, t, c), y.reshape(-1, t, c))
@@ -393,6 +426,15 @@ class TranslationSearch:
             raise ValueError(f"half_range: expected a value >= step ({st}), got {hr}")
         nst = _positive_int(stages, "stages")
         nfs = _positive_int(fine_samples, "fine_samples", 1 if nst > 1 else 0)
+        if nfs > MAX_STAGE_POINTS:
+            raise ValueError(
+                f"fine_samples: expected at most {MAX_STAGE_POINTS} samples per stage, got {nfs}"
+            )
+        n_side = 2 * math.floor(hr / st + 1e-9) + 1
+        if n_side * n_side > MAX_STAGE_POINTS:
+            raise ValueError(
+                f"step: the coarse grid would have {n_side}×{n_side} points; use a larger step"
+            )
         sh = _positive_float(shrink, "shrink")
         if sh > 1.0:
             raise ValueError(f"shrink: expected a value in (0, 1], got {sh}")

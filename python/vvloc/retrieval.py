@@ -44,6 +44,8 @@ def _as_i64(x: Any, name: str, n: int) -> npt.NDArray[np.int64]:
         raise TypeError(f"{name}: expected an integer array ({n},), got dtype {arr.dtype}")
     if arr.shape != (n,):
         raise ValueError(f"{name}: expected shape ({n},), got {arr.shape}")
+    if arr.dtype.kind == "u" and arr.size and arr.max() > np.iinfo(np.int64).max:
+        raise ValueError(f"{name}: values must fit in int64, got {arr.max()}")
     return np.ascontiguousarray(arr, dtype=np.int64)
 
 
@@ -172,6 +174,9 @@ class DescriptorIndex:
         """
         q = _queries(queries, self.dim)
         r = _positive_float(r, "r")
+        f32 = np.finfo(np.float32)
+        if not float(f32.smallest_subnormal) <= r <= float(f32.max):  # compared in float32
+            raise ValueError(f"r: expected a radius float32 can hold (1e-38 .. 3.4e38), got {r}")
         return self._inner.radius(q, r, _exclusion(exclude, q.shape[0]))
 
     def save(self, path: str | os.PathLike[str]) -> None:

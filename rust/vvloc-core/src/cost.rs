@@ -26,7 +26,7 @@
 // Index loops over fixed lane counts are deliberate: they are what the compiler vectorises.
 #![allow(clippy::needless_range_loop)]
 
-use crate::error::{Error, Result};
+use crate::error::{check_alloc, checked_len, Error, Result};
 use crate::pose::wrap_angle;
 use ndarray::{Array2, ArrayView3};
 use rayon::prelude::*;
@@ -74,6 +74,37 @@ fn check_finite(x: &[f32], arg: &'static str) -> Result<()> {
     }
 }
 
+/// The largest squared norm of a descriptor row that the f32 Gram products of the yaw and
+/// retrieval kernels handle: with ‖a‖², ‖b‖² ≤ 1e37, every partial dot product and every squared
+/// distance stays below 4e37 < f32::MAX (3.4e38), so nothing overflows to inf (or inf − inf to
+/// NaN).
+pub const MAX_ROW_SQNORM: f64 = 1e37;
+
+/// Finite values whose rows of `c` have squared norms ≤ [`MAX_ROW_SQNORM`]. The usual case costs
+/// one comparison per value (every |v| ≤ √(MAX_ROW_SQNORM / c) bounds every row); only when
+/// that fails are the rows' norms summed (in f64).
+pub(crate) fn check_rows(x: &[f32], c: usize, arg: &'static str) -> Result<()> {
+    let bound = (MAX_ROW_SQNORM / c.max(1) as f64).sqrt() as f32;
+    if x.iter().all(|v| v.abs() <= bound) {
+        return Ok(()); // false for NaN and inf: they are caught below
+    }
+    let ok = x.chunks(c.max(1)).all(|row| {
+        let n: f64 = row.iter().map(|&v| v as f64 * v as f64).sum();
+        n <= MAX_ROW_SQNORM // false for NaN and inf
+    });
+    if ok {
+        return Ok(());
+    }
+    check_finite(x, arg)?;
+    Err(Error::value(
+        arg,
+        format!(
+            "values too large: a descriptor row's squared norm exceeds {MAX_ROW_SQNORM:e}, \
+             beyond what float32 arithmetic holds (scale the descriptors down)"
+        ),
+    ))
+}
+
 /// Checks a batch of pairs; `tgt` may hold one matrix shared by all pairs. Returns (P, T, C)
 /// and C-contiguous data of both.
 fn check_pairs<'a>(
@@ -100,8 +131,10 @@ fn check_pairs<'a>(
     }
     let s = contiguous(src);
     let g = contiguous(tgt);
-    check_finite(&s, "src")?;
-    check_finite(&g, "tgt")?;
+    check_rows(&s, c, "src")?;
+    check_rows(&g, c, "tgt")?;
+    // each pair's curve holds a (T, T) table of squared distances
+    check_alloc::<f32>("src", checked_len("src", &[t, t])?)?;
     Ok((p, t, c, s, g, pt == 1 && p > 1))
 }
 
@@ -145,8 +178,8 @@ pub fn matching_cost(a: ArrayView3<f32>, b: ArrayView3<f32>) -> Result<Vec<f64>>
         ));
     }
     let (sa, sb) = (contiguous(&a), contiguous(&b));
-    check_finite(&sa, "a")?;
-    check_finite(&sb, "b")?;
+    check_rows(&sa, c, "a")?;
+    check_rows(&sb, c, "b")?;
     let isa = Isa::detect();
     Ok(per_pair(p, |q| {
         let (x, y) = (
@@ -658,6 +691,9 @@ fn estimate_impl<G: Gram>(ds: &[f32], dt: &[f32], t: usize, c: usize, g: &G) -> 
             continue; // the minimum is at an end: an integer shift, already in cint
         }
         let wx = ((c1 - d1 - c0) / (d0 - d1)).clamp(0.0, 1.0);
+        if wx.is_nan() {
+            continue; // unreachable for inputs check_rows admits; never a panic below
+        }
         if c0 + d0 * wx > best + margin(best) {
             continue; // the end tangents' lower bound cannot beat the best
         }
@@ -816,6 +852,44 @@ mod tests {
                 }
             }
         }
+    }
+
+    #[test]
+    fn rows_beyond_float32_are_refused_and_the_bound_itself_works() {
+        let (s, g) = (data(2, 6, 4, 5), data(2, 6, 4, 6));
+        // 1e19 per element: squared row norms ~1e37-1e38, whose Gram products overflow f32
+        for (arg, big_s, big_g) in [("src", 4e19f32, 1.0f32), ("tgt", 1.0, 4e19)] {
+            let (bs, bg) = (s.mapv(|v| v * big_s), g.mapv(|v| v * big_g));
+            for r in [
+                yaw_costs(bs.view(), bg.view()).map(|_| ()),
+                estimate_yaw(bs.view(), bg.view()).map(|_| ()),
+                rerank(bs.view(), bg.view()).map(|_| ()),
+                matching_cost(bs.view(), bg.view()).map(|_| ()),
+            ] {
+                let e = r.unwrap_err().to_string();
+                assert!(e.contains("values too large"), "{e}");
+                assert!(e.starts_with(arg) || e.starts_with(if arg == "src" { "a" } else { "b" }));
+            }
+        }
+        // just inside the bound (4 elements of 1.6e18: norm² 0.98e37) every result is finite
+        let scale = (MAX_ROW_SQNORM / 4.0).sqrt() as f32 * 0.99;
+        let (bs, bg) = (
+            s.mapv(|v| v.signum() * scale),
+            g.mapv(|v| v.signum() * scale),
+        );
+        let curve = yaw_costs(bs.view(), bg.view()).unwrap();
+        assert!(curve.iter().all(|v| v.is_finite()));
+        assert!(estimate_yaw(bs.view(), bg.view())
+            .unwrap()
+            .iter()
+            .all(|e| e.cost.is_finite() && e.shift.is_finite()));
+    }
+
+    #[test]
+    fn a_curve_table_larger_than_memory_is_an_error() {
+        let x = Array3::<f32>::zeros((1, 1 << 24, 1));
+        let r = yaw_costs(x.view(), x.view());
+        assert!(matches!(r, Err(Error::Memory { arg: "src", .. })), "{r:?}");
     }
 
     #[test]

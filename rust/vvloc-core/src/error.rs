@@ -19,6 +19,10 @@ pub enum Error {
     /// An I/O failure, with the path it concerns.
     #[error("{path}: {msg}")]
     Io { path: String, msg: String },
+    /// A buffer the input asks for is larger than memory (or than `usize`); `arg` names the
+    /// argument that sets its size. The bindings raise `MemoryError`.
+    #[error("{arg}: the result needs {what}, more than this machine can allocate")]
+    Memory { arg: &'static str, what: String },
 }
 
 /// Result alias of the core crate.
@@ -44,5 +48,59 @@ impl Error {
             expected: expected.into(),
             got: format!("{got:?}"),
         }
+    }
+}
+
+/// The element count of an array of shape `dims`, or [`Error::Memory`] naming `arg` when the
+/// product overflows `usize` (sizes are never computed with wrapping arithmetic).
+pub fn checked_len(arg: &'static str, dims: &[usize]) -> Result<usize> {
+    dims.iter()
+        .try_fold(1usize, |acc, &d| acc.checked_mul(d))
+        .ok_or_else(|| Error::Memory {
+            arg,
+            what: format!("an array of shape {dims:?}"),
+        })
+}
+
+/// Checks that a buffer of `len` elements of `T` can be allocated, so that the allocation that
+/// follows does not abort the process: [`Error::Memory`] naming `arg` otherwise. The probe
+/// reserves the memory and frees it at once (address space only: no page is touched), which
+/// keeps the zeroed allocation that follows lazy.
+pub fn check_alloc<T>(arg: &'static str, len: usize) -> Result<()> {
+    let mut probe: Vec<T> = Vec::new();
+    probe.try_reserve_exact(len).map_err(|_| Error::Memory {
+        arg,
+        what: format!(
+            "{len} elements of {} bytes",
+            std::mem::size_of::<T>().max(1)
+        ),
+    })
+}
+
+/// A `vec![value; len]` that returns [`Error::Memory`] naming `arg` instead of aborting.
+pub fn try_filled<T: Clone>(arg: &'static str, len: usize, value: T) -> Result<Vec<T>> {
+    check_alloc::<T>(arg, len)?;
+    Ok(vec![value; len])
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn sizes_that_overflow_or_exceed_memory_are_errors_not_aborts() {
+        assert_eq!(checked_len("x", &[3, 4, 5]), Ok(60));
+        assert_eq!(checked_len("x", &[]), Ok(1));
+        assert!(matches!(
+            checked_len("x", &[1 << 32, 1 << 32]),
+            Err(Error::Memory { arg: "x", .. })
+        ));
+        assert!(check_alloc::<f32>("x", 1 << 10).is_ok());
+        assert!(matches!(
+            check_alloc::<f32>("x", usize::MAX / 2),
+            Err(Error::Memory { arg: "x", .. })
+        ));
+        assert!(try_filled("x", usize::MAX / 8, 0.0f64).is_err());
+        assert_eq!(try_filled("x", 3, 1u8).unwrap(), vec![1, 1, 1]);
     }
 }

@@ -20,6 +20,7 @@
 //! `Qᵗ[a, b]` is "row `a` invalid or column `b` invalid", the 2-D value is
 //! `Σ αᵣ β_s Q[r, s] + 1 − (Σα)(Σβ)`.
 
+use crate::error::checked_len;
 use crate::polar::{
     blend, check_grid_size, has_avx2_fma, output_buffer, AxisFilter, PolarGrid, Taps,
 };
@@ -166,7 +167,7 @@ pub fn bev_pad(
     let map = bev
         .as_slice()
         .ok_or_else(|| Error::value("bev", "could not view the array as contiguous memory"))?;
-    let mut out = output_buffer(n * h * w * c);
+    let mut out = output_buffer("translations", &[n, h, w, c])?;
     if c > 0 && n > 0 {
         let fma = has_avx2_fma();
         let row = |(idx, dst): (usize, &mut [f32])| {
@@ -246,8 +247,8 @@ pub fn pad_polar(
     let map = bev
         .as_slice()
         .ok_or_else(|| Error::value("bev", "could not view the array as contiguous memory"))?;
-    let per_hyp = num_angles * num_radii * c;
-    let mut out = output_buffer(n * per_hyp);
+    let per_hyp = checked_len("num_angles", &[num_angles, num_radii, c])?;
+    let mut out = output_buffer("num_angles", &[n, num_angles, num_radii, c])?;
     if per_hyp > 0 && n > 0 {
         let fma = has_avx2_fma();
         let run = |(gi, dst): (usize, &mut [f32]), group: usize| {

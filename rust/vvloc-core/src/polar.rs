@@ -15,6 +15,7 @@
 //! the weighted-rows kernel (`out = constant + Σ wₜ·rowₜ`, channels innermost, vectorised)
 //! and the runtime choice between the portable and the AVX2+FMA build of that kernel.
 
+use crate::error::{check_alloc, checked_len};
 use crate::roll::PAR_THRESHOLD;
 use crate::{Error, Result};
 use ndarray::{ArrayD, ArrayViewD, IxDyn};
@@ -64,7 +65,12 @@ impl PolarGrid {
         }
         let r_max = height.min(width) as f64 * grid_size / 2.0;
         let (ci, cj) = ((height as f64 - 1.0) / 2.0, (width as f64 - 1.0) / 2.0);
-        let mut points = Vec::with_capacity(num_angles * num_radii);
+        let mut points = Vec::new();
+        let len = checked_len("num_angles", &[num_angles, num_radii])?;
+        points.try_reserve_exact(len).map_err(|_| Error::Memory {
+            arg: "num_angles",
+            what: format!("{len} polar sample points"),
+        })?;
         for k in 0..num_angles {
             let theta = (k as f64 + 0.5) * 2.0 * PI / num_angles as f64;
             let (s, c) = theta.sin_cos();
@@ -223,7 +229,11 @@ pub(crate) fn blend<const FMA: bool>(out: &mut [f32], taps: &Taps<'_>) {
 /// A zeroed output buffer of `len` floats. Large buffers ask Linux for transparent huge pages:
 /// the kernels write every element exactly once, so with 4 KiB pages first-touch page faults
 /// would cost as much as the computation (a 600 MB output is 150 000 faults).
-pub(crate) fn output_buffer(len: usize) -> Vec<f32> {
+/// `arg` names the argument that sets its size `dims`: an error instead of an abort when the
+/// buffer cannot exist.
+pub(crate) fn output_buffer(arg: &'static str, dims: &[usize]) -> Result<Vec<f32>> {
+    let len = checked_len(arg, dims)?;
+    check_alloc::<f32>(arg, len)?;
     let buf = vec![0.0f32; len];
     #[cfg(target_os = "linux")]
     {
@@ -240,7 +250,7 @@ pub(crate) fn output_buffer(len: usize) -> Vec<f32> {
             }
         }
     }
-    buf
+    Ok(buf)
 }
 
 /// Whether the AVX2+FMA build of the inner kernels can run on this CPU.
@@ -314,7 +324,7 @@ pub fn polar_sample(
         .ok_or_else(|| Error::value("bev", "could not view the array as contiguous memory"))?;
     let b = batch.unwrap_or(1);
     let (t, r) = (num_angles, num_radii);
-    let mut out = output_buffer(b * t * r * c);
+    let mut out = output_buffer("num_angles", &[b, t, r, c])?;
     if c > 0 && b > 0 {
         let fma = has_avx2_fma();
         let map_len = h * w * c;

@@ -58,6 +58,10 @@ pub struct SearchConfig {
     pub seed: u64,
 }
 
+/// The most hypotheses one stage may propose (coarse grid or fine samples): 1e8 hypotheses of
+/// 16 bytes are 1.6 GB of proposals alone, and each needs a decoder pass.
+pub const MAX_STAGE_POINTS: usize = 100_000_000;
+
 impl SearchConfig {
     /// Checks the configuration.
     pub fn validate(&self) -> Result<()> {
@@ -91,8 +95,17 @@ impl SearchConfig {
                 format!("expected a value in (0, 1], got {}", self.shrink),
             ));
         }
+        if self.fine_samples > MAX_STAGE_POINTS {
+            return Err(Error::value(
+                "fine_samples",
+                format!(
+                    "expected at most {MAX_STAGE_POINTS} samples per stage, got {}",
+                    self.fine_samples
+                ),
+            ));
+        }
         let n = self.grid_side();
-        if n.saturating_mul(n) > 100_000_000 {
+        if n.saturating_mul(n) > MAX_STAGE_POINTS {
             return Err(Error::value(
                 "step",
                 format!("the coarse grid would have {n}×{n} points; use a larger step"),
@@ -311,6 +324,14 @@ mod tests {
                 ..cfg()
             },
             SearchConfig { stages: 0, ..cfg() },
+            SearchConfig {
+                fine_samples: MAX_STAGE_POINTS + 1,
+                ..cfg()
+            },
+            SearchConfig {
+                fine_samples: usize::MAX,
+                ..cfg()
+            },
             SearchConfig {
                 half_range: 0.5,
                 ..cfg()

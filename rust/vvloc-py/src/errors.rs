@@ -1,6 +1,6 @@
-//! Maps `vvloc_core::Error` to Python exceptions (`ValueError`, `OSError`).
+//! Maps `vvloc_core::Error` to Python exceptions (`ValueError`, `OSError`, `MemoryError`).
 
-use pyo3::exceptions::{PyOSError, PyValueError};
+use pyo3::exceptions::{PyMemoryError, PyOSError, PyValueError};
 use pyo3::PyErr;
 
 /// Local wrapper so that `?` converts core errors into Python exceptions.
@@ -16,6 +16,7 @@ impl From<PyVvlocErr> for PyErr {
     fn from(e: PyVvlocErr) -> PyErr {
         match e.0 {
             vvloc_core::Error::Io { .. } => PyOSError::new_err(e.0.to_string()),
+            vvloc_core::Error::Memory { .. } => PyMemoryError::new_err(e.0.to_string()),
             other => PyValueError::new_err(other.to_string()),
         }
     }

@@ -27,6 +27,7 @@ fn default_threads() -> usize {
         .ok()
         .and_then(|v| v.trim().parse::<usize>().ok())
         .filter(|&n| n > 0)
+        .map(|n| n.min(MAX_THREADS as usize))
         .unwrap_or_else(|| {
             std::thread::available_parallelism()
                 .map(|n| n.get())
@@ -78,12 +79,16 @@ where
     Ok(py.detach(move || pool.install(f)))
 }
 
-/// Sets the number of threads of vvloc's kernel pool (n ≥ 1).
+/// The most threads vvloc's kernel pool may have (building thousands of threads takes
+/// seconds and helps nothing).
+const MAX_THREADS: i64 = 1024;
+
+/// Sets the number of threads of vvloc's kernel pool (1 ≤ n ≤ 1024).
 #[pyfunction]
 pub fn set_num_threads(n: i64) -> PyResult<()> {
-    if n < 1 {
+    if !(1..=MAX_THREADS).contains(&n) {
         return Err(PyValueError::new_err(format!(
-            "n: expected an integer >= 1, got {n}"
+            "n: expected an integer in [1, {MAX_THREADS}], got {n}"
         )));
     }
     let n = n as usize;

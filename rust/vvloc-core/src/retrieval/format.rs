@@ -27,7 +27,7 @@ const MAGIC: &[u8; 8] = b"VVLOCIDX";
 const VERSION: u32 = 1;
 const HEADER: usize = 40;
 
-fn checksum(parts: &[&[u8]]) -> u64 {
+pub(super) fn checksum(parts: &[&[u8]]) -> u64 {
     let mut h: u64 = 0xcbf2_9ce4_8422_2325;
     for part in parts {
         let mut chunks = part.chunks_exact(8);

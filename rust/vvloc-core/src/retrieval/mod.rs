@@ -32,6 +32,7 @@ mod select;
 
 pub use select::Exclusion;
 
+use crate::error::{check_alloc, checked_len};
 use crate::{Error, Result};
 use half::{bf16, f16};
 use kernels::{Level, BLOCK};
@@ -116,6 +117,9 @@ pub struct RadiusResult {
 
 /// Rows per parallel chunk at least (smaller maps run on one thread).
 const MIN_CHUNK_BLOCKS: usize = 64;
+/// The largest descriptor dimension an index takes (a guard against corrupt or absurd sizes,
+/// e.g. a forged file header: global descriptors have tens to thousands of dimensions).
+pub const MAX_DIM: usize = 1 << 20;
 /// Blocks per super-block of the batch scan (re-used from cache by every query tile).
 const SUPER_BLOCKS: usize = 4;
 /// Query tile of the batch kernel.
@@ -179,6 +183,12 @@ impl DescriptorIndex {
     pub fn new(dim: usize, dtype: Dtype) -> Result<Self> {
         if dim == 0 {
             return Err(Error::value("descriptors", "dimension d must be >= 1"));
+        }
+        if dim > MAX_DIM {
+            return Err(Error::value(
+                "descriptors",
+                format!("dimension d must be <= {MAX_DIM}, got {dim}"),
+            ));
         }
         Ok(DescriptorIndex {
             dim,
@@ -305,12 +315,7 @@ impl DescriptorIndex {
                 }
             }
         }
-        if descriptors.iter().any(|v| !v.is_finite()) {
-            return Err(Error::value(
-                "descriptors",
-                "contains non-finite values (NaN or inf)",
-            ));
-        }
+        crate::cost::check_rows(descriptors, d, "descriptors")?;
         if self.dtype == Dtype::F16 && descriptors.iter().any(|v| v.abs() > 65504.0) {
             return Err(Error::value(
                 "descriptors",
@@ -590,12 +595,7 @@ impl DescriptorIndex {
         if !queries.len().is_multiple_of(d) {
             return Err(Error::shape("queries", format!("(nq, {d})"), queries.len()));
         }
-        if queries.iter().any(|v| !v.is_finite()) {
-            return Err(Error::value(
-                "queries",
-                "contains non-finite values (NaN or inf)",
-            ));
-        }
+        crate::cost::check_rows(queries, d, "queries")?;
         Ok(queries.len() / d)
     }
 
@@ -878,6 +878,9 @@ impl DescriptorIndex {
         if k == 0 {
             return Err(Error::value("k", "expected an int >= 1, got 0"));
         }
+        // the (nq, k) result: an error, not an abort, when k asks for more than memory holds
+        let cells = checked_len("k", &[nq, k])?;
+        check_alloc::<(i64, f32)>("k", cells)?;
         let ex = self.excluder(nq, exclude)?;
         let qn = self.query_norms(queries);
         let per_query: Vec<Vec<Hit>> = if self.use_packed(nq) {

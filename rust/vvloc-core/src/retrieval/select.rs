@@ -75,7 +75,8 @@ impl TopK {
     pub fn new(k: usize) -> Self {
         TopK {
             k,
-            heap: BinaryHeap::with_capacity(k + 1),
+            // k may exceed the rows there are (even usize::MAX): the heap grows as it fills
+            heap: BinaryHeap::with_capacity(k.min(1 << 12) + 1),
         }
     }
 

@@ -181,7 +181,48 @@ fn bad_input_is_an_error_not_a_panic() {
     assert!(idx.radius(&[1.0; 4], 0.0, None).is_err());
     assert!(idx.radius(&[1.0; 4], f32::NAN, None).is_err());
     assert!(DescriptorIndex::new(0, Dtype::F32).is_err());
+    assert!(DescriptorIndex::new(MAX_DIM + 1, Dtype::F32).is_err());
     assert!(Dtype::parse("int4").is_err());
+    // values whose squared distances overflow float32 are refused, not answered with inf or 0
+    for arg in ["descriptors", "queries"] {
+        let mut idx = DescriptorIndex::new(4, Dtype::F32).unwrap();
+        idx.add(&[1.0; 4], None, None).unwrap();
+        let big = [4e18f32; 4];
+        let e = if arg == "descriptors" {
+            idx.add(&big, None, None).unwrap_err()
+        } else {
+            idx.topk(&big, 1, None).unwrap_err()
+        };
+        assert!(
+            e.to_string()
+                .starts_with(&format!("{arg}: values too large")),
+            "{e}"
+        );
+    }
+    // k may exceed the rows, but a result larger than memory is an error, not an abort
+    assert_eq!(idx.topk(&[1.0; 4], 1000, None).unwrap().indices[1], -1);
+    for k in [1usize << 40, usize::MAX] {
+        assert!(matches!(
+            idx.topk(&[1.0; 4], k, None),
+            Err(Error::Memory { arg: "k", .. })
+        ));
+        assert!(matches!(
+            idx.topk(&[], k, None),
+            Ok(TopKResult { .. }) | Err(Error::Memory { .. })
+        ));
+    }
+}
+
+#[test]
+fn a_forged_header_with_a_huge_dimension_is_refused() {
+    // an empty index (N = 0) claiming d = 2^40, with a valid checksum: 40 bytes in all
+    let mut bytes = format::to_bytes(&DescriptorIndex::new(4, Dtype::F32).unwrap());
+    assert_eq!(bytes.len(), 40);
+    bytes[24..32].copy_from_slice(&(1u64 << 40).to_le_bytes());
+    let sum = format::checksum(&[&bytes[8..32], &bytes[40..]]);
+    bytes[32..40].copy_from_slice(&sum.to_le_bytes());
+    let e = format::from_bytes(&bytes).unwrap_err();
+    assert!(e.to_string().contains("dimension d must be <="), "{e}");
 }
 
 #[test]
