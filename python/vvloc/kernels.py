@@ -311,6 +311,13 @@ def _check_row_norms(x: F32Array, name: str) -> None:
         )
 
 
+def _check_pair_norms(s: F32Array, t: F32Array) -> None:
+    """The reference backend's copy of the Rust kernels' row-norm check (one message for both;
+    the Rust backend checks in the kernel, in the same pass as its finiteness check)."""
+    _check_row_norms(s, "src")
+    _check_row_norms(t, "tgt")
+
+
 def _pairs(src: Any, tgt: Any, *, shared_ok: bool = True) -> tuple[F32Array, F32Array]:
     """Validate descriptor pairs: ``src`` (P, T, C); ``tgt`` (P, T, C), or (1, T, C) / (T, C)
     shared by every pair when ``shared_ok``. Returns both as 3-D C-contiguous float32."""
@@ -328,8 +335,6 @@ def _pairs(src: Any, tgt: Any, *, shared_ok: bool = True) -> tuple[F32Array, F32
     if t.shape[1:] != (nt, c) or t.shape[0] not in ((p, 1) if shared_ok else (p,)):
         want = f"({p}, {nt}, {c})" + (f", (1, {nt}, {c}) or ({nt}, {c})" if shared_ok else "")
         raise ValueError(f"tgt: expected shape {want} to match src, got {t.shape}")
-    _check_row_norms(s, "src")
-    _check_row_norms(t, "tgt")
     return s, t
 
 
@@ -344,9 +349,9 @@ def matching_cost(a: Any, b: Any, *, backend: Backend = "rust") -> npt.NDArray[n
     if y.shape != x.shape:
         raise ValueError(f"b: expected shape {x.shape} like a, got {y.shape}")
     lead, (t, c) = x.shape[:-2], x.shape[-2:]
-    _check_row_norms(x, "a")
-    _check_row_norms(y, "b")
     if backend == "reference":
+        _check_row_norms(x, "a")
+        _check_row_norms(y, "b")
         return np.asarray(ref_matching.matching_cost(x, y), dtype=np.float64).reshape(lead)
     out = _core.matching_cost(x.reshape(-1, t, c), y.reshape(-1, t, c))
     return out.reshape(lead)
@@ -360,6 +365,7 @@ def yaw_costs(src: Any, tgt: Any, *, backend: Backend = "rust") -> npt.NDArray[n
     _check_backend(backend)
     s, t = _pairs(src, tgt)
     if backend == "reference":
+        _check_pair_norms(s, t)
         return ref_matching.yaw_costs(s, t)
     return _core.yaw_costs(s, t)
 
@@ -374,6 +380,7 @@ def estimate_yaw(src: Any, tgt: Any, *, backend: Backend = "rust") -> YawEstimat
     _check_backend(backend)
     s, t = _pairs(src, tgt)
     if backend == "reference":
+        _check_pair_norms(s, t)
         return YawEstimate(*ref_matching.estimate_yaw(s, t))
     return YawEstimate(*_core.estimate_yaw(s, t))
 
@@ -388,6 +395,7 @@ def rerank(src: Any, tgt: Any, *, backend: Backend = "rust") -> Rerank:
     _check_backend(backend)
     s, t = _pairs(src, tgt)
     if backend == "reference":
+        _check_pair_norms(s, t)
         return Rerank(*ref_matching.rerank(s, t))
     return Rerank(*_core.rerank(s, t))
 
