@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -312,3 +313,13 @@ def test_core_rejects_bad_shapes_without_panicking():
         _core.estimate_yaw(_OK, np.zeros((2, 8, 3), dtype=np.float32))
     with pytest.raises(ValueError, match="src"):
         _core.yaw_costs(np.zeros((0, 8, 4), np.float32), np.zeros((0, 8, 4), np.float32))
+
+
+def test_wide_inputs_beyond_float32_and_bfloat16_tensors():
+    x = np.random.default_rng(4).random((2, 8, 4))
+    with pytest.raises(ValueError, match=r"^src: values beyond float32's range"):
+        K.yaw_costs(x * 1e300, x)  # finite in float64, inf after the cast
+    with pytest.raises(ValueError, match=r"^tgt: contains non-finite values"):
+        K.yaw_costs(x, np.full_like(x, np.inf))
+    bf = torch.from_numpy(x).to(torch.bfloat16)  # numpy has no bfloat16
+    np.testing.assert_array_equal(K.yaw_costs(bf, x), K.yaw_costs(bf.float().numpy(), x))

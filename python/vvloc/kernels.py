@@ -49,7 +49,10 @@ def _as_f32(
     ``"(H, W, C)"``. Non-finite values are rejected when ``finite`` is true.
     """
     if hasattr(x, "detach") and hasattr(x, "cpu"):  # torch.Tensor, without importing torch
-        x = x.detach().cpu().numpy()
+        x = x.detach().cpu()
+        if str(x.dtype) == "torch.bfloat16":  # numpy has no bfloat16: widen exactly
+            x = x.float()
+        x = x.numpy()
     if isinstance(x, (str, bytes)) or x is None:
         raise TypeError(f"{name}: expected a float array {shape_doc}, got {type(x).__name__}")
     arr = np.asarray(x)
@@ -65,6 +68,17 @@ def _as_f32(
             raise ValueError(
                 f"{name}: expected shape {shape_doc} ({' or '.join(map(str, allowed))}-D), "
                 f"got shape {arr.shape}"
+            )
+    if np.issubdtype(arr.dtype, np.floating) and arr.dtype.itemsize > 4:
+        # wider than float32: a finite value beyond its range would become inf in the cast
+        f32_max = float(np.finfo(np.float32).max)
+        with np.errstate(invalid="ignore"):
+            a = np.abs(arr)
+            too_big = arr.size and bool(((a > f32_max) & (a < np.inf)).any())
+        if too_big:
+            raise ValueError(
+                f"{name}: values beyond float32's range (|x| > {f32_max:.3g}); the kernels "
+                "compute in float32"
             )
     out = np.ascontiguousarray(arr, dtype=np.float32)
     if finite and out.size and not np.isfinite(out).all():
