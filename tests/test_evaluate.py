@@ -342,6 +342,48 @@ def test_temporal_window_and_causality_define_the_ground_truth():
     assert json.loads(json.dumps(summary)) == summary
 
 
+def test_a_perfect_self_loop_detector_scores_recall_one():
+    # two sessions over five places 20 m apart; the detector lists each revisit once (i < j)
+    pos = np.tile(np.arange(5.0)[:, None] * [20.0, 0.0], (2, 1))
+    floors, sessions = np.zeros(10, np.int64), np.repeat([0, 1], 5)
+    seqs = np.tile(np.arange(5), 2)
+    pairs = np.array([[k, k + 5] for k in range(5)])
+    curve = ev.self_loop_closure_curve(pairs, np.full(5, 0.05), pos, floors, sessions, seqs, 1)
+    assert curve.num_positive_queries == 10  # every frame has a revisit in the other session
+    at = curve.at(0.1)
+    assert (at["precision"], at["recall"], at["f1"]) == (1.0, 1.0, 1.0)
+    # one pair missed: its two frames are not detected, the other eight are
+    assert curve.at(0.1) == ev.self_loop_closure_curve(
+        pairs[[4, 0, 1, 2, 3]][::-1], np.full(5, 0.05), pos, floors, sessions, seqs, 1
+    ).at(0.1)  # (the pairs' order and orientation do not matter)
+    four = ev.self_loop_closure_curve(pairs[:4], np.full(4, 0.05), pos, floors, sessions, seqs, 1)
+    assert four.at(0.1)["recall"] == pytest.approx(0.8)
+    # the one-sided reading (the pair's first frame only) is what causal / query-map data get
+    one_sided = ev.loop_closure_curve(pairs, np.full(5, 0.05), pos, pos)
+    assert one_sided.at(0.1)["recall"] == pytest.approx(0.5)
+    with pytest.raises(ValueError, match="symmetric"):
+        ev.loop_closure_curve(pairs[:4], np.full(4, 0.05), pos, pos[:9], symmetric=True)
+
+
+def test_the_summary_keeps_a_thinned_sweep():
+    rng = np.random.default_rng(5)
+    pos = rng.uniform(0, 50, (400, 2))
+    pairs = rng.integers(0, 400, (3000, 2))
+    curve = ev.loop_closure_curve(pairs, rng.random(3000), pos, pos)
+    full = curve.sweep()
+    summary = curve.summary(0.5)
+    thin = summary["sweep"]
+    assert len(thin["threshold"]) == ev.SUMMARY_SWEEP_POINTS < len(full["threshold"])
+    # first and last thresholds kept, the rest a subsequence of the full sweep
+    assert thin["threshold"][0] == full["threshold"][0]
+    assert thin["threshold"][-1] == full["threshold"][-1]
+    idx = np.searchsorted(full["threshold"], thin["threshold"])
+    for key in ("precision", "recall", "f1", "cfer"):
+        np.testing.assert_array_equal(thin[key], full[key][idx])
+    small = ev.thin_sweep({"a": [1.0, 2.0]}, 256)
+    assert small["a"].tolist() == [1.0, 2.0]
+
+
 def test_loop_closure_rejects_bad_input():
     pairs, dist, q, db = _tiny_loop_set()
     with pytest.raises(ValueError, match="distances"):

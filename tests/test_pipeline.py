@@ -384,6 +384,14 @@ def test_evaluation_scores_loop_closures_at_the_given_radius(tiny_world, model_d
     assert f"plus {RETRIEVAL_WEIGHT:g} × its global-descriptor distance" in report
     assert "| VVLoc (descriptor radius) | 0.300 |" in report
     assert m["loop_sweep_radius"] == 0.5  # a tiny world: every pair within 0.5 is scored
+    # the sweep and the verified pairs' confidence curve are in the JSON, and plotted
+    for res in m["loop_closure"].values():
+        sweep = res["sweep"]
+        assert len(sweep["threshold"]) == len(sweep["recall"]) <= 256
+    conf = m["loop_pose"]["VVLoc (descriptor radius)"]["confidence_curve"]
+    assert len(conf["threshold"]) == len(conf["kept_share"]) <= 2
+    assert (tmp_path / "ev" / "precision_recall.png").is_file()
+    assert "Loop closure precision-recall" in report
     from vvloc.commands.evaluate import eval_command
     from vvloc.localize.evaluation import LOOP_SWEEP_PAIRS
 
@@ -437,6 +445,22 @@ def test_evaluation_breaks_recall_down_by_query_session(tiny_world, model_dir, t
         # the sessions' correct top-1 add up to the whole's
         assert sum(int(p.correct(1, 2.0).sum()) for p in parts) == int(whole.correct(1, 2.0).sum())
     assert "## Global localization per query session" in (tmp_path / "ev" / "report.md").read_text()
+    # robustness: the whole localizer under each perturbation, the same metrics as clean
+    rob = run_evaluation(
+        model_dir, tiny_world, "s0", ["s1"], tmp_path / "rob", robustness=True, **kw
+    )
+    from vvloc.localize.evaluation import ROBUSTNESS
+
+    want = [f"{p}, {m}" for p in ROBUSTNESS for m in ("VVLoc-G", "VVLoc-ML")]
+    assert list(rob["robustness"]) == want
+    assert list(rob["robustness_pose"]) == list(ROBUSTNESS)
+    for label in ROBUSTNESS:
+        clean = rob["global_localization"]["VVLoc-ML"]
+        assert rob["robustness"][f"{label}, VVLoc-ML"].num_queries == clean.num_queries
+        assert set(rob["robustness_pose"][label]) == {"true_revisit", "all"}
+    text = (tmp_path / "rob" / "report.md").read_text()
+    assert "## Robustness (metric pose accuracy under perturbations)" in text
+    assert "| motion blur, VVLoc-ML |" in text
     one = run_evaluation(model_dir, tiny_world, "s0", ["s1"], tmp_path / "one", **kw)
     assert one["per_session"] == {}
     assert "per query session" not in (tmp_path / "one" / "report.md").read_text()

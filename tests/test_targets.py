@@ -215,3 +215,14 @@ def test_make_model_test_runs_the_committed_models_test():
         )
         assert ("--loops" in args) == bool(name)
     assert "targets --parking" in recipe
+
+
+def test_a_garage_report_without_accepted_loops_reads_as_undefined_not_a_crash():
+    garage = copy.deepcopy(_committed("report-test96-garage"))
+    for entry in garage["loop_closure"].values():
+        at = entry["at_threshold"]
+        at.update(accepted=0, true_accepted=0, precision=None, cfer=None, f1=None, recall=0.0)
+    figs = check_targets(_committed("report-test96"), None, garage)
+    figs = [f for f in figs if f.name.startswith("default garage")]
+    assert figs and all(f.value == "n/a" and f.met is None for f in figs), figs
+    assert all("0 of 0 accepted loops" in f.detail and "precision@2m n/a" in f.detail for f in figs)

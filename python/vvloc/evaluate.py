@@ -437,6 +437,8 @@ def pose_accuracy(
 
 #: Recall levels of the fixed-recall operating points in :meth:`LoopClosureCurve.summary`.
 SUMMARY_RECALLS = (0.05, 0.1, 0.2)
+#: Points of the precision–recall sweep kept in :meth:`LoopClosureCurve.summary` (the JSON).
+SUMMARY_SWEEP_POINTS = 256
 
 
 @dataclass(frozen=True)
@@ -555,7 +557,9 @@ class LoopClosureCurve:
         self, threshold: float, recalls: tuple[float, ...] = SUMMARY_RECALLS
     ) -> dict[str, Any]:
         """JSON-friendly: metrics :meth:`at` ``threshold``, ``best_f1``, :meth:`at_recall` of
-        each of ``recalls`` (``at_recall``, a list) and the counts (one sweep for all)."""
+        each of ``recalls`` (``at_recall``, a list), the counts (one sweep for all) and the
+        precision–recall sweep itself at up to :data:`SUMMARY_SWEEP_POINTS` thresholds
+        (``sweep``: :func:`thin_sweep` of :meth:`sweep`)."""
         sweep = self.sweep()
         return {
             "radius_m": self.radius,
@@ -565,7 +569,20 @@ class LoopClosureCurve:
             "at_threshold": self.at(threshold),
             "best_f1": self.best_f1(sweep),
             "at_recall": [self.at_recall(r, sweep) for r in recalls],
+            "sweep": thin_sweep(sweep, SUMMARY_SWEEP_POINTS),
         }
+
+
+def thin_sweep(sweep: Mapping[str, npt.ArrayLike], points: int) -> dict[str, F64Array]:
+    """At most ``points`` entries of a sweep (equal-length arrays keyed by name): entries evenly
+    spaced by rank, always with the first and the last (the loosest threshold). A sweep over
+    millions of pairs keeps its shape in a few kilobytes of JSON."""
+    arrays = {k: np.asarray(v, dtype=np.float64) for k, v in sweep.items()}
+    n = len(next(iter(arrays.values()))) if arrays else 0
+    if n <= points:
+        return arrays
+    keep = np.unique(np.linspace(0, n - 1, max(points, 2)).round().astype(np.int64))
+    return {k: v[keep] for k, v in arrays.items()}
 
 
 def _undefined_point() -> dict[str, Any]:
@@ -594,6 +611,7 @@ def loop_closure_curve(
     db_times: npt.ArrayLike | None = None,
     time_window: float = 0.0,
     causal: bool = False,
+    symmetric: bool = False,
     radius: float = 2.0,
 ) -> LoopClosureCurve:
     """Score loop-closure candidates: Precision@2m / Recall@2m, PR sweep, best F1, CFER.
@@ -607,7 +625,10 @@ def loop_closure_curve(
     candidates with score ≤ τ are accepted; see :meth:`LoopClosureCurve.at` for precision, recall,
     F1 and CFER (share of accepted pairs joining different floors).
 
-    For loop closure within one sequence pass the same positions/floors/times as query and map.
+    For loop closure within one sequence pass the same positions/floors/times as query and map,
+    and ``symmetric=True``: a detector lists each pair once (e.g. i < j), and a true pair then
+    detects both of its frames, each of which is a query with a revisit (without it only the
+    pair's first frame would count, and a perfect detector would score a recall of about 1/2).
 
     Args:
         pairs: ``(P, 2)`` integer (query index, map index) candidate pairs.
@@ -618,6 +639,8 @@ def loop_closure_curve(
         query_times, db_times: optional ``(Q,)`` / ``(N,)`` timestamps (s) or frame numbers.
         time_window: temporal-exclusion window, same unit as the times (≥ 0).
         causal: only earlier map frames count (loop closure against the past).
+        symmetric: query and map are the same frames and each pair is listed once: a true pair
+            detects both frames (not with ``causal``).
         radius: true-loop radius (m).
     """
     q = _real_array(query_positions, "query_positions", "(Q, 2)", 2, 2)
@@ -648,6 +671,10 @@ def loop_closure_curve(
     if not np.isfinite(window) or window < 0:
         raise ValueError(f"time_window: expected a finite value >= 0, got {time_window}")
     rad = _positive_float(radius, "radius")
+    if symmetric and (causal or num_q != num_db):
+        raise ValueError(
+            "symmetric: needs the same frames as query and map (Q == N) and causal=False"
+        )
 
     def admissible(qi: I64Array, dj: I64Array) -> BoolArray:
         ok = np.ones(qi.shape, dtype=bool)
@@ -682,6 +709,8 @@ def loop_closure_curve(
 
     first_true = np.full(num_q, np.inf)
     np.minimum.at(first_true, pr[is_true, 0], dist[is_true])
+    if symmetric:  # the pair's other frame has found its revisit as well
+        np.minimum.at(first_true, pr[is_true, 1], dist[is_true])
     return LoopClosureCurve(
         distances=dist,
         is_true=is_true,
@@ -709,7 +738,8 @@ def self_loop_closure_curve(
     """:func:`loop_closure_curve` for loop closure within one set of frames (every frame is
     both query and map entry): ``positions`` (N, 2) world x, y (m); ``floors``, ``sessions``
     and ``seqs`` (N,) integers. Pairs of one session within ``window`` sequence numbers are
-    temporal neighbours (not admissible); pairs of two sessions always are admissible."""
+    temporal neighbours (not admissible); pairs of two sessions always are admissible. Each
+    pair is listed once; a true pair detects both of its frames (``symmetric``)."""
     seq = np.asarray(seqs, dtype=np.float64)
     span = float(np.abs(seq).max(initial=0.0)) + float(window) + 1.0
     times = seq + 2.0 * span * np.asarray(sessions, dtype=np.float64)  # sessions never overlap
@@ -723,6 +753,7 @@ def self_loop_closure_curve(
         query_times=times,
         db_times=times,
         time_window=window,
+        symmetric=True,
         radius=radius,
     )
 
@@ -1056,7 +1087,7 @@ def _recall_table(results: Mapping[str, Any], first: str) -> list[str]:
 
 
 def _pose_table(results: Mapping[str, Any]) -> list[str]:
-    subsets = {"true_revisit": "top-1 true revisit", "all": "all queries"}
+    subsets = {"true_revisit": "top-1 true revisit", "all": "all kept queries"}
     first = next(iter(next(iter(results.values())).values()))
     aoe = [k for k in first if k.startswith("AOE@")]
     ape = [k for k in first if k.startswith("APE@")]
@@ -1147,7 +1178,8 @@ _SECTIONS = {
     "pose_accuracy": ("Metric pose accuracy (AOE / APE percentiles)", None),
     "loop_closure": ("Loop closure", None),
     "loop_pose": ("Relative pose on detected loop pairs", None),
-    "robustness": ("Robustness (Recall@N under perturbations, %)", "perturbation"),
+    "robustness": ("Robustness (Recall@N under perturbations, %)", "perturbation, method"),
+    "robustness_pose": ("Robustness (metric pose accuracy under perturbations)", None),
     "latency": ("Latency per stage", None),
 }
 
@@ -1170,6 +1202,7 @@ def render_markdown(
         lines.append("")
     builders = {
         "pose_accuracy": _pose_table,
+        "robustness_pose": _pose_table,
         "loop_closure": _loop_table,
         "loop_pose": _loop_pose_table,
         "latency": _latency_table,
@@ -1211,7 +1244,9 @@ def write_report(
     * ``"pose_accuracy"``: ``{method: pose_accuracy(...)}``.
     * ``"loop_closure"``: ``{name: LoopClosureCurve.summary(threshold)}``.
     * ``"loop_pose"``: ``{name: loop_pose_metrics(...)}``.
-    * ``"robustness"``: ``{perturbation: RecallResult}`` (:func:`evaluate_robustness`).
+    * ``"robustness"``: ``{"<perturbation>, <method>": RecallResult}`` (or
+      ``{perturbation: RecallResult}``, :func:`evaluate_robustness`).
+    * ``"robustness_pose"``: ``{perturbation: pose_accuracy(...)}``.
     * ``"latency"``: ``latency_summary(...)``.
     * ``"notes"``: a string or list of strings (e.g. a missed target and why).
 

@@ -126,8 +126,10 @@ def _cfer(report: Mapping[str, Any], world: str) -> list[Figure]:
         cross = round(cfer * accepted) if accepted and cfer is not None else 0
         value = None if cfer is None else 100.0 * float(cfer)
         fig = _at_most(f"{world}: CFER, {label}", value, 0.26, " %", ".2f")
+        precision = at.get("precision")  # None (JSON null) when nothing is accepted
+        shown = "n/a" if precision is None else f"{100 * float(precision):.1f} %"
         detail = f"{cross} of {accepted} accepted loops join two floors (threshold "
-        detail += f"{at['threshold']:g}, precision@2m {100 * float(at['precision']):.1f} %)"
+        detail += f"{at['threshold']:g}, precision@2m {shown})"
         figures.append(replace(fig, detail=detail))
     return figures
 

@@ -76,21 +76,31 @@ def _robustness(
     db_pose: np.ndarray,
     db_floor: np.ndarray,
     k: int,
-) -> dict[str, Any]:
-    out: dict[str, Any] = {}
+    progress: bool,
+) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The global-localization metrics under each perturbation of :data:`ROBUSTNESS`: the whole
+    localizer runs on perturbed copies of the query frames (the map is clean). Returns
+    ``({"<perturbation>, VVLoc-G" / ", VVLoc-ML": RecallResult}, {perturbation: pose
+    accuracy})``, as for the clean queries."""
+    recalls: dict[str, Any] = {}
+    poses: dict[str, Any] = {}
     top_n = tuple(n for n in (1, 5) if n <= k)
-    for label, (name, kw) in ROBUSTNESS.items():
-        enc = encode_frames(loc.model, [perturb_frame(f, name, **kw) for f in frames])
-        idx, _ = loc.index.topk(enc.global_desc, k)
-        out[label] = evaluate.recall_at_n(
-            q_pose[:, :2],
-            db_pose[:, :2],
-            idx,
-            query_floors=q_floor,
-            db_floors=db_floor,
-            top_n=top_n,
+    kw = {"query_floors": q_floor, "db_floors": db_floor, "top_n": top_n}
+    for label, (name, args) in ROBUSTNESS.items():
+        log.info("robustness: localizing the queries with %s", label)
+        results = loc.localize_batch(
+            [perturb_frame(f, name, **args) for f in frames], progress=progress
         )
-    return out
+        rec_ml = evaluate.recall_at_n(
+            q_pose[:, :2], db_pose[:, :2], _ranked(results, "reranked", k), **kw
+        )
+        recalls[f"{label}, VVLoc-G"] = evaluate.recall_at_n(
+            q_pose[:, :2], db_pose[:, :2], _ranked(results, "retrieved", k), **kw
+        )
+        recalls[f"{label}, VVLoc-ML"] = rec_ml
+        est = np.stack([r.global_pose for r in results])
+        poses[label] = evaluate.pose_accuracy(est, q_pose, rec_ml.correct(1, 2.0), kept=rec_ml.kept)
+    return recalls, poses
 
 
 def _loops(
@@ -180,6 +190,8 @@ def _loops(
             costs = np.array([c for _, c in got])
             gt = geometry.relative(db.poses[rows_i], db.poses[rows_j])
             pose[name] = evaluate.loop_pose_metrics(est, gt.reshape(-1, 3), costs)
+            rre, rte = evaluate.relative_pose_errors(est, gt.reshape(-1, 3))
+            pose[name]["confidence_curve"] = evaluate.confidence_curve(costs, rre, rte)
             del cand, pairs, curve  # one variant's curve in memory at a time
     return closure, pose, sweep, over
 
@@ -232,7 +244,12 @@ def run_evaluation(
     of half-window L as well (:func:`vvloc.localize.loops.sequence_distance`). The loops'
     precision-recall sweep scores every pair within descriptor distance 0.5, or, when that
     would be more than about ``loop_sweep_pairs`` pairs (≈ 150 bytes each), the pairs within
-    the radius that keeps to that (at least ``loop_radius``); the report names the radius.
+    the radius that keeps to that (at least ``loop_radius``); the report names the radius. The
+    JSON holds each variant's sweep at up to 256 thresholds and, per variant, the confidence curve
+    of its verified pairs; ``precision_recall.png`` and ``confidence_curve.png`` plot them.
+    ``robustness``: the whole localizer again on perturbed copies of the queries, for each of
+    :data:`ROBUSTNESS` (Recall@N of VVLoc-G and -ML and AOE/APE, as for the clean queries; six
+    times the evaluation's time in all).
     """
     if not 0 < loop_radius <= 0.5:
         raise ValueError(f"loop_radius: expected a value in (0, 0.5], got {loop_radius}")
@@ -242,7 +259,11 @@ def run_evaluation(
     model = VVLocNet.load(checkpoint).to(resolve_device(device))
     ds = open_dataset(dataset)
     for name in [database, *queries]:
-        ds.session(name)  # KeyError naming the known sessions
+        if len(ds.session(name)) == 0:  # (a KeyError names the known sessions)
+            raise ValueError(
+                f"{'database' if name == database else 'queries'}: session "
+                f"{name!r} of {dataset} has no frames"
+            )
     out_dir.mkdir(parents=True, exist_ok=True)  # after the inputs are checked: none left on error
     map_path = build_map(
         model, ds, [database], out_dir / "map.h5", store_bev=False, progress=progress
@@ -389,7 +410,13 @@ def run_evaluation(
     }
 
     if robustness:
-        metrics["robustness"] = _robustness(loc, frames, q_pose, q_floor, db_pose, db_floor, k)
+        metrics["robustness"], metrics["robustness_pose"] = _robustness(
+            loc, frames, q_pose, q_floor, db_pose, db_floor, k, progress
+        )
+        notes.append(
+            "robustness: the whole localizer on perturbed copies of the queries (map clean): "
+            + ", ".join(f"{label} ({name} {args})" for label, (name, args) in ROBUSTNESS.items())
+        )
     if loops:
         metrics["loop_closure"], metrics["loop_pose"], sweep, over = _loops(
             model,
@@ -464,6 +491,16 @@ def run_evaluation(
         figures["Yaw cost curve (sample query, no padding)"] = viz.plot_yaw_cost_curve(
             out_dir / "yaw_cost_curve.png", curve, true_yaw=float(true_rel[2])
         )
+    if loops:
+        figures["Loop closure precision-recall"] = viz.plot_precision_recall(
+            out_dir / "precision_recall.png",
+            {name: res["sweep"] for name, res in metrics["loop_closure"].items()},
+        )
+        name, res = next(iter(metrics["loop_pose"].items()))
+        if len(res["confidence_curve"]["threshold"]):
+            figures[f"Confidence curve ({name}, verified pairs)"] = viz.plot_confidence_curve(
+                out_dir / "confidence_curve.png", res["confidence_curve"]
+            )
     evaluate.write_report(out_dir, metrics, title="vvloc evaluation", figures=figures)
     mapdb.close()
     return metrics
