@@ -219,6 +219,36 @@ def test_writer_rejects_inconsistent_batches_and_stays_usable(tmp_path: Path) ->
         assert len(db) == 8 and db.sessions == ("s0", "s1")
 
 
+def test_a_writer_aborted_inside_its_block_raises_at_the_end(tmp_path: Path) -> None:
+    kf = keyframes(bev=False)
+    args = {
+        k: kf[k][:4]
+        for k in ("poses", "timestamps", "global_descriptors", "local_descriptors", "ids")
+    }
+    path = tmp_path / "map.h5"
+    with pytest.raises(MapError, match="aborted; nothing was written"):
+        with MapWriter(path, model_config=CONFIG, grid_size=0.3) as w:
+            w.append(sessions="s0", **args)
+            w.abort()  # e.g. a failed write that the caller caught and ignored
+    assert os.listdir(tmp_path) == []
+
+
+def test_the_rig_round_trips_and_is_validated(tmp_path: Path) -> None:
+    from vvloc.data import Camera
+
+    cam = Camera("front", 16, 8, np.array([[8.0, 0, 7.5], [0, 8, 3.5], [0, 0, 1]]), np.eye(4))
+    kf = keyframes(bev=False)
+    db = MapDatabase.from_arrays(**kf, model_config=CONFIG, grid_size=0.3, rig=[cam])
+    assert db.rig == [cam.to_json()]
+    with MapDatabase.open(db.save(tmp_path / "m.h5")) as back:
+        assert back.rig == [cam.to_json()]
+    assert make_map().rig is None  # not recorded
+    with pytest.raises(ValueError, match="rig"):
+        MapDatabase.from_arrays(**kf, model_config=CONFIG, grid_size=0.3, rig=[{"name": "x"}])
+    with pytest.raises(TypeError, match="rig"):
+        MapDatabase.from_arrays(**kf, model_config=CONFIG, grid_size=0.3, rig="front")
+
+
 def test_writer_with_no_keyframes_writes_nothing(tmp_path: Path) -> None:
     w = MapWriter(tmp_path / "map.h5", model_config=CONFIG, grid_size=0.3)
     with pytest.raises(ValueError, match="at least one keyframe"):
@@ -534,7 +564,21 @@ def test_atomic_write_gives_new_files_the_umask_mode_and_keeps_an_existing_files
         kept.chmod(0o600)
         with atomic_write(kept) as f:
             f.write("new")
+            # while it is written, the new contents are as private as the file they replace
+            (tmp,) = [p for p in tmp_path.iterdir() if p.name.startswith(".private.txt.")]
+            assert stat.S_IMODE(tmp.stat().st_mode) == 0o600
     finally:
         os.umask(old)
     assert stat.S_IMODE((tmp_path / "new.txt").stat().st_mode) == 0o644
     assert stat.S_IMODE(kept.stat().st_mode) == 0o600 and kept.read_text() == "new"
+
+
+def test_atomic_write_through_a_symlink_replaces_its_target(tmp_path: Path) -> None:
+    target = tmp_path / "maps" / "real.txt"
+    target.parent.mkdir()
+    target.write_text("old")
+    link = tmp_path / "current.txt"
+    link.symlink_to(target)
+    with atomic_write(link) as f:
+        f.write("new")
+    assert link.is_symlink() and target.read_text() == "new"

@@ -71,6 +71,73 @@ def test_map_from_another_model_is_refused(map_file, tmp_path):
         Localizer.open(map_file, d)
 
 
+def test_the_map_records_its_rig_and_the_localizer_compares_queries_with_it(
+    tiny_world, map_file, model_dir, tmp_path
+):
+    import dataclasses
+    import warnings
+
+    ds = open_dataset(tiny_world)
+    loc = Localizer.open(map_file, model_dir, top_k=3, search=SMALL_SEARCH)
+    assert loc.map.rig == [c.to_json() for c in ds.cameras]
+    resaved = MapDatabase.open(loc.map.save(tmp_path / "copy.h5"))
+    assert resaved.rig == loc.map.rig  # save keeps it
+    resaved.close()
+    frame = ds.session("s1")[3]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        loc.localize(frame)  # the map's own rig: no warning
+    # a frame from another rig (one camera fewer): localized, with a warning, once
+    other = dataclasses.replace(
+        frame, images=frame.images[1:], K=frame.K[1:], cam_to_ego=frame.cam_to_ego[1:]
+    )
+    with pytest.warns(UserWarning, match=r"frames\[0\]: from another rig .*3 cameras"):
+        loc.localize(other)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        loc.localize(other)
+    # non-finite calibration is refused, whatever the rig
+    bad = dataclasses.replace(frame, K=np.full_like(frame.K, np.nan))
+    with pytest.raises(ValueError, match=r"frames\[1\]: K or cam_to_ego holds non-finite"):
+        loc.localize_batch([frame, bad])
+    with pytest.raises(TypeError, match=r"frames\[0\]: expected a vvloc.data.Frame"):
+        loc.localize_batch([frame.images])
+    with pytest.raises(ValueError, match="batch_size"):
+        loc.localize_batch([frame], batch_size=0)
+    # already-encoded queries of the wrong size are refused by name
+    cfg = loc.model.config
+    g = np.zeros(loc.map.global_descriptors.shape[1], np.float32)
+    lv = np.zeros(loc.map.local_shape, np.float32)
+    bev = np.zeros((cfg.bev_height // 2, cfg.bev_width // 2, cfg.channels), np.float32)
+    with pytest.raises(ValueError, match=r"^bev: expected shape"):
+        loc.localize_encoded(g, lv, bev)
+    with pytest.raises(ValueError, match=r"^loc: expected shape"):
+        loc.localize_encoded(g, lv[:, :3], bev)
+    loc.map.close()
+
+
+def test_localizer_options_are_checked_up_front(map_file, model_dir, tiny_world, caplog):
+    model = VVLocNet.load(model_dir)
+    db = MapDatabase.open(map_file)
+    with pytest.raises(ValueError, match="step"):
+        Localizer(model, db, search=SearchConfig(step=0.0))
+    with pytest.raises(TypeError, match="rerank: expected a bool"):
+        Localizer(model, db, rerank="no")
+    assert Localizer(model, db, top_k=np.int64(4)).top_k == 4
+    # without re-ranking there is no distinctiveness: a calibration cannot apply
+    model.calibration = {"min_distinctiveness": 0.2}
+    with pytest.raises(ValueError, match=r"min_distinctiveness: 0\.1 needs re-ranking"):
+        Localizer(model, db, rerank=False, min_distinctiveness=0.1)
+    with caplog.at_level("WARNING", logger="vvloc.localize"):
+        loc = Localizer(model, db, rerank=False, top_k=3, search=SMALL_SEARCH)
+    assert loc.min_distinctiveness == 0.0 and "accepting by the cost rule alone" in caplog.text
+    r = loc.localize(open_dataset(tiny_world).session("s1")[2])
+    assert r.accepted == (r.cost < 0.75)
+    with pytest.raises(TypeError, match="sessions: expected a list"):
+        build_map(model, open_dataset(tiny_world), "s0", map_file.parent / "x.h5")
+    db.close()
+
+
 def test_localize_poses_are_consistent_and_batch_equals_single(tiny_world, map_file, model_dir):
     loc = Localizer.open(map_file, model_dir, top_k=5, search=SMALL_SEARCH)
     frames = [open_dataset(tiny_world).session("s1")[i] for i in (0, 7)]

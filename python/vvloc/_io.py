@@ -50,15 +50,21 @@ class AtomicPath:
     Use as a context manager: ``with AtomicPath(p) as tmp: write(tmp)`` commits when the block
     ends normally and aborts (removes the temporary file) when it raises. The temporary file is
     created empty (mode 0o666 minus the umask, like a plain ``open``; replacing an existing file
-    keeps that file's mode, as writing into it would) with a hidden random name
-    ``.<name>.<hex>.tmp`` in the destination's directory, so the final rename never crosses file
-    systems. :meth:`commit` and :meth:`abort` may also be called explicitly (once).
+    keeps that file's mode, as writing into it would, from the start: a private file's new
+    contents are never readable by others) with a hidden random name ``.<name>.<hex>.tmp`` in the
+    destination's directory, so the final rename never crosses file systems. A destination that
+    is a symbolic link is followed: its target is replaced and the link kept, as writing into it
+    would. A process killed outright (SIGKILL, power loss) may leave the hidden temporary file
+    behind; the destination is intact either way. :meth:`commit` and :meth:`abort` may also be
+    called explicitly (once).
     """
 
     def __init__(self, path: str | os.PathLike[str]) -> None:
         self.path = Path(os.fspath(path))
         if self.path.name in ("", ".", ".."):
             raise ValueError(f"path: expected a file path, got {os.fspath(path)!r}")
+        if self.path.is_symlink():
+            self.path = Path(os.path.realpath(self.path))  # replace the target, keep the link
         if self.path.is_dir():
             raise IsADirectoryError(f"{self.path}: is a folder; expected the path of a file")
         if not self.path.parent.is_dir():
@@ -70,10 +76,14 @@ class AtomicPath:
 
     def _create_temp(self) -> Path:
         directory = self.path.parent
+        try:  # a rewrite's temporary file is no more open than the file it replaces
+            mode = stat.S_IMODE(os.stat(self.path).st_mode)
+        except FileNotFoundError:
+            mode = 0o666
         for _ in range(100):
             tmp = directory / f".{self.path.name}.{secrets.token_hex(6)}.tmp"
             try:
-                fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+                fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, mode)
             except FileExistsError:
                 continue
             os.close(fd)

@@ -32,6 +32,7 @@ from __future__ import annotations
 import logging
 import os
 import time
+import warnings
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -369,15 +370,30 @@ class Localizer:
         if metric_from not in METRIC_FROM:
             raise ValueError(f"metric_from: expected one of {METRIC_FROM}, got {metric_from!r}")
         check_map_model(mapdb, model)
-        if isinstance(top_k, bool) or not isinstance(top_k, int) or top_k < 1:
-            raise ValueError(f"top_k: expected an int >= 1, got {top_k!r}")
         self.model = model.eval()
         self.map = mapdb
-        self.top_k = top_k
+        self.top_k = kernels._positive_int(top_k, "top_k")
+        if not isinstance(rerank, (bool, np.bool_)):
+            raise TypeError(f"rerank: expected a bool, got {type(rerank).__name__}")
         self.rerank_enabled = bool(rerank)
         self.accept_threshold = _cost_threshold(accept_threshold, "accept_threshold")
         if min_distinctiveness is None:
             min_distinctiveness = model.calibration.get("min_distinctiveness", 0.0)  # type: ignore[assignment]
+            if not self.rerank_enabled and min_distinctiveness:
+                # the calibration scores re-ranking costs: without them only the cost rule is left
+                log.warning(
+                    "rerank=False: the model's calibration (min_distinctiveness %.4g) needs the "
+                    "re-ranking costs; accepting by the cost rule alone",
+                    min_distinctiveness,
+                )
+                min_distinctiveness = 0.0
+        elif not self.rerank_enabled and min_distinctiveness:
+            raise ValueError(
+                f"min_distinctiveness: {min_distinctiveness} needs re-ranking (distinctiveness is "
+                "measured on the re-ranking costs); pass rerank=True or min_distinctiveness=0"
+            )
+        if isinstance(min_distinctiveness, np.floating):
+            min_distinctiveness = float(min_distinctiveness)
         if isinstance(min_distinctiveness, bool) or not isinstance(
             min_distinctiveness, (int, float)
         ):
@@ -389,6 +405,8 @@ class Localizer:
         self.min_distinctiveness = float(min_distinctiveness)
         self.metric_candidates = kernels._positive_int(metric_candidates, "metric_candidates")
         self.metric_from = metric_from
+        if isinstance(retrieval_weight, np.floating):
+            retrieval_weight = float(retrieval_weight)
         if isinstance(retrieval_weight, bool) or not isinstance(retrieval_weight, (int, float)):
             raise TypeError(
                 f"retrieval_weight: expected a float, got {type(retrieval_weight).__name__}"
@@ -401,7 +419,10 @@ class Localizer:
         if not isinstance(snap, (bool, np.bool_)):
             raise TypeError(f"snap: expected a bool, got {type(snap).__name__}")
         self.snap = bool(snap)
+        if search is not None and not isinstance(search, SearchConfig):
+            raise TypeError(f"search: expected a SearchConfig, got {type(search).__name__}")
         self.search = search or SearchConfig()
+        self.search.validate()  # a bad configuration fails here, by name, not at a query
         self.decoder = decoder
         self.index = DescriptorIndex(mapdb.global_descriptors)
         cfg = model.config
@@ -498,6 +519,33 @@ class Localizer:
         d = np.hypot(*(xy - np.asarray(global_pose, dtype=np.float64)[:2]).T)
         return int(on_floor[int(np.argmin(d))])
 
+    def _check_rig(self, frame: Frame, i: int) -> None:
+        """Warn (once) when ``frame`` comes from a rig other than the one the map records."""
+        rig = self.map.rig
+        if rig is None or getattr(self, "_rig_warned", False):
+            return
+        m, _, h, w = frame.images.shape
+        why = ""
+        if m != len(rig):
+            why = f"{m} cameras, the map's rig {len(rig)}"
+        elif (w, h) != (rig[0]["width"], rig[0]["height"]):
+            why = f"images {w}x{h}, the map's {rig[0]['width']}x{rig[0]['height']}"
+        else:
+            K = np.array([c["K"] for c in rig])
+            T = np.array([c["cam_to_ego"] for c in rig])
+            if not (
+                np.allclose(frame.K, K, rtol=1e-3, atol=1e-3)
+                and np.allclose(frame.cam_to_ego, T, rtol=1e-3, atol=1e-3)
+            ):
+                why = "other intrinsics or extrinsics than the map's rig"
+        if why:
+            self._rig_warned = True
+            warnings.warn(
+                f"frames[{i}]: from another rig than the map's ({why}); the model met only the "
+                "rig it was trained on, and poses from another may be far off",
+                stacklevel=3,
+            )
+
     # --- public --------------------------------------------------------------------------
 
     def localize(self, frame: Frame) -> LocalizationResult:
@@ -507,7 +555,19 @@ class Localizer:
     def localize_batch(
         self, frames: Sequence[Frame], *, batch_size: int = 8, progress: bool = False
     ) -> list[LocalizationResult]:
-        """Localize many frames: encoding is batched; results equal :meth:`localize`'s."""
+        """Localize many frames: encoding is batched; results equal :meth:`localize`'s.
+
+        Frames with non-finite calibration are refused (``ValueError`` naming the frame); frames
+        from a rig other than the map's (camera count, image size or calibration, when the map
+        records its rig) are localized with a warning, once per localizer: the model met only
+        its training rig, and its poses may be far off."""
+        batch_size = kernels._positive_int(batch_size, "batch_size")
+        for i, f in enumerate(frames):
+            if not isinstance(f, Frame):
+                raise TypeError(f"frames[{i}]: expected a vvloc.data.Frame, got {type(f).__name__}")
+            if not (np.isfinite(f.K).all() and np.isfinite(f.cam_to_ego).all()):
+                raise ValueError(f"frames[{i}]: K or cam_to_ego holds non-finite values")
+            self._check_rig(f, i)
         results: list[LocalizationResult] = []
         for start in tqdm(
             range(0, len(frames), batch_size), desc="localize", disable=not progress, leave=False
@@ -527,7 +587,18 @@ class Localizer:
         self, g: F32, loc: F32, bev: F32, t_encode_ms: float = 0.0
     ) -> LocalizationResult:
         """Localize an already encoded query: global descriptor g (Dg,), local-view descriptor
-        loc (T, C), BEV (H, W, C) (e.g. encoded in a batch on a GPU elsewhere)."""
+        loc (T, C), BEV (H, W, C) (e.g. encoded in a batch on a GPU elsewhere), float32, of
+        the map's sizes (``ValueError`` naming the argument otherwise)."""
+        cfg = self.model.config
+        want = {
+            "g": (int(self.map.global_descriptors.shape[1]),),
+            "loc": tuple(int(v) for v in self.map.local_shape),
+            "bev": (int(cfg.bev_height), int(cfg.bev_width), int(cfg.channels)),
+        }
+        for name, arr in (("g", g), ("loc", loc), ("bev", bev)):
+            shape = tuple(np.shape(arr))
+            if shape != want[name]:
+                raise ValueError(f"{name}: expected shape {want[name]}, got {shape}")
         timings = {"encode": t_encode_ms}
         t0 = time.perf_counter()
         rows, dist = self.retrieve(g)
@@ -619,7 +690,11 @@ def build_map(
     progress: bool = True,
 ) -> Path:
     """Encode every frame of ``sessions`` of ``dataset`` and write a map to ``out`` (HDF5,
-    atomically). ``store_bev`` keeps the float16 BEVs that loop-closure detection needs."""
+    atomically). ``store_bev`` keeps the float16 BEVs that loop-closure detection needs. Keyframe
+    ids are the running row numbers, sequence numbers each frame's index in its session; the
+    map records the dataset's rig (its cameras), which the localizer compares queries with."""
+    if isinstance(sessions, str):
+        raise TypeError(f"sessions: expected a list of session names, got the str {sessions!r}")
     if not sessions:
         raise ValueError("sessions: expected at least one session name")
     repeated = sorted({s for s in sessions if list(sessions).count(s) > 1})
@@ -639,6 +714,7 @@ def build_map(
         weights_hash=model.weights_hash(),
         dtype=dtype,  # type: ignore[arg-type]
         expected_keyframes=total,
+        rig=list(getattr(dataset, "cameras", ())) or None,
     ) as writer:
         bar = tqdm(total=total, desc="map", disable=not progress)
         for name in sessions:

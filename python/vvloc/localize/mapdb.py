@@ -176,7 +176,9 @@ class MapMetadata:
     ``grid_size`` is the BEV cell size g in metres; ``created_utc`` an ISO 8601 UTC time;
     ``descriptor_dtype`` the stored dtype of the global and local descriptors;
     ``model_weights_hash`` the fingerprint of the weights that built the map (``None`` for maps
-    written before vvloc recorded it).
+    written before vvloc recorded it); ``rig`` the cameras whose frames built it
+    (``vvloc.data.Camera.to_json`` entries: name, width, height, K, cam_to_ego; ``None`` when not
+    recorded), which the localizer compares query frames with.
     """
 
     model_config_hash: str
@@ -187,10 +189,26 @@ class MapMetadata:
     created_utc: str
     descriptor_dtype: str
     model_weights_hash: str | None = None
+    rig: list[dict[str, Any]] | None = None
 
 
 # ---------------------------------------------------------------------------------------------
 # Input validation
+
+
+def _check_rig(rig: Any) -> list[dict[str, Any]] | None:
+    """``rig``: None or a list of camera entries (``Camera.to_json``), validated by building
+    each camera; returned as plain JSON-able dicts."""
+    if rig is None:
+        return None
+    from vvloc.data.frame import Camera
+
+    if isinstance(rig, (str, bytes, Mapping)) or not isinstance(rig, Sequence) or not rig:
+        raise TypeError("rig: expected a non-empty list of camera entries (Camera.to_json)")
+    try:
+        return [(c if isinstance(c, Camera) else Camera.from_json(dict(c))).to_json() for c in rig]
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"rig: {e}") from e
 
 
 def _to_numpy(x: Any, name: str) -> np.ndarray:
@@ -390,8 +408,10 @@ class MapWriter:
         weights_hash: str | None = None,
         dtype: DescriptorDType = "float32",
         expected_keyframes: int | None = None,
+        rig: Sequence[Any] | None = None,
     ) -> None:
         self._config_json = _canonical_json(model_config)
+        self._rig = _check_rig(rig)
         if config_hash is None:
             config_hash = model_config_hash(self._config_json)
         if not isinstance(config_hash, str) or not config_hash:
@@ -579,6 +599,8 @@ class MapWriter:
             attrs["grid_size"] = self._grid_size
             attrs["descriptor_dtype"] = self._dtype.name
             attrs["num_keyframes"] = self._n
+            if self._rig is not None:
+                attrs["rig_json"] = json.dumps(self._rig)
             self._h5.close()
             self._finalizer.detach()
             self._atomic.commit()
@@ -611,6 +633,8 @@ class MapWriter:
             self.abort()
         elif self._state == "open":
             self.close()
+        elif self._state == "aborted":  # a failed write was caught inside the block
+            raise MapError(f"{self.path}: the map writer was aborted; nothing was written")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -722,6 +746,7 @@ class MapDatabase:
         seq: Any = None,
         floors: Any = None,
         bevs: Any = None,
+        rig: Sequence[Any] | None = None,
     ) -> MapDatabase:
         """Build an in-memory map of N keyframes (see :meth:`MapWriter.append` for the arrays).
 
@@ -766,6 +791,7 @@ class MapDatabase:
             created_utc=_dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
             descriptor_dtype="float32",
             model_weights_hash=weights_hash,
+            rig=_check_rig(rig),
         )
         return cls(
             metadata=metadata,
@@ -923,15 +949,25 @@ class MapDatabase:
         if not np.isfinite(small["poses"]).all():
             raise MapError(f"{p}: corrupted map: non-finite poses")
 
+        grid_size = float(attrs["grid_size"])
+        if not (np.isfinite(grid_size) and grid_size > 0):
+            raise MapError(f"{p}: corrupted map: grid_size {grid_size}")
+        rig = None
+        if "rig_json" in attrs:
+            try:
+                rig = _check_rig(json.loads(str(attrs["rig_json"])))
+            except (TypeError, ValueError) as e:
+                raise MapError(f"{p}: corrupted map: rig_json: {e}") from e
         metadata = MapMetadata(
             model_config_hash=config_hash,
             model_config=json.loads(str(attrs["model_config_json"])),
-            grid_size=float(attrs["grid_size"]),
+            grid_size=grid_size,
             vvloc_version=str(attrs["vvloc_version"]),
             format_version=version,
             created_utc=str(attrs["created_utc"]),
             descriptor_dtype=descriptor_dtype,
             model_weights_hash=weights_hash,
+            rig=rig,
         )
         return cls(
             metadata=metadata,
@@ -972,6 +1008,7 @@ class MapDatabase:
             weights_hash=meta.model_weights_hash,
             dtype=dtype,
             expected_keyframes=len(self),
+            rig=meta.rig,
         ) as w:
             for start in range(0, len(self), block):
                 rows = np.arange(start, min(start + block, len(self)))
@@ -1074,6 +1111,12 @@ class MapDatabase:
     def grid_size(self) -> float:
         """BEV cell size g in metres."""
         return self._metadata.grid_size
+
+    @property
+    def rig(self) -> list[dict[str, Any]] | None:
+        """The cameras whose frames built the map (``Camera.to_json`` entries), or ``None``
+        for a map that does not record them (built before 2026-12-05, or from arrays)."""
+        return self._metadata.rig
 
     @property
     def ids(self) -> np.ndarray:

@@ -64,6 +64,10 @@ class SearchConfig:
     shrink: float = 0.5
     seed: int = 0
 
+    def validate(self) -> None:
+        """``ValueError``/``TypeError`` naming the field when the search cannot run."""
+        _search(self, "reference")
+
 
 class MetricResult(NamedTuple):
     """Result of :func:`metric_localize`: ``pose`` ξ_{s→t} = (x m, y m, yaw rad), its
