@@ -373,13 +373,18 @@ def test_the_summary_keeps_a_thinned_sweep():
     full = curve.sweep()
     summary = curve.summary(0.5)
     thin = summary["sweep"]
-    assert len(thin["threshold"]) == ev.SUMMARY_SWEEP_POINTS < len(full["threshold"])
+    assert len(thin["threshold"]) <= ev.SUMMARY_SWEEP_POINTS + 2 < len(full["threshold"])
     # first and last thresholds kept, the rest a subsequence of the full sweep
     assert thin["threshold"][0] == full["threshold"][0]
     assert thin["threshold"][-1] == full["threshold"][-1]
     idx = np.searchsorted(full["threshold"], thin["threshold"])
     for key in ("precision", "recall", "f1", "cfer"):
         np.testing.assert_array_equal(thin[key], full[key][idx])
+    # the best F1 is kept exactly, and no recall gap is wider than a level's step (+ 1 pair)
+    assert np.nanmax(thin["f1"]) == np.nanmax(full["f1"])
+    step = full["recall"][-1] / (ev.SUMMARY_SWEEP_POINTS // 2 - 1)
+    jumps = np.diff(full["recall"]).max()
+    assert np.diff(thin["recall"]).max() <= step + jumps + 1e-12
     small = ev.thin_sweep({"a": [1.0, 2.0]}, 256)
     assert small["a"].tolist() == [1.0, 2.0]
 

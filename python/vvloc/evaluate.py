@@ -559,7 +559,7 @@ class LoopClosureCurve:
         """JSON-friendly: metrics :meth:`at` ``threshold``, ``best_f1``, :meth:`at_recall` of
         each of ``recalls`` (``at_recall``, a list), the counts (one sweep for all) and the
         precision–recall sweep itself at up to :data:`SUMMARY_SWEEP_POINTS` thresholds
-        (``sweep``: :func:`thin_sweep` of :meth:`sweep`)."""
+        (``sweep``: :func:`thin_sweep` of :meth:`sweep`; it keeps the best-F1 point)."""
         sweep = self.sweep()
         return {
             "radius_m": self.radius,
@@ -574,15 +574,27 @@ class LoopClosureCurve:
 
 
 def thin_sweep(sweep: Mapping[str, npt.ArrayLike], points: int) -> dict[str, F64Array]:
-    """At most ``points`` entries of a sweep (equal-length arrays keyed by name): entries evenly
-    spaced by rank, always with the first and the last (the loosest threshold). A sweep over
-    millions of pairs keeps its shape in a few kilobytes of JSON."""
+    """At most about ``points`` entries of a sweep (equal-length arrays keyed by name, one of
+    them ``recall``): half evenly spaced by rank, half the first entry to reach each of evenly
+    spaced recall levels, plus the first and last entries and the best F1 (when ``f1`` is
+    there). A sweep over millions of pairs keeps its shape along both axes in a few kilobytes
+    of JSON (by rank alone, the low-recall end would be one segment)."""
     arrays = {k: np.asarray(v, dtype=np.float64) for k, v in sweep.items()}
     n = len(next(iter(arrays.values()))) if arrays else 0
     if n <= points:
         return arrays
-    keep = np.unique(np.linspace(0, n - 1, max(points, 2)).round().astype(np.int64))
-    return {k: v[keep] for k, v in arrays.items()}
+    half = max(points // 2, 2)
+    keep = [np.linspace(0, n - 1, half).round().astype(np.int64), np.array([0, n - 1])]
+    recall = arrays.get("recall")
+    if recall is not None and np.isfinite(recall).any():
+        r = np.fmax.accumulate(np.nan_to_num(recall, nan=-np.inf))  # recall never falls
+        levels = np.linspace(0.0, float(r[-1]), half)
+        keep.append(np.minimum(np.searchsorted(r, levels, side="left"), n - 1))
+    f1 = arrays.get("f1")
+    if f1 is not None and np.isfinite(f1).any():
+        keep.append(np.array([int(np.nanargmax(f1))]))
+    idx = np.unique(np.concatenate(keep))
+    return {k: v[idx] for k, v in arrays.items()}
 
 
 def _undefined_point() -> dict[str, Any]:
