@@ -135,7 +135,13 @@ def test_localizer_options_are_checked_up_front(map_file, model_dir, tiny_world,
     assert r.accepted == (r.cost < 0.75)
     with pytest.raises(TypeError, match="sessions: expected a list"):
         build_map(model, open_dataset(tiny_world), "s0", map_file.parent / "x.h5")
+    with pytest.raises(TypeError, match="expected_config_hash"):
+        MapDatabase.open(map_file, expected_config_hash=123)
     db.close()
+    with Localizer.open(map_file, model_dir, top_k=2) as opened:
+        assert len(opened.map) > 0
+    with pytest.raises(ValueError, match="closed"):
+        opened.map.local_descriptors(0)  # the with-block closed the map
 
 
 def test_localize_poses_are_consistent_and_batch_equals_single(tiny_world, map_file, model_dir):

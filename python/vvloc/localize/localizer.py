@@ -449,6 +449,16 @@ class Localizer:
             mapdb.close()
             raise
 
+    def close(self) -> None:
+        """Close the map (its file, for an opened one). Idempotent."""
+        self.map.close()
+
+    def __enter__(self) -> Localizer:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
     # --- stages --------------------------------------------------------------------------
 
     def retrieve(self, global_desc: F32) -> tuple[npt.NDArray[np.int64], F32]:

@@ -830,13 +830,21 @@ class MapDatabase:
 
         Raises:
             FileNotFoundError: no file at ``path``.
-            TypeError: ``expected_weights_hash`` neither a non-empty str nor None.
+            TypeError: ``expected_config_hash`` or ``expected_weights_hash`` neither a non-empty
+                str nor None.
             MapError: not an HDF5 file, not a vvloc map, corrupted or truncated, missing
                 datasets or attributes, another format version, inconsistent lengths, checksum
                 mismatch, or a config hash or weights fingerprint other than the expected
                 ones. The message names the file.
         """
         _check_weights_hash(expected_weights_hash, "expected_weights_hash")
+        if expected_config_hash is not None and (
+            not isinstance(expected_config_hash, str) or not expected_config_hash
+        ):
+            raise TypeError(
+                "expected_config_hash: expected a non-empty str or None, got "
+                f"{type(expected_config_hash).__name__}"
+            )
         p = Path(os.fspath(path))
         if not p.exists():
             raise FileNotFoundError(f"map file not found: {p}")
