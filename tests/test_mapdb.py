@@ -212,6 +212,8 @@ def test_writer_rejects_inconsistent_batches_and_stays_usable(tmp_path: Path) ->
             )
         with pytest.raises(ValueError, match=r"ids.*already"):
             w.append(sessions="s0", **args)
+        with pytest.raises(ValueError, match=r"seq: \(session, sequence number\) already"):
+            w.append(sessions="s0", **{**args, "ids": [11, 12, 13, 14], "seq": [3, 4, 5, 6]})
         with pytest.raises(ValueError, match="bevs"):
             w.append(sessions="s0", **{**args, "ids": [1, 2, 3, 4]}, bevs=np.zeros((4, *BEV)))
         w.append(sessions="s1", **{**args, "ids": [1, 2, 3, 4]})
@@ -267,6 +269,7 @@ def test_writer_with_no_keyframes_writes_nothing(tmp_path: Path) -> None:
         ({"global_descriptors": np.zeros((N, DG), dtype=complex)}, TypeError, "global_desc"),
         ({"local_descriptors": np.zeros((N, T))}, ValueError, "local_descriptors"),
         ({"ids": np.zeros(N, np.int64)}, ValueError, "ids.*unique"),
+        ({"seq": np.zeros(N, np.int64)}, ValueError, "seq.*unique within a session"),
         ({"seq": np.zeros(N)}, TypeError, "seq.*integer"),
         ({"bevs": np.full((N, *BEV), 1e6)}, ValueError, "bevs.*overflow"),
         ({"grid_size": -1.0}, ValueError, "grid_size"),

@@ -342,6 +342,12 @@ def _validate_batch(
     floor_arr = np.zeros(k, np.int64) if floors is None else _int_array(floors, "floors", k)
     if np.unique(id_arr).size != k:
         raise ValueError("ids: keyframe ids must be unique")
+    pairs = set(zip(labels, seq_arr.tolist(), strict=True))
+    if len(pairs) != k:
+        raise ValueError(
+            "seq: sequence numbers must be unique within a session (the sequence and loop "
+            "checks find a keyframe's neighbours by them)"
+        )
     return _Batch(id_arr, labels, seq_arr, t, p, floor_arr, g, loc, b)
 
 
@@ -440,6 +446,7 @@ class MapWriter:
         self._n = 0
         self._sessions: dict[str, int] = {}
         self._next_seq: dict[str, int] = {}
+        self._seqs: dict[str, set[int]] = {}
         self._ids: set[int] = set()
         self._digests: dict[str, Any] = {}
         self._shapes: dict[str, tuple[int, ...]] = {}
@@ -472,7 +479,8 @@ class MapWriter:
             global_descriptors: (k, Dg) float.
             local_descriptors: (k, T, C) float.
             ids: (k,) int keyframe ids, unique in the map; default: running row numbers.
-            seq: (k,) int sequence numbers; default: a running count per session.
+            seq: (k,) int sequence numbers, unique within a session; default: a running count
+                per session.
             floors: (k,) int; default 0.
             bevs: (k, H, W, C) float BEVs, stored float16; every batch or none has them.
         """
@@ -501,6 +509,16 @@ class MapWriter:
         dup = self._ids.intersection(b.ids.tolist())
         if dup:
             raise ValueError(f"ids: keyframe ids already in the map: {sorted(dup)[:5]}")
+        taken = [
+            (s, q)
+            for s, q in zip(b.session_labels, b.seq.tolist(), strict=True)
+            if q in self._seqs.get(s, ())
+        ]
+        if taken:
+            raise ValueError(
+                f"seq: (session, sequence number) already in the map: {taken[:5]} (sequence "
+                "numbers must be unique within a session)"
+            )
         has_bev = b.bev is not None
         if self._has_bev is not None and has_bev != self._has_bev:
             raise ValueError(
@@ -549,6 +567,7 @@ class MapWriter:
         self._ids.update(b.ids.tolist())
         for s, q in zip(b.session_labels, b.seq.tolist(), strict=True):
             self._next_seq[s] = max(self._next_seq.get(s, 0), q + 1)
+            self._seqs.setdefault(s, set()).add(q)
         self._shapes.update(shapes)
         self._has_bev = has_bev
 
