@@ -292,3 +292,6 @@ def test_outputs_larger_than_memory_raise_memory_error():
     for call, name in cases:
         with pytest.raises(MemoryError, match=f"^{name}: the result needs"):
             call()
+    # sizes beyond what the kernels' integers hold are named (not 'int too big to convert')
+    with pytest.raises(ValueError, match=r"^num_angles: expected an int <= "):
+        K.polar_sample(q, 2**70, 1, 0.3)

@@ -104,12 +104,16 @@ def _finite_float(x: Any, name: str) -> float:
     return v
 
 
-def _positive_int(x: Any, name: str, minimum: int = 1) -> int:
+def _positive_int(x: Any, name: str, minimum: int = 1, maximum: int = 2**63 - 1) -> int:
+    """An int in [minimum, maximum] (default: what the Rust kernels' sizes hold), named in the
+    error otherwise (not Python's 'int too big to convert')."""
     if isinstance(x, bool) or not isinstance(x, (int, np.integer)):
         raise TypeError(f"{name}: expected an int >= {minimum}, got {type(x).__name__}")
     v = int(x)
     if v < minimum:
         raise ValueError(f"{name}: expected an int >= {minimum}, got {v}")
+    if v > maximum:
+        raise ValueError(f"{name}: expected an int <= {maximum}, got {v}")
     return v
 
 
@@ -460,9 +464,7 @@ class TranslationSearch:
         sh = _positive_float(shrink, "shrink")
         if sh > 1.0:
             raise ValueError(f"shrink: expected a value in (0, 1], got {sh}")
-        sd = _positive_int(seed, "seed", 0)
-        if sd >= 1 << 64:
-            raise ValueError(f"seed: expected an int in [0, 2**64), got {sd}")
+        sd = _positive_int(seed, "seed", 0, maximum=2**64 - 1)
         self.backend = backend
         impl = _core.TranslationSearch if backend == "rust" else ref_matching.TranslationSearch
         self._impl = impl(hr, st, nfs, nst, sh, sd)
