@@ -428,3 +428,59 @@ def test_cli_convert(tmp_path):
     r = run("--out", str(tmp_path / "d"), "--width", "16")
     assert r.returncode == 2 and "--width and --height go together" in r.stderr
     assert not (tmp_path / "d").exists()
+
+
+def test_a_rendered_session_round_trips_through_nclts_raw_layout(tiny_world, tmp_path):
+    """Write a rendered session the way NCLT stores its data (sideways TIFFs, Ladybug-frame
+    extrinsics as ssc six-vectors in degrees, NED ground truth in radians), read it back with
+    the NCLT reader and convert it: the images, calibration and poses come back."""
+    from vvloc.data.frame import NED_TO_ENU
+    from vvloc.data.nclt import ssc_degrees_to_matrix
+
+    sim = open_dataset(tiny_world)
+    session = sim.session("s0")
+    frames = [session[i] for i in range(4)]
+    root = tmp_path / "nclt"
+    params = root / "cam_params"
+    params.mkdir(parents=True)
+    T_body_lb3 = ssc_degrees_to_matrix(X_BODY_LB3)
+    for i, cam in enumerate(sim.cameras, start=1):
+        stored = cam.rotated(1)  # NCLT keeps its images a quarter turn from upright
+        np.savetxt(params / f"K_cam{i}.csv", stored.K, delimiter=",")
+        T = np.linalg.inv(T_body_lb3) @ FRD_TO_FLU @ stored.cam_to_ego
+        yaw, pitch, roll = Rotation.from_matrix(T[:3, :3]).as_euler("ZYX", degrees=True)
+        np.savetxt(params / f"x_lb3_c{i}.csv", [[*T[:3, 3], roll, pitch, yaw]], delimiter=",")
+        d = root / DATE / "lb3" / f"Cam{i}"
+        d.mkdir(parents=True)
+        for f in frames:
+            img = np.rot90(f.images[i - 1].transpose(1, 2, 0), 1)
+            Image.fromarray(np.ascontiguousarray(img)).save(d / f"{round(f.t * 1e6)}.tiff")
+    rows = []
+    for f in frames:
+        x, y, yaw = f.pose
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_euler("z", yaw).as_matrix()
+        T[:3, 3] = (x, y, f.z)
+        T_ned_body = NED_TO_ENU @ T @ FRD_TO_FLU
+        h, p, r = Rotation.from_matrix(T_ned_body[:3, :3]).as_euler("ZYX")
+        rows.append([round(f.t * 1e6), *T_ned_body[:3, 3], r, p, h])
+    np.savetxt(root / f"groundtruth_{DATE}.csv", rows, delimiter=",", fmt="%.17g")
+
+    with pytest.warns(UserWarning, match="undistortion map"):
+        nclt = open_dataset(root, cameras=(1, 2, 3, 4))
+    back = nclt.session(DATE)
+    assert len(back) == 4
+    np.testing.assert_allclose(back.poses[:, :2], session.poses[:4, :2], atol=1e-9)
+    np.testing.assert_allclose(np.cos(back.poses[:, 2] - session.poses[:4, 2]), 1.0, atol=1e-12)
+    np.testing.assert_allclose(back.z, session.z[:4], atol=1e-9)
+    for cam, orig in zip(nclt.cameras, sim.cameras, strict=True):
+        assert (cam.width, cam.height) == (orig.width, orig.height)
+        np.testing.assert_allclose(cam.K, orig.K, atol=1e-9)
+        np.testing.assert_allclose(cam.cam_to_ego, orig.cam_to_ego, atol=1e-9)
+    np.testing.assert_array_equal(back[2].images, frames[2].images)
+    # and through vvloc convert, into the vvloc format the commands read
+    with pytest.warns(UserWarning, match="undistortion map"):
+        out = convert_dataset(root, tmp_path / "converted", cameras=(1, 2, 3, 4))
+    conv = open_dataset(out).session(DATE)
+    np.testing.assert_array_equal(conv[3].images, frames[3].images)
+    np.testing.assert_allclose(conv.poses, back.poses)
