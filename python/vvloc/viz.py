@@ -137,7 +137,7 @@ def plot_precision_recall(
     path: str | os.PathLike[str],
     curves: Mapping[str, Mapping[str, npt.ArrayLike]],
 ) -> Path:
-    """Loop-closure precision–recall curves, best-F1 point marked.
+    """Loop-closure precision–recall curves, best-F1 point marked (its F1 in the legend).
 
     Args:
         path: output image.
@@ -152,17 +152,12 @@ def plot_precision_recall(
         f1 = _vector(sweep["f1"], f"curves[{name!r}]['f1']", p.shape[0])
         if p.size == 0:
             continue
-        (line,) = ax.plot(100.0 * r, 100.0 * p, label=str(name))
-        if not np.isnan(f1).all():
-            b = int(np.nanargmax(f1))
-            ax.plot(100.0 * r[b], 100.0 * p[b], "o", color=line.get_color())
-            ax.annotate(
-                f"F1 {f1[b]:.3f}",
-                (100.0 * r[b], 100.0 * p[b]),
-                fontsize=8,
-                xytext=(4, 4),
-                textcoords="offset points",
-            )
+        best = None if np.isnan(f1).all() else int(np.nanargmax(f1))
+        # the best F1 goes into the legend: annotations of nearby curves overlap
+        label = str(name) if best is None else f"{name} (best F1 {f1[best]:.3f})"
+        (line,) = ax.plot(100.0 * r, 100.0 * p, label=label)
+        if best is not None:
+            ax.plot(100.0 * r[best], 100.0 * p[best], "o", color=line.get_color())
     ax.set_xlabel("Recall@2m (%)")
     ax.set_ylabel("Precision@2m (%)")
     ax.set_xlim(0, 100)
