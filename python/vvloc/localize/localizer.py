@@ -425,6 +425,7 @@ class Localizer:
         self.search.validate()  # a bad configuration fails here, by name, not at a query
         self.decoder = decoder
         self.index = DescriptorIndex(mapdb.global_descriptors)
+        self._rig_warned = False  # a query from another rig is reported once (_check_rig)
         cfg = model.config
         self.grid_size = float(cfg.grid_size)
         self.num_angles = int(cfg.num_angles)
@@ -532,7 +533,7 @@ class Localizer:
     def _check_rig(self, frame: Frame, i: int) -> None:
         """Warn (once) when ``frame`` comes from a rig other than the one the map records."""
         rig = self.map.rig
-        if rig is None or getattr(self, "_rig_warned", False):
+        if rig is None or self._rig_warned:
             return
         m, _, h, w = frame.images.shape
         why = ""
