@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import json
 import re
@@ -1054,3 +1055,117 @@ def test_the_smoke_config_trains_end_to_end(egl, tmp_path):
     assert model.calibration["sessions"] == ["s2"]
     log = [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
     assert [(rec["epoch"], rec["stage"]) for rec in log] == [(1, 1), (2, 2)]
+
+
+def test_resume_survives_a_stop_between_the_checkpoint_and_state_writes(
+    tiny_world, tmp_path, caplog
+):
+    cfg = _config(tiny_world, stage1_epochs=2, stage2_epochs=0, steps_per_epoch=2)
+    out = tmp_path / "run"
+    tr = Trainer(cfg, out)
+    tr.run_epoch(progress=False)
+    tr.save()  # epoch 1: checkpoint/ and trainer_state.pt agree
+    state1 = torch.load(out / "trainer_state.pt", weights_only=False)
+    tr.run_epoch(progress=False)
+    tr._save_model(tr.checkpoint_dir, tr.epoch)  # epoch 2's weights written, then a stop
+    resumed = Trainer(cfg, out)
+    with caplog.at_level("WARNING", logger="vvloc.train"):
+        assert resumed.resume()
+    assert "other weights than the trainer state" in caplog.text
+    assert resumed.epoch == 1  # the state's epoch, with the state's own weights
+    for k, v in resumed.model.state_dict().items():
+        assert torch.equal(v, state1["model"][k])
+
+
+def test_resume_refuses_other_data_and_names_a_differing_key(tiny_world, tmp_path):
+    cfg = _config(tiny_world, stage1_epochs=2, stage2_epochs=0, steps_per_epoch=2)
+    out = tmp_path / "run"
+    tr = Trainer(cfg, out)
+    tr.run_epoch(progress=False)
+    tr.save()
+    # how the run executes may change on resume ...
+    assert Trainer(
+        _config(tiny_world, stage1_epochs=2, stage2_epochs=0, steps_per_epoch=2, num_workers=1), out
+    ).resume()
+    # ... what it trains may not, and the message says which key
+    with pytest.raises(ValueError, match=r"another config \(differing: batch_size\)"):
+        Trainer(
+            _config(tiny_world, stage1_epochs=2, stage2_epochs=0, steps_per_epoch=2, batch_size=3),
+            out,
+        ).resume()
+    state = torch.load(out / "trainer_state.pt", weights_only=False)
+    torch.save({**state, "data": "0" * 64}, out / "trainer_state.pt")
+    with pytest.raises(ValueError, match="the training data changed"):
+        Trainer(cfg, out).resume()
+
+
+def test_a_non_finite_loss_stops_before_the_step(tiny_world, tmp_path, monkeypatch):
+    import vvloc.train as train_module
+
+    cfg = _config(tiny_world, stage1_epochs=2, stage2_epochs=0, steps_per_epoch=2)
+    out = tmp_path / "run"
+    tr = Trainer(cfg, out)
+    tr.run_epoch(progress=False)
+    tr.save()
+    good = {k: v.clone() for k, v in tr.model.state_dict().items()}
+    real = train_module.training_losses
+
+    def nan_loss(*args, **kwargs):
+        loss, parts, correct = real(*args, **kwargs)
+        return loss * float("nan"), dataclasses.replace(parts, total=float("nan")), correct
+
+    monkeypatch.setattr(train_module, "training_losses", nan_loss)
+    with pytest.raises(FloatingPointError, match="non-finite loss"):
+        tr.run_epoch(progress=False)
+    for k, v in tr.model.state_dict().items():  # no step was taken with it
+        assert torch.equal(v, good[k])
+
+
+def test_config_types_are_checked_by_name():
+    base = {"dataset": "x"}
+    cases = {
+        "weight_decay": ("1e-5", r"weight_decay: expected a number, got '1e-5' \(YAML"),
+        "batch_size": (2.5, "batch_size: expected an int"),
+        "stage2_epochs": (1.7, "stage2_epochs: expected an int"),
+        "train_sessions": ("s0", r"train_sessions: expected a list of session names"),
+        "num_workers": (True, "num_workers: expected an int"),
+        "triplet_margin": (-0.5, "triplet_margin: expected >= 0"),
+        "neg_radius": (1.0, "pos_radius, neg_radius"),
+    }
+    for key, (value, match) in cases.items():
+        with pytest.raises(ValueError, match=match):
+            TrainConfig.from_dict({**base, key: value})
+
+
+def test_validation_without_a_query_near_the_map_is_refused(tiny_world, tmp_path):
+    cfg = _config(tiny_world, train_sessions=["s0", "s1"], val_sessions=["s2"], val_database="s0")
+    tr = Trainer(cfg, tmp_path / "run")
+    tr.ds = _FarAway(tr.ds)  # every pose of s2 moved 500 m away
+    with pytest.raises(ValueError, match="val_sessions: no query of"):
+        tr.validate()
+
+
+class _FarAway:
+    """A dataset whose session s2 lies 500 m east of where it was rendered."""
+
+    def __init__(self, ds):
+        self._ds = ds
+        self.cameras, self.sessions, self.meta = ds.cameras, ds.sessions, ds.meta
+
+    def session(self, name):
+        s = self._ds.session(name)
+        if name != "s2":
+            return s
+        moved = copy.copy(s)
+        moved.poses = s.poses + np.array([500.0, 0.0, 0.0])
+        return moved
+
+
+def test_log_lines_are_strict_json(tiny_world, tmp_path):
+    from vvloc.train import _finite_json
+
+    assert _finite_json({"a": float("nan"), "b": [1.0, float("inf")], "c": "x"}) == {
+        "a": None,
+        "b": [1.0, None],
+        "c": "x",
+    }

@@ -44,7 +44,9 @@ what it changes.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import hashlib
 import json
 import logging
 import math
@@ -96,6 +98,9 @@ log = logging.getLogger("vvloc.train")
 HEAD_REFRESH = 200
 #: Model-config fields that only describe the global head (``init_checkpoint`` may differ in them).
 HEAD_FIELDS = ("global_head", "netvlad_clusters", "global_dim", "disco_crop", "gem_p")
+
+#: Config keys a ``--resume`` may change: how the run executes, not what it trains.
+RESUMABLE_CHANGES = ("num_workers", "threads", "device")
 
 #: What ``best/`` is selected by first (``TrainConfig.select_by``; :meth:`Trainer.selection_key`).
 SELECT_BY = ("reranked", "retrieval", "last")
@@ -246,6 +251,56 @@ class TrainConfig:
             raise ValueError(f"{path}: expected a mapping at the top level")
         return cls.from_dict(raw, source=str(path))
 
+    def _check_types(self) -> None:
+        """Every field of the type its annotation says (YAML reads ``1e-5`` as a string and
+        ``2.5`` where an int belongs would fail deep inside a step): ``ValueError`` naming it."""
+
+        def number(v: Any) -> bool:
+            return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+        def integer(v: Any) -> bool:
+            return isinstance(v, int) and not isinstance(v, bool)
+
+        checks: dict[str, tuple[Any, str]] = {
+            "int": (integer, "an int"),
+            "float": (number, "a number"),
+            "str": (lambda v: isinstance(v, str), "a str"),
+            "int | None": (lambda v: v is None or integer(v), "an int or null"),
+            "str | None": (lambda v: v is None or isinstance(v, str), "a str or null"),
+            "list[str] | None": (
+                lambda v: v is None or (isinstance(v, list) and all(isinstance(x, str) for x in v)),
+                "a list of session names or null (write [s0], not s0)",
+            ),
+            "list[int]": (
+                lambda v: isinstance(v, list) and all(integer(x) for x in v),
+                "a list of ints",
+            ),
+            "list[float]": (
+                lambda v: isinstance(v, list) and all(number(x) for x in v),
+                "a list of numbers",
+            ),
+            "dict[str, Any]": (lambda v: isinstance(v, dict), "a mapping"),
+            "dict[str, Any] | None": (lambda v: v is None or isinstance(v, dict), "a mapping"),
+            "list[dict[str, Any]]": (
+                lambda v: isinstance(v, list) and all(isinstance(x, dict) for x in v),
+                "a list of mappings",
+            ),
+        }
+        own = ("hard_pool_restarts",)  # validate() checks it with a message of its own
+        for f in dataclasses.fields(self):
+            if f.name in own:
+                continue
+            check = checks.get(str(f.type))
+            value = getattr(self, f.name)
+            if check is None or check[0](value):
+                continue
+            hint = ""
+            if isinstance(value, str):
+                with contextlib.suppress(ValueError):
+                    float(value)
+                    hint = " (YAML reads 1e-5 as a string: write 1.0e-5)"
+            raise ValueError(f"{f.name}: expected {check[1]}, got {value!r}{hint}")
+
     @classmethod
     def from_dict(cls, raw: dict[str, Any], source: str = "config") -> TrainConfig:
         """Build from a plain dict, rejecting unknown keys."""
@@ -259,6 +314,15 @@ class TrainConfig:
 
     def validate(self) -> None:
         """Raise ``ValueError`` naming the first invalid field."""
+        self._check_types()
+        for name in ("seed", "triplet_margin", "hinge_pos", "hinge_neg", "tbias_margin"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name}: expected >= 0, got {getattr(self, name)}")
+        if not 0 < self.pos_radius < self.neg_radius:
+            raise ValueError(
+                f"pos_radius, neg_radius: expected 0 < pos_radius < neg_radius, got "
+                f"{self.pos_radius} and {self.neg_radius}"
+            )
         for name in ("stage1_epochs", "stage2_epochs", "head_epochs", "local_epochs"):
             if int(getattr(self, name)) < 0:
                 raise ValueError(f"{name}: expected >= 0")
@@ -792,6 +856,18 @@ class Trainer:
         for e in cfg.extra_datasets:
             _ensure_dataset(e["dataset"], e.get("sim"))
             extra.append((open_dataset(e["dataset"]), e.get("train_sessions")))
+            rig, other = self.ds.cameras, extra[-1][0].cameras
+            if len(rig) != len(other) or (rig[0].width, rig[0].height) != (
+                other[0].width,
+                other[0].height,
+            ):
+                raise ValueError(
+                    f"extra_datasets: {e['dataset']} has {len(other)} cameras of "
+                    f"{other[0].width}x{other[0].height}, {cfg.dataset} {len(rig)} of "
+                    f"{rig[0].width}x{rig[0].height}: one training batch stacks frames of both "
+                    "(convert them to one rig size with vvloc convert)"
+                )
+        self._datasets = [self.ds, *(d for d, _ in extra)]
         self.sampler = TripletSampler(
             self.ds,
             pos_radius=cfg.pos_radius,
@@ -1022,12 +1098,30 @@ class Trainer:
             "local_scheduler": self.local_scheduler.state_dict(),
             "sampler": self.sampler.state_dict(),
             "torch_rng": torch.get_rng_state(),
+            "cuda_rng": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None,
+            # the weights of this epoch, beside its optimizer: checkpoint/ and this file are
+            # written one after the other, and a crash between them must not pair another
+            # epoch's weights with this state
+            "model": {k: v.detach().cpu().clone() for k, v in self.model.state_dict().items()},
+            "data": self.data_fingerprint(),
             "best": self.best,
             "joint_stopped": self.joint_stopped,
             "config": self.cfg.to_dict(),
         }
         with atomic_write(self._state_path(), "wb") as fb:
             torch.save(state, fb)
+
+    def data_fingerprint(self) -> str:
+        """SHA-256 over the training datasets' sessions (names, lengths, poses, floors): what
+        the sampler's frame ids point into, compared on ``--resume``."""
+        h = hashlib.sha256()
+        for ds in self._datasets:
+            for name in ds.sessions:
+                sess = ds.session(name)
+                h.update(f"{name}:{len(sess)};".encode())
+                h.update(np.ascontiguousarray(sess.poses, dtype="<f8").tobytes())
+                h.update(np.ascontiguousarray(sess.floors, dtype="<i8").tobytes())
+        return h.hexdigest()
 
     def resume(self) -> bool:
         """Load the last checkpoint and trainer state from ``out_dir``; False if there is none.
@@ -1040,14 +1134,28 @@ class Trainer:
         state = torch.load(self._state_path(), map_location="cpu", weights_only=False)
         # Extending a run (more joint epochs) is allowed; any other change is a different run.
         # keys added to TrainConfig after the run started count as their defaults
+        # how the run is executed may change: workers, threads and device (the last two
+        # can move the weights' last bits, as on another machine)
+        free = ("stage2_epochs", *RESUMABLE_CHANGES)
         saved = {**TrainConfig().to_dict(), **state["config"]}
-        saved = {k: v for k, v in saved.items() if k != "stage2_epochs"}
-        current = {k: v for k, v in self.cfg.to_dict().items() if k != "stage2_epochs"}
+        saved = {k: v for k, v in saved.items() if k not in free}
+        current = {k: v for k, v in self.cfg.to_dict().items() if k not in free}
         if saved != current:
+            differ = sorted(k for k in set(saved) | set(current) if saved.get(k) != current.get(k))
             raise ValueError(
-                f"{self._state_path()}: the run in {self.out} was started with another config; "
-                "use a new --out directory or the same config"
+                f"{self._state_path()}: the run in {self.out} was started with another config "
+                f"(differing: {', '.join(differ)}); use a new --out directory or the same config"
             )
+        old_cfg = {**TrainConfig().to_dict(), **state["config"]}
+        for key in ("threads", "device"):
+            if old_cfg.get(key) != getattr(self.cfg, key):
+                log.warning(
+                    "resuming with %s %r (the run started with %r): the weights may differ in "
+                    "their last bits from an uninterrupted run",
+                    key,
+                    getattr(self.cfg, key),
+                    old_cfg.get(key),
+                )
         old = {**TrainConfig().to_dict(), **state["config"]}
         if old["stage2_epochs"] != self.cfg.stage2_epochs and (
             self.cfg.stage2_epochs < old["stage2_epochs"]
@@ -1066,8 +1174,26 @@ class Trainer:
                 "stage2_epochs does not restart it: start a new run (another --out) with "
                 f"init_checkpoint: {self.out}"
             )
+        data = state.get("data")
+        if data is not None and data != self.data_fingerprint():
+            raise ValueError(
+                f"{self._state_path()}: the training data changed since the run started (the "
+                "sessions' frames or poses differ); the sampler's pools would pair other "
+                "frames: use a new --out directory"
+            )
         loaded = VVLocNet.load(self.checkpoint_dir)
-        self.model.load_state_dict(loaded.state_dict())
+        if "model" in state:  # the state's own weights (before 2026-12-05: checkpoint/'s)
+            self.model.load_state_dict(state["model"])
+            if loaded.weights_hash() != self.model.weights_hash():
+                log.warning(
+                    "%s holds other weights than the trainer state (a stop between the two "
+                    "writes): resuming from the state's epoch %d; checkpoint/ is rewritten at "
+                    "the next epoch",
+                    self.checkpoint_dir,
+                    int(state["epoch"]),
+                )
+        else:
+            self.model.load_state_dict(loaded.state_dict())
         self.optimizer.load_state_dict(state["optimizer"])
         self.scheduler.load_state_dict(state["scheduler"])
         if "head_optimizer" in state:  # runs saved before the head stage existed have none
@@ -1084,6 +1210,8 @@ class Trainer:
                 {"rng": state["sampler_rng"], "hard": state["sampler_hard"]}
             )
         torch.set_rng_state(state["torch_rng"])
+        if state.get("cuda_rng") is not None and torch.cuda.is_available():
+            torch.cuda.set_rng_state_all(state["cuda_rng"])
         self.epoch = int(state["epoch"])
         self.step = int(state["step"])
         self.best = state.get("best")
@@ -1184,6 +1312,11 @@ class Trainer:
             loss, parts, correct = training_losses(
                 self.model, batch, cfg, stage, self.step, self.device
             )
+            if not math.isfinite(parts.total):  # before the step: the weights stay finite
+                raise FloatingPointError(
+                    f"epoch {self.epoch + 1}, step {self.step}: non-finite loss {parts} (the "
+                    f"checkpoint in {self.checkpoint_dir} keeps the last finished epoch)"
+                )
             self.optimizer.zero_grad(set_to_none=True)
             loss.backward()
             if cfg.grad_clip > 0:
@@ -1487,6 +1620,13 @@ class Trainer:
             every=cfg.val_every,
             top_k=cfg.val_top_k,
         )
+        if res["queries"] == 0:  # NaN recall would never beat best/ and end the run early
+            raise ValueError(
+                f"val_sessions: no query of {list(cfg.val_sessions or [])} (every "
+                f"{cfg.val_every}th frame) lies within 2 m of a frame of val_database "
+                f"{cfg.val_database!r} on its floor: validation could not rank the epochs; "
+                "choose sessions that revisit the map's places"
+            )
         if self.loop_sets:
             res["loops"] = [
                 {
@@ -1570,8 +1710,8 @@ class Trainer:
             records.append(rec)
             self.save()
             self.process["seconds"] += time.perf_counter() - t0
-            with open(self.out / "log.jsonl", "a") as f:
-                f.write(json.dumps(rec) + "\n")
+            with open(self.out / "log.jsonl", "a") as f:  # strict JSON: NaN/inf as null
+                f.write(json.dumps(_finite_json(rec), allow_nan=False) + "\n")
             log.info("epoch %d: %s", rec["epoch"], {k: v for k, v in rec.items() if "loss" in k})
             if not all(math.isfinite(v) for k, v in rec.items() if k.startswith("loss_")):
                 raise FloatingPointError(f"non-finite loss in epoch {rec['epoch']}: {rec}")
@@ -1581,6 +1721,17 @@ class Trainer:
             self._rewrite_records(include_current=False)  # this one trained nothing
         # (otherwise a finished run resumed again trains nothing and changes no record)
         return records
+
+
+def _finite_json(value: Any) -> Any:
+    """``value`` with every non-finite float replaced by ``None`` (strict JSON has no NaN)."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _finite_json(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_finite_json(v) for v in value]
+    return value
 
 
 def train(
