@@ -359,3 +359,21 @@ def test_same_session_cross_floor_negatives_come_from_the_anchors_own_drive(tmp_
         TripletSampler(garage, cross_floor_same_session=0.0, **kw).sample(50),
         TripletSampler(garage, **kw).sample(50),
     )
+
+
+def test_basement_floors_below_zero_are_levels_like_any_other(tmp_path):
+    def sampler_of(f0, f1):
+        root = tmp_path / f"ds{f0}"
+        sessions = {
+            "s0": _line(5, floor=f0),
+            "s1": _line(5, floor=f1),
+            "s2": _line(5, y=0.5, floor=f0),
+        }
+        _write(root, sessions)
+        return TripletSampler(open_dataset(root), seed=0)
+
+    below, above = sampler_of(-1, 0), sampler_of(0, 1)
+    assert below.anchors.tolist() == above.anchors.tolist()
+    for a in below.anchors:
+        assert below.positives[a].tolist() == above.positives[a].tolist()
+    np.testing.assert_array_equal(below.positions, above.positions)

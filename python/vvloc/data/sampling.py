@@ -109,11 +109,24 @@ class TripletSampler:
         self.rng = np.random.default_rng(seed)
         sess_ids, idx, pos, levels = [], [], [], []
         worlds = {id(src): w for w, src in enumerate([ds, *(e[0] for e in extra)])}
+        # each world's lowest floor becomes its level 0 (basements may be numbered below 0;
+        # only differences between floors matter)
+        lowest: dict[int, int] = {}
+        for src, name, _ in self._slots:
+            fl = src.session(name).floors
+            if len(fl):
+                w = worlds[id(src)]
+                lowest[w] = min(lowest.get(w, int(fl.min())), int(fl.min()))
         for k, (src, name, _) in enumerate(self._slots):
             s = src.session(name)
-            if len(s.floors) and (s.floors.min() < 0 or s.floors.max() >= WORLD_LEVELS):
-                raise ValueError(f"session {name!r} of {src.root}: floors must lie in [0, 1000)")
-            level = s.floors + WORLD_LEVELS * worlds[id(src)]
+            w = worlds[id(src)]
+            rel = s.floors - lowest.get(w, 0)
+            if len(rel) and rel.max() >= WORLD_LEVELS:
+                raise ValueError(
+                    f"session {name!r} of {src.root}: floors must span fewer than "
+                    f"{WORLD_LEVELS} levels"
+                )
+            level = rel + WORLD_LEVELS * w
             sess_ids.append(np.full(len(s), k, dtype=np.int64))
             idx.append(np.arange(len(s), dtype=np.int64))
             pos.append(_positions(s.poses, level, floor_separation))
