@@ -565,3 +565,40 @@ def test_calibration_of_results_scores_the_reported_keyframe_under_the_cost_rule
         calibration_of_results(res, q[:3], **kw)
     with pytest.raises(ValueError, match="no query has a map keyframe within 2 m"):
         calibration_of_results(res, q + np.array([50.0, 0, 0]), **kw)  # another world
+
+
+def test_cli_refuses_misleading_inputs_before_any_work(tiny_world, map_file, model_dir, tmp_path):
+    exe = [sys.executable, "-m", "vvloc.cli"]
+    run = lambda *a: subprocess.run([*exe, *a], capture_output=True, text=True)  # noqa: E731
+    ck = ["--checkpoint", str(model_dir), "--dataset", str(tiny_world)]
+    # the map session among the queries, or a query session twice
+    r = run("eval", *ck, "--database", "s0", "--queries", "s0", "--out", str(tmp_path / "e"))
+    assert r.returncode == 2 and "the map session 's0' is among the queries" in r.stderr
+    r = run("eval", *ck, "--database", "s0", "--queries", "s1,s1", "--out", str(tmp_path / "e"))
+    assert r.returncode == 2 and "named more than once" in r.stderr
+    assert not (tmp_path / "e").exists()
+    # an --out that is a file is refused before localizing anything
+    blocker = tmp_path / "file.txt"
+    blocker.write_text("keep")
+    r = run("localize", "--map", str(map_file), *ck, "--session", "s1", "--out", str(blocker))
+    assert r.returncode == 2 and "--out:" in r.stderr and "is a file" in r.stderr
+    assert blocker.read_text() == "keep"
+    # --overwrite replaces a dataset, never another folder
+    notes = tmp_path / "notes"
+    notes.mkdir()
+    (notes / "todo.txt").write_text("mine")
+    r = run("sim", "--out", str(notes), "--sessions", "1", "--frames", "2", "--overwrite")
+    assert r.returncode == 2 and "not a vvloc dataset" in r.stderr
+    assert (notes / "todo.txt").read_text() == "mine"
+    r = run("sim", "--out", str(blocker), "--sessions", "1", "--frames", "2", "--overwrite")
+    assert r.returncode == 2 and "is a file" in r.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["file.txt", "notes"]  # no .partial-*
+    # malformed YAML and a --resume with nothing to resume: one line, exit 2
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("dataset: [unclosed\n")
+    r = run("train", "--config", str(bad), "--out", str(tmp_path / "t"))
+    assert r.returncode == 2 and "not valid YAML" in r.stderr and "Traceback" not in r.stderr
+    good = tmp_path / "good.yaml"
+    good.write_text(f"dataset: {tiny_world}\nstage1_epochs: 1\nstage2_epochs: 0\n")
+    r = run("train", "--config", str(good), "--out", str(tmp_path / "t"), "--resume")
+    assert r.returncode == 2 and "no run to resume" in r.stderr

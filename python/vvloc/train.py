@@ -246,7 +246,10 @@ class TrainConfig:
         path = Path(path)
         if not path.is_file():
             raise FileNotFoundError(f"config file not found: {path}")
-        raw = yaml.safe_load(path.read_text()) or {}
+        try:
+            raw = yaml.safe_load(path.read_text()) or {}
+        except yaml.YAMLError as e:
+            raise ValueError(f"{path}: not valid YAML: {e}".replace("\n", " ")) from e
         if not isinstance(raw, dict):
             raise ValueError(f"{path}: expected a mapping at the top level")
         return cls.from_dict(raw, source=str(path))
@@ -1744,7 +1747,11 @@ def train(
     cfg = config if isinstance(config, TrainConfig) else TrainConfig.from_yaml(config)
     trainer = Trainer(cfg, out_dir)
     if resume:
-        trainer.resume()
+        if not trainer.resume():
+            raise FileNotFoundError(
+                f"--resume: no run to resume in {out_dir} (no trainer_state.pt); drop --resume "
+                "to start one"
+            )
     elif (Path(out_dir) / "trainer_state.pt").exists():
         raise FileExistsError(
             f"{out_dir} already holds a training run: pass --resume to continue it, "

@@ -55,10 +55,16 @@ def convert(
         ),
     ] = 0.0,
     width: Annotated[
-        int | None, typer.Option("--width", min=1, help="Image width, pixels (with --height).")
+        int | None,
+        typer.Option(
+            "--width", min=1, help="Image width, pixels (with --height; default: the source's)."
+        ),
     ] = None,
     height: Annotated[
-        int | None, typer.Option("--height", min=1, help="Image height, pixels (with --width).")
+        int | None,
+        typer.Option(
+            "--height", min=1, help="Image height, pixels (with --width; default: the source's)."
+        ),
     ] = None,
     cameras: Annotated[
         str,

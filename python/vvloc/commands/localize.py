@@ -16,13 +16,15 @@ from vvloc.commands._util import (
     MetricFromChoice,
     RetrievalWeight,
     Snap,
+    check_out_folder,
     cli_errors,
     parse_device,
 )
 from vvloc.localize.metric import METRIC_CANDIDATES, RETRIEVAL_WEIGHT
 
 HEADER = (
-    "# vvloc localize. Frames (DESIGN.md §3): world x east, y north, z up (m); yaw CCW "
+    "# vvloc localize. timestamp: seconds. Frames (DESIGN.md §3): world x east, y north, z up "
+    "(m); yaw CCW "
     "(deg in this file). relative_* = the query frame expressed in the map keyframe's frame "
     "(x forward, y left). cost = matching cost, lower is better; distinctiveness = mean minus "
     "minimum of the re-ranking costs, higher is more confident; accepted = cost < threshold and "
@@ -69,6 +71,7 @@ def localize(
     from vvloc.localize.localizer import Localizer
 
     with cli_errors("localize"):
+        check_out_folder(out)
         loc = Localizer.open(
             map_path,
             resolve_checkpoint(checkpoint),

@@ -10,7 +10,7 @@ from typing import Annotated
 import typer
 
 from vvloc.checkpoints import resolve_checkpoint
-from vvloc.commands._util import CostThreshold, cli_errors, parse_device
+from vvloc.commands._util import CostThreshold, check_out_folder, cli_errors, parse_device
 
 
 def trajectory_file_names(sessions: Sequence[str]) -> dict[str, str]:
@@ -43,9 +43,20 @@ def loops(
             "--checkpoint", help="The model (run or checkpoint folder) that built the map."
         ),
     ],
-    radius: Annotated[float, typer.Option("--radius", help="Descriptor distance radius.")] = 0.1,
+    radius: Annotated[
+        float,
+        typer.Option(
+            "--radius",
+            max=2.0,
+            help="Global-descriptor L2 distance below which a pair is a candidate (unit-norm "
+            "descriptors: distances lie in [0, 2]; every candidate is verified metrically).",
+        ),
+    ] = 0.1,
     window: Annotated[
-        int, typer.Option("--window", min=0, help="Exclude same-session neighbours within.")
+        int,
+        typer.Option(
+            "--window", min=0, help="Exclude same-session pairs within this many keyframes."
+        ),
     ] = 10,
     sequence: Annotated[
         int,
@@ -78,6 +89,7 @@ def loops(
     from vvloc.nets import VVLocNet
 
     with cli_errors("loops"):
+        check_out_folder(out)
         model = VVLocNet.load(resolve_checkpoint(checkpoint)).to(parse_device(device))
         # detect_loops checks the weights fingerprint (once, so an old map warns once)
         db = MapDatabase.open(map_path, expected_config_hash=model.config_hash())

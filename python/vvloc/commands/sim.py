@@ -8,6 +8,8 @@ from typing import Annotated
 
 import typer
 
+from vvloc.commands._util import cli_errors
+
 
 class Scene(str, Enum):
     """Scenes ``vvloc sim`` can render."""
@@ -75,7 +77,7 @@ def sim(
             if value is not None:
                 typer.echo(f"vvloc sim: error: {option} applies to --scene garage only", err=True)
                 raise typer.Exit(code=2)
-    try:
+    with cli_errors("sim"):
         path = simulate_dataset(
             out,
             scene=scene.value,
@@ -91,7 +93,4 @@ def sim(
             lighting=presets,
             overwrite=overwrite,
         )
-    except (ValueError, FileExistsError, RuntimeError) as e:
-        typer.echo(f"vvloc sim: error: {e}", err=True)
-        raise typer.Exit(code=2) from e
     typer.echo(f"wrote {sessions} sessions x {frames} frames ({cameras} cameras) to {path}")

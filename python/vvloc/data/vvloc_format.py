@@ -256,15 +256,20 @@ class DatasetWriter:
             raise ValueError("cameras: expected at least one camera")
         if len({(c.width, c.height) for c in cameras}) != 1:
             raise ValueError("cameras: all cameras of a written dataset must share one image size")
-        if (
-            self.root.exists()
-            and not overwrite
-            and (not self.root.is_dir() or any(self.root.iterdir()))
-        ):
-            raise FileExistsError(
-                f"{self.root} exists and is not empty "
-                "(pass overwrite=True, or --overwrite on the command line)"
-            )
+        if self.root.exists() and not self.root.is_dir():
+            raise FileExistsError(f"{self.root} exists and is a file, not a dataset folder")
+        if self.root.is_dir() and any(self.root.iterdir()):
+            if not overwrite:
+                raise FileExistsError(
+                    f"{self.root} exists and is not empty "
+                    "(pass overwrite=True, or --overwrite on the command line)"
+                )
+            if not (self.root / "rig.json").is_file():
+                # overwrite replaces a dataset, never an arbitrary folder
+                raise FileExistsError(
+                    f"{self.root} is not a vvloc dataset (no rig.json): overwrite replaces only "
+                    "a dataset; choose another folder or empty this one"
+                )
         self.cameras = tuple(cameras)
         self.overwrite = overwrite
         self.root.parent.mkdir(parents=True, exist_ok=True)
@@ -318,6 +323,10 @@ class DatasetWriter:
         tb: TracebackType | None,
     ) -> None:
         if exc_type is None:
-            self.close()
+            try:
+                self.close()
+            except BaseException:
+                self.abort()  # no partial folder left behind
+                raise
         else:
             self.abort()

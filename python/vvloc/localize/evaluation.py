@@ -255,6 +255,12 @@ def run_evaluation(
         raise ValueError(f"loop_radius: expected a value in (0, 0.5], got {loop_radius}")
     loop_sequence = kernels._positive_int(loop_sequence, "loop_sequence", minimum=0)
     loop_sweep_pairs = kernels._positive_int(loop_sweep_pairs, "loop_sweep_pairs")
+    queries = list(queries)
+    if len(set(queries)) != len(queries) or database in queries:
+        raise ValueError(
+            f"queries: {queries} must name each session once and not the map session "
+            f"{database!r} (its frames would find themselves)"
+        )
     out_dir = Path(out)
     model = VVLocNet.load(checkpoint).to(resolve_device(device))
     ds = open_dataset(dataset)
