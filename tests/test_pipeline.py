@@ -602,3 +602,22 @@ def test_cli_refuses_misleading_inputs_before_any_work(tiny_world, map_file, mod
     good.write_text(f"dataset: {tiny_world}\nstage1_epochs: 1\nstage2_epochs: 0\n")
     r = run("train", "--config", str(good), "--out", str(tmp_path / "t"), "--resume")
     assert r.returncode == 2 and "no run to resume" in r.stderr
+
+
+def test_cli_version_and_quiet_logs(tmp_path):
+    exe = [sys.executable, "-m", "vvloc.cli"]
+    r = subprocess.run([*exe, "--version"], capture_output=True, text=True)
+    assert r.returncode == 0 and r.stdout.startswith("vvloc ")
+    import os
+    import warnings
+
+    from vvloc.cli import _quiet_when_logged
+
+    before = warnings.formatwarning
+    try:
+        _quiet_when_logged()  # pytest's stderr is not a terminal
+        assert os.environ.get("TQDM_MININTERVAL") == "30"
+        assert warnings.formatwarning("x", UserWarning, "f.py", 1) == "vvloc: warning: x\n"
+    finally:
+        warnings.formatwarning = before
+        os.environ.pop("TQDM_MININTERVAL", None)

@@ -7,6 +7,8 @@ from __future__ import annotations
 import logging
 import os
 import signal
+import sys
+import warnings
 from types import FrameType
 
 import typer
@@ -33,9 +35,20 @@ app = typer.Typer(
 )
 
 
+def _print_version(value: bool) -> None:
+    if value:
+        from vvloc import __version__
+
+        typer.echo(f"vvloc {__version__}")
+        raise typer.Exit()
+
+
 @app.callback()
 def _root(
     verbose: bool = typer.Option(False, "--verbose", "-v", help="Log progress details."),
+    version: bool = typer.Option(
+        False, "--version", callback=_print_version, is_eager=True, help="Print the version."
+    ),
 ) -> None:
     """vvloc: synthetic data, training, evaluation and localization."""
     logging.basicConfig(
@@ -74,9 +87,23 @@ def _exit_on_sigterm() -> None:
     signal.signal(signal.SIGTERM, handler)
 
 
+def _quiet_when_logged() -> None:
+    """When stderr is not a terminal (a log file, CI), progress bars redraw every 30 s instead
+    of ten times a second (``TQDM_MININTERVAL``; an explicit setting wins), and warnings print as
+    one line, ``vvloc: warning: ...``, without a source line."""
+    if not sys.stderr.isatty():
+        os.environ.setdefault("TQDM_MININTERVAL", "30")
+
+    def one_line(message, category, filename, lineno, line=None):  # type: ignore[no-untyped-def]
+        return f"vvloc: warning: {message}\n"
+
+    warnings.formatwarning = one_line
+
+
 def main() -> None:
     """Entry point of the ``vvloc`` console script."""
     _exit_on_sigterm()
+    _quiet_when_logged()
     app()
 
 
