@@ -426,6 +426,17 @@ class Localizer:
         self.decoder = decoder
         self.index = DescriptorIndex(mapdb.global_descriptors)
         self._rig_warned = False  # a query from another rig is reported once (_check_rig)
+        rig = mapdb.rig
+        self._rig_arrays = (
+            None
+            if rig is None
+            else (
+                len(rig),
+                (rig[0]["width"], rig[0]["height"]),
+                np.array([c["K"] for c in rig]),
+                np.array([c["cam_to_ego"] for c in rig]),
+            )
+        )
         cfg = model.config
         self.grid_size = float(cfg.grid_size)
         self.num_angles = int(cfg.num_angles)
@@ -532,18 +543,16 @@ class Localizer:
 
     def _check_rig(self, frame: Frame, i: int) -> None:
         """Warn (once) when ``frame`` comes from a rig other than the one the map records."""
-        rig = self.map.rig
-        if rig is None or self._rig_warned:
+        if self._rig_arrays is None or self._rig_warned:
             return
+        count, (width, height), K, T = self._rig_arrays
         m, _, h, w = frame.images.shape
         why = ""
-        if m != len(rig):
-            why = f"{m} cameras, the map's rig {len(rig)}"
-        elif (w, h) != (rig[0]["width"], rig[0]["height"]):
-            why = f"images {w}x{h}, the map's {rig[0]['width']}x{rig[0]['height']}"
+        if m != count:
+            why = f"{m} cameras, the map's rig {count}"
+        elif (w, h) != (width, height):
+            why = f"images {w}x{h}, the map's {width}x{height}"
         else:
-            K = np.array([c["K"] for c in rig])
-            T = np.array([c["cam_to_ego"] for c in rig])
             if not (
                 np.allclose(frame.K, K, rtol=1e-3, atol=1e-3)
                 and np.allclose(frame.cam_to_ego, T, rtol=1e-3, atol=1e-3)
