@@ -377,3 +377,23 @@ def test_basement_floors_below_zero_are_levels_like_any_other(tmp_path):
     for a in below.anchors:
         assert below.positives[a].tolist() == above.positives[a].tolist()
     np.testing.assert_array_equal(below.positions, above.positions)
+
+
+def test_a_single_drive_that_returns_gives_positives_with_a_revisit_gap(tmp_path):
+    # one session: out along a line (frames 0-4, 2 m apart) and back over the same places
+    out_poses, floors = _line(5)
+    poses = np.concatenate([out_poses, out_poses[::-1]])
+    root = tmp_path / "ds"
+    _write(root, {"s0": (poses, np.concatenate([floors, floors]))})
+    ds = open_dataset(root)
+    with pytest.raises(ValueError, match="set revisit_gap"):
+        TripletSampler(ds, seed=0)  # positives from other sessions only: there are none
+    sampler = TripletSampler(ds, seed=0, revisit_gap=3)
+    for a in sampler.anchors:
+        for p in sampler.positives[a]:
+            assert abs(int(p) - int(a)) >= 3  # the return pass, not the frame's own pass
+            assert np.linalg.norm(poses[int(p), :2] - poses[int(a), :2]) <= 2.0
+    # every place is revisited but the turning point, where frames 4 and 5 are one pass
+    assert sorted(sampler.anchors.tolist()) == [0, 1, 2, 3, 6, 7, 8, 9]
+    with pytest.raises(ValueError, match="revisit_gap"):
+        TripletSampler(ds, revisit_gap=-1)

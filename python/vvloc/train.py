@@ -125,7 +125,9 @@ class TrainConfig:
     each is its own world (see :class:`vvloc.data.TripletSampler`, which also takes
     ``cross_floor_fraction``: the share of negatives drawn from another floor at the anchor's
     x-y in multi-storey worlds, and ``cross_floor_same_session``: the share of those drawn from
-    the anchor's own session). Validation uses ``dataset`` only.
+    the anchor's own session). Validation uses ``dataset`` only. ``revisit_gap`` N > 0 also
+    takes positives from the anchor's own session, at least N frames away (data of single
+    drives that return to their places; 0, the default: positives from other sessions only).
     ``init_checkpoint`` (optional): start from these weights (a checkpoint folder, or a run
     folder: its ``best/``, else its ``checkpoint/``) instead of a random initialisation, to
     fine-tune a trained model (e.g. on a further world); its model config must equal this run's.
@@ -201,6 +203,7 @@ class TrainConfig:
     pos_radius: float = 2.0
     neg_radius: float = 3.0
     hard_fraction: float = 0.5
+    revisit_gap: int = 0
     triplet_margin: float = 0.1
     hinge_pos: float = 0.1
     hinge_neg: float = 0.2
@@ -878,6 +881,7 @@ class Trainer:
             seed=cfg.seed,
             sessions=cfg.train_sessions,
             hard_fraction=cfg.hard_fraction,
+            revisit_gap=cfg.revisit_gap,
             extra=extra,
             cross_floor_fraction=cfg.cross_floor_fraction,
             cross_floor_same_session=cfg.cross_floor_same_session,

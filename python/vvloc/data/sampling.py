@@ -32,7 +32,10 @@ class TripletSampler:
     """Seeded (anchor, positive, negative) triplets across the sessions of a dataset.
 
     A positive lies within ``pos_radius`` metres of the anchor (same floor) in *another* session
-    (``cross_session=True``, the default) or any other frame; a negative lies beyond
+    (``cross_session=True``, the default) or any other frame; with ``revisit_gap`` N > 0 also a
+    frame of the anchor's own session at least N frames away (a drive that returns to a place,
+    e.g. a dataset of single long sessions; nearer frames are the same pass). A negative lies
+    beyond
     ``neg_radius`` metres (or on another floor). Triplets are (T, 3) int64 arrays of *global*
     frame ids; :meth:`locate` and :meth:`frame` map an id back to (session, index) and a Frame.
 
@@ -66,6 +69,7 @@ class TripletSampler:
         sessions: Sequence[str] | None = None,
         *,
         cross_session: bool = True,
+        revisit_gap: int = 0,
         hard_fraction: float = 0.5,
         floor_separation: float = FLOOR_SEPARATION,
         extra: Sequence[tuple[Dataset, Sequence[str] | None]] = (),
@@ -73,6 +77,10 @@ class TripletSampler:
         cross_floor_same_session: float = 0.0,
         anchor_shares: Sequence[float | None] = (),
     ) -> None:
+        if isinstance(revisit_gap, bool) or not isinstance(revisit_gap, (int, np.integer)):
+            raise TypeError(f"revisit_gap: expected an int >= 0, got {type(revisit_gap).__name__}")
+        if revisit_gap < 0:
+            raise ValueError(f"revisit_gap: expected an int >= 0, got {revisit_gap}")
         if not (pos_radius > 0 and neg_radius >= pos_radius):
             raise ValueError(
                 f"pos_radius, neg_radius: expected 0 < pos_radius <= neg_radius, "
@@ -143,13 +151,17 @@ class TripletSampler:
             c = np.asarray(sorted(cand), dtype=np.int64)
             c = c[c != i]
             if cross_session:
-                c = c[self.session_of[c] != self.session_of[i]]
+                other = self.session_of[c] != self.session_of[i]
+                if revisit_gap > 0:  # a return to the place within the same drive counts too
+                    other |= np.abs(self.index_of[c] - self.index_of[i]) >= revisit_gap
+                c = c[other]
             self.positives.append(c)
         self.anchors = np.array([i for i, p in enumerate(self.positives) if len(p)], dtype=np.int64)
         if len(self.anchors) == 0:
             raise ValueError(
                 f"no frame has a positive within {self.pos_radius} m "
-                f"{'in another session ' if cross_session else ''}(sessions {self.sessions})"
+                f"{'in another session ' if cross_session else ''}(sessions {self.sessions}); "
+                "a dataset of single drives that revisit places: set revisit_gap"
             )
         p = self._anchor_probabilities(anchor_shares, len(extra))
         self._anchor_cdf = None if p is None else np.cumsum(p)
