@@ -71,6 +71,7 @@ from vvloc._io import atomic_write
 from vvloc.checkpoints import resolve_checkpoint
 from vvloc.data import TripletSampler, open_dataset
 from vvloc.data.augment import PhotometricAugment
+from vvloc.evaluate import to_jsonable
 from vvloc.localize.localizer import frames_to_tensors
 from vvloc.losses import (
     hinge_loss,
@@ -1718,7 +1719,7 @@ class Trainer:
             self.save()
             self.process["seconds"] += time.perf_counter() - t0
             with open(self.out / "log.jsonl", "a") as f:  # strict JSON: NaN/inf as null
-                f.write(json.dumps(_finite_json(rec), allow_nan=False) + "\n")
+                f.write(json.dumps(to_jsonable(rec), allow_nan=False) + "\n")
             log.info("epoch %d: %s", rec["epoch"], {k: v for k, v in rec.items() if "loss" in k})
             if not all(math.isfinite(v) for k, v in rec.items() if k.startswith("loss_")):
                 raise FloatingPointError(f"non-finite loss in epoch {rec['epoch']}: {rec}")
@@ -1728,17 +1729,6 @@ class Trainer:
             self._rewrite_records(include_current=False)  # this one trained nothing
         # (otherwise a finished run resumed again trains nothing and changes no record)
         return records
-
-
-def _finite_json(value: Any) -> Any:
-    """``value`` with every non-finite float replaced by ``None`` (strict JSON has no NaN)."""
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if isinstance(value, dict):
-        return {k: _finite_json(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_finite_json(v) for v in value]
-    return value
 
 
 def train(

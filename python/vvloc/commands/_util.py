@@ -125,19 +125,6 @@ def split_names(text: str) -> list[str]:
     return [s.strip() for s in text.split(",") if s.strip()]
 
 
-def check_sessions(database: str, queries: list[str], option: str = "--queries") -> None:
-    """``ValueError`` when the query sessions repeat a name or include the map session: its
-    queries would find themselves (100 % recall), or count twice."""
-    repeated = sorted({q for q in queries if queries.count(q) > 1})
-    if repeated:
-        raise ValueError(f"{option}: sessions named more than once: {repeated}")
-    if database in queries:
-        raise ValueError(
-            f"{option}: the map session {database!r} is among the queries: its frames would "
-            "find themselves; query other sessions"
-        )
-
-
 def check_out_folder(out: Path, option: str = "--out") -> None:
     """``NotADirectoryError`` naming ``option`` when ``out`` exists and is not a folder: said
     before any work, not after it."""

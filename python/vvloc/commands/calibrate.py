@@ -16,11 +16,11 @@ from vvloc.commands._util import (
     MetricFromChoice,
     RetrievalWeight,
     Snap,
-    check_sessions,
     cli_errors,
     parse_device,
     split_names,
 )
+from vvloc.data.sampling import check_query_sessions
 from vvloc.localize.metric import METRIC_CANDIDATES, RETRIEVAL_WEIGHT
 
 
@@ -81,7 +81,7 @@ def calibrate(
             )
         model = VVLocNet.load(ckpt).to(parse_device(device))
         ds = open_dataset(dataset)
-        check_sessions(database, names)
+        check_query_sessions(database, names)
         for name in [database, *names]:
             ds.session(name)  # KeyError naming the known sessions
         frames = [f for name in names for f in ds.session(name)[::every]]  # loads only these

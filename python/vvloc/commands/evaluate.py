@@ -14,7 +14,6 @@ from vvloc.commands._util import (
     MetricFromChoice,
     RetrievalWeight,
     Snap,
-    check_sessions,
     cli_errors,
     parse_device,
     split_names,
@@ -85,7 +84,6 @@ def eval_command(
 
     with cli_errors("eval"):
         names = split_names(queries)
-        check_sessions(database, names)
         if not names:
             raise ValueError("--queries: expected at least one session name")
         run_evaluation(

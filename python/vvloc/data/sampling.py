@@ -345,6 +345,21 @@ class EvalSplit:
     revisit_radius: float
 
 
+def check_query_sessions(database: str, queries: Sequence[str]) -> None:
+    """``ValueError`` naming ``queries`` when the query sessions repeat a name or include the map
+    session ``database``: its frames would find themselves (100 % recall, a calibration learnt
+    on the map), or a session would count twice."""
+    names = list(queries)
+    repeated = sorted({q for q in names if names.count(q) > 1})
+    if repeated:
+        raise ValueError(f"queries: sessions named more than once: {repeated}")
+    if database in names:
+        raise ValueError(
+            f"queries: the map session {database!r} is among the queries: its frames would "
+            "find themselves; query other sessions"
+        )
+
+
 def evaluation_split(
     ds: Dataset,
     database: str | None = None,

@@ -21,6 +21,7 @@ from vvloc import evaluate, geometry, kernels, viz
 from vvloc._io import atomic_write
 from vvloc.data import Frame, open_dataset
 from vvloc.data.perturb import perturb_frame
+from vvloc.data.sampling import check_query_sessions
 from vvloc.localize.localizer import (
     LocalizationResult,
     Localizer,
@@ -256,11 +257,7 @@ def run_evaluation(
     loop_sequence = kernels._positive_int(loop_sequence, "loop_sequence", minimum=0)
     loop_sweep_pairs = kernels._positive_int(loop_sweep_pairs, "loop_sweep_pairs")
     queries = list(queries)
-    if len(set(queries)) != len(queries) or database in queries:
-        raise ValueError(
-            f"queries: {queries} must name each session once and not the map session "
-            f"{database!r} (its frames would find themselves)"
-        )
+    check_query_sessions(database, queries)
     out_dir = Path(out)
     model = VVLocNet.load(checkpoint).to(resolve_device(device))
     ds = open_dataset(dataset)
