@@ -204,6 +204,13 @@ def test_cli_map_localize_loops_end_to_end(tiny_world, model_dir, tmp_path):
         "map", "build", "--checkpoint", str(model_dir), "--dataset", str(tiny_world),
         "--sessions", sessions, "--out", str(out),
     )  # fmt: skip
+    # an existing map is kept unless --overwrite says to replace it
+    before = map_path.read_bytes()
+    r = bad_map(map_path)
+    assert r.returncode == 2 and "--overwrite" in r.stderr and map_path.read_bytes() == before
+    r = run("map", "build", "--checkpoint", str(model_dir), "--dataset", str(tiny_world),
+            "--sessions", "s0,s1", "--out", str(map_path), "--overwrite")  # fmt: skip
+    assert r.returncode == 0, r.stderr
     r = bad_map(tmp_path / "nowhere" / "m.h5")
     assert r.returncode == 2 and "does not exist" in r.stderr and ".tmp" not in r.stderr
     r = bad_map(tmp_path)

@@ -26,14 +26,22 @@ def build(
         bool, typer.Option("--no_bev", help="Do not store BEVs (then no loop detection).")
     ] = False,
     device: Annotated[str, typer.Option("--device", help="cpu, cuda[:N], mps or auto.")] = "cpu",
+    overwrite: Annotated[
+        bool, typer.Option("--overwrite", help="Replace an existing map file at --out.")
+    ] = False,
 ) -> None:
-    """Build a map (global + local-view descriptors, poses, BEVs) from dataset sessions."""
+    """Build a map (global + local-view descriptors, poses, BEVs) from dataset sessions.
+
+    An existing file at --out is replaced only with --overwrite (then atomically: the old map
+    stays whole until the new one is complete)."""
 
     from vvloc.data import open_dataset
     from vvloc.localize.localizer import build_map
     from vvloc.nets import VVLocNet
 
     with cli_errors("map build"):
+        if out.is_file() and not overwrite:
+            raise FileExistsError(f"--out: {out} exists; pass --overwrite to replace it")
         model = VVLocNet.load(resolve_checkpoint(checkpoint)).to(parse_device(device))
         ds = open_dataset(dataset)
         path = build_map(
