@@ -48,3 +48,21 @@ def test_env_var_sets_default_threads():
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "3"
+
+
+@pytest.mark.parametrize("module", ["vvloc", "vvloc.cli"])
+def test_import_does_not_load_torch_or_scipy(module):
+    """``import vvloc`` and the CLI's ``--help`` stay light: torch and scipy (≈ 1.5 s) load
+    only when a kernel's reference backend, a network or a command's work needs them."""
+    code = f"import sys, {module}; print(sorted(m for m in ('torch', 'scipy') if m in sys.modules))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[]"
+
+
+def test_reference_spatial_kernels_load_on_first_use():
+    import vvloc.reference as reference
+
+    assert reference.bev_pad.__module__ == "vvloc.reference.spatial"
+    with pytest.raises(AttributeError, match="no attribute 'nothing'"):
+        _ = reference.nothing

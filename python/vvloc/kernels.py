@@ -22,7 +22,6 @@ import numpy as np
 import numpy.typing as npt
 
 from vvloc import _core
-from vvloc.reference import matching as ref_matching
 
 Backend = Literal["rust", "reference"]
 F32Array = npt.NDArray[np.float32]
@@ -370,6 +369,8 @@ def matching_cost(a: Any, b: Any, *, backend: Backend = "rust") -> npt.NDArray[n
     if backend == "reference":
         _check_row_norms(x, "a")
         _check_row_norms(y, "b")
+        from vvloc.reference import matching as ref_matching
+
         return np.asarray(ref_matching.matching_cost(x, y), dtype=np.float64).reshape(lead)
     out = _core.matching_cost(x.reshape(-1, t, c), y.reshape(-1, t, c))
     return out.reshape(lead)
@@ -384,6 +385,8 @@ def yaw_costs(src: Any, tgt: Any, *, backend: Backend = "rust") -> npt.NDArray[n
     s, t = _pairs(src, tgt)
     if backend == "reference":
         _check_pair_norms(s, t)
+        from vvloc.reference import matching as ref_matching
+
         return ref_matching.yaw_costs(s, t)
     return _core.yaw_costs(s, t)
 
@@ -399,6 +402,8 @@ def estimate_yaw(src: Any, tgt: Any, *, backend: Backend = "rust") -> YawEstimat
     s, t = _pairs(src, tgt)
     if backend == "reference":
         _check_pair_norms(s, t)
+        from vvloc.reference import matching as ref_matching
+
         return YawEstimate(*ref_matching.estimate_yaw(s, t))
     return YawEstimate(*_core.estimate_yaw(s, t))
 
@@ -414,6 +419,8 @@ def rerank(src: Any, tgt: Any, *, backend: Backend = "rust") -> Rerank:
     s, t = _pairs(src, tgt)
     if backend == "reference":
         _check_pair_norms(s, t)
+        from vvloc.reference import matching as ref_matching
+
         return Rerank(*ref_matching.rerank(s, t))
     return Rerank(*_core.rerank(s, t))
 
@@ -466,7 +473,12 @@ class TranslationSearch:
             raise ValueError(f"shrink: expected a value in (0, 1], got {sh}")
         sd = _positive_int(seed, "seed", 0, maximum=2**64 - 1)
         self.backend = backend
-        impl = _core.TranslationSearch if backend == "rust" else ref_matching.TranslationSearch
+        if backend == "rust":
+            impl: Any = _core.TranslationSearch
+        else:
+            from vvloc.reference import matching as ref_matching
+
+            impl = ref_matching.TranslationSearch
         self._impl = impl(hr, st, nfs, nst, sh, sd)
 
     @property

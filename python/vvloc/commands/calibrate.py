@@ -20,7 +20,6 @@ from vvloc.commands._util import (
     parse_device,
     split_names,
 )
-from vvloc.data.sampling import check_query_sessions
 from vvloc.localize.metric import METRIC_CANDIDATES, RETRIEVAL_WEIGHT
 
 
@@ -61,6 +60,7 @@ def calibrate(
 
     from vvloc._io import atomic_write
     from vvloc.data import open_dataset
+    from vvloc.data.sampling import check_query_sessions
     from vvloc.localize.calibrate import calibrate_localizer
     from vvloc.localize.localizer import Localizer, build_map
     from vvloc.localize.mapdb import MapDatabase
