@@ -328,3 +328,15 @@ def test_near_translation_loss_refuses_bad_settings(kw, match):
     model, bev, tgt, t, yaw = _near_setup()
     with pytest.raises(ValueError, match=match):
         losses.near_translation_loss(model, bev, tgt, t, yaw, **kw)
+
+
+def test_losses_refuse_shapes_that_would_broadcast():
+    a = F.normalize(torch.rand(4, 8), dim=-1)
+    with pytest.raises(ValueError, match="anchor, positive"):
+        losses.triplet_loss(a, a[:1], a)
+    with pytest.raises(ValueError, match="negative"):
+        losses.triplet_loss(a, a, a[:, :4])
+    assert losses.triplet_loss(a, a, torch.stack([a, a], 1)).item() == pytest.approx(0.1)
+    d = F.normalize(torch.rand(3, 6, 4), dim=-1)
+    with pytest.raises(ValueError, match="src, tgt"):
+        losses.yaw_circle_loss(d, d[:1])

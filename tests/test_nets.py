@@ -77,6 +77,14 @@ def test_config_rejects_bad_values():
         ModelConfig.from_dict({"channels": 8, "colour": 1})
     with pytest.raises(ValueError, match="disco_crop"):
         tiny_config(disco_crop=(20, 2))
+    for name, bad in (("grid_size", math.inf), ("gem_p", math.inf), ("grid_size", "0.6"),
+                      ("sigma_r", True), ("sigma_a", math.nan)):  # fmt: skip
+        with pytest.raises(ValueError, match=f"ModelConfig.{name}: expected a finite number"):
+            tiny_config(**{name: bad})
+    with pytest.raises(ValueError, match="pillar_heights: expected finite"):
+        tiny_config(pillar_heights=(0.0, math.inf))
+    with pytest.raises(ValueError, match="backbone_widths"):
+        tiny_config(backbone_widths=(8, 0, 8, 8))
 
 
 # --- shapes -------------------------------------------------------------------------------
@@ -393,13 +401,18 @@ def test_load_rejects_mismatched_checkpoints(tmp_path):
     _model(cfg).save(tmp_path)
     meta_path = tmp_path / "config.json"
     meta = json.loads(meta_path.read_text())
+
+    def write_consistent(meta: dict) -> None:  # a config whose hash is recorded, other weights
+        meta["config_hash"] = ModelConfig.from_dict(meta["config"]).config_hash()
+        meta_path.write_text(json.dumps(meta))
+
     meta["config"]["ffn_dim"] = 48
-    meta_path.write_text(json.dumps(meta))
+    write_consistent(meta)
     with pytest.raises(ValueError, match=r"shape mismatches .*ffn"):
         VVLocNet.load(tmp_path)
     meta["config"]["ffn_dim"] = cfg.ffn_dim
     meta["config"]["global_head"] = "disco"
-    meta_path.write_text(json.dumps(meta))
+    write_consistent(meta)
     with pytest.raises(ValueError, match=r"missing .*unexpected"):
         VVLocNet.load(tmp_path)
     meta["version"] = 99
@@ -408,6 +421,46 @@ def test_load_rejects_mismatched_checkpoints(tmp_path):
         VVLocNet.load(tmp_path)
     with pytest.raises(FileNotFoundError):
         VVLocNet.load(tmp_path / "nothing")
+
+
+def test_load_refuses_edited_truncated_or_malformed_checkpoints(tmp_path):
+    # fields such as num_angles or grid_size shape no weight: only the recorded hash tells
+    model = _model(tiny_config(), seed=1)
+    model.save(tmp_path)
+    meta_path, w_path = tmp_path / "config.json", tmp_path / "model.safetensors"
+    good_meta, good_weights = meta_path.read_text(), w_path.read_bytes()
+    loaded = VVLocNet.load(tmp_path)
+    assert not loaded.training  # eval mode: dropout off at inference
+    meta = json.loads(good_meta)
+    meta["config"]["num_angles"] = 2 * meta["config"]["num_angles"]
+    meta_path.write_text(json.dumps(meta))
+    with pytest.raises(ValueError, match=r"config_hash .* edited"):
+        VVLocNet.load(tmp_path)
+    meta = json.loads(good_meta)
+    del meta["config"]["grid_size"]
+    meta_path.write_text(json.dumps(meta))
+    with pytest.raises(ValueError, match=r"lacks the fields \['grid_size'\]"):
+        VVLocNet.load(tmp_path)
+    no_config = '{"format": "vvloc.nets.VVLocNet", "version": 1}'
+    for text, match in (("[1, 2]", "JSON object"), ("{not json", "not a JSON file"),
+                        (no_config, "'config'")):  # fmt: skip
+        meta_path.write_text(text)
+        with pytest.raises(ValueError, match=match):
+            VVLocNet.load(tmp_path)
+    meta_path.write_text(good_meta)
+    w_path.write_bytes(good_weights[: len(good_weights) // 2])
+    with pytest.raises(ValueError, match="not a readable safetensors file"):
+        VVLocNet.load(tmp_path)
+
+
+def test_a_float64_model_encodes_in_float64():
+    cfg = tiny_config()
+    model = _model(cfg, seed=0)
+    with torch.no_grad():
+        a = _encode(model, 1, 2)
+        b = _encode(model.double(), 1, 2)
+    assert b.bev.dtype == torch.float64 and b.global_desc.dtype == torch.float64
+    torch.testing.assert_close(b.global_desc.float(), a.global_desc, rtol=0, atol=1e-4)
 
 
 def test_resolve_device_names_the_argument_and_refuses_what_torch_cannot_use():
@@ -432,3 +485,16 @@ def test_resolve_device_names_the_argument_and_refuses_what_torch_cannot_use():
     else:
         with pytest.raises(ValueError, match="CUDA device"):
             resolve_device(f"cuda:{torch.cuda.device_count()}")
+
+
+def test_training_path_spatial_ops_check_their_arguments_like_the_kernels():
+    bev = torch.rand(1, 6, 6, 2)
+    for args, match in (((8, 4, 0.0), "grid_size"), ((8, 4, math.nan), "grid_size"),
+                        ((0, 4, 0.5), "num_angles"), ((8, 0, 0.5), "num_radii")):  # fmt: skip
+        with pytest.raises(ValueError, match=match):
+            polar_sample(bev, *args)
+    with pytest.raises(ValueError, match="grid_size"):
+        bev_pad(bev[0], torch.zeros(1, 2), 0.0)
+    with pytest.raises(ValueError, match="translations: contains non-finite"):
+        bev_pad(bev[0], torch.tensor([[math.nan, 0.0]]), 0.5)
+    torch.testing.assert_close(bev_pad(bev[0], torch.zeros(1, 2), 0.5)[0], bev[0])

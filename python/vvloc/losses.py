@@ -55,8 +55,22 @@ def triplet_loss(anchor: Tensor, positive: Tensor, negative: Tensor, margin: flo
     anchor, positive (B, Dg); negative (B, Dg) or (B, K, Dg) (K negatives per anchor).
     L = mean over (b, k) of max(0, ‖a − p‖₂ − ‖a − n_k‖₂ + margin).
     """
+    if anchor.ndim != 2 or positive.shape != anchor.shape:
+        raise ValueError(
+            f"anchor, positive: expected two (B, Dg) tensors of one shape, got "
+            f"{tuple(anchor.shape)} and {tuple(positive.shape)}"
+        )
     if negative.ndim == anchor.ndim:
         negative = negative[:, None]
+    if (
+        negative.ndim != 3
+        or negative.shape[0] != anchor.shape[0]
+        or (negative.shape[2] != anchor.shape[1])
+    ):
+        raise ValueError(
+            f"negative: expected shape {tuple(anchor.shape)} or ({anchor.shape[0]}, K, "
+            f"{anchor.shape[1]}), got {tuple(negative.shape)}"
+        )
     d_pos = (anchor - positive).norm(dim=-1)  # (B,)
     d_neg = (anchor[:, None] - negative).norm(dim=-1)  # (B, K)
     return F.relu(d_pos[:, None] - d_neg + margin).mean()
@@ -92,6 +106,11 @@ def yaw_circle_loss(
     Subtracting the floor log T (all logits 0 ⇒ log(1 + (T − 1))) makes a row whose margins are all
     met contribute exactly 0 without changing any gradient. Returns the mean over (P, T).
     """
+    if src.ndim != 3 or tgt.shape != src.shape:
+        raise ValueError(
+            f"src, tgt: expected two (P, T, C) tensors of one shape, got {tuple(src.shape)} "
+            f"and {tuple(tgt.shape)}"
+        )
     _p, t, _ = src.shape
     dist = _pairwise_distance(src, tgt)  # (P, T, T)
     eye = torch.eye(t, dtype=torch.bool, device=src.device)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -83,8 +84,9 @@ class ModelConfig:
             if isinstance(v, bool) or not isinstance(v, int) or v < 0:
                 raise ValueError(f"ModelConfig.{name}: expected an int >= 0, got {v!r}")
         for name in ("grid_size", "sigma_r", "sigma_a", "gem_p"):
-            if not float(getattr(self, name)) > 0:
-                raise ValueError(f"ModelConfig.{name}: expected a value > 0")
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v < math.inf:
+                raise ValueError(f"ModelConfig.{name}: expected a finite number > 0, got {v!r}")
         if self.bev_height < 2 or self.bev_width < 2:
             raise ValueError("ModelConfig.bev_height/bev_width: expected >= 2 cells")
         if len(self.backbone_widths) != 4 or len(self.backbone_blocks) != 4:
@@ -93,6 +95,15 @@ class ModelConfig:
             raise ValueError(f"ModelConfig.num_levels: expected 1..4, got {self.num_levels}")
         if not self.pillar_heights:
             raise ValueError("ModelConfig.pillar_heights: expected at least one height")
+        if not all(math.isfinite(v) for v in self.pillar_heights):
+            raise ValueError(
+                f"ModelConfig.pillar_heights: expected finite metres, got {self.pillar_heights}"
+            )
+        if min(self.backbone_widths) < 1 or min(self.backbone_blocks) < 0:
+            raise ValueError(
+                "ModelConfig.backbone_widths/backbone_blocks: expected widths >= 1 and blocks "
+                f">= 0, got {self.backbone_widths} / {self.backbone_blocks}"
+            )
         for heads_name in ("encoder_heads", "decoder_heads", "interactor_heads"):
             if self.channels % getattr(self, heads_name):
                 raise ValueError(f"ModelConfig.{heads_name}: must divide channels={self.channels}")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import math
@@ -12,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from safetensors import SafetensorError
 from safetensors.torch import load_file, save
 from torch import Tensor, nn
 
@@ -157,7 +159,7 @@ class VVLocNet(nn.Module):
     def image_features(self, images: Tensor) -> list[Tensor]:
         """images (B, M, 3, Hi, Wi) uint8 or float in [0, 1] → FPN levels (B, M, C, H_l, W_l)."""
         b, m = images.shape[:2]
-        x = normalise_images(images.flatten(0, 1))
+        x = normalise_images(images.flatten(0, 1)).to(self.encoder.queries.dtype)
         return [f.unflatten(0, (b, m)) for f in self.fpn(self.backbone(x))]
 
     def bev_from_features(
@@ -225,11 +227,11 @@ class VVLocNet(nn.Module):
             raise ValueError(
                 f"images: {m} cameras exceed ModelConfig.max_cameras={self.config.max_cameras}"
             )
-        dev = self.encoder.queries.device
+        dev, dtype = self.encoder.queries.device, self.encoder.queries.dtype
         return (
             images.to(dev),
-            intrinsics.to(dev, torch.float32),
-            cam_to_ego.to(dev, torch.float32),
+            intrinsics.to(dev, dtype),
+            cam_to_ego.to(dev, dtype),
         )
 
     # --- checkpoints -----------------------------------------------------------------------
@@ -275,16 +277,24 @@ class VVLocNet(nn.Module):
     def load(
         cls, directory: str | os.PathLike[str], map_location: str | torch.device = "cpu"
     ) -> VVLocNet:
-        """Load a checkpoint written by :meth:`save`; raises ``ValueError`` on a wrong format,
-        version, or weights that do not match the architecture (names and shapes listed). A
-        ``training.json`` that is malformed or describes other weights is ignored with a
-        ``UserWarning`` (it is informational; the weights load)."""
+        """Load a checkpoint written by :meth:`save`, in eval mode (dropout off) on
+        ``map_location``. Raises ``ValueError`` on a malformed or truncated file, a wrong
+        format or version, a config that lacks fields or whose hash is not the one recorded
+        (an edited ``config.json``: fields such as ``num_angles`` or ``grid_size`` shape no
+        weight, so only the hash tells), or weights that do not match the architecture (names
+        and shapes listed). A ``training.json`` that is malformed or describes other weights
+        is ignored with a ``UserWarning`` (it is informational; the weights load)."""
         src = Path(directory)
         cfg_path, w_path = src / CONFIG_FILE, src / WEIGHTS_FILE
         for p in (cfg_path, w_path):
             if not p.is_file():
                 raise FileNotFoundError(f"directory: {p} not found (not a vvloc checkpoint)")
-        meta = json.loads(cfg_path.read_text())
+        try:
+            meta = json.loads(cfg_path.read_text())
+        except (UnicodeDecodeError, json.JSONDecodeError) as e:
+            raise ValueError(f"{cfg_path}: not a JSON file ({e})") from None
+        if not isinstance(meta, dict):
+            raise ValueError(f"{cfg_path}: expected a JSON object, got {type(meta).__name__}")
         if meta.get("format") != CHECKPOINT_FORMAT:
             raise ValueError(
                 f"{cfg_path}: format {meta.get('format')!r} is not {CHECKPOINT_FORMAT}"
@@ -294,8 +304,23 @@ class VVLocNet(nn.Module):
                 f"{cfg_path}: checkpoint version {meta.get('version')} is not supported "
                 f"(expected {CONFIG_VERSION})"
             )
-        model = cls(ModelConfig.from_dict(meta["config"]))
-        state = load_file(str(w_path), device=str(map_location))
+        config = meta.get("config")
+        if not isinstance(config, dict):
+            raise ValueError(f"{cfg_path}: expected a 'config' object, got {config!r:.80}")
+        lacking = sorted({f.name for f in dataclasses.fields(ModelConfig)} - set(config))
+        if lacking:
+            raise ValueError(f"{cfg_path}: the config lacks the fields {lacking}")
+        cfg = ModelConfig.from_dict(config)
+        if meta.get("config_hash") != cfg.config_hash():
+            raise ValueError(
+                f"{cfg_path}: config_hash {meta.get('config_hash')!r} is not the config's "
+                f"({cfg.config_hash()}): the file was edited after the weights were saved"
+            )
+        model = cls(cfg)
+        try:
+            state = load_file(str(w_path), device=str(map_location))
+        except SafetensorError as e:
+            raise ValueError(f"{w_path}: not a readable safetensors file ({e})") from None
         expected = model.state_dict()
         missing = sorted(set(expected) - set(state))
         unexpected = sorted(set(state) - set(expected))
@@ -331,4 +356,4 @@ class VVLocNet(nn.Module):
                 model.training_record = {"runs": record["runs"]}
             except ValueError as e:
                 warnings.warn(f"{e}; the training record is ignored", UserWarning, stacklevel=2)
-        return model.to(map_location)
+        return model.to(map_location).eval()

@@ -12,6 +12,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from vvloc.kernels import _positive_float, _positive_int
 from vvloc.reference.torch_spatial import torch_bev_pad, torch_polar_sample
 
 
@@ -27,9 +28,13 @@ def polar_sample(bev: Tensor, num_angles: int, num_radii: int, grid_size: float)
 
     Bilinear interpolation at the polar sample points of DESIGN.md §3; a tap outside the grid
     reads 1. Delegates to :func:`vvloc.reference.torch_spatial.torch_polar_sample`.
+    ``num_angles``, ``num_radii`` ints >= 1 and ``grid_size`` (m, finite, > 0) are checked
+    as the kernels check them.
     """
     _check_bev(bev)
-    return torch_polar_sample(bev, num_angles, num_radii, grid_size).contiguous()
+    t, r = _positive_int(num_angles, "num_angles"), _positive_int(num_radii, "num_radii")
+    g = _positive_float(grid_size, "grid_size")
+    return torch_polar_sample(bev, t, r, g).contiguous()
 
 
 def bev_pad(bev: Tensor, translations: Tensor, grid_size: float) -> Tensor:
@@ -39,13 +44,17 @@ def bev_pad(bev: Tensor, translations: Tensor, grid_size: float) -> Tensor:
     (N, H, W, C) with one translation per item (N, 2) → (N, H, W, C). Output cell (i, j) is the
     bilinear sample of the BEV at (i + x/g, j + y/g), or 1 wherever a tap with non-zero weight
     falls outside the grid: Qᵗ(p) = Q(p + t). Delegates to
-    :func:`vvloc.reference.torch_spatial.torch_bev_pad`.
+    :func:`vvloc.reference.torch_spatial.torch_bev_pad`. ``grid_size`` (m, finite, > 0) and
+    the translations (finite) are checked as the kernels check them.
     """
     if not isinstance(bev, Tensor) or bev.ndim not in (3, 4):
         raise ValueError("bev: expected a tensor of shape (H, W, C) or (N, H, W, C)")
+    grid_size = _positive_float(grid_size, "grid_size")
     t = torch.as_tensor(translations, dtype=torch.float64, device=bev.device)
     if t.ndim != 2 or t.shape[1] != 2:
         raise ValueError(f"translations: expected shape (N, 2), got {tuple(t.shape)}")
+    if not bool(torch.isfinite(t).all()):
+        raise ValueError("translations: contains non-finite values (NaN or inf)")
     if bev.ndim == 3:
         return torch_bev_pad(bev[None], t, grid_size)[0].contiguous()
     if bev.shape[0] != t.shape[0]:
