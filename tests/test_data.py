@@ -116,6 +116,33 @@ def test_writer_leaves_nothing_behind_on_error(tmp_path):
         DatasetWriter(tmp_path / "ds", cams)
 
 
+def test_writer_refuses_the_working_folder_and_replaces_symlink_targets(tmp_path, monkeypatch):
+    import os
+    import stat
+
+    cams = make_rig(1, W, H)
+    poses, floors = _line(2)
+    monkeypatch.chdir(tmp_path)
+    for root in (".", tmp_path, tmp_path.parent):
+        with pytest.raises(ValueError, match="working directory"):
+            DatasetWriter(root, cams, overwrite=True)
+    # a new dataset gets a plain mkdir's mode, a replaced one keeps its own
+    old = os.umask(0o022)
+    try:
+        _write(tmp_path / "ds", {"s0": (poses, floors)}, cameras=cams)
+        assert stat.S_IMODE((tmp_path / "ds").stat().st_mode) == 0o755
+        (tmp_path / "ds").chmod(0o750)
+        (tmp_path / "link").symlink_to(tmp_path / "ds")
+        with DatasetWriter(tmp_path / "link", cams, overwrite=True) as w:
+            w.add_session("s9").add(1, (0, 0, 0), np.zeros((1, 3, H, W), np.uint8))
+    finally:
+        os.umask(old)
+    assert (tmp_path / "link").is_symlink()  # the link stays, its target is the new dataset
+    assert stat.S_IMODE((tmp_path / "ds").stat().st_mode) == 0o750
+    assert open_dataset(tmp_path / "link").sessions == ["s9"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ds", "link"]
+
+
 def _drive_dataset(root):
     loop = sample_loop(parking_world(0).routes[0])
     sessions = {}

@@ -262,7 +262,21 @@ def test_cli_help_shows_defaults_and_rejects_bad_values(tmp_path):
             text=True,
         )
         assert parking.returncode == 2 and "garage only" in parking.stderr, parking.stderr
+    seed = subprocess.run(
+        [sys.executable, "-m", "vvloc.cli", "sim", "--out", str(tmp_path / "x"), "--seed", "-1"],
+        capture_output=True,
+        text=True,
+    )
+    assert seed.returncode == 2 and "--seed" in seed.stderr
     assert not (tmp_path / "x").exists()
+    with pytest.raises(ValueError, match="seed: expected an int >= 0"):
+        simulate_dataset(tmp_path / "x", seed=-1)
+
+
+def test_images_beyond_the_framebuffer_limit_are_refused_by_name(egl):
+    # the cameras are rendered stacked in one framebuffer (llvmpipe: 16384 pixels a side)
+    with pytest.raises(ValueError, match=r"--cameras, --width, --height"):
+        Renderer(make_rig(8, 64, 2100))
     # long option names stay whole on an 80-column terminal
     narrow = subprocess.run(
         [*_vvloc_exe(), "eval", "--help"],

@@ -44,7 +44,9 @@ def sim(
             "or also a level colour and number on every pillar.",
         ),
     ] = None,
-    seed: Annotated[int, typer.Option("--seed", help="World, route and session seed.")] = 0,
+    seed: Annotated[
+        int, typer.Option("--seed", min=0, help="Seed of the world, the drives' wobble and cars.")
+    ] = 0,
     cameras: Annotated[
         int, typer.Option("--cameras", min=1, max=12, help="Cameras in the rig (4, 5, 6, ...).")
     ] = 4,

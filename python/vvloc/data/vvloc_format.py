@@ -14,8 +14,9 @@ import csv
 import json
 import math
 import os
+import secrets
 import shutil
-import tempfile
+import stat
 from collections.abc import Sequence
 from pathlib import Path
 from types import TracebackType
@@ -252,6 +253,15 @@ class DatasetWriter:
         meta: dict[str, Any] | None = None,
     ) -> None:
         self.root = Path(root)
+        # Work on the real folder: "." has no name to put a temporary folder beside, and a
+        # symlink is kept while its target is replaced (as vvloc._io's atomic files do).
+        self._target = Path(os.path.realpath(self.root))
+        cwd = Path.cwd().resolve()
+        if self._target == cwd or self._target in cwd.parents:
+            raise ValueError(
+                f"{self.root}: is the working directory or a folder above it; write the "
+                "dataset to a folder of its own (e.g. data/synth)"
+            )
         if not cameras:
             raise ValueError("cameras: expected at least one camera")
         if len({(c.width, c.height) for c in cameras}) != 1:
@@ -272,10 +282,8 @@ class DatasetWriter:
                 )
         self.cameras = tuple(cameras)
         self.overwrite = overwrite
-        self.root.parent.mkdir(parents=True, exist_ok=True)
-        self._tmp = Path(
-            tempfile.mkdtemp(prefix=f".{self.root.name}.partial-", dir=self.root.parent)
-        )
+        self._target.parent.mkdir(parents=True, exist_ok=True)
+        self._tmp = self._make_temp()
         doc = {
             "format": FORMAT_NAME,
             "version": FORMAT_VERSION,
@@ -286,6 +294,20 @@ class DatasetWriter:
         (self._tmp / "rig.json").write_text(json.dumps(doc, indent=2))
         (self._tmp / "sessions").mkdir()
         self._sessions: dict[str, SessionWriter] = {}
+
+    def _make_temp(self) -> Path:
+        """The hidden temporary folder beside the target, with the mode a plain ``mkdir``
+        gives (0o777 minus the umask), or the replaced dataset's mode."""
+        for _ in range(100):
+            tmp = self._target.parent / f".{self._target.name}.partial-{secrets.token_hex(6)}"
+            try:
+                tmp.mkdir(0o777)
+            except FileExistsError:
+                continue
+            if self._target.is_dir():
+                os.chmod(tmp, stat.S_IMODE(self._target.stat().st_mode))
+            return tmp
+        raise FileExistsError(f"could not create a temporary folder next to {self._target}")
 
     def add_session(self, name: str, meta: dict[str, Any] | None = None) -> SessionWriter:
         """Start session ``name`` (a plain folder name) and return its writer."""
@@ -299,12 +321,12 @@ class DatasetWriter:
         """Finish: close every session and move the dataset into place. Returns ``root``."""
         for w in self._sessions.values():
             w.close()
-        if self.root.exists():
-            if self.overwrite and self.root.is_dir():
-                shutil.rmtree(self.root)
+        if self._target.exists():
+            if self.overwrite and self._target.is_dir():
+                shutil.rmtree(self._target)
             else:
-                self.root.rmdir()  # empty by the constructor's check
-        os.replace(self._tmp, self.root)
+                self._target.rmdir()  # empty by the constructor's check
+        os.replace(self._tmp, self._target)
         return self.root
 
     def abort(self) -> None:

@@ -360,6 +360,15 @@ class Renderer:
             vertex_shader=_VERTEX, fragment_shader=_FRAGMENT % {"maxl": MAX_LIGHTS, **mats}
         )
         m = len(self.cameras)
+        limit = int(self.ctx.info.get("GL_MAX_RENDERBUFFER_SIZE", 0) or 0)
+        if limit and (self.width > limit or self.height * m > limit):
+            self.ctx.release()
+            raise ValueError(
+                f"cameras: {m} images of {self.width}×{self.height} are rendered stacked into "
+                f"one {self.width}×{self.height * m} framebuffer, over this OpenGL's limit of "
+                f"{limit} pixels a side: use fewer cameras or smaller images (--cameras, "
+                "--width, --height)"
+            )
         self.fbo: Any = self.ctx.framebuffer(
             color_attachments=[self.ctx.renderbuffer((self.width, self.height * m), components=4)],
             depth_attachment=self.ctx.depth_renderbuffer((self.width, self.height * m)),

@@ -40,9 +40,12 @@ def make_rig(
     """A rig of ``num_cameras`` (4, 5 or 6; other counts get generic names) cameras.
 
     Camera k looks along azimuth 2πk/M (front first, then counter-clockwise: left before rear),
-    mounted on a 2.0 m × 1.8 m box around the ego origin (the rear axle centre projected to the
-    ground, x forward) at ``mount_height``. Default horizontal field of view: 360°/M + 10° of
-    overlap. Square pixels, principal point at the image centre ((W−1)/2, (H−1)/2).
+    mounted on the outline of a 2.0 m × 1.8 m box centred 1.3 m ahead of the ego origin (the
+    rear axle centre projected to the ground, x forward; the front camera at x = 2.3 m, the
+    rear one at x = 0.3 m) at ``mount_height``. Default horizontal field of view: 360°/M + 10°
+    of overlap, at most 120° (so rigs of 1-3 cameras leave gaps between their views; pass
+    ``hfov_deg`` up to 150° for wider lenses). Square pixels, principal point at the image
+    centre ((W−1)/2, (H−1)/2).
     """
     if isinstance(num_cameras, bool) or not isinstance(num_cameras, int) or num_cameras < 1:
         raise ValueError(f"num_cameras: expected an int >= 1, got {num_cameras!r}")

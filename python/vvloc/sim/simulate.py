@@ -108,6 +108,8 @@ def simulate_dataset(
     for key, v in (("sessions", sessions), ("frames", frames), ("floors", floors)):
         if isinstance(v, bool) or not isinstance(v, int) or v < 1:
             raise ValueError(f"{key}: expected an int >= 1, got {v!r}")
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise ValueError(f"seed: expected an int >= 0, got {seed!r}")
     plan = session_plan(scene, sessions, seed, lighting)
     rig = make_rig(cameras, width, height)
     world = build_world(scene, seed, floors, floor_marking)
