@@ -194,6 +194,18 @@ def test_radius_realistic(dtype, nq):
     assert len(got[1]) > 0
 
 
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_radius_holds_for_the_real_r_at_its_float32_edges(dtype):
+    x = np.eye(4, dtype=np.float32)
+    index = DescriptorIndex(x, dtype=dtype)
+    q = np.array([[1.0, 1.0, 0.0, 0.0]], np.float32)  # rows 0 and 1 at distance exactly 1
+    assert index.radius(q, 1.0)[1].tolist() == []  # strict <
+    assert index.radius(q, 1.00000001)[1].tolist() == [0, 1]  # 1.0 < r, r rounds to 1.0
+    # r² below float32's normal range: the rows at distance 0 stay
+    for r in (1e-23, 1e-38, 2e-45):
+        assert index.radius(x[:1], r)[1].tolist() == [0]
+
+
 @pytest.mark.parametrize("whole_group", [False, True])
 def test_exclusion_rule(whole_group):
     n, d = 600, 16

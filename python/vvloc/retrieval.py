@@ -6,14 +6,17 @@ A thin validating wrapper around the Rust ``vvloc._core.DescriptorIndex`` (DESIG
 Top-K rows are sorted by distance ascending, ties broken by the lower map index; radius queries
 return every entry with distance ``< r`` as CSR arrays, each query's hits sorted the same way.
 
-Storage ``dtype``: ``"float32"`` scans the float32 map (single queries test the leading d/8
-dimensions of each block of rows first and skip the rest when a rigorous lower bound already
-rules the whole block out); ``"float16"`` and ``"bfloat16"`` scan a compressed copy (half the
-bytes per single query), ``"int8"`` a copy quantised symmetrically per dimension (a quarter of
-the bytes; the query is quantised with the same per-dimension scales), and re-score a provably
-sufficient shortlist (every row within the approximate k-th distance + 2ε, ε a per-query bound
-on the quantisation and rounding error) exactly from the float32 originals, which the index
-keeps (1.5× resp. 1.25× the float32 memory): their results are identical to ``"float32"``.
+Storage ``dtype``: ``"float32"`` scans the float32 map (when d >= 64, single queries test the
+leading d/8 dimensions of each block of rows first and skip the rest when a rigorous lower
+bound already rules the whole block out); ``"float16"`` and ``"bfloat16"`` scan a compressed
+copy (half the bytes per single query), ``"int8"`` a copy quantised symmetrically per dimension
+(a quarter of the bytes; the query is quantised with the same per-dimension scales), and
+re-score a provably sufficient shortlist (every row within the approximate k-th distance + 2ε,
+ε a per-query bound on the quantisation and rounding error) exactly from the float32
+originals, which the index keeps (1.5× resp. 1.25× the float32 memory): their results are
+identical to ``"float32"``. The compressed copy serves single queries and batches of fewer
+than 8; batches of 8 or more (compute-bound) and, when d >= 64, every radius query (the
+early-abandoning float32 scan reads fewer bytes) scan the float32 originals for every dtype.
 
 Loop closure excludes temporal neighbours with an :class:`Exclusion`: each map entry has a group
 id (e.g. a session; default 0) and a sequence number (default: its index in the map).
@@ -167,6 +170,13 @@ class DescriptorIndex:
     ) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64], npt.NDArray[np.float32]]:
         """Every entry at L2 distance ``< r`` of each query, in CSR form.
 
+        Args:
+            queries: float array (nq, d) (or (d,) for one query), the stored descriptors' units.
+            r: radius, a finite float in [1.4e-45, 3.4e38] (what float32 holds). Distances are
+                float32; ``r`` is rounded *up* to float32, so that ``distance < r`` holds for
+                the real ``r`` (rounding to nearest could drop a distance just below it).
+            exclude: optional :class:`Exclusion` (temporal neighbours).
+
         Returns:
             ``(offsets int64 (nq + 1,), indices int64 (M,), distances float32 (M,))``: query
             ``q``'s hits are ``indices[offsets[q]:offsets[q + 1]]``, sorted by distance then
@@ -176,8 +186,11 @@ class DescriptorIndex:
         r = _positive_float(r, "r")
         f32 = np.finfo(np.float32)
         if not float(f32.smallest_subnormal) <= r <= float(f32.max):  # compared in float32
-            raise ValueError(f"r: expected a radius float32 can hold (1e-38 .. 3.4e38), got {r}")
-        return self._inner.radius(q, r, _exclusion(exclude, q.shape[0]))
+            raise ValueError(f"r: expected a radius float32 can hold (1e-45 .. 3.4e38), got {r}")
+        r32 = np.float32(r)
+        if float(r32) < r:  # float32 distances d < r  ⇔  d < r rounded up
+            r32 = np.nextafter(r32, np.float32(np.inf))
+        return self._inner.radius(q, float(r32), _exclusion(exclude, q.shape[0]))
 
     def save(self, path: str | os.PathLike[str]) -> None:
         """Write the index atomically to ``path`` (format: ``vvloc_core::retrieval::format``)."""

@@ -54,7 +54,7 @@ pub enum Dtype {
 }
 
 impl Dtype {
-    /// The numpy-style name: `"float32"`, `"float16"`, `"bfloat16"`.
+    /// The numpy-style name: `"float32"`, `"float16"`, `"bfloat16"`, `"int8"`.
     pub fn name(self) -> &'static str {
         match self {
             Dtype::F32 => "float32",
@@ -811,7 +811,7 @@ impl DescriptorIndex {
                 if !thr.is_finite() {
                     break;
                 }
-                let cut = ((thr as f64 + margin) as f32).next_up();
+                let cut = ((thr as f64 + margin) as f32);
                 let at = (b * SEGMENTS + s) * BLOCK;
                 let (hn, tn) = (
                     &self.head_norms[at..][..BLOCK],
@@ -959,12 +959,7 @@ impl DescriptorIndex {
             .chunks(self.dim, 4)
             .par_iter()
             .map(|&(b0, b1)| {
-                let mut s = ShortlistSink {
-                    heap: TopK::new(k),
-                    slack,
-                    cands: Vec::new(),
-                    ex,
-                };
+                let mut s = ShortlistSink::new(k, slack, ex);
                 self.scan_packed(&pq, qi, qn[qi], b0, b1, &mut s);
                 s.prune();
                 s
@@ -1009,7 +1004,10 @@ impl DescriptorIndex {
         let ex = self.excluder(nq, exclude)?;
         let qn = self.query_norms(queries);
         // Squared-distance prefilter that keeps every row with sqrt(sq) < r (checked after).
-        let r2 = ((r as f64 * r as f64) * (1.0 + 1e-6)) as f32;
+        // One ulp up: where r² is a float32 subnormal (r < 1.1e-19) the relative margin is
+        // lost to rounding, and rounding down would drop rows (to 0 for r < 2.6e-23); since
+        // rounding is monotone, sqrt(sq) < r implies sq < next_up(f32(r²)).
+        let r2 = (((r as f64 * r as f64) * (1.0 + 1e-6)) as f32).next_up();
         // The early-abandoning float32 scan reads ~1/8 of the float32 bytes for most blocks,
         // less than any compressed copy: single radius queries use it for every dtype.
         let packed = self.use_packed(nq) && self.head == 0;

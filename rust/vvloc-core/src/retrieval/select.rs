@@ -176,13 +176,33 @@ pub(crate) struct ShortlistSink<'a> {
     pub slack: f32,
     pub cands: Vec<Hit>,
     pub ex: Excluder<'a>,
+    /// Shortlist length at which the next prune runs.
+    next_prune: usize,
 }
 
-impl ShortlistSink<'_> {
-    /// Keeps only the candidates that can still be within `slack` of the k-th.
+impl<'a> ShortlistSink<'a> {
+    pub fn new(k: usize, slack: f32, ex: Excluder<'a>) -> Self {
+        ShortlistSink {
+            heap: TopK::new(k),
+            slack,
+            cands: Vec::new(),
+            ex,
+            next_prune: Self::min_prune(k),
+        }
+    }
+
+    fn min_prune(k: usize) -> usize {
+        4 * k + 256
+    }
+
+    /// Keeps only the candidates that can still be within `slack` of the k-th. The next prune
+    /// waits until the shortlist has doubled: when many rows lie within `slack` of the k-th
+    /// (one place seen many times) a prune removes few, and pruning again at every row would
+    /// make the scan quadratic in the rows.
     pub fn prune(&mut self) {
         let bound = self.bound();
         self.cands.retain(|h| h.sq <= bound);
+        self.next_prune = Self::min_prune(self.heap.k).max(2 * self.cands.len());
     }
 
     #[inline]
@@ -207,7 +227,7 @@ impl Sink for ShortlistSink<'_> {
         };
         self.heap.push(h);
         self.cands.push(h);
-        if self.cands.len() >= 4 * self.heap.k + 256 {
+        if self.cands.len() >= self.next_prune {
             self.prune();
         }
     }

@@ -471,3 +471,48 @@ fn int8_save_load_round_trip() {
         idx.topk(q, 5, None).unwrap()
     );
 }
+
+#[test]
+fn a_radius_whose_square_is_subnormal_keeps_the_rows_inside_it() {
+    // r² underflows float32 (to 0 for r < 2.6e-23): the rows at distance 0 must stay.
+    let d = 4;
+    let mut data = vec![0f32; 4 * d];
+    for i in 0..4 {
+        data[i * d + i] = 1.0;
+    }
+    for dtype in [Dtype::F32, Dtype::F16] {
+        let idx = DescriptorIndex::from_rows(&data, d, dtype, None, None).unwrap();
+        for r in [1e-23f32, 1e-30, 1e-38, f32::from_bits(1)] {
+            let res = idx.radius(&data[..d], r, None).unwrap();
+            assert_eq!(res.indices, vec![0], "{dtype:?} r={r:e}");
+        }
+    }
+}
+
+#[test]
+fn compressed_topk_stays_exact_when_many_rows_tie_near_the_kth() {
+    // One place seen many times: thousands of rows within 2ε of the k-th, which used to
+    // re-prune the shortlist at every row (quadratic); the amortised prune keeps it exact.
+    let (n, d, k) = (6000, 64, 20);
+    let noise = rand_vec(n * d, 9);
+    let mut data = vec![0f32; n * d];
+    for i in 0..n {
+        let row = &mut data[i * d..(i + 1) * d];
+        row[0] = 1.0;
+        for j in 0..d {
+            row[j] += 1e-3 * noise[i * d + j];
+        }
+        let norm = row.iter().map(|v| v * v).sum::<f32>().sqrt();
+        row.iter_mut().for_each(|v| *v /= norm);
+    }
+    let mut q = vec![0f32; d];
+    q[1] = 1.0;
+    let base = DescriptorIndex::from_rows(&data, d, Dtype::F32, None, None).unwrap();
+    let want = base.topk(&q, k, None).unwrap();
+    for dtype in [Dtype::F16, Dtype::BF16, Dtype::I8] {
+        let idx = DescriptorIndex::from_rows(&data, d, dtype, None, None).unwrap();
+        let got = idx.topk(&q, k, None).unwrap();
+        assert_eq!(got.indices, want.indices, "{dtype:?}");
+        assert_eq!(got.distances, want.distances, "{dtype:?}");
+    }
+}
