@@ -811,7 +811,7 @@ impl DescriptorIndex {
                 if !thr.is_finite() {
                     break;
                 }
-                let cut = ((thr as f64 + margin) as f32);
+                let cut = ((thr as f64 + margin) as f32).next_up();
                 let at = (b * SEGMENTS + s) * BLOCK;
                 let (hn, tn) = (
                     &self.head_norms[at..][..BLOCK],
