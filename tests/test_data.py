@@ -273,6 +273,62 @@ def test_perturb_frame_keeps_calibration_and_pose(tmp_path):
     assert g.images[0].max() == 0 and np.array_equal(g.K, f.K) and np.array_equal(g.pose, f.pose)
     with pytest.raises(ValueError, match="name"):
         perturb.perturb_frame(f, "smudge")
+    with pytest.raises(ValueError, match=r"exposure takes .* not \['seed'\]"):
+        perturb.perturb_frame(f, "exposure", seed=3)
+
+
+def test_perturbation_arguments_are_checked_by_name():
+    x = np.random.default_rng(0).integers(0, 256, (2, 3, 12, 16), dtype=np.uint8)
+    for call, match in (
+        (lambda: perturb.noise(x, sigma=float("nan")), "sigma"),
+        (lambda: perturb.exposure(x, gain=float("inf")), "gain"),
+        (lambda: perturb.mask_regions(x, count=-1), "count"),
+        (lambda: perturb.mask_regions(x, count=2.5), "count"),
+        (lambda: perturb.mask_cameras(x, count=2.5), "count"),
+        (lambda: perturb.mask_cameras(x, fill=300), "fill"),
+        (lambda: perturb.mask_regions(x, fill=-1), "fill"),
+        (lambda: perturb.motion_blur(x, length=2.5), "length"),
+        (lambda: perturb.motion_blur(x, angle_deg=float("nan")), "angle_deg"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            call()
+
+
+@pytest.mark.parametrize("length", [3, 4, 9])
+def test_motion_blur_kernel_spans_its_length(length):
+    row = perturb.line_kernel(length, 0.0)
+    row = row[row.shape[0] // 2]
+    assert row.sum() == pytest.approx(1.0)
+    x = np.arange(len(row)) - (len(row) - 1) / 2
+    std = np.sqrt((row * x**2).sum())
+    # a uniform segment `length` pixels long: variance length²/12, plus 1/6 from the bilinear
+    # splat (E[f(1 − f)] over uniform fractional positions); the old kernel spanned length − 1
+    assert std == pytest.approx(np.sqrt(length**2 / 12 + 1 / 6), rel=0.01)
+    if length % 2:
+        inner = row[2:-2]
+        assert np.allclose(inner, 1.0 / length)
+    np.testing.assert_allclose(
+        perturb.line_kernel(length, 90.0), perturb.line_kernel(length, 0.0).T, atol=1e-9
+    )
+
+
+def test_robustness_draws_each_query_frames_own_perturbation(tmp_path):
+    from vvloc.localize.evaluation import ROBUSTNESS, perturbed
+
+    root = tmp_path / "ds"
+    _write(root, {"s0": _line(6)})
+    frames = list(open_dataset(root).session("s0"))
+    masked = [
+        tuple(k for k in range(4) if not perturbed(f, "one camera masked").images[k].any())
+        for f in frames
+    ]
+    assert all(len(m) == 1 for m in masked) and len(set(masked)) > 1  # not one camera for all
+    noisy = [perturbed(f, "noise").images.astype(int) - f.images for f in frames[:2]]
+    assert not np.array_equal(noisy[0], noisy[1])
+    for label in ROBUSTNESS:  # the same frame, the same perturbation, in any order or run
+        assert np.array_equal(
+            perturbed(frames[3], label).images, perturbed(frames[3], label).images
+        )
 
 
 def test_camera_resize_keeps_projection_exact():

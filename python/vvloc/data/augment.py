@@ -28,7 +28,8 @@ class PhotometricAugment:
     Fields (all ≥ 0; 0 disables that change):
 
     - ``brightness``: gain drawn log-uniformly in [e^-b, e^b].
-    - ``contrast``: contrast factor drawn log-uniformly in [e^-c, e^c] around the frame's mean.
+    - ``contrast``: contrast factor drawn log-uniformly in [e^-c, e^c] around each camera's
+      own mean (one factor for all cameras).
     - ``gamma``: gamma drawn log-uniformly in [e^-g, e^g].
     - ``tint``: per-channel gain drawn uniformly in [1 - t, 1 + t] (white balance).
     - ``haze``: with probability ``haze_prob``, blend weight up to ``haze`` (uniform) towards an

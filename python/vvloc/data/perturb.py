@@ -3,12 +3,15 @@
 Every function takes ``images`` (M, 3, H, W) uint8 — one multi-camera frame — and returns a new
 array of the same shape and dtype; it changes only what its name says (the chosen cameras, the
 chosen regions). :func:`perturb_frame` applies one to a :class:`~vvloc.data.Frame`, leaving its
-calibration and pose untouched. Random choices come from ``seed`` only.
+calibration and pose untouched. Random choices come from ``seed`` only; :func:`frame_seed`
+gives each frame a seed of its own.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import inspect
+import zlib
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -25,6 +28,26 @@ def _check(images: np.ndarray) -> np.ndarray:
     if images.shape[1] != 3:
         raise ValueError(f"images: expected 3 channels on axis 1, got shape {images.shape}")
     return images
+
+
+def _count(x: Any, name: str, minimum: int) -> int:
+    if isinstance(x, bool) or not isinstance(x, (int, np.integer)) or x < minimum:
+        raise ValueError(f"{name}: expected an int >= {minimum}, got {x!r}")
+    return int(x)
+
+
+def _fill(x: Any) -> np.uint8:
+    if isinstance(x, bool) or not isinstance(x, (int, np.integer)) or not 0 <= x <= 255:
+        raise ValueError(f"fill: expected a grey level, an int in 0..255, got {x!r}")
+    return np.uint8(x)
+
+
+def _finite(x: Any, name: str) -> float:
+    if isinstance(x, bool) or not isinstance(x, (int, float, np.integer, np.floating)):
+        raise ValueError(f"{name}: expected a finite number, got {x!r}")
+    if not np.isfinite(x):
+        raise ValueError(f"{name}: expected a finite number, got {x}")
+    return float(x)
 
 
 def _camera_list(cameras: Sequence[int] | None, m: int) -> list[int]:
@@ -51,12 +74,14 @@ def mask_cameras(
     """
     images = _check(images)
     m = images.shape[0]
+    value = _fill(fill)
     if cameras is None:
-        if not 0 <= count <= m:
+        count = _count(count, "count", 0)
+        if count > m:
             raise ValueError(f"count: expected 0..{m}, got {count}")
         cameras = np.random.default_rng(seed).choice(m, size=count, replace=False).tolist()
     out = images.copy()
-    out[_camera_list(cameras, m)] = np.uint8(fill)
+    out[_camera_list(cameras, m)] = value
     return out
 
 
@@ -69,10 +94,11 @@ def motion_blur(
     seed: int = 0,
 ) -> np.ndarray:
     """Linear motion blur of ``length`` pixels along ``angle_deg`` (image x axis = 0°, random
-    per camera when None) on the chosen cameras (all by default)."""
+    per camera when None) on the chosen cameras (all by default); see :func:`line_kernel`."""
     images = _check(images)
-    if length < 1:
-        raise ValueError(f"length: expected >= 1 pixel, got {length}")
+    length = _count(length, "length", 1)
+    if angle_deg is not None:
+        _finite(angle_deg, "angle_deg")
     rng = np.random.default_rng(seed)
     out = images.copy()
     for c in _camera_list(cameras, images.shape[0]):
@@ -85,13 +111,17 @@ def motion_blur(
 
 
 def line_kernel(length: int, angle_deg: float) -> np.ndarray:
-    """A normalised (k, k) kernel: a ``length``-pixel line through the centre at ``angle_deg``
-    (0° = image x axis, 90° = image y axis), drawn with bilinear weights."""
-    k = length if length % 2 == 1 else length + 1
+    """A normalised (k, k) kernel: a segment ``length`` pixels long through the centre at
+    ``angle_deg`` (0° = image x axis, 90° = image y axis), drawn with bilinear weights from
+    4·length points evenly spaced along it (the midpoints of equal parts, so that the segment
+    spans ``length`` pixels: at 0° and an odd length, a flat row of ``length`` equal weights).
+    k = the odd number ≥ ``length``, plus 2 for the bilinear spill at the ends."""
+    k = (length if length % 2 == 1 else length + 1) + 2
     kern = np.zeros((k, k))
     c = (k - 1) / 2
     a = np.deg2rad(angle_deg)
-    for t in np.linspace(-(length - 1) / 2, (length - 1) / 2, 4 * length):
+    n = 4 * length
+    for t in (np.arange(n) + 0.5) * (length / n) - length / 2:
         x, y = c + t * np.cos(a), c + t * np.sin(a)
         x0, y0 = int(np.floor(x)), int(np.floor(y))
         fx, fy = x - x0, y - y0
@@ -107,7 +137,8 @@ def region_boxes(
 ) -> list[tuple[int, int, int, int, int]]:
     """The (camera, row0, row1, col0, col1) boxes :func:`mask_regions` blanks for these args."""
     m, _, h, w = shape
-    if not 0 < size <= 1:
+    count = _count(count, "count", 0)
+    if not 0 < _finite(size, "size") <= 1:
         raise ValueError(f"size: expected a fraction of the image side in (0, 1], got {size}")
     rng = np.random.default_rng(seed)
     bh, bw = max(1, round(size * h)), max(1, round(size * w))
@@ -135,9 +166,10 @@ def mask_regions(
     random; :func:`region_boxes` returns the same rectangles.
     """
     images = _check(images)
+    value = _fill(fill)
     out = images.copy()
     for c, r0, r1, c0, c1 in region_boxes(images.shape, count, size, seed, cameras):
-        out[c, :, r0:r1, c0:c1] = np.uint8(fill)
+        out[c, :, r0:r1, c0:c1] = value
     return out
 
 
@@ -150,8 +182,8 @@ def exposure(
 ) -> np.ndarray:
     """Exposure change: ``255 · (gain · x / 255) ** gamma``, clipped, on the chosen cameras."""
     images = _check(images)
-    if not (gain > 0 and gamma > 0):
-        raise ValueError(f"gain, gamma: expected positive values, got {gain}, {gamma}")
+    if not (_finite(gain, "gain") > 0 and _finite(gamma, "gamma") > 0):
+        raise ValueError(f"gain, gamma: expected finite values > 0, got {gain}, {gamma}")
     out = images.copy()
     for c in _camera_list(cameras, images.shape[0]):
         x = np.clip(gain * images[c].astype(np.float64) / 255.0, 0.0, 1.0) ** gamma
@@ -168,8 +200,8 @@ def noise(
 ) -> np.ndarray:
     """Additive Gaussian noise of standard deviation ``sigma`` grey levels, clipped."""
     images = _check(images)
-    if sigma < 0:
-        raise ValueError(f"sigma: expected >= 0, got {sigma}")
+    if _finite(sigma, "sigma") < 0:
+        raise ValueError(f"sigma: expected a finite value >= 0, got {sigma}")
     rng = np.random.default_rng(seed)
     out = images.copy()
     for c in _camera_list(cameras, images.shape[0]):
@@ -188,9 +220,22 @@ PERTURBATIONS: dict[str, Callable[..., np.ndarray]] = {
 
 
 def perturb_frame(frame: Frame, name: str, **kwargs: Any) -> Frame:
-    """A copy of ``frame`` whose images went through perturbation ``name`` (see PERTURBATIONS)."""
+    """A copy of ``frame`` whose images went through perturbation ``name`` (see PERTURBATIONS)
+    with ``kwargs``; the calibration and pose are the original's."""
     try:
         fn = PERTURBATIONS[name]
     except KeyError:
         raise ValueError(f"name: expected one of {sorted(PERTURBATIONS)}, got {name!r}") from None
+    accepted = set(inspect.signature(fn).parameters) - {"images"}
+    unknown = sorted(set(kwargs) - accepted)
+    if unknown:
+        raise ValueError(f"kwargs: {name} takes {sorted(accepted)}, not {unknown}")
     return dataclasses.replace(frame, images=fn(frame.images, **kwargs))
+
+
+def frame_seed(frame: Frame, base: int = 0) -> int:
+    """A seed of its own for ``frame``, from its session name and index (and ``base``): the
+    same frame gets the same perturbation in every run, process and order of evaluation, and
+    different frames get different ones."""
+    key = f"{base}/{frame.session}/{frame.index}".encode()
+    return zlib.crc32(key)

@@ -8,6 +8,7 @@ metric-localization global poses (DESIGN.md §3 frames).
 
 from __future__ import annotations
 
+import inspect
 import logging
 import os
 from collections.abc import Sequence
@@ -20,7 +21,7 @@ import torch
 from vvloc import evaluate, geometry, kernels, viz
 from vvloc._io import atomic_write
 from vvloc.data import Frame, open_dataset
-from vvloc.data.perturb import perturb_frame
+from vvloc.data.perturb import PERTURBATIONS, frame_seed, perturb_frame
 from vvloc.data.sampling import check_query_sessions
 from vvloc.localize.localizer import (
     LocalizationResult,
@@ -54,14 +55,27 @@ LOOP_SWEEP_PAIRS = 20_000_000
 log = logging.getLogger("vvloc.evaluate")
 
 
-#: Perturbations of the robustness evaluation (name → perturb_frame arguments), seeded.
+#: Perturbations of the robustness evaluation (label → perturb_frame name and arguments). The
+#: random ones (which camera, which regions, the blur's direction, the noise) are drawn for
+#: each query frame with its own seed (:func:`vvloc.data.perturb.frame_seed`), so a figure is
+#: over a sample of such conditions, the same in every run (before 2026-12-05 one seed served
+#: every frame: the same camera masked, the same boxes and noise, a horizontal blur).
 ROBUSTNESS: dict[str, tuple[str, dict[str, Any]]] = {
-    "one camera masked": ("mask_cameras", {"count": 1, "seed": 0}),
-    "motion blur": ("motion_blur", {"length": 9}),
-    "regions masked": ("mask_regions", {"count": 2, "size": 0.3, "seed": 0}),
+    "one camera masked": ("mask_cameras", {"count": 1}),
+    "motion blur": ("motion_blur", {"length": 9, "angle_deg": None}),
+    "regions masked": ("mask_regions", {"count": 2, "size": 0.3}),
     "under-exposed": ("exposure", {"gain": 0.4}),
-    "noise": ("noise", {"sigma": 12.0, "seed": 0}),
+    "noise": ("noise", {"sigma": 12.0}),
 }
+
+
+def perturbed(frame: Frame, label: str) -> Frame:
+    """``frame`` under the robustness perturbation ``label`` of :data:`ROBUSTNESS`, with the
+    frame's own seed where the perturbation draws anything."""
+    name, args = ROBUSTNESS[label]
+    if "seed" in inspect.signature(PERTURBATIONS[name]).parameters:
+        args = {**args, "seed": frame_seed(frame)}
+    return perturb_frame(frame, name, **args)
 
 
 def loc_desc_of(loc: Localizer, frame: Frame) -> np.ndarray:
@@ -87,11 +101,9 @@ def _robustness(
     poses: dict[str, Any] = {}
     top_n = tuple(n for n in (1, 5) if n <= k)
     kw = {"query_floors": q_floor, "db_floors": db_floor, "top_n": top_n}
-    for label, (name, args) in ROBUSTNESS.items():
+    for label in ROBUSTNESS:
         log.info("robustness: localizing the queries with %s", label)
-        results = loc.localize_batch(
-            [perturb_frame(f, name, **args) for f in frames], progress=progress
-        )
+        results = loc.localize_batch([perturbed(f, label) for f in frames], progress=progress)
         rec_ml = evaluate.recall_at_n(
             q_pose[:, :2], db_pose[:, :2], _ranked(results, "reranked", k), **kw
         )
@@ -417,7 +429,8 @@ def run_evaluation(
             loc, frames, q_pose, q_floor, db_pose, db_floor, k, progress
         )
         notes.append(
-            "robustness: the whole localizer on perturbed copies of the queries (map clean): "
+            "robustness: the whole localizer on perturbed copies of the queries (map clean; "
+            "random choices drawn per query frame): "
             + ", ".join(f"{label} ({name} {args})" for label, (name, args) in ROBUSTNESS.items())
         )
     if loops:
