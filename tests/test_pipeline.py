@@ -609,6 +609,8 @@ def test_cli_refuses_misleading_inputs_before_any_work(tiny_world, map_file, mod
     good.write_text(f"dataset: {tiny_world}\nstage1_epochs: 1\nstage2_epochs: 0\n")
     r = run("train", "--config", str(good), "--out", str(tmp_path / "t"), "--resume")
     assert r.returncode == 2 and "no run to resume" in r.stderr
+    r = run("train", "--config", str(good), "--out", str(tmp_path / "t"), "--device", "gpu")
+    assert r.returncode == 2 and "--device" in r.stderr and not (tmp_path / "t").exists()
 
 
 def test_cli_version_and_quiet_logs(tmp_path):

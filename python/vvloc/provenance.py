@@ -36,7 +36,8 @@ A *run* is one ``vvloc train --out DIR`` run, resumed or not::
 
 ``cpu``, ``torch_cpu_capability`` and ``libraries`` (absent in records written before
 2026-12-03) say what a retraining must match to give the same bytes: the trainer is
-deterministic on one machine, but the same code, config and data trained with other CPU kernels
+deterministic on one machine's CPU (not on CUDA, :mod:`vvloc.train`), but the same code,
+config and data trained with other CPU kernels
 (another processor, or torch limited to other instructions) give other weights from the first
 epoch on (the default model's card, "Retraining on another machine").
 

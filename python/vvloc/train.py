@@ -6,7 +6,12 @@ yaw matching loss and the translation-bias loss on (anchor, positive) pairs whos
 ξ_{a→p} (DESIGN.md §3: the positive's frame expressed in the anchor's frame) is known from the
 ground truth. Adam, learning rate 1e-4 decayed ×0.95 per epoch; triplets from
 :class:`vvloc.data.TripletSampler` with hard-sample mining (triplets that still violate the
-triplet margin are re-drawn until they are satisfied). Every random choice is seeded.
+triplet margin are re-drawn until they are satisfied). Every random choice is seeded: on the
+CPU a run is deterministic and a resumed run equals an uninterrupted one bit for bit. On CUDA
+it is not: the backward passes of ``grid_sample`` (padding, polar sampling, deformable
+attention), ``scatter_add`` and gathers accumulate with atomics, so two CUDA runs of one config
+differ in the last bits and drift apart over epochs (torch offers no deterministic version of
+``grid_sample``'s backward, so ``use_deterministic_algorithms`` cannot be switched on).
 
 Outputs in ``out_dir``: ``checkpoint/`` (safetensors weights + JSON config, written each epoch),
 ``trainer_state.pt`` (optimizer, scheduler, epoch, step, sampler state, for ``--resume``),
@@ -1219,7 +1224,17 @@ class Trainer:
             )
         torch.set_rng_state(state["torch_rng"])
         if state.get("cuda_rng") is not None and torch.cuda.is_available():
-            torch.cuda.set_rng_state_all(state["cuda_rng"])
+            saved, visible = list(state["cuda_rng"]), torch.cuda.device_count()
+            if len(saved) != visible:  # another machine, or CUDA_VISIBLE_DEVICES: not an error
+                log.warning(
+                    "the run saved the RNG of %d CUDA devices, %d are visible: restoring the "
+                    "first %d",
+                    len(saved),
+                    visible,
+                    min(len(saved), visible),
+                )
+            for index, rng_state in enumerate(saved[:visible]):
+                torch.cuda.set_rng_state(rng_state, index)
         self.epoch = int(state["epoch"])
         self.step = int(state["step"])
         self.best = state.get("best")

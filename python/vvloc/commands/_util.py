@@ -113,7 +113,7 @@ def cli_errors(command: str) -> Iterator[None]:
 
 
 def parse_device(device: str) -> torch.device:
-    """``--device``: ``cpu``, ``cuda``, ``cuda:N``, ``mps`` or ``auto`` (``ValueError`` naming
+    """``--device``: ``cpu``, ``cuda``, ``cuda:N`` or ``auto`` (``ValueError`` naming
     ``--device`` when torch cannot use it)."""
     from vvloc.nets.model import resolve_device
 

@@ -45,7 +45,7 @@ def calibrate(
     metric_from: MetricFrom = MetricFromChoice.retrieval,
     retrieval_weight: RetrievalWeight = RETRIEVAL_WEIGHT,
     snap: Snap = True,
-    device: Annotated[str, typer.Option("--device", help="cpu, cuda[:N], mps or auto.")] = "cpu",
+    device: Annotated[str, typer.Option("--device", help="cpu, cuda[:N] or auto.")] = "cpu",
     overwrite: Annotated[
         bool, typer.Option("--overwrite", help="Replace the checkpoint's calibration.json.")
     ] = False,

@@ -31,7 +31,7 @@ def eval_command(
     out: Annotated[Path, typer.Option("--out", help="Report folder.")] = Path("runs/eval"),
     top_k: Annotated[int, typer.Option("--top_k", min=1, help="Retrieved candidates.")] = 20,
     every: Annotated[int, typer.Option("--every", min=1, help="Use every n-th query.")] = 1,
-    device: Annotated[str, typer.Option("--device", help="cpu, cuda[:N], mps or auto.")] = "cpu",
+    device: Annotated[str, typer.Option("--device", help="cpu, cuda[:N] or auto.")] = "cpu",
     robustness: Annotated[
         bool,
         typer.Option(

@@ -59,7 +59,7 @@ def localize(
     metric_from: MetricFrom = MetricFromChoice.retrieval,
     retrieval_weight: RetrievalWeight = RETRIEVAL_WEIGHT,
     snap: Snap = True,
-    device: Annotated[str, typer.Option("--device", help="cpu, cuda[:N], mps or auto.")] = "cpu",
+    device: Annotated[str, typer.Option("--device", help="cpu, cuda[:N] or auto.")] = "cpu",
 ) -> None:
     """Write poses.tum (the accepted global poses), poses-all.tum (every frame's), queries.csv
     and timings.json into --out."""

@@ -78,7 +78,7 @@ def loops(
     max_pairs: Annotated[
         int, typer.Option("--max_pairs", min=0, help="Closest candidates to verify (0: all).")
     ] = 0,
-    device: Annotated[str, typer.Option("--device", help="cpu, cuda[:N], mps or auto.")] = "cpu",
+    device: Annotated[str, typer.Option("--device", help="cpu, cuda[:N] or auto.")] = "cpu",
 ) -> None:
     """Write loops.csv, graph.g2o and one TUM trajectory per session into --out."""
     import numpy as np

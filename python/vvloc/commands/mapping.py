@@ -25,7 +25,7 @@ def build(
     no_bev: Annotated[
         bool, typer.Option("--no_bev", help="Do not store BEVs (then no loop detection).")
     ] = False,
-    device: Annotated[str, typer.Option("--device", help="cpu, cuda[:N], mps or auto.")] = "cpu",
+    device: Annotated[str, typer.Option("--device", help="cpu, cuda[:N] or auto.")] = "cpu",
     overwrite: Annotated[
         bool, typer.Option("--overwrite", help="Replace an existing map file at --out.")
     ] = False,

@@ -18,12 +18,28 @@ def train(
     resume: Annotated[
         bool, typer.Option("--resume", help="Continue the run in --out from its last epoch.")
     ] = False,
+    device: Annotated[
+        str | None,
+        typer.Option(
+            "--device",
+            help="cpu, cuda[:N] or auto; replaces the config's `device` (a resumed run may "
+            "change it). CUDA runs are not bit-reproducible.",
+        ),
+    ] = None,
 ) -> None:
     """Train VVLoc (stage 1 global descriptors, stage 2 joint) and checkpoint every epoch."""
+    import dataclasses
+
+    from vvloc.nets.model import resolve_device
+    from vvloc.train import TrainConfig
     from vvloc.train import train as run_training
 
     with cli_errors("train"):
-        trainer = run_training(config, out, resume=resume)
+        cfg = TrainConfig.from_yaml(config)
+        if device is not None:
+            resolve_device(device, argument="--device")  # refused by name before any work
+            cfg = dataclasses.replace(cfg, device=device)
+        trainer = run_training(cfg, out, resume=resume)
     typer.echo(f"trained {trainer.epoch} epochs; latest checkpoint: {trainer.checkpoint_dir}")
     if trainer.joint_stopped is not None:
         typer.echo(

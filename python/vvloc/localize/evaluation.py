@@ -28,6 +28,7 @@ from vvloc.localize.localizer import (
     Localizer,
     build_map,
     encode_frames,
+    model_device,
 )
 from vvloc.localize.loops import (
     FLOOR_MARGIN,
@@ -498,11 +499,13 @@ def run_evaluation(
         )
     if len(results):
         r = results[sample]
-        a, b = loc.model.interact(
-            torch.from_numpy(loc_desc_of(loc, frames[sample]))[None],
-            torch.from_numpy(mapdb.local_descriptors(int(r.metric_row)))[None],
-        )
-        curve = kernels.yaw_costs(a.detach().numpy(), b.detach().numpy())[0]
+        dev = model_device(loc.model)
+        with torch.no_grad():  # the model's device (a CUDA model used to fail here)
+            a, b = loc.model.interact(
+                torch.from_numpy(loc_desc_of(loc, frames[sample]))[None].to(dev),
+                torch.from_numpy(mapdb.local_descriptors(int(r.metric_row)))[None].to(dev),
+            )
+        curve = kernels.yaw_costs(a, b)[0]  # the gateway takes tensors to the CPU
         true_rel = geometry.relative(q_pose[sample], db_pose[int(r.metric_row)])
         figures["Yaw cost curve (sample query, no padding)"] = viz.plot_yaw_cost_curve(
             out_dir / "yaw_cost_curve.png", curve, true_yaw=float(true_rel[2])

@@ -33,9 +33,10 @@ CALIBRATION_FILE = "calibration.json"
 
 
 def resolve_device(name: str | torch.device = "cpu", *, argument: str = "device") -> torch.device:
-    """The torch device a model runs on: ``"cpu"``, ``"cuda"`` / ``"cuda:N"``, ``"mps"`` (each
-    refused with a ``ValueError`` naming ``argument`` when torch sees no such device), or
-    ``"auto"`` (CUDA when available, else CPU)."""
+    """The torch device a model runs on: ``"cpu"``, ``"cuda"`` / ``"cuda:N"`` (refused with a
+    ``ValueError`` naming ``argument`` when torch sees no such device), or ``"auto"`` (CUDA
+    when available, else CPU). Apple's ``"mps"`` is refused: the encoder's camera geometry and
+    the padding's shifts run in float64, which MPS does not have."""
     if isinstance(name, torch.device):
         dev = name
     elif isinstance(name, str):
@@ -45,12 +46,15 @@ def resolve_device(name: str | torch.device = "cpu", *, argument: str = "device"
             dev = torch.device(name)
         except RuntimeError:
             dev = None
-        if dev is None or dev.type not in ("cpu", "cuda", "mps"):
-            raise ValueError(
-                f"{argument}: expected 'cpu', 'cuda', 'cuda:N', 'mps' or 'auto', got {name!r}"
-            )
     else:
         raise TypeError(f"{argument}: expected a str or torch.device, got {type(name).__name__}")
+    if dev is not None and dev.type == "mps":
+        raise ValueError(
+            f"{argument}: 'mps' is not supported (the camera geometry and the padding run in "
+            "float64, which MPS lacks); use 'cpu'"
+        )
+    if dev is None or dev.type not in ("cpu", "cuda"):
+        raise ValueError(f"{argument}: expected 'cpu', 'cuda', 'cuda:N' or 'auto', got {name!r}")
     if dev.type == "cuda":
         if not torch.cuda.is_available():
             raise ValueError(f"{argument}: {str(dev)!r} asked for, but torch sees no CUDA device")
@@ -59,8 +63,6 @@ def resolve_device(name: str | torch.device = "cpu", *, argument: str = "device"
                 f"{argument}: {str(dev)!r} asked for, but torch sees "
                 f"{torch.cuda.device_count()} CUDA device(s)"
             )
-    if dev.type == "mps" and not torch.backends.mps.is_available():
-        raise ValueError(f"{argument}: 'mps' asked for, but torch sees no MPS device")
     return dev
 
 
