@@ -24,6 +24,14 @@ def test_wrap_angle_half_open_interval():
     got = geo.wrap_angle([0.0, math.pi, -math.pi, 1.5 * math.pi, -1.5 * math.pi, 7 * math.pi])
     np.testing.assert_allclose(got, [0.0, math.pi, math.pi, -0.5 * math.pi, 0.5 * math.pi, math.pi])
     assert ((got > -math.pi) & (got <= math.pi)).all()
+    # the ulp neighbours of ±π and ±3π stay inside (a − π could round to exactly −2π)
+    edges = [x for c in (math.pi, -math.pi, 3 * math.pi, -3 * math.pi, -5 * math.pi)
+             for x in (math.nextafter(c, -math.inf), c, math.nextafter(c, math.inf))]  # fmt: skip
+    got = geo.wrap_angle(edges)
+    assert ((got > -math.pi) & (got <= math.pi)).all(), got
+    inside = [x for x in edges if -math.pi < x <= math.pi]
+    assert list(geo.wrap_angle(inside)) == inside  # bit for bit
+    assert isinstance(geo.wrap_angle(1.0), np.float64)
 
 
 def test_relative_pose_matches_design_convention():

@@ -247,6 +247,8 @@ def test_search_finds_a_smooth_minimum_and_records_stages():
         ({"shrink": 0.0}, "shrink"),
         ({"fine_samples": 0}, "fine_samples"),
         ({"seed": -1}, "seed"),
+        ({"half_range": 1e300, "step": 1e-300}, "step"),  # an infinite ratio, not OverflowError
+        ({"half_range": 1e4, "step": 1e-3}, "step"),
     ],
 )
 @pytest.mark.parametrize("backend", ["rust", "reference"])

@@ -22,7 +22,12 @@ def wrap_angle(angle: npt.ArrayLike) -> F64Array:
     Angles already in (−π, π] are returned bit-exactly (no round trip through a modulo).
     """
     a = np.asarray(angle, dtype=np.float64)
-    return a - 2.0 * np.pi * np.ceil((a - np.pi) / (2.0 * np.pi))
+    w = a - 2.0 * np.pi * np.ceil((a - np.pi) / (2.0 * np.pi))
+    # the rounding of a − π can put w one ulp outside (−π, π]: fold it back
+    w = np.where(w > np.pi, w - 2.0 * np.pi, w)
+    w = np.where(w <= -np.pi, w + 2.0 * np.pi, w)
+    inside = (a > -np.pi) & (a <= np.pi)
+    return np.where(inside, a, w)[()]  # [()]: a scalar stays a numpy scalar
 
 
 def _as_pose(pose: npt.ArrayLike, name: str) -> F64Array:

@@ -430,7 +430,10 @@ class TranslationSearch:
 
     Stage 0 proposes the square grid ``{i·step : |i·step| ≤ half_range}²`` (metres, source
     frame); each later stage proposes ``fine_samples`` seeded uniform samples in a square of
-    half-size ``step·shrink^(stage−1)`` around the best hypothesis so far. Drive it as::
+    half-size ``step·shrink^(stage−1)`` around the best hypothesis so far, each coordinate
+    clamped to ``[−half_range, half_range]``: the search never leaves its square, so a true
+    translation beyond it is answered by a pose on the square's edge (samples that fall
+    outside pile up there). Ties keep the earliest hypothesis. Drive it as::
 
         search = TranslationSearch(3.0, 0.6, fine_samples=32, stages=3, seed=0)
         while not search.done:
@@ -463,7 +466,13 @@ class TranslationSearch:
             raise ValueError(
                 f"fine_samples: expected at most {MAX_STAGE_POINTS} samples per stage, got {nfs}"
             )
-        n_side = 2 * math.floor(hr / st + 1e-9) + 1
+        ratio = hr / st
+        if not ratio * ratio < MAX_STAGE_POINTS:  # also inf (1e300 / 1e-300)
+            raise ValueError(
+                f"step: the coarse grid of half_range / step = {ratio:.3g} steps a side would "
+                f"exceed {MAX_STAGE_POINTS} points; use a larger step"
+            )
+        n_side = 2 * math.floor(ratio + 1e-9) + 1
         if n_side * n_side > MAX_STAGE_POINTS:
             raise ValueError(
                 f"step: the coarse grid would have {n_side}×{n_side} points; use a larger step"

@@ -55,7 +55,13 @@ class RadialMeanDecoder:
 class SearchConfig:
     """Translation search of :func:`metric_localize` (metres): the coarse grid covers
     ``[−half_range, half_range]²`` every ``step``; then ``stages − 1`` stages of
-    ``fine_samples`` seeded samples in squares of half-size ``step·shrink^(stage−1)``."""
+    ``fine_samples`` seeded samples in squares of half-size ``step·shrink^(stage−1)``, clamped
+    to that square (:class:`vvloc.kernels.TranslationSearch`). The square is in the source's
+    frame, the one the hypotheses shift (in the localizer, the query's): a query within
+    ``half_range`` of a keyframe along the keyframe's axes can lie outside it along the query's
+    (ξ = (2.5, 2.5, 45°) one way is x = −3.54 m the other way), and a translation outside the
+    square is answered on its edge, with a cost that may still pass the acceptance rule.
+    Widen ``half_range`` where revisits can be further off."""
 
     half_range: float = 3.0
     step: float = 0.6
