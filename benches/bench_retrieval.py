@@ -4,10 +4,10 @@ d = 256, K = 20, N ∈ {1e4, 1e5, 1e6}, nq ∈ {1, 64, 1024 (N ≤ 1e5)}, plus r
 r = 0.1 and 0.2, and single top-20 queries in maps of one place seen N times (N = 1e4 to 8e4,
 ``--one_place`` runs only these: the compressed scans' hardest case). Realistic descriptors:
 places (cluster centres) seen by ~100 keyframes each (a Gaussian mixture, L2-normalised);
-queries revisit random keyframes with noise of L2 size U(0.05, 0.2). Every cell checks, in the same run, that vvloc's results equal exact search
-(float64 brute force on up to 16 queries; indices identical outside float32 near-ties) and that
-the compressed indices (bfloat16, float16, int8) return exactly the float32 index's results
-(recall@20 = 1.0).
+queries revisit random keyframes with noise of L2 size U(0.05, 0.2). Every cell checks, in the
+same run, that vvloc's results equal exact search (float64 brute force on up to 16 queries;
+indices identical outside float32 near-ties) and that the compressed indices (bfloat16,
+float16, int8) return exactly the float32 index's results (recall@20 = 1.0).
 
 Usage: ``python benches/bench_retrieval.py [--quick] [--one_place] [--json PATH]`` (faiss-cpu
 and torch from the ``bench`` extra; a missing peer is reported and skipped).

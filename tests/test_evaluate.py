@@ -371,6 +371,10 @@ def test_a_perfect_self_loop_detector_scores_recall_one():
     assert one_sided.at(0.1)["recall"] == pytest.approx(0.5)
     with pytest.raises(ValueError, match="symmetric"):
         ev.loop_closure_curve(pairs[:4], np.full(4, 0.05), pos, pos[:9], symmetric=True)
+    # without times a frame is still not its own revisit: three places 50 m apart have none
+    far = np.arange(3.0)[:, None] * [50.0, 0.0]
+    alone = ev.loop_closure_curve(np.zeros((0, 2), np.int64), np.zeros(0), far, far, symmetric=True)
+    assert alone.num_positive_queries == 0
 
 
 def test_the_summary_keeps_a_thinned_sweep():
@@ -616,6 +620,41 @@ def test_all_plots_are_written(tmp_path):
     assert (tmp_path / "recall.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert (tmp_path / "trans.svg").read_text().lstrip().startswith("<?xml")
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted(p.name for p in paths)
+
+
+def test_plots_say_when_nothing_is_left_to_draw_and_svg_is_reproducible(tmp_path, monkeypatch):
+    figs = []
+    save = viz.save_figure
+    monkeypatch.setattr(viz, "save_figure", lambda fig, path: figs.append(fig) or save(fig, path))
+
+    def texts(fig):
+        return [t.get_text() for ax in fig.axes for t in ax.texts]
+
+    nan = np.full(5, np.nan)
+    viz.plot_recall_curves(tmp_path / "r.png", {"G": (np.arange(1, 6), nan)})
+    viz.plot_error_cdfs(tmp_path / "c.png", {"ML": []}, {"ML": [np.nan]})
+    viz.plot_precision_recall(
+        tmp_path / "p.png", {"s": {"precision": nan, "recall": nan, "f1": nan}}
+    )
+    viz.plot_confidence_curve(
+        tmp_path / "k.png", {"kept_share": [1.0], "mRRE_deg": [0.5], "mRTE_m": [0.2]}
+    )
+    assert all(any(t.startswith("no data") for t in texts(f)) for f in figs[:3])
+    assert figs[3].axes[0].lines[0].get_marker() == "o"  # one verified pair is drawn
+    assert not texts(figs[3])
+    # Recall@N ticks are whole numbers; the yaw curve covers −180° as well as +180°
+    viz.plot_recall_curves(tmp_path / "r2.png", {"G": (np.arange(1, 21), np.linspace(0, 1, 20))})
+    ticks = figs[-1].axes[0].get_xticks()
+    assert np.allclose(ticks, np.round(ticks))
+    viz.plot_yaw_cost_curve(tmp_path / "y.png", np.arange(8.0))
+    x = figs[-1].axes[0].lines[0].get_xdata()
+    assert x[0] == -180.0 and x[-1] == 180.0
+    # the curves of the CDF panel carry their number of queries
+    viz.plot_error_cdfs(tmp_path / "c2.png", {"ML, top-1": [1.0, 2.0]}, {"ML, top-1": [0.1]})
+    labels = [t.get_text() for t in figs[-1].axes[0].get_legend().get_texts()]
+    assert labels == ["ML, top-1 (n = 2)"]
+    a = viz.plot_yaw_cost_curve(tmp_path / "a.svg", np.arange(8.0)).read_bytes()
+    assert viz.plot_yaw_cost_curve(tmp_path / "b.svg", np.arange(8.0)).read_bytes() == a
 
 
 def test_plot_rejects_bad_input_without_leaving_files(tmp_path):

@@ -526,9 +526,12 @@ def test_evaluation_breaks_recall_down_by_query_session(tiny_world, model_dir, t
         assert sum(int(p.correct(1, 2.0).sum()) for p in parts) == int(whole.correct(1, 2.0).sum())
     assert "## Global localization per query session" in (tmp_path / "ev" / "report.md").read_text()
     # robustness: the whole localizer under each perturbation, the same metrics as clean
+    (tmp_path / "rob").mkdir()
+    (tmp_path / "rob" / "precision_recall.png").write_bytes(b"an earlier run's loop figure")
     rob = run_evaluation(
         model_dir, tiny_world, "s0", ["s1"], tmp_path / "rob", robustness=True, **kw
     )
+    assert not (tmp_path / "rob" / "precision_recall.png").exists()  # no loops in this run
     from vvloc.localize.evaluation import ROBUSTNESS
 
     want = [f"{p}, {m}" for p in ROBUSTNESS for m in ("VVLoc-G", "VVLoc-ML")]

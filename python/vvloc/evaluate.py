@@ -652,7 +652,7 @@ def loop_closure_curve(
         time_window: temporal-exclusion window, same unit as the times (≥ 0).
         causal: only earlier map frames count (loop closure against the past).
         symmetric: query and map are the same frames and each pair is listed once: a true pair
-            detects both frames (not with ``causal``).
+            detects both frames, and a frame is never its own loop (not with ``causal``).
         radius: true-loop radius (m).
     """
     q = _real_array(query_positions, "query_positions", "(Q, 2)", 2, 2)
@@ -689,7 +689,8 @@ def loop_closure_curve(
         )
 
     def admissible(qi: I64Array, dj: I64Array) -> BoolArray:
-        ok = np.ones(qi.shape, dtype=bool)
+        # a frame is not its own loop (symmetric: the same frames as query and map)
+        ok = qi != dj if symmetric else np.ones(qi.shape, dtype=bool)
         if times is not None:
             tq, td = times[0][qi], times[1][dj]
             ok &= np.abs(tq - td) > window

@@ -15,11 +15,13 @@ import os
 from collections.abc import Mapping
 from pathlib import Path
 
+import matplotlib
 import numpy as np
 import numpy.typing as npt
 from matplotlib.axes import Axes
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
+from matplotlib.ticker import MaxNLocator
 
 from vvloc._io import atomic_write
 from vvloc.geometry import wrap_angle
@@ -46,9 +48,23 @@ def save_figure(fig: Figure, path: str | os.PathLike[str]) -> Path:
     if fmt not in _METADATA:
         raise ValueError(f"path: expected a .png, .svg or .pdf file name, got {out.name!r}")
     out.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_write(out, "wb") as f:
+    # svg.hashsalt: matplotlib names SVG clip paths with random ids otherwise
+    with atomic_write(out, "wb") as f, matplotlib.rc_context({"svg.hashsalt": "vvloc"}):
         fig.savefig(f, format=fmt, metadata=_METADATA[fmt])
     return out
+
+
+def _no_data(ax: Axes, what: str) -> None:
+    """Say on the axes that there is nothing to draw (instead of a blank plot)."""
+    ax.text(
+        0.5,
+        0.5,
+        f"no data: {what}",
+        transform=ax.transAxes,
+        ha="center",
+        va="center",
+        color="0.4",
+    )
 
 
 def _vector(x: npt.ArrayLike, name: str, length: int | None = None) -> np.ndarray:
@@ -82,27 +98,36 @@ def plot_recall_curves(
     """
     fig = _new_figure()
     ax = fig.add_subplot()
+    drawn = False
     for name, (ns, recall) in curves.items():
         n = _vector(ns, f"curves[{name!r}] ns")
         r = _vector(recall, f"curves[{name!r}] recall", n.shape[0])
-        ax.plot(n, 100.0 * r, marker="o", markersize=3, label=str(name))
+        if np.isfinite(r).any():
+            ax.plot(n, 100.0 * r, marker="o", markersize=3, label=str(name))
+            drawn = True
+    if not drawn:
+        _no_data(ax, "no query kept")
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.set_xlabel("N (number of top candidates)")
     ax.set_ylabel("Recall@N (%)")
     ax.set_ylim(0, 100)
     ax.set_title(f"Recall@N at {radius:g} m")
     ax.grid(True, alpha=0.3)
-    if curves:
+    if drawn:
         ax.legend(loc="lower right")
     return save_figure(fig, path)
 
 
 def _cdf_panel(ax: Axes, errors: Mapping[str, npt.ArrayLike], xlabel: str) -> None:
     for name, e in errors.items():
-        v = np.sort(_vector(e, f"errors[{name!r}]"))
+        v = _vector(e, f"errors[{name!r}]")
+        v = np.sort(v[np.isfinite(v)])
         if v.size == 0:
             continue
         share = np.arange(0, v.size + 1) / v.size  # starts at 0 % below the smallest error
-        ax.step(np.r_[0.0, v], 100.0 * share, where="post", label=str(name))
+        ax.step(np.r_[0.0, v], 100.0 * share, where="post", label=f"{name} (n = {v.size})")
+    if not ax.get_legend_handles_labels()[0]:
+        _no_data(ax, "no query to score")
     ax.set_xlabel(xlabel)
     ax.set_xlim(left=0.0)
     ax.set_ylabel("queries with error ≤ x (%)")
@@ -117,7 +142,9 @@ def plot_error_cdfs(
     yaw_errors_deg: Mapping[str, npt.ArrayLike],
     position_errors_m: Mapping[str, npt.ArrayLike],
 ) -> Path:
-    """Cumulative distributions of absolute yaw error (°) and position error (m), side by side.
+    """Cumulative distributions of absolute yaw error (°) and position error (m), side by side;
+    each curve's label gets its number of queries, and the labels should say which queries
+    they are (e.g. "VVLoc-ML, top-1 true revisits").
 
     Args:
         path: output image.
@@ -150,8 +177,8 @@ def plot_precision_recall(
         p = _vector(sweep["precision"], f"curves[{name!r}]['precision']")
         r = _vector(sweep["recall"], f"curves[{name!r}]['recall']", p.shape[0])
         f1 = _vector(sweep["f1"], f"curves[{name!r}]['f1']", p.shape[0])
-        if p.size == 0:
-            continue
+        if p.size == 0 or not (np.isfinite(p) & np.isfinite(r)).any():
+            continue  # e.g. no true revisit: recall is undefined everywhere
         best = None if np.isnan(f1).all() else int(np.nanargmax(f1))
         # the best F1 goes into the legend: annotations of nearby curves overlap
         label = str(name) if best is None else f"{name} (best F1 {f1[best]:.3f})"
@@ -166,6 +193,8 @@ def plot_precision_recall(
     ax.grid(True, alpha=0.3)
     if ax.get_legend_handles_labels()[0]:
         ax.legend(loc="lower left")
+    else:
+        _no_data(ax, "no loop candidate, or no true revisit")
     return save_figure(fig, path)
 
 
@@ -219,8 +248,11 @@ def plot_trajectory(
     ax.set_xlabel("x east (m)")
     ax.set_ylabel("y north (m)")
     n_keep = int(keep.sum())
-    share = 100.0 * (keep & ok).sum() / n_keep if n_keep else float("nan")
-    ax.set_title(f"Top-1 retrieval: {share:.1f}% correct of {n_keep} queries")
+    if n_keep:
+        share = 100.0 * (keep & ok).sum() / n_keep
+        ax.set_title(f"Top-1 retrieval: {share:.1f}% correct of {n_keep} queries")
+    else:
+        ax.set_title("Top-1 retrieval: no query has a map frame within 2 m")
     ax.grid(True, alpha=0.3)
     ax.legend(loc="best", fontsize=8)
     return save_figure(fig, path)
@@ -246,9 +278,12 @@ def plot_yaw_cost_curve(
         raise ValueError("costs: expected a non-empty cost curve (T,)")
     yaw = np.degrees(wrap_angle(2.0 * np.pi * np.arange(c.size) / c.size))
     order = np.argsort(yaw, kind="stable")
+    yaw, c = yaw[order], c[order]
+    if yaw[-1] == 180.0:  # the curve wraps: draw the +180° sample at −180° as well
+        yaw, c = np.r_[-180.0, yaw], np.r_[c[-1], c]
     fig = _new_figure(6.4, 3.6)
     ax = fig.add_subplot()
-    ax.plot(yaw[order], c[order], color="tab:blue", label="matching cost")
+    ax.plot(yaw, c, color="tab:blue", label="matching cost")
     if estimated_yaw is not None:
         ax.axvline(
             float(np.degrees(wrap_angle(estimated_yaw))),
@@ -327,11 +362,14 @@ def plot_confidence_curve(path: str | os.PathLike[str], curve: Mapping[str, npt.
     rte = _vector(curve["mRTE_m"], "curve['mRTE_m']", kept.shape[0])
     fig = _new_figure()
     ax = fig.add_subplot()
-    ax.plot(100.0 * kept, rre, color="tab:blue", label="mRRE (°)")
+    # markers: a curve of one point (one verified pair) is otherwise not drawn
+    ax.plot(100.0 * kept, rre, color="tab:blue", marker="o", markersize=2, label="mRRE (°)")
+    if not np.isfinite(rre).any():
+        _no_data(ax, "no verified pair")
     ax.set_xlabel("pairs kept (%)")
     ax.set_ylabel("mRRE (°)", color="tab:blue")
     ax2 = ax.twinx()
-    ax2.plot(100.0 * kept, rte, color="tab:orange", label="mRTE (m)")
+    ax2.plot(100.0 * kept, rte, color="tab:orange", marker="o", markersize=2, label="mRTE (m)")
     ax2.set_ylabel("mRTE (m)", color="tab:orange")
     ax.set_xlim(0, 100)
     ax.set_title("Confidence curve (cost threshold sweep)")

@@ -35,7 +35,7 @@ def calibrate(
     top_k: Annotated[int, typer.Option("--top_k", min=1, help="Retrieved candidates.")] = 20,
     precision: Annotated[
         float,
-        typer.Option("--precision", min=0.0, max=1.0, help="Target share of accepted right."),
+        typer.Option("--precision", help="Target share of accepted right, in (0, 1]."),
     ] = 0.9,
     min_accepted: Annotated[
         int, typer.Option("--min_accepted", min=1, help="Fewest accepted queries to trust.")

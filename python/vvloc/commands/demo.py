@@ -28,7 +28,7 @@ UNTRAINED = (
     "WARNING: no trained model found at {path}: this demo runs an UNTRAINED (randomly "
     "initialised) small model, so its retrieval and poses are meaningless. Train one with "
     "`vvloc train --config configs/synth-small-rerank.yaml --out runs/synth-small` and pass "
-    "--checkpoint runs/synth-small (`make model` runs the committed model's four-step recipe)."
+    "--checkpoint runs/synth-small (`make model` runs the committed model's five-step recipe)."
 )
 
 

@@ -55,8 +55,6 @@ def eval_command(
         float,
         typer.Option(
             "--loop_radius",
-            min=0.0,
-            max=0.5,
             help="Loop closures accepted below this global-descriptor distance, in (0, 0.5].",
         ),
     ] = 0.1,

@@ -70,6 +70,18 @@ ROBUSTNESS: dict[str, tuple[str, dict[str, Any]]] = {
 }
 
 
+#: Every figure file an evaluation may write (those a run does not draw are removed).
+FIGURE_FILES = (
+    "recall.png",
+    "error_cdf.png",
+    "trajectory.png",
+    "translation_costs.png",
+    "yaw_cost_curve.png",
+    "precision_recall.png",
+    "confidence_curve.png",
+)
+
+
 def perturbed(frame: Frame, label: str) -> Frame:
     """``frame`` under the robustness perturbation ``label`` of :data:`ROBUSTNESS`, with the
     frame's own seed where the perturbation draws anything."""
@@ -480,13 +492,18 @@ def run_evaluation(
     with atomic_write(out_dir / "queries.csv") as f:
         f.write("\n".join(lines) + "\n")
 
+    for name in FIGURE_FILES:  # a figure this run does not draw must not outlive its report
+        (out_dir / name).unlink(missing_ok=True)
     figures = {}
     figures["Recall@N at 2 m"] = viz.plot_recall_curves(
         out_dir / "recall.png", {"VVLoc-G": rec_g.curve(2.0), "VVLoc-ML": rec_ml.curve(2.0)}
     )
     sel = correct & rec_ml.kept
+    subsets = {"top-1 true revisits": sel, "all kept queries": rec_ml.kept}
     figures["Error CDFs"] = viz.plot_error_cdfs(
-        out_dir / "error_cdf.png", {"VVLoc-ML": yaw_err[sel]}, {"VVLoc-ML": pos_err[sel]}
+        out_dir / "error_cdf.png",
+        {f"VVLoc-ML, {k}": yaw_err[m] for k, m in subsets.items()},
+        {f"VVLoc-ML, {k}": pos_err[m] for k, m in subsets.items()},
     )
     figures["Trajectory"] = viz.plot_trajectory(
         out_dir / "trajectory.png", db_pose[:, :2], q_pose[:, :2], correct, kept=rec_ml.kept
@@ -494,8 +511,15 @@ def run_evaluation(
     sample = int(np.argmax(sel)) if sel.any() else 0
     h = results[sample].search
     if h is not None and len(h.cost):
+        # the search shifts the query's BEV: its hypotheses are ξ_{q→m} translations against
+        # the keyframe it was run on (metric_row)
+        truth = geometry.relative(q_pose[sample], db_pose[int(results[sample].metric_row)])
         figures["Translation cost (sample query)"] = viz.plot_translation_costs(
-            out_dir / "translation_costs.png", h.xy, h.cost
+            out_dir / "translation_costs.png",
+            h.xy,
+            h.cost,
+            estimate=h.xy[int(np.argmin(h.cost))],
+            truth=truth[:2],
         )
     if len(results):
         r = results[sample]
