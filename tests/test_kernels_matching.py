@@ -325,3 +325,27 @@ def test_wide_inputs_beyond_float32_and_bfloat16_tensors():
         K.yaw_costs(x, np.full_like(x, np.inf))
     bf = torch.from_numpy(x).to(torch.bfloat16)  # numpy has no bfloat16
     np.testing.assert_array_equal(K.yaw_costs(bf, x), K.yaw_costs(bf.float().numpy(), x))
+
+
+@pytest.mark.parametrize("backend", ["rust", "reference"])
+@pytest.mark.parametrize("t", [11, 12, 13, 26])
+def test_a_half_turn_is_yaw_pi_exactly(t, backend):
+    # 2π·(T/2)/T rounds above π for some T, and the wrap then gave −π + 4e-16
+    src = np.random.default_rng(t).integers(-8, 8, (t, 4)).astype(np.float32) * 2
+    tgt = ref.roll_rows(src, t / 2).astype(np.float32)  # exact in float32 (half-sums of ints)
+    est = K.estimate_yaw(src[None], tgt[None], backend=backend)
+    assert est.shift[0] == t / 2 and est.yaw[0] == np.pi
+
+
+@pytest.mark.parametrize("scale", [1.0, 1e6])
+def test_the_cost_of_a_near_perfect_match_is_the_curve_summed_literally(scale):
+    # near a perfect match (1−w)a + wb − w(1−w)e cancels: the cost must still be c(s*)
+    rng = np.random.default_rng(3)
+    src = rng.standard_normal((16, 32))
+    src /= np.linalg.norm(src, axis=1, keepdims=True)
+    tgt = ref.roll_rows(src, 5.37) + 1e-6 * rng.standard_normal((16, 32))
+    src, tgt = (scale * src).astype(np.float32), (scale * tgt).astype(np.float32)
+    est = K.estimate_yaw(src[None], tgt[None])
+    literal = ref.shift_cost(src, tgt, float(est.shift[0]))
+    assert est.cost[0] == pytest.approx(literal, rel=1e-9)
+    assert abs(est.shift[0] - 5.37) < 1e-3

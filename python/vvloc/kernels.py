@@ -396,7 +396,10 @@ def estimate_yaw(src: Any, tgt: Any, *, backend: Backend = "rust") -> YawEstimat
 
     ``src`` (P, T, C) source local-view descriptors, ``tgt`` (P, T, C) or (T, C) shared target.
     Returns :class:`YawEstimate` (shift (P,) bins in [0, T), yaw (P,) radians in (−π, π],
-    cost (P,)). Rust: Gram-based exact minimiser; reference: dense 0.01-bin scan + refinement.
+    a half turn exactly π; cost (P,) = c(shift) in f64). Rust: Gram-based exact minimiser;
+    reference: dense 0.01-bin scan + refinement. One known limit of the Rust kernel: at a
+    near-perfect match (cost ≲ 1e-3) with a second basin within the float32 error of the
+    Gram products (a scene periodic under a half turn), it may return the other basin.
     """
     _check_backend(backend)
     s, t = _pairs(src, tgt)

@@ -72,9 +72,9 @@ def estimate_yaw_pair(src: npt.ArrayLike, tgt: npt.ArrayLike) -> tuple[float, fl
         if r.fun < best_c:
             best_s, best_c = float(r.x), float(r.fun)
     best_s %= t
-    yaw = 2.0 * math.pi * best_s / t
-    if yaw > math.pi:
-        yaw -= 2.0 * math.pi
+    # in bins first: s = T/2 gives exactly π (2π·s/T can round above π and wrap to −π)
+    signed = best_s if best_s <= t / 2 else best_s - t
+    yaw = math.pi * (2.0 * signed / t)
     return best_s, yaw, best_c
 
 

@@ -27,7 +27,6 @@
 #![allow(clippy::needless_range_loop)]
 
 use crate::error::{check_alloc, checked_len, Error, Result};
-use crate::pose::wrap_angle;
 use ndarray::{Array2, ArrayView3};
 use rayon::prelude::*;
 use std::borrow::Cow;
@@ -666,7 +665,13 @@ fn estimate_impl<G: Gram>(ds: &[f32], dt: &[f32], t: usize, c: usize, g: &G) -> 
     let lipschitz = e.iter().map(|v| v.sqrt()).sum::<f64>() / t as f64;
     let inv_2t = 0.5 / t as f64;
 
-    // Approximate stage on the Gram-derived entries.
+    // Approximate stage on the Gram-derived entries. Inside an interval its values come from
+    // the f32 entries through (1−w)a + wb − w(1−w)e, which cancels where the interpolated rows
+    // match closely; the margin is relative, so at a near-perfect match (cost ≲ 1e-3) with two
+    // basins closer than the f32 error (a scene periodic under a half turn) the other basin
+    // can win. Learned descriptors do not come near; a bound that covered it (an absolute
+    // allowance of √(τ·(2(‖Ds‖² + ‖Dt‖²) + e))) kept nearly every interval of flat curves
+    // and made the kernel 20× slower (BENCHMARKS.md, "estimate_yaw near a perfect match").
     let mut best = cv.cint.iter().copied().fold(f64::INFINITY, f64::min);
     let margin = |b: f64| POLISH_MARGIN * (1.0 + b.abs());
     let mut cands: Vec<(usize, f64)> = Vec::new(); // (interval k, approximate minimum)
@@ -771,7 +776,7 @@ fn estimate_impl<G: Gram>(ds: &[f32], dt: &[f32], t: usize, c: usize, g: &G) -> 
             })
             .clone()
     };
-    let mut result = (0.0f64, f64::INFINITY);
+    let mut result = (0usize, 0.0f64, f64::INFINITY); // (interval k, w, value)
     for &k in &polish {
         let k1 = (k + 1) % t;
         let (ea, eb) = (exact_row(k), exact_row(k1));
@@ -781,19 +786,62 @@ fn estimate_impl<G: Gram>(ds: &[f32], dt: &[f32], t: usize, c: usize, g: &G) -> 
         let c0 = ea.iter().map(|v| v.sqrt()).sum::<f64>() / t as f64;
         let c1 = eb.iter().map(|v| v.sqrt()).sum::<f64>() / t as f64;
         let (w, v) = minimise_interval(&ea, &eb, &e64, c0, c1);
-        if v < result.1 {
-            result = (k as f64 + w, v);
+        if v < result.2 {
+            result = (k, w, v);
         }
     }
-    let mut shift = result.0;
+    let (k, w, _) = result;
+    // The minimiser's value is the expanded quadratic (1−w)a + wb − w(1−w)e in f64, which
+    // cancels where a row matches closely: those rows are summed literally, so that the cost
+    // is c(s*) to f64 rounding.
+    let (ea, eb) = (exact_row(k), exact_row((k + 1) % t));
+    let mut cost = 0.0;
+    for i in 0..t {
+        let ei = e[(i + t - k) % t];
+        let mut f = ((1.0 - w) * ea[i] + w * eb[i] - w * (1.0 - w) * ei).max(0.0);
+        if f < NEAR_ZERO_REL * (ea[i] + eb[i] + ei) {
+            f = interpolated_sqdist(ds, dt, t, c, k, w, i);
+        }
+        cost += f.sqrt();
+    }
+    let mut shift = k as f64 + w;
     if shift >= t as f64 {
         shift -= t as f64;
     }
     YawEstimate {
         shift,
-        yaw: wrap_angle(2.0 * PI * shift / t as f64),
-        cost: result.1,
+        yaw: shift_to_yaw(shift, t),
+        cost: cost / t as f64,
     }
+}
+
+/// φ = 2π·s/T wrapped to (−π, π] for a shift s ∈ [0, T), in bins first so that s = T/2 gives
+/// exactly π (2π·s/T rounds above π for some T, and the wrap then gave −π + 4e-16).
+fn shift_to_yaw(shift: f64, t: usize) -> f64 {
+    let t = t as f64;
+    let s = if shift <= 0.5 * t { shift } else { shift - t };
+    PI * (2.0 * s / t)
+}
+
+/// ‖(1−w)·Ds_{i−k} + w·Ds_{i−k−1} − Dt_i‖² in f64: row i of the curve at s = k + w.
+fn interpolated_sqdist(
+    ds: &[f32],
+    dt: &[f32],
+    t: usize,
+    c: usize,
+    k: usize,
+    w: f64,
+    i: usize,
+) -> f64 {
+    let u = row_of(c, ds, (i + t - k) % t);
+    let v = row_of(c, ds, (i + 2 * t - k - 1) % t);
+    let z = row_of(c, dt, i);
+    let mut d2 = 0.0;
+    for ch in 0..c {
+        let x = (1.0 - w) * u[ch] as f64 + w * v[ch] as f64 - z[ch] as f64;
+        d2 += x * x;
+    }
+    d2
 }
 
 #[cfg(test)]
