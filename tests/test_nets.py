@@ -448,6 +448,18 @@ def test_load_refuses_edited_truncated_or_malformed_checkpoints(tmp_path):
         with pytest.raises(ValueError, match=match):
             VVLocNet.load(tmp_path)
     meta_path.write_text(good_meta)
+    cal_path = tmp_path / "calibration.json"
+    bad_calibrations = (
+        ('{"min_distinct', "calibration.json: not a JSON file"),
+        ('{"min_distinctiveness": NaN}', "calibration.json: min_distinct"),
+    )
+    for text, match in bad_calibrations:
+        cal_path.write_text(text)
+        with pytest.raises(ValueError, match=match):
+            VVLocNet.load(tmp_path)
+    cal_path.write_text('{"min_distinctiveness": null}')  # no threshold reached: accept nothing
+    assert VVLocNet.load(tmp_path).calibration["min_distinctiveness"] == math.inf
+    cal_path.unlink()
     w_path.write_bytes(good_weights[: len(good_weights) // 2])
     with pytest.raises(ValueError, match="not a readable safetensors file"):
         VVLocNet.load(tmp_path)

@@ -364,7 +364,7 @@ def test_calibrate_cli_scores_the_localizers_answers_and_never_loses_a_calibrati
 
 
 def test_calibration_is_kept_with_the_checkpoint_and_gates_acceptance(
-    tiny_world, map_file, model_dir, tmp_path
+    tiny_world, map_file, model_dir, tmp_path, caplog
 ):
     import json
 
@@ -383,6 +383,15 @@ def test_calibration_is_kept_with_the_checkpoint_and_gates_acceptance(
     assert model.calibration == cal
     # the Localizer takes the model's threshold unless told otherwise
     assert Localizer.open(map_file, ckpt).min_distinctiveness == cal["min_distinctiveness"]
+    # ... and says so when its K or cost rule is not the one the calibration was measured with
+    model.calibration = {**cal, "top_k": 20, "accept_threshold": 0.75}
+    model.save(ckpt)
+    with caplog.at_level("WARNING", logger="vvloc.localize"):
+        Localizer.open(map_file, ckpt, top_k=3)
+        Localizer.open(map_file, ckpt, accept_threshold=0.5)
+    assert "measured with top_k=20" in caplog.text and "accept_threshold=0.75" in caplog.text
+    model.calibration = cal
+    model.save(ckpt)
     frames = [open_dataset(tiny_world).session("s1")[i] for i in range(0, 40, 8)]
     loc = Localizer.open(map_file, model_dir, top_k=5, search=SMALL_SEARCH)
     assert loc.min_distinctiveness == 0.0  # an uncalibrated model: the paper's cost rule alone

@@ -131,6 +131,14 @@ def test_figures_on_their_target_are_met_and_just_past_it_missed():
     past = _by_name(check_targets(_parking(0.8059, 0.777, 1.61, 0.71, 0.71, 0.31)))
     assert not any(f.met for k, f in past.items() if k.startswith("parking")), past
     assert past["parking: Recall@1 (2 m) re-ranked"].number == pytest.approx(80.59)
+    # the printed value never contradicts the verdict: 80.597 % is not shown as "80.6 %"
+    near = _by_name(check_targets(_parking(0.80597, 0.7760, 1.6049, 0.7, 0.7, 0.3)))
+    assert near["parking: Recall@1 (2 m) re-ranked"].value == "80.597 %"
+    assert near["parking: gain of re-ranking over retrieval alone"].value == "+2.997 points"
+    assert near["parking: AOE@50 % (true revisits)"].value == "1.6049°"
+    assert not any(f.met for k, f in near.items() if k.startswith("parking: ") and "50" not in k
+                   and "25" not in k)  # fmt: skip
+    assert on["parking: Recall@1 (2 m) re-ranked"].value == "80.6 %"
 
 
 def test_missing_garages_are_listed_as_not_evaluated_never_as_met():
@@ -142,10 +150,27 @@ def test_missing_garages_are_listed_as_not_evaluated_never_as_met():
 
 
 def test_weights_without_a_training_record_have_no_time_figure():
+    for training in ({"runs": []}, None):  # eval writes null for weights without a record
+        report = _parking(0.9, 0.8)
+        report["training"] = training
+        figs = _by_name(check_targets(report))
+        assert figs["training time"].met is None and figs["training time"].value == "n/a"
+    # a run that took time nobody recorded (an init checkpoint without a record): the sum
+    # would be a lower bound, not a figure to hold to the budget
     report = _parking(0.9, 0.8)
-    report["training"] = {"runs": []}
-    figs = _by_name(check_targets(report))
-    assert figs["training time"].met is None and figs["training time"].value == "n/a"
+    report["training"] = {"runs": [{"recorded": False}, {"seconds": 600.0}]}
+    assert _by_name(check_targets(report))["training time"].met is None
+
+
+def test_a_garage_report_without_its_sequence_checked_rows_lists_that_figure_as_missing():
+    garage = copy.deepcopy(_committed("report-test96-garage"))
+    garage["loop_closure"] = {
+        k: v for k, v in garage["loop_closure"].items() if "sequence" not in k
+    }
+    figs = _by_name(check_targets(_parking(0.9, 0.8), None, garage))
+    seq = figs["default garage: CFER, sequence-checked"]
+    assert seq.met is None and seq.value == "n/a" and "--loop_sequence" in seq.detail
+    assert figs["default garage: CFER, single keyframes"].met is False
 
 
 def test_reports_of_other_weights_or_without_loops_are_refused():

@@ -242,8 +242,8 @@ def calibrate_localizer(
 ) -> dict[str, Any]:
     """Localize held-out ``frames`` with ``loc`` (its settings: candidates, metric stage,
     snapping, cost rule) and measure its acceptance calibration on them
-    (:func:`calibration_of_results`, which also records the localizer's settings under
-    ``"localizer"``). Unlike :func:`calibrate` (the trainer's validation, which scores the yaw
+    (:func:`calibration_of_results`; this function adds ``top_k`` and the localizer's settings
+    under ``"localizer"``). Unlike :func:`calibrate` (the trainer's validation, which scores the yaw
     re-ranking's top-1 without the metric stage, a cheaper stand-in), this scores the answers
     that acceptance gates. Does not change ``loc`` or its model."""
     if not frames:

@@ -33,7 +33,7 @@ import logging
 import os
 import time
 import warnings
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -297,6 +297,32 @@ class LocalizationResult:
     metric_row: int = -1
 
 
+def _check_calibration_settings(
+    calibration: Mapping[str, Any], top_k: int, accept_threshold: float
+) -> None:
+    """Warn when a localizer applies a calibration measured with other settings: the
+    distinctiveness (mean − minimum of the K re-ranking costs) depends on K, and the precision
+    reached depends on the cost rule."""
+    if not calibration.get("min_distinctiveness"):
+        return
+    cal_k, cal_cost = calibration.get("top_k"), calibration.get("accept_threshold")
+    if cal_k is not None and int(cal_k) != top_k:
+        log.warning(
+            "the model's calibration was measured with top_k=%d, this localizer re-ranks %d "
+            "candidates: distinctiveness depends on K, so its precision is not the calibrated "
+            "one (vvloc calibrate with these settings, or pass min_distinctiveness)",
+            int(cal_k),
+            top_k,
+        )
+    if cal_cost is not None and float(cal_cost) != accept_threshold:
+        log.warning(
+            "the model's calibration was measured with accept_threshold=%g, this localizer "
+            "uses %g: its precision is not the calibrated one",
+            float(cal_cost),
+            accept_threshold,
+        )
+
+
 class Localizer:
     """Localizes query frames against a :class:`MapDatabase` with a :class:`VVLocNet`.
 
@@ -379,6 +405,9 @@ class Localizer:
         self.accept_threshold = _cost_threshold(accept_threshold, "accept_threshold")
         if min_distinctiveness is None:
             min_distinctiveness = model.calibration.get("min_distinctiveness", 0.0)  # type: ignore[assignment]
+            _check_calibration_settings(
+                model.calibration, min(self.top_k, len(mapdb)), self.accept_threshold
+            )
             if not self.rerank_enabled and min_distinctiveness:
                 # the calibration scores re-ranking costs: without them only the cost rule is left
                 log.warning(

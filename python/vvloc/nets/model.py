@@ -341,9 +341,18 @@ class VVLocNet(nn.Module):
         model.load_state_dict(state)
         cal_path = src / CALIBRATION_FILE
         if cal_path.is_file():
-            cal = json.loads(cal_path.read_text())
+            try:
+                cal = json.loads(cal_path.read_text())
+            except (UnicodeDecodeError, json.JSONDecodeError) as e:
+                raise ValueError(f"{cal_path}: not a JSON file ({e})") from None
             if not isinstance(cal, dict):
                 raise ValueError(f"{cal_path}: expected a JSON object")
+            value = cal.get("min_distinctiveness", 0.0)
+            if value is not None and not (isinstance(value, (int, float)) and value >= 0):
+                raise ValueError(
+                    f"{cal_path}: min_distinctiveness must be a number >= 0 or null (accept "
+                    f"nothing), got {value!r}"
+                )
             model.calibration = calibration_from_json(cal)
         train_path = src / TRAINING_FILE
         if train_path.is_file():  # informational: a bad record never blocks good weights
