@@ -377,6 +377,10 @@ def test_calibration_is_kept_with_the_checkpoint_and_gates_acceptance(
     assert json.loads(text) == {"min_distinctiveness": None, "precision": None}
     back = VVLocNet.load(ckpt).calibration
     assert back["min_distinctiveness"] == float("inf") and np.isnan(back["precision"])
+    with caplog.at_level("WARNING", logger="vvloc.localize"):
+        Localizer.open(map_file, ckpt)
+    assert "calibration accepts nothing" in caplog.text
+    caplog.clear()
     cal = model.calibration = {"min_distinctiveness": 0.0123, "precision": 0.9, "queries": 40}
     model.save(ckpt)
     model = VVLocNet.load(ckpt)

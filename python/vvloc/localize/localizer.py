@@ -303,7 +303,15 @@ def _check_calibration_settings(
     """Warn when a localizer applies a calibration measured with other settings: the
     distinctiveness (mean − minimum of the K re-ranking costs) depends on K, and the precision
     reached depends on the cost rule."""
-    if not calibration.get("min_distinctiveness"):
+    threshold = calibration.get("min_distinctiveness")
+    if not threshold:
+        return
+    if threshold == float("inf"):
+        log.warning(
+            "the model's calibration accepts nothing (no distinctiveness threshold reached its "
+            "target precision on the validation sessions): every result has accepted=False; "
+            "calibrate with vvloc calibrate, or pass min_distinctiveness"
+        )
         return
     cal_k, cal_cost = calibration.get("top_k"), calibration.get("accept_threshold")
     if cal_k is not None and int(cal_k) != top_k:
