@@ -19,6 +19,7 @@ import numpy as np
 from scipy.ndimage import convolve
 
 from vvloc.data.frame import Frame
+from vvloc.kernels import _finite_float, _positive_int
 
 
 def _check(images: np.ndarray) -> np.ndarray:
@@ -30,24 +31,10 @@ def _check(images: np.ndarray) -> np.ndarray:
     return images
 
 
-def _count(x: Any, name: str, minimum: int) -> int:
-    if isinstance(x, bool) or not isinstance(x, (int, np.integer)) or x < minimum:
-        raise ValueError(f"{name}: expected an int >= {minimum}, got {x!r}")
-    return int(x)
-
-
 def _fill(x: Any) -> np.uint8:
     if isinstance(x, bool) or not isinstance(x, (int, np.integer)) or not 0 <= x <= 255:
         raise ValueError(f"fill: expected a grey level, an int in 0..255, got {x!r}")
     return np.uint8(x)
-
-
-def _finite(x: Any, name: str) -> float:
-    if isinstance(x, bool) or not isinstance(x, (int, float, np.integer, np.floating)):
-        raise ValueError(f"{name}: expected a finite number, got {x!r}")
-    if not np.isfinite(x):
-        raise ValueError(f"{name}: expected a finite number, got {x}")
-    return float(x)
 
 
 def _camera_list(cameras: Sequence[int] | None, m: int) -> list[int]:
@@ -76,7 +63,7 @@ def mask_cameras(
     m = images.shape[0]
     value = _fill(fill)
     if cameras is None:
-        count = _count(count, "count", 0)
+        count = _positive_int(count, "count", 0)
         if count > m:
             raise ValueError(f"count: expected 0..{m}, got {count}")
         cameras = np.random.default_rng(seed).choice(m, size=count, replace=False).tolist()
@@ -96,9 +83,9 @@ def motion_blur(
     """Linear motion blur of ``length`` pixels along ``angle_deg`` (image x axis = 0°, random
     per camera when None) on the chosen cameras (all by default); see :func:`line_kernel`."""
     images = _check(images)
-    length = _count(length, "length", 1)
+    length = _positive_int(length, "length", 1)
     if angle_deg is not None:
-        _finite(angle_deg, "angle_deg")
+        _finite_float(angle_deg, "angle_deg")
     rng = np.random.default_rng(seed)
     out = images.copy()
     for c in _camera_list(cameras, images.shape[0]):
@@ -137,8 +124,8 @@ def region_boxes(
 ) -> list[tuple[int, int, int, int, int]]:
     """The (camera, row0, row1, col0, col1) boxes :func:`mask_regions` blanks for these args."""
     m, _, h, w = shape
-    count = _count(count, "count", 0)
-    if not 0 < _finite(size, "size") <= 1:
+    count = _positive_int(count, "count", 0)
+    if not 0 < _finite_float(size, "size") <= 1:
         raise ValueError(f"size: expected a fraction of the image side in (0, 1], got {size}")
     rng = np.random.default_rng(seed)
     bh, bw = max(1, round(size * h)), max(1, round(size * w))
@@ -182,7 +169,7 @@ def exposure(
 ) -> np.ndarray:
     """Exposure change: ``255 · (gain · x / 255) ** gamma``, clipped, on the chosen cameras."""
     images = _check(images)
-    if not (_finite(gain, "gain") > 0 and _finite(gamma, "gamma") > 0):
+    if not (_finite_float(gain, "gain") > 0 and _finite_float(gamma, "gamma") > 0):
         raise ValueError(f"gain, gamma: expected finite values > 0, got {gain}, {gamma}")
     out = images.copy()
     for c in _camera_list(cameras, images.shape[0]):
@@ -200,7 +187,7 @@ def noise(
 ) -> np.ndarray:
     """Additive Gaussian noise of standard deviation ``sigma`` grey levels, clipped."""
     images = _check(images)
-    if _finite(sigma, "sigma") < 0:
+    if _finite_float(sigma, "sigma") < 0:
         raise ValueError(f"sigma: expected a finite value >= 0, got {sigma}")
     rng = np.random.default_rng(seed)
     out = images.copy()

@@ -98,6 +98,17 @@ def calibration_from_json(cal: dict[str, Any]) -> dict[str, Any]:
 CHECKPOINT_FORMAT = "vvloc.nets.VVLocNet"
 
 
+def _json_object(path: Path) -> dict[str, Any]:
+    """The JSON object in ``path``; ``ValueError`` naming the file when it is not one."""
+    try:
+        value = json.loads(path.read_text())
+    except (UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise ValueError(f"{path}: not a JSON file ({e})") from None
+    if not isinstance(value, dict):
+        raise ValueError(f"{path}: expected a JSON object, got {type(value).__name__}")
+    return value
+
+
 @dataclass
 class EncoderOutput:
     """What :meth:`VVLocNet.encode` returns (float32, on the model's device).
@@ -291,12 +302,7 @@ class VVLocNet(nn.Module):
         for p in (cfg_path, w_path):
             if not p.is_file():
                 raise FileNotFoundError(f"directory: {p} not found (not a vvloc checkpoint)")
-        try:
-            meta = json.loads(cfg_path.read_text())
-        except (UnicodeDecodeError, json.JSONDecodeError) as e:
-            raise ValueError(f"{cfg_path}: not a JSON file ({e})") from None
-        if not isinstance(meta, dict):
-            raise ValueError(f"{cfg_path}: expected a JSON object, got {type(meta).__name__}")
+        meta = _json_object(cfg_path)
         if meta.get("format") != CHECKPOINT_FORMAT:
             raise ValueError(
                 f"{cfg_path}: format {meta.get('format')!r} is not {CHECKPOINT_FORMAT}"
@@ -341,12 +347,7 @@ class VVLocNet(nn.Module):
         model.load_state_dict(state)
         cal_path = src / CALIBRATION_FILE
         if cal_path.is_file():
-            try:
-                cal = json.loads(cal_path.read_text())
-            except (UnicodeDecodeError, json.JSONDecodeError) as e:
-                raise ValueError(f"{cal_path}: not a JSON file ({e})") from None
-            if not isinstance(cal, dict):
-                raise ValueError(f"{cal_path}: expected a JSON object")
+            cal = _json_object(cal_path)
             value = cal.get("min_distinctiveness", 0.0)
             if value is not None and not (isinstance(value, (int, float)) and value >= 0):
                 raise ValueError(
