@@ -228,6 +228,34 @@ def test_floors_are_different_places(tmp_path):
     assert set(split.query_sessions.tolist()) == {"s2"}  # s1 is on another floor
     assert np.all(split.nearest_distance <= 1.0) and len(split.query_indices) == 5
     assert np.array_equal(split.nearest_database, np.arange(5))
+    assert evaluation_split(ds, database="s0").revisit_radius == 2.0  # vvloc eval's keep radius
+    with pytest.raises(ValueError, match="more than once"):
+        evaluation_split(ds, database="s0", queries=["s2", "s2"])
+    for bad in (0.0, -5.0, 1.5):  # floors apart by less than a radius would pair
+        with pytest.raises(ValueError, match="floor_separation"):
+            evaluation_split(ds, database="s0", floor_separation=bad)
+        with pytest.raises(ValueError, match="floor_separation"):
+            TripletSampler(ds, seed=0, floor_separation=bad)
+    with pytest.raises(TypeError, match="sessions"):
+        TripletSampler(ds, seed=0, sessions="s0")
+    with pytest.raises(ValueError, match="sessions: names repeated"):
+        TripletSampler(ds, seed=0, sessions=["s0", "s0", "s2"])
+
+
+def test_anchors_without_a_negative_are_never_drawn(tmp_path):
+    # three places 2.9 m apart in two sessions: the middle one has no frame beyond 3 m
+    xs = np.array([-2.9, 0.0, 2.9])
+    poses = np.column_stack([xs, np.zeros(3), np.zeros(3)])
+    _write(tmp_path / "ds", {"s0": (poses, np.zeros(3)), "s1": (poses, np.zeros(3))})
+    sampler = TripletSampler(open_dataset(tmp_path / "ds"), seed=0)
+    anchors = {sampler.locate(int(a)) for a in sampler.anchors}
+    assert anchors == {("s0", 0), ("s0", 2), ("s1", 0), ("s1", 2)}  # not the middle ones
+    for _ in range(20):
+        sampler.sample(4)  # used to fail at random: "frame 4 has no negative beyond 3.0 m"
+    near = np.column_stack([np.zeros(3), np.zeros(3), np.zeros(3)])
+    _write(tmp_path / "one", {"s0": (near, np.zeros(3)), "s1": (near, np.zeros(3))})
+    with pytest.raises(ValueError, match="no frame with a positive has a negative"):
+        TripletSampler(open_dataset(tmp_path / "one"), seed=0)
 
 
 def _frame_images(seed=0):

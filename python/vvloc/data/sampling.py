@@ -40,9 +40,15 @@ class TripletSampler:
     frame ids; :meth:`locate` and :meth:`frame` map an id back to (session, index) and a Frame.
 
     Hard-sample mining: :meth:`mark_hard` adds triplets the model got wrong to a pool; each
-    :meth:`sample` call draws up to ``hard_fraction`` of its triplets from that pool (oldest
-    first, cycling) until :meth:`resolve` removes them, i.e. they are re-drawn until the model
-    gets them right. :meth:`update` does both from a per-triplet correctness mask.
+    :meth:`sample` call draws up to ``hard_fraction`` of its triplets from that pool until
+    :meth:`resolve` removes them, i.e. they are re-drawn until the model gets them right.
+    :meth:`update` does both from a per-triplet correctness mask. The draws walk the pool in
+    insertion order from a cursor, cycling. The cursor is a position, not a triplet: resolving
+    triplets before it shifts the rest under it, so some wait a lap longer than "oldest first"
+    would have them wait (with the committed step 1's pool of 600-1 700 triplets and 350 hard
+    slots an epoch, up to about 17 epochs instead of 5). The committed models were trained
+    this way; a change would retrain them differently, so it waits for the next retraining.
+    The pool has no size limit.
 
     Several datasets: ``extra`` lists further ``(dataset, sessions or None)`` sources (e.g. a
     garage next to a parking lot, rendered with the same rig). Their sessions are labelled
@@ -97,6 +103,11 @@ class TripletSampler:
                 "cross_floor_same_session: expected a value in [0, 1], "
                 f"got {cross_floor_same_session}"
             )
+        _check_floor_separation(floor_separation, max(pos_radius, neg_radius), "neg_radius")
+        if isinstance(sessions, str):
+            raise TypeError(f"sessions: expected a list of session names, got the str {sessions!r}")
+        if sessions is not None and len(set(sessions)) != len(list(sessions)):
+            raise ValueError(f"sessions: names repeated in {list(sessions)}")
         self.ds = ds
         # (dataset, session name, label) of each session slot, the primary dataset's first
         self._slots: list[tuple[Dataset, str, str]] = []
@@ -156,7 +167,17 @@ class TripletSampler:
                     other |= np.abs(self.index_of[c] - self.index_of[i]) >= revisit_gap
                 c = c[other]
             self.positives.append(c)
-        self.anchors = np.array([i for i, p in enumerate(self.positives) if len(p)], dtype=np.int64)
+        # an anchor needs a negative too: a frame beyond neg_radius (another floor is far)
+        within = self.tree.query_ball_point(self.positions, r=self.neg_radius, return_length=True)
+        has_negative = np.asarray(within) < len(self.positions)
+        self.anchors = np.array(
+            [i for i, p in enumerate(self.positives) if len(p) and has_negative[i]], dtype=np.int64
+        )
+        if len(self.anchors) == 0 and any(len(p) for p in self.positives):
+            raise ValueError(
+                f"no frame with a positive has a negative beyond {self.neg_radius} m "
+                f"(sessions {self.sessions}): the data covers too small an area"
+            )
         if len(self.anchors) == 0:
             raise ValueError(
                 f"no frame has a positive within {self.pos_radius} m "
@@ -360,25 +381,37 @@ def check_query_sessions(database: str, queries: Sequence[str]) -> None:
         )
 
 
+def _check_floor_separation(separation: float, radius: float, radius_name: str) -> None:
+    """Floors are kept apart by a vertical offset of ``floor_separation`` per floor: it must
+    exceed every radius, or frames of two floors would pair."""
+    if not (isinstance(separation, (int, float)) and separation > radius):
+        raise ValueError(
+            f"floor_separation: expected a distance (m) greater than {radius_name} ({radius}), "
+            f"got {separation!r}: frames of two floors would pair"
+        )
+
+
 def evaluation_split(
     ds: Dataset,
     database: str | None = None,
     queries: Sequence[str] | None = None,
-    revisit_radius: float = 3.0,
+    revisit_radius: float = 2.0,
     floor_separation: float = FLOOR_SEPARATION,
 ) -> EvalSplit:
     """Database session vs query sessions; a query is kept only when a map frame (same floor)
-    lies within ``revisit_radius`` metres, as the standard place-recognition protocol does.
+    lies within ``revisit_radius`` metres (2 m: the radius ``vvloc eval`` keeps queries at,
+    :func:`vvloc.evaluate.recall_at_n`; 3 m before 2026-12-05), as the standard
+    place-recognition protocol does.
 
     Defaults: the first session (sorted) is the database, all others are queries.
     """
     names = ds.sessions
     database = database if database is not None else names[0]
     queries = list(queries) if queries is not None else [n for n in names if n != database]
-    if database in queries:
-        raise ValueError(f"queries: must not contain the database session {database!r}")
+    check_query_sessions(database, queries)
     if not revisit_radius > 0:
         raise ValueError(f"revisit_radius: expected > 0 m, got {revisit_radius}")
+    _check_floor_separation(floor_separation, revisit_radius, "revisit_radius")
     db = ds.session(database)
     tree = cKDTree(_positions(db.poses, db.floors, floor_separation))
     qs, qi, nn, nd = [], [], [], []
