@@ -106,8 +106,10 @@ class TripletSampler:
         _check_floor_separation(floor_separation, max(pos_radius, neg_radius), "neg_radius")
         if isinstance(sessions, str):
             raise TypeError(f"sessions: expected a list of session names, got the str {sessions!r}")
-        if sessions is not None and len(set(sessions)) != len(list(sessions)):
-            raise ValueError(f"sessions: names repeated in {list(sessions)}")
+        if sessions is not None:
+            sessions = list(sessions)  # once: an iterator would be spent by the check
+            if len(set(sessions)) != len(sessions):
+                raise ValueError(f"sessions: names repeated in {sessions}")
         self.ds = ds
         # (dataset, session name, label) of each session slot, the primary dataset's first
         self._slots: list[tuple[Dataset, str, str]] = []
