@@ -206,6 +206,12 @@ PERTURBATIONS: dict[str, Callable[..., np.ndarray]] = {
 }
 
 
+#: The perturbations that draw anything at random (they take a ``seed``).
+SEEDED = frozenset(
+    name for name, fn in PERTURBATIONS.items() if "seed" in inspect.signature(fn).parameters
+)
+
+
 def perturb_frame(frame: Frame, name: str, **kwargs: Any) -> Frame:
     """A copy of ``frame`` whose images went through perturbation ``name`` (see PERTURBATIONS)
     with ``kwargs``; the calibration and pose are the original's."""

@@ -35,9 +35,9 @@ class TripletSampler:
     (``cross_session=True``, the default) or any other frame; with ``revisit_gap`` N > 0 also a
     frame of the anchor's own session at least N frames away (a drive that returns to a place,
     e.g. a dataset of single long sessions; nearer frames are the same pass). A negative lies
-    beyond
-    ``neg_radius`` metres (or on another floor). Triplets are (T, 3) int64 arrays of *global*
-    frame ids; :meth:`locate` and :meth:`frame` map an id back to (session, index) and a Frame.
+    beyond ``neg_radius`` metres (or on another floor); an anchor needs both. Triplets are
+    (T, 3) int64 arrays of *global* frame ids; :meth:`locate` and :meth:`frame` map an id back
+    to (session, index) and a Frame.
 
     Hard-sample mining: :meth:`mark_hard` adds triplets the model got wrong to a pool; each
     :meth:`sample` call draws up to ``hard_fraction`` of its triplets from that pool until
@@ -103,7 +103,7 @@ class TripletSampler:
                 "cross_floor_same_session: expected a value in [0, 1], "
                 f"got {cross_floor_same_session}"
             )
-        _check_floor_separation(floor_separation, max(pos_radius, neg_radius), "neg_radius")
+        _check_floor_separation(floor_separation, neg_radius, "neg_radius")  # >= pos_radius
         if isinstance(sessions, str):
             raise TypeError(f"sessions: expected a list of session names, got the str {sessions!r}")
         if sessions is not None:

@@ -8,7 +8,6 @@ metric-localization global poses (DESIGN.md §3 frames).
 
 from __future__ import annotations
 
-import inspect
 import logging
 import os
 from collections.abc import Sequence
@@ -21,7 +20,7 @@ import torch
 from vvloc import evaluate, geometry, kernels, viz
 from vvloc._io import atomic_write
 from vvloc.data import Frame, open_dataset
-from vvloc.data.perturb import PERTURBATIONS, frame_seed, perturb_frame
+from vvloc.data.perturb import SEEDED, frame_seed, perturb_frame
 from vvloc.data.sampling import check_query_sessions
 from vvloc.localize.localizer import (
     LocalizationResult,
@@ -86,7 +85,7 @@ def perturbed(frame: Frame, label: str) -> Frame:
     """``frame`` under the robustness perturbation ``label`` of :data:`ROBUSTNESS`, with the
     frame's own seed where the perturbation draws anything."""
     name, args = ROBUSTNESS[label]
-    if "seed" in inspect.signature(PERTURBATIONS[name]).parameters:
+    if name in SEEDED:
         args = {**args, "seed": frame_seed(frame)}
     return perturb_frame(frame, name, **args)
 
