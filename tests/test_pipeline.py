@@ -14,6 +14,7 @@ import sys
 import numpy as np
 import pytest
 import torch
+from scipy.spatial.transform import Rotation
 
 from vvloc import geometry
 from vvloc.data import open_dataset
@@ -96,6 +97,23 @@ def test_the_map_records_its_rig_and_the_localizer_compares_queries_with_it(
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         loc.localize(other)
+    # a levelled frame of a tilting vehicle (its own cam_to_ego, 6° of pitch and 0.4 m of motion
+    # compensation) is the map's rig; a camera mounted 20° lower is not
+    tilt = np.eye(4)
+    tilt[:3, :3] = Rotation.from_euler("y", 6, degrees=True).as_matrix()
+    tilt[0, 3] = 0.4
+    fresh = Localizer.open(map_file, model_dir, top_k=3, search=SMALL_SEARCH)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        fresh.localize(dataclasses.replace(frame, cam_to_ego=tilt @ frame.cam_to_ego))
+    lower = frame.cam_to_ego.copy()
+    lower[1, :3, :3] = Rotation.from_euler("y", 20, degrees=True).as_matrix() @ lower[1, :3, :3]
+    with pytest.warns(
+        UserWarning,
+        match=r"rig than the map's \(cameras turned by up to 20\.0° and moved by up to 0\.00 m",
+    ):
+        fresh.localize(dataclasses.replace(frame, cam_to_ego=lower))
+    fresh.map.close()
     # non-finite calibration is refused, whatever the rig
     bad = dataclasses.replace(frame, K=np.full_like(frame.K, np.nan))
     with pytest.raises(ValueError, match=r"frames\[1\]: K or cam_to_ego holds non-finite"):

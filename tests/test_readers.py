@@ -11,7 +11,14 @@ from scipy.spatial.transform import Rotation
 
 from vvloc.data import DatasetFormatError, convert_dataset, open_dataset, select_keyframes
 from vvloc.data.bayer import demosaic_bilinear, mosaic
-from vvloc.data.frame import FRD_TO_FLU, Camera, euler_to_matrix, interpolate_rows
+from vvloc.data.frame import (
+    FRD_TO_FLU,
+    NED_TO_ENU,
+    Camera,
+    ego_frames,
+    euler_to_matrix,
+    interpolate_rows,
+)
 from vvloc.data.nclt import X_BODY_LB3
 
 # NCLT's published calibration of Ladybug camera 5 (the forward one): cam_params/x_lb3_c5.csv
@@ -282,7 +289,7 @@ def test_oxford_reader_demosaics_and_converts_frames(tmp_path):
     assert np.allclose(f.cam_to_ego[0][:3, 2], [1, 0, 0]) and np.allclose(
         f.cam_to_ego[0][:3, 0], [0, -1, 0]
     )
-    np.testing.assert_allclose(f.cam_to_ego[0][:3, 3], [0, 0, 1.5])
+    np.testing.assert_allclose(f.cam_to_ego[0][:3, 3], [0, 0, 1.5], atol=1e-12)
     # the SDK's mono_left.txt puts the camera on the car's left, 1.5 m behind the stereo camera
     # (robotcar-dataset-sdk issue #22: about (-1.55, 0.59) forward-left), looking 71° left
     left = f.cam_to_ego[1]
@@ -427,7 +434,17 @@ def test_cli_convert(tmp_path):
     assert r.returncode == 2 and "--cameras: NCLT cameras are numbers" in r.stderr
     r = run("--out", str(tmp_path / "d"), "--width", "16")
     assert r.returncode == 2 and "--width and --height go together" in r.stderr
+    r = run("--out", str(tmp_path / "d"), "--motion_compensation")
+    assert r.returncode == 2 and "--motion_compensation applies to RobotCar" in r.stderr
     assert not (tmp_path / "d").exists()
+    # the Segway's frames are levelled unless --no_level (this fixture's Segway stands level:
+    # every frame's extrinsics are the rig's, written all the same)
+    r = run("--out", str(tmp_path / "e"), "--cameras", "1")
+    assert r.returncode == 0, r.stderr
+    assert (tmp_path / "e" / "sessions" / DATE / "cam_to_ego.csv").is_file()
+    r = run("--out", str(tmp_path / "f"), "--cameras", "1", "--no_level")
+    assert r.returncode == 0, r.stderr
+    assert not (tmp_path / "f" / "sessions" / DATE / "cam_to_ego.csv").exists()
 
 
 def test_a_rendered_session_round_trips_through_nclts_raw_layout(tiny_world, tmp_path):
@@ -484,3 +501,287 @@ def test_a_rendered_session_round_trips_through_nclts_raw_layout(tiny_world, tmp
     conv = open_dataset(out).session(DATE)
     np.testing.assert_array_equal(conv[3].images, frames[3].images)
     np.testing.assert_allclose(conv.poses, back.poses)
+
+
+# --- a tilting vehicle and cameras that fire apart: per-frame extrinsics -------------------------
+
+
+def _world_ego(pose, z):
+    """4×4 ego → world of a vvloc pose (x, y, yaw) at height z: level by DESIGN.md §3."""
+    T = euler_to_matrix(pose[0], pose[1], z, 0.0, 0.0, pose[2])
+    return T
+
+
+def _random_rigid(rng, scale=1.0):
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec(rng.normal(size=3)).as_matrix()
+    T[:3, 3] = rng.normal(size=3) * scale
+    return T
+
+
+def test_ego_frames_level_the_ego_frame_and_keep_every_camera_where_it_was():
+    rng = np.random.default_rng(3)
+    n, h = 6, 1.3
+    world_body = np.stack(
+        [
+            euler_to_matrix(
+                *rng.normal(size=3) * 20, *rng.uniform(-0.2, 0.2, 2), rng.uniform(-3, 3)
+            )
+            for _ in range(n)
+        ]
+    )
+    rig = [
+        Camera(f"c{m}", 8, 6, np.eye(3), _random_rigid(rng)).with_ego_origin_lowered(h)
+        for m in range(3)
+    ]
+    lower = np.eye(4)
+    lower[2, 3] = -h
+    poses, z, per_frame = ego_frames(world_body, rig, height=h)
+    assert per_frame is not None and per_frame.shape == (n, 3, 4, 4)
+    for k in range(n):
+        # the ego origin is the ground point h below the body origin along the body's z axis,
+        # and its heading is the body's
+        ground = world_body[k] @ lower
+        np.testing.assert_allclose([*poses[k, :2], z[k]], ground[:3, 3], atol=1e-12)
+        fwd = world_body[k][:3, 0]
+        assert poses[k, 2] == pytest.approx(math.atan2(fwd[1], fwd[0]), abs=1e-12)
+        # every camera sits where the 6-DoF chain puts it: level ego · frame's cam_to_ego
+        for m, cam in enumerate(rig):
+            want = world_body[k] @ lower @ cam.cam_to_ego
+            got = _world_ego(poses[k], z[k]) @ per_frame[k, m]
+            np.testing.assert_allclose(got, want, atol=1e-9)
+    # level=False: the tilting body frame is the ego frame; every frame has the rig's extrinsics
+    poses0, z0, none = ego_frames(world_body, rig, height=h, level=False)
+    assert none is None
+    np.testing.assert_array_equal(poses0, poses)
+    np.testing.assert_array_equal(z0, z)
+    # motion compensation: each camera from where the body was at its own exposure
+    at_cams = np.stack([world_body @ _random_rigid(rng, 0.3) for _ in rig], axis=1)
+    poses1, z1, moved = ego_frames(world_body, rig, height=h, world_body_at_cameras=at_cams)
+    np.testing.assert_array_equal(poses1, poses)
+    for k in range(n):
+        for m, cam in enumerate(rig):
+            want = at_cams[k, m] @ lower @ cam.cam_to_ego
+            np.testing.assert_allclose(_world_ego(poses1[k], z1[k]) @ moved[k, m], want, atol=1e-9)
+    with pytest.raises(ValueError, match=r"world_body_at_cameras: expected \(6, 3, 4, 4\)"):
+        ego_frames(world_body, rig, world_body_at_cameras=at_cams[:, :2])
+
+
+def _tilt_nclt(root, roll=0.06, pitch=-0.09):
+    """_nclt with a Segway that rolls and pitches (radians, NCLT's NED ground truth)."""
+    _nclt(root)
+    gt = [
+        [1_000_010, 10.0, 5.0, -1.0, roll, pitch, 0.3],
+        [1_200_020, 11.0, 5.5, -1.0, -roll, 2 * pitch, 0.4],
+    ]
+    (root / f"groundtruth_{DATE}.csv").write_text("\n".join(",".join(map(str, r)) for r in gt))
+    return gt
+
+
+def test_nclt_frames_are_levelled_by_the_segways_roll_and_pitch(tmp_path):
+    gt = _tilt_nclt(tmp_path)
+    h = 0.4
+    with pytest.warns(UserWarning, match="U2D_Cam2"):
+        ds = open_dataset(tmp_path, cameras=(1, 2), ego_height=h, upright=False)
+    s = ds.session(DATE)
+    assert s.frame_cam_to_ego is not None
+    lower = np.eye(4)
+    lower[2, 3] = -h
+    for k, row in enumerate(gt):
+        f = s[k]
+        world_body = NED_TO_ENU @ euler_to_matrix(*row[1:]) @ FRD_TO_FLU
+        for m, cam in enumerate(ds.cameras):
+            # the level ego frame with this frame's cam_to_ego puts the camera where the
+            # ground truth's full attitude does
+            want = world_body @ lower @ cam.cam_to_ego
+            np.testing.assert_allclose(_world_ego(f.pose, f.z) @ f.cam_to_ego[m], want, atol=1e-9)
+        # a tilted frame's cameras differ from the rig's by the body's attitude (about 6-10°)
+        angle = Rotation.from_matrix(f.cam_to_ego[0][:3, :3] @ ds.cameras[0].cam_to_ego[:3, :3].T)
+        assert 3.0 < math.degrees(angle.magnitude()) < 12.0
+    with pytest.warns(UserWarning, match="U2D_Cam2"):
+        flat = open_dataset(tmp_path, cameras=(1, 2), ego_height=h, level=False, upright=False)
+    fs = flat.session(DATE)
+    assert fs.frame_cam_to_ego is None
+    np.testing.assert_array_equal(fs[0].cam_to_ego[0], flat.cameras[0].cam_to_ego)
+    np.testing.assert_array_equal(fs.poses, s.poses)  # the same origin and heading
+    with pytest.raises(TypeError, match="level: expected a bool"):
+        open_dataset(tmp_path, cameras=(1,), level=1)
+
+
+def test_per_frame_extrinsics_survive_conversion_to_the_vvloc_format(tmp_path):
+    _tilt_nclt(tmp_path / "raw")
+    with pytest.warns(UserWarning, match="U2D_Cam2"):
+        src = open_dataset(tmp_path / "raw", cameras=(1, 2), ego_height=0.4, upright=False)
+    with pytest.warns(UserWarning, match="U2D_Cam2"):
+        convert_dataset(
+            tmp_path / "raw", tmp_path / "out", cameras=(1, 2), ego_height=0.4, upright=False
+        )
+    path = tmp_path / "out" / "sessions" / DATE / "cam_to_ego.csv"
+    assert path.read_text().startswith("timestamp,camera,m00,m01,m02,m03,m10,")
+    out = open_dataset(tmp_path / "out").session(DATE)
+    a, b = src.session(DATE), out
+    np.testing.assert_array_equal(b.frame_cam_to_ego, a.frame_cam_to_ego)  # exact (repr floats)
+    np.testing.assert_array_equal(b[1].cam_to_ego, a[1].cam_to_ego)
+    # the rig's own frames write no file
+    with pytest.warns(UserWarning, match="U2D_Cam2"):
+        convert_dataset(
+            tmp_path / "raw",
+            tmp_path / "flat",
+            cameras=(1, 2),
+            ego_height=0.4,
+            level=False,
+            upright=False,
+        )
+    assert not (tmp_path / "flat" / "sessions" / DATE / "cam_to_ego.csv").exists()
+    assert open_dataset(tmp_path / "flat").session(DATE).frame_cam_to_ego is None
+    # malformed files are refused, naming the file and the line
+    lines = path.read_text().splitlines()
+    for bad, match in (
+        (lines[:-1], r"cam_to_ego\.csv: no row for timestamp 1200000, camera 'Cam2'"),
+        ([*lines, lines[-1]], r"cam_to_ego\.csv, line 6: a second row for timestamp 1200000"),
+        ([lines[0], lines[1].replace("Cam1", "Cam9"), *lines[2:]], r"line 2: camera 'Cam9'"),
+        ([lines[0], "1000000,Cam1," + ",".join(["2.0"] * 12), *lines[2:]], r"line 2: not a"),
+        ([lines[0], "7,Cam1," + ",".join(["0"] * 12)], r"line 2: timestamp 7 is not in poses"),
+        (["timestamp,camera", *lines[1:]], r"cam_to_ego\.csv, line 1: header must be"),
+    ):
+        path.write_text("\n".join(bad) + "\n")
+        with pytest.raises(DatasetFormatError, match=match):
+            open_dataset(tmp_path / "out")
+
+
+def test_the_writer_takes_per_frame_extrinsics_from_every_frame_or_none(tmp_path):
+    from vvloc.data.vvloc_format import DatasetWriter
+
+    cam = Camera("front", 4, 3, np.eye(3), np.eye(4))
+    img = np.zeros((1, 3, 3, 4), np.uint8)
+    with DatasetWriter(tmp_path / "a", [cam]) as w:
+        s = w.add_session("s0")
+        s.add(0, (0, 0, 0), img, cam_to_ego=np.eye(4)[None])
+        with pytest.raises(ValueError, match=r"cam_to_ego: every frame .* had its own"):
+            s.add(1, (0, 0, 0), img)
+        with pytest.raises(ValueError, match=r"cam_to_ego: expected float \(1, 4, 4\)"):
+            s.add(1, (0, 0, 0), img, cam_to_ego=np.eye(4))
+        with pytest.raises(ValueError, match="cam_to_ego: expected finite rigid"):
+            s.add(1, (0, 0, 0), img, cam_to_ego=2 * np.eye(4)[None])
+        skewed = np.eye(4)[None].copy()
+        skewed[0, 3, 0] = 0.5  # not a rigid transform's bottom row (the file keeps 3 rows)
+        with pytest.raises(ValueError, match="bottom row 0 0 0 1"):
+            s.add(1, (0, 0, 0), img, cam_to_ego=skewed)
+        s.add(1, (0, 0, 0), img, cam_to_ego=np.eye(4)[None])
+        t = w.add_session("s1")
+        t.add(0, (0, 0, 0), img)
+        with pytest.raises(ValueError, match="the first frame of this session had the rig's"):
+            t.add(1, (0, 0, 0), img, cam_to_ego=np.eye(4)[None])
+    ds = open_dataset(tmp_path / "a")
+    assert ds.session("s0").frame_cam_to_ego.shape == (2, 1, 4, 4)
+    assert len(ds.session("s1")) == 1 and ds.session("s1").frame_cam_to_ego is None
+
+
+def _unsynchronised_oxford(root, gap_us):
+    """_oxford with the second stereo frame's mono_left image taken ``gap_us`` earlier."""
+    sess = _oxford(root)
+    mono = sess / "mono_left"
+    (mono / "200030.png").rename(mono / f"{200_000 - gap_us}.png")
+    (sess / "mono_left.timestamps").write_text(f"120 1\n{200_000 - gap_us} 1\n400010 1\n")
+    return sess
+
+
+def test_oxford_cameras_are_placed_where_they_were_at_their_own_exposure(tmp_path):
+    sess = _unsynchronised_oxford(tmp_path, 40_000)
+    cams = ("stereo_centre", "mono_left")
+    ds = open_dataset(tmp_path, cameras=cams, ego_height=1.5)
+    still = open_dataset(tmp_path, cameras=cams, ego_height=1.5, motion_compensation=False)
+    f, g = ds.session(sess.name)[1], still.session(sess.name)[1]
+    np.testing.assert_array_equal(f.pose, g.pose)  # the frame's pose is the stereo camera's
+    np.testing.assert_allclose(f.cam_to_ego[0], g.cam_to_ego[0], atol=1e-9)
+    # the mono camera fired 40 ms earlier: it is where the vehicle's frame at that time put it
+    (t0, _, n0, e0, y0), _, (t1, _, n1, e1, y1) = INS_ROWS
+    poses = []
+    for t in (100, 200_000, 160_000):
+        w = (t - t0) / (t1 - t0)
+        poses.append(_vehicle_enu(n0 + w * (n1 - n0), e0 + w * (e1 - e0), y0 + w * (y1 - y0)))
+    (ex0, ny0, _), _, (ex, ny, yaw) = poses
+    at_exposure = euler_to_matrix(ex - ex0, ny - ny0, 0.0, 0.0, 0.0, yaw)
+    world_cam = _world_ego(f.pose, 0.0) @ f.cam_to_ego[1]
+    want = at_exposure @ still.cameras[1].cam_to_ego
+    np.testing.assert_allclose(world_cam[:2], want[:2], atol=1e-6)
+    # which is about 0.24 m from where the rig puts it at the frame's time: in those 40 ms the
+    # INS moved 0.22 m and turned 1.1°, which swings the camera 1.6 m behind it by 3 cm more
+    shift = np.linalg.norm((f.cam_to_ego[1] - g.cam_to_ego[1])[:2, 3])
+    assert 0.2 < shift < 0.28
+    # a camera whose exposure the INS does not cover is not joined
+    (sess / "gps" / "ins.csv").write_text(
+        "\n".join((sess / "gps" / "ins.csv").read_text().splitlines()[:2]) + "\n"
+    )
+    with pytest.raises(DatasetFormatError, match="no frame has an image of every camera"):
+        open_dataset(tmp_path, cameras=cams, tolerance_us=20)  # mono at 120 µs, INS at 90 µs
+    kept = open_dataset(tmp_path, cameras=cams, tolerance_us=20, motion_compensation=False)
+    assert len(kept.session(sess.name)) == 1
+    with pytest.raises(TypeError, match="motion_compensation: expected a bool"):
+        open_dataset(tmp_path, cameras=cams, motion_compensation="no")
+
+
+def test_oxford_frames_are_levelled_by_the_cars_roll_and_pitch(tmp_path):
+    """The full chain of a tilting car whose cameras fire apart: every camera where the INS
+    (interpolated at its own exposure, roll and pitch included) puts it, poses and heights of
+    the ground point under the vehicle origin, and a frame the INS does not cover dropped."""
+    sess = _unsynchronised_oxford(tmp_path, -60_000)  # mono of frame 2 at 260 ms, 60 ms late
+    rows = [  # time, northing, easting, down, roll, pitch, yaw (the INS's NED frame)
+        (90, 5_700_000.0, 620_000.0, -100.0, 0.05, -0.08, 0.2),
+        (200_010, 5_700_001.0, 620_000.5, -100.2, -0.04, 0.06, 0.3),
+        (400_020, 5_700_003.0, 620_001.5, -100.1, 0.02, 0.03, 0.5),
+    ]
+    header = (
+        "timestamp,ins_status,latitude,longitude,altitude,northing,easting,down,utm_zone,"
+        "velocity_north,velocity_east,velocity_down,roll,pitch,yaw"
+    )
+    lines = [
+        f"{t},INS_SOLUTION_GOOD,0,0,0,{n},{e},{d},30U,0,0,0,{r},{p},{y}"
+        for t, n, e, d, r, p, y in rows
+    ]
+    (sess / "gps" / "ins.csv").write_text(header + "\n" + "\n".join(lines) + "\n")
+    h, cams = 1.5, ("stereo_centre", "mono_left")
+    ds = open_dataset(tmp_path, cameras=cams, ego_height=h)
+    s = ds.session(sess.name)
+    # the 200 ms frame's mono image is 60 ms away, beyond the 50 ms tolerance: not joined
+    assert s.timestamps.tolist() == [100, 400_000]
+    ins_t, ins = np.array([r[0] for r in rows]), np.array([r[1:] for r in rows])
+    T_vehicle_ins = euler_to_matrix(*INS_LEVER, 0, 0, 0)
+
+    def world_vehicle(t):  # linear interpolation of the INS rows, as the SDK does
+        v = [np.interp(t, ins_t, ins[:, c]) for c in range(6)]
+        return NED_TO_ENU @ euler_to_matrix(*v) @ np.linalg.inv(T_vehicle_ins) @ FRD_TO_FLU
+
+    lower = np.eye(4)
+    lower[2, 3] = -h
+    origin = np.asarray(ds.meta["origin_enu"])
+    np.testing.assert_allclose(origin, (world_vehicle(100) @ lower)[:3, 3], atol=1e-6)
+    for k, (t, t_mono) in enumerate(((100, 120), (400_000, 400_010))):
+        f = s[k]
+        ground = world_vehicle(t) @ lower
+        np.testing.assert_allclose([*f.pose[:2], f.z], ground[:3, 3] - origin, atol=1e-6)
+        world_ego = euler_to_matrix(*(origin + np.array([*f.pose[:2], f.z])), 0.0, 0.0, f.pose[2])
+        for m, t_cam in enumerate((t, t_mono)):
+            want = world_vehicle(t_cam) @ lower @ ds.cameras[m].cam_to_ego
+            np.testing.assert_allclose(world_ego @ f.cam_to_ego[m], want, atol=1e-6)
+        # the tilt is in the frame's extrinsics: 3-10° from the rig's
+        turn = Rotation.from_matrix(f.cam_to_ego[0][:3, :3] @ ds.cameras[0].cam_to_ego[:3, :3].T)
+        assert 2.0 < math.degrees(turn.magnitude()) < 10.0
+    flat = open_dataset(
+        tmp_path, cameras=cams, ego_height=h, level=False, motion_compensation=False
+    )
+    assert flat.session(sess.name).frame_cam_to_ego is None
+    np.testing.assert_array_equal(flat.session(sess.name).poses, s.poses)
+
+
+def test_readers_without_any_usable_frame_say_so(tmp_path):
+    sess = _oxford(tmp_path / "ox")
+    for p in (sess / "mono_left").glob("*.png"):
+        p.unlink()  # a partial download: timestamps listed, images missing
+    with pytest.raises(DatasetFormatError, match="no frame has an image of every camera"):
+        open_dataset(tmp_path / "ox", cameras=("stereo_centre", "mono_left"))
+    _nclt(tmp_path / "nclt")
+    (tmp_path / "nclt" / f"groundtruth_{DATE}.csv").write_text("5000000,1,2,3,0,0,0\n")
+    with pytest.warns(UserWarning, match="U2D_Cam2"):
+        s = open_dataset(tmp_path / "nclt", cameras=(1, 2), upright=False).session(DATE)
+    assert len(s) == 0 and s.frame_cam_to_ego.shape == (0, 2, 4, 4)

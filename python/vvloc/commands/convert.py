@@ -82,6 +82,22 @@ def convert(
             "ground (m), where vvloc's ego origin goes (default 0: kept).",
         ),
     ] = None,
+    level: Annotated[
+        bool | None,
+        typer.Option(
+            "--level/--no_level",
+            help="NCLT / RobotCar: make each frame's ego frame level, the vehicle's roll and "
+            "pitch going into that frame's extrinsics (default: level; --no_level keeps the "
+            "tilting vehicle frame).",
+        ),
+    ] = None,
+    motion_compensation: Annotated[
+        bool | None,
+        typer.Option(
+            "--motion_compensation/--no_motion_compensation",
+            help="RobotCar: place each camera where it was at its own exposure (default: on).",
+        ),
+    ] = None,
     overwrite: Annotated[
         bool, typer.Option("--overwrite", help="Replace an existing --out.")
     ] = False,
@@ -110,6 +126,14 @@ def convert(
             if fmt == "vvloc":
                 _fail("--ego_height applies to NCLT and RobotCar sources only")
             options["ego_height"] = ego_height
+        if level is not None:
+            if fmt == "vvloc":
+                _fail("--level/--no_level applies to NCLT and RobotCar sources only")
+            options["level"] = level
+        if motion_compensation is not None:
+            if fmt != "oxford":
+                _fail("--motion_compensation applies to RobotCar sources only")
+            options["motion_compensation"] = motion_compensation
         path = convert_dataset(
             src,
             out,

@@ -94,7 +94,9 @@ def convert_dataset(
             ``upright`` for NCLT; ``ego_height``, ``cameras``, ``tolerance_us`` for RobotCar).
 
     Returns:
-        ``out``. Poses, heights (``Frame.z``), floors and microsecond timestamps are copied;
+        ``out``. Poses, heights (``Frame.z``), floors and microsecond timestamps are copied,
+        and each frame's own ``cam_to_ego`` where the source gives frames their own (NCLT's
+        and RobotCar's levelled, motion-compensated frames: ``cam_to_ego.csv``);
         ``rig.json``'s meta records the source, its options and the source's own meta (e.g.
         RobotCar's ``origin_enu``). Nothing is left at ``out`` if any frame fails.
     """
@@ -167,7 +169,15 @@ def convert_dataset(
                                 for img in images
                             ]
                         )
-                    w.add(int(s.timestamps[i]), f.pose, images, z=f.z, floor=f.floor)
+                    own = s.frame_cam_to_ego is not None  # a tilting or unsynchronised rig
+                    w.add(
+                        int(s.timestamps[i]),
+                        f.pose,
+                        images,
+                        z=f.z,
+                        floor=f.floor,
+                        cam_to_ego=f.cam_to_ego if own else None,
+                    )
                     if bar is not None:
                         bar.update(1)
     finally:

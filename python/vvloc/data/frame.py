@@ -188,6 +188,11 @@ class Session(Sequence[Frame], abc.ABC):
         poses: (N, 3) float64 (x, y, yaw) world poses.
         z: (N,) float64 heights of the ego origin, metres.
         floors: (N,) int64 storey indices.
+        frame_cam_to_ego: (N, M, 4, 4) float64 camera → ego transforms of each frame, or None
+            when every frame has the rig's (``cameras[m].cam_to_ego``). Real vehicles tilt and
+            their cameras fire at different times: a reader that levels the ego frame or
+            compensates the motion between the cameras' exposures gives each frame its own
+            (:func:`ego_frames`); ``Frame.cam_to_ego`` is then this row.
     """
 
     def __init__(
@@ -198,6 +203,7 @@ class Session(Sequence[Frame], abc.ABC):
         poses: np.ndarray,
         z: np.ndarray,
         floors: np.ndarray,
+        frame_cam_to_ego: np.ndarray | None = None,
     ) -> None:
         self.name = name
         self.cameras = tuple(cameras)
@@ -214,6 +220,17 @@ class Session(Sequence[Frame], abc.ABC):
                 f"session {name!r}: cameras must share one image size to stack a Frame, got {sizes}"
             )
         self._K, self._cam_to_ego = stack_calibration(self.cameras)
+        self.frame_cam_to_ego: np.ndarray | None = None
+        if frame_cam_to_ego is not None:
+            T = np.asarray(frame_cam_to_ego, dtype=np.float64)
+            want = (n, len(self.cameras), 4, 4)
+            if T.shape != want:
+                raise ValueError(
+                    f"session {name!r}: frame_cam_to_ego must be {want}, got {T.shape}"
+                )
+            if not np.isfinite(T).all():
+                raise ValueError(f"session {name!r}: frame_cam_to_ego has non-finite values")
+            self.frame_cam_to_ego = T
 
     def __len__(self) -> int:
         return len(self.timestamps)
@@ -237,7 +254,9 @@ class Session(Sequence[Frame], abc.ABC):
         return Frame(
             images=images,
             K=self._K.copy(),
-            cam_to_ego=self._cam_to_ego.copy(),
+            cam_to_ego=(
+                self._cam_to_ego if self.frame_cam_to_ego is None else self.frame_cam_to_ego[j]
+            ).copy(),
             pose=self.poses[j].copy(),
             t=float(self.timestamps[j]) * 1e-6,
             floor=int(self.floors[j]),
@@ -330,6 +349,69 @@ def pose_from_matrix(T: np.ndarray) -> tuple[float, float, float, float]:
     """(x, y, z, yaw) of a 4×4 ego-to-world transform (yaw of the ego x axis, CCW from east)."""
     yaw = float(np.arctan2(T[1, 0], T[0, 0]))
     return float(T[0, 3]), float(T[1, 3]), float(T[2, 3]), yaw
+
+
+def ego_frames(
+    world_body: np.ndarray,
+    rig: Sequence[Camera],
+    *,
+    height: float = 0.0,
+    level: bool = True,
+    world_body_at_cameras: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """vvloc poses and per-frame camera → ego transforms of a vehicle that tilts and whose
+    cameras fire at different times (the NCLT and RobotCar readers).
+
+    Args:
+        world_body: (N, 4, 4) float64 body → world (ENU, metres) at each frame's time; the body
+            frame is FLU (x forward, y left, z up) with its origin ``height`` metres above the
+            ground, and tilts with the vehicle.
+        rig: the M cameras, ``cam_to_ego`` in the body frame lowered by ``height``
+            (:meth:`Camera.with_ego_origin_lowered`), as a level, standing vehicle has them.
+        height: the body origin's height above the ground, metres.
+        level: make the ego frame level (DESIGN.md §3: z up; the BEV's plane is the ground's):
+            the ego frame is the lowered body frame's origin with its heading alone, and the
+            body's roll and pitch go into each frame's ``cam_to_ego``. False keeps the tilting
+            body frame as the ego frame.
+        world_body_at_cameras: (N, M, 4, 4) body → world at each camera's own exposure (motion
+            compensation: a camera that fired ``dt`` before the frame's time sees from where the
+            vehicle was then), or None when the cameras fired at the frame's time.
+
+    Returns:
+        poses (N, 3) float64 (x, y, yaw) of the ego origin (the ground under the body origin,
+        along the body's z axis) in the world; its heights z (N,); and ``frame_cam_to_ego``
+        (N, M, 4, 4) float64 camera → ego of each frame, or None when every frame has the rig's
+        (``level`` False and no motion compensation).
+    """
+    T = np.asarray(world_body, dtype=np.float64).reshape(-1, 4, 4)
+    lower = np.eye(4)
+    lower[2, 3] = -float(height)
+    world_low = T @ lower  # the lowered body frame (the rig's cam_to_ego are in it)
+    yaw = np.arctan2(world_low[:, 1, 0], world_low[:, 0, 0])
+    poses = np.stack([world_low[:, 0, 3], world_low[:, 1, 3], yaw], axis=1)
+    z = world_low[:, 2, 3].copy()
+    if not level and world_body_at_cameras is None:
+        return poses, z, None
+    world_ego = world_low.copy()
+    if level:
+        c, s = np.cos(yaw), np.sin(yaw)
+        world_ego[:, :3, :3] = 0.0
+        world_ego[:, 0, 0], world_ego[:, 0, 1] = c, -s
+        world_ego[:, 1, 0], world_ego[:, 1, 1] = s, c
+        world_ego[:, 2, 2] = 1.0
+    cams = np.stack([c.cam_to_ego for c in rig]).astype(np.float64)  # (M, 4, 4)
+    if world_body_at_cameras is None:
+        at_cams = np.repeat(world_low[:, None], len(rig), axis=1)
+    else:
+        at_cams = np.asarray(world_body_at_cameras, dtype=np.float64) @ lower
+        if at_cams.shape != (len(T), len(rig), 4, 4):
+            raise ValueError(
+                f"world_body_at_cameras: expected ({len(T)}, {len(rig)}, 4, 4), got {at_cams.shape}"
+            )
+    ego_world = np.linalg.inv(world_ego)
+    frame_cam_to_ego = ego_world[:, None] @ at_cams @ cams[None]
+    frame_cam_to_ego[..., 3, :] = (0.0, 0.0, 0.0, 1.0)  # exact bottom rows after the products
+    return poses, z, frame_cam_to_ego
 
 
 def nearest_within(

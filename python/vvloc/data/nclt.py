@@ -26,8 +26,11 @@ Conventions converted from:
 * The body frame's origin is not on the ground (the Ladybug sits 1.23 m above it); vvloc's ego
   origin is the ground under the vehicle, so pass ``ego_height`` (the body origin's height above
   the ground, metres) to move it there: cameras rise by it, pose heights drop by it. The default
-  0 keeps the body origin. Roll and pitch of the Segway are dropped (3-DoF poses); the cameras
-  stay in the tilting body frame.
+  0 keeps the body origin. The ego frame is level by default (``level=True``): its origin is
+  the ground under the body origin (along the body's z axis), its heading the body's, and the
+  Segway's roll and pitch go into each frame's ``cam_to_ego`` (``Session.frame_cam_to_ego``;
+  :func:`vvloc.data.frame.ego_frames`), so that every camera ray meets the ground where the BEV
+  expects it. ``level=False`` keeps the tilting body frame as the ego frame.
 * The undistortion map file starts with a header holding two integers ``a b`` (the map is b rows ×
   a columns); each further line ``row col v u`` gives the source pixel (u column, v row) that
   output pixel (row, col) samples — the way NCLT's ``undistort.py`` reads it.
@@ -55,10 +58,10 @@ from vvloc.data.frame import (
     Camera,
     Dataset,
     Session,
+    ego_frames,
     euler_to_matrix,
     load_rgb,
     nearest_within,
-    pose_from_matrix,
 )
 from vvloc.data.vvloc_format import DatasetFormatError
 
@@ -141,8 +144,10 @@ class NcltSession(Session):
         timestamps: np.ndarray,
         poses: np.ndarray,
         z: np.ndarray,
+        frame_cam_to_ego: np.ndarray | None = None,
     ) -> None:
-        super().__init__(name, cameras, timestamps, poses, z, np.zeros(len(timestamps), np.int64))
+        floors = np.zeros(len(timestamps), np.int64)
+        super().__init__(name, cameras, timestamps, poses, z, floors, frame_cam_to_ego)
         self._dirs = image_dirs
         self._native = native_size
         self._maps = maps
@@ -188,6 +193,7 @@ def open_nclt(
     tolerance_us: int = 50_000,
     upright: bool = True,
     ego_height: float = 0.0,
+    level: bool = True,
 ) -> Dataset:
     """Open an NCLT raw folder as a :class:`Dataset` (one session per date).
 
@@ -202,13 +208,19 @@ def open_nclt(
             them as stored.
         ego_height: height of NCLT's body-frame origin above the ground, metres: vvloc's ego
             origin is moved down there (cameras rise by it, ``Frame.z`` drops by it).
+        level: make each frame's ego frame level (:func:`vvloc.data.frame.ego_frames`): the
+            Segway's roll and pitch (several degrees while it drives) go into that frame's
+            ``cam_to_ego`` (``Session.frame_cam_to_ego``), so the BEV's plane is the ground's.
+            False keeps the tilting body frame as the ego frame (every frame the rig's
+            ``cam_to_ego``).
     """
     root = Path(root)
     dates = _find_date_dirs(root)
     if not dates:
         raise DatasetFormatError(f"{root}: no <date>/lb3 folder found (NCLT layout)")
-    if not isinstance(upright, (bool, np.bool_)):
-        raise TypeError(f"upright: expected a bool, got {type(upright).__name__}")
+    for flag, value in (("upright", upright), ("level", level)):
+        if not isinstance(value, (bool, np.bool_)):
+            raise TypeError(f"{flag}: expected a bool, got {type(value).__name__}")
     height = float(ego_height)
     if not np.isfinite(height):
         raise ValueError(f"ego_height: expected a finite height in metres, got {ego_height!r}")
@@ -275,12 +287,10 @@ def open_nclt(
         gt = read_groundtruth(gt_path)
         pick, ok = nearest_within(gt[:, 0].astype(np.int64), utimes, tolerance_us)
         utimes, pick = utimes[ok], pick[ok]
-        poses, zs = [], []
-        for row in gt[pick]:
-            T_ned_body = euler_to_matrix(*row[1:7])
-            x, y, z, yaw = pose_from_matrix(NED_TO_ENU @ T_ned_body @ FRD_TO_FLU)
-            poses.append((x, y, yaw))
-            zs.append(z - height)
+        world_body = np.array(
+            [NED_TO_ENU @ euler_to_matrix(*row[1:7]) @ FRD_TO_FLU for row in gt[pick]]
+        ).reshape(-1, 4, 4)  # (0, 4, 4) when no image has ground truth near it
+        poses, zs, frame_cam_to_ego = ego_frames(world_body, cams, height=height, level=level)
         sessions[date] = NcltSession(
             date,
             dirs,
@@ -289,8 +299,9 @@ def open_nclt(
             maps,
             turns,
             utimes,
-            np.array(poses).reshape(-1, 3),
-            np.array(zs),
+            poses,
+            zs,
+            frame_cam_to_ego,
         )
         rig = rig or cams
     assert rig is not None

@@ -35,9 +35,14 @@ Conventions converted from:
 * Mono and stereo intrinsics stay apart: the stereo centre camera uses ``stereo_narrow_left``,
   each mono camera its own model; mono images are RGGB, stereo GBRG.
 * The cameras are not synchronised: a frame is a timestamp of the first camera, joined with the
-  nearest image of each other camera (within ``tolerance_us``, without motion compensation:
-  at 14 m/s a 50 ms gap is 0.7 m), posed at the first camera's time (an INS row within
-  ``tolerance_us``).
+  nearest image of each other camera (within ``tolerance_us``), posed at the first camera's
+  time (an INS row within ``tolerance_us``). With ``motion_compensation`` (default) each camera
+  is placed where it was at its own exposure (the INS interpolated at its image's timestamp),
+  in the ego frame of the frame's time: at 14 m/s a 30 ms gap is 0.4 m.
+* The ego frame is level by default (``level=True``): its origin is the ground under the
+  vehicle frame's origin (along the vehicle's z axis), its heading the vehicle's; the car's
+  roll and pitch, and the motion compensation, go into each frame's ``cam_to_ego``
+  (``Session.frame_cam_to_ego``; :func:`vvloc.data.frame.ego_frames`).
 * Without a camera's ``*_distortion_lut.bin`` its images are used distorted, with a warning.
 * Images of different native sizes are resized to ``image_size`` (default: the first camera's),
   with K adjusted exactly.
@@ -62,10 +67,10 @@ from vvloc.data.frame import (
     Camera,
     Dataset,
     Session,
+    ego_frames,
     euler_to_matrix,
     interpolate_rows,
     nearest_within,
-    pose_from_matrix,
 )
 from vvloc.data.vvloc_format import DatasetFormatError
 
@@ -185,8 +190,10 @@ class OxfordSession(Session):
         timestamps: np.ndarray,
         poses: np.ndarray,
         z: np.ndarray,
+        frame_cam_to_ego: np.ndarray | None = None,
     ) -> None:
-        super().__init__(name, cameras, timestamps, poses, z, np.zeros(len(timestamps), np.int64))
+        floors = np.zeros(len(timestamps), np.int64)
+        super().__init__(name, cameras, timestamps, poses, z, floors, frame_cam_to_ego)
         self._paths = paths
         self._patterns = patterns
         self._luts = luts
@@ -205,6 +212,14 @@ class OxfordSession(Session):
                 img = remap_bilinear(img, *lut)
             out.append(resize_rgb(img, cam.width, cam.height).transpose(2, 0, 1))
         return np.ascontiguousarray(np.stack(out))
+
+
+def _world_vehicle(rows: np.ndarray, ins_to_flu: np.ndarray, origin: np.ndarray) -> np.ndarray:
+    """(N, 4, 4) vehicle (FLU) → world (ENU, re-centred on ``origin``) of (N, 6) INS rows
+    (northing, easting, down m; roll, pitch, yaw rad)."""
+    T = np.stack([NED_TO_ENU @ euler_to_matrix(*r) @ ins_to_flu for r in rows]).reshape(-1, 4, 4)
+    T[:, :3, 3] -= origin
+    return T
 
 
 def _sessions_in(root: Path) -> list[Path]:
@@ -226,6 +241,8 @@ def open_oxford(
     tolerance_us: int = 50_000,
     ego_height: float = 0.0,
     ins_good_only: bool = True,
+    level: bool = True,
+    motion_compensation: bool = True,
 ) -> Dataset:
     """Open an Oxford RobotCar raw folder as a :class:`Dataset` (one session per folder).
 
@@ -240,6 +257,14 @@ def open_oxford(
             metres: vvloc's ego origin is moved down there (cameras rise by it, ``Frame.z``
             drops by it).
         ins_good_only: use only INS rows whose ``ins_status`` is ``INS_SOLUTION_GOOD``.
+        level: make each frame's ego frame level (:func:`vvloc.data.frame.ego_frames`): the
+            car's roll and pitch go into that frame's ``cam_to_ego``
+            (``Session.frame_cam_to_ego``). False keeps the tilting vehicle frame.
+        motion_compensation: pose each camera at its own exposure (the INS interpolated at its
+            image's timestamp) in the ego frame at the first camera's time, so that a camera
+            that fired 30 ms apart at 14 m/s is placed 0.4 m away from where the rig puts it.
+            A frame is kept only when the INS covers every camera's time within
+            ``tolerance_us``. False places every camera where the rig says.
     """
     from PIL import Image
 
@@ -251,6 +276,13 @@ def open_oxford(
         raise ValueError(
             f"cameras: expected names from {sorted(CAMERA_SPECS)}, got {list(cameras)}"
         )
+    for flag, value in (
+        ("ins_good_only", ins_good_only),
+        ("level", level),
+        ("motion_compensation", motion_compensation),
+    ):
+        if not isinstance(value, (bool, np.bool_)):
+            raise TypeError(f"{flag}: expected a bool, got {type(value).__name__}")
     height = float(ego_height)
     if not np.isfinite(height):
         raise ValueError(f"ego_height: expected a finite height in metres, got {ego_height!r}")
@@ -258,6 +290,7 @@ def open_oxford(
     if not dirs:
         raise DatasetFormatError(f"{root}: no <session>/gps/ins.csv found (RobotCar layout)")
     T_vehicle_ins = read_extrinsics(extr, "ins")
+    ins_to_flu = np.linalg.inv(T_vehicle_ins) @ FRD_TO_FLU  # INS → vehicle (FLU)
     sessions: dict[str, Session] = {}
     rig: list[Camera] = []
     origin: np.ndarray | None = None
@@ -279,10 +312,21 @@ def open_oxford(
             picks.append(p)
             keep &= ok
         ins = read_ins(sdir / "gps" / "ins.csv", good_only=ins_good_only)
+        ins_t = ins[:, 0].astype(np.int64)
         ins_at, ok = interpolate_rows(
-            ins[:, 0].astype(np.int64), ins[:, 1:7], ref, tolerance_us, angle_columns=(3, 4, 5)
+            ins_t, ins[:, 1:7], ref, tolerance_us, angle_columns=(3, 4, 5)
         )
         keep &= ok
+        # the INS at each camera's own exposure (motion compensation); a camera without any
+        # image has joined no frame (keep is all False)
+        ins_cams = []
+        if motion_compensation and keep.any():
+            for t_cam in (s[p] for s, p in zip(stamps, picks, strict=True)):
+                row, ok = interpolate_rows(
+                    ins_t, ins[:, 1:7], t_cam, tolerance_us, angle_columns=(3, 4, 5)
+                )
+                ins_cams.append(row)
+                keep &= ok
         if not keep.any():
             raise DatasetFormatError(
                 f"{sdir}: no frame has an image of every camera {list(cameras)} and an INS row "
@@ -318,16 +362,21 @@ def open_oxford(
             patterns.append(pattern)
         size = image_size or (cams[0].width, cams[0].height)
         cams = [cam.resized(*size) for cam in cams]
-        poses, zs = [], []
-        for row in ins_at[keep]:
-            T_ned_ins = euler_to_matrix(*row)
-            T = NED_TO_ENU @ T_ned_ins @ np.linalg.inv(T_vehicle_ins) @ FRD_TO_FLU
-            x, y, z, yaw = pose_from_matrix(T)
-            z -= height  # the ground under the vehicle
-            if origin is None:
-                origin = np.array([x, y, z])
-            poses.append((x - origin[0], y - origin[1], yaw))
-            zs.append(z - origin[2])
+        if origin is None:  # the first session's first ego origin (the ground under the roof)
+            T0 = NED_TO_ENU @ euler_to_matrix(*ins_at[keep][0]) @ ins_to_flu
+            origin = T0[:3, 3] - height * T0[:3, 2]
+        at_cams = None
+        if motion_compensation:
+            at_cams = np.stack(
+                [_world_vehicle(rows[keep], ins_to_flu, origin) for rows in ins_cams], axis=1
+            )
+        poses, zs, frame_cam_to_ego = ego_frames(
+            _world_vehicle(ins_at[keep], ins_to_flu, origin),
+            cams,
+            height=height,
+            level=level,
+            world_body_at_cameras=at_cams,
+        )
         sessions[sdir.name] = OxfordSession(
             sdir.name,
             paths,
@@ -335,8 +384,9 @@ def open_oxford(
             luts,
             cams,
             ref,
-            np.array(poses).reshape(-1, 3),
-            np.array(zs),
+            poses,
+            zs,
+            frame_cam_to_ego,
         )
         rig = rig or cams
     meta = {"origin_enu": [float(v) for v in (origin if origin is not None else np.zeros(3))]}

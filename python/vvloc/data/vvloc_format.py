@@ -6,6 +6,12 @@ Layout::
     <root>/sessions/<name>/poses.csv                 timestamp,x,y,z,yaw,floor  (one row per frame)
     <root>/sessions/<name>/<camera>/<timestamp>.png  RGB, the camera's image size
     <root>/sessions/<name>/session.json              optional metadata (ignored by the reader)
+    <root>/sessions/<name>/cam_to_ego.csv            optional per-frame extrinsics (see below)
+
+``cam_to_ego.csv`` (optional) gives every frame its own camera → ego transforms, for real
+vehicles that tilt or whose cameras fire apart (``Session.frame_cam_to_ego``): header
+``timestamp,camera,m00,…,m23``, one row per frame and camera of the rig, the top three rows of
+the 4×4 matrix row by row. Without it every frame has ``rig.json``'s.
 """
 
 from __future__ import annotations
@@ -29,6 +35,8 @@ from vvloc.data.frame import Camera, Dataset, Session, load_rgb
 FORMAT_NAME = "vvloc"
 FORMAT_VERSION = 1
 POSES_HEADER = ("timestamp", "x", "y", "z", "yaw", "floor")
+EXTRINSICS_FILE = "cam_to_ego.csv"
+EXTRINSICS_HEADER = ("timestamp", "camera", *(f"m{r}{c}" for r in range(3) for c in range(4)))
 
 
 class DatasetFormatError(ValueError):
@@ -39,7 +47,14 @@ class DatasetFormatError(ValueError):
 class VvlocSession(Session):
     """A session of a vvloc-format dataset; images are read from PNG on indexing."""
 
-    def __init__(self, directory: Path, name: str, cameras: Sequence[Camera], rows: np.ndarray):
+    def __init__(
+        self,
+        directory: Path,
+        name: str,
+        cameras: Sequence[Camera],
+        rows: np.ndarray,
+        frame_cam_to_ego: np.ndarray | None = None,
+    ):
         self.directory = directory
         super().__init__(
             name,
@@ -48,6 +63,7 @@ class VvlocSession(Session):
             poses=np.stack([rows["x"], rows["y"], rows["yaw"]], axis=1),
             z=rows["z"],
             floors=rows["floor"],
+            frame_cam_to_ego=frame_cam_to_ego,
         )
 
     def image_path(self, index: int, camera: str) -> Path:
@@ -133,6 +149,67 @@ def read_poses(path: Path) -> np.ndarray:
     return np.array(rows, dtype=_ROW_DTYPE)
 
 
+def read_extrinsics(path: Path, timestamps: np.ndarray, cameras: Sequence[Camera]) -> np.ndarray:
+    """Parse a session's ``cam_to_ego.csv`` into (N, M, 4, 4) float64, frames in the order of
+    ``timestamps`` (N,), cameras in rig order. Every frame needs one row per camera, each a
+    rigid transform (rotation orthonormal to 1e-6, determinant +1); errors name the file and
+    the line."""
+    names = [c.name for c in cameras]
+    frame_of = {int(t): k for k, t in enumerate(timestamps)}
+    cam_of = {n: m for m, n in enumerate(names)}
+    out = np.full((len(timestamps), len(names), 4, 4), np.nan)
+    out[..., 3, :] = (0.0, 0.0, 0.0, 1.0)
+    seen = np.zeros((len(timestamps), len(names)), dtype=bool)
+    with path.open(newline="") as f:
+        reader = csv.reader(f)
+        header = next(reader, None)
+        if header is None or tuple(h.strip() for h in header) != EXTRINSICS_HEADER:
+            raise DatasetFormatError(
+                f"{path}, line 1: header must be {','.join(EXTRINSICS_HEADER)}, got {header}"
+            )
+        for row in reader:
+            line = reader.line_num
+            if not row or all(not c.strip() for c in row):
+                continue
+            if len(row) != len(EXTRINSICS_HEADER):
+                raise DatasetFormatError(
+                    f"{path}, line {line}: expected {len(EXTRINSICS_HEADER)} fields, got {len(row)}"
+                )
+            try:
+                ts = int(row[0])
+                vals = np.array([float(v) for v in row[2:]], dtype=np.float64).reshape(3, 4)
+            except ValueError as e:
+                raise DatasetFormatError(f"{path}, line {line}: malformed row: {e}") from e
+            if ts not in frame_of:
+                raise DatasetFormatError(f"{path}, line {line}: timestamp {ts} is not in poses.csv")
+            if row[1] not in cam_of:
+                raise DatasetFormatError(
+                    f"{path}, line {line}: camera {row[1]!r} is not in rig.json (cameras: {names})"
+                )
+            k, m = frame_of[ts], cam_of[row[1]]
+            if seen[k, m]:
+                raise DatasetFormatError(
+                    f"{path}, line {line}: a second row for timestamp {ts}, camera {row[1]!r}"
+                )
+            R = vals[:, :3]
+            if not np.isfinite(vals).all() or not (
+                np.allclose(R.T @ R, np.eye(3), atol=1e-6) and np.linalg.det(R) > 0
+            ):
+                raise DatasetFormatError(
+                    f"{path}, line {line}: not a finite rigid transform (rotation must be "
+                    "orthonormal with determinant +1)"
+                )
+            out[k, m, :3] = vals
+            seen[k, m] = True
+    if not seen.all():
+        k, m = np.argwhere(~seen)[0]
+        raise DatasetFormatError(
+            f"{path}: no row for timestamp {int(timestamps[k])}, camera {names[m]!r} "
+            "(every frame needs one row per camera of the rig)"
+        )
+    return out
+
+
 def open_vvloc(root: str | os.PathLike[str]) -> Dataset:
     """Open a vvloc-format dataset lazily and validate its structure.
 
@@ -166,7 +243,10 @@ def open_vvloc(root: str | os.PathLike[str]) -> Dataset:
                         f"{cam_dir / f'{ts}.png'}: image missing "
                         f"(listed in {poses_path}, line {k + 2})"
                     )
-        sessions[d.name] = VvlocSession(d, d.name, cameras, rows)
+        extrinsics = None
+        if (d / EXTRINSICS_FILE).is_file():
+            extrinsics = read_extrinsics(d / EXTRINSICS_FILE, rows["timestamp"], cameras)
+        sessions[d.name] = VvlocSession(d, d.name, cameras, rows, extrinsics)
     meta = doc.get("meta")
     return Dataset(root, cameras, sessions, meta=meta if isinstance(meta, dict) else None)
 
@@ -187,6 +267,8 @@ class SessionWriter:
         self._csv = csv.writer(self._file, lineterminator="\n")
         self._csv.writerow(POSES_HEADER)
         self._last_ts: int | None = None
+        self._extrinsics: Any = None  # the cam_to_ego.csv writer once a frame brings its own
+        self._extrinsics_file: Any = None
         self.count = 0
 
     def add(
@@ -197,6 +279,7 @@ class SessionWriter:
         *,
         z: float = 0.0,
         floor: int = 0,
+        cam_to_ego: np.ndarray | None = None,
     ) -> None:
         """Append one frame.
 
@@ -206,6 +289,9 @@ class SessionWriter:
             images: (M, 3, H, W) uint8, cameras in rig order.
             z: height of the ego origin, metres.
             floor: storey index.
+            cam_to_ego: (M, 4, 4) camera → ego transforms of this frame (rigid, metres), written
+                to ``cam_to_ego.csv``, or None for the rig's. Either every frame of a session
+                gives them or none does.
         """
         from PIL import Image
 
@@ -219,18 +305,59 @@ class SessionWriter:
             raise ValueError(
                 f"images: expected uint8 ({m}, 3, {h}, {w}), got {images.dtype} {images.shape}"
             )
+        rows = self._extrinsic_rows(ts, cam_to_ego)
         for cam, img in zip(self.cameras, images, strict=True):
             Image.fromarray(np.ascontiguousarray(img.transpose(1, 2, 0))).save(
                 self.directory / cam.name / f"{ts}.png", compress_level=1
             )
         self._csv.writerow([ts, repr(x), repr(y), repr(float(z)), repr(yaw), int(floor)])
+        if rows:
+            if self._extrinsics is None:
+                self._extrinsics_file = (self.directory / EXTRINSICS_FILE).open("w", newline="")
+                self._extrinsics = csv.writer(self._extrinsics_file, lineterminator="\n")
+                self._extrinsics.writerow(EXTRINSICS_HEADER)
+            self._extrinsics.writerows(rows)
         self._last_ts = ts
         self.count += 1
 
+    def _extrinsic_rows(self, ts: int, cam_to_ego: np.ndarray | None) -> list[list[Any]]:
+        """The ``cam_to_ego.csv`` rows of one frame (checked before anything is written)."""
+        per_frame = cam_to_ego is not None
+        if self.count and per_frame != (self._extrinsics is not None):
+            had = "its own cam_to_ego" if self._extrinsics is not None else "the rig's cam_to_ego"
+            raise ValueError(
+                f"cam_to_ego: every frame of a session gives its own or none does; the first "
+                f"frame of this session had {had}"
+            )
+        if cam_to_ego is None:
+            return []
+        m = len(self.cameras)
+        T = np.asarray(cam_to_ego)
+        if T.shape != (m, 4, 4) or not np.issubdtype(T.dtype, np.floating):
+            raise ValueError(f"cam_to_ego: expected float ({m}, 4, 4), got {T.dtype} {T.shape}")
+        T = T.astype(np.float64)
+        R = T[:, :3, :3]
+        rigid = (
+            np.allclose(np.swapaxes(R, 1, 2) @ R, np.eye(3), atol=1e-6)
+            and bool((np.linalg.det(R) > 0).all())
+            and bool((T[:, 3] == (0.0, 0.0, 0.0, 1.0)).all())
+        )
+        if not np.isfinite(T).all() or not rigid:
+            raise ValueError(
+                "cam_to_ego: expected finite rigid transforms (rotation orthonormal with "
+                "determinant +1, bottom row 0 0 0 1)"
+            )
+        return [
+            [ts, cam.name, *(repr(float(v)) for v in T[k, :3].ravel())]
+            for k, cam in enumerate(self.cameras)
+        ]
+
     def close(self) -> None:
-        """Flush ``poses.csv``."""
+        """Flush ``poses.csv`` (and ``cam_to_ego.csv``)."""
         if not self._file.closed:
             self._file.close()
+        if self._extrinsics_file is not None and not self._extrinsics_file.closed:
+            self._extrinsics_file.close()
 
 
 class DatasetWriter:

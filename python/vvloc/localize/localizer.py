@@ -64,6 +64,12 @@ F32 = npt.NDArray[np.float32]
 #: Where :class:`Localizer`'s M metric candidates come from (``metric_from``): the first M of
 #: the retrieval order, or of the yaw re-ranking.
 METRIC_FROM = ("retrieval", "rerank")
+#: A query camera turned by more than this (radians, 14°) or moved by more than this (metres)
+#: from where the map's rig has it makes the frame "from another rig" (a warning). A tilting
+#: vehicle's levelled frames turn their cameras by its roll and pitch (a few degrees) and motion
+#: compensation moves them by speed × exposure gap (0.4 m at 14 m/s and 30 ms).
+RIG_ANGLE_TOLERANCE = 0.25
+RIG_SHIFT_TOLERANCE = 1.0
 
 
 @dataclass
@@ -589,12 +595,20 @@ class Localizer:
             why = f"{m} cameras, the map's rig {count}"
         elif (w, h) != (width, height):
             why = f"images {w}x{h}, the map's {width}x{height}"
+        elif not np.allclose(frame.K, K, rtol=1e-3, atol=1e-3):
+            why = "other intrinsics than the map's rig"
         else:
-            if not (
-                np.allclose(frame.K, K, rtol=1e-3, atol=1e-3)
-                and np.allclose(frame.cam_to_ego, T, rtol=1e-3, atol=1e-3)
-            ):
-                why = "other intrinsics or extrinsics than the map's rig"
+            # a frame's own extrinsics (a levelled tilting vehicle, motion compensation) stay
+            # within a few degrees and decimetres of the rig's; another mounting does not
+            D = np.linalg.inv(T) @ np.asarray(frame.cam_to_ego, dtype=np.float64)
+            cos = (np.trace(D[:, :3, :3], axis1=1, axis2=2) - 1.0) / 2.0
+            angle = np.arccos(np.clip(cos, -1.0, 1.0))
+            shift = np.linalg.norm(D[:, :3, 3], axis=1)
+            if (angle > RIG_ANGLE_TOLERANCE).any() or (shift > RIG_SHIFT_TOLERANCE).any():
+                why = (
+                    f"cameras turned by up to {np.degrees(angle.max()):.1f}° and moved by up "
+                    f"to {shift.max():.2f} m from where the map's rig has them"
+                )
         if why:
             self._rig_warned = True
             warnings.warn(
@@ -615,9 +629,12 @@ class Localizer:
         """Localize many frames: encoding is batched; results equal :meth:`localize`'s.
 
         Frames with non-finite calibration are refused (``ValueError`` naming the frame); frames
-        from a rig other than the map's (camera count, image size or calibration, when the map
-        records its rig) are localized with a warning, once per localizer: the model met only
-        its training rig, and its poses may be far off."""
+        from a rig other than the map's (camera count, image size, intrinsics, or a camera
+        turned by more than ``RIG_ANGLE_TOLERANCE`` or moved by more than
+        ``RIG_SHIFT_TOLERANCE`` from where the map's rig has it, when the map records its rig)
+        are localized with a warning, once per localizer: the model met only its training rig,
+        and its poses may be far off. A tilting vehicle's levelled frames and motion-compensated
+        cameras (``Session.frame_cam_to_ego``) stay within those bounds."""
         batch_size = kernels._positive_int(batch_size, "batch_size")
         for i, f in enumerate(frames):
             if not isinstance(f, Frame):
