@@ -78,6 +78,48 @@ def test_marker_lands_within_a_tenth_of_a_pixel_of_its_projection(egl, num_camer
         r.release()
 
 
+def test_a_frames_own_extrinsics_place_its_cameras(egl):
+    """A tilted vehicle (roll 4°, pitch -6°: the level ego frame's cam_to_ego of each camera
+    turned by them) renders a marker where that frame's Camera projects it."""
+    from scipy.spatial.transform import Rotation
+
+    from vvloc.data.frame import Camera
+
+    rig = make_rig(4, 160, 96)
+    tilt = np.eye(4)
+    tilt[:3, :3] = Rotation.from_euler("xy", [4, -6], degrees=True).as_matrix()
+    per_frame = np.stack([tilt @ c.cam_to_ego for c in rig])
+    r = Renderer(rig)
+    pose = (3.0, 2.0, -0.4)
+    T_we = ego_to_world(pose, z=0.0)
+    try:
+        for ci, cam in enumerate(rig):
+            tilted = Camera(cam.name, cam.width, cam.height, cam.K, per_frame[ci])
+            T_wc = T_we @ tilted.cam_to_ego
+            R, t = T_wc[:3, :3], T_wc[:3, 3]
+            depth = 6.0
+            center = R @ np.array([0.4, -0.3, depth]) + t
+            sigma = 1.6 * depth / cam.K[0, 0]
+            v, i = _marker_quad(center, R[:, 0], R[:, 1], 4.5 * sigma)
+            r.set_mesh(v, i)
+            r.marker = (*center, sigma)
+            img = r.render(pose, 0.0, BLACK, cam_to_ego=per_frame)[ci, 0].astype(np.float64)
+            ys, xs = np.mgrid[0 : img.shape[0], 0 : img.shape[1]]
+            w = img.sum()
+            centroid = np.array([(img * xs).sum() / w, (img * ys).sum() / w])
+            uv, _ = tilted.project_ego((np.linalg.inv(T_we) @ np.append(center, 1.0))[:3])
+            assert np.abs(centroid - uv[0]).max() < 0.1, (cam.name, centroid, uv[0])
+            # the rig's placement puts it elsewhere (the tilt moves it by pixels)
+            level = r.render(pose, 0.0, BLACK)[ci, 0].astype(np.float64)
+            if level.sum() > 0:
+                moved = np.array([(level * xs).sum(), (level * ys).sum()]) / level.sum()
+                assert np.abs(moved - uv[0]).max() > 1.0
+        with pytest.raises(ValueError, match=r"cam_to_ego: expected finite \(4, 4, 4\)"):
+            r.render(pose, 0.0, BLACK, cam_to_ego=per_frame[:3])
+    finally:
+        r.release()
+
+
 def test_same_seed_same_world_and_poses_and_pixels(egl):
     a, b = parking_world(seed=5), parking_world(seed=5)
     va, ia = a.mesh(0.15, 9)

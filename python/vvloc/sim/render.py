@@ -426,11 +426,22 @@ class Renderer:
         lighting: Lighting | str = "day",
         frame_index: int = 0,
         floor: int = 0,
+        cam_to_ego: np.ndarray | None = None,
     ) -> np.ndarray:
         """Render the rig at ego pose (x, y, yaw) and height ``z`` on storey ``floor``:
-        (M, 3, H, W) uint8. ``frame_index`` seeds the rain streaks."""
+        (M, 3, H, W) uint8. ``frame_index`` seeds the rain streaks. ``cam_to_ego`` (M, 4, 4)
+        places the cameras for this frame alone (a tilting vehicle: its roll and pitch in the
+        level ego frame, as ``Frame.cam_to_ego``); None uses the rig's."""
         if self.vao is None:
             raise RuntimeError("no scene: call set_mesh first")
+        placements = self.cam_to_ego
+        if cam_to_ego is not None:
+            T = np.asarray(cam_to_ego, dtype=np.float64)
+            if T.shape != (len(self.cameras), 4, 4) or not np.isfinite(T).all():
+                raise ValueError(
+                    f"cam_to_ego: expected finite ({len(self.cameras)}, 4, 4), got {T.shape}"
+                )
+            placements = list(T)
         lt = PRESETS[lighting] if isinstance(lighting, str) else lighting
         T_we = ego_to_world(pose, z)
         ctx = self.ctx
@@ -464,7 +475,7 @@ class Renderer:
         self._set("u_head1", tuple(head[:3, 1]))
         self._set("u_head_dir", tuple(hdir / np.linalg.norm(hdir)))
         self._set("u_head", lt.headlights)
-        for i, (P, T_ec) in enumerate(zip(self.proj, self.cam_to_ego, strict=True)):
+        for i, (P, T_ec) in enumerate(zip(self.proj, placements, strict=True)):
             T_wc = T_we @ T_ec
             mvp = P @ np.linalg.inv(T_wc)
             ctx.viewport = (0, i * self.height, self.width, self.height)
