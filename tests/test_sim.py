@@ -247,6 +247,40 @@ def test_simulated_dataset_round_trips_through_the_reader(egl, tmp_path):
     assert not any(p.name.startswith(".synth") for p in tmp_path.iterdir())
 
 
+def test_a_tilting_vehicle_is_rendered_and_written_with_each_frames_extrinsics(egl, tmp_path):
+    from scipy.spatial.transform import Rotation
+
+    kw = dict(scene="parking", sessions=3, frames=5, width=32, height=24, progress=False)
+    simulate_dataset(tmp_path / "t", max_roll=3.0, max_pitch=5.0, **kw)
+    ds = open_dataset(tmp_path / "t")
+    assert ds.meta["max_roll"] == 3.0 and ds.meta["max_pitch"] == 5.0
+    assert ds.session("s0").frame_cam_to_ego is None  # the mapping drive stays level
+    rig = np.stack([c.cam_to_ego for c in ds.cameras])
+    angles = []
+    for name in ("s1", "s2"):
+        own = ds.session(name).frame_cam_to_ego
+        assert own is not None and own.shape == (5, 4, 4, 4)
+        for frame in own:
+            # one tilt of the whole vehicle about its ground point: T · rig for every camera
+            T = frame[0] @ np.linalg.inv(rig[0])
+            np.testing.assert_allclose(frame, T[None] @ rig, atol=1e-9)
+            np.testing.assert_allclose(T[:3, 3], 0.0, atol=1e-9)
+            yaw, pitch, roll = Rotation.from_matrix(T[:3, :3]).as_euler("ZYX", degrees=True)
+            assert abs(yaw) < 1e-6 and abs(roll) <= 3.0 and abs(pitch) <= 5.0
+            angles.append((roll, pitch))
+    assert np.abs(angles).max(axis=0)[1] > 1.0  # the tilts are drawn, not all 0
+    # seeded: the same dataset again; without tilt, no file and the rig.json of before
+    simulate_dataset(tmp_path / "t2", max_roll=3.0, max_pitch=5.0, **kw)
+    again = open_dataset(tmp_path / "t2").session("s1")
+    np.testing.assert_array_equal(again.frame_cam_to_ego, ds.session("s1").frame_cam_to_ego)
+    simulate_dataset(tmp_path / "level", **kw)
+    assert "max_roll" not in open_dataset(tmp_path / "level").meta
+    assert not (tmp_path / "level" / "sessions" / "s1" / "cam_to_ego.csv").exists()
+    for bad in (-1.0, 31.0, float("nan"), True):
+        with pytest.raises(ValueError, match="max_pitch: expected degrees"):
+            simulate_dataset(tmp_path / "bad", max_pitch=bad, **kw)
+
+
 def _vvloc_exe() -> list[str]:
     exe = Path(sys.executable).parent / "vvloc"
     return [str(exe)] if exe.exists() else [shutil.which("vvloc") or "vvloc"]

@@ -66,6 +66,22 @@ def sim(
             "day, dusk, night, rain, fog, garage, garage_dim).",
         ),
     ] = "",
+    max_roll: Annotated[
+        float,
+        typer.Option(
+            "--max_roll",
+            min=0.0,
+            max=30.0,
+            help="Tilt the query sessions' vehicle: a roll drawn within +-this many degrees "
+            "for each keyframe (written as each frame's own extrinsics, cam_to_ego.csv).",
+        ),
+    ] = 0.0,
+    max_pitch: Annotated[
+        float,
+        typer.Option(
+            "--max_pitch", min=0.0, max=30.0, help="... and a pitch within +-this many degrees."
+        ),
+    ] = 0.0,
     overwrite: Annotated[
         bool, typer.Option("--overwrite", help="Replace an existing --out.")
     ] = False,
@@ -93,6 +109,8 @@ def sim(
             height=height,
             texture_strength=texture_strength,
             lighting=presets,
+            max_roll=max_roll,
+            max_pitch=max_pitch,
             overwrite=overwrite,
         )
     typer.echo(f"wrote {sessions} sessions x {frames} frames ({cameras} cameras) to {path}")

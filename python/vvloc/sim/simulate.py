@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from vvloc.data.frame import Camera, euler_to_matrix
 from vvloc.data.vvloc_format import DatasetWriter
 from vvloc.sim.render import PRESETS, Renderer
 from vvloc.sim.rig import make_rig
@@ -25,6 +26,7 @@ GARAGE_LIGHTING = ("garage", "garage_dim")
 OFFSETS = (0.0, 1.5, -1.5)
 T0_US = 1_600_000_000_000_000  # first session's start, microseconds
 SESSION_GAP_US = 86_400_000_000  # one day between sessions
+MAX_TILT = 30.0  # degrees: the largest roll or pitch bound simulate_dataset takes
 
 
 @dataclass(frozen=True)
@@ -80,6 +82,18 @@ def build_world(scene: str, seed: int = 0, floors: int = 2, floor_marking: str =
     raise ValueError(f"scene: expected one of {SCENES}, got {scene!r}")
 
 
+def tilted_rig(
+    rig: Sequence[Camera], rng: np.random.Generator, bounds_deg: np.ndarray
+) -> np.ndarray:
+    """(M, 4, 4) camera → level-ego transforms of ``rig`` on a vehicle tilted about its ego
+    origin (the ground point under it) by a roll and a pitch drawn uniformly within
+    ``bounds_deg`` = (roll, pitch) degrees: R = Ry(pitch)·Rx(roll) (ZYX order, yaw 0) applied
+    to every camera."""
+    roll, pitch = np.radians(rng.uniform(-1.0, 1.0, 2) * bounds_deg)
+    T = euler_to_matrix(0.0, 0.0, 0.0, float(roll), float(pitch), 0.0)
+    return np.stack([T @ c.cam_to_ego for c in rig])
+
+
 def simulate_dataset(
     out: str | os.PathLike[str],
     *,
@@ -94,6 +108,8 @@ def simulate_dataset(
     height: int = 96,
     texture_strength: float = 1.0,
     lighting: Sequence[str] | None = None,
+    max_roll: float = 0.0,
+    max_pitch: float = 0.0,
     overwrite: bool = False,
     progress: bool = True,
 ) -> Path:
@@ -104,12 +120,22 @@ def simulate_dataset(
     a function of ``seed``. The dataset appears atomically: on error nothing is left behind.
     ``floor_marking`` (garage only): ``"walls"`` or ``"pillars"``, see
     :func:`vvloc.sim.world.garage_world`; recorded in ``rig.json``'s ``meta``.
+    ``max_roll``, ``max_pitch`` (degrees, 0 to 30; default 0: level): tilt the vehicle of every
+    query session (s1, s2, ...) by a roll and a pitch drawn uniformly within these bounds for
+    each keyframe, about the ground point under it, as a Segway or a car on uneven ground
+    tilts; the mapping session s0 stays level. Each frame's cameras are rendered where the
+    tilt puts them and written as that frame's own extrinsics (``cam_to_ego.csv``, the level
+    ego frame's, as the NCLT and RobotCar readers give them); the pose stays (x, y, yaw).
     """
     for key, v in (("sessions", sessions), ("frames", frames), ("floors", floors)):
         if isinstance(v, bool) or not isinstance(v, int) or v < 1:
             raise ValueError(f"{key}: expected an int >= 1, got {v!r}")
     if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
         raise ValueError(f"seed: expected an int >= 0, got {seed!r}")
+    for key, v in (("max_roll", max_roll), ("max_pitch", max_pitch)):
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0.0 <= v <= MAX_TILT:
+            raise ValueError(f"{key}: expected degrees within [0, {MAX_TILT:g}], got {v!r}")
+    tilt_bounds = np.array([max_roll, max_pitch], dtype=np.float64)
     plan = session_plan(scene, sessions, seed, lighting)
     rig = make_rig(cameras, width, height)
     world = build_world(scene, seed, floors, floor_marking)
@@ -122,6 +148,9 @@ def simulate_dataset(
         "texture_strength": texture_strength,
         "generator": "vvloc.sim",
     }
+    tilting = bool(tilt_bounds.any())
+    if tilting:  # recorded only when used: a level dataset's rig.json is as before
+        meta["max_roll"], meta["max_pitch"] = float(max_roll), float(max_pitch)
     renderer = Renderer(rig, texture_strength=texture_strength)
     total = sessions * frames
     bar = tqdm(total=total, desc=f"vvloc sim {scene}", unit="frame", disable=not progress)
@@ -135,6 +164,7 @@ def simulate_dataset(
                 nf = len(loops)
                 counts = [frames // nf + (1 if f < frames % nf else 0) for f in range(nf)]
                 t_base = 0.0
+                tilts = np.random.default_rng([seed, 300 + k]) if tilting and k > 0 else None
                 for f, (loop, n) in enumerate(zip(loops, counts, strict=True)):
                     if n == 0:
                         continue
@@ -142,8 +172,11 @@ def simulate_dataset(
                     z = float(world.floor_z[f]) + 0.0  # no -0.0 in the CSV
                     for j in range(n):
                         ts = T0_US + k * SESSION_GAP_US + round((t_base + times[j]) * 1e6)
-                        images = renderer.render(poses[j], z, spec.lighting, frame_index=j, floor=f)
-                        sw.add(ts, poses[j], images, z=z, floor=f)
+                        own = None if tilts is None else tilted_rig(rig, tilts, tilt_bounds)
+                        images = renderer.render(
+                            poses[j], z, spec.lighting, frame_index=j, floor=f, cam_to_ego=own
+                        )
+                        sw.add(ts, poses[j], images, z=z, floor=f, cam_to_ego=own)
                         bar.update(1)
                     t_base += float(times[-1]) + 60.0  # a minute on the ramp to the next floor
                 log.info("session %s: %d frames, %s", spec.name, sw.count, spec.lighting)
