@@ -554,6 +554,13 @@ def test_a_garage_rendered_with_another_floor_marking_is_refused(tmp_path):
         _check_rendered_like(root, {**sim, "floor_marking": "pillars"})
     with pytest.raises(ValueError, match="'floors': 3"):
         _check_rendered_like(root, {**sim, "floors": 3})
+    # a tilting vehicle's dataset is another one than a level vehicle's, both ways
+    with pytest.raises(ValueError, match=r"'max_pitch': 0\.0.*'max_pitch': 5\.0"):
+        _check_rendered_like(root, {**sim, "max_pitch": 5})
+    (root / "rig.json").write_text(json.dumps({"meta": {**meta, "max_roll": 3.0}}))
+    _check_rendered_like(root, {**sim, "max_roll": 3})
+    with pytest.raises(ValueError, match=r"'max_roll': 3\.0.*'max_roll': 0\.0"):
+        _check_rendered_like(root, sim)
 
 
 NETVLAD_SMALL = {"global_head": "netvlad", "netvlad_clusters": 4, "global_dim": 16}

@@ -806,14 +806,17 @@ def loop_validation(
 
 
 def _check_rendered_like(root: Path, sim: dict[str, Any]) -> None:
-    """Refuse a rendered dataset whose recorded world (``rig.json`` ``meta``: scene, seed, and
-    for a garage floors and floor marking) differs from what ``sim`` would render."""
+    """Refuse a rendered dataset whose recorded world (``rig.json`` ``meta``: scene, seed, the
+    vehicle's tilt bounds, and for a garage floors and floor marking) differs from what ``sim``
+    would render."""
     rig = root / "rig.json"
     meta = json.loads(rig.read_text()).get("meta", {}) if rig.is_file() else {}
     if meta.get("generator") != "vvloc.sim":
         return
     want = {"scene": sim.get("scene", "parking"), "seed": sim.get("seed", 0)}
     have = {"scene": meta.get("scene"), "seed": meta.get("seed")}
+    for key in ("max_roll", "max_pitch"):  # absent from a level dataset's meta
+        want[key], have[key] = float(sim.get(key, 0.0)), float(meta.get(key, 0.0))
     if want["scene"] == "garage":
         want |= {"floors": sim.get("floors", 2), "floor_marking": sim.get("floor_marking", "walls")}
         have |= {"floors": meta.get("floors"), "floor_marking": meta.get("floor_marking", "walls")}
