@@ -12,7 +12,7 @@ the localizer's defaults, three ways:
   levelled   the tilted drive with its frames' own extrinsics (what the readers now give);
   ignored    the same images with the rig's extrinsics (the readers before 2026-12-05).
 
-Usage (from the repository root, after `make develop`; about 10 min on 2 cores):
+Usage (from the repository root, after `make develop`; about 4 min on 2 cores):
     .venv/bin/python models/synth-small/tilt-check/tilt_check.py --out /tmp/tilt
 prints the table of `output.txt`.
 """
