@@ -218,6 +218,21 @@ def test_pose_accuracy_subsets_true_revisit_and_all():
     assert acc["all"]["APE@100"] == pytest.approx(30.0)
     with pytest.raises(TypeError, match="correct"):
         ev.pose_accuracy(est, gt, np.ones(3))
+    assert acc["all"]["other_floor"] == 0
+
+
+def test_an_answer_on_another_floor_is_no_accurate_pose():
+    # the third query's estimate is perfect in (x, y, yaw) but built on a keyframe of another
+    # floor: the "all" row leaves it out and counts it, the true-revisit row never had it
+    gt = np.zeros((3, 3))
+    est = np.array([[1.0, 0.0, 10 * DEG], [0.0, 2.0, 20 * DEG], [0.0, 0.0, 0.0]])
+    same = np.array([True, True, False])
+    acc = ev.pose_accuracy(est, gt, [True, True, False], same_floor=same, percentiles=(0, 100))
+    assert acc["all"]["count"] == 2 and acc["all"]["other_floor"] == 1
+    assert acc["all"]["APE@0"] == pytest.approx(1.0)  # the perfect cross-floor 0 is not in it
+    assert acc["true_revisit"]["count"] == 2
+    with pytest.raises(TypeError, match="same_floor"):
+        ev.pose_accuracy(est, gt, same, same_floor=np.ones(3))
 
 
 # ----------------------------------------------------------------------------- loop closure
@@ -451,6 +466,24 @@ def test_confidence_filter_keeps_costs_strictly_below_threshold():
     assert "confident" not in ev.loop_pose_metrics(est, gt)
 
 
+def test_cross_floor_loop_pairs_register_nothing():
+    # four pairs with perfect poses, the last joining two floors at the same x-y
+    est = gt = np.zeros((4, 3))
+    costs = np.array([0.1, 0.2, 0.3, 0.4])
+    same = np.array([True, True, True, False])
+    m = ev.loop_pose_metrics(est, gt, costs, same_floor=same)
+    for row in (m["all"], m["confident"]):
+        assert row["count"] == 4 and row["cross_floor"] == 1
+        assert row["RR_rot"] == 0.75 and row["RR_trans"] == 0.75  # not registered
+        assert row["mRRE_deg"] == 0.0 and row["mRTE_m"] == 0.0  # means over one floor
+    assert ev.loop_pose_metrics(est, gt, costs)["all"]["RR_rot"] == 1.0  # floors unknown
+    curve = ev.confidence_curve(costs, np.zeros(4), np.zeros(4), same_floor=same)
+    np.testing.assert_allclose(curve["RR_trans"], [1.0, 1.0, 1.0, 0.75])
+    np.testing.assert_allclose(curve["mRTE_m"], 0.0)
+    only = ev.confidence_curve([0.1], [3.0], [1.0], same_floor=[False])
+    assert np.isnan(only["mRRE_deg"]).all() and only["RR_rot"].tolist() == [0.0]
+
+
 def test_confidence_curve():
     est, gt, costs = _loop_pose_case()
     rre, rte = ev.relative_pose_errors(est, gt)
@@ -538,7 +571,7 @@ def test_write_report_markdown_and_json(tmp_path):
     assert "| VVLoc-ML | 9/10 | 100.0 |" in text
     row = "| s1 | 0.350 | 3 | 66.7 | 66.7 | 0.667 | – | – | – | – / – / – | 0.750 | 0.900 |"
     assert row in text
-    assert "| s1 | cost < 0.75 | 2 | 2.50 | 1.20 | 100.0 | 100.0 |" in text
+    assert "| s1 | cost < 0.75 | 2 | 0 | 2.50 | 1.20 | 100.0 | 100.0 |" in text
     assert not list(tmp_path.glob(".*.tmp"))
 
 

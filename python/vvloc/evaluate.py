@@ -404,6 +404,7 @@ def pose_accuracy(
     correct: npt.ArrayLike,
     *,
     kept: npt.ArrayLike | None = None,
+    same_floor: npt.ArrayLike | None = None,
     percentiles: Sequence[float] = DEFAULT_PERCENTILES,
 ) -> dict[str, dict[str, Any]]:
     """AOE/APE@p: percentiles of absolute yaw error (°) and position error (m) of global poses.
@@ -414,21 +415,31 @@ def pose_accuracy(
         correct: ``(Q,)`` bool, queries whose top-1 is a true revisit
             (``RecallResult.correct(1, 2.0)`` after re-ranking).
         kept: ``(Q,)`` bool, the evaluated queries (``RecallResult.kept``); default all.
+        same_floor: ``(Q,)`` bool, whether the keyframe the estimate was built on is on the
+            query's floor; default all. An estimate on another floor joins different places
+            (a (x, y, yaw) error of 0 there would be no success), so the ``all`` row leaves
+            those queries out and counts them (``other_floor``).
         percentiles: the p of AOE@p / APE@p, in %.
 
     Returns:
         ``{"true_revisit": row, "all": row}``; a row is ``{"count", "AOE@25", …, "APE@25", …}``
-        (see :func:`error_percentiles`). ``true_revisit`` covers ``correct & kept`` queries,
-        ``all`` every kept query.
+        (see :func:`error_percentiles`). ``true_revisit`` covers ``correct & kept`` queries (a
+        true revisit is on the query's floor), ``all`` every kept query answered on its floor,
+        plus ``other_floor``, the kept queries answered on another floor (left out).
     """
     yaw, pos = pose_errors(estimated, ground_truth)
     n = yaw.shape[0]
     corr = _bool_array(correct, "correct", n)
     keep = np.ones(n, dtype=bool) if kept is None else _bool_array(kept, "kept", n)
+    floor_ok = (
+        np.ones(n, dtype=bool) if same_floor is None else _bool_array(same_floor, "same_floor", n)
+    )
     sub = corr & keep
+    every = keep & floor_ok
     return {
         "true_revisit": _aoe_ape(yaw[sub], pos[sub], percentiles),
-        "all": _aoe_ape(yaw[keep], pos[keep], percentiles),
+        "all": _aoe_ape(yaw[every], pos[every], percentiles)
+        | {"other_floor": int((keep & ~floor_ok).sum())},
     }
 
 
@@ -841,16 +852,22 @@ def cross_floor_events(
 
 
 def _loop_pose_row(
-    rre: F64Array, rte: F64Array, total: int, rot_threshold_deg: float, trans_threshold_m: float
+    rre: F64Array,
+    rte: F64Array,
+    on_floor: npt.NDArray[np.bool_],
+    total: int,
+    rot_threshold_deg: float,
+    trans_threshold_m: float,
 ) -> dict[str, Any]:
-    n = int(rre.size)
+    n, m = int(rre.size), int(on_floor.sum())
     return {
         "count": n,
         "share": _ratio(n, total),
-        "mRRE_deg": float(rre.mean()) if n else float("nan"),
-        "mRTE_m": float(rte.mean()) if n else float("nan"),
-        "RR_rot": _ratio((rre < rot_threshold_deg).sum(), n),
-        "RR_trans": _ratio((rte < trans_threshold_m).sum(), n),
+        "cross_floor": n - m,
+        "mRRE_deg": float(rre[on_floor].mean()) if m else float("nan"),
+        "mRTE_m": float(rte[on_floor].mean()) if m else float("nan"),
+        "RR_rot": _ratio((on_floor & (rre < rot_threshold_deg)).sum(), n),
+        "RR_trans": _ratio((on_floor & (rte < trans_threshold_m)).sum(), n),
     }
 
 
@@ -862,6 +879,7 @@ def loop_pose_metrics(
     cost_threshold: float = DEFAULT_COST_THRESHOLD,
     rot_threshold_deg: float = 5.0,
     trans_threshold_m: float = 2.0,
+    same_floor: npt.ArrayLike | None = None,
 ) -> dict[str, dict[str, Any]]:
     """Relative-pose accuracy on detected loop pairs, with and without the confidence filter.
 
@@ -871,26 +889,32 @@ def loop_pose_metrics(
         costs: optional ``(P,)`` matching costs (lower = more confident).
         cost_threshold: the confidence filter keeps pairs with cost < this (paper: 0.75).
         rot_threshold_deg, trans_threshold_m: the RR thresholds (5°, 2 m).
+        same_floor: optional ``(P,)`` bool, whether the pair's keyframes share a floor (default
+            all). A cross-floor pair joins different places: its (x, y, yaw) errors mean
+            nothing, so it counts as registered in neither RR and is left out of the means.
 
     Returns:
         ``{"all": row}`` plus ``{"confident": row}`` when costs are given. A row is
-        ``{"count", "share", "mRRE_deg", "mRTE_m", "RR_rot", "RR_trans"}``: mean RRE (°) and RTE
-        (m) (:func:`relative_pose_errors`), RR_rot = share with RRE < 5°, RR_trans = share with
-        RTE < 2 m, share = count / P. Undefined means (no pair) are ``nan``.
+        ``{"count", "share", "cross_floor", "mRRE_deg", "mRTE_m", "RR_rot", "RR_trans"}``: mean
+        RRE (°) and RTE (m) (:func:`relative_pose_errors`) over the pairs on one floor, RR_rot =
+        share of the count on one floor with RRE < 5°, RR_trans = with RTE < 2 m, share = count
+        / P, cross_floor = pairs across floors among the count. Undefined means are ``nan``.
     """
     rre, rte = relative_pose_errors(estimated, ground_truth)
     n = rre.shape[0]
     rot_t = _positive_float(rot_threshold_deg, "rot_threshold_deg")
     trans_t = _positive_float(trans_threshold_m, "trans_threshold_m")
-    out = {"all": _loop_pose_row(rre, rte, n, rot_t, trans_t)}
+    floor_ok = (
+        np.ones(n, dtype=bool) if same_floor is None else _bool_array(same_floor, "same_floor", n)
+    )
+    out = {"all": _loop_pose_row(rre, rte, floor_ok, n, rot_t, trans_t)}
     if costs is not None:
         c = _real_array(costs, "costs", f"({n},)", 1)
         if c.shape[0] != n:
             raise ValueError(f"costs: expected shape ({n},), got {c.shape}")
         keep = c < float(cost_threshold)
-        out["confident"] = _loop_pose_row(rre[keep], rte[keep], n, rot_t, trans_t) | {
-            "cost_threshold": float(cost_threshold)
-        }
+        row = _loop_pose_row(rre[keep], rte[keep], floor_ok[keep], n, rot_t, trans_t)
+        out["confident"] = row | {"cost_threshold": float(cost_threshold)}
     return out
 
 
@@ -901,16 +925,20 @@ def confidence_curve(
     *,
     rot_threshold_deg: float = 5.0,
     trans_threshold_m: float = 2.0,
+    same_floor: npt.ArrayLike | None = None,
 ) -> dict[str, F64Array]:
     """Share of pairs kept vs their error as the matching-cost threshold moves.
 
     For each distinct cost c (ascending) the pairs with cost ≤ c are kept. Returns arrays of
     length M: ``threshold`` (c), ``kept_share`` (kept / P), ``mRRE_deg``, ``mRTE_m`` (means over
-    the kept pairs), ``RR_rot`` and ``RR_trans`` (shares of kept pairs under 5° / 2 m).
+    the kept pairs on one floor), ``RR_rot`` and ``RR_trans`` (shares of kept pairs on one floor
+    under 5° / 2 m, of all kept pairs).
 
     Args:
         costs: ``(P,)`` matching costs; rre_deg, rte_m: ``(P,)`` errors of the same pairs
             (:func:`relative_pose_errors`).
+        same_floor: optional ``(P,)`` bool, whether each pair's keyframes share a floor
+            (default all; as in :func:`loop_pose_metrics`).
     """
     c = _real_array(costs, "costs", "(P,)", 1)
     rre = _real_array(rre_deg, "rre_deg", "(P,)", 1)
@@ -921,18 +949,25 @@ def confidence_curve(
         )
     rot_t = _positive_float(rot_threshold_deg, "rot_threshold_deg")
     trans_t = _positive_float(trans_threshold_m, "trans_threshold_m")
+    ok = (
+        np.ones(c.size, dtype=bool)
+        if same_floor is None
+        else _bool_array(same_floor, "same_floor", c.size)
+    )
     order = np.argsort(c, kind="stable")
-    c, rre, rte = c[order], rre[order], rte[order]
+    c, rre, rte, ok = c[order], rre[order], rte[order], ok[order]
     last = np.flatnonzero(np.append(np.diff(c) > 0, True)) if c.size else np.zeros(0, np.int64)
     kept = last + 1.0
-    return {
-        "threshold": c[last],
-        "kept_share": kept / max(c.size, 1),
-        "mRRE_deg": np.cumsum(rre)[last] / kept,
-        "mRTE_m": np.cumsum(rte)[last] / kept,
-        "RR_rot": np.cumsum(rre < rot_t)[last] / kept,
-        "RR_trans": np.cumsum(rte < trans_t)[last] / kept,
-    }
+    on_floor = np.cumsum(ok)[last].astype(np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):  # no pair on one floor yet: nan
+        return {
+            "threshold": c[last],
+            "kept_share": kept / max(c.size, 1),
+            "mRRE_deg": np.cumsum(np.where(ok, rre, 0.0))[last] / on_floor,
+            "mRTE_m": np.cumsum(np.where(ok, rte, 0.0))[last] / on_floor,
+            "RR_rot": np.cumsum(ok & (rre < rot_t))[last] / kept,
+            "RR_trans": np.cumsum(ok & (rte < trans_t))[last] / kept,
+        }
 
 
 def distinctiveness(rerank_costs: npt.ArrayLike) -> F64Array:
@@ -1100,7 +1135,7 @@ def _recall_table(results: Mapping[str, Any], first: str) -> list[str]:
 
 
 def _pose_table(results: Mapping[str, Any]) -> list[str]:
-    subsets = {"true_revisit": "top-1 true revisit", "all": "all kept queries"}
+    subsets = {"true_revisit": "top-1 true revisit", "all": "all kept queries on their floor"}
     first = next(iter(next(iter(results.values())).values()))
     aoe = [k for k in first if k.startswith("AOE@")]
     ape = [k for k in first if k.startswith("APE@")]
@@ -1111,7 +1146,9 @@ def _pose_table(results: Mapping[str, Any]) -> list[str]:
             if key in res:
                 row = res[key]
                 cells = [_num(row[k]) for k in aoe] + [_num(row[k]) for k in ape]
-                rows.append([name, label, str(row["count"]), *cells])
+                other = row.get("other_floor", 0)
+                shown = f"{label} ({other} answered on another floor left out)" if other else label
+                rows.append([name, shown, str(row["count"]), *cells])
     return _table(header, rows)
 
 
@@ -1154,7 +1191,16 @@ def _loop_table(results: Mapping[str, Any]) -> list[str]:
 
 
 def _loop_pose_table(results: Mapping[str, Any]) -> list[str]:
-    header = ["name", "pairs", "n", "mRRE (°)", "mRTE (m)", "RR(<5°) (%)", "RR(<2 m) (%)"]
+    header = [
+        "name",
+        "pairs",
+        "n",
+        "across floors",
+        "mRRE (°)",
+        "mRTE (m)",
+        "RR(<5°) (%)",
+        "RR(<2 m) (%)",
+    ]
     rows = []
     for name, res in results.items():
         for key in ("all", "confident"):
@@ -1166,6 +1212,7 @@ def _loop_pose_table(results: Mapping[str, Any]) -> list[str]:
                         name,
                         label,
                         str(row["count"]),
+                        str(row.get("cross_floor", 0)),
                         _num(row["mRRE_deg"]),
                         _num(row["mRTE_m"]),
                         _pct(row["RR_rot"]),

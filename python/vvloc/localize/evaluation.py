@@ -214,11 +214,19 @@ def _loops(
             est = np.array([e for e, _ in got]).reshape(-1, 3)
             costs = np.array([c for _, c in got])
             gt = geometry.relative(db.poses[rows_i], db.poses[rows_j])
-            pose[name] = evaluate.loop_pose_metrics(est, gt.reshape(-1, 3), costs)
+            same = floors[rows_i] == floors[rows_j]  # a cross-floor pair registers nothing
+            pose[name] = evaluate.loop_pose_metrics(est, gt.reshape(-1, 3), costs, same_floor=same)
             rre, rte = evaluate.relative_pose_errors(est, gt.reshape(-1, 3))
-            pose[name]["confidence_curve"] = evaluate.confidence_curve(costs, rre, rte)
+            pose[name]["confidence_curve"] = evaluate.confidence_curve(
+                costs, rre, rte, same_floor=same
+            )
             del cand, pairs, curve  # one variant's curve in memory at a time
     return closure, pose, sweep, over
+
+
+def _share(x: float, why: str) -> str:
+    """A share as a percentage for the report's notes; "– (why)" where it is undefined (nan)."""
+    return f"– ({why})" if np.isnan(x) else f"{x:.1%}"
 
 
 def _ranked(results: Sequence[LocalizationResult], attr: str, k: int) -> np.ndarray:
@@ -336,7 +344,9 @@ def run_evaluation(
                 )
     est = np.stack([r.global_pose for r in results])
     correct = rec_ml.correct(1, 2.0)
-    pose_acc = evaluate.pose_accuracy(est, q_pose, correct, kept=rec_ml.kept)
+    # the keyframe each metric pose was built on: an answer on another floor is no success
+    on_floor = np.array([db_floor[r.metric_row] for r in results]) == q_floor
+    pose_acc = evaluate.pose_accuracy(est, q_pose, correct, kept=rec_ml.kept, same_floor=on_floor)
     stages = ("encode", "retrieve", "rerank", "metric")
     latency = evaluate.latency_summary(
         {s: [r.timings_ms.get(s, np.nan) for r in results] for s in stages}
@@ -350,7 +360,8 @@ def run_evaluation(
     notes = [
         f"{len(frames)} queries from {list(queries)}, map = {database} ({len(mapdb)} keyframes)",
         f"accepted ({rule}): {accepted.mean():.1%} of all queries; top-1 within 2 m among the "
-        f"accepted kept queries: {acc_precision:.1%} (among all kept: {rec_ml.at(1, 2.0):.1%})",
+        f"accepted kept queries: {_share(acc_precision, 'none accepted')} (among all kept: "
+        f"{_share(rec_ml.at(1, 2.0), 'none kept')})",
     ]
     ml = f"VVLoc-ML: the top-{k} re-ranked by yaw matching cost"
     if loc.metric_candidates > 1:
@@ -498,7 +509,10 @@ def run_evaluation(
         out_dir / "recall.png", {"VVLoc-G": rec_g.curve(2.0), "VVLoc-ML": rec_ml.curve(2.0)}
     )
     sel = correct & rec_ml.kept
-    subsets = {"top-1 true revisits": sel, "all kept queries": rec_ml.kept}
+    subsets = {
+        "top-1 true revisits": sel,
+        "all kept queries on their floor": rec_ml.kept & on_floor,
+    }
     figures["Error CDFs"] = viz.plot_error_cdfs(
         out_dir / "error_cdf.png",
         {f"VVLoc-ML, {k}": yaw_err[m] for k, m in subsets.items()},
