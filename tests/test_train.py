@@ -421,6 +421,26 @@ def test_patience_stops_the_joint_stage_and_the_head_stage_follows(
         train(longer, tmp_path / "early", resume=True, progress=False)
 
 
+def test_a_run_whose_patience_ran_out_at_its_last_joint_epoch_is_not_extended(
+    tiny_world, tmp_path, monkeypatch
+):
+    # joint epochs 2-4 score 0.7 (best, epoch 2), 0.6, 0.5: at epoch 4 two validated epochs
+    # have not beaten best/, so a longer run would have stopped there; extending this one to 6
+    # joint epochs is refused like the extension of a run that did stop
+    val = dict(train_sessions=["s0", "s1"], val_sessions=["s2"], val_every=4, device="cpu")
+    _scripted_validation(monkeypatch, [0.7, 0.6, 0.5])
+    cfg = _config(tiny_world, stage2_epochs=3, patience=2, **val)
+    tr = train(cfg, tmp_path / "run", progress=False)
+    assert tr.joint_stopped is None and tr.epoch == 4
+    with pytest.raises(ValueError, match="stopped its joint stage early after epoch 4"):
+        train(dataclasses.replace(cfg, stage2_epochs=6), tmp_path / "run", resume=True)
+    # with patience left, the extension goes on
+    _scripted_validation(monkeypatch, [0.5, 0.6, 0.7, 0.8, 0.9])
+    ok = train(cfg, tmp_path / "ok", progress=False)
+    more = train(dataclasses.replace(cfg, stage2_epochs=4), tmp_path / "ok", resume=True)
+    assert ok.epoch == 4 and more.epoch == 5
+
+
 def test_patience_that_never_runs_out_changes_nothing(tiny_world, tmp_path, monkeypatch):
     val = dict(train_sessions=["s0", "s1"], val_sessions=["s2"], val_every=4, device="cpu")
     _scripted_validation(monkeypatch, [0.5, 0.6, 0.7])
@@ -1128,6 +1148,74 @@ def test_a_non_finite_loss_stops_before_the_step(tiny_world, tmp_path, monkeypat
         assert torch.equal(v, good[k])
 
 
+def test_a_non_finite_epoch_is_not_saved_and_resume_continues_from_the_last_good_one(
+    tiny_world, tmp_path, monkeypatch
+):
+    cfg = _config(tiny_world, stage1_epochs=3, stage2_epochs=0, steps_per_epoch=2)
+    out = tmp_path / "run"
+    tr = Trainer(cfg, out)
+    real_epoch = Trainer.run_epoch
+    calls = {"n": 0}
+
+    def second_epoch_nan(self, progress=True):  # a head or local stage has no per-step check
+        rec = real_epoch(self, progress=progress)
+        calls["n"] += 1
+        if calls["n"] == 2:
+            rec["loss_total"] = float("nan")
+        return rec
+
+    monkeypatch.setattr(Trainer, "run_epoch", second_epoch_nan)
+    with pytest.raises(FloatingPointError, match=r"nothing of this epoch was saved \(--resume"):
+        tr.fit(progress=False)
+    state = torch.load(out / "trainer_state.pt", weights_only=False)
+    assert state["epoch"] == 1  # the last good epoch
+    assert [json.loads(x)["epoch"] for x in (out / "log.jsonl").read_text().splitlines()] == [1]
+    monkeypatch.setattr(Trainer, "run_epoch", real_epoch)
+    again = Trainer(cfg, out)
+    assert again.resume() and again.epoch == 1
+
+
+def test_a_log_line_lost_between_the_save_and_its_write_is_written_on_resume(tiny_world, tmp_path):
+    cfg = _config(tiny_world, stage1_epochs=3, stage2_epochs=0, steps_per_epoch=2)
+    out = tmp_path / "run"
+    tr = Trainer(cfg, out)
+    rec = tr.run_epoch(progress=False)
+    tr.save(record=rec)
+    tr._log_record(rec)
+    rec = tr.run_epoch(progress=False)
+    tr.save(record=rec)  # epoch 2 saved, then a stop before its log line
+    resumed = train(cfg, out, resume=True, progress=False)
+    assert resumed.epoch == 3
+    epochs = [json.loads(x)["epoch"] for x in (out / "log.jsonl").read_text().splitlines()]
+    assert epochs == [1, 2, 3]
+    # a finished run resumed again writes nothing twice
+    train(cfg, out, resume=True, progress=False)
+    assert len((out / "log.jsonl").read_text().splitlines()) == 3
+
+
+@pytest.mark.parametrize(
+    ("key", "value", "match"),
+    [
+        ("yaw_weight", -1.0, "yaw_weight: expected a finite number >= 0"),
+        ("tbias_weight", float("inf"), "tbias_weight: expected a finite number >= 0"),
+        ("yaw_gamma", -40.0, "yaw_gamma: expected a finite number > 0"),
+        ("grad_clip", float("nan"), "grad_clip: expected a finite number >= 0"),
+        ("triplet_margin", float("nan"), "triplet_margin: expected a finite number >= 0"),
+        ("threads", -1, "threads: expected an int >= 1"),
+        ("seed", 2**45, r"seed: expected < 2\*\*32"),
+        (
+            "extra_datasets",
+            [{"dataset": "y", "train_sessions": "s0"}],
+            r"extra_datasets\[0\]\.train_sessions: expected a list",
+        ),
+    ],
+)
+def test_config_values_that_would_train_something_else_are_refused(key, value, match):
+    with pytest.raises(ValueError, match=match):
+        TrainConfig.from_dict({"dataset": "x", key: value})
+    TrainConfig.from_dict({"dataset": "x", "grad_clip": 0.0})  # no clipping: allowed
+
+
 def test_config_types_are_checked_by_name():
     base = {"dataset": "x"}
     cases = {
@@ -1136,7 +1224,7 @@ def test_config_types_are_checked_by_name():
         "stage2_epochs": (1.7, "stage2_epochs: expected an int"),
         "train_sessions": ("s0", r"train_sessions: expected a list of session names"),
         "num_workers": (True, "num_workers: expected an int"),
-        "triplet_margin": (-0.5, "triplet_margin: expected >= 0"),
+        "triplet_margin": (-0.5, "triplet_margin: expected a finite number >= 0"),
         "neg_radius": (1.0, "pos_radius, neg_radius"),
     }
     for key, (value, match) in cases.items():

@@ -328,8 +328,30 @@ class TrainConfig:
         """Raise ``ValueError`` naming the first invalid field."""
         self._check_types()
         for name in ("seed", "triplet_margin", "hinge_pos", "hinge_neg", "tbias_margin"):
-            if getattr(self, name) < 0:
-                raise ValueError(f"{name}: expected >= 0, got {getattr(self, name)}")
+            value = getattr(self, name)
+            if not (value >= 0 and math.isfinite(value)):  # NaN fails both
+                raise ValueError(f"{name}: expected a finite number >= 0, got {value}")
+        if self.seed >= 2**32:  # stage 2 seeds its losses with seed · 1 000 003 + step (int64)
+            raise ValueError(f"seed: expected < 2**32, got {self.seed}")
+        for name in ("yaw_weight", "tbias_weight", "grad_clip"):  # grad_clip 0: no clipping
+            value = getattr(self, name)
+            if (
+                isinstance(value, bool)
+                or not isinstance(value, (int, float))
+                or not (value >= 0 and math.isfinite(value))
+            ):
+                raise ValueError(f"{name}: expected a finite number >= 0, got {value!r}")
+        gamma = self.yaw_gamma
+        if (
+            isinstance(gamma, bool)
+            or not isinstance(gamma, (int, float))
+            or not (gamma > 0 and math.isfinite(gamma))
+        ):
+            raise ValueError(f"yaw_gamma: expected a finite number > 0, got {gamma!r}")
+        if self.threads is not None and (
+            isinstance(self.threads, bool) or not isinstance(self.threads, int) or self.threads < 1
+        ):
+            raise ValueError(f"threads: expected an int >= 1 or null, got {self.threads!r}")
         if not 0 < self.pos_radius < self.neg_radius:
             raise ValueError(
                 f"pos_radius, neg_radius: expected 0 < pos_radius < neg_radius, got "
@@ -492,6 +514,14 @@ class TrainConfig:
                 raise ValueError(
                     f"extra_datasets[{k}]: unknown keys {unknown}; "
                     "known: ['anchor_share', 'dataset', 'sim', 'train_sessions']"
+                )
+            sessions = extra.get("train_sessions")
+            if sessions is not None and (
+                not isinstance(sessions, list) or not all(isinstance(n, str) for n in sessions)
+            ):
+                raise ValueError(
+                    f"extra_datasets[{k}].train_sessions: expected a list of session names, "
+                    f"got {sessions!r}"
                 )
         if not 0.0 <= float(self.cross_floor_fraction) <= 1.0:
             raise ValueError("cross_floor_fraction: expected a value in [0, 1]")
@@ -935,6 +965,7 @@ class Trainer:
         self.best: dict[str, Any] | None = None  # the validation record of best/, if any
         # the (1-based) last joint epoch when `patience` stopped the joint stage early, else None
         self.joint_stopped: int | None = None
+        self._unlogged: dict[str, Any] | None = None  # a saved epoch's missing log line
         # the training record's processes (vvloc.provenance): earlier ones (from the trainer
         # state on resume), then this one, whose seconds grow with its set-up and epochs
         self.earlier_processes: list[dict[str, Any]] = []
@@ -1097,9 +1128,27 @@ class Trainer:
         finally:
             self.model.training_record = {}
 
-    def save(self) -> None:
+    def _log_record(self, rec: dict[str, Any]) -> None:
+        """Append one epoch's record to ``log.jsonl`` (strict JSON: NaN/inf as null)."""
+        with open(self.out / "log.jsonl", "a") as f:
+            f.write(json.dumps(to_jsonable(rec), allow_nan=False) + "\n")
+
+    def _logged_epochs(self) -> set[int]:
+        """The epochs ``log.jsonl`` holds a line of (a torn last line is no epoch)."""
+        path = self.out / "log.jsonl"
+        done: set[int] = set()
+        if path.is_file():
+            for line in path.read_text().splitlines():
+                try:
+                    done.add(int(json.loads(line)["epoch"]))
+                except (ValueError, KeyError, TypeError):
+                    continue
+        return done
+
+    def save(self, record: dict[str, Any] | None = None) -> None:
         """Write the model checkpoint (with its training record) and the trainer state
-        (atomically, each file)."""
+        (atomically, each file); ``record``, the epoch's log line, goes into the state so that
+        a resume writes it if the process stopped before its own write."""
         self.out.mkdir(parents=True, exist_ok=True)
         self._save_model(self.checkpoint_dir, self.epoch)
         state = {
@@ -1123,6 +1172,7 @@ class Trainer:
             "best": self.best,
             "joint_stopped": self.joint_stopped,
             "config": self.cfg.to_dict(),
+            "record": None if record is None else to_jsonable(record),
         }
         with atomic_write(self._state_path(), "wb") as fb:
             torch.save(state, fb)
@@ -1183,6 +1233,19 @@ class Trainer:
                 f"{state['epoch']}; asked for {self.cfg.stage2_epochs})"
             )
         self.joint_stopped = state.get("joint_stopped")
+        best = state.get("best")
+        if (
+            self.joint_stopped is None
+            and old["stage2_epochs"] != self.cfg.stage2_epochs
+            and self.cfg.patience is not None
+            and best is not None
+            and int(state["epoch"]) == old["stage1_epochs"] + old["stage2_epochs"]
+            and int(state["epoch"]) - int(best["epoch"]) >= self.cfg.patience
+        ):
+            # its last joint epoch skipped the patience check (no joint epoch was left to
+            # stop); a run that had asked for more epochs from the start would have stopped
+            # there, so an extension is refused as for one that did stop
+            self.joint_stopped = int(state["epoch"])
         if self.joint_stopped is not None and old["stage2_epochs"] != self.cfg.stage2_epochs:
             raise ValueError(
                 f"{self._state_path()}: the run in {self.out} stopped its joint stage early "
@@ -1240,6 +1303,9 @@ class Trainer:
                 torch.cuda.set_rng_state(rng_state, index)
         self.epoch = int(state["epoch"])
         self.step = int(state["step"])
+        record = state.get("record")
+        if record is not None and int(record["epoch"]) not in self._logged_epochs():
+            self._unlogged = record  # fit() writes it before training on
         self.best = state.get("best")
         # The run's record so far is its latest checkpoint's (written with the state, brought
         # up at the end of fit): its processes, and the init checkpoint's runs as they were when
@@ -1690,11 +1756,20 @@ class Trainer:
         self.out.mkdir(parents=True, exist_ok=True)
         (self.out / "train_config.yaml").write_text(yaml.safe_dump(self.cfg.to_dict()))
         cfg = self.cfg
+        if self._unlogged is not None:  # the last process stopped between its save and its log
+            self._log_record(self._unlogged)
+            self._unlogged = None
         records = []
         while self.epoch < self.total_epochs:
             t0 = time.perf_counter()
             validating = self.validates(self.epoch)
             rec = self.run_epoch(progress=progress)
+            if not all(math.isfinite(v) for k, v in rec.items() if k.startswith("loss_")):
+                # before any save: checkpoint/, best/ and the state keep the last good epoch
+                raise FloatingPointError(
+                    f"non-finite loss in epoch {rec['epoch']}: {rec}; nothing of this epoch was "
+                    f"saved (--resume continues from epoch {rec['epoch'] - 1})"
+                )
             if validating:
                 rec["val"] = self.validate()
             self.process["seconds"] += time.perf_counter() - t0  # the saves below record it
@@ -1734,13 +1809,10 @@ class Trainer:
                         cfg.patience,
                     )
             records.append(rec)
-            self.save()
+            self.save(record=rec)
             self.process["seconds"] += time.perf_counter() - t0
-            with open(self.out / "log.jsonl", "a") as f:  # strict JSON: NaN/inf as null
-                f.write(json.dumps(to_jsonable(rec), allow_nan=False) + "\n")
+            self._log_record(rec)
             log.info("epoch %d: %s", rec["epoch"], {k: v for k, v in rec.items() if "loss" in k})
-            if not all(math.isfinite(v) for k, v in rec.items() if k.startswith("loss_")):
-                raise FloatingPointError(f"non-finite loss in epoch {rec['epoch']}: {rec}")
         if records:
             self._rewrite_records()
         elif self._best_record_unfinished():  # its last process stopped before this line
