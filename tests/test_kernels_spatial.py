@@ -295,3 +295,35 @@ def test_outputs_larger_than_memory_raise_memory_error():
     # sizes beyond what the kernels' integers hold are named (not 'int too big to convert')
     with pytest.raises(ValueError, match=r"^num_angles: expected an int <= "):
         K.polar_sample(q, 2**70, 1, 0.3)
+
+
+def test_vast_broadcast_inputs_and_overflowing_radii_are_errors_not_aborts():
+    """A broadcast view of a few bytes standing for terabytes, passed to the raw extension
+    (the gateway copies first and fails in numpy), is a MemoryError, and a grid size whose
+    polar radius overflows is a ValueError naming it; run in a child process, so that an
+    abort would fail this test instead of ending the run."""
+    import subprocess
+    import sys
+
+    code = """
+import numpy as np
+from vvloc import _core, kernels
+vast = np.broadcast_to(np.zeros(1, np.float32), (2**40,))
+bev = np.broadcast_to(np.zeros((1, 1, 1), np.float32), (2**20, 2**10, 2**10))
+for call in (lambda: _core.roll_interp(vast, 1.0, 0),
+             lambda: _core.bev_pad(bev, np.zeros((1, 2)), 0.3)):
+    try:
+        call()
+    except MemoryError as e:
+        print("MemoryError", e)
+try:
+    kernels.polar_sample(np.full((8, 8, 1), 2, np.float32), 4, 2, 1e308)
+except ValueError as e:
+    print("ValueError", e)
+"""
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    lines = r.stdout.splitlines()
+    assert len(lines) == 3, r.stdout
+    assert lines[0].startswith("MemoryError x:") and lines[1].startswith("MemoryError bev:")
+    assert lines[2].startswith("ValueError grid_size:")

@@ -128,19 +128,26 @@ fn check_pairs<'a>(
             tgt.shape(),
         ));
     }
-    let s = contiguous(src);
-    let g = contiguous(tgt);
+    let s = contiguous(src, "src")?;
+    let g = contiguous(tgt, "tgt")?;
     check_rows(&s, c, "src")?;
     check_rows(&g, c, "tgt")?;
-    // each pair's curve holds a (T, T) table of squared distances
-    check_alloc::<f32>("src", checked_len("src", &[t, t])?)?;
+    // each pair's curve holds up to three (T, T) tables (Gram-derived distances, their
+    // squares and inverse roots), and one pair per thread runs at a time
+    let concurrent = p.min(rayon::current_num_threads()).max(1);
+    check_alloc::<f32>("src", checked_len("src", &[3, concurrent, t, t])?)?;
     Ok((p, t, c, s, g, pt == 1 && p > 1))
 }
 
-fn contiguous<'a>(x: &'a ArrayView3<'a, f32>) -> Cow<'a, [f32]> {
+/// The array's elements in standard order: borrowed when already contiguous, else copied (a
+/// broadcast view of a few bytes can stand for terabytes: the copy is checked first).
+fn contiguous<'a>(x: &'a ArrayView3<'a, f32>, arg: &'static str) -> Result<Cow<'a, [f32]>> {
     match x.as_slice() {
-        Some(s) => Cow::Borrowed(s),
-        None => Cow::Owned(x.iter().copied().collect()),
+        Some(s) => Ok(Cow::Borrowed(s)),
+        None => {
+            check_alloc::<f32>(arg, x.len())?;
+            Ok(Cow::Owned(x.iter().copied().collect()))
+        }
     }
 }
 
@@ -176,7 +183,7 @@ pub fn matching_cost(a: ArrayView3<f32>, b: ArrayView3<f32>) -> Result<Vec<f64>>
             a.shape(),
         ));
     }
-    let (sa, sb) = (contiguous(&a), contiguous(&b));
+    let (sa, sb) = (contiguous(&a, "a")?, contiguous(&b, "b")?);
     check_rows(&sa, c, "a")?;
     check_rows(&sb, c, "b")?;
     let isa = Isa::detect();
@@ -376,7 +383,9 @@ mod x86 {
     #[target_feature(enable = "avx512f")]
     fn dot4x4_avx512(a: [&[f32]; 4], b: [&[f32]; 4]) -> [[f32; 4]; 4] {
         let c = a[0].len();
-        debug_assert!(a.iter().chain(b.iter()).all(|r| r.len() == c));
+        // the masked loads below read lanes off..c of every row: all rows must have length c
+        // (a once-per-tile comparison; the callers slice every row to C)
+        assert!(a.iter().chain(b.iter()).all(|r| r.len() == c));
         let mut acc = [[_mm512_setzero_ps(); 4]; 4];
         let mut off = 0;
         while off < c {
@@ -389,7 +398,7 @@ mod x86 {
             let mut av = [_mm512_setzero_ps(); 4];
             let mut bv = [_mm512_setzero_ps(); 4];
             for r in 0..4 {
-                // SAFETY: all rows have length c (checked by the callers' slicing); the mask
+                // SAFETY: all rows have length c (asserted above); the mask
                 // enables only lanes off..off + min(16, c − off), which lie inside each row.
                 av[r] = unsafe { _mm512_maskz_loadu_ps(mask, a[r].as_ptr().add(off)) };
                 bv[r] = unsafe { _mm512_maskz_loadu_ps(mask, b[r].as_ptr().add(off)) };

@@ -20,7 +20,7 @@
 //! `Qᵗ[a, b]` is "row `a` invalid or column `b` invalid", the 2-D value is
 //! `Σ αᵣ β_s Q[r, s] + 1 − (Σα)(Σβ)`.
 
-use crate::error::checked_len;
+use crate::error::{check_alloc, checked_len};
 use crate::polar::{
     blend, check_grid_size, has_avx2_fma, output_buffer, AxisFilter, PolarGrid, Taps,
 };
@@ -110,6 +110,7 @@ fn shifts(
             "contains non-finite values (NaN or inf)",
         ));
     }
+    check_alloc::<(AxisShift, AxisShift)>("translations", translations.nrows())?;
     Ok(translations
         .rows()
         .into_iter()
@@ -163,6 +164,9 @@ pub fn bev_pad(
     let (h, w, c) = bev.dim();
     let shifts = shifts(&translations, grid_size, h, w)?;
     let n = shifts.len();
+    if !bev.is_standard_layout() {
+        check_alloc::<f32>("bev", bev.len())?; // the copy below (a broadcast view may be vast)
+    }
     let bev = bev.as_standard_layout();
     let map = bev
         .as_slice()
@@ -243,6 +247,9 @@ pub fn pad_polar(
     let grid = PolarGrid::new(h, w, num_angles, num_radii, grid_size)?;
     let shifts = shifts(&translations, grid_size, h, w)?;
     let n = shifts.len();
+    if !bev.is_standard_layout() {
+        check_alloc::<f32>("bev", bev.len())?; // the copy below (a broadcast view may be vast)
+    }
     let bev = bev.as_standard_layout();
     let map = bev
         .as_slice()

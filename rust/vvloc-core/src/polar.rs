@@ -64,6 +64,14 @@ impl PolarGrid {
             return Err(Error::value("num_radii", "expected an int >= 1, got 0"));
         }
         let r_max = height.min(width) as f64 * grid_size / 2.0;
+        if !r_max.is_finite() {
+            return Err(Error::value(
+                "grid_size",
+                format!(
+                    "expected the polar radius min(H, W)·g/2 to be finite, got g = {grid_size}"
+                ),
+            ));
+        }
         let (ci, cj) = ((height as f64 - 1.0) / 2.0, (width as f64 - 1.0) / 2.0);
         let mut points = Vec::new();
         let len = checked_len("num_angles", &[num_angles, num_radii])?;
@@ -318,6 +326,9 @@ pub fn polar_sample(
     };
     let [h, w, c] = dims;
     let grid = PolarGrid::new(h, w, num_angles, num_radii, grid_size)?;
+    if !bev.is_standard_layout() {
+        check_alloc::<f32>("bev", bev.len())?; // the copy below (a broadcast view may be vast)
+    }
     let bev = bev.as_standard_layout();
     let src = bev
         .as_slice()
@@ -361,6 +372,27 @@ mod tests {
         Array::from_shape_fn((h, w, c), |(i, j, k)| {
             ((i as f32 * 0.37 + j as f32 * 1.3 + k as f32 * 0.71).sin()) * 2.0
         })
+    }
+
+    #[test]
+    fn vast_inputs_are_errors_not_aborts() {
+        // a polar radius that overflows, and a broadcast view of 2^40 elements to copy
+        let bev = field(8, 8, 1);
+        let err = polar_sample(bev.view().into_dyn(), 4, 2, 1e308).unwrap_err();
+        assert!(
+            matches!(
+                err,
+                Error::Value {
+                    arg: "grid_size",
+                    ..
+                }
+            ),
+            "{err:?}"
+        );
+        let one = Array::from_elem((1, 1, 1, 1), 1.0f32);
+        let vast = one.broadcast((1 << 20, 1 << 10, 1 << 10, 1)).unwrap();
+        let err = polar_sample(vast.into_dyn(), 4, 2, 0.3).unwrap_err();
+        assert!(matches!(err, Error::Memory { arg: "bev", .. }), "{err:?}");
     }
 
     #[test]

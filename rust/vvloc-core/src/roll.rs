@@ -43,6 +43,9 @@ pub fn roll_interp(x: ArrayViewD<'_, f32>, shift: f64, axis: usize) -> Result<Ar
     let shape = x.shape().to_vec();
     let n = shape[axis];
     let inner: usize = shape[axis + 1..].iter().product();
+    if !x.is_standard_layout() {
+        crate::error::check_alloc::<f32>("x", x.len())?; // a broadcast view may be vast
+    }
     let x = x.as_standard_layout();
     let src = x
         .as_slice()
@@ -82,6 +85,14 @@ mod tests {
     fn ramp(shape: &[usize]) -> ArrayD<f32> {
         let n: usize = shape.iter().product();
         Array::from_shape_vec(IxDyn(shape), (0..n).map(|v| v as f32).collect()).unwrap()
+    }
+
+    #[test]
+    fn a_vast_broadcast_view_is_an_error_not_an_abort() {
+        let one = ndarray::Array1::from_elem(1, 1.0f32);
+        let vast = one.broadcast(1usize << 40).unwrap();
+        let err = roll_interp(vast.into_dyn(), 1.0, 0).unwrap_err();
+        assert!(matches!(err, Error::Memory { arg: "x", .. }), "{err:?}");
     }
 
     #[test]

@@ -42,18 +42,25 @@ pub fn detect() -> Level {
     *LEVEL.get_or_init(|| {
         #[cfg(target_arch = "x86_64")]
         {
-            if is_x86_feature_detected!("avx512f") {
+            // Avx512 also runs AVX2+FMA code (norms, int8 without VNNI): require both, as a
+            // VM may expose AVX-512F while hiding them
+            if is_x86_feature_detected!("avx512f") && has_avx2_fma() {
                 return Level::Avx512 {
                     bf16: is_x86_feature_detected!("avx512bf16"),
                     vnni: has_vnni(),
                 };
             }
-            if is_x86_feature_detected!("avx2") && is_x86_feature_detected!("fma") {
+            if has_avx2_fma() {
                 return Level::Avx2;
             }
         }
         Level::Portable
     })
+}
+
+#[cfg(target_arch = "x86_64")]
+fn has_avx2_fma() -> bool {
+    is_x86_feature_detected!("avx2") && is_x86_feature_detected!("fma")
 }
 
 #[cfg(target_arch = "x86_64")]
@@ -66,10 +73,10 @@ pub fn available_levels() -> Vec<Level> {
     let mut v = vec![Level::Portable];
     #[cfg(target_arch = "x86_64")]
     {
-        if is_x86_feature_detected!("avx2") && is_x86_feature_detected!("fma") {
+        if has_avx2_fma() {
             v.push(Level::Avx2);
         }
-        if is_x86_feature_detected!("avx512f") {
+        if is_x86_feature_detected!("avx512f") && has_avx2_fma() {
             v.push(Level::Avx512 {
                 bf16: false,
                 vnni: false,
@@ -201,8 +208,8 @@ pub fn block_norms(level: Level, block: &[f32], d: usize) -> [f32; BLOCK] {
     }
     match level {
         #[cfg(target_arch = "x86_64")]
-        // SAFETY: avx2 and fma were detected (both Avx2 and Avx512 machines have them: every
-        // AVX-512F CPU implements AVX2 and FMA).
+        // SAFETY: avx2 and fma were detected: `detect` and `available_levels` produce Avx2 and
+        // Avx512 only after detecting both (Avx512 also after avx512f).
         Level::Avx2 | Level::Avx512 { .. } => unsafe { fast(block, d) },
         _ => generic(block, d),
     }
