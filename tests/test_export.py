@@ -115,6 +115,7 @@ def test_loop_csv_with_no_loops(tmp_path: Path) -> None:
         ({"costs": [np.nan]}, ValueError, "costs.*non-finite"),
         ({"accepted": [1]}, TypeError, "accepted.*bool"),
         ({"i": [0.5]}, TypeError, "i: expected an integer"),
+        ({"j": np.array([2**63 + 5], np.uint64)}, ValueError, "j: ids beyond int64"),
     ],
 )
 def test_loop_closures_validate(kwargs: dict, exc: type, match: str) -> None:

@@ -574,6 +574,17 @@ def test_atomic_write_gives_new_files_the_umask_mode_and_keeps_an_existing_files
         os.umask(old)
     assert stat.S_IMODE((tmp_path / "new.txt").stat().st_mode) == 0o644
     assert stat.S_IMODE(kept.stat().st_mode) == 0o600 and kept.read_text() == "new"
+    # a read-only file is replaced too: its owner may write the temporary file, which takes
+    # the file's mode at the commit (without root's override, a 0o444 temporary file could
+    # not be written)
+    frozen = tmp_path / "frozen.txt"
+    frozen.write_text("old")
+    frozen.chmod(0o444)
+    with atomic_write(frozen) as f:
+        f.write("new")
+        (tmp,) = [p for p in tmp_path.iterdir() if p.name.startswith(".frozen.txt.")]
+        assert stat.S_IMODE(tmp.stat().st_mode) == 0o644
+    assert stat.S_IMODE(frozen.stat().st_mode) == 0o444 and frozen.read_text() == "new"
 
 
 def test_atomic_write_through_a_symlink_replaces_its_target(tmp_path: Path) -> None:
@@ -585,3 +596,39 @@ def test_atomic_write_through_a_symlink_replaces_its_target(tmp_path: Path) -> N
     with atomic_write(link) as f:
         f.write("new")
     assert link.is_symlink() and target.read_text() == "new"
+
+
+def test_an_unreadable_checksum_and_a_map_held_for_writing_are_map_errors(tmp_path: Path) -> None:
+    import subprocess
+    import sys
+
+    from vvloc.localize.mapdb import _check_digest
+
+    class Damaged:  # a dataset whose checksum attribute HDF5 cannot read (a flipped bit)
+        name = "/bev"
+
+        class attrs:
+            @staticmethod
+            def get(key: str) -> None:
+                raise OSError("Can't synchronously read data (heap object size does not match)")
+
+    with pytest.raises(MapError, match="corrupted map: cannot read the checksum of '/bev'"):
+        _check_digest(tmp_path / "m.h5", Damaged(), "0" * 64)  # type: ignore[arg-type]
+    path = make_map().save(tmp_path / "map.h5")
+    holder = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            f"import h5py, sys, time; f = h5py.File({str(path)!r}, 'a'); print('open'); "
+            "sys.stdout.flush(); time.sleep(60)",
+        ],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert holder.stdout is not None and holder.stdout.readline().strip() == "open"
+        with pytest.raises(MapError, match="another process holds it open for writing"):
+            MapDatabase.open(path)
+    finally:
+        holder.kill()
+        holder.communicate()  # reaps it and closes its pipe

@@ -50,13 +50,14 @@ class AtomicPath:
     Use as a context manager: ``with AtomicPath(p) as tmp: write(tmp)`` commits when the block
     ends normally and aborts (removes the temporary file) when it raises. The temporary file is
     created empty (mode 0o666 minus the umask, like a plain ``open``; replacing an existing file
-    keeps that file's mode, as writing into it would, from the start: a private file's new
-    contents are never readable by others) with a hidden random name ``.<name>.<hex>.tmp`` in the
-    destination's directory, so the final rename never crosses file systems. A destination that
-    is a symbolic link is followed: its target is replaced and the link kept, as writing into it
-    would. A process killed outright (SIGKILL, power loss) may leave the hidden temporary file
-    behind; the destination is intact either way. :meth:`commit` and :meth:`abort` may also be
-    called explicitly (once).
+    keeps that file's mode, as writing into it would: its group and other bits from the start,
+    so that a private file's new contents are never readable by others, and its owner bits at
+    the commit, so that a read-only file can be replaced) with a hidden random name
+    ``.<name>.<hex>.tmp`` in the destination's directory, so the final rename never crosses file
+    systems. A destination that is a symbolic link is followed: its target is replaced and the
+    link kept, as writing into it would. A process killed outright (SIGKILL, power loss) may
+    leave the hidden temporary file behind; the destination is intact either way. :meth:`commit`
+    and :meth:`abort` may also be called explicitly (once).
     """
 
     def __init__(self, path: str | os.PathLike[str]) -> None:
@@ -76,8 +77,9 @@ class AtomicPath:
 
     def _create_temp(self) -> Path:
         directory = self.path.parent
-        try:  # a rewrite's temporary file is no more open than the file it replaces
-            mode = stat.S_IMODE(os.stat(self.path).st_mode)
+        try:  # a rewrite's temporary file is no more open than the file it replaces, and
+            # its owner can write and read it (a read-only destination's mode is set at commit)
+            mode = (stat.S_IMODE(os.stat(self.path).st_mode) & 0o077) | 0o600
         except FileNotFoundError:
             mode = 0o666
         for _ in range(100):

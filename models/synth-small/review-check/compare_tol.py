@@ -46,5 +46,5 @@ print(
     f"{a}: {n} values differ, largest relative difference {worst:.1e}, {big} above 1e-9, "
     f"{len(other) - big} not floats or structural"
 )
-for o in other[:5]:
+for o in other[: int(sys.argv[3]) if len(sys.argv) > 3 else 5]:
     print("  ", o)

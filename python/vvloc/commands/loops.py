@@ -83,7 +83,7 @@ def loops(
     """Write loops.csv, graph.g2o and one TUM trajectory per session into --out."""
     import numpy as np
 
-    from vvloc.localize.export import write_g2o, write_loop_csv, write_tum
+    from vvloc.localize.export import G2O_MAX_ID, write_g2o, write_loop_csv, write_tum
     from vvloc.localize.loops import detect_loops
     from vvloc.localize.mapdb import MapDatabase
     from vvloc.nets import VVLocNet
@@ -93,6 +93,12 @@ def loops(
         model = VVLocNet.load(resolve_checkpoint(checkpoint)).to(parse_device(device))
         # detect_loops checks the weights fingerprint (once, so an old map warns once)
         db = MapDatabase.open(map_path, expected_config_hash=model.config_hash())
+        ids = np.asarray(db.ids)
+        if len(ids) and (ids.min() < 0 or ids.max() > G2O_MAX_ID):  # before the long detection
+            raise ValueError(
+                f"{map_path}: keyframe ids {int(ids.min())}..{int(ids.max())} do not fit g2o's "
+                f"vertex ids [0, {G2O_MAX_ID}] (vvloc map build numbers them 0..N-1)"
+            )
         found = detect_loops(
             model,
             db,

@@ -79,7 +79,8 @@ _FRAME_COMMENTS = (
 
 
 #: The largest g2o vertex id (ids are C ints).
-_G2O_MAX_ID = 2**31 - 1
+#: The largest vertex id a g2o file takes (g2o reads ids as 32-bit ints).
+G2O_MAX_ID = 2**31 - 1
 
 
 def _r(x: float) -> str:
@@ -117,6 +118,8 @@ def _ints(x: Any, name: str, n: int) -> np.ndarray:
         raise TypeError(f"{name}: expected an integer array ({n},), got dtype {arr.dtype}")
     if arr.shape != (n,):
         raise ValueError(f"{name}: expected shape ({n},), got shape {arr.shape}")
+    if arr.dtype.kind == "u" and n and int(arr.max()) > np.iinfo(np.int64).max:
+        raise ValueError(f"{name}: ids beyond int64 ({int(arr.max())}) cannot be kept exactly")
     return np.ascontiguousarray(arr, dtype=np.int64)
 
 
@@ -392,9 +395,9 @@ def write_g2o(
     vid = np.arange(n, dtype=np.int64) if ids is None else _ints(ids, "ids", n)
     if np.unique(vid).size != n:
         raise ValueError("ids: vertex ids must be unique")
-    if n and (vid.min() < 0 or vid.max() > _G2O_MAX_ID):
+    if n and (vid.min() < 0 or vid.max() > G2O_MAX_ID):
         raise ValueError(
-            f"ids: g2o vertex ids must lie in [0, {_G2O_MAX_ID}], got {int(vid.min())}.."
+            f"ids: g2o vertex ids must lie in [0, {G2O_MAX_ID}], got {int(vid.min())}.."
             f"{int(vid.max())}"
         )
     if not isinstance(only_accepted, (bool, np.bool_)):

@@ -874,6 +874,10 @@ class MapDatabase:
         except OSError as e:
             if not h5py.is_hdf5(p):
                 raise MapError(f"{p}: not a vvloc map: not an HDF5 file") from e
+            if "unable to lock file" in str(e):
+                raise MapError(
+                    f"{p}: cannot open the map: another process holds it open for writing ({e})"
+                ) from e
             raise MapError(f"{p}: cannot open the map: corrupted or truncated file ({e})") from e
         try:
             return cls._load(h5, p, expected_config_hash, expected_weights_hash, verify)
@@ -1061,7 +1065,10 @@ class MapDatabase:
         self._check_open()
         if self._h5 is None or self._path is None:
             return
-        names = self._h5["session_names"].asstr()[()].tolist()
+        try:
+            names = self._h5["session_names"].asstr()[()].tolist()
+        except OSError as e:
+            raise MapError(f"{self._path}: corrupted map: cannot read session_names: {e}") from e
         _check_digest(self._path, self._h5["session_names"], _names_digest(names))
         for name in (*_SMALL, *_LAZY):
             if name not in self._h5:
@@ -1259,7 +1266,10 @@ class MapDatabase:
 
 
 def _check_digest(p: Path, ds: h5py.Dataset, actual: str) -> None:
-    stored = ds.attrs.get("sha256")
+    try:
+        stored = ds.attrs.get("sha256")
+    except OSError as e:  # HDF5 cannot read the attribute itself: a damaged file
+        raise MapError(f"{p}: corrupted map: cannot read the checksum of {ds.name!r}: {e}") from e
     if stored is None:
         raise MapError(f"{p}: corrupted map: dataset {ds.name!r} has no sha256 checksum")
     if str(stored) != actual:
