@@ -562,29 +562,24 @@ def test_atomic_write_gives_new_files_the_umask_mode_and_keeps_an_existing_files
     try:
         with atomic_write(tmp_path / "new.txt") as f:
             f.write("x")
-        kept = tmp_path / "private.txt"
-        kept.write_text("old")
-        kept.chmod(0o600)
-        with atomic_write(kept) as f:
-            f.write("new")
-            # while it is written, the new contents are as private as the file they replace
-            (tmp,) = [p for p in tmp_path.iterdir() if p.name.startswith(".private.txt.")]
-            assert stat.S_IMODE(tmp.stat().st_mode) == 0o600
+        # while it is written, the new contents are as private as the file they replace, and
+        # its owner can write them: a read-only file is replaced too (without root's override,
+        # a 0o444 temporary file could not be written); the file's mode comes at the commit
+        for name, mode, while_written in (
+            ("private.txt", 0o600, 0o600),
+            ("frozen.txt", 0o444, 0o644),
+        ):
+            kept = tmp_path / name
+            kept.write_text("old")
+            kept.chmod(mode)
+            with atomic_write(kept) as f:
+                f.write("new")
+                (tmp,) = [p for p in tmp_path.iterdir() if p.name.startswith(f".{name}.")]
+                assert stat.S_IMODE(tmp.stat().st_mode) == while_written
+            assert stat.S_IMODE(kept.stat().st_mode) == mode and kept.read_text() == "new"
     finally:
         os.umask(old)
     assert stat.S_IMODE((tmp_path / "new.txt").stat().st_mode) == 0o644
-    assert stat.S_IMODE(kept.stat().st_mode) == 0o600 and kept.read_text() == "new"
-    # a read-only file is replaced too: its owner may write the temporary file, which takes
-    # the file's mode at the commit (without root's override, a 0o444 temporary file could
-    # not be written)
-    frozen = tmp_path / "frozen.txt"
-    frozen.write_text("old")
-    frozen.chmod(0o444)
-    with atomic_write(frozen) as f:
-        f.write("new")
-        (tmp,) = [p for p in tmp_path.iterdir() if p.name.startswith(".frozen.txt.")]
-        assert stat.S_IMODE(tmp.stat().st_mode) == 0o644
-    assert stat.S_IMODE(frozen.stat().st_mode) == 0o444 and frozen.read_text() == "new"
 
 
 def test_atomic_write_through_a_symlink_replaces_its_target(tmp_path: Path) -> None:

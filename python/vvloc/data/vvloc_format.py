@@ -23,7 +23,7 @@ import os
 import secrets
 import shutil
 import stat
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from types import TracebackType
 from typing import Any
@@ -118,35 +118,41 @@ def read_poses(path: Path) -> np.ndarray:
     if not path.is_file():
         raise DatasetFormatError(f"{path}: poses file missing")
     rows = []
+    seen: set[int] = set()
+    for line, row in _csv_rows(path, POSES_HEADER):
+        try:
+            ts = int(row[0])
+            x, y, z, yaw = (float(v) for v in row[1:5])
+            floor = int(row[5])
+        except ValueError as e:
+            raise DatasetFormatError(f"{path}, line {line}: malformed row {row}: {e}") from e
+        if not all(math.isfinite(v) for v in (x, y, z, yaw)):
+            raise DatasetFormatError(f"{path}, line {line}: non-finite value in {row}")
+        if ts in seen:
+            raise DatasetFormatError(f"{path}, line {line}: duplicate timestamp {ts}")
+        seen.add(ts)
+        rows.append((ts, x, y, z, yaw, floor))
+    return np.array(rows, dtype=_ROW_DTYPE)
+
+
+def _csv_rows(path: Path, header: tuple[str, ...]) -> Iterator[tuple[int, list[str]]]:
+    """(line number, fields) of every non-blank row of a CSV file whose first line must be
+    ``header`` and whose rows must have as many fields; errors name the file and the line."""
     with path.open(newline="") as f:
         reader = csv.reader(f)
-        header = next(reader, None)
-        if header is None or tuple(h.strip() for h in header) != POSES_HEADER:
+        first = next(reader, None)
+        if first is None or tuple(h.strip() for h in first) != header:
             raise DatasetFormatError(
-                f"{path}, line 1: header must be {','.join(POSES_HEADER)}, got {header}"
+                f"{path}, line 1: header must be {','.join(header)}, got {first}"
             )
-        seen: set[int] = set()
         for row in reader:
-            line = reader.line_num
             if not row or all(not c.strip() for c in row):
                 continue
-            if len(row) != len(POSES_HEADER):
+            if len(row) != len(header):
                 raise DatasetFormatError(
-                    f"{path}, line {line}: expected {len(POSES_HEADER)} fields, got {len(row)}"
+                    f"{path}, line {reader.line_num}: expected {len(header)} fields, got {len(row)}"
                 )
-            try:
-                ts = int(row[0])
-                x, y, z, yaw = (float(v) for v in row[1:5])
-                floor = int(row[5])
-            except ValueError as e:
-                raise DatasetFormatError(f"{path}, line {line}: malformed row {row}: {e}") from e
-            if not all(math.isfinite(v) for v in (x, y, z, yaw)):
-                raise DatasetFormatError(f"{path}, line {line}: non-finite value in {row}")
-            if ts in seen:
-                raise DatasetFormatError(f"{path}, line {line}: duplicate timestamp {ts}")
-            seen.add(ts)
-            rows.append((ts, x, y, z, yaw, floor))
-    return np.array(rows, dtype=_ROW_DTYPE)
+            yield reader.line_num, row
 
 
 def read_extrinsics(path: Path, timestamps: np.ndarray, cameras: Sequence[Camera]) -> np.ndarray:
@@ -160,47 +166,33 @@ def read_extrinsics(path: Path, timestamps: np.ndarray, cameras: Sequence[Camera
     out = np.full((len(timestamps), len(names), 4, 4), np.nan)
     out[..., 3, :] = (0.0, 0.0, 0.0, 1.0)
     seen = np.zeros((len(timestamps), len(names)), dtype=bool)
-    with path.open(newline="") as f:
-        reader = csv.reader(f)
-        header = next(reader, None)
-        if header is None or tuple(h.strip() for h in header) != EXTRINSICS_HEADER:
+    for line, row in _csv_rows(path, EXTRINSICS_HEADER):
+        try:
+            ts = int(row[0])
+            vals = np.array([float(v) for v in row[2:]], dtype=np.float64).reshape(3, 4)
+        except ValueError as e:
+            raise DatasetFormatError(f"{path}, line {line}: malformed row: {e}") from e
+        if ts not in frame_of:
+            raise DatasetFormatError(f"{path}, line {line}: timestamp {ts} is not in poses.csv")
+        if row[1] not in cam_of:
             raise DatasetFormatError(
-                f"{path}, line 1: header must be {','.join(EXTRINSICS_HEADER)}, got {header}"
+                f"{path}, line {line}: camera {row[1]!r} is not in rig.json (cameras: {names})"
             )
-        for row in reader:
-            line = reader.line_num
-            if not row or all(not c.strip() for c in row):
-                continue
-            if len(row) != len(EXTRINSICS_HEADER):
-                raise DatasetFormatError(
-                    f"{path}, line {line}: expected {len(EXTRINSICS_HEADER)} fields, got {len(row)}"
-                )
-            try:
-                ts = int(row[0])
-                vals = np.array([float(v) for v in row[2:]], dtype=np.float64).reshape(3, 4)
-            except ValueError as e:
-                raise DatasetFormatError(f"{path}, line {line}: malformed row: {e}") from e
-            if ts not in frame_of:
-                raise DatasetFormatError(f"{path}, line {line}: timestamp {ts} is not in poses.csv")
-            if row[1] not in cam_of:
-                raise DatasetFormatError(
-                    f"{path}, line {line}: camera {row[1]!r} is not in rig.json (cameras: {names})"
-                )
-            k, m = frame_of[ts], cam_of[row[1]]
-            if seen[k, m]:
-                raise DatasetFormatError(
-                    f"{path}, line {line}: a second row for timestamp {ts}, camera {row[1]!r}"
-                )
-            R = vals[:, :3]
-            if not np.isfinite(vals).all() or not (
-                np.allclose(R.T @ R, np.eye(3), atol=1e-6) and np.linalg.det(R) > 0
-            ):
-                raise DatasetFormatError(
-                    f"{path}, line {line}: not a finite rigid transform (rotation must be "
-                    "orthonormal with determinant +1)"
-                )
-            out[k, m, :3] = vals
-            seen[k, m] = True
+        k, m = frame_of[ts], cam_of[row[1]]
+        if seen[k, m]:
+            raise DatasetFormatError(
+                f"{path}, line {line}: a second row for timestamp {ts}, camera {row[1]!r}"
+            )
+        R = vals[:, :3]
+        if not np.isfinite(vals).all() or not (
+            np.allclose(R.T @ R, np.eye(3), atol=1e-6) and np.linalg.det(R) > 0
+        ):
+            raise DatasetFormatError(
+                f"{path}, line {line}: not a finite rigid transform (rotation must be "
+                "orthonormal with determinant +1)"
+            )
+        out[k, m, :3] = vals
+        seen[k, m] = True
     if not seen.all():
         k, m = np.argwhere(~seen)[0]
         raise DatasetFormatError(
