@@ -345,12 +345,6 @@ FRD_TO_FLU = np.diag([1.0, -1.0, -1.0, 1.0])
 NED_TO_ENU = np.array([[0.0, 1, 0, 0], [1, 0, 0, 0], [0, 0, -1, 0], [0, 0, 0, 1]])
 
 
-def pose_from_matrix(T: np.ndarray) -> tuple[float, float, float, float]:
-    """(x, y, z, yaw) of a 4×4 ego-to-world transform (yaw of the ego x axis, CCW from east)."""
-    yaw = float(np.arctan2(T[1, 0], T[0, 0]))
-    return float(T[0, 3]), float(T[1, 3]), float(T[2, 3]), yaw
-
-
 def ego_frames(
     world_body: np.ndarray,
     rig: Sequence[Camera],
@@ -393,21 +387,22 @@ def ego_frames(
     if not level and world_body_at_cameras is None:
         return poses, z, None
     world_ego = world_low.copy()
-    if level:
-        c, s = np.cos(yaw), np.sin(yaw)
+    if level:  # the heading alone: a rotation about the world's z axis
+        cos, sin = np.cos(yaw), np.sin(yaw)
         world_ego[:, :3, :3] = 0.0
-        world_ego[:, 0, 0], world_ego[:, 0, 1] = c, -s
-        world_ego[:, 1, 0], world_ego[:, 1, 1] = s, c
+        world_ego[:, 0, 0], world_ego[:, 0, 1] = cos, -sin
+        world_ego[:, 1, 0], world_ego[:, 1, 1] = sin, cos
         world_ego[:, 2, 2] = 1.0
-    cams = np.stack([c.cam_to_ego for c in rig]).astype(np.float64)  # (M, 4, 4)
+    cams = np.stack([cam.cam_to_ego for cam in rig]).astype(np.float64)  # (M, 4, 4)
     if world_body_at_cameras is None:
         at_cams = np.repeat(world_low[:, None], len(rig), axis=1)
     else:
-        at_cams = np.asarray(world_body_at_cameras, dtype=np.float64) @ lower
+        at_cams = np.asarray(world_body_at_cameras, dtype=np.float64)
         if at_cams.shape != (len(T), len(rig), 4, 4):
             raise ValueError(
                 f"world_body_at_cameras: expected ({len(T)}, {len(rig)}, 4, 4), got {at_cams.shape}"
             )
+        at_cams = at_cams @ lower
     ego_world = np.linalg.inv(world_ego)
     frame_cam_to_ego = ego_world[:, None] @ at_cams @ cams[None]
     frame_cam_to_ego[..., 3, :] = (0.0, 0.0, 0.0, 1.0)  # exact bottom rows after the products
