@@ -221,6 +221,13 @@ def test_pose_accuracy_subsets_true_revisit_and_all():
     assert acc["all"]["other_floor"] == 0
 
 
+def test_recall_against_an_empty_map_with_floors_is_undefined_not_an_error():
+    res = ev.recall_at_n(
+        [[0.0, 0.0]], np.zeros((0, 2)), [[-1]], top_n=(1,), query_floors=[0], db_floors=[]
+    )
+    assert res.num_kept == 0 and np.isnan(res.at(1, 2.0))
+
+
 def test_an_answer_on_another_floor_is_no_accurate_pose():
     # the third query's estimate is perfect in (x, y, yaw) but built on a keyframe of another
     # floor: the "all" row leaves it out and counts it, the true-revisit row never had it

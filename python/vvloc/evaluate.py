@@ -298,7 +298,7 @@ def recall_at_n(
     dist = (
         np.linalg.norm(d[safe] - q[:, None, :], axis=-1) if num_db else np.full(idx.shape, np.inf)
     )
-    if floors is not None:
+    if floors is not None and num_db:  # an empty map has no floor to compare with
         valid &= floors[1][safe] == floors[0][:, None]
     first_hit = np.full((num_q, len(rs)), -1, dtype=np.int64)
     for j, r in enumerate(rs):
