@@ -302,6 +302,33 @@ def test_cli_map_localize_loops_end_to_end(tiny_world, model_dir, tmp_path):
     r = loops_cli(tmp_path / "loops-bad", "--threshold", "nan")
     assert r.returncode == 2 and "--threshold" in r.stderr
     assert not (tmp_path / "loops-bad").exists()
+    # a map written through the API with ids g2o cannot take is refused before the detection
+    with MapDatabase.open(map_path) as db:
+        rows = np.arange(len(db))
+        ids = db.ids.copy()
+        ids[-1] = 2**40
+        MapDatabase.from_arrays(
+            poses=db.poses,
+            timestamps=db.timestamps,
+            sessions=[db.session_of(i) for i in rows],
+            global_descriptors=db.global_descriptors,
+            local_descriptors=db.local_descriptors(rows),
+            bevs=db.bev(rows),
+            model_config=db.model_config,
+            grid_size=db.grid_size,
+            config_hash=db.config_hash,
+            weights_hash=db.weights_hash,
+            ids=ids,
+            seq=db.seq,
+            floors=db.floors,
+            rig=db.rig,
+        ).save(tmp_path / "big-ids.h5")
+    r = run(
+        "loops", "--map", str(tmp_path / "big-ids.h5"), "--checkpoint", str(model_dir),
+        "--out", str(tmp_path / "loops-ids"),
+    )  # fmt: skip
+    assert r.returncode == 2 and "do not fit g2o's vertex ids" in r.stderr, r.stderr
+    assert not (tmp_path / "loops-ids").exists()
     r = run(
         "localize",
         "--map",
