@@ -1104,6 +1104,40 @@ def test_resume_survives_a_stop_between_the_checkpoint_and_state_writes(
         assert torch.equal(v, state1["model"][k])
 
 
+def test_a_checkpoint_folder_is_swapped_in_whole_and_a_stop_inside_the_swap_is_undone(
+    tiny_world, tmp_path, monkeypatch
+):
+    cfg = _config(tiny_world, stage1_epochs=3, stage2_epochs=0, steps_per_epoch=2)
+    out = tmp_path / "run"
+    tr = Trainer(cfg, out)
+    tr.run_epoch(progress=False)
+    tr.save()
+    first = VVLocNet.load(out / "checkpoint").weights_hash()
+    # a stop while the next epoch's folder is written: checkpoint/ stays epoch 1's, whole
+    tr.run_epoch(progress=False)
+    real_save = VVLocNet.save
+
+    def stop_after_the_weights(self, directory):
+        Path(directory).mkdir(parents=True, exist_ok=True)
+        (Path(directory) / "model.safetensors").write_bytes(b"half")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(VVLocNet, "save", stop_after_the_weights)
+    with pytest.raises(KeyboardInterrupt):
+        tr.save()
+    monkeypatch.setattr(VVLocNet, "save", real_save)
+    assert VVLocNet.load(out / "checkpoint").weights_hash() == first
+    assert sorted(p.name for p in out.iterdir() if p.name.startswith(".")) == []
+    # a stop between the two renames: the previous folder waits under a hidden name, and a
+    # resume puts it back
+    (out / "checkpoint").rename(out / ".checkpoint.old-0123456789ab")
+    (out / ".checkpoint.partial-ba9876543210").mkdir()
+    resumed = Trainer(cfg, out)
+    assert resumed.resume() and resumed.epoch == 1
+    assert VVLocNet.load(out / "checkpoint").weights_hash() == first
+    assert sorted(p.name for p in out.iterdir() if p.name.startswith(".")) == []
+
+
 def test_resume_refuses_other_data_and_names_a_differing_key(tiny_world, tmp_path):
     cfg = _config(tiny_world, stage1_epochs=2, stage2_epochs=0, steps_per_epoch=2)
     out = tmp_path / "run"

@@ -57,6 +57,8 @@ import logging
 import math
 import os
 import random
+import secrets
+import shutil
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -1122,11 +1124,38 @@ class Trainer:
         return record is not None and not record["runs"][-1].get("complete")
 
     def _save_model(self, folder: Path, weights_epoch: int) -> None:
+        """Write the model into ``folder`` (``checkpoint/``, ``best/``) as a whole: into a
+        hidden folder beside it, swapped in by two renames, so that a stop never leaves one
+        epoch's weights beside another's calibration or record. A stop between the renames
+        leaves the previous folder under a hidden name, which :meth:`_recover_folder` puts
+        back."""
+        self._recover_folder(folder)
+        tmp = folder.parent / f".{folder.name}.partial-{secrets.token_hex(6)}"
         self.model.training_record = self.record_for(weights_epoch)
         try:
-            self.model.save(folder)
+            self.model.save(tmp)
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
         finally:
             self.model.training_record = {}
+        old = folder.parent / f".{folder.name}.old-{secrets.token_hex(6)}"
+        if folder.exists():
+            os.replace(folder, old)
+        os.replace(tmp, folder)
+        shutil.rmtree(old, ignore_errors=True)
+
+    @staticmethod
+    def _recover_folder(folder: Path) -> None:
+        """Undo what a stop inside :meth:`_save_model` left: remove half-written hidden folders,
+        and put the previous folder back where a stop between the two renames took it away."""
+        for stale in folder.parent.glob(f".{folder.name}.partial-*"):
+            shutil.rmtree(stale, ignore_errors=True)
+        olds = sorted(folder.parent.glob(f".{folder.name}.old-*"))
+        if olds and not folder.exists():
+            os.replace(olds.pop(), folder)
+        for old in olds:
+            shutil.rmtree(old, ignore_errors=True)
 
     def _log_record(self, rec: dict[str, Any]) -> None:
         """Append one epoch's record to ``log.jsonl`` (strict JSON: NaN/inf as null)."""
@@ -1260,6 +1289,8 @@ class Trainer:
                 "sessions' frames or poses differ); the sampler's pools would pair other "
                 "frames: use a new --out directory"
             )
+        for folder in (self.checkpoint_dir, self.best_dir):  # a stop inside a folder's swap
+            self._recover_folder(folder)
         loaded = VVLocNet.load(self.checkpoint_dir)
         if "model" in state:  # the state's own weights (before 2026-12-05: checkpoint/'s)
             self.model.load_state_dict(state["model"])
