@@ -155,6 +155,23 @@ def _csv_rows(path: Path, header: tuple[str, ...]) -> Iterator[tuple[int, list[s
             yield reader.line_num, row
 
 
+#: What :func:`_rigid` accepts, for error messages.
+RIGID = (
+    "finite rigid transform (rotation orthonormal to 1e-6 with determinant +1, bottom row 0 0 0 1)"
+)
+
+
+def _rigid(T: np.ndarray) -> bool:
+    """Whether ``T`` (..., 4, 4) holds finite rigid transforms, as ``cam_to_ego.csv`` keeps."""
+    R = T[..., :3, :3]
+    return bool(
+        np.isfinite(T).all()
+        and np.allclose(np.swapaxes(R, -1, -2) @ R, np.eye(3), atol=1e-6)
+        and (np.linalg.det(R) > 0).all()
+        and (T[..., 3, :] == (0.0, 0.0, 0.0, 1.0)).all()
+    )
+
+
 def read_extrinsics(path: Path, timestamps: np.ndarray, cameras: Sequence[Camera]) -> np.ndarray:
     """Parse a session's ``cam_to_ego.csv`` into (N, M, 4, 4) float64, frames in the order of
     ``timestamps`` (N,), cameras in rig order. Every frame needs one row per camera, each a
@@ -183,15 +200,9 @@ def read_extrinsics(path: Path, timestamps: np.ndarray, cameras: Sequence[Camera
             raise DatasetFormatError(
                 f"{path}, line {line}: a second row for timestamp {ts}, camera {row[1]!r}"
             )
-        R = vals[:, :3]
-        if not np.isfinite(vals).all() or not (
-            np.allclose(R.T @ R, np.eye(3), atol=1e-6) and np.linalg.det(R) > 0
-        ):
-            raise DatasetFormatError(
-                f"{path}, line {line}: not a finite rigid transform (rotation must be "
-                "orthonormal with determinant +1)"
-            )
         out[k, m, :3] = vals
+        if not _rigid(out[k, m]):
+            raise DatasetFormatError(f"{path}, line {line}: not a {RIGID}")
         seen[k, m] = True
     if not seen.all():
         k, m = np.argwhere(~seen)[0]
@@ -328,17 +339,8 @@ class SessionWriter:
         if T.shape != (m, 4, 4) or not np.issubdtype(T.dtype, np.floating):
             raise ValueError(f"cam_to_ego: expected float ({m}, 4, 4), got {T.dtype} {T.shape}")
         T = T.astype(np.float64)
-        R = T[:, :3, :3]
-        rigid = (
-            np.allclose(np.swapaxes(R, 1, 2) @ R, np.eye(3), atol=1e-6)
-            and bool((np.linalg.det(R) > 0).all())
-            and bool((T[:, 3] == (0.0, 0.0, 0.0, 1.0)).all())
-        )
-        if not np.isfinite(T).all() or not rigid:
-            raise ValueError(
-                "cam_to_ego: expected finite rigid transforms (rotation orthonormal with "
-                "determinant +1, bottom row 0 0 0 1)"
-            )
+        if not _rigid(T):
+            raise ValueError(f"cam_to_ego: expected finite rigid transforms ({RIGID}s)")
         return [
             [ts, cam.name, *(repr(float(v)) for v in T[k, :3].ravel())]
             for k, cam in enumerate(self.cameras)

@@ -477,7 +477,7 @@ class Localizer:
                 len(rig),
                 (rig[0]["width"], rig[0]["height"]),
                 np.array([c["K"] for c in rig]),
-                np.array([c["cam_to_ego"] for c in rig]),
+                np.linalg.inv(np.array([c["cam_to_ego"] for c in rig], dtype=np.float64)),
             )
         )
         cfg = model.config
@@ -588,7 +588,7 @@ class Localizer:
         """Warn (once) when ``frame`` comes from a rig other than the one the map records."""
         if self._rig_arrays is None or self._rig_warned:
             return
-        count, (width, height), K, T = self._rig_arrays
+        count, (width, height), K, ego_to_rig = self._rig_arrays
         m, _, h, w = frame.images.shape
         why = ""
         if m != count:
@@ -600,7 +600,7 @@ class Localizer:
         else:
             # a frame's own extrinsics (a levelled tilting vehicle, motion compensation) stay
             # within a few degrees and decimetres of the rig's; another mounting does not
-            D = np.linalg.inv(T) @ np.asarray(frame.cam_to_ego, dtype=np.float64)
+            D = ego_to_rig @ np.asarray(frame.cam_to_ego, dtype=np.float64)
             cos = (np.trace(D[:, :3, :3], axis1=1, axis2=2) - 1.0) / 2.0
             angle = np.arccos(np.clip(cos, -1.0, 1.0))
             shift = np.linalg.norm(D[:, :3, 3], axis=1)
