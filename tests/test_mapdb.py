@@ -456,6 +456,142 @@ def test_corrupted_lazy_chunk_fails_when_read(tmp_path: Path, dataset: str) -> N
             db.verify()
 
 
+def full_map(tmp_path: Path) -> Path:
+    """A float16 map with every optional part: BEVs, a rig, a weights fingerprint, UTF-8 text."""
+    from vvloc.data import Camera
+
+    cam = Camera("front", 16, 8, np.array([[8.0, 0, 7.5], [0, 8, 3.5], [0, 0, 1]]), np.eye(4))
+    kf = keyframes()
+    kf["sessions"] = ["séance-0"] * (N // 2) + ["s1"] * (N - N // 2)
+    db = MapDatabase.from_arrays(
+        **kf, model_config=CONFIG, grid_size=0.3, rig=[cam], weights_hash="0123456789abcdef"
+    )
+    return db.save(tmp_path / "map.h5", dtype="float16")
+
+
+def test_format_2_keeps_text_in_checksummed_hdf5_structures(tmp_path: Path) -> None:
+    path = full_map(tmp_path)
+    with open(path, "rb") as fh:
+        head = fh.read(9)
+    assert head[:8] == b"\x89HDF\r\n\x1a\n" and head[8] >= 2  # superblock v2+: checksummed
+    with h5py.File(path, "r") as f:
+        for key in f.attrs:
+            if key not in ("format_version", "grid_size", "num_keyframes"):
+                assert f.attrs.get_id(key).dtype.kind == "S", key  # fixed length, no heap
+        assert f["session_names"].dtype.kind == "S"
+        for name in f:
+            assert f[name].attrs.get_id("sha256").dtype.kind == "S", name
+    with MapDatabase.open(path) as db:
+        assert db.metadata.format_version == FORMAT_VERSION == 2
+        assert db.sessions == ("séance-0", "s1") and db.weights_hash == "0123456789abcdef"
+
+
+def write_version_1(src: Path, dst: Path) -> None:
+    """Rewrite a map as vvloc wrote format version 1: HDF5's oldest structures, text as
+    variable-length strings."""
+    with h5py.File(src, "r") as f, h5py.File(dst, "w", libver="earliest") as g:
+        for name, ds in f.items():
+            if name == "session_names":
+                out = g.create_dataset(
+                    name, data=ds.asstr()[()].tolist(), dtype=h5py.string_dtype("utf-8")
+                )
+            else:
+                out = g.create_dataset(
+                    name, data=ds[()], chunks=ds.chunks, maxshape=ds.maxshape, fletcher32=True
+                )
+            out.attrs["sha256"] = ds.attrs["sha256"].decode()
+        for key, value in f.attrs.items():
+            g.attrs[key] = value.decode() if isinstance(value, bytes) else value
+        g.attrs["format_version"] = 1
+
+
+def test_format_1_maps_are_still_read(tmp_path: Path) -> None:
+    path = full_map(tmp_path)
+    old = tmp_path / "old.h5"
+    write_version_1(path, old)
+    with h5py.File(old, "r") as f:
+        assert f.attrs.get_id("model_config_json").dtype.kind == "O"  # really version 1
+    with MapDatabase.open(path) as new, MapDatabase.open(old) as db:
+        db.verify()
+        assert db.metadata.format_version == 1
+        for field in ("model_config", "model_config_hash", "model_weights_hash", "rig"):
+            assert getattr(db.metadata, field) == getattr(new.metadata, field)
+        assert db.sessions == new.sessions
+        np.testing.assert_array_equal(db.poses, new.poses)
+        np.testing.assert_array_equal(
+            db.local_descriptors(range(N)), new.local_descriptors(range(N))
+        )
+        resaved = db.save(tmp_path / "resaved.h5", dtype="float16")
+    with MapDatabase.open(resaved) as db:
+        assert db.metadata.format_version == 2
+
+
+FLIP_SCRIPT = r"""
+import sys, numpy as np
+from vvloc.localize import MapDatabase, MapError
+
+def contents(db):
+    rows = np.arange(len(db))
+    m = db.metadata
+    return [db.ids, db.poses, db.timestamps, db.seq, db.floors, db.session_index,
+            db.global_descriptors, db.local_descriptors(rows), db.bev(rows), db.sessions,
+            m.model_config, m.model_config_hash, m.model_weights_hash, m.rig, m.grid_size,
+            m.descriptor_dtype, m.vvloc_version, m.created_utc]
+
+def same(a, b):
+    return all(np.array_equal(x, y) if isinstance(x, np.ndarray) else x == y
+               for x, y in zip(a, b, strict=True))
+
+path, work, step = sys.argv[1], sys.argv[2], int(sys.argv[3])
+data = open(path, "rb").read()
+with MapDatabase.open(path) as db:
+    ref = contents(db)
+refused = harmless = 0
+for byte in range(0, len(data), step):
+    buf = bytearray(data)
+    buf[byte] ^= 1 << (byte % 8)
+    open(work, "wb").write(buf)
+    print(byte, flush=True)  # the last line names the flip if HDF5 crashes or hangs
+    try:
+        with MapDatabase.open(work) as db:
+            db.verify()
+            got = contents(db)
+    except MapError:
+        refused += 1
+        continue
+    if not same(got, ref):
+        print(f"READ AS OTHER VALUES: byte {byte}", flush=True)
+        sys.exit(3)
+    harmless += 1
+print(f"refused {refused} harmless {harmless}", flush=True)
+"""
+
+
+def test_single_bit_flips_anywhere_are_refused_or_harmless(tmp_path: Path) -> None:
+    """One flipped bit in every 3rd byte of a map file: each is refused with MapError or
+    changes nothing that is read; none crashes or hangs HDF5 or escapes as another error."""
+    import subprocess
+    import sys
+
+    path = full_map(tmp_path)
+    try:
+        run = subprocess.run(
+            [sys.executable, "-c", FLIP_SCRIPT, str(path), str(tmp_path / "work.h5"), "3"],
+            capture_output=True,
+            text=True,
+            timeout=600,
+        )
+    except subprocess.TimeoutExpired as e:
+        last = (e.stdout or b"").decode(errors="replace").strip().splitlines()[-1:]
+        pytest.fail(f"hang after flipping a bit of byte {last}")
+    tail = run.stdout.strip().splitlines()[-1:]
+    assert run.returncode == 0, f"rc {run.returncode} at byte {tail}: {run.stderr[-2000:]}"
+    refused, harmless = (int(w) for w in tail[0].split()[1::2])
+    size = path.stat().st_size
+    assert refused + harmless == len(range(0, size, 3))
+    assert refused > size // 3 // 2  # most of a compact map's bytes matter
+
+
 # ---------------------------------------------------------------------------------------------
 # Atomic writes
 

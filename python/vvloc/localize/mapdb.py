@@ -17,14 +17,23 @@ A map holds, per keyframe (row ``i`` of every per-keyframe dataset, ``N`` rows):
 and as file attributes: ``format`` (``"vvloc-map"``), ``format_version``, ``vvloc_version``,
 ``created_utc`` (ISO 8601), ``model_config_hash``, ``model_config_json``, ``grid_size`` (BEV
 cell size g, metres), ``descriptor_dtype`` and ``num_keyframes``; optionally
-``model_weights_hash``, the fingerprint of the weights the map was built with (maps written
-before vvloc recorded it lack it; the format version is unchanged).
+``model_weights_hash``, the fingerprint of the weights the map was built with, and
+``rig_json``, the cameras that built it.
 
-Integrity: every per-keyframe dataset is chunked with HDF5's Fletcher-32 filter (a corrupted
-chunk fails when it is read), and every dataset carries a ``sha256`` attribute of its stored
-bytes (little-endian, C order).
+Integrity (format version 2): the file uses HDF5 1.10's structures (``libver="v110"``), whose
+metadata (superblock, object headers with their attributes, chunk indexes) carries checksums
+that HDF5 verifies before it parses them; text (attributes, ``session_names``) is stored as
+fixed-length UTF-8, inside those checksummed headers. Every per-keyframe dataset is chunked
+with HDF5's Fletcher-32 filter (a corrupted chunk fails when it is read), and every dataset
+carries a ``sha256`` attribute of its stored bytes (little-endian, C order).
 :meth:`MapDatabase.open` verifies the SHA-256 of every small dataset (all but the local
 descriptors and the BEVs, which are read lazily); :meth:`MapDatabase.verify` checks all of them.
+So a damaged file is refused with :class:`MapError` instead of being read as other values
+(``tests/test_mapdb.py`` flips single bits all over a map file). Version 1 (vvloc before
+2026-12-05) stored text as HDF5 variable-length strings in the global heap, which has no
+checksum, and used HDF5's oldest structures: a flipped bit could change an attribute unnoticed,
+or crash or hang HDF5 itself. Version-1 maps are still read, without that protection;
+``MapDatabase.open(old).save(new)`` rewrites one as version 2.
 
 Files are written atomically (:mod:`vvloc._io`): a temporary file in the same directory, fsync,
 ``os.replace``. A failed or interrupted write leaves no temporary file and leaves an existing
@@ -70,7 +79,11 @@ __all__ = [
 ]
 
 FORMAT_NAME = "vvloc-map"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+#: Format versions this vvloc reads (1: before the checksummed HDF5 structures of version 2).
+READABLE_FORMAT_VERSIONS = (1, 2)
+# HDF5 file-format bounds of version 2: HDF5 1.10's structures, every one of them checksummed.
+_LIBVER = ("v110", "v110")
 
 DescriptorDType = Literal["float32", "float16"]
 PathLike = str | os.PathLike[str]
@@ -275,6 +288,13 @@ def _session_labels(sessions: Any, rows: int) -> list[str]:
             raise TypeError(f"sessions: expected str names, got {type(bad[0]).__name__}")
     if any(s == "" for s in labels):
         raise ValueError("sessions: session names must be non-empty")
+    for s in labels:
+        if "\x00" in s:
+            raise ValueError(f"sessions: session names may not contain NUL characters: {s!r}")
+        try:
+            s.encode("utf-8")
+        except UnicodeEncodeError as e:
+            raise ValueError(f"sessions: session name {s!r} is not valid UTF-8 text: {e}") from e
     return labels
 
 
@@ -363,6 +383,32 @@ def _le(arr: np.ndarray, dtype: np.dtype[Any]) -> np.ndarray:
     return np.ascontiguousarray(arr, dtype=dtype.newbyteorder("<"))
 
 
+def _set_text(attrs: h5py.AttributeManager, key: str, value: str) -> None:
+    """Store ``value`` as a fixed-length UTF-8 string attribute (format version 2).
+
+    Fixed-length strings live inside the checksummed object header; HDF5's variable-length
+    strings (version 1) live in its global heap, which has no checksum.
+    """
+    data = value.encode("utf-8")
+    attrs.create(key, np.array(data, dtype=h5py.string_dtype("utf-8", max(1, len(data)))))
+
+
+def _text(attrs: h5py.AttributeManager, key: str) -> str:
+    """Read a string attribute written by :func:`_set_text` or as a version-1 str.
+
+    Raises ``ValueError`` (reported as a corrupted map) if it is neither text nor valid UTF-8.
+    """
+    return _decode(attrs[key], key)
+
+
+def _decode(value: Any, key: str) -> str:
+    if isinstance(value, bytes):  # np.bytes_ is a bytes
+        return value.decode("utf-8")
+    if isinstance(value, str):
+        return value
+    raise ValueError(f"attribute {key!r} is not text: {type(value).__name__}")
+
+
 def _names_digest(names: Sequence[str]) -> str:
     return hashlib.sha256(json.dumps(list(names)).encode("utf-8")).hexdigest()
 
@@ -438,7 +484,7 @@ class MapWriter:
         self.path = Path(os.fspath(path))
         self._atomic = AtomicPath(self.path)
         try:
-            self._h5 = h5py.File(self._atomic.tmp, "w")
+            self._h5 = h5py.File(self._atomic.tmp, "w", libver=_LIBVER)
         except BaseException:
             self._atomic.abort()
             raise
@@ -600,26 +646,33 @@ class MapWriter:
 
         try:
             names = list(self._sessions)
+            width = max(1, *(len(n.encode("utf-8")) for n in names))
             ds = self._h5.create_dataset(
-                "session_names", data=names, dtype=h5py.string_dtype("utf-8")
+                "session_names",
+                data=[n.encode("utf-8") for n in names],
+                dtype=h5py.string_dtype("utf-8", width),
             )
-            ds.attrs["sha256"] = _names_digest(names)
+            _set_text(ds.attrs, "sha256", _names_digest(names))
             for name, digest in self._digests.items():
-                self._h5[name].attrs["sha256"] = digest.hexdigest()
+                _set_text(self._h5[name].attrs, "sha256", digest.hexdigest())
             attrs = self._h5.attrs
-            attrs["format"] = FORMAT_NAME
-            attrs["format_version"] = FORMAT_VERSION
-            attrs["vvloc_version"] = __version__
-            attrs["created_utc"] = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
-            attrs["model_config_hash"] = self._config_hash
-            attrs["model_config_json"] = self._config_json
+            text = {
+                "format": FORMAT_NAME,
+                "vvloc_version": __version__,
+                "created_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+                "model_config_hash": self._config_hash,
+                "model_config_json": self._config_json,
+                "descriptor_dtype": self._dtype.name,
+            }
             if self._weights_hash is not None:
-                attrs["model_weights_hash"] = self._weights_hash
-            attrs["grid_size"] = self._grid_size
-            attrs["descriptor_dtype"] = self._dtype.name
-            attrs["num_keyframes"] = self._n
+                text["model_weights_hash"] = self._weights_hash
             if self._rig is not None:
-                attrs["rig_json"] = json.dumps(self._rig)
+                text["rig_json"] = json.dumps(self._rig)
+            for key, value in text.items():
+                _set_text(attrs, key, value)
+            attrs["format_version"] = np.int64(FORMAT_VERSION)
+            attrs["grid_size"] = np.float64(self._grid_size)
+            attrs["num_keyframes"] = np.int64(self._n)
             self._h5.close()
             self._finalizer.detach()
             self._atomic.commit()
@@ -901,30 +954,30 @@ class MapDatabase:
         verify: bool,
     ) -> MapDatabase:
         attrs = h5.attrs
-        fmt = attrs.get("format")
+        fmt = _text(attrs, "format") if "format" in attrs else None
         if fmt != FORMAT_NAME:
             raise MapError(f"{p}: not a vvloc map (attribute 'format' is {fmt!r})")
         missing = [a for a in _REQUIRED_ATTRS if a not in attrs]
         if missing:
             raise MapError(f"{p}: corrupted map: missing attributes {missing}")
         version = int(attrs["format_version"])
-        if version != FORMAT_VERSION:
+        if version not in READABLE_FORMAT_VERSIONS:
             raise MapError(
                 f"{p}: map format version {version} (written by vvloc "
-                f"{attrs['vvloc_version']}), but this vvloc reads format version "
-                f"{FORMAT_VERSION}; rebuild the map"
+                f"{_text(attrs, 'vvloc_version')}), but this vvloc reads format versions "
+                f"{', '.join(map(str, READABLE_FORMAT_VERSIONS))}; rebuild the map"
             )
-        config_hash = str(attrs["model_config_hash"])
+        config_hash = _text(attrs, "model_config_hash")
         if expected_config_hash is not None and config_hash != expected_config_hash:
             raise MapError(
                 f"{p}: map built with another model: its model config hash is {config_hash}, "
                 f"the model in use has {expected_config_hash}; rebuild the map with this model"
             )
-        weights_hash = attrs.get("model_weights_hash")
-        if weights_hash is not None and (not isinstance(weights_hash, str) or not weights_hash):
+        weights_hash = _text(attrs, "model_weights_hash") if "model_weights_hash" in attrs else None
+        if weights_hash is not None and not weights_hash:
             raise MapError(f"{p}: corrupted map: model_weights_hash is {weights_hash!r}")
         check_weights(weights_hash, expected_weights_hash, p)
-        descriptor_dtype = str(attrs["descriptor_dtype"])
+        descriptor_dtype = _text(attrs, "descriptor_dtype")
         if descriptor_dtype not in ("float32", "float16"):
             raise MapError(f"{p}: corrupted map: descriptor dtype {descriptor_dtype!r}")
 
@@ -986,16 +1039,16 @@ class MapDatabase:
         rig = None
         if "rig_json" in attrs:
             try:
-                rig = _check_rig(json.loads(str(attrs["rig_json"])))
+                rig = _check_rig(json.loads(_text(attrs, "rig_json")))
             except (TypeError, ValueError) as e:
                 raise MapError(f"{p}: corrupted map: rig_json: {e}") from e
         metadata = MapMetadata(
             model_config_hash=config_hash,
-            model_config=json.loads(str(attrs["model_config_json"])),
+            model_config=json.loads(_text(attrs, "model_config_json")),
             grid_size=grid_size,
-            vvloc_version=str(attrs["vvloc_version"]),
+            vvloc_version=_text(attrs, "vvloc_version"),
             format_version=version,
-            created_utc=str(attrs["created_utc"]),
+            created_utc=_text(attrs, "created_utc"),
             descriptor_dtype=descriptor_dtype,
             model_weights_hash=weights_hash,
             rig=rig,
@@ -1268,12 +1321,13 @@ class MapDatabase:
 def _check_digest(p: Path, ds: h5py.Dataset, actual: str) -> None:
     try:
         stored = ds.attrs.get("sha256")
-    except OSError as e:  # HDF5 cannot read the attribute itself: a damaged file
+        stored = None if stored is None else _decode(stored, "sha256")
+    except (OSError, ValueError, TypeError) as e:  # HDF5 cannot read the attribute: damaged
         raise MapError(f"{p}: corrupted map: cannot read the checksum of {ds.name!r}: {e}") from e
     if stored is None:
         raise MapError(f"{p}: corrupted map: dataset {ds.name!r} has no sha256 checksum")
-    if str(stored) != actual:
+    if stored != actual:
         raise MapError(
             f"{p}: corrupted map: checksum mismatch in dataset {ds.name!r} "
-            f"(stored sha256 {str(stored)[:16]}…, data {actual[:16]}…)"
+            f"(stored sha256 {stored[:16]}…, data {actual[:16]}…)"
         )
