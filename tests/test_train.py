@@ -755,6 +755,34 @@ def test_local_stage_resume_continues_identically(tiny_world, tmp_path):
     _assert_resumed_run_equals_uninterrupted(_local_only_config(tiny_world, base), tmp_path, cut=1)
 
 
+def test_a_run_resumes_after_its_init_checkpoint_is_gone(tiny_world, tmp_path):
+    base = tmp_path / "base"
+    train(_config(tiny_world, stage1_epochs=1, stage2_epochs=0), base, progress=False)
+    cfg = _local_only_config(tiny_world, base)
+    full = train(cfg, tmp_path / "full", progress=False)
+    part = Trainer(cfg, tmp_path / "part")
+    part.run_epoch(progress=False)
+    part.save()
+    base.rename(tmp_path / "moved")  # e.g. the run folder was copied to another machine
+    with pytest.raises(FileNotFoundError, match="init_checkpoint: no checkpoint"):
+        Trainer(cfg, tmp_path / "fresh")  # a new run needs it
+    stray = Trainer(cfg, tmp_path / "part")  # no resume: it would train without the weights
+    with pytest.raises(FileNotFoundError, match="init_checkpoint: no checkpoint"):
+        stray.fit(progress=False)
+    with pytest.raises(FileNotFoundError, match="init_checkpoint: no checkpoint"):
+        stray.run_epoch(progress=False)
+    resumed = train(cfg, tmp_path / "part", resume=True, progress=False)
+    for a, b in zip(
+        resumed.model.state_dict().values(), full.model.state_dict().values(), strict=True
+    ):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)
+    record = _record(tmp_path / "part" / "checkpoint")["runs"]
+    expected = _record(tmp_path / "full" / "checkpoint")["runs"]
+    assert len(record) == len(expected) == 2  # the base run's record is kept
+    assert record[0] == expected[0]
+    assert record[1]["init_weights_hash"] == expected[1]["init_weights_hash"] is not None
+
+
 def test_the_local_stage_follows_the_head_stage(tiny_world):
     cfg = _config(tiny_world, stage2_epochs=2, head_epochs=1, local_epochs=2)
     tr = Trainer(cfg, "unused")

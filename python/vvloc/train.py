@@ -139,7 +139,9 @@ class TrainConfig:
     ``init_checkpoint`` (optional): start from these weights (a checkpoint folder, or a run
     folder: its ``best/``, else its ``checkpoint/``) instead of a random initialisation, to
     fine-tune a trained model (e.g. on a further world); its model config must equal this run's.
-    Like ``dataset``, a relative path is taken from the working directory.
+    Like ``dataset``, a relative path is taken from the working directory. A ``--resume``
+    does not need it (the run's own checkpoint holds the weights and the record of those it
+    started from), so a run folder can be resumed after its init checkpoint was moved.
     ``val_sessions`` (optional, disjoint from ``train_sessions``) select the checkpoint: every
     ``val_every``-th frame of each is localized against a map of the ``val_database`` session
     (re-ranking the ``val_top_k`` retrieved keyframes) after each joint epoch.
@@ -886,6 +888,19 @@ def _ensure_dataset(dataset: str, sim: dict[str, Any] | None) -> None:
     simulate_dataset(root, **sim)
 
 
+def _is_checkpoint(path: Path) -> bool:
+    """Whether ``path`` is a checkpoint folder, or a run folder that holds one."""
+    return (resolve_checkpoint(path) / "config.json").is_file()
+
+
+def _no_init_checkpoint(path: Path, why: str = "") -> FileNotFoundError:
+    return FileNotFoundError(
+        f"init_checkpoint: no checkpoint (config.json) in {resolve_checkpoint(path)}{why}: train "
+        "that run first (see the config's header), or point init_checkpoint at a checkpoint "
+        "folder such as models/synth-small-base"
+    )
+
+
 class Trainer:
     """Runs (or resumes) a training run described by a :class:`TrainConfig` into ``out_dir``."""
 
@@ -942,8 +957,15 @@ class Trainer:
         self.head_untrained = cfg.stage1_epochs + cfg.stage2_epochs == 0
         self.init_weights_hash: str | None = None
         self.earlier_runs: list[dict[str, Any]] = []  # the init checkpoint's training record
+        # an init_checkpoint that is gone is not needed to resume a run: its own checkpoint
+        # holds the weights and their record (resume() checks that; fit() refuses otherwise)
+        self._init_missing: Path | None = None
         if cfg.init_checkpoint is not None:
-            self._load_init(Path(cfg.init_checkpoint))
+            init = Path(cfg.init_checkpoint)
+            if self._state_path().is_file() and not _is_checkpoint(init):
+                self._init_missing = init
+            else:
+                self._load_init(init)
         self.augment = None if cfg.augment is None else PhotometricAugment.from_dict(cfg.augment)
         self.optimizer = torch.optim.Adam(
             self.model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay
@@ -990,13 +1012,9 @@ class Trainer:
     def _load_init(self, path: Path) -> None:
         """Copy the weights of ``init_checkpoint`` into the fresh model (refused when its model
         config differs from this run's)."""
+        if not _is_checkpoint(path):
+            raise _no_init_checkpoint(path)
         path = resolve_checkpoint(path)
-        if not (path / "config.json").is_file():
-            raise FileNotFoundError(
-                f"init_checkpoint: no checkpoint (config.json) in {path}: train that run first "
-                "(see the config's header), or point init_checkpoint at a checkpoint folder "
-                "such as models/synth-small-base"
-            )
         init = VVLocNet.load(path)
         self.init_weights_hash = init.weights_hash()
         self.earlier_runs = list(init.training_record.get("runs", [])) or [
@@ -1343,6 +1361,20 @@ class Trainer:
         # the run started (a run folder given as init_checkpoint moves on). A checkpoint of an
         # earlier vvloc has none: its time was not measured.
         saved = loaded.training_record.get("runs")
+        if self._init_missing is not None:
+            if not saved or "head_optimizer" not in state:
+                raise _no_init_checkpoint(
+                    self._init_missing,
+                    f" (the run in {self.out} was saved by an earlier vvloc, without the record "
+                    "of the weights it started from, which its resume reads there)",
+                )
+            log.warning(
+                "%s: init_checkpoint %s is gone; resuming from the run's own checkpoint, whose "
+                "training record keeps the runs it started from",
+                self.out,
+                self._init_missing,
+            )
+            self._init_missing = None
         if saved:
             mine = saved[-1]
             if self.init_weights_hash not in (None, mine.get("init_weights_hash")):
@@ -1390,6 +1422,8 @@ class Trainer:
     def run_epoch(self, progress: bool = True) -> dict[str, Any]:
         """Train one epoch (``steps_per_epoch`` batches, or the head stage's
         ``head_steps_per_epoch``); return its log record."""
+        if self._init_missing is not None:  # only a resume may go on without it
+            raise _no_init_checkpoint(self._init_missing)
         cfg = self.cfg
         stage = self.stage_of(self.epoch)
         if stage == 3:
@@ -1784,6 +1818,8 @@ class Trainer:
         """Train until ``cfg.epochs`` (fewer when ``patience`` stops the joint stage); checkpoint
         and log after every epoch (and keep the best epoch by validation in ``best/`` when
         ``val_sessions`` are set)."""
+        if self._init_missing is not None:  # only a resume may go on without it
+            raise _no_init_checkpoint(self._init_missing)
         self.out.mkdir(parents=True, exist_ok=True)
         (self.out / "train_config.yaml").write_text(yaml.safe_dump(self.cfg.to_dict()))
         cfg = self.cfg
