@@ -2,7 +2,9 @@
 localizer makes per query (K = 20 local descriptors for re-ranking, one BEV for loop closure).
 
 Paper-sized descriptors: Dg = 256, local T×C = 120×256; BEV 100×100×256 float16.
-Usage: ``python benches/bench_mapdb.py [--json PATH] [--keyframes N]``.
+Usage: ``python benches/bench_mapdb.py [--json PATH] [--keyframes N] [--v1_layout]``.
+``--v1_layout`` adds the float32 case written with HDF5's oldest structures (format version 1's
+layout, without metadata checksums), for an A/B of format version 2 in one run.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ import numpy as np
 
 from _common import print_table, timeit, write_json
 from vvloc.localize import MapDatabase
+from vvloc.localize import mapdb as _mapdb
 
 DG, T, C = 256, 120, 256
 BEV = (100, 100, 256)
@@ -53,16 +56,26 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--keyframes", type=int, default=2000)
+    ap.add_argument("--v1_layout", action="store_true", help="A/B with version 1's layout")
     args = ap.parse_args()
     n, n_bev = args.keyframes, 16
     plain, with_bev = build(n, n_bev)
     rng = np.random.default_rng(1)
     rows = []
     with tempfile.TemporaryDirectory() as d:
-        for dtype in ("float32", "float16"):
-            path = Path(d) / f"map_{dtype}.h5"
+        cases = [("float32", ""), ("float16", "")]
+        if args.v1_layout:
+            cases.append(("float32", " v1 layout"))
+        for dtype, layout in cases:
+            path = Path(d) / f"map_{dtype}{layout.replace(' ', '_')}.h5"
+            libver = _mapdb._LIBVER
+            if layout:  # HDF5's oldest structures, as format version 1 wrote them
+                _mapdb._LIBVER = ("earliest", "v110")
             t0 = time.perf_counter()
-            plain.save(path, dtype=dtype)  # type: ignore[arg-type]
+            try:
+                plain.save(path, dtype=dtype)  # type: ignore[arg-type]
+            finally:
+                _mapdb._LIBVER = libver
             t_save = time.perf_counter() - t0
             t_open = timeit(lambda p=path: MapDatabase.open(p).close(), min_time=0.2, repeat=3)
             t_open_nv = timeit(
@@ -75,7 +88,7 @@ def main() -> None:
                 )
             rows.append(
                 {
-                    "case": f"N={n} local {T}x{C} {dtype}",
+                    "case": f"N={n} local {T}x{C} {dtype}{layout}",
                     "file_MB": path.stat().st_size / 1e6,
                     "save_s": t_save,
                     "open_ms": t_open * 1e3,
