@@ -330,6 +330,11 @@ def test_hdf5_file_that_is_not_a_map(tmp_path: Path) -> None:
         f["x"] = np.arange(3)
     with pytest.raises(MapError, match=r"other\.h5.*not a vvloc map"):
         MapDatabase.open(path)
+    for fmt in (3, b"other-format", "other-format"):  # another tool's 'format' attribute
+        with h5py.File(path, "w") as f:
+            f.attrs["format"] = fmt
+        with pytest.raises(MapError, match=r"other\.h5: not a vvloc map \(attribute 'format'"):
+            MapDatabase.open(path)
 
 
 def edit(path: Path, fn: Any) -> None:

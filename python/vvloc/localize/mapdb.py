@@ -402,6 +402,7 @@ def _text(attrs: h5py.AttributeManager, key: str) -> str:
 
 
 def _decode(value: Any, key: str) -> str:
+    """An attribute's value as text: version 2's UTF-8 bytes decoded, version 1's str as is."""
     if isinstance(value, bytes):  # np.bytes_ is a bytes
         return value.decode("utf-8")
     if isinstance(value, str):
@@ -954,7 +955,9 @@ class MapDatabase:
         verify: bool,
     ) -> MapDatabase:
         attrs = h5.attrs
-        fmt = _text(attrs, "format") if "format" in attrs else None
+        fmt = attrs.get("format")
+        if isinstance(fmt, bytes):  # version 2 (fixed-length UTF-8); version 1 reads as str
+            fmt = fmt.decode("utf-8", errors="replace")
         if fmt != FORMAT_NAME:
             raise MapError(f"{p}: not a vvloc map (attribute 'format' is {fmt!r})")
         missing = [a for a in _REQUIRED_ATTRS if a not in attrs]
