@@ -75,6 +75,8 @@ def test_fit_probe_figures_on_hand_made_data():
     assert fit["majority"] == pytest.approx(np.mean(noise[1000:]))
     again = bev_probe.fit_probe(x[:1000], noise[:1000], x[1000:], noise[1000:])
     assert again == fit  # deterministic
+    one_class = bev_probe.fit_probe(x[:1000], y[:1000], x[1000:][y[1000:]], y[1000:][y[1000:]])
+    assert one_class["accuracy"] > 0.98 and np.isnan(one_class["balanced_accuracy"])
     with pytest.raises(ValueError, match="both classes"):
         bev_probe.fit_probe(x[:10], np.ones(10, bool), x[10:20], y[10:20])
     with pytest.raises(ValueError, match="at least one"):

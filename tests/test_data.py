@@ -82,6 +82,14 @@ def test_malformed_row_names_file_and_line(tmp_path):
         open_dataset(root)
 
 
+def test_a_missing_dataset_and_a_file_are_told_apart(tmp_path):
+    with pytest.raises(FileNotFoundError, match="no such dataset folder"):
+        open_dataset(tmp_path / "nothing")
+    (tmp_path / "map.h5").write_bytes(b"not a folder")
+    with pytest.raises(NotADirectoryError, match=r"map\.h5: is a file, not a dataset folder"):
+        open_dataset(tmp_path / "map.h5")
+
+
 def test_missing_image_and_unknown_camera_are_named(tmp_path):
     root = tmp_path / "ds"
     _write(root, {"s0": _line(3)})

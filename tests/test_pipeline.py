@@ -257,13 +257,14 @@ def test_cli_map_localize_loops_end_to_end(tiny_world, model_dir, tmp_path):
     ts, _poses = read_tum(tmp_path / "loc" / "poses.tum")
     accepted = [float(row["timestamp"]) for row in rows if row["accepted"] == "1"]
     np.testing.assert_allclose(ts, accepted, atol=1e-6)
-    r = localize(str(tmp_path / "loc-none"), "--top_k", "3", "--threshold", "-1")
+    r = localize(str(tmp_path / "loc-none"), "--top_k", "3", "--threshold", "0")
     assert r.returncode == 0, r.stderr
     assert len(read_tum(tmp_path / "loc-none" / "poses.tum")[0]) == 0
     assert len(read_tum(tmp_path / "loc-none" / "poses-all.tum")[0]) == len(ts_all)
-    r = localize(str(tmp_path / "loc-nan"), "--threshold", "nan")
-    assert r.returncode == 2 and "--threshold" in r.stderr
-    assert not (tmp_path / "loc-nan").exists()
+    for bad in ("nan", "-1"):  # costs are >= 0: either would accept nothing
+        r = localize(str(tmp_path / "loc-nan"), "--threshold", bad)
+        assert r.returncode == 2 and "--threshold" in r.stderr
+        assert not (tmp_path / "loc-nan").exists()
     r = localize(str(tmp_path / "loc-rerank"), "--top_k", "3", "--metric_from", "rerank")
     assert r.returncode == 0, r.stderr
     r = localize(str(tmp_path / "loc-bad"), "--metric_from", "nearest")
@@ -272,12 +273,13 @@ def test_cli_map_localize_loops_end_to_end(tiny_world, model_dir, tmp_path):
     assert r.returncode == 0, r.stderr
     r = localize(str(tmp_path / "loc-bad-weight"), "--retrieval_weight", "-1")
     assert r.returncode == 2 and "--retrieval_weight" in r.stderr
-    r = localize(str(tmp_path / "loc-nosnap"), "--no-snap")
-    assert r.returncode == 0, r.stderr
-    lines = (tmp_path / "loc-nosnap" / "queries.csv").read_text().splitlines()
-    header = lines[1].split(",")
-    rows = [dict(zip(header, line.split(","), strict=True)) for line in lines[2:]]
-    assert rows and all(row["map_row"] == row["metric_row"] for row in rows)
+    for flag in ("--no_snap", "--no-snap"):  # the second: its name before 2026-12-05
+        r = localize(str(tmp_path / "loc-nosnap"), flag)
+        assert r.returncode == 0, r.stderr
+        lines = (tmp_path / "loc-nosnap" / "queries.csv").read_text().splitlines()
+        header = lines[1].split(",")
+        rows = [dict(zip(header, line.split(","), strict=True)) for line in lines[2:]]
+        assert rows and all(row["map_row"] == row["metric_row"] for row in rows)
     loops_cli = lambda out, *a: run(  # noqa: E731
         "loops", "--map", str(map_path), "--checkpoint", str(model_dir), "--out", str(out), *a
     )
@@ -586,10 +588,12 @@ def test_evaluation_breaks_recall_down_by_query_session(tiny_world, model_dir, t
     # robustness: the whole localizer under each perturbation, the same metrics as clean
     (tmp_path / "rob").mkdir()
     (tmp_path / "rob" / "precision_recall.png").write_bytes(b"an earlier run's loop figure")
+    (tmp_path / "rob" / "loops_map.h5").write_bytes(b"an earlier run's loop map")
     rob = run_evaluation(
         model_dir, tiny_world, "s0", ["s1"], tmp_path / "rob", robustness=True, **kw
     )
-    assert not (tmp_path / "rob" / "precision_recall.png").exists()  # no loops in this run
+    for stale in ("precision_recall.png", "loops_map.h5"):  # no loops in this run
+        assert not (tmp_path / "rob" / stale).exists()
     from vvloc.localize.evaluation import ROBUSTNESS
 
     want = [f"{p}, {m}" for p in ROBUSTNESS for m in ("VVLoc-G", "VVLoc-ML")]
@@ -651,6 +655,9 @@ def test_cli_refuses_misleading_inputs_before_any_work(tiny_world, map_file, mod
     r = run("localize", "--map", str(map_file), *ck, "--session", "s1", "--out", str(blocker))
     assert r.returncode == 2 and "--out:" in r.stderr and "is a file" in r.stderr
     assert blocker.read_text() == "keep"
+    r = run("eval", *ck, "--database", "s0", "--queries", "s1", "--out", str(blocker))
+    assert r.returncode == 2 and "--out:" in r.stderr and "is a file" in r.stderr
+    assert blocker.read_text() == "keep"
     # --overwrite replaces a dataset, never another folder
     notes = tmp_path / "notes"
     notes.mkdir()
@@ -672,6 +679,9 @@ def test_cli_refuses_misleading_inputs_before_any_work(tiny_world, map_file, mod
     assert r.returncode == 2 and "no run to resume" in r.stderr
     r = run("train", "--config", str(good), "--out", str(tmp_path / "t"), "--device", "gpu")
     assert r.returncode == 2 and "--device" in r.stderr and not (tmp_path / "t").exists()
+    r = run("train", "--config", str(good), "--out", str(blocker))
+    assert r.returncode == 2 and "--out:" in r.stderr and "is a file" in r.stderr
+    assert blocker.read_text() == "keep"
 
 
 def test_cli_version_and_quiet_logs(tmp_path):

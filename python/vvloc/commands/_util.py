@@ -65,24 +65,27 @@ RetrievalWeight = Annotated[
 ]
 
 
-def _a_number(value: float) -> float:
-    if math.isnan(value):  # a NaN threshold would accept nothing without saying so
-        raise typer.BadParameter("expected a number, got nan")
+def _a_cost(value: float) -> float:
+    # a NaN or negative threshold would accept nothing without saying so (costs are >= 0)
+    if math.isnan(value) or value < 0:
+        raise typer.BadParameter(f"expected a matching cost >= 0, got {value}")
     return value
 
 
 #: ``--threshold`` of ``localize``, ``loops`` and ``calibrate``: a result is accepted when its
-#: matching cost is below it (the paper's 0.75); NaN is refused (exit 2).
+#: matching cost is below it (the paper's 0.75); NaN and negative values are refused (exit 2).
 CostThreshold = Annotated[
     float,
-    typer.Option("--threshold", help="Accept cost below.", callback=_a_number),
+    typer.Option("--threshold", help="Accept cost below.", callback=_a_cost),
 ]
 
-#: ``--snap/--no-snap`` of ``eval`` and ``localize`` (see ``Localizer(snap=)``).
+#: ``--snap/--no_snap`` of ``eval``, ``localize`` and ``calibrate`` (see ``Localizer(snap=)``);
+#: ``--no-snap``, its name before 2026-12-05, still works (every other flag uses ``_``).
 Snap = Annotated[
     bool,
     typer.Option(
-        "--snap/--no-snap",
+        "--snap/--no_snap",
+        " /--no-snap",
         help="Report the retrieved keyframe nearest to the metric pose (same floor).",
     ),
 ]

@@ -111,7 +111,9 @@ def calibrate(
                 f"accepted: {cal['base_precision']:.1%} right)"
             )
             typer.echo(
-                f"vvloc calibrate: failed: {why}; {target} is left as it was. Try a lower "
+                f"vvloc calibrate: failed: {why}; "
+                + (f"{target} is left as it was" if target.exists() else "nothing was written")
+                + ". Try a lower "
                 "--precision, more --queries or a better-trained checkpoint.",
                 err=True,
             )

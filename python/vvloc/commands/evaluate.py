@@ -14,6 +14,7 @@ from vvloc.commands._util import (
     MetricFromChoice,
     RetrievalWeight,
     Snap,
+    check_out_folder,
     cli_errors,
     parse_device,
     split_names,
@@ -81,6 +82,7 @@ def eval_command(
     from vvloc.localize.evaluation import run_evaluation
 
     with cli_errors("eval"):
+        check_out_folder(out)
         names = split_names(queries)
         if not names:
             raise ValueError("--queries: expected at least one session name")

@@ -34,6 +34,8 @@ def detect_format(path: str | os.PathLike[str], format: str = "auto") -> str:
     root = Path(path)
     if format not in FORMATS:
         raise ValueError(f"format: expected one of {FORMATS}, got {format!r}")
+    if root.exists() and not root.is_dir():
+        raise NotADirectoryError(f"{root}: is a file, not a dataset folder")
     if not root.is_dir():
         raise FileNotFoundError(f"{root}: no such dataset folder")
     if format != "auto":

@@ -147,13 +147,13 @@ def convert_dataset(
         },
         **ds.meta,
     }
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=total, desc="vvloc convert", unit="frame")
+    bar = None  # opened once the writer accepted ``out`` (a refusal prints no empty bar)
     try:
         with DatasetWriter(out, cameras, overwrite=overwrite, meta=meta) as writer:
+            if progress:
+                from tqdm import tqdm
+
+                bar = tqdm(total=total, desc="vvloc convert", unit="frame")
             for name in names:
                 s = ds.session(name)
                 w = writer.add_session(name, meta={"source_session": name})

@@ -392,8 +392,8 @@ class DatasetWriter:
         if self.root.is_dir() and any(self.root.iterdir()):
             if not overwrite:
                 raise FileExistsError(
-                    f"{self.root} exists and is not empty "
-                    "(pass overwrite=True, or --overwrite on the command line)"
+                    f"{self.root} exists and is not empty (--overwrite, or overwrite=True in "
+                    "Python, replaces a dataset there)"
                 )
             if not (self.root / "rig.json").is_file():
                 # overwrite replaces a dataset, never an arbitrary folder

@@ -70,6 +70,9 @@ ROBUSTNESS: dict[str, tuple[str, dict[str, Any]]] = {
 
 
 #: Every figure file an evaluation may write (those a run does not draw are removed).
+#: The map of every frame that ``loops=True`` builds (with BEVs) in the report folder.
+LOOPS_MAP = "loops_map.h5"
+
 FIGURE_FILES = (
     "recall.png",
     "error_cdf.png",
@@ -150,7 +153,7 @@ def _loops(
     them to about ``sweep_pairs``; returns the closure and pose metrics, that sweep radius, and
     whether ``radius`` alone already held more pairs than the bound (the sweep then stops at
     ``radius``, above the bound)."""
-    path = build_map(model, ds, list(sessions), out_dir / "loops_map.h5", progress=progress)
+    path = build_map(model, ds, list(sessions), out_dir / LOOPS_MAP, progress=progress)
     closure: dict[str, Any] = {}
     pose: dict[str, Any] = {}
     verified: dict[tuple[int, int], tuple[np.ndarray, float]] = {}
@@ -504,6 +507,8 @@ def run_evaluation(
 
     for name in FIGURE_FILES:  # a figure this run does not draw must not outlive its report
         (out_dir / name).unlink(missing_ok=True)
+    if not loops:  # nor the loop map of an earlier run (perhaps of another model)
+        (out_dir / LOOPS_MAP).unlink(missing_ok=True)
     figures = {}
     figures["Recall@N at 2 m"] = viz.plot_recall_curves(
         out_dir / "recall.png", {"VVLoc-G": rec_g.curve(2.0), "VVLoc-ML": rec_ml.curve(2.0)}

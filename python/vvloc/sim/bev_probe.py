@@ -91,8 +91,9 @@ def fit_probe(
     and spread; full-batch L-BFGS from zero, so deterministic) on ``x_train`` (M, C) /
     ``y_train`` (M,) bool and score it on ``x_test`` / ``y_test``. Returns ``accuracy``,
     ``majority`` (accuracy of always answering the training majority class) and
-    ``balanced_accuracy`` (mean of the true-positive and true-negative rates) on the test
-    samples, as shares in [0, 1], and ``train_accuracy``."""
+    ``balanced_accuracy`` (mean of the true-positive and true-negative rates; NaN when the
+    test samples hold one class only, where it is undefined) on the test samples, as shares in
+    [0, 1], and ``train_accuracy``."""
     if len(x_train) == 0 or len(x_test) == 0:
         raise ValueError("x_train, x_test: expected at least one sample each")
     y_train, y_test = np.asarray(y_train, bool), np.asarray(y_test, bool)
@@ -126,7 +127,7 @@ def fit_probe(
     return {
         "accuracy": float((p == y_test).mean()),
         "majority": float((y_test == majority).mean()),
-        "balanced_accuracy": float(np.nanmean([tpr, tnr])),
+        "balanced_accuracy": (tpr + tnr) / 2,  # NaN unless both classes are tested
         "train_accuracy": float((predict(x_train) == y_train).mean()),
     }
 
@@ -204,7 +205,11 @@ def markdown(r: dict[str, Any]) -> str:
         lines.append(
             f"| {label} | {o['test_samples']} | {100 * o['test_occupied']:.1f} % | "
             f"{100 * o['accuracy']:.1f} % | {100 * o['majority']:.1f} % | "
-            f"{100 * o['balanced_accuracy']:.1f} % |"
+            + (
+                "– (one class tested) |"
+                if np.isnan(o["balanced_accuracy"])
+                else f"{100 * o['balanced_accuracy']:.1f} % |"
+            )
         )
     return "\n".join(lines) + "\n"
 
@@ -221,10 +226,11 @@ def main() -> None:
     try:
         r = probe(a.checkpoint, a.dataset, a.train.split(","), a.test.split(","), a.near)
     except (KeyError, OSError, ValueError) as e:
-        p.exit(2, f"bev_probe: {e}\n")
+        p.exit(2, f"bev_probe: {e.args[0] if isinstance(e, KeyError) and e.args else e}\n")
     print(markdown(r), end="")
     if a.json:
-        a.json.write_text(json.dumps(r, indent=2) + "\n")
+        strict = json.loads(json.dumps(r), parse_constant=lambda _: None)  # NaN → null
+        a.json.write_text(json.dumps(strict, indent=2) + "\n")
 
 
 if __name__ == "__main__":

@@ -153,9 +153,10 @@ def simulate_dataset(
         meta["max_roll"], meta["max_pitch"] = float(max_roll), float(max_pitch)
     renderer = Renderer(rig, texture_strength=texture_strength)
     total = sessions * frames
-    bar = tqdm(total=total, desc=f"vvloc sim {scene}", unit="frame", disable=not progress)
+    bar = None  # opened once the writer accepted --out (a refusal prints no empty bar)
     try:
         with DatasetWriter(out, rig, overwrite=overwrite, meta=meta) as writer:
+            bar = tqdm(total=total, desc=f"vvloc sim {scene}", unit="frame", disable=not progress)
             for k, spec in enumerate(plan):
                 verts, idx = world.mesh(spec.change_fraction, spec.seed)
                 renderer.set_mesh(verts, idx, world.lights, world.light_colors, world.light_floors)
@@ -181,6 +182,7 @@ def simulate_dataset(
                     t_base += float(times[-1]) + 60.0  # a minute on the ramp to the next floor
                 log.info("session %s: %d frames, %s", spec.name, sw.count, spec.lighting)
     finally:
-        bar.close()
+        if bar is not None:
+            bar.close()
         renderer.release()
     return Path(out)
