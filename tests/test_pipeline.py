@@ -8,6 +8,7 @@ search itself is pinned by the geometry oracle (tests/test_metric_localize.py).
 from __future__ import annotations
 
 import inspect
+import shutil
 import subprocess
 import sys
 
@@ -134,7 +135,7 @@ def test_the_map_records_its_rig_and_the_localizer_compares_queries_with_it(
     loc.map.close()
 
 
-def test_localizer_options_are_checked_up_front(map_file, model_dir, tiny_world, caplog):
+def test_localizer_options_are_checked_up_front(map_file, model_dir, tiny_world, caplog, tmp_path):
     model = VVLocNet.load(model_dir)
     db = MapDatabase.open(map_file)
     with pytest.raises(ValueError, match="step"):
@@ -158,6 +159,10 @@ def test_localizer_options_are_checked_up_front(map_file, model_dir, tiny_world,
     db.close()
     with Localizer.open(map_file, model_dir, top_k=2) as opened:
         assert len(opened.map) > 0
+    run = tmp_path / "run"  # a training run's folder opens its best/ (else checkpoint/)
+    shutil.copytree(model_dir, run / "checkpoint")
+    with Localizer.open(map_file, run, top_k=2) as from_run:
+        assert from_run.model.weights_hash() == model.weights_hash()
     with pytest.raises(ValueError, match="closed"):
         opened.map.local_descriptors(0)  # the with-block closed the map
 

@@ -44,6 +44,7 @@ import torch
 from tqdm import tqdm
 
 from vvloc import geometry, kernels
+from vvloc.checkpoints import resolve_checkpoint
 from vvloc.data import Frame
 from vvloc.localize.mapdb import MapDatabase, MapError, MapWriter, check_weights
 from vvloc.localize.metric import (
@@ -495,8 +496,10 @@ class Localizer:
         **kwargs: Any,
     ) -> Localizer:
         """Load a checkpoint directory and open a map built with it (refused otherwise, see
-        :func:`check_map_model`; the map is closed again when the localizer cannot be made)."""
-        model = VVLocNet.load(checkpoint).to(resolve_device(device))
+        :func:`check_map_model`; the map is closed again when the localizer cannot be made).
+        ``checkpoint`` may also be a training run's folder: its ``best/`` when it has one, else
+        its ``checkpoint/``, as the CLI takes it."""
+        model = VVLocNet.load(resolve_checkpoint(checkpoint)).to(resolve_device(device))
         mapdb = MapDatabase.open(map_path, expected_config_hash=model.config_hash())
         try:
             return cls(model, mapdb, **kwargs)
