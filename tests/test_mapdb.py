@@ -768,3 +768,29 @@ def test_an_unreadable_checksum_and_a_map_held_for_writing_are_map_errors(tmp_pa
     finally:
         holder.kill()
         holder.communicate()  # reaps it and closes its pipe
+
+
+def test_map_info_reports_the_map_and_verify_reads_every_byte(tmp_path: Path) -> None:
+    import subprocess
+    import sys
+
+    path = full_map(tmp_path)
+    cli = [sys.executable, "-m", "vvloc.cli", "map", "info"]
+    r = subprocess.run([*cli, str(path)], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert "format version 2" in r.stdout and f"keyframes: {N} in 2 sessions" in r.stdout
+    assert (
+        "séance-0: 6 keyframes" in r.stdout and "weights fingerprint 0123456789abcdef" in r.stdout
+    )
+    assert "rig: front 16x8" in r.stdout and "BEV (6, 5, 4) float16" in r.stdout
+    flip_byte_in_chunk(path, "bev", 5)  # lazily read: found by --verify only
+    assert subprocess.run([*cli, str(path)], capture_output=True).returncode == 0
+    r = subprocess.run([*cli, str(path), "--verify"], capture_output=True, text=True)
+    assert r.returncode == 2 and "corrupted map" in r.stderr and "'bev'" in r.stderr
+    old = tmp_path / "old.h5"
+    (tmp_path / "again").mkdir()
+    write_version_1(full_map(tmp_path / "again"), old)
+    r = subprocess.run([*cli, str(old), "--verify"], capture_output=True, text=True)
+    assert r.returncode == 0 and "format version 1" in r.stdout and "rewrites it" in r.stdout
+    r = subprocess.run([*cli, str(tmp_path / "none.h5")], capture_output=True, text=True)
+    assert r.returncode == 2 and "map file not found" in r.stderr

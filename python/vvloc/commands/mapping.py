@@ -1,4 +1,5 @@
-"""``vvloc map build``: encode sessions with a model into an HDF5 map."""
+"""``vvloc map build``: encode sessions with a model into an HDF5 map; ``vvloc map info``:
+what a map holds, and whether every byte of it is intact."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ import typer
 from vvloc.checkpoints import resolve_checkpoint
 from vvloc.commands._util import cli_errors, parse_device, split_names
 
-map_app = typer.Typer(help="Build map databases.", no_args_is_help=True)
+map_app = typer.Typer(help="Build and inspect map databases.", no_args_is_help=True)
 
 
 @map_app.command("build")
@@ -53,3 +54,64 @@ def build(
             store_bev=not no_bev,
         )
     typer.echo(f"map: {path}")
+
+
+@map_app.command("info")
+def info(
+    map_path: Annotated[Path, typer.Argument(help="Map file (.h5).", metavar="MAP")],
+    verify: Annotated[
+        bool,
+        typer.Option(
+            "--verify",
+            help="Also check the SHA-256 of every dataset, the lazily read local-view "
+            "descriptors and BEVs included (reads the whole file).",
+        ),
+    ] = False,
+) -> None:
+    """Print what a map holds: format version, keyframes per session, floors, descriptor
+    shapes and dtype, BEVs, the model's config hash and weights fingerprint, the rig.
+
+    Opening checks the map's structure and the SHA-256 of its poses, ids and global
+    descriptors; a damaged or foreign file exits 2 with the reason."""
+    import numpy as np
+
+    from vvloc.localize import MapDatabase
+
+    with cli_errors("map info"), MapDatabase.open(map_path) as db:
+        if verify:
+            db.verify()
+        meta = db.metadata
+        lines = [
+            f"map: {map_path}",
+            f"format version {meta.format_version}, written by vvloc {meta.vvloc_version} at "
+            f"{meta.created_utc}",
+            f"keyframes: {len(db)} in {len(db.sessions)} sessions",
+        ]
+        for s, name in enumerate(db.sessions):
+            rows = db.session_index == s
+            floors = sorted(int(f) for f in np.unique(db.floors[rows]))
+            lines.append(f"  {name}: {int(rows.sum())} keyframes, floors {floors}")
+        bev = "none (no loop detection)" if db.bev_shape is None else f"{db.bev_shape} float16"
+        lines += [
+            f"descriptors ({meta.descriptor_dtype}): global ({db.global_dim},), local-view "
+            f"{db.local_shape}; BEV {bev}; grid {meta.grid_size:g} m",
+            f"model config hash {meta.model_config_hash}",
+            f"weights fingerprint {meta.model_weights_hash or '(not recorded)'}",
+            "rig: "
+            + (
+                "(not recorded)"
+                if meta.rig is None
+                else ", ".join(f"{c['name']} {c['width']}x{c['height']}" for c in meta.rig)
+            ),
+        ]
+        if meta.format_version < 2:
+            lines.append(
+                "note: format version 1 has no checksums on its HDF5 structures; "
+                "MapDatabase.open(old).save(new) rewrites it as version 2"
+            )
+        lines.append(
+            "verified: every dataset's SHA-256"
+            if verify
+            else "verified on open: ids, poses, global descriptors (--verify: every dataset)"
+        )
+    typer.echo("\n".join(lines))
