@@ -426,8 +426,13 @@ def test_extra_datasets_are_other_worlds_and_cross_floor_negatives_share_the_pla
         TripletSampler(lot, cross_floor_fraction=1.5)
     with pytest.raises(ValueError, match="cross_floor_same_session"):
         TripletSampler(lot, cross_floor_same_session=-0.1)
-    with pytest.raises(ValueError, match="collide"):
+    with pytest.raises(ValueError, match=r"extra: dataset 1 .* is listed twice"):
         TripletSampler(lot, extra=[(garage, None), (garage, None)])
+    # one world as two (its own places would be drawn as negatives): refused
+    with pytest.raises(ValueError, match=r"extra: dataset 0 .* is the primary dataset"):
+        TripletSampler(lot, extra=[(lot, None)])
+    with pytest.raises(ValueError, match=r"extra: dataset 0 .* is the primary dataset"):
+        TripletSampler(lot, extra=[(open_dataset(lot.root), ["s0"])])
     # anchor shares: the garage (2/3 of the frames) drawn for a fifth of the anchors
     weighted = TripletSampler(lot, seed=0, extra=[(garage, None)], anchor_shares=[0.2])
     a = weighted.sample_random(4000)[:, 0]

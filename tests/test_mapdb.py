@@ -337,9 +337,39 @@ def test_hdf5_file_that_is_not_a_map(tmp_path: Path) -> None:
             MapDatabase.open(path)
 
 
-def edit(path: Path, fn: Any) -> None:
+def edit(path: Path, fn: Any, *, reseal: bool = True) -> None:
+    """Apply ``fn`` to the open file; ``reseal`` brings the attribute checksum up to date (a
+    file written so by a faulty writer, to reach the check behind it)."""
+    from vvloc.localize.mapdb import _ATTRS_DIGEST, _attrs_digest, _set_text
+
     with h5py.File(path, "a") as f:
         fn(f)
+        if reseal and _ATTRS_DIGEST in f.attrs:
+            _set_text(f.attrs, _ATTRS_DIGEST, _attrs_digest(f.attrs))
+
+
+def test_an_edited_attribute_is_refused_by_the_attribute_checksum(tmp_path: Path) -> None:
+    path = saved(tmp_path)
+    edit(path, lambda f: f.attrs.__setitem__("grid_size", 0.5), reseal=False)
+    with pytest.raises(MapError, match=r"map\.h5: corrupted map: attribute checksum mismatch"):
+        MapDatabase.open(path)
+    edit(path, lambda f: f.attrs.__delitem__("attributes_sha256"), reseal=False)
+    with pytest.raises(MapError, match=r"map\.h5: corrupted map: no attribute checksum"):
+        MapDatabase.open(path)
+
+
+def test_a_long_text_attribute_is_checksummed_too(tmp_path: Path) -> None:
+    """HDF5 keeps a value over ~4 KiB in a heap object without a checksum of its own."""
+    config = {**CONFIG, "notes": "x" * 5000}
+    db = MapDatabase.from_arrays(**keyframes(), model_config=config, grid_size=0.3)
+    path = db.save(tmp_path / "map.h5")
+    data = bytearray(path.read_bytes())
+    at = data.find(b"x" * 64)
+    assert at > 0 and data.find(b"x" * 64, at + 5000) < 0  # the config, stored once
+    data[at + 2500] ^= 0x01
+    path.write_bytes(bytes(data))
+    with pytest.raises(MapError, match=r"map\.h5: corrupted map"):
+        MapDatabase.open(path)
 
 
 def test_missing_dataset_is_refused(tmp_path: Path) -> None:
@@ -529,6 +559,43 @@ def test_format_1_maps_are_still_read(tmp_path: Path) -> None:
         resaved = db.save(tmp_path / "resaved.h5", dtype="float16")
     with MapDatabase.open(resaved) as db:
         assert db.metadata.format_version == 2
+
+
+def test_a_map_written_by_format_1s_own_writer_is_read(tmp_path: Path) -> None:
+    """tests/data/map-format-1.h5 was written by the map writer of commit 0c97ba5."""
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).parent / "data"))
+    try:
+        from make_map_format_1 import fixture_arrays
+    finally:
+        sys.path.pop(0)
+    want = fixture_arrays()
+    path = Path(__file__).parent / "data" / "map-format-1.h5"
+    with MapDatabase.open(path) as db:
+        db.verify()
+        meta = db.metadata
+        assert meta.format_version == 1 and meta.descriptor_dtype == "float16"
+        assert meta.model_config == want["model_config"] and meta.grid_size == 0.3
+        assert meta.model_weights_hash == "0123456789abcdef"
+        assert meta.rig == [want["rig"][0].to_json()]
+        assert db.sessions == ("séance-0", "s1")
+        assert [db.session_of(i) for i in range(6)] == want["sessions"]
+        np.testing.assert_array_equal(db.poses, want["poses"])
+        np.testing.assert_array_equal(db.timestamps, want["timestamps"])
+        np.testing.assert_array_equal(db.floors, want["floors"])
+        np.testing.assert_array_equal(
+            db.global_descriptors, as_stored(want["global_descriptors"], "float16")
+        )
+        np.testing.assert_array_equal(
+            db.local_descriptors(range(6)), as_stored(want["local_descriptors"], "float16")
+        )
+        np.testing.assert_array_equal(db.bev(range(6)), as_stored(want["bevs"], "float16"))
+        new = db.save(tmp_path / "new.h5", dtype="float16")
+        with MapDatabase.open(new) as again:
+            assert again.metadata.format_version == FORMAT_VERSION
+            assert again.metadata.model_config == meta.model_config
+            np.testing.assert_array_equal(again.bev(range(6)), db.bev(range(6)))
 
 
 FLIP_SCRIPT = r"""

@@ -419,11 +419,11 @@ def test_load_rejects_mismatched_checkpoints(tmp_path):
     meta_path.write_text(json.dumps(meta))
     with pytest.raises(ValueError, match="version 99"):
         VVLocNet.load(tmp_path)
-    with pytest.raises(FileNotFoundError, match=r"checkpoint: .*nothing.*not a vvloc checkpoint\)"):
+    with pytest.raises(FileNotFoundError, match=r"directory: .*nothing.*not a vvloc checkpoint\)"):
         VVLocNet.load(tmp_path / "nothing")
     run = tmp_path / "run"  # a training run's folder: the message points at its checkpoints
     _model(tiny_config(), seed=1).save(run / "checkpoint")
-    with pytest.raises(FileNotFoundError, match=r"is a training run: its checkpoints are .*best"):
+    with pytest.raises(FileNotFoundError, match=r"is a training run: load \S*/run/checkpoint\)"):
         VVLocNet.load(run)
 
 

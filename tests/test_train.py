@@ -917,9 +917,26 @@ def test_bad_val_loops_are_refused_by_name():
             {
                 **base,
                 "extra_datasets": [{"dataset": "g", "train_sessions": ["s0", "s5"]}],
-                "val_loops": [{"dataset": "g", "sessions": ["s5"]}],
+                "val_loops": [{"dataset": "./g/", "sessions": ["s5"]}],  # g, spelt otherwise
             }
         )
+
+
+def test_validation_and_extra_datasets_cannot_hold_what_trains():
+    base = {"dataset": "data/x", "train_sessions": ["s0", "s1"], "val_sessions": ["s2"]}
+    TrainConfig.from_dict(base)
+    # the map session among the validation queries, or a query twice: inflated recall
+    with pytest.raises(ValueError, match=r"val_sessions: the map session 's2' is among"):
+        TrainConfig.from_dict({**base, "val_database": "s2"})
+    with pytest.raises(ValueError, match=r"val_sessions: sessions named more than once"):
+        TrainConfig.from_dict({**base, "val_sessions": ["s2", "s2"]})
+    # the training dataset again as an extra one: it would train val_sessions as another world
+    for spelt in ("data/x", "./data/x", "data/x/", "data/../data/x"):
+        with pytest.raises(ValueError, match=r"extra_datasets\[0\]\.dataset: .* training dataset"):
+            TrainConfig.from_dict({**base, "extra_datasets": [{"dataset": spelt}]})
+    twice = [{"dataset": "data/g"}, {"dataset": "./data/g", "train_sessions": ["s1"]}]
+    with pytest.raises(ValueError, match=r"extra_datasets\[1\]\.dataset: .* listed twice"):
+        TrainConfig.from_dict({**base, "extra_datasets": twice})
 
 
 def test_fit_with_val_loops_logs_them_and_selects_by_them(tiny_world, tmp_path):

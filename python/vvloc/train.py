@@ -78,6 +78,7 @@ from vvloc._io import atomic_write
 from vvloc.checkpoints import resolve_checkpoint
 from vvloc.data import TripletSampler, open_dataset
 from vvloc.data.augment import PhotometricAugment
+from vvloc.data.sampling import check_query_sessions
 from vvloc.evaluate import to_jsonable
 from vvloc.localize.localizer import frames_to_tensors
 from vvloc.losses import (
@@ -433,6 +434,7 @@ class TrainConfig:
                     "val_sessions: must not be trained on (set train_sessions without them); "
                     f"overlap: {overlap or 'train_sessions is unset (all sessions train)'}"
                 )
+            check_query_sessions(self.val_database, self.val_sessions, "val_sessions")
         if self.init_checkpoint is not None and not isinstance(self.init_checkpoint, str):
             raise ValueError(
                 "init_checkpoint: expected a checkpoint or run folder path, "
@@ -464,7 +466,7 @@ class TrainConfig:
                 raise ValueError(f"val_loops[{k}].sequence: expected an int >= 0, got {half!r}")
             sources = [{"dataset": self.dataset, "train_sessions": self.train_sessions}]
             for extra in [*sources, *self.extra_datasets]:
-                if isinstance(extra, dict) and extra.get("dataset") == entry["dataset"]:
+                if isinstance(extra, dict) and _same_folder(extra.get("dataset"), entry["dataset"]):
                     trained = set(extra.get("train_sessions") or []) & set(entry["sessions"])
                     if trained or extra.get("train_sessions") is None:
                         raise ValueError(
@@ -518,6 +520,18 @@ class TrainConfig:
                 raise ValueError(
                     f"extra_datasets[{k}]: unknown keys {unknown}; "
                     "known: ['anchor_share', 'dataset', 'sim', 'train_sessions']"
+                )
+            earlier = [self.dataset, *(e.get("dataset") for e in self.extra_datasets[:k])]
+            if any(_same_folder(extra["dataset"], d) for d in earlier):
+                raise ValueError(
+                    f"extra_datasets[{k}].dataset: {extra['dataset']} is "
+                    + (
+                        "the training dataset"
+                        if _same_folder(extra["dataset"], self.dataset)
+                        else "listed twice"
+                    )
+                    + ": its frames would pair as another world's and could hold val_sessions; "
+                    "choose its sessions with train_sessions instead"
                 )
             sessions = extra.get("train_sessions")
             if sessions is not None and (
@@ -888,6 +902,13 @@ def _ensure_dataset(dataset: str, sim: dict[str, Any] | None) -> None:
     simulate_dataset(root, **sim)
 
 
+def _same_folder(a: Any, b: Any) -> bool:
+    """Whether two config paths name one folder, however spelt (``./data/x``, ``data/x/``)."""
+    if not isinstance(a, (str, os.PathLike)) or not isinstance(b, (str, os.PathLike)):
+        return False
+    return Path(a).resolve() == Path(b).resolve()
+
+
 def _is_checkpoint(path: Path) -> bool:
     """Whether ``path`` is a checkpoint folder, or a run folder that holds one."""
     return (resolve_checkpoint(path) / "config.json").is_file()
@@ -1050,6 +1071,12 @@ class Trainer:
             differ,
         )
 
+    def _require_init(self) -> None:
+        """Refuse to train or save while ``init_checkpoint`` is missing and no resume has
+        brought the run's own weights in (the model would hold a random initialisation)."""
+        if self._init_missing is not None:
+            raise _no_init_checkpoint(self._init_missing)
+
     # --- persistence ---------------------------------------------------------------------
 
     @property
@@ -1196,6 +1223,7 @@ class Trainer:
         """Write the model checkpoint (with its training record) and the trainer state
         (atomically, each file); ``record``, the epoch's log line, goes into the state so that
         a resume writes it if the process stopped before its own write."""
+        self._require_init()
         self.out.mkdir(parents=True, exist_ok=True)
         self._save_model(self.checkpoint_dir, self.epoch)
         state = {
@@ -1422,8 +1450,7 @@ class Trainer:
     def run_epoch(self, progress: bool = True) -> dict[str, Any]:
         """Train one epoch (``steps_per_epoch`` batches, or the head stage's
         ``head_steps_per_epoch``); return its log record."""
-        if self._init_missing is not None:  # only a resume may go on without it
-            raise _no_init_checkpoint(self._init_missing)
+        self._require_init()
         cfg = self.cfg
         stage = self.stage_of(self.epoch)
         if stage == 3:
@@ -1818,8 +1845,7 @@ class Trainer:
         """Train until ``cfg.epochs`` (fewer when ``patience`` stops the joint stage); checkpoint
         and log after every epoch (and keep the best epoch by validation in ``best/`` when
         ``val_sessions`` are set)."""
-        if self._init_missing is not None:  # only a resume may go on without it
-            raise _no_init_checkpoint(self._init_missing)
+        self._require_init()
         self.out.mkdir(parents=True, exist_ok=True)
         (self.out / "train_config.yaml").write_text(yaml.safe_dump(self.cfg.to_dict()))
         cfg = self.cfg

@@ -66,7 +66,9 @@ RetrievalWeight = Annotated[
 
 
 def _a_cost(value: float) -> float:
-    # a NaN or negative threshold would accept nothing without saying so (costs are >= 0)
+    # costs are >= 0 and a result is accepted when its cost is below the threshold: NaN would
+    # accept nothing without saying so, a negative value is a mistake (0 accepts nothing, as
+    # the library's -inf does)
     if math.isnan(value) or value < 0:
         raise typer.BadParameter(f"expected a matching cost >= 0, got {value}")
     return value

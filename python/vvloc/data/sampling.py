@@ -110,6 +110,15 @@ class TripletSampler:
             sessions = list(sessions)  # once: an iterator would be spent by the check
             if len(set(sessions)) != len(sessions):
                 raise ValueError(f"sessions: names repeated in {sessions}")
+        roots = [Path(src.root).resolve() for src in [ds, *(e[0] for e in extra)]]
+        for k, root in enumerate(roots[1:]):
+            if root in roots[: k + 1]:
+                raise ValueError(
+                    f"extra: dataset {k} ({root}) is "
+                    + ("the primary dataset" if root == roots[0] else "listed twice")
+                    + ": one world's frames would pair as another world's (its own places as "
+                    "negatives); choose its sessions with sessions / one entry instead"
+                )
         self.ds = ds
         # (dataset, session name, label) of each session slot, the primary dataset's first
         self._slots: list[tuple[Dataset, str, str]] = []
@@ -368,17 +377,17 @@ class EvalSplit:
     revisit_radius: float
 
 
-def check_query_sessions(database: str, queries: Sequence[str]) -> None:
-    """``ValueError`` naming ``queries`` when the query sessions repeat a name or include the map
-    session ``database``: its frames would find themselves (100 % recall, a calibration learnt
-    on the map), or a session would count twice."""
+def check_query_sessions(database: str, queries: Sequence[str], argument: str = "queries") -> None:
+    """``ValueError`` naming ``argument`` (the query sessions) when the query sessions repeat a
+    name or include the map session ``database``: its frames would find themselves (100 %
+    recall, a calibration learnt on the map), or a session would count twice."""
     names = list(queries)
     repeated = sorted({q for q in names if names.count(q) > 1})
     if repeated:
-        raise ValueError(f"queries: sessions named more than once: {repeated}")
+        raise ValueError(f"{argument}: sessions named more than once: {repeated}")
     if database in names:
         raise ValueError(
-            f"queries: the map session {database!r} is among the queries: its frames would "
+            f"{argument}: the map session {database!r} is among the queries: its frames would "
             "find themselves; query other sessions"
         )
 

@@ -69,10 +69,10 @@ ROBUSTNESS: dict[str, tuple[str, dict[str, Any]]] = {
 }
 
 
-#: Every figure file an evaluation may write (those a run does not draw are removed).
 #: The map of every frame that ``loops=True`` builds (with BEVs) in the report folder.
 LOOPS_MAP = "loops_map.h5"
 
+#: Every figure file an evaluation may write (those a run does not draw are removed).
 FIGURE_FILES = (
     "recall.png",
     "error_cdf.png",

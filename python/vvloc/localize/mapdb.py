@@ -23,7 +23,9 @@ cell size g, metres), ``descriptor_dtype`` and ``num_keyframes``; optionally
 Integrity (format version 2): the file uses HDF5 1.10's structures (``libver="v110"``), whose
 metadata (superblock, object headers with their attributes, chunk indexes) carries checksums
 that HDF5 verifies before it parses them; text (attributes, ``session_names``) is stored as
-fixed-length UTF-8, inside those checksummed headers. Every per-keyframe dataset is chunked
+fixed-length UTF-8; and a file attribute ``attributes_sha256`` holds the SHA-256 of every
+other file attribute (HDF5 stores a value over about 4 KiB, such as a long model config, in a
+heap object without a checksum of its own). Every per-keyframe dataset is chunked
 with HDF5's Fletcher-32 filter (a corrupted chunk fails when it is read), and every dataset
 carries a ``sha256`` attribute of its stored bytes (little-endian, C order).
 :meth:`MapDatabase.open` verifies the SHA-256 of every small dataset (all but the local
@@ -84,6 +86,8 @@ FORMAT_VERSION = 2
 READABLE_FORMAT_VERSIONS = (1, 2)
 # HDF5 file-format bounds of version 2: HDF5 1.10's structures, every one of them checksummed.
 _LIBVER = ("v110", "v110")
+# The file attribute that holds the SHA-256 of all the others (version 2).
+_ATTRS_DIGEST = "attributes_sha256"
 
 DescriptorDType = Literal["float32", "float16"]
 PathLike = str | os.PathLike[str]
@@ -410,6 +414,29 @@ def _decode(value: Any, key: str) -> str:
     raise ValueError(f"attribute {key!r} is not text: {type(value).__name__}")
 
 
+def _attrs_digest(attrs: h5py.AttributeManager) -> str:
+    """SHA-256 of every file attribute but :data:`_ATTRS_DIGEST` (format version 2), as
+    canonical JSON: text as str, numbers as Python numbers.
+
+    HDF5 checksums small attributes with the structures that hold them, but stores a value
+    over about 4 KiB (a long model config, a rig of many cameras) in a heap object of its own
+    without one."""
+    values: dict[str, Any] = {}
+    for key in sorted(attrs):
+        if key == _ATTRS_DIGEST:
+            continue
+        value = attrs[key]
+        if isinstance(value, (bytes, str)):
+            values[key] = _decode(value, key)
+        elif isinstance(value, (np.integer, int)) and not isinstance(value, bool):
+            values[key] = int(value)
+        elif isinstance(value, (np.floating, float)):
+            values[key] = float(value).hex()  # exact
+        else:
+            raise ValueError(f"attribute {key!r} is neither text nor a number")
+    return hashlib.sha256(json.dumps(values, sort_keys=True).encode("utf-8")).hexdigest()
+
+
 def _names_digest(names: Sequence[str]) -> str:
     return hashlib.sha256(json.dumps(list(names)).encode("utf-8")).hexdigest()
 
@@ -674,6 +701,7 @@ class MapWriter:
             attrs["format_version"] = np.int64(FORMAT_VERSION)
             attrs["grid_size"] = np.float64(self._grid_size)
             attrs["num_keyframes"] = np.int64(self._n)
+            _set_text(attrs, _ATTRS_DIGEST, _attrs_digest(attrs))
             self._h5.close()
             self._finalizer.detach()
             self._atomic.commit()
@@ -955,10 +983,11 @@ class MapDatabase:
         verify: bool,
     ) -> MapDatabase:
         attrs = h5.attrs
-        fmt = attrs.get("format")
+        # `in` and [] raise on a damaged header (a corrupted map); .get would say None
+        fmt = attrs["format"] if "format" in attrs else None
         if isinstance(fmt, bytes):  # version 2 (fixed-length UTF-8); version 1 reads as str
             fmt = fmt.decode("utf-8", errors="replace")
-        if fmt != FORMAT_NAME:
+        if not isinstance(fmt, str) or fmt != FORMAT_NAME:
             raise MapError(f"{p}: not a vvloc map (attribute 'format' is {fmt!r})")
         missing = [a for a in _REQUIRED_ATTRS if a not in attrs]
         if missing:
@@ -970,6 +999,13 @@ class MapDatabase:
                 f"{_text(attrs, 'vvloc_version')}), but this vvloc reads format versions "
                 f"{', '.join(map(str, READABLE_FORMAT_VERSIONS))}; rebuild the map"
             )
+        if version >= 2:  # every attribute's value, whichever HDF5 structure holds it
+            stored = _text(attrs, _ATTRS_DIGEST) if _ATTRS_DIGEST in attrs else None
+            if stored != _attrs_digest(attrs):
+                raise MapError(
+                    f"{p}: corrupted map: "
+                    + ("no attribute checksum" if stored is None else "attribute checksum mismatch")
+                )
         config_hash = _text(attrs, "model_config_hash")
         if expected_config_hash is not None and config_hash != expected_config_hash:
             raise MapError(

@@ -301,13 +301,13 @@ class VVLocNet(nn.Module):
         cfg_path, w_path = src / CONFIG_FILE, src / WEIGHTS_FILE
         for p in (cfg_path, w_path):
             if not p.is_file():
-                hint = (
-                    f"; {src} is a training run: its checkpoints are {src / 'best'} and "
-                    f"{src / 'checkpoint'}"
-                    if (src / "checkpoint" / CONFIG_FILE).is_file()
-                    else ""
-                )
-                raise FileNotFoundError(f"checkpoint: {p} not found (not a vvloc checkpoint{hint})")
+                inside = [
+                    str(src / d)
+                    for d in ("best", "checkpoint")
+                    if (src / d / CONFIG_FILE).is_file()
+                ]
+                hint = f"; {src} is a training run: load {' or '.join(inside)}" if inside else ""
+                raise FileNotFoundError(f"directory: {p} not found (not a vvloc checkpoint{hint})")
         meta = _json_object(cfg_path)
         if meta.get("format") != CHECKPOINT_FORMAT:
             raise ValueError(
