@@ -4,6 +4,7 @@ import os
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 import vvloc
@@ -66,3 +67,29 @@ def test_reference_spatial_kernels_load_on_first_use():
     assert reference.bev_pad.__module__ == "vvloc.reference.spatial"
     with pytest.raises(AttributeError, match="no attribute 'nothing'"):
         _ = reference.nothing
+
+
+def _pad_polar_in_child(args: tuple) -> np.ndarray:
+    bev, hyps = args
+    return vvloc.kernels.pad_polar(bev, hyps, 16, 6, grid_size=0.3)
+
+
+def test_the_rust_pool_works_in_forked_children_as_in_the_parent():
+    """DataLoader workers are forked after the parent built its pool (threads do not survive a
+    fork): the child builds its own and gives the parent's results."""
+    import multiprocessing
+
+    rng = np.random.default_rng(0)
+    bev = rng.normal(size=(12, 10, 4)).astype(np.float32)
+    hyps = rng.uniform(-1, 1, size=(9, 2))
+    before = vvloc.get_num_threads()
+    try:
+        vvloc.set_num_threads(2)
+        want = _pad_polar_in_child((bev, hyps))  # the parent's pool exists from here on
+        ctx = multiprocessing.get_context("fork")
+        with ctx.Pool(2) as pool:
+            got = pool.map(_pad_polar_in_child, [(bev, hyps)] * 4)
+    finally:
+        vvloc.set_num_threads(before)
+    for g in got:
+        np.testing.assert_array_equal(g, want)

@@ -771,6 +771,8 @@ def test_a_run_resumes_after_its_init_checkpoint_is_gone(tiny_world, tmp_path):
         stray.fit(progress=False)
     with pytest.raises(FileNotFoundError, match="init_checkpoint: no checkpoint"):
         stray.run_epoch(progress=False)
+    with pytest.raises(FileNotFoundError, match="init_checkpoint: no checkpoint"):
+        stray.save()  # it would write a random initialisation over the run's checkpoint
     resumed = train(cfg, tmp_path / "part", resume=True, progress=False)
     for a, b in zip(
         resumed.model.state_dict().values(), full.model.state_dict().values(), strict=True
@@ -1341,3 +1343,18 @@ def test_log_lines_are_strict_json(tiny_world, tmp_path):
     for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines():
         # strict parsers (Node's JSON.parse) refuse NaN: the validation's undefined figures
         json.loads(line, parse_constant=lambda c: pytest.fail(f"non-strict JSON constant {c}"))
+
+
+def test_worker_processes_load_the_same_batches_as_the_main_process(tiny_world, tmp_path):
+    """Frames loaded (and augmented) in forked DataLoader workers train the same weights and
+    hard pool as frames loaded in the main process."""
+    runs = {}
+    for workers in (0, 2):
+        cfg = _config(tiny_world, stage2_epochs=0, num_workers=workers, augment={})
+        runs[workers] = train(cfg, tmp_path / f"w{workers}", progress=False)
+    a, b = runs[0], runs[2]
+    for (name, x), y in zip(
+        a.model.state_dict().items(), b.model.state_dict().values(), strict=True
+    ):
+        assert torch.equal(x, y), name
+    assert np.array_equal(a.sampler.hard, b.sampler.hard)
