@@ -75,6 +75,8 @@ def test_full_haze_pulls_the_top_rows_to_the_airlight_more_than_the_bottom_rows(
         ({"noise": float("nan")}, "noise"),
         ({"haze": "strong"}, "haze"),
         ({"gamma": True}, "gamma"),
+        ({"brightness": 800.0}, r"augment\.brightness: expected a log range"),  # exp overflows
+        ({"noise": 300.0}, r"augment\.noise: expected grey levels"),
     ],
 )
 def test_bad_parameters_are_refused_by_name(kwargs, match):
@@ -96,3 +98,8 @@ def test_from_dict_rejects_unknown_keys_and_accepts_empty():
 def test_bad_images_are_refused(bad):
     with pytest.raises(ValueError, match="images"):
         PhotometricAugment()(bad, np.random.default_rng(0))
+
+
+def test_the_rng_must_be_a_generator():
+    with pytest.raises(TypeError, match="rng: expected a numpy Generator, got int"):
+        PhotometricAugment()(np.zeros((1, 3, 8, 8), np.uint8), 0)  # type: ignore[arg-type]

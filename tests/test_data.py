@@ -299,6 +299,9 @@ def test_perturbations_change_only_what_they_say():
         perturb.noise(x[0])
     with pytest.raises(ValueError, match="cameras"):
         perturb.mask_cameras(x, [7])
+    for bad in ("01", 2, [1.7], [True]):  # were read as cameras [0, 1], an error, [1], [1]
+        with pytest.raises(TypeError, match="cameras: expected"):
+            perturb.mask_cameras(x, bad)  # type: ignore[arg-type]
 
 
 def test_perturb_frame_keeps_calibration_and_pose(tmp_path):
@@ -426,6 +429,23 @@ def test_extra_datasets_are_other_worlds_and_cross_floor_negatives_share_the_pla
         TripletSampler(lot, cross_floor_fraction=1.5)
     with pytest.raises(ValueError, match="cross_floor_same_session"):
         TripletSampler(lot, cross_floor_same_session=-0.1)
+    for kwargs, error, match in [
+        ({"pos_radius": "2"}, TypeError, "pos_radius: expected a number"),
+        ({"hard_fraction": None}, TypeError, "hard_fraction: expected a number"),
+        ({"hard_fraction": True}, TypeError, "hard_fraction: expected a number"),
+        ({"cross_floor_fraction": "0.5"}, TypeError, "cross_floor_fraction: expected a number"),
+        ({"floor_separation": float("inf")}, ValueError, "floor_separation: expected a finite"),
+        ({"seed": -1}, ValueError, "seed: expected an int >= 0"),
+        ({"cross_session": "no"}, TypeError, "cross_session: expected a bool"),
+    ]:
+        with pytest.raises(error, match=match):
+            TripletSampler(lot, **kwargs)
+    assert TripletSampler(lot, floor_separation=np.float32(5)).pos_radius == 2.0
+    pool = TripletSampler(lot, seed=0)
+    with pytest.raises(ValueError, match=r"triplets: frame ids must lie in \[0, "):
+        pool.mark_hard([[0, 1, len(pool)]])
+    with pytest.raises(TypeError, match="correct: expected"):
+        pool.update(pool.sample_random(2), np.array([0.0, 1.0]))
     with pytest.raises(ValueError, match=r"extra: dataset 1 .* is listed twice"):
         TripletSampler(lot, extra=[(garage, None), (garage, None)])
     # one world as two (its own places would be drawn as negatives): refused

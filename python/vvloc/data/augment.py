@@ -20,12 +20,16 @@ from typing import Any
 
 import numpy as np
 
+#: The largest log range (``brightness``, ``contrast``, ``gamma``, ``camera_jitter``) allowed.
+LOG_RANGE_MAX = 5.0
+
 
 @dataclass(frozen=True)
 class PhotometricAugment:
     """Random photometric change of one frame's images (M, 3, H, W) uint8 → same shape, uint8.
 
-    Fields (all ≥ 0; 0 disables that change):
+    Fields (all ≥ 0; 0 disables that change; log ranges at most :data:`LOG_RANGE_MAX`, noise at
+    most 255):
 
     - ``brightness``: gain drawn log-uniformly in [e^-b, e^b].
     - ``contrast``: contrast factor drawn log-uniformly in [e^-c, e^c] around each camera's
@@ -59,6 +63,15 @@ class PhotometricAugment:
         for name in ("prob", "haze_prob", "haze", "tint"):
             if getattr(self, name) > 1:
                 raise ValueError(f"augment.{name}: expected a value in [0, 1]")
+        # log ranges: e^5 is a gain of 148, beyond which images are all black or all white
+        for name in ("brightness", "contrast", "gamma", "camera_jitter"):
+            if getattr(self, name) > LOG_RANGE_MAX:
+                raise ValueError(
+                    f"augment.{name}: expected a log range in [0, {LOG_RANGE_MAX}], "
+                    f"got {getattr(self, name)}"
+                )
+        if self.noise > 255:
+            raise ValueError(f"augment.noise: expected grey levels in [0, 255], got {self.noise}")
 
     @classmethod
     def from_dict(cls, raw: dict[str, Any] | None) -> PhotometricAugment:
@@ -77,6 +90,8 @@ class PhotometricAugment:
             raise ValueError(f"images: expected a uint8 (M, 3, H, W) array, got {got}")
         if images.shape[1] != 3:
             raise ValueError(f"images: expected 3 channels on axis 1, got shape {images.shape}")
+        if not isinstance(rng, np.random.Generator):
+            raise TypeError(f"rng: expected a numpy Generator, got {type(rng).__name__}")
         if rng.random() >= self.prob:
             return images.copy()
         m, _, h, _ = images.shape

@@ -40,6 +40,15 @@ def _fill(x: Any) -> np.uint8:
 def _camera_list(cameras: Sequence[int] | None, m: int) -> list[int]:
     if cameras is None:
         return list(range(m))
+    if isinstance(cameras, (str, bytes)) or not isinstance(cameras, (Sequence, np.ndarray)):
+        raise TypeError(f"cameras: expected a list of camera indices, got {type(cameras).__name__}")
+    kinds = [
+        c
+        for c in cameras
+        if isinstance(c, (bool, np.bool_)) or not isinstance(c, (int, np.integer))
+    ]
+    if kinds:
+        raise TypeError(f"cameras: expected int camera indices, got {kinds[0]!r}")
     out = [int(c) for c in cameras]
     bad = [c for c in out if not 0 <= c < m]
     if bad:

@@ -87,6 +87,16 @@ class TripletSampler:
             raise TypeError(f"revisit_gap: expected an int >= 0, got {type(revisit_gap).__name__}")
         if revisit_gap < 0:
             raise ValueError(f"revisit_gap: expected an int >= 0, got {revisit_gap}")
+        pos_radius = _real(pos_radius, "pos_radius")
+        neg_radius = _real(neg_radius, "neg_radius")
+        hard_fraction = _real(hard_fraction, "hard_fraction")
+        cross_floor_fraction = _real(cross_floor_fraction, "cross_floor_fraction")
+        cross_floor_same_session = _real(cross_floor_same_session, "cross_floor_same_session")
+        floor_separation = _real(floor_separation, "floor_separation")
+        if not isinstance(cross_session, (bool, np.bool_)):
+            raise TypeError(f"cross_session: expected a bool, got {type(cross_session).__name__}")
+        if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+            raise ValueError(f"seed: expected an int >= 0, got {seed!r}")
         if not (pos_radius > 0 and neg_radius >= pos_radius):
             raise ValueError(
                 f"pos_radius, neg_radius: expected 0 < pos_radius <= neg_radius, "
@@ -307,9 +317,13 @@ class TripletSampler:
         return out[self.rng.permutation(len(out))]
 
     def mark_hard(self, triplets: np.ndarray) -> None:
-        """Add (T, 3) triplets the model got wrong to the hard pool."""
-        for t in np.asarray(triplets, dtype=np.int64).reshape(-1, 3):
-            self._hard[(int(t[0]), int(t[1]), int(t[2]))] = None
+        """Add (T, 3) triplets (frame ids in ``[0, len(self))``) the model got wrong to the
+        hard pool."""
+        t = np.asarray(triplets, dtype=np.int64).reshape(-1, 3)
+        if t.size and (t.min() < 0 or t.max() >= len(self)):
+            raise ValueError(f"triplets: frame ids must lie in [0, {len(self)})")
+        for row in t:
+            self._hard[(int(row[0]), int(row[1]), int(row[2]))] = None
 
     def resolve(self, triplets: np.ndarray) -> None:
         """Remove (T, 3) triplets the model now gets right from the hard pool."""
@@ -319,7 +333,10 @@ class TripletSampler:
     def update(self, triplets: np.ndarray, correct: np.ndarray) -> None:
         """Mark the wrong triplets hard and resolve the right ones (``correct``: (T,) bool)."""
         t = np.asarray(triplets, dtype=np.int64).reshape(-1, 3)
-        ok = np.asarray(correct, dtype=bool).reshape(-1)
+        ok = np.asarray(correct)
+        if ok.dtype != bool:
+            raise TypeError(f"correct: expected (T,) bool flags, got dtype {ok.dtype}")
+        ok = ok.reshape(-1)
         if len(ok) != len(t):
             raise ValueError(f"correct: expected {len(t)} flags, got {len(ok)}")
         self.mark_hard(t[~ok])
@@ -392,10 +409,20 @@ def check_query_sessions(database: str, queries: Sequence[str], argument: str = 
         )
 
 
+def _real(value: Any, name: str) -> float:
+    """A finite real number (numpy scalars included, bool not) as float, else an error naming
+    ``name``."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.number)):
+        raise TypeError(f"{name}: expected a number, got {type(value).__name__}")
+    if not np.isfinite(value):
+        raise ValueError(f"{name}: expected a finite number, got {value}")
+    return float(value)
+
+
 def _check_floor_separation(separation: float, radius: float, radius_name: str) -> None:
     """Floors are kept apart by a vertical offset of ``floor_separation`` per floor: it must
     exceed every radius, or frames of two floors would pair."""
-    if not (isinstance(separation, (int, float)) and separation > radius):
+    if not (isinstance(separation, (int, float, np.number)) and separation > radius):
         raise ValueError(
             f"floor_separation: expected a distance (m) greater than {radius_name} ({radius}), "
             f"got {separation!r}: frames of two floors would pair"
