@@ -706,3 +706,27 @@ def test_cli_version_and_quiet_logs(tmp_path):
     finally:
         warnings.formatwarning = before
         os.environ.pop("TQDM_MININTERVAL", None)
+
+
+def test_trained_on_reads_the_training_record(tmp_path, monkeypatch):
+    from vvloc.localize.evaluation import trained_on
+
+    monkeypatch.chdir(tmp_path)
+    record = {
+        "runs": [
+            {"config": {"dataset": "data/lot", "train_sessions": ["s0", "s1", "s5"]}},
+            {
+                "config": {
+                    "dataset": "data/lot",
+                    "train_sessions": ["s0"],
+                    "extra_datasets": [{"dataset": "./data/garage"}],  # every session
+                }
+            },
+        ]
+    }
+    assert trained_on(record, "data/lot", ["s3", "s5", "s1"]) == ["s5", "s1"]
+    assert trained_on(record, tmp_path / "data" / "lot" / "", ["s2"]) == []
+    assert trained_on(record, "data/garage", ["s7", "s8"]) == ["s7", "s8"]
+    assert trained_on(record, "data/lot-test", ["s1"]) == []  # another dataset
+    assert trained_on({}, "data/lot", ["s1"]) == []  # no record (an earlier vvloc's weights)
+    assert trained_on({"runs": [{"recorded": False}]}, "data/lot", ["s1"]) == []

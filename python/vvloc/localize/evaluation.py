@@ -240,6 +240,33 @@ def _ranked(results: Sequence[LocalizationResult], attr: str, k: int) -> np.ndar
     return out
 
 
+def trained_on(
+    record: dict[str, Any], dataset: str | os.PathLike[str], sessions: Sequence[str]
+) -> list[str]:
+    """Those of ``sessions`` of ``dataset`` that the runs of a training ``record``
+    (:mod:`vvloc.provenance`: the checkpoint's ``training.json``) trained on, as their configs'
+    ``dataset`` / ``train_sessions`` and ``extra_datasets`` say (paths compared from the
+    working directory; a source without ``train_sessions`` trained all its sessions). A
+    record without configs (weights of an earlier vvloc) gives none."""
+    target = Path(dataset).resolve()
+    trained: set[str] = set()
+    for run in record.get("runs", []) if isinstance(record, dict) else []:
+        cfg = run.get("config") if isinstance(run, dict) else None
+        if not isinstance(cfg, dict):
+            continue
+        sources = [(cfg.get("dataset"), cfg.get("train_sessions"))]
+        sources += [
+            (e.get("dataset"), e.get("train_sessions"))
+            for e in cfg.get("extra_datasets") or []
+            if isinstance(e, dict)
+        ]
+        for path, names in sources:
+            if not isinstance(path, str) or Path(path).resolve() != target:
+                continue
+            trained.update(sessions if names is None else names)
+    return [s for s in sessions if s in trained]
+
+
 def run_evaluation(
     checkpoint: str | os.PathLike[str],
     dataset: str | os.PathLike[str],
@@ -296,6 +323,14 @@ def run_evaluation(
     out_dir = Path(out)
     model = VVLocNet.load(checkpoint).to(resolve_device(device))
     ds = open_dataset(dataset)
+    seen = trained_on(model.training_record, dataset, queries)
+    if seen:
+        log.warning(
+            "queries %s of %s were trained on (the checkpoint's training record): their "
+            "figures are not a held-out test",
+            seen,
+            dataset,
+        )
     for name in [database, *queries]:
         if len(ds.session(name)) == 0:  # (a KeyError names the known sessions)
             raise ValueError(
@@ -361,7 +396,13 @@ def run_evaluation(
         rule += f" and distinctiveness >= {loc.min_distinctiveness:.4g} (the model's calibration)"
     acc_precision = evaluate._ratio(float((kept_acc & correct).sum()), float(kept_acc.sum()))
     notes = [
-        f"{len(frames)} queries from {list(queries)}, map = {database} ({len(mapdb)} keyframes)",
+        f"{len(frames)} queries from {list(queries)}, map = {database} ({len(mapdb)} keyframes)"
+        + (
+            f"; **queries {seen} were trained on** (the checkpoint's training record): not a "
+            "held-out test"
+            if seen
+            else ""
+        ),
         f"accepted ({rule}): {accepted.mean():.1%} of all queries; top-1 within 2 m among the "
         f"accepted kept queries: {_share(acc_precision, 'none accepted')} (among all kept: "
         f"{_share(rec_ml.at(1, 2.0), 'none kept')})",
