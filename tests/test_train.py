@@ -6,6 +6,7 @@ import copy
 import dataclasses
 import json
 import re
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -680,14 +681,16 @@ def test_the_k_means_start_replaces_only_an_untrained_head(tiny_world, tmp_path,
 def test_mined_negatives_are_never_positives_and_are_the_nearest(tiny_world, tmp_path):
     base = tmp_path / "base"
     train(_config(tiny_world, stage1_epochs=1, stage2_epochs=0), base, progress=False)
+    twin = tmp_path / "twin"  # the same places once more, as a second world
+    shutil.copytree(tiny_world, twin)
     cfg = _head_only_config(
         tiny_world,
         base,
         model_overrides={},
         head_epochs=1,
         head_negatives=1,
-        # the same world once more as a second world: 10⁶ m away in z, precision must hold
-        extra_datasets=[{"dataset": str(tiny_world)}],
+        # a second world lies 10⁶ m away in z: precision must hold
+        extra_datasets=[{"dataset": str(twin)}],
     )
     tr = Trainer(cfg, tmp_path / "a")
     g = tr._head_descriptors(tr.head_cache())
