@@ -126,8 +126,8 @@ class TripletSampler:
                 raise ValueError(
                     f"extra: dataset {k} ({root}) is "
                     + ("the primary dataset" if root == roots[0] else "listed twice")
-                    + ": one world's frames would pair as another world's (its own places as "
-                    "negatives); choose its sessions with sessions / one entry instead"
+                    + ": its frames would pair as another world's (its own places drawn as "
+                    "negatives); list the sessions it should give in one entry instead"
                 )
         self.ds = ds
         # (dataset, session name, label) of each session slot, the primary dataset's first
