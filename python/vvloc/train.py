@@ -78,7 +78,7 @@ from vvloc._io import atomic_write
 from vvloc.checkpoints import resolve_checkpoint
 from vvloc.data import TripletSampler, open_dataset
 from vvloc.data.augment import PhotometricAugment
-from vvloc.data.sampling import check_query_sessions
+from vvloc.data.sampling import check_query_sessions, same_folder
 from vvloc.evaluate import to_jsonable
 from vvloc.localize.localizer import frames_to_tensors
 from vvloc.losses import (
@@ -466,7 +466,7 @@ class TrainConfig:
                 raise ValueError(f"val_loops[{k}].sequence: expected an int >= 0, got {half!r}")
             sources = [{"dataset": self.dataset, "train_sessions": self.train_sessions}]
             for extra in [*sources, *self.extra_datasets]:
-                if isinstance(extra, dict) and _same_folder(extra.get("dataset"), entry["dataset"]):
+                if isinstance(extra, dict) and same_folder(extra.get("dataset"), entry["dataset"]):
                     trained = set(extra.get("train_sessions") or []) & set(entry["sessions"])
                     if trained or extra.get("train_sessions") is None:
                         raise ValueError(
@@ -522,12 +522,12 @@ class TrainConfig:
                     "known: ['anchor_share', 'dataset', 'sim', 'train_sessions']"
                 )
             earlier = [self.dataset, *(e.get("dataset") for e in self.extra_datasets[:k])]
-            if any(_same_folder(extra["dataset"], d) for d in earlier):
+            if any(same_folder(extra["dataset"], d) for d in earlier):
                 raise ValueError(
                     f"extra_datasets[{k}].dataset: {extra['dataset']} is "
                     + (
                         "the training dataset"
-                        if _same_folder(extra["dataset"], self.dataset)
+                        if same_folder(extra["dataset"], self.dataset)
                         else "listed twice"
                     )
                     + ": its frames would pair as another world's and could hold val_sessions; "
@@ -900,13 +900,6 @@ def _ensure_dataset(dataset: str, sim: dict[str, Any] | None) -> None:
 
     log.info("rendering the training dataset into %s", root)
     simulate_dataset(root, **sim)
-
-
-def _same_folder(a: Any, b: Any) -> bool:
-    """Whether two config paths name one folder, however spelt (``./data/x``, ``data/x/``)."""
-    if not isinstance(a, (str, os.PathLike)) or not isinstance(b, (str, os.PathLike)):
-        return False
-    return Path(a).resolve() == Path(b).resolve()
 
 
 def _is_checkpoint(path: Path) -> bool:

@@ -9,6 +9,7 @@ frames of different worlds are never positives, whatever their coordinates.
 
 from __future__ import annotations
 
+import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -120,12 +121,12 @@ class TripletSampler:
             sessions = list(sessions)  # once: an iterator would be spent by the check
             if len(set(sessions)) != len(sessions):
                 raise ValueError(f"sessions: names repeated in {sessions}")
-        roots = [Path(src.root).resolve() for src in [ds, *(e[0] for e in extra)]]
+        roots = [src.root for src in [ds, *(e[0] for e in extra)]]
         for k, root in enumerate(roots[1:]):
-            if root in roots[: k + 1]:
+            if any(same_folder(root, r) for r in roots[: k + 1]):
                 raise ValueError(
                     f"extra: dataset {k} ({root}) is "
-                    + ("the primary dataset" if root == roots[0] else "listed twice")
+                    + ("the primary dataset" if same_folder(root, roots[0]) else "listed twice")
                     + ": its frames would pair as another world's (its own places drawn as "
                     "negatives); list the sessions it should give in one entry instead"
                 )
@@ -407,6 +408,14 @@ def check_query_sessions(database: str, queries: Sequence[str], argument: str = 
             f"{argument}: the map session {database!r} is among the queries: its frames would "
             "find themselves; query other sessions"
         )
+
+
+def same_folder(a: Any, b: Any) -> bool:
+    """Whether two dataset paths name one folder, however spelt (``./data/x``, ``data/x/``,
+    relative to the working directory); False when either is not a path."""
+    if not isinstance(a, (str, os.PathLike)) or not isinstance(b, (str, os.PathLike)):
+        return False
+    return Path(a).resolve() == Path(b).resolve()
 
 
 def _real(value: Any, name: str) -> float:

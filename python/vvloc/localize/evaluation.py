@@ -21,7 +21,7 @@ from vvloc import evaluate, geometry, kernels, viz
 from vvloc._io import atomic_write
 from vvloc.data import Frame, open_dataset
 from vvloc.data.perturb import SEEDED, frame_seed, perturb_frame
-from vvloc.data.sampling import check_query_sessions
+from vvloc.data.sampling import check_query_sessions, same_folder
 from vvloc.localize.localizer import (
     LocalizationResult,
     Localizer,
@@ -248,7 +248,6 @@ def trained_on(
     ``dataset`` / ``train_sessions`` and ``extra_datasets`` say (paths compared from the
     working directory; a source without ``train_sessions`` trained all its sessions). A
     record without configs (weights of an earlier vvloc) gives none."""
-    target = Path(dataset).resolve()
     trained: set[str] = set()
     for run in record.get("runs", []) if isinstance(record, dict) else []:
         cfg = run.get("config") if isinstance(run, dict) else None
@@ -261,9 +260,8 @@ def trained_on(
             if isinstance(e, dict)
         ]
         for path, names in sources:
-            if not isinstance(path, str) or Path(path).resolve() != target:
-                continue
-            trained.update(sessions if names is None else names)
+            if same_folder(path, dataset):
+                trained.update(sessions if names is None else names)
     return [s for s in sessions if s in trained]
 
 

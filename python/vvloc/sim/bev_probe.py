@@ -229,8 +229,9 @@ def main() -> None:
         p.exit(2, f"bev_probe: {e.args[0] if isinstance(e, KeyError) and e.args else e}\n")
     print(markdown(r), end="")
     if a.json:
-        strict = json.loads(json.dumps(r), parse_constant=lambda _: None)  # NaN → null
-        a.json.write_text(json.dumps(strict, indent=2) + "\n")
+        from vvloc.evaluate import to_jsonable  # NaN (undefined) → null
+
+        a.json.write_text(json.dumps(to_jsonable(r), indent=2, allow_nan=False) + "\n")
 
 
 if __name__ == "__main__":
