@@ -374,6 +374,28 @@ def test_detect_loops_api_returns_ids_and_costs(map_file, model_dir):
         seq_ids = set(zip(ids[seq.i].tolist(), ids[seq.j].tolist(), strict=True))
         assert len(checked.i) == min(4, len(seq.i))
         assert set(zip(checked.i.tolist(), checked.j.tolist(), strict=True)) <= seq_ids
+        # a negative max_pairs would slice off the farthest candidates instead of failing
+        with pytest.raises(ValueError, match="max_pairs"):
+            detect_loops(model, db, max_pairs=-1, **kw)
+        with pytest.raises(TypeError, match="max_pairs"):
+            detect_loops(model, db, max_pairs=2.5, **kw)  # type: ignore[arg-type]
+        assert len(detect_loops(model, db, max_pairs=0, **kw).i) == 0
+
+
+def test_loops_cli_removes_only_its_own_stale_trajectories(tmp_path):
+    from vvloc.commands.loops import remove_stale_trajectories
+    from vvloc.localize.export import write_tum
+
+    one = np.zeros((1, 3))
+    for name in ("s0", "old"):  # an earlier run on a map with sessions s0 and old
+        comment = f"map session {name!r} of earlier.h5: its keyframes' poses"
+        write_tum(tmp_path / f"trajectory_{name}.tum", [0.0], one, comments=[comment])
+    write_tum(tmp_path / "trajectory_mine.tum", [0.0], one)  # not written by vvloc loops
+    (tmp_path / "trajectory_notes.tum").write_text("a user's file\n")
+    gone = remove_stale_trajectories(tmp_path, ["trajectory_s0.tum"])
+    assert gone == [tmp_path / "trajectory_old.tum"]
+    left = sorted(p.name for p in tmp_path.iterdir())
+    assert left == ["trajectory_mine.tum", "trajectory_notes.tum", "trajectory_s0.tum"]
 
 
 def test_calibrate_cli_scores_the_localizers_answers_and_never_loses_a_calibration(
@@ -614,6 +636,29 @@ def test_evaluation_breaks_recall_down_by_query_session(tiny_world, model_dir, t
     one = run_evaluation(model_dir, tiny_world, "s0", ["s1"], tmp_path / "one", **kw)
     assert one["per_session"] == {}
     assert "per query session" not in (tmp_path / "one" / "report.md").read_text()
+
+
+def test_robustness_pose_leaves_out_answers_built_on_another_floor(monkeypatch):
+    """Under perturbations as for the clean queries: a pose built on a keyframe of another
+    floor is no success, however small its x-y error (it is counted in other_floor)."""
+    from types import SimpleNamespace
+
+    import vvloc.localize.evaluation as ev
+
+    monkeypatch.setattr(ev, "perturbed", lambda frame, label: frame)
+    db_pose, db_floor = np.zeros((2, 3)), np.array([0, 1])  # one spot, two floors
+    q_pose, q_floor = np.array([[0.5, 0.0, 0.0], [0.5, 0.0, 0.0]]), np.array([0, 0])
+    perfect = np.array([0.5, 0.0, 0.0])
+    results = [
+        SimpleNamespace(global_pose=perfect, retrieved=np.array(order), reranked=np.array(order),
+                        metric_row=order[0])
+        for order in ([0, 1], [1, 0])
+    ]  # fmt: skip
+    loc = SimpleNamespace(localize_batch=lambda frames, progress: results)
+    _, poses = ev._robustness(loc, [None, None], q_pose, q_floor, db_pose, db_floor, 2, False)
+    for label in ev.ROBUSTNESS:
+        assert poses[label]["all"]["count"] == 1
+        assert poses[label]["all"]["other_floor"] == 1
 
 
 def test_calibration_of_results_scores_the_reported_keyframe_under_the_cost_rule():

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import re
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Annotated
 
@@ -32,6 +32,34 @@ def trajectory_file_names(sessions: Sequence[str]) -> dict[str, str]:
         taken.add(file_name.lower())
         names[session] = file_name
     return names
+
+
+def _written_by_loops(path: Path) -> bool:
+    """Whether ``path`` is a trajectory file ``vvloc loops`` wrote (its header says so)."""
+    try:
+        with open(path, encoding="utf-8") as f:
+            head = [f.readline() for _ in range(16)]
+    except (OSError, UnicodeDecodeError):
+        return False
+    return head[0].startswith("# vvloc trajectory") and any(
+        line.startswith("# map session ") for line in head
+    )
+
+
+def remove_stale_trajectories(out: Path, keep: Iterable[str]) -> list[Path]:
+    """Delete the ``trajectory_*.tum`` files of an earlier ``vvloc loops`` run into ``out``
+    that this run does not write (sessions of another map), so that the folder holds one
+    run's trajectories only. Files without that run's header are left alone. Returns the
+    deleted paths."""
+    keep = {k.lower() for k in keep}
+    stale = [
+        p
+        for p in sorted(out.glob("trajectory_*.tum"))
+        if p.name.lower() not in keep and p.is_file() and _written_by_loops(p)
+    ]
+    for p in stale:
+        p.unlink()
+    return stale
 
 
 def loops(
@@ -80,7 +108,8 @@ def loops(
     ] = 0,
     device: Annotated[str, typer.Option("--device", help="cpu, cuda[:N] or auto.")] = "cpu",
 ) -> None:
-    """Write loops.csv, graph.g2o and one TUM trajectory per session into --out."""
+    """Write loops.csv, graph.g2o and one TUM trajectory per session into --out (the
+    trajectories an earlier run left there for sessions this map lacks are removed)."""
     import numpy as np
 
     from vvloc.localize.export import G2O_MAX_ID, write_g2o, write_loop_csv, write_tum
@@ -128,5 +157,6 @@ def loops(
                 db.poses[rows],
                 comments=[f"map session {name!r} of {map_path}: its keyframes' poses"],
             )
+        remove_stale_trajectories(out, trajectories.values())
         n_acc = int(np.sum(found.accepted))
     typer.echo(f"{len(found.i)} candidates, {n_acc} accepted loop closures; outputs in {out}")

@@ -98,6 +98,13 @@ def loc_desc_of(loc: Localizer, frame: Frame) -> np.ndarray:
     return encode_frames(loc.model, [frame]).local_desc[0]
 
 
+def _on_floor(results: Sequence[Any], db_floor: np.ndarray, q_floor: np.ndarray) -> np.ndarray:
+    """``(Q,)`` bool: the keyframe each metric pose was built on (``metric_row``) is on the
+    query's floor (an answer built on another floor is no success, whatever its x-y error)."""
+    rows = np.array([r.metric_row for r in results], dtype=np.int64)
+    return np.asarray(db_floor)[rows] == q_floor
+
+
 def _robustness(
     loc: Localizer,
     frames: Sequence[Frame],
@@ -127,7 +134,13 @@ def _robustness(
         )
         recalls[f"{label}, VVLoc-ML"] = rec_ml
         est = np.stack([r.global_pose for r in results])
-        poses[label] = evaluate.pose_accuracy(est, q_pose, rec_ml.correct(1, 2.0), kept=rec_ml.kept)
+        poses[label] = evaluate.pose_accuracy(
+            est,
+            q_pose,
+            rec_ml.correct(1, 2.0),
+            kept=rec_ml.kept,
+            same_floor=_on_floor(results, db_floor, q_floor),
+        )
     return recalls, poses
 
 
@@ -380,8 +393,7 @@ def run_evaluation(
                 )
     est = np.stack([r.global_pose for r in results])
     correct = rec_ml.correct(1, 2.0)
-    # the keyframe each metric pose was built on: an answer on another floor is no success
-    on_floor = np.array([db_floor[r.metric_row] for r in results]) == q_floor
+    on_floor = _on_floor(results, db_floor, q_floor)
     pose_acc = evaluate.pose_accuracy(est, q_pose, correct, kept=rec_ml.kept, same_floor=on_floor)
     stages = ("encode", "retrieve", "rerank", "metric")
     latency = evaluate.latency_summary(

@@ -575,14 +575,16 @@ def detect_loops(
 
     The map must hold BEVs (built with ``store_bev=True``) and have been built by ``model``
     (:func:`~vvloc.localize.localizer.check_map_model`: ``MapError`` otherwise). ``max_pairs``
-    keeps only the closest candidates in descriptor space (None: all). ``sequence``: the
-    half-window L of the sequence-consistency check (default 1: the pairs of the neighbouring
-    keyframes must match too; 0: single keyframes, the paper's test). ``check_floors``
-    (default on): keep only candidates consistent with the floors of the map's sessions
-    (:func:`floor_consensus`; the module docstring).
+    (an int >= 0; None: all) keeps only the closest candidates in descriptor space.
+    ``sequence``: the half-window L of the sequence-consistency check (default 1: the pairs of
+    the neighbouring keyframes must match too; 0: single keyframes, the paper's test).
+    ``check_floors`` (default on): keep only candidates consistent with the floors of the map's
+    sessions (:func:`floor_consensus`; the module docstring).
     """
     check_map_model(mapdb, model)
     cost_threshold = _cost_threshold(cost_threshold, "cost_threshold")
+    if max_pairs is not None:
+        max_pairs = _positive_int(max_pairs, "max_pairs", minimum=0)
     if not mapdb.has_bev:
         raise ValueError(
             f"map {mapdb.path}: has no BEVs; rebuild it with BEVs stored to detect loops"
