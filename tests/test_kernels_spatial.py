@@ -113,6 +113,12 @@ def test_zero_shift_unchanged_and_huge_shift_all_ones():
     polar = K.pad_polar(bev, [[0.0, 0.0], [1e300, -1e300]], 8, 3, 0.3)
     np.testing.assert_array_equal(polar[0], K.polar_sample(bev, 8, 3, 0.3))
     assert (polar[1] == 1.0).all()
+    # shifts in cells beyond float64 (1e300 m in cells of 1e-300 m): all ones, in both backends
+    for backend in ("rust", "reference"):
+        far = K.bev_pad(bev, [[1e300, 0.0], [1.0, -2.0]], 1e-300, backend=backend)
+        assert (far == 1.0).all(), backend
+        far = K.pad_polar(bev, [[0.0, 1.0]], 8, 3, 5e-324, backend=backend)
+        assert (far == 1.0).all(), backend
 
 
 def test_float32_translation_on_the_grid_is_an_exact_cell_shift():
@@ -295,6 +301,40 @@ def test_outputs_larger_than_memory_raise_memory_error():
     # sizes beyond what the kernels' integers hold are named (not 'int too big to convert')
     with pytest.raises(ValueError, match=r"^num_angles: expected an int <= "):
         K.polar_sample(q, 2**70, 1, 0.3)
+    # and so are ints beyond a float (not a bare OverflowError)
+    with pytest.raises(ValueError, match=r"^grid_size: expected a finite value"):
+        K.bev_pad(q, [[0.0, 0.0]], 10**400)
+    with pytest.raises(ValueError, match=r"^shift: expected a finite value"):
+        K.roll_interp(q, -(10**400))
+
+
+def test_empty_outputs_whose_other_axes_no_array_can_have_are_errors_not_crashes():
+    """An output with a 0 axis holds nothing, yet numpy bounds its other axes (their product,
+    in bytes, must fit a signed 64-bit size): (0, 4, 2, 2^59) is a MemoryError naming the
+    argument, not a segfault in numpy. In a child process, so a crash fails only this test."""
+    import subprocess
+    import sys
+
+    code = """
+import numpy as np
+from vvloc import kernels as K
+for call in (lambda: K.polar_sample(np.zeros((0, 1, 1, 2**59), np.float32), 4, 2, 0.3),
+             lambda: K.polar_sample(np.zeros((0, 1, 1, 2**42), np.float32), 1024, 1024, 0.3),
+             lambda: K.bev_pad(np.zeros((2**30, 2**30, 0), np.float32), np.zeros((8, 2)), 0.3)):
+    try:
+        call()
+    except MemoryError as e:
+        print("MemoryError", e)
+print(K.polar_sample(np.zeros((0, 1, 1, 2**20), np.float32), 4, 2, 0.3).shape)
+"""
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    lines = r.stdout.splitlines()
+    assert len(lines) == 4, r.stdout
+    assert lines[0].startswith("MemoryError num_angles: the result needs")
+    assert lines[1].startswith("MemoryError num_angles: the result needs")
+    assert lines[2].startswith("MemoryError translations: the result needs")
+    assert lines[3] == "(0, 4, 2, 1048576)"
 
 
 def test_vast_broadcast_inputs_and_overflowing_radii_are_errors_not_aborts():

@@ -49,6 +49,17 @@ def test_env_var_sets_default_threads():
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "3"
+    assert "VVLOC_NUM_THREADS" not in out.stderr
+
+
+@pytest.mark.parametrize("value", ["abc", "0", "-3", "2.5"])
+def test_an_unusable_threads_variable_is_said_not_ignored(value):
+    code = "import vvloc, os; print(vvloc.get_num_threads() == (os.cpu_count() or 1))"
+    env = {**os.environ, "VVLOC_NUM_THREADS": value}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "True"  # every core, as if it were unset
+    assert f"VVLOC_NUM_THREADS={value!r} is not an int in [1, 1024]" in out.stderr
 
 
 @pytest.mark.parametrize("module", ["vvloc", "vvloc.cli"])

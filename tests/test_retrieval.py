@@ -302,6 +302,8 @@ def test_bad_input_raises_value_error_naming_the_argument():
         index.topk(x[:2], 2.5)
     with pytest.raises(TypeError, match="exclude"):
         index.topk(x[:2], 2, exclude=(0, 0))
+    with pytest.raises(TypeError, match=r"^exclude.whole_group: expected a bool"):
+        index.topk(x[:2], 2, exclude=Exclusion([0, 0], [0, 1], whole_group="no"))
 
 
 def test_sizes_and_magnitudes_beyond_the_kernels_are_errors_not_aborts(tmp_path):
@@ -317,6 +319,28 @@ def test_sizes_and_magnitudes_beyond_the_kernels_are_errors_not_aborts(tmp_path)
     for k in (2**40, 2**62):
         with pytest.raises(MemoryError, match=r"^k: "):
             index.topk(x[:2], k)
+    # no query: the (0, k) result holds nothing, but numpy bounds its other axis all the same
+    # (this crashed numpy); in a child process, so that a crash fails only this test
+    import subprocess
+    import sys
+
+    code = """
+import numpy as np
+from vvloc import DescriptorIndex, _core
+for call in (lambda: DescriptorIndex(np.zeros((3, 4))).topk(np.zeros((0, 4)), 2**60),
+             lambda: _core.DescriptorIndex(np.zeros((3, 4), np.float32)).topk(
+                 np.zeros((0, 4), np.float32), 2**63)):
+    try:
+        call()
+    except MemoryError as e:
+        print("MemoryError", e)
+print(DescriptorIndex(np.zeros((3, 4))).topk(np.zeros((0, 4)), 5)[0].shape)
+"""
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    lines = r.stdout.splitlines()
+    assert [line[:15] for line in lines[:2]] == ["MemoryError k: "] * 2, r.stdout
+    assert lines[2:] == ["(0, 5)"], r.stdout
     # radii float32 cannot hold
     for r in (1e300, 1e-50):
         with pytest.raises(ValueError, match=r"^r: expected a radius float32 can hold"):
@@ -339,6 +363,18 @@ def test_sizes_and_magnitudes_beyond_the_kernels_are_errors_not_aborts(tmp_path)
     empty.write_bytes(bytes(data))
     with pytest.raises(ValueError, match="dimension d must be <="):
         _core.DescriptorIndex.load(str(empty))
+    # the raw extension takes row-major memory only: a Fortran-ordered array (contiguous, but
+    # column by column) was read as if it were row-major
+    raw = _core.DescriptorIndex(x)
+    for call, name in (
+        (lambda: _core.DescriptorIndex(np.asfortranarray(x)), "descriptors"),
+        (lambda: raw.topk(np.asfortranarray(x[:3]), 2), "queries"),
+        (lambda: raw.radius(np.asfortranarray(x[:3]), 0.5), "queries"),
+        (lambda: raw.add(np.asfortranarray(x[:3])), "descriptors"),
+    ):
+        with pytest.raises(ValueError, match=f"^{name}: expected a C-contiguous array"):
+            call()
+    assert len(raw) == 50
 
 
 def test_thread_count_is_bounded():

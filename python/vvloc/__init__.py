@@ -38,6 +38,29 @@ def get_num_threads() -> int:
     return int(_core.get_num_threads())
 
 
+def _check_threads_variable() -> None:
+    """Warn when ``VVLOC_NUM_THREADS`` is set but is no int in [1, 1024] (the pool then uses
+    every core, as if it were unset; above 1024 it uses 1024)."""
+    text = os.environ.get("VVLOC_NUM_THREADS")
+    if text is None or text.strip() == "":
+        return
+    try:
+        ok = 1 <= int(text.strip()) <= 1024
+    except ValueError:
+        ok = False
+    if not ok:
+        import warnings
+
+        warnings.warn(
+            f"VVLOC_NUM_THREADS={text!r} is not an int in [1, 1024]; vvloc's kernels use "
+            f"{get_num_threads()} threads",
+            RuntimeWarning,
+            stacklevel=3,
+        )
+
+
+_check_threads_variable()
+
 # A forked child (e.g. a DataLoader worker) has no pool threads: let it build its own.
 if hasattr(os, "register_at_fork"):
     os.register_at_fork(after_in_child=_core._reset_pool_after_fork)

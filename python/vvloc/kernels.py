@@ -47,25 +47,26 @@ def _as_f32(
     ``ndim`` restricts the number of dimensions; ``shape_doc`` is shown in errors, e.g.
     ``"(H, W, C)"``. Non-finite values are rejected when ``finite`` is true.
     """
+    shape_doc = f" {shape_doc}" if shape_doc else ""
     if hasattr(x, "detach") and hasattr(x, "cpu"):  # torch.Tensor, without importing torch
         x = x.detach().cpu()
         if str(x.dtype) == "torch.bfloat16":  # numpy has no bfloat16: widen exactly
             x = x.float()
         x = x.numpy()
     if isinstance(x, (str, bytes)) or x is None:
-        raise TypeError(f"{name}: expected a float array {shape_doc}, got {type(x).__name__}")
+        raise TypeError(f"{name}: expected a float array{shape_doc}, got {type(x).__name__}")
     arr = np.asarray(x)
     if arr.dtype == object or not (
         np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)
     ):
         raise TypeError(
-            f"{name}: expected a real-valued (float) array {shape_doc}, got dtype {arr.dtype}"
+            f"{name}: expected a real-valued (float) array{shape_doc}, got dtype {arr.dtype}"
         )
     if ndim is not None:
         allowed = (ndim,) if isinstance(ndim, int) else ndim
         if arr.ndim not in allowed:
             raise ValueError(
-                f"{name}: expected shape {shape_doc} ({' or '.join(map(str, allowed))}-D), "
+                f"{name}: expected shape{shape_doc} ({' or '.join(map(str, allowed))}-D), "
                 f"got shape {arr.shape}"
             )
     if np.issubdtype(arr.dtype, np.floating) and arr.dtype.itemsize > 4:
@@ -85,10 +86,20 @@ def _as_f32(
     return out
 
 
+def _to_float(x: Any, name: str) -> float:
+    """``float(x)``, with an int too large for a float (10**400) named in a ``ValueError``."""
+    try:
+        return float(x)
+    except OverflowError:
+        raise ValueError(
+            f"{name}: expected a finite value, got an int too large for a float"
+        ) from None
+
+
 def _positive_float(x: Any, name: str) -> float:
     if isinstance(x, bool) or not isinstance(x, (int, float, np.integer, np.floating)):
         raise TypeError(f"{name}: expected a positive float, got {type(x).__name__}")
-    v = float(x)
+    v = _to_float(x, name)
     if not np.isfinite(v) or v <= 0.0:
         raise ValueError(f"{name}: expected a finite value > 0, got {v}")
     return v
@@ -97,7 +108,7 @@ def _positive_float(x: Any, name: str) -> float:
 def _finite_float(x: Any, name: str) -> float:
     if isinstance(x, bool) or not isinstance(x, (int, float, np.integer, np.floating)):
         raise TypeError(f"{name}: expected a float, got {type(x).__name__}")
-    v = float(x)
+    v = _to_float(x, name)
     if not np.isfinite(v):
         raise ValueError(f"{name}: expected a finite value, got {v}")
     return v

@@ -94,6 +94,10 @@ def _exclusion(ex: Exclusion | None, nq: int) -> tuple[Any, Any, int, bool] | No
     if not isinstance(ex, Exclusion):
         raise TypeError(f"exclude: expected a vvloc.Exclusion or None, got {type(ex).__name__}")
     window = _positive_int(ex.window, "exclude.window", minimum=0)
+    if not isinstance(ex.whole_group, (bool, np.bool_)):  # bool("no") would be True
+        raise TypeError(
+            f"exclude.whole_group: expected a bool, got {type(ex.whole_group).__name__}"
+        )
     return (
         _as_i64(ex.groups, "exclude.groups", nq),
         _as_i64(ex.seqs, "exclude.seqs", nq),

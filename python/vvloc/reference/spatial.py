@@ -40,9 +40,12 @@ def roll_interp(x: F32Array, shift: float, axis: int = 0) -> F32Array:
     return out.numpy()
 
 
-def shift_in_cells(metres: float, grid_size: float) -> float:
-    """Translation ``metres`` as a shift in cells of ``grid_size`` m (snapped, see SHIFT_SNAP)."""
+def shift_in_cells(metres: float, grid_size: float, n: int) -> float:
+    """Translation ``metres`` as a shift in cells of ``grid_size`` m (snapped, see SHIFT_SNAP)
+    along an axis of ``n`` cells, clamped to ±(n + 2): beyond that every cell is filled anyway
+    (and a shift of 1e300 m / 1e-300 m, infinite in float64, stays a number)."""
     u = float(metres) / float(grid_size)
+    u = min(max(u, -(n + 2.0)), n + 2.0)
     if abs(u - round(u)) <= SHIFT_SNAP:
         u = float(round(u))
     return u
@@ -70,7 +73,7 @@ def bev_pad(bev: F32Array, translations: F64Array, grid_size: float) -> F32Array
     h, w, c = bev.shape
     out = np.empty((len(translations), h, w, c), dtype=np.float32)
     for n, (x, y) in enumerate(translations):
-        u, v = shift_in_cells(x, grid_size), shift_in_cells(y, grid_size)
+        u, v = shift_in_cells(x, grid_size, h), shift_in_cells(y, grid_size, w)
         q = roll_interp(roll_interp(bev, -u, axis=0), -v, axis=1)
         _fill_wrapped(q, u, axis=0)
         _fill_wrapped(q, v, axis=1)

@@ -124,7 +124,11 @@ fn check_pairs<'a>(
     if (pt != p && pt != 1) || tt != t || ct != c {
         return Err(Error::shape(
             "tgt",
-            format!("({p}, {t}, {c}) or (1, {t}, {c}) to match src"),
+            if p == 1 {
+                format!("(1, {t}, {c}) to match src")
+            } else {
+                format!("({p}, {t}, {c}) or (1, {t}, {c}) to match src")
+            },
             tgt.shape(),
         ));
     }

@@ -51,15 +51,28 @@ impl Error {
     }
 }
 
+/// The largest element of an array the kernels hand out (`f64`, `i64`): shapes are bounded
+/// for it.
+const MAX_ITEM_BYTES: usize = 8;
+
 /// The element count of an array of shape `dims`, or [`Error::Memory`] naming `arg` when the
-/// product overflows `usize` (sizes are never computed with wrapping arithmetic).
+/// array could not exist (sizes are never computed with wrapping arithmetic). As ndarray and
+/// numpy require, the product of the non-zero axis lengths, in bytes, must fit `isize`, even
+/// when another axis is 0: a (0, 2^60) result is refused here, not left to crash numpy.
 pub fn checked_len(arg: &'static str, dims: &[usize]) -> Result<usize> {
-    dims.iter()
+    let too_big = || Error::Memory {
+        arg,
+        what: format!("an array of shape {dims:?}"),
+    };
+    let nonzero = dims
+        .iter()
+        .filter(|&&d| d != 0)
         .try_fold(1usize, |acc, &d| acc.checked_mul(d))
-        .ok_or_else(|| Error::Memory {
-            arg,
-            what: format!("an array of shape {dims:?}"),
-        })
+        .ok_or_else(too_big)?;
+    if nonzero > isize::MAX as usize / MAX_ITEM_BYTES {
+        return Err(too_big());
+    }
+    Ok(if dims.contains(&0) { 0 } else { nonzero })
 }
 
 /// Checks that a buffer of `len` elements of `T` can be allocated, so that the allocation that
@@ -91,6 +104,15 @@ mod tests {
     fn sizes_that_overflow_or_exceed_memory_are_errors_not_aborts() {
         assert_eq!(checked_len("x", &[3, 4, 5]), Ok(60));
         assert_eq!(checked_len("x", &[]), Ok(1));
+        assert_eq!(checked_len("x", &[3, 0, 5]), Ok(0));
+        // empty, yet no array can have these axes (numpy bounds the non-zero ones)
+        for dims in [[0, 1 << 60], [0, usize::MAX], [1 << 61, 0]] {
+            assert!(matches!(
+                checked_len("x", &dims),
+                Err(Error::Memory { arg: "x", .. })
+            ));
+        }
+        assert_eq!(checked_len("x", &[0, 1 << 40]), Ok(0));
         assert!(matches!(
             checked_len("x", &[1 << 32, 1 << 32]),
             Err(Error::Memory { arg: "x", .. })

@@ -104,13 +104,14 @@ fn shifts(
     if translations.ncols() != 2 {
         return Err(Error::shape("translations", "(N, 2)", translations.shape()));
     }
+    // the size first: a vast broadcast view is refused before it is scanned
+    check_alloc::<(AxisShift, AxisShift)>("translations", translations.nrows())?;
     if translations.iter().any(|v| !v.is_finite()) {
         return Err(Error::value(
             "translations",
             "contains non-finite values (NaN or inf)",
         ));
     }
-    check_alloc::<(AxisShift, AxisShift)>("translations", translations.nrows())?;
     Ok(translations
         .rows()
         .into_iter()

@@ -26,8 +26,12 @@ fn slice<'a, T: numpy::Element, D: ndarray::Dimension>(
     a: &'a numpy::PyReadonlyArray<'_, T, D>,
     name: &str,
 ) -> PyResult<&'a [T]> {
-    a.as_slice()
-        .map_err(|_| PyValueError::new_err(format!("{name}: expected a C-contiguous array")))
+    let err = || PyValueError::new_err(format!("{name}: expected a C-contiguous array"));
+    // as_slice() also takes a Fortran-ordered array, whose memory is not row-major
+    if !a.is_c_contiguous() {
+        return Err(err());
+    }
+    a.as_slice().map_err(|_| err())
 }
 
 fn matrix<'a>(a: &'a PyReadonlyArray2<'_, f32>, name: &str, dim: usize) -> PyResult<&'a [f32]> {
@@ -121,8 +125,10 @@ impl DescriptorIndex {
         let ex = exclusion(&exclude)?;
         let res = to_py(pool::run(py, || self.read().topk(q, k, ex))?)?;
         let shape = (nq, res.k);
-        let idx = Array2::from_shape_vec(shape, res.indices).expect("core returns nq*k indices");
-        let dist = Array2::from_shape_vec(shape, res.distances).expect("core returns nq*k");
+        // the core has checked that an (nq, k) array can exist (vvloc_core::error::checked_len)
+        let bad = |e: ndarray::ShapeError| PyValueError::new_err(format!("k: {e}"));
+        let idx = Array2::from_shape_vec(shape, res.indices).map_err(bad)?;
+        let dist = Array2::from_shape_vec(shape, res.distances).map_err(bad)?;
         Ok((idx.into_pyarray(py), dist.into_pyarray(py)))
     }
 
