@@ -7,6 +7,7 @@ search itself is pinned by the geometry oracle (tests/test_metric_localize.py).
 
 from __future__ import annotations
 
+import dataclasses
 import inspect
 import shutil
 import subprocess
@@ -25,6 +26,7 @@ from vvloc.localize.localizer import (
     RETRIEVAL_WEIGHT,
     Localizer,
     build_map,
+    encode_frames,
 )
 from vvloc.localize.loops import detect_loops, loop_candidates
 from vvloc.localize.metric import SearchConfig
@@ -150,8 +152,39 @@ def test_localizer_options_are_checked_up_front(map_file, model_dir, tiny_world,
     with caplog.at_level("WARNING", logger="vvloc.localize"):
         loc = Localizer(model, db, rerank=False, top_k=3, search=SMALL_SEARCH)
     assert loc.min_distinctiveness == 0.0 and "accepting by the cost rule alone" in caplog.text
-    r = loc.localize(open_dataset(tiny_world).session("s1")[2])
+    frame = open_dataset(tiny_world).session("s1")[2]
+    r = loc.localize(frame)
     assert r.accepted == (r.cost < 0.75)
+    # images the network would misread are refused before any work, naming the frame
+    bad = frame.images.astype(np.float32) / 255.0
+    bad[0, 0, 3, 3] = np.nan  # spread through the BEV into the global descriptor
+    bright = frame.images.astype(np.float32)  # the 0-255 scale in a float array
+    for images, match in (
+        (bad, r"frames\[1\]\.images: holds non-finite"),
+        (bright, r"frames\[1\]\.images: float images must lie in \[0, 1\]"),
+        (frame.images[0], r"frames\[1\]\.images: expected shape \(M, 3, H, W\)"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            loc.localize_batch([frame, dataclasses.replace(frame, images=images)])
+    with pytest.raises(TypeError, match=r"frames\[0\]\.images: expected uint8 or float"):
+        loc.localize_batch([dataclasses.replace(frame, images=frame.images.astype(np.int64))])
+    # float [0, 1] images are the uint8 ones to float rounding
+    same = loc.localize(dataclasses.replace(frame, images=frame.images / 255.0))
+    assert same.map_row == r.map_row
+    # encoded inputs of float64 are taken as float32 (the local descriptor reached the
+    # interactor as double before)
+    enc = encode_frames(model, [frame], keep_bev=True)
+    assert enc.bev is not None
+    r32 = loc.localize_encoded(enc.global_desc[0], enc.local_desc[0], enc.bev[0])
+    r64 = loc.localize_encoded(
+        *(a.astype(np.float64) for a in (enc.global_desc[0], enc.local_desc[0], enc.bev[0]))
+    )
+    assert r64.cost == r32.cost and np.array_equal(r64.global_pose, r32.global_pose)
+    # one candidate has distinctiveness 0: a calibration would accept nothing, and says so
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="vvloc.localize"):
+        Localizer(model, db, top_k=1, min_distinctiveness=0.1, search=SMALL_SEARCH)
+    assert "its distinctiveness is 0, below min_distinctiveness 0.1" in caplog.text
     with pytest.raises(TypeError, match="sessions: expected a list"):
         build_map(model, open_dataset(tiny_world), "s0", map_file.parent / "x.h5")
     with pytest.raises(TypeError, match="expected_config_hash"):

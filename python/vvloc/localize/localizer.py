@@ -24,7 +24,8 @@ Frames: the search estimates ξ_{q→m}, the map keyframe's frame expressed in t
 (the query BEV is the padded source). Results report ``relative_pose`` = ξ_{m→q} (the query
 expressed in the map keyframe's frame: x forward, y left, metres; yaw CCW, radians) and the
 query's global pose T_world_q = T_world_m · ξ_{m→q}. The matching cost is the confidence:
-lower is better; ``accepted`` = cost < ``accept_threshold`` (0.75, the paper's filter).
+lower is better; ``accepted`` = cost < ``accept_threshold`` (0.75, the paper's filter) and
+distinctiveness >= ``min_distinctiveness`` (the model's calibration; 0 without one).
 """
 
 from __future__ import annotations
@@ -97,6 +98,28 @@ def frames_to_tensors(
     k = torch.from_numpy(np.stack([f.K for f in frames]).astype(np.float32)).to(device)
     t = torch.from_numpy(np.stack([f.cam_to_ego for f in frames]).astype(np.float32)).to(device)
     return images, k, t
+
+
+def _check_images(images: Any, name: str) -> None:
+    """A frame's images: (M, 3, H, W) uint8 [0, 255], or float in [0, 1] (the network's two
+    scales), finite; ``ValueError``/``TypeError`` naming ``name`` otherwise. A float image on
+    the 0-255 scale would be read as far too bright, and a NaN pixel spreads through the BEV
+    into the global descriptor."""
+    arr = np.asarray(images)
+    if arr.ndim != 4 or arr.shape[1] != 3 or 0 in arr.shape:
+        raise ValueError(f"{name}: expected shape (M, 3, H, W), got {arr.shape}")
+    if arr.dtype == np.uint8:
+        return
+    if not np.issubdtype(arr.dtype, np.floating):
+        raise TypeError(f"{name}: expected uint8 or float in [0, 1], got dtype {arr.dtype}")
+    if not np.isfinite(arr).all():
+        raise ValueError(f"{name}: holds non-finite values (NaN or inf)")
+    lo, hi = float(arr.min()), float(arr.max())
+    if lo < 0.0 or hi > 1.0:
+        raise ValueError(
+            f"{name}: float images must lie in [0, 1], got values in [{lo:g}, {hi:g}] "
+            "(pass uint8 for the 0-255 scale)"
+        )
 
 
 def model_device(model: torch.nn.Module) -> torch.device:
@@ -447,6 +470,15 @@ class Localizer:
         if not min_distinctiveness >= 0:
             raise ValueError(f"min_distinctiveness: expected >= 0, got {min_distinctiveness}")
         self.min_distinctiveness = float(min_distinctiveness)
+        if 0 < self.min_distinctiveness < float("inf") and min(self.top_k, len(mapdb)) == 1:
+            log.warning(
+                "one re-ranking candidate (top_k=%d, %d keyframes in the map): its "
+                "distinctiveness is 0, below min_distinctiveness %.4g, so no result is accepted "
+                "(pass min_distinctiveness=0 to accept by the cost rule alone)",
+                self.top_k,
+                len(mapdb),
+                self.min_distinctiveness,
+            )
         self.metric_candidates = kernels._positive_int(metric_candidates, "metric_candidates")
         self.metric_from = metric_from
         if isinstance(retrieval_weight, np.floating):
@@ -629,9 +661,11 @@ class Localizer:
     def localize_batch(
         self, frames: Sequence[Frame], *, batch_size: int = 8, progress: bool = False
     ) -> list[LocalizationResult]:
-        """Localize many frames: encoding is batched; results equal :meth:`localize`'s.
+        """Localize many frames: encoding is batched; results equal :meth:`localize`'s (to
+        float rounding: batches of other sizes sum in other orders, ~1e-8 in the cost).
 
-        Frames with non-finite calibration are refused (``ValueError`` naming the frame); frames
+        Frames with non-finite calibration, or images that are not (M, 3, H, W) uint8 (or
+        float in [0, 1]), are refused before any work (``ValueError`` naming the frame); frames
         from a rig other than the map's (camera count, image size, intrinsics, or a camera
         turned by more than ``RIG_ANGLE_TOLERANCE`` or moved by more than
         ``RIG_SHIFT_TOLERANCE`` from where the map's rig has it, when the map records its rig)
@@ -644,6 +678,7 @@ class Localizer:
                 raise TypeError(f"frames[{i}]: expected a vvloc.data.Frame, got {type(f).__name__}")
             if not (np.isfinite(f.K).all() and np.isfinite(f.cam_to_ego).all()):
                 raise ValueError(f"frames[{i}]: K or cam_to_ego holds non-finite values")
+            _check_images(f.images, f"frames[{i}].images")
             self._check_rig(f, i)
         results: list[LocalizationResult] = []
         for start in tqdm(
@@ -676,6 +711,8 @@ class Localizer:
             shape = tuple(np.shape(arr))
             if shape != want[name]:
                 raise ValueError(f"{name}: expected shape {want[name]}, got {shape}")
+        # float32 for the networks and kernels (a float64 loc reached the interactor as double)
+        g, loc, bev = (kernels._as_f32(a, n) for a, n in ((g, "g"), (loc, "loc"), (bev, "bev")))
         timings = {"encode": t_encode_ms}
         t0 = time.perf_counter()
         rows, dist = self.retrieve(g)
