@@ -29,6 +29,12 @@ Conventions converted from:
   SDK does; rows whose ``ins_status`` is not ``INS_SOLUTION_GOOD`` are left out (when the column
   is there). World coordinates are re-centred on the first pose of the first session
   (``ds.meta["origin_enu"]``) so that float32 consumers keep centimetres.
+* Unverified on real data: (northing, easting) are UTM grid coordinates, and the INS yaw is
+  taken as measured from grid north. If it is measured from true north (as a NovAtel INS
+  reports its azimuth), the two differ by the UTM grid convergence, about 1.4° at Oxford
+  (zone 30), and every relative translation turns by that much (2.4 cm per metre). Neither the
+  SDK nor this reader corrects for it. To check on a session: on straight stretches the
+  direction of travel, atan2(Δnorthing, Δeasting), should equal π/2 − yaw.
 * The vehicle frame's origin is the stereo camera on the roof; vvloc's ego origin is the ground
   under the vehicle. Pass ``ego_height`` (the stereo camera's height above the ground, metres)
   to move it there; the default 0 keeps the roof origin.
