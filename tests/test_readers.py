@@ -785,3 +785,65 @@ def test_readers_without_any_usable_frame_say_so(tmp_path):
     with pytest.warns(UserWarning, match="U2D_Cam2"):
         s = open_dataset(tmp_path / "nclt", cameras=(1, 2), upright=False).session(DATE)
     assert len(s) == 0 and s.frame_cam_to_ego.shape == (0, 2, 4, 4)
+
+
+def _drive(offset_deg: float, *, n: int = 200, spacing: float = 0.5) -> np.ndarray:
+    """(N, 3) poses of a drive: 40 m east, a quarter turn left, 40 m north, ..., the yaw
+    `offset_deg` off the direction of travel, with centimetre position noise."""
+    rng = np.random.default_rng(0)
+    poses, x, y, yaw = [], 0.0, 0.0, 0.0
+    for k in range(n):
+        if k % 100 >= 80:  # a 90° turn over the last 20 poses of every 100
+            yaw += math.radians(90.0 / 20)
+        x += spacing * math.cos(yaw)
+        y += spacing * math.sin(yaw)
+        poses.append((x, y, yaw))
+    p = np.array(poses)
+    p[:, :2] += rng.normal(0.0, 0.01, (n, 2))
+    p[:, 2] += math.radians(offset_deg)
+    return p
+
+
+def test_heading_offset_measures_a_yaw_off_the_direction_of_travel():
+    from vvloc.data.heading import MIN_STRETCHES, heading_offset, heading_warning
+
+    for offset in (0.0, 1.4, -3.0, 12.0):
+        got, count = heading_offset(_drive(offset))
+        assert got == pytest.approx(offset, abs=0.1) and count >= MIN_STRETCHES
+    # driven backwards: the yaw points against the travel, those stretches are left out
+    back = _drive(0.0)
+    back[:, 2] += math.pi
+    assert heading_offset(back) == (pytest.approx(float("nan"), nan_ok=True), 0)
+    got, _ = heading_offset(np.concatenate([_drive(0.7), back]))
+    assert got == pytest.approx(0.7, abs=0.1)
+    # a car standing still, or too few poses: nothing to measure
+    assert heading_offset(np.zeros((50, 3)))[1] == 0
+    assert heading_offset(np.zeros((0, 3)))[1] == 0
+    with pytest.raises(ValueError, match=r"poses: expected shape \(N, 3\)"):
+        heading_offset(np.zeros((4, 2)))
+    assert heading_warning("s", _drive(0.3)) is None
+    note = heading_warning("s", _drive(1.4))
+    assert note is not None and note.startswith("session s: the yaw differs from the direction")
+    assert heading_warning("s", _drive(1.4, n=70)) is None  # too few stretches to tell
+
+
+def test_the_readers_check_each_sessions_yaw_against_its_travel(tmp_path, monkeypatch):
+    import vvloc.data.nclt as nclt_reader
+    import vvloc.data.oxford as oxford_reader
+
+    seen = []
+
+    def warn(name, poses):
+        seen.append((name, np.asarray(poses).shape))
+        return f"session {name}: the yaw differs (test)"
+
+    sess = _oxford(tmp_path / "oxford")
+    _nclt(tmp_path / "nclt")
+    for module in (oxford_reader, nclt_reader):
+        monkeypatch.setattr(module, "heading_warning", warn)
+    with pytest.warns(UserWarning, match=f"session {sess.name}: the yaw differs"):
+        open_dataset(tmp_path / "oxford", cameras=("stereo_centre", "mono_left"))
+    with pytest.warns(UserWarning) as record:
+        open_dataset(tmp_path / "nclt", cameras=(1, 2), upright=False)
+    assert any(f"session {DATE}: the yaw differs" in str(w.message) for w in record)
+    assert seen == [(sess.name, (2, 3)), (DATE, (2, 3))]

@@ -63,6 +63,7 @@ from vvloc.data.frame import (
     load_rgb,
     nearest_within,
 )
+from vvloc.data.heading import heading_warning
 from vvloc.data.vvloc_format import DatasetFormatError
 
 # Ladybug (lb3) frame in the body frame: x, y, z m; roll, pitch, yaw degrees (NCLT's example code).
@@ -291,6 +292,9 @@ def open_nclt(
             [NED_TO_ENU @ euler_to_matrix(*row[1:7]) @ FRD_TO_FLU for row in gt[pick]]
         ).reshape(-1, 4, 4)  # (0, 4, 4) when no image has ground truth near it
         poses, zs, frame_cam_to_ego = ego_frames(world_body, cams, height=height, level=level)
+        note = heading_warning(date, poses)
+        if note is not None:
+            warnings.warn(note, stacklevel=2)
         sessions[date] = NcltSession(
             date,
             dirs,

@@ -33,8 +33,9 @@ Conventions converted from:
   taken as measured from grid north. If it is measured from true north (as a NovAtel INS
   reports its azimuth), the two differ by the UTM grid convergence, about 1.4° at Oxford
   (zone 30), and every relative translation turns by that much (2.4 cm per metre). Neither the
-  SDK nor this reader corrects for it. To check on a session: on straight stretches the
-  direction of travel, atan2(Δnorthing, Δeasting), should equal π/2 − yaw.
+  SDK nor this reader corrects for it. The reader checks every session: on straight stretches
+  the direction of travel of the ego poses should equal their yaw, and a median offset above
+  0.5° is warned about (:mod:`vvloc.data.heading`).
 * The vehicle frame's origin is the stereo camera on the roof; vvloc's ego origin is the ground
   under the vehicle. Pass ``ego_height`` (the stereo camera's height above the ground, metres)
   to move it there; the default 0 keeps the roof origin.
@@ -78,6 +79,7 @@ from vvloc.data.frame import (
     interpolate_rows,
     nearest_within,
 )
+from vvloc.data.heading import heading_warning
 from vvloc.data.vvloc_format import DatasetFormatError
 
 DEFAULT_CAMERAS = ("stereo_centre", "mono_left", "mono_rear", "mono_right")
@@ -383,6 +385,9 @@ def open_oxford(
             level=level,
             world_body_at_cameras=at_cams,
         )
+        note = heading_warning(sdir.name, poses)
+        if note is not None:
+            warnings.warn(note, stacklevel=2)
         sessions[sdir.name] = OxfordSession(
             sdir.name,
             paths,
