@@ -13,7 +13,8 @@ Conventions converted from:
 * NCLT's body frame is x forward, y right, z down; ground truth is in a local NED frame
   (x north, y east, z down), angles in radians. vvloc ego/world are FLU/ENU (DESIGN.md §3), so
   ``T_world_ego = NED_TO_ENU · T_ned_body · FRD_TO_FLU`` and yaw is read off that matrix
-  (π/2 − NCLT yaw for a level vehicle).
+  (π/2 − NCLT yaw for a level vehicle). Each session's yaw is checked against its direction
+  of travel (:mod:`vvloc.data.heading`: a warning when they differ by more than 0.5°).
 * Six-vector poses ("ssc": x, y, z, roll, pitch, yaw; R = Rz·Ry·Rx) — ``x_lb3_c{i}`` in metres and
   degrees, giving the camera in the Ladybug (lb3) frame; the lb3 frame in the body frame is the
   constant ``X_BODY_LB3`` of NCLT's own projection example.
