@@ -821,6 +821,8 @@ def test_heading_offset_measures_a_yaw_off_the_direction_of_travel():
     assert heading_offset(np.zeros((0, 3)))[1] == 0
     with pytest.raises(ValueError, match=r"poses: expected shape \(N, 3\)"):
         heading_offset(np.zeros((4, 2)))
+    with pytest.raises(ValueError, match="poses: holds non-finite"):
+        heading_offset(np.array([[0.0, 0.0, 0.0], [np.nan, 1.0, 0.0]]))
     assert heading_warning("s", _drive(0.3)) is None
     note = heading_warning("s", _drive(1.4))
     assert note is not None and note.startswith("session s: the yaw differs from the direction")

@@ -45,6 +45,8 @@ def heading_offset(
     p = np.asarray(poses, dtype=np.float64)
     if p.ndim != 2 or p.shape[1] != 3:
         raise ValueError(f"poses: expected shape (N, 3), got {p.shape}")
+    if not np.isfinite(p).all():
+        raise ValueError("poses: holds non-finite values (NaN or inf)")
     if not (np.isfinite(step) and step > 0):
         raise ValueError(f"step: expected a finite length > 0 m, got {step}")
     along = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(p[:, :2], axis=0).T))])
@@ -53,7 +55,7 @@ def heading_offset(
     nxt = np.searchsorted(along, along + step, side="left")
     starts = []
     k = 0
-    while len(p) and nxt[k] < len(p):
+    while len(p) and nxt[k] < len(p):  # nxt[k] > k: `along` is finite and non-decreasing
         starts.append(k)
         k = int(nxt[k])
     i = np.array(starts, dtype=np.int64)
