@@ -124,6 +124,37 @@ def test_writer_leaves_nothing_behind_on_error(tmp_path):
         DatasetWriter(tmp_path / "ds", cams)
 
 
+def test_an_interrupted_overwrite_keeps_the_old_dataset_whole(tmp_path, monkeypatch):
+    """The old dataset is renamed aside, not deleted, until the new one is in place: an
+    interrupt between the two renames puts it back (it was left half deleted before)."""
+    import os
+
+    import vvloc.data.vvloc_format as vf
+
+    cams = make_rig(1, W, H)
+    root = tmp_path / "ds"
+    _write(root, {"s0": _line(2), "s1": _line(2)}, cameras=cams)
+    real_replace, calls = os.replace, []
+
+    def interrupted(src, dst):
+        calls.append((src, dst))
+        if len(calls) == 2:  # the new dataset moving in
+            raise KeyboardInterrupt
+        return real_replace(src, dst)
+
+    monkeypatch.setattr(vf.os, "replace", interrupted)
+    with pytest.raises(KeyboardInterrupt), DatasetWriter(root, cams, overwrite=True) as w:
+        w.add_session("s9").add(1, (0, 0, 0), np.zeros((1, 3, H, W), np.uint8))
+    monkeypatch.setattr(vf.os, "replace", real_replace)
+    assert open_dataset(root).sessions == ["s0", "s1"]  # whole, as before
+    assert [len(open_dataset(root).session(s)) for s in ("s0", "s1")] == [2, 2]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ds"]  # and nothing hidden beside it
+    with DatasetWriter(root, cams, overwrite=True) as w:  # uninterrupted: replaced, no leftover
+        w.add_session("s9").add(1, (0, 0, 0), np.zeros((1, 3, H, W), np.uint8))
+    assert open_dataset(root).sessions == ["s9"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ds"]
+
+
 def test_writer_refuses_the_working_folder_and_replaces_symlink_targets(tmp_path, monkeypatch):
     import os
     import stat

@@ -187,6 +187,13 @@ def test_localizer_options_are_checked_up_front(map_file, model_dir, tiny_world,
     assert "its distinctiveness is 0, below min_distinctiveness 0.1" in caplog.text
     with pytest.raises(TypeError, match="sessions: expected a list"):
         build_map(model, open_dataset(tiny_world), "s0", map_file.parent / "x.h5")
+    from vvloc.data import DatasetWriter
+
+    with DatasetWriter(tmp_path / "empty", open_dataset(tiny_world).cameras) as w:
+        w.add_session("e")  # no frame
+    with pytest.raises(ValueError, match=r"sessions: \['e'\] hold no frames"):
+        build_map(model, open_dataset(tmp_path / "empty"), ["e"], tmp_path / "e.h5")
+    assert not (tmp_path / "e.h5").exists()
     with pytest.raises(TypeError, match="expected_config_hash"):
         MapDatabase.open(map_file, expected_config_hash=123)
     db.close()
@@ -449,10 +456,19 @@ def test_calibrate_cli_scores_the_localizers_answers_and_never_loses_a_calibrati
     r = run("--precision", "0.5", "--min_accepted", "2")
     assert r.returncode == 2 and "--overwrite" in r.stderr  # an existing calibration is kept
     assert (ckpt / "calibration.json").read_bytes() == before
-    r = run("--precision", "1.0", "--min_accepted", "1000", "--overwrite")
-    assert r.returncode == 1 and "no threshold reaches" in r.stderr, r.stderr
+    r = run("--threshold", "0", "--min_accepted", "2", "--overwrite")
+    assert r.returncode == 1 and "passes the cost rule (cost < 0.0)" in r.stderr, r.stderr
     assert r.stderr.count("vvloc calibrate:") == 1, r.stderr  # one message, no empty second one
     assert (ckpt / "calibration.json").read_bytes() == before  # nothing written on failure
+    # what could only fail after the map is built fails before it (exit 2, no map encoded)
+    for bad, said in (
+        (("--min_accepted", "1000"), "--min_accepted: 1000 accepted queries can never be"),
+        (("--retrieval_weight", "inf"), "--retrieval_weight"),
+    ):
+        r = run(*bad, "--overwrite")
+        assert r.returncode == 2 and said in r.stderr, r.stderr
+        assert "map:" not in r.stderr  # the map's progress bar never started
+    assert (ckpt / "calibration.json").read_bytes() == before
     r = run("--precision", "0.5", "--min_accepted", "2", "--overwrite", "--metric_candidates", "3")
     assert r.returncode == 0, r.stderr
     text = (ckpt / "calibration.json").read_text()

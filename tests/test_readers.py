@@ -402,6 +402,12 @@ def test_convert_leaves_nothing_behind_on_failure(tmp_path, monkeypatch):
         convert_dataset(src, tmp_path / "a", sessions=["nope"], cameras=(1,))
     with pytest.raises(ValueError, match="every"):
         convert_dataset(src, tmp_path / "a", every=0, cameras=(1,))
+    # writing into the source, or around it, would replace or corrupt what is read
+    for out in (src, src / "converted", tmp_path):
+        with pytest.raises(ValueError, match="is, lies inside or holds the source"):
+            convert_dataset(src, out, cameras=(1,), overwrite=True)
+    with pytest.raises(ValueError, match=r"sessions: \['2012-01-08'\] listed more than once"):
+        convert_dataset(src, tmp_path / "a", sessions=[DATE, DATE], cameras=(1,))
     calls = []
 
     def failing(self, index):
@@ -415,6 +421,18 @@ def test_convert_leaves_nothing_behind_on_failure(tmp_path, monkeypatch):
     with pytest.raises(OSError, match="disk went away"):
         convert_dataset(src, tmp_path / "a", cameras=(1,))
     assert sorted(p.name for p in tmp_path.iterdir()) == ["nclt"]  # no folder, no partial one
+
+
+def test_a_converted_dataset_converted_again_records_both_conversions(tmp_path):
+    src = tmp_path / "nclt"
+    _nclt(src)
+    once = convert_dataset(src, tmp_path / "once", cameras=(1,), min_distance=0.5)
+    twice = convert_dataset(once, tmp_path / "twice", every=2)
+    meta = open_dataset(twice).meta["converted_from"]
+    assert meta["path"] == str(once.resolve()) and meta["every"] == 2
+    assert meta["format"] == "vvloc" and meta["min_distance"] == 0.0
+    first = meta["source_converted_from"]
+    assert first["path"] == str(src.resolve()) and first["min_distance"] == 0.5
 
 
 def test_cli_convert(tmp_path):

@@ -344,9 +344,22 @@ def test_cli_help_shows_defaults_and_rejects_bad_values(tmp_path):
         text=True,
     )
     assert seed.returncode == 2 and "--seed" in seed.stderr
+    floors = subprocess.run(
+        [sys.executable, "-m", "vvloc.cli", "sim", "--out", str(tmp_path / "x"), "--scene",
+         "garage", "--floors", "17"],
+        capture_output=True,
+        text=True,
+    )  # fmt: skip
+    assert floors.returncode == 2 and "--floors" in floors.stderr, floors.stderr
     assert not (tmp_path / "x").exists()
     with pytest.raises(ValueError, match="seed: expected an int >= 0"):
         simulate_dataset(tmp_path / "x", seed=-1)
+    # a garage of many storeys took minutes and gigabytes; a floor without frames is no floor
+    with pytest.raises(ValueError, match="floors: expected at most 16 storeys"):
+        simulate_dataset(tmp_path / "x", scene="garage", floors=100_000_000)
+    with pytest.raises(ValueError, match=r"frames: expected at least one frame per floor \(3\)"):
+        simulate_dataset(tmp_path / "x", scene="garage", floors=3, frames=2)
+    assert not (tmp_path / "x").exists()
 
 
 def test_images_beyond_the_framebuffer_limit_are_refused_by_name(egl):

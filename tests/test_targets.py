@@ -203,9 +203,10 @@ def test_reports_of_other_weights_or_without_loops_are_refused():
 def test_read_report_names_what_is_missing(tmp_path):
     with pytest.raises(FileNotFoundError, match="vvloc eval"):
         read_report(tmp_path)
-    (tmp_path / "report.json").write_text("[1]")
-    with pytest.raises(ValueError, match="not a vvloc eval report"):
-        read_report(tmp_path)
+    for text in ("[1]", '{"meta": null}', "# a Markdown report", "\udcff"):
+        (tmp_path / "report.json").write_text(text, errors="surrogateescape")
+        with pytest.raises(ValueError, match=f"^{tmp_path / 'report.json'}: not a vvloc eval"):
+            read_report(tmp_path)
 
 
 def test_cli_prints_the_table_writes_json_and_fails_when_strict_and_missed(tmp_path):

@@ -55,9 +55,12 @@ def read_report(path: str | Path) -> dict[str, Any]:
         path = path / REPORT_FILE
     if not path.is_file():
         raise FileNotFoundError(f"no vvloc eval report at {path}: run vvloc eval --out first")
-    report = json.loads(path.read_text())
-    if not isinstance(report, dict) or "meta" not in report:
-        raise ValueError(f"{path}: not a vvloc eval report (no 'meta')")
+    try:
+        report = json.loads(path.read_text(encoding="utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise ValueError(f"{path}: not a vvloc eval report (not JSON: {e})") from None
+    if not isinstance(report, dict) or not isinstance(report.get("meta"), dict):
+        raise ValueError(f"{path}: not a vvloc eval report (no 'meta' object)")
     return report
 
 

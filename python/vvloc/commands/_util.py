@@ -52,13 +52,22 @@ MetricFrom = Annotated[
     ),
 ]
 
+
 #: ``--retrieval_weight`` of ``eval`` and ``localize`` (see ``Localizer(retrieval_weight=)``);
 #: its default is the library's, :data:`vvloc.localize.metric.RETRIEVAL_WEIGHT`.
+def _a_weight(value: float) -> float:
+    # a weight of inf (or NaN, which min=0 lets through) would be refused by the Localizer
+    # only after the map is built
+    if not (math.isfinite(value) and value >= 0):
+        raise typer.BadParameter(f"expected a finite weight >= 0, got {value}")
+    return value
+
+
 RetrievalWeight = Annotated[
     float,
     typer.Option(
         "--retrieval_weight",
-        min=0.0,
+        callback=_a_weight,
         help="Order the M metric candidates by coarse matching cost plus this weight times "
         "their global-descriptor distance (0: the cost alone).",
     ),

@@ -85,6 +85,16 @@ def calibrate(
         for name in [database, *names]:
             ds.session(name)  # KeyError naming the known sessions
         frames = [f for name in names for f in ds.session(name)[::every]]  # loads only these
+        # what would fail after the map is built fails before it
+        if not frames:
+            raise ValueError(f"--queries: sessions {names} hold no frames")
+        if len(ds.session(database)) == 0:
+            raise ValueError(f"--database: session {database} holds no frames")
+        if min_accepted > len(frames):
+            raise ValueError(
+                f"--min_accepted: {min_accepted} accepted queries can never be reached with "
+                f"{len(frames)} query frames (--queries, --every)"
+            )
         with tempfile.TemporaryDirectory(prefix="vvloc-calibrate-") as tmp:
             map_path = build_map(model, ds, [database], Path(tmp) / "map.h5", store_bev=False)
             with MapDatabase.open(map_path, expected_config_hash=model.config_hash()) as db:
@@ -114,7 +124,7 @@ def calibrate(
                 f"vvloc calibrate: failed: {why}; "
                 + (f"{target} is left as it was" if target.exists() else "nothing was written")
                 + ". Try a lower "
-                "--precision, more --queries or a better-trained checkpoint.",
+                "--precision or --min_accepted, more --queries or a better-trained checkpoint.",
                 err=True,
             )
             raise typer.Exit(code=EXIT_FAILURE)
@@ -122,7 +132,8 @@ def calibrate(
             f.write(calibration_json(cal))
     typer.echo(
         f"min_distinctiveness {cal['min_distinctiveness']:.4f}: accepts "
-        f"{cal['accepted_share']:.1%} of {cal['queries']} queries at precision "
-        f"{cal['precision']:.1%} (all queries: {cal['base_precision']:.1%})"
+        f"{cal['accepted_share']:.1%} of the {cal['queries']} queries with a map keyframe "
+        f"within 2 m (of {len(frames)} localized) at precision {cal['precision']:.1%} (all of "
+        f"them: {cal['base_precision']:.1%})"
     )
     typer.echo(f"calibration: {target}")

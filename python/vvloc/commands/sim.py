@@ -34,7 +34,9 @@ def sim(
     frames: Annotated[int, typer.Option("--frames", min=1, help="Keyframes per session.")] = 600,
     floors: Annotated[
         int | None,
-        typer.Option("--floors", min=1, help="Garage storeys (garage scene only; default 2)."),
+        typer.Option(
+            "--floors", min=1, max=16, help="Garage storeys (garage scene only; default 2)."
+        ),
     ] = None,
     floor_marking: Annotated[
         FloorMarking | None,

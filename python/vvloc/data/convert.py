@@ -116,12 +116,22 @@ def convert_dataset(
         size = (int(image_size[0]), int(image_size[1]))
     options = dict(reader_options)
     fmt = detect_format(src, format)
+    src_dir, out_dir = Path(src).resolve(), Path(out).resolve()
+    if out_dir == src_dir or src_dir in out_dir.parents or out_dir in src_dir.parents:
+        # writing into the source (or around it) would replace or corrupt what is read
+        raise ValueError(
+            f"out: {out} is, lies inside or holds the source {src}; write the converted "
+            "dataset to a folder of its own"
+        )
     if size is not None and fmt != "vvloc":
         if "image_size" in options:
             raise TypeError("image_size: give it once, not also as a reader option")
         options["image_size"] = size  # the raw readers resize as they read: one interpolation
     ds = open_dataset(src, format=fmt, **options)
     names = list(ds.sessions) if sessions is None else list(sessions)
+    repeated = sorted({n for n in names if names.count(n) > 1})
+    if repeated:
+        raise ValueError(f"sessions: {repeated} listed more than once")
     for name in names:
         ds.session(name)  # a KeyError naming the known sessions, before anything is written
     cameras = list(ds.cameras)
@@ -136,17 +146,17 @@ def convert_dataset(
         )
         picks[name] = strided[chosen]
     total = sum(len(v) for v in picks.values())
-    meta = {
-        "converted_from": {
-            "path": str(Path(src).resolve()),
-            "format": fmt,
-            "options": {k: _jsonable(v) for k, v in reader_options.items()},
-            "every": every,
-            "min_distance": min_distance,
-            "min_angle_deg": min_angle_deg,
-        },
-        **ds.meta,
+    converted_from: dict[str, Any] = {
+        "path": str(src_dir),
+        "format": fmt,
+        "options": {k: _jsonable(v) for k, v in reader_options.items()},
+        "every": every,
+        "min_distance": min_distance,
+        "min_angle_deg": min_angle_deg,
     }
+    if "converted_from" in ds.meta:  # a converted dataset converted again: its history
+        converted_from["source_converted_from"] = ds.meta["converted_from"]
+    meta = {**ds.meta, "converted_from": converted_from}
     bar = None  # opened once the writer accepted ``out`` (a refusal prints no empty bar)
     try:
         with DatasetWriter(out, cameras, overwrite=overwrite, meta=meta) as writer:

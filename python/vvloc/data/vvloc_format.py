@@ -357,6 +357,8 @@ class SessionWriter:
 class DatasetWriter:
     """Writes a vvloc-format dataset atomically: into a hidden temporary folder beside ``root``,
     renamed to ``root`` by :meth:`close`; on an exception inside ``with`` nothing is left behind.
+    With ``overwrite``, the dataset at ``root`` stays whole until the new one has taken its
+    place (it is renamed aside, then deleted).
 
     Example::
 
@@ -442,12 +444,27 @@ class DatasetWriter:
         """Finish: close every session and move the dataset into place. Returns ``root``."""
         for w in self._sessions.values():
             w.close()
+        replaced: Path | None = None
         if self._target.exists():
-            if self.overwrite and self._target.is_dir():
-                shutil.rmtree(self._target)
+            if self.overwrite and self._target.is_dir() and any(self._target.iterdir()):
+                # the old dataset is renamed aside, not deleted, until the new one is in
+                # place: an interrupt in between puts it back (deleting it took seconds,
+                # and an interrupt then left it half gone and the new one discarded)
+                replaced = self._target.parent / (
+                    f".{self._target.name}.replaced-{secrets.token_hex(6)}"
+                )
+                os.replace(self._target, replaced)
             else:
                 self._target.rmdir()  # empty by the constructor's check
-        os.replace(self._tmp, self._target)
+        try:
+            os.replace(self._tmp, self._target)
+        except BaseException:
+            if replaced is not None:
+                os.replace(replaced, self._target)
+            raise
+        if replaced is not None:
+            # the new dataset is in place; an interrupt here leaves only the hidden old folder
+            shutil.rmtree(replaced, ignore_errors=True)
         return self.root
 
     def abort(self) -> None:

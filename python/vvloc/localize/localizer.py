@@ -819,6 +819,8 @@ def build_map(
     if missing:
         raise ValueError(f"sessions: {missing} not in the dataset (sessions: {sorted(known)})")
     total = sum(len(dataset.session(s)) for s in sessions)
+    if total == 0:
+        raise ValueError(f"sessions: {list(sessions)} hold no frames: a map needs keyframes")
     cfg = model.config
     with MapWriter(
         out,

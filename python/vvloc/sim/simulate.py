@@ -70,6 +70,10 @@ def session_plan(
     ]
 
 
+#: The most storeys ``vvloc sim --scene garage`` builds (each is a full level of the garage).
+MAX_FLOORS = 16
+
+
 def build_world(scene: str, seed: int = 0, floors: int = 2, floor_marking: str = "walls") -> World:
     """The world of ``scene`` ("parking" or "garage" with ``floors`` storeys marked as
     ``floor_marking`` says, see :func:`vvloc.sim.world.garage_world`)."""
@@ -130,6 +134,12 @@ def simulate_dataset(
     for key, v in (("sessions", sessions), ("frames", frames), ("floors", floors)):
         if isinstance(v, bool) or not isinstance(v, int) or v < 1:
             raise ValueError(f"{key}: expected an int >= 1, got {v!r}")
+    if floors > MAX_FLOORS:
+        raise ValueError(f"floors: expected at most {MAX_FLOORS} storeys, got {floors}")
+    if scene == "garage" and frames < floors:  # each floor drives its share of the frames
+        raise ValueError(
+            f"frames: expected at least one frame per floor ({floors}) a session, got {frames}"
+        )
     if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
         raise ValueError(f"seed: expected an int >= 0, got {seed!r}")
     for key, v in (("max_roll", max_roll), ("max_pitch", max_pitch)):
