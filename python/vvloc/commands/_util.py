@@ -53,16 +53,16 @@ MetricFrom = Annotated[
 ]
 
 
-#: ``--retrieval_weight`` of ``eval`` and ``localize`` (see ``Localizer(retrieval_weight=)``);
-#: its default is the library's, :data:`vvloc.localize.metric.RETRIEVAL_WEIGHT`.
 def _a_weight(value: float) -> float:
-    # a weight of inf (or NaN, which min=0 lets through) would be refused by the Localizer
-    # only after the map is built
+    # a weight of inf or NaN would be refused by the Localizer only after the map is built
     if not (math.isfinite(value) and value >= 0):
         raise typer.BadParameter(f"expected a finite weight >= 0, got {value}")
     return value
 
 
+#: ``--retrieval_weight`` of ``eval``, ``localize`` and ``calibrate`` (see
+#: ``Localizer(retrieval_weight=)``); its default is the library's,
+#: :data:`vvloc.localize.metric.RETRIEVAL_WEIGHT`. NaN, inf and negative values exit 2.
 RetrievalWeight = Annotated[
     float,
     typer.Option(

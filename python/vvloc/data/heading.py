@@ -4,10 +4,10 @@ A car drives where it points: on straight stretches the direction of travel of i
 atan2(Δy, Δx), equals its yaw up to a small sideslip. A constant offset between the two says
 that the yaw and the positions are not in one frame: a yaw measured from true north beside
 UTM grid coordinates (the grid convergence, about 1.4° at Oxford), a yaw of a sensor mounted
-turned on the car. Every relative translation then turns by that offset. (A mirrored yaw
+turned on the car. Every relative translation then turns by that offset. :func:`heading_offset`
+measures it; the NCLT and Oxford readers warn when a session's is large. (A mirrored yaw
 shows only on diagonal stretches: along the axes it looks like driving backwards, which is
-left out.) :func:`heading_offset`
-measures it; the NCLT and Oxford readers warn when a session's is large.
+left out.)
 """
 
 from __future__ import annotations
