@@ -3,6 +3,7 @@ heads' and decoder/interactor's behaviour under circular angle shifts, gradients
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -66,6 +67,16 @@ def test_config_presets_and_json_roundtrip():
         assert back.config_hash() == cfg.config_hash()
     assert paper.config_hash() != ModelConfig.small().config_hash()
     assert len(paper.config_hash()) == 16
+    # equal configs hash the same, however their numbers were written (a YAML override of
+    # sigma_a: 15 against a checkpoint's 15.0 read as another model before)
+    small = ModelConfig.small()
+    for a, b in (
+        ({"sigma_a": 15}, {"sigma_a": 15.0}),
+        ({"grid_size": 1}, {"grid_size": 1.0}),
+        ({"pillar_heights": (-0.0, 1)}, {"pillar_heights": [0.0, 1.0]}),
+    ):
+        x, y = dataclasses.replace(small, **a), dataclasses.replace(small, **b)
+        assert x == y and x.config_hash() == y.config_hash()
 
 
 def test_config_rejects_bad_values():
@@ -77,10 +88,28 @@ def test_config_rejects_bad_values():
         ModelConfig.from_dict({"channels": 8, "colour": 1})
     with pytest.raises(ValueError, match="disco_crop"):
         tiny_config(disco_crop=(20, 2))
-    for name, bad in (("grid_size", math.inf), ("gem_p", math.inf), ("grid_size", "0.6"),
-                      ("sigma_r", True), ("sigma_a", math.nan)):  # fmt: skip
+    for name, bad in (("grid_size", math.inf), ("gem_p", math.inf), ("sigma_a", math.nan)):
         with pytest.raises(ValueError, match=f"ModelConfig.{name}: expected a finite number"):
             tiny_config(**{name: bad})
+    for name, bad in (("grid_size", "0.6"), ("sigma_r", True), ("dropout", None)):
+        with pytest.raises(TypeError, match=f"ModelConfig.{name}: expected a number"):
+            tiny_config(**{name: bad})
+    # no string split into digits, no float truncated, no list cut short: the field is named
+    for name, bad in (
+        ("backbone_widths", "8888"),
+        ("backbone_widths", [8.9, 8, 8, 8]),
+        ("backbone_blocks", None),
+        ("pillar_heights", ["a"]),
+        ("pillar_heights", [True, False]),
+        ("disco_crop", 4),
+        ("bev_self_attention", "false"),
+        ("global_head", None),
+    ):
+        with pytest.raises(TypeError, match=f"ModelConfig.{name}: expected"):
+            tiny_config(**{name: bad})
+    for bad in ([4, 4, 9], [4]):
+        with pytest.raises(ValueError, match=r"ModelConfig.disco_crop: expected \(T, R\)"):
+            tiny_config(disco_crop=bad)
     with pytest.raises(ValueError, match="pillar_heights: expected finite"):
         tiny_config(pillar_heights=(0.0, math.inf))
     with pytest.raises(ValueError, match="backbone_widths"):
@@ -385,6 +414,97 @@ def test_save_load_roundtrip(tmp_path):
     torch.testing.assert_close(a.local_desc, b.local_desc, rtol=0, atol=0)
 
 
+def test_a_failed_save_leaves_the_previous_checkpoint_whole(tmp_path, monkeypatch):
+    """Every file is serialised, then written and flushed, before the first replaces its
+    destination: a save that fails (or is interrupted) while writing changes no file."""
+    import vvloc._io as io
+
+    ckpt = tmp_path / "ckpt"
+    old = _model(tiny_config(), seed=0)
+    old.calibration = {"min_distinctiveness": 0.25, "top_k": 5}
+    old.save(ckpt)
+    before = {p.name: p.read_bytes() for p in ckpt.iterdir()}
+    new = _model(tiny_config(), seed=1)
+    new.calibration = {"min_distinctiveness": np.float32(0.3)}  # not JSON: fails serialising
+    with pytest.raises(TypeError):
+        new.save(ckpt)
+    assert {p.name: p.read_bytes() for p in ckpt.iterdir()} == before
+    new.calibration = {"min_distinctiveness": 0.3}
+    calls = []
+    real_fsync = io._fsync_file
+
+    def interrupted(path):  # Ctrl-C while the second file is flushed
+        calls.append(path)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        real_fsync(path)
+
+    monkeypatch.setattr(io, "_fsync_file", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        new.save(ckpt)
+    monkeypatch.setattr(io, "_fsync_file", real_fsync)
+    assert {p.name: p.read_bytes() for p in ckpt.iterdir()} == before  # no temporary either
+    assert VVLocNet.load(ckpt).weights_hash() == old.weights_hash()
+    new.save(ckpt)
+    assert VVLocNet.load(ckpt).weights_hash() == new.weights_hash()
+    assert VVLocNet.load(ckpt).calibration == {"min_distinctiveness": 0.3}
+
+
+def test_weights_of_another_dtype_are_refused_not_cast(tmp_path):
+    from safetensors.torch import load_file, save_file
+
+    model = _model(tiny_config(), seed=0)
+    with pytest.raises(TypeError, match=r"torch.bfloat16.*save a float32 model"):
+        _model(tiny_config(), seed=0).to(torch.bfloat16).save(tmp_path / "bf16")
+    assert not (tmp_path / "bf16" / "model.safetensors").exists()
+    model.save(tmp_path)
+    state = load_file(str(tmp_path / "model.safetensors"))
+    for dtype in (torch.int32, torch.float16):  # would load truncated / rounded
+        save_file({k: v.to(dtype) for k, v in state.items()}, str(tmp_path / "model.safetensors"))
+        with pytest.raises(ValueError, match=f"checkpoint {dtype} vs model torch.float32"):
+            VVLocNet.load(tmp_path)
+    save_file(state, str(tmp_path / "model.safetensors"))
+    assert VVLocNet.load(tmp_path, map_location="auto").weights_hash() == model.weights_hash()
+    with pytest.raises(ValueError, match="map_location: expected 'cpu', 'cuda'"):
+        VVLocNet.load(tmp_path, map_location="bogus")
+
+
+def test_a_checkpoint_saved_before_configs_were_normalised_still_loads(tmp_path):
+    """Before 2026-12-05 a config's numbers were hashed as written: a run with the YAML
+    override sigma_a: 15 saved that int and its hash. Such a checkpoint loads, with a warning
+    that its hash now reads otherwise (maps built with it must be rebuilt)."""
+    import hashlib
+
+    model = _model(tiny_config(), seed=0)
+    model.save(tmp_path)
+    meta_path = tmp_path / "config.json"
+    meta = json.loads(meta_path.read_text())
+    meta["config"]["sigma_a"] = int(meta["config"]["sigma_a"])
+    old_json = json.dumps(meta["config"], sort_keys=True)
+    meta["config_hash"] = hashlib.sha256(old_json.encode()).hexdigest()[:16]
+    meta_path.write_text(json.dumps(meta))
+    with pytest.warns(UserWarning, match="before vvloc normalised config numbers"):
+        loaded = VVLocNet.load(tmp_path)
+    assert loaded.config_hash() == model.config_hash()
+    meta["config_hash"] = "0123456789abcdef"  # any other hash is an edited file, as before
+    meta_path.write_text(json.dumps(meta))
+    with pytest.raises(ValueError, match="edited"):
+        VVLocNet.load(tmp_path)
+
+
+def test_a_checkpoint_folder_resolves_to_itself_whatever_it_holds(tmp_path):
+    from vvloc.checkpoints import resolve_checkpoint
+
+    _model(tiny_config(), seed=0).save(tmp_path / "ckpt")
+    _model(tiny_config(), seed=1).save(tmp_path / "ckpt" / "best")  # e.g. a user's copy
+    assert resolve_checkpoint(tmp_path / "ckpt") == tmp_path / "ckpt"
+    run = tmp_path / "run"  # a run whose best/ lost its weights: its checkpoint/ is taken
+    _model(tiny_config(), seed=0).save(run / "checkpoint")
+    (run / "best").mkdir()
+    (run / "best" / "config.json").write_text("{}")
+    assert resolve_checkpoint(run) == run / "checkpoint"
+
+
 def test_checkpoint_files_get_the_mode_of_a_plain_open(tmp_path):
     # atomic writes must not leave 0o600 files behind (shared run folders, committed models)
     old = os.umask(0o022)
@@ -408,7 +528,7 @@ def test_load_rejects_mismatched_checkpoints(tmp_path):
 
     meta["config"]["ffn_dim"] = 48
     write_consistent(meta)
-    with pytest.raises(ValueError, match=r"shape mismatches .*ffn"):
+    with pytest.raises(ValueError, match=r"shape or dtype mismatches .*ffn"):
         VVLocNet.load(tmp_path)
     meta["config"]["ffn_dim"] = cfg.ffn_dim
     meta["config"]["global_head"] = "disco"
@@ -462,6 +582,17 @@ def test_load_refuses_edited_truncated_or_malformed_checkpoints(tmp_path):
         with pytest.raises(ValueError, match=match):
             VVLocNet.load(tmp_path)
     cal_path.write_text('{"min_distinctiveness": null}')  # no threshold reached: accept nothing
+    assert VVLocNet.load(tmp_path).calibration["min_distinctiveness"] == math.inf
+    for text, field in (
+        ('{"min_distinctiveness": true}', "min_distinctiveness"),
+        ('{"min_distinctiveness": 0.2, "top_k": "twenty"}', "top_k"),
+        ('{"min_distinctiveness": 0.2, "top_k": 0}', "top_k"),
+        ('{"min_distinctiveness": 0.2, "accept_threshold": "x"}', "accept_threshold"),
+    ):  # fields the localizer reads: refused by name at load, not deep in a Localizer
+        cal_path.write_text(text)
+        with pytest.raises(ValueError, match=f"calibration.json: {field} must be"):
+            VVLocNet.load(tmp_path)
+    cal_path.write_text('{"min_distinctiveness": null}')
     assert VVLocNet.load(tmp_path).calibration["min_distinctiveness"] == math.inf
     cal_path.unlink()
     w_path.write_bytes(good_weights[: len(good_weights) // 2])

@@ -19,7 +19,7 @@ from pathlib import Path
 from types import TracebackType
 from typing import IO, Any
 
-__all__ = ["AtomicPath", "atomic_path", "atomic_write"]
+__all__ = ["AtomicPath", "atomic_path", "atomic_write", "write_together"]
 
 
 def _fsync_file(path: Path) -> None:
@@ -158,3 +158,27 @@ def atomic_write(
         else:
             with open(tmp, "w", encoding=encoding, newline=newline) as ft:
                 yield ft
+
+
+def write_together(folder: str | os.PathLike[str], files: dict[str, bytes]) -> None:
+    """Write several files of ``folder`` as one change, as far as a file system allows: every
+    file is written to its temporary and flushed to disk before the first of them replaces
+    its destination, and the renames then follow one another. A failure or interrupt while
+    writing (the slow part) changes no file; only one inside the few renames, a window of
+    microseconds, could leave some files new and others old. ``files`` maps file names to
+    their bytes."""
+    folder = Path(os.fspath(folder))
+    pending: list[AtomicPath] = []
+    try:
+        for name, data in files.items():
+            ap = AtomicPath(folder / name)
+            pending.append(ap)
+            with open(ap.tmp, "wb") as f:
+                f.write(data)
+            _fsync_file(ap.tmp)
+        for ap in pending:
+            ap.commit()
+    except BaseException:
+        for ap in pending:
+            ap.abort()  # a committed one has no temporary left: nothing to undo there
+        raise

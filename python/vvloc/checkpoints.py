@@ -14,10 +14,12 @@ __all__ = ["resolve_checkpoint"]
 
 
 def resolve_checkpoint(path: str | os.PathLike[str]) -> Path:
-    """A checkpoint folder as given, or for a run folder its ``best/`` when the run has one,
-    else its latest ``checkpoint/``."""
+    """A checkpoint folder (it holds ``config.json``) as given, or for a run folder its
+    ``best/`` when the run has a complete one, else its latest ``checkpoint/``."""
     path = Path(path)
+    if (path / "config.json").is_file():  # a checkpoint itself, whatever folders it holds
+        return path
     for sub in ("best", "checkpoint"):
-        if (path / sub / "config.json").is_file():
+        if (path / sub / "config.json").is_file() and (path / sub / "model.safetensors").is_file():
             return path / sub
     return path

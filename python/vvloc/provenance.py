@@ -77,6 +77,7 @@ __all__ = [
     "json_safe",
     "libraries",
     "read_record",
+    "record_json",
     "summarize",
     "validate_record",
     "write_record",
@@ -199,18 +200,24 @@ def read_record(path: Path) -> dict[str, Any]:
     return validate_record(raw, str(path))
 
 
-def write_record(path: Path, weights_hash: str, runs: list[dict[str, Any]]) -> None:
-    """Write the training record of the weights with fingerprint ``weights_hash`` (see the
-    module docstring) and ``runs`` to ``path``, atomically, as standard JSON (non-finite
-    floats become null: :func:`json_safe`)."""
+def record_json(weights_hash: str, runs: list[dict[str, Any]]) -> str:
+    """The text of the training record of the weights with fingerprint ``weights_hash`` (see
+    the module docstring) and ``runs``: standard JSON (non-finite floats become null:
+    :func:`json_safe`)."""
     record = {
         "format": TRAINING_FORMAT,
         "version": TRAINING_VERSION,
         "weights_hash": weights_hash,
         "runs": json_safe(runs),
     }
+    return json.dumps(record, indent=2, allow_nan=False)
+
+
+def write_record(path: Path, weights_hash: str, runs: list[dict[str, Any]]) -> None:
+    """Write :func:`record_json`'s text to ``path``, atomically."""
+    text = record_json(weights_hash, runs)
     with atomic_write(path) as f:
-        f.write(json.dumps(record, indent=2, allow_nan=False))
+        f.write(text)
 
 
 def _where(process: dict[str, Any]) -> str:

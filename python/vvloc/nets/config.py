@@ -9,8 +9,28 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
+
 CONFIG_VERSION = 1
 GLOBAL_HEADS = ("gem", "netvlad", "disco")
+
+
+#: The fields that are real numbers (stored as float whatever number was given).
+_FLOAT_FIELDS = ("grid_size", "sigma_r", "sigma_a", "dropout", "gem_p")
+_REAL = (int, float, np.integer, np.floating)
+
+
+def _sequence(value: Any, name: str) -> list[Any]:
+    if isinstance(value, (str, bytes)) or not isinstance(value, (list, tuple)):
+        raise TypeError(f"ModelConfig.{name}: expected a list, got {value!r}")
+    return list(value)
+
+
+def _int_tuple(value: Any, name: str) -> tuple[int, ...]:
+    items = _sequence(value, name)
+    if any(isinstance(v, bool) or not isinstance(v, (int, np.integer)) for v in items):
+        raise TypeError(f"ModelConfig.{name}: expected a list of ints, got {value!r}")
+    return tuple(int(v) for v in items)
 
 
 @dataclass
@@ -62,10 +82,30 @@ class ModelConfig:
     gem_p: float = 3.0
 
     def __post_init__(self) -> None:
-        self.backbone_widths = tuple(int(v) for v in self.backbone_widths)
-        self.backbone_blocks = tuple(int(v) for v in self.backbone_blocks)
-        self.pillar_heights = tuple(float(v) for v in self.pillar_heights)
-        self.disco_crop = (int(self.disco_crop[0]), int(self.disco_crop[1]))
+        # Normalised before validation, so that equal configs hash the same (15 and 15.0,
+        # -0.0 and 0.0) and a string is never split into digits ("1632" is no width list).
+        for name in _FLOAT_FIELDS:
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
+                raise TypeError(f"ModelConfig.{name}: expected a number, got {v!r}")
+            setattr(self, name, float(v) + 0.0)
+        self.backbone_widths = _int_tuple(self.backbone_widths, "backbone_widths")
+        self.backbone_blocks = _int_tuple(self.backbone_blocks, "backbone_blocks")
+        heights = _sequence(self.pillar_heights, "pillar_heights")
+        if any(isinstance(v, bool) or not isinstance(v, _REAL) for v in heights):
+            raise TypeError(f"ModelConfig.pillar_heights: expected numbers, got {heights!r}")
+        self.pillar_heights = tuple(float(v) + 0.0 for v in heights)
+        crop = _int_tuple(self.disco_crop, "disco_crop")
+        if len(crop) != 2:
+            raise ValueError(f"ModelConfig.disco_crop: expected (T, R) crop sizes, got {crop}")
+        self.disco_crop = (crop[0], crop[1])
+        if not isinstance(self.bev_self_attention, (bool, np.bool_)):
+            raise TypeError(
+                f"ModelConfig.bev_self_attention: expected a bool, got {self.bev_self_attention!r}"
+            )
+        self.bev_self_attention = bool(self.bev_self_attention)
+        if not isinstance(self.global_head, str):
+            raise TypeError(f"ModelConfig.global_head: expected a str, got {self.global_head!r}")
         self.validate()
 
     def validate(self) -> None:

@@ -17,14 +17,14 @@ from safetensors import SafetensorError
 from safetensors.torch import load_file, save
 from torch import Tensor, nn
 
-from vvloc._io import atomic_write
+from vvloc._io import write_together
 from vvloc.nets.backbone import FPN, ResNetBackbone, normalise_images
 from vvloc.nets.config import CONFIG_VERSION, ModelConfig
 from vvloc.nets.decoder import Interactor, LocalViewDecoder
 from vvloc.nets.encoder import BevEncoder
 from vvloc.nets.heads import make_global_head
 from vvloc.nets.polar import polar_sample
-from vvloc.provenance import TRAINING_FILE, read_record, write_record
+from vvloc.provenance import TRAINING_FILE, read_record, record_json
 
 WEIGHTS_FILE = "model.safetensors"
 CONFIG_FILE = "config.json"
@@ -81,6 +81,35 @@ def calibration_json(cal: dict[str, Any]) -> str:
         return v
 
     return json.dumps(finite(cal), indent=2, allow_nan=False)
+
+
+def _hash_as_written(config: dict[str, Any]) -> str:
+    """The config hash of vvloc before 2026-12-05, which hashed a config's numbers as they
+    were written (15 and 15.0 apart): the canonical JSON of the dict as stored."""
+    return hashlib.sha256(json.dumps(config, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def _check_calibration(cal: dict[str, Any], path: Path) -> dict[str, Any]:
+    """``calibration.json``'s fields that the localizer reads, checked (``ValueError`` naming
+    the file and the field): ``min_distinctiveness`` a number >= 0 or null (accept nothing),
+    ``top_k`` an int >= 1 and ``accept_threshold`` a number, where present."""
+
+    def number(v: Any) -> bool:
+        return not isinstance(v, bool) and isinstance(v, (int, float))
+
+    value = cal.get("min_distinctiveness", 0.0)
+    if value is not None and not (number(value) and value >= 0):
+        raise ValueError(
+            f"{path}: min_distinctiveness must be a number >= 0 or null (accept nothing), got "
+            f"{value!r}"
+        )
+    top_k = cal.get("top_k")
+    if top_k is not None and (isinstance(top_k, bool) or not isinstance(top_k, int) or top_k < 1):
+        raise ValueError(f"{path}: top_k must be an int >= 1, got {top_k!r}")
+    threshold = cal.get("accept_threshold")
+    if threshold is not None and not (number(threshold) and not math.isnan(threshold)):
+        raise ValueError(f"{path}: accept_threshold must be a number, got {threshold!r}")
+    return cal
 
 
 def calibration_from_json(cal: dict[str, Any]) -> dict[str, Any]:
@@ -254,15 +283,24 @@ class VVLocNet(nn.Module):
         the model is calibrated ``calibration.json``, and when it has a training record
         ``training.json`` (:mod:`vvloc.provenance`, stamped with :meth:`weights_hash`) into
         ``directory`` (created if needed).
-        Files are written to temporaries and renamed, so a failure leaves no partial file."""
+        Every file is serialised first, then all are written to temporaries and flushed before
+        the first is renamed over its destination (:func:`vvloc._io.write_together`): a
+        failure or interrupt leaves the folder's previous checkpoint whole, never new weights
+        beside an old config or calibration. Only float32 models are saved (``TypeError``
+        otherwise: load returns float32)."""
         runs = self.training_record.get("runs") if isinstance(self.training_record, dict) else None
         if self.training_record and not isinstance(runs, list):
             raise TypeError(
                 "training_record: expected {} or {'runs': [...]} (vvloc.provenance), got "
                 f"{self.training_record!r:.80}"
             )
+        not_f32 = sorted({str(v.dtype) for v in self.state_dict().values()} - {"torch.float32"})
+        if not_f32:
+            raise TypeError(
+                f"the model holds {not_f32} tensors: save a float32 model (model.float()); "
+                "load gives float32, and the weights fingerprint would differ"
+            )
         out = Path(directory)
-        out.mkdir(parents=True, exist_ok=True)
         meta = {
             "format": CHECKPOINT_FORMAT,
             "version": CONFIG_VERSION,
@@ -270,20 +308,23 @@ class VVLocNet(nn.Module):
             "config": self.config.to_dict(),
         }
         tensors = {k: v.detach().cpu().contiguous() for k, v in self.state_dict().items()}
-        # safetensors' save_file replaces its target with a 0o600 file: write its bytes instead
-        with atomic_write(out / WEIGHTS_FILE, "wb") as fb:
-            fb.write(save(tensors))
-        with atomic_write(out / CONFIG_FILE) as f:
-            f.write(json.dumps(meta, indent=2))
+        # Everything is serialised before any file is touched (a calibration or record that
+        # cannot be written fails here), then written as one change (vvloc._io.write_together),
+        # so that new weights never sit beside an old config, calibration or record.
+        files = {
+            # safetensors' save_file replaces its target with a 0o600 file: write its bytes
+            WEIGHTS_FILE: save(tensors),
+            CONFIG_FILE: json.dumps(meta, indent=2).encode(),
+        }
         if self.calibration:
-            with atomic_write(out / CALIBRATION_FILE) as f:
-                f.write(calibration_json(self.calibration))
-        else:  # a stale calibration would describe other weights
-            (out / CALIBRATION_FILE).unlink(missing_ok=True)
+            files[CALIBRATION_FILE] = calibration_json(self.calibration).encode()
         if self.training_record:
-            write_record(out / TRAINING_FILE, self.weights_hash(), runs)
-        else:  # likewise a stale training record
-            (out / TRAINING_FILE).unlink(missing_ok=True)
+            files[TRAINING_FILE] = record_json(self.weights_hash(), runs).encode()
+        out.mkdir(parents=True, exist_ok=True)
+        write_together(out, files)
+        for stale in (CALIBRATION_FILE, TRAINING_FILE):  # would describe other weights
+            if stale not in files:
+                (out / stale).unlink(missing_ok=True)
         return out
 
     @classmethod
@@ -291,12 +332,16 @@ class VVLocNet(nn.Module):
         cls, directory: str | os.PathLike[str], map_location: str | torch.device = "cpu"
     ) -> VVLocNet:
         """Load a checkpoint written by :meth:`save`, in eval mode (dropout off) on
-        ``map_location``. Raises ``ValueError`` on a malformed or truncated file, a wrong
-        format or version, a config that lacks fields or whose hash is not the one recorded
-        (an edited ``config.json``: fields such as ``num_angles`` or ``grid_size`` shape no
-        weight, so only the hash tells), or weights that do not match the architecture (names
-        and shapes listed). A ``training.json`` that is malformed or describes other weights
-        is ignored with a ``UserWarning`` (it is informational; the weights load)."""
+        ``map_location`` (``cpu``, ``cuda[:N]`` or ``auto``: :func:`resolve_device`).
+
+        Raises ``ValueError`` on a malformed or truncated file, a wrong format or version, a
+        config that lacks fields or whose hash is not the one recorded (an edited
+        ``config.json``: fields such as ``num_angles`` or ``grid_size`` shape no weight, so
+        only the hash tells), weights that do not match the architecture (names, shapes and
+        dtypes listed: they are never cast), or a calibration whose fields the localizer reads
+        are malformed. A ``training.json`` that is malformed or describes other weights is
+        ignored with a ``UserWarning`` (it is informational; the weights load)."""
+        device = resolve_device(map_location, argument="map_location")
         src = Path(directory)
         cfg_path, w_path = src / CONFIG_FILE, src / WEIGHTS_FILE
         for p in (cfg_path, w_path):
@@ -324,15 +369,30 @@ class VVLocNet(nn.Module):
         lacking = sorted({f.name for f in dataclasses.fields(ModelConfig)} - set(config))
         if lacking:
             raise ValueError(f"{cfg_path}: the config lacks the fields {lacking}")
-        cfg = ModelConfig.from_dict(config)
-        if meta.get("config_hash") != cfg.config_hash():
+        try:
+            cfg = ModelConfig.from_dict(config)
+        except (TypeError, ValueError) as e:  # e.g. a field of a newer vvloc
+            raise ValueError(f"{cfg_path}: {e}") from None
+        stored = meta.get("config_hash")
+        if stored != cfg.config_hash() and stored == _hash_as_written(config):
+            # saved before configs were normalised (an int in a float field, such as a YAML
+            # override sigma_a: 15): the same config, whose hash now reads 15.0
+            warnings.warn(
+                f"{cfg_path}: config_hash {stored} is the hash of the config as written before "
+                f"vvloc normalised config numbers; it is now {cfg.config_hash()}. Maps built "
+                "with this checkpoint record the old one: rebuild them (and save the "
+                "checkpoint again to update its config.json)",
+                UserWarning,
+                stacklevel=2,
+            )
+        elif stored != cfg.config_hash():
             raise ValueError(
                 f"{cfg_path}: config_hash {meta.get('config_hash')!r} is not the config's "
                 f"({cfg.config_hash()}): the file was edited after the weights were saved"
             )
         model = cls(cfg)
         try:
-            state = load_file(str(w_path), device=str(map_location))
+            state = load_file(str(w_path), device=str(device))
         except SafetensorError as e:
             raise ValueError(f"{w_path}: not a readable safetensors file ({e})") from None
         expected = model.state_dict()
@@ -342,25 +402,24 @@ class VVLocNet(nn.Module):
             f"{k}: checkpoint {tuple(state[k].shape)} vs model {tuple(v.shape)}"
             for k, v in expected.items()
             if k in state and state[k].shape != v.shape
+        ] + [  # load_state_dict would cast them silently (int32 weights truncated)
+            f"{k}: checkpoint {state[k].dtype} vs model {v.dtype}"
+            for k, v in expected.items()
+            if k in state and state[k].dtype != v.dtype
         ]
         if missing or unexpected or wrong:
             raise ValueError(
                 f"{w_path}: weights do not match the architecture of {cfg_path}: "
                 f"missing {missing[:5]}{'…' if len(missing) > 5 else ''}, "
                 f"unexpected {unexpected[:5]}{'…' if len(unexpected) > 5 else ''}, "
-                f"shape mismatches {wrong[:5]}"
+                f"shape or dtype mismatches {wrong[:5]}"
             )
         model.load_state_dict(state)
         cal_path = src / CALIBRATION_FILE
         if cal_path.is_file():
-            cal = _json_object(cal_path)
-            value = cal.get("min_distinctiveness", 0.0)
-            if value is not None and not (isinstance(value, (int, float)) and value >= 0):
-                raise ValueError(
-                    f"{cal_path}: min_distinctiveness must be a number >= 0 or null (accept "
-                    f"nothing), got {value!r}"
-                )
-            model.calibration = calibration_from_json(cal)
+            model.calibration = calibration_from_json(
+                _check_calibration(_json_object(cal_path), cal_path)
+            )
         train_path = src / TRAINING_FILE
         if train_path.is_file():  # informational: a bad record never blocks good weights
             try:
@@ -374,4 +433,4 @@ class VVLocNet(nn.Module):
                 model.training_record = {"runs": record["runs"]}
             except ValueError as e:
                 warnings.warn(f"{e}; the training record is ignored", UserWarning, stacklevel=2)
-        return model.to(map_location).eval()
+        return model.to(device).eval()
