@@ -598,6 +598,18 @@ def test_load_refuses_edited_truncated_or_malformed_checkpoints(tmp_path):
     w_path.write_bytes(good_weights[: len(good_weights) // 2])
     with pytest.raises(ValueError, match="not a readable safetensors file"):
         VVLocNet.load(tmp_path)
+    # a damaged weights file that still parses (a flipped byte inside a tensor) is refused by
+    # the fingerprint config.json records; a checkpoint saved before it recorded one loads
+    damaged = bytearray(good_weights)
+    damaged[-7] ^= 0x10
+    w_path.write_bytes(bytes(damaged))
+    with pytest.raises(ValueError, match=r"model.safetensors: its weights' fingerprint .* damaged"):
+        VVLocNet.load(tmp_path)
+    meta = json.loads(good_meta)
+    assert meta["weights_hash"] == model.weights_hash()
+    del meta["weights_hash"]
+    meta_path.write_text(json.dumps(meta))
+    VVLocNet.load(tmp_path)  # an older checkpoint: nothing to check against
 
 
 def test_a_float64_model_encodes_in_float64():

@@ -279,7 +279,8 @@ class VVLocNet(nn.Module):
     # --- checkpoints -----------------------------------------------------------------------
 
     def save(self, directory: str | os.PathLike[str]) -> Path:
-        """Write ``model.safetensors``, ``config.json`` (format, version, config, hash), when
+        """Write ``model.safetensors``, ``config.json`` (format, version, config, its hash and
+        the weights' :meth:`weights_hash`, which :meth:`load` checks), when
         the model is calibrated ``calibration.json``, and when it has a training record
         ``training.json`` (:mod:`vvloc.provenance`, stamped with :meth:`weights_hash`) into
         ``directory`` (created if needed).
@@ -306,6 +307,8 @@ class VVLocNet(nn.Module):
             "version": CONFIG_VERSION,
             "config_hash": self.config_hash(),
             "config": self.config.to_dict(),
+            # checked by load: a damaged or swapped weights file is refused, not used
+            "weights_hash": self.weights_hash(),
         }
         tensors = {k: v.detach().cpu().contiguous() for k, v in self.state_dict().items()}
         # Everything is serialised before any file is touched (a calibration or record that
@@ -338,9 +341,11 @@ class VVLocNet(nn.Module):
         config that lacks fields or whose hash is not the one recorded (an edited
         ``config.json``: fields such as ``num_angles`` or ``grid_size`` shape no weight, so
         only the hash tells), weights that do not match the architecture (names, shapes and
-        dtypes listed: they are never cast), or a calibration whose fields the localizer reads
-        are malformed. A ``training.json`` that is malformed or describes other weights is
-        ignored with a ``UserWarning`` (it is informational; the weights load)."""
+        dtypes listed: they are never cast), weights whose fingerprint is not the one
+        ``config.json`` records (a damaged file; checkpoints saved before 2026-12-05 record
+        none), or a calibration whose fields the localizer reads are malformed. A
+        ``training.json`` that is malformed or describes other weights is ignored with a
+        ``UserWarning`` (it is informational; the weights load)."""
         device = resolve_device(map_location, argument="map_location")
         src = Path(directory)
         cfg_path, w_path = src / CONFIG_FILE, src / WEIGHTS_FILE
@@ -415,6 +420,13 @@ class VVLocNet(nn.Module):
                 f"shape or dtype mismatches {wrong[:5]}"
             )
         model.load_state_dict(state)
+        recorded = meta.get("weights_hash")  # absent from checkpoints saved before 2026-12-05
+        if recorded is not None and recorded != model.weights_hash():
+            raise ValueError(
+                f"{w_path}: its weights' fingerprint {model.weights_hash()[:16]} is not the one "
+                f"{cfg_path} records ({str(recorded)[:16]}): a damaged weights file, or one "
+                "from another checkpoint"
+            )
         cal_path = src / CALIBRATION_FILE
         if cal_path.is_file():
             model.calibration = calibration_from_json(
