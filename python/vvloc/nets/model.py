@@ -295,20 +295,24 @@ class VVLocNet(nn.Module):
                 "training_record: expected {} or {'runs': [...]} (vvloc.provenance), got "
                 f"{self.training_record!r:.80}"
             )
-        not_f32 = sorted({str(v.dtype) for v in self.state_dict().values()} - {"torch.float32"})
+        not_f32 = sorted(
+            {str(v.dtype) for v in self.state_dict().values() if v.is_floating_point()}
+            - {"torch.float32"}
+        )
         if not_f32:
             raise TypeError(
                 f"the model holds {not_f32} tensors: save a float32 model (model.float()); "
                 "load gives float32, and the weights fingerprint would differ"
             )
         out = Path(directory)
+        weights = self.weights_hash()
         meta = {
             "format": CHECKPOINT_FORMAT,
             "version": CONFIG_VERSION,
             "config_hash": self.config_hash(),
             "config": self.config.to_dict(),
             # checked by load: a damaged or swapped weights file is refused, not used
-            "weights_hash": self.weights_hash(),
+            "weights_hash": weights,
         }
         tensors = {k: v.detach().cpu().contiguous() for k, v in self.state_dict().items()}
         # Everything is serialised before any file is touched (a calibration or record that
@@ -322,7 +326,7 @@ class VVLocNet(nn.Module):
         if self.calibration:
             files[CALIBRATION_FILE] = calibration_json(self.calibration).encode()
         if self.training_record:
-            files[TRAINING_FILE] = record_json(self.weights_hash(), runs).encode()
+            files[TRAINING_FILE] = record_json(weights, runs).encode()
         out.mkdir(parents=True, exist_ok=True)
         write_together(out, files)
         for stale in (CALIBRATION_FILE, TRAINING_FILE):  # would describe other weights
@@ -420,10 +424,11 @@ class VVLocNet(nn.Module):
                 f"shape or dtype mismatches {wrong[:5]}"
             )
         model.load_state_dict(state)
+        mine = model.weights_hash()
         recorded = meta.get("weights_hash")  # absent from checkpoints saved before 2026-12-05
-        if recorded is not None and recorded != model.weights_hash():
+        if recorded is not None and recorded != mine:
             raise ValueError(
-                f"{w_path}: its weights' fingerprint {model.weights_hash()[:16]} is not the one "
+                f"{w_path}: its weights' fingerprint {mine[:16]} is not the one "
                 f"{cfg_path} records ({str(recorded)[:16]}): a damaged weights file, or one "
                 "from another checkpoint"
             )
@@ -436,7 +441,7 @@ class VVLocNet(nn.Module):
         if train_path.is_file():  # informational: a bad record never blocks good weights
             try:
                 record = read_record(train_path)
-                theirs, mine = record["weights_hash"], model.weights_hash()
+                theirs = record["weights_hash"]
                 if theirs != mine:
                     raise ValueError(
                         f"{train_path}: describes other weights (weights_hash {theirs[:16]}, "
