@@ -83,7 +83,7 @@ model-v3:
 
 # the committed model's test (models/synth-small/MODEL_CARD.md, "Against the issue's targets")
 # on CHECKPOINT (default: what `make model` trained): renders the three test datasets when they
-# are missing (≈ 6-11 min each on 2 cores), evaluates (≈ 18 min) into TEST_OUT and prints the
+# are missing (≈ 6-11 min each on 2 cores), evaluates (≈ 8 min) into TEST_OUT and prints the
 # issue's figures against their targets (`vvloc targets`; TEST_OUT/targets.json)
 CHECKPOINT ?= runs/synth-small-local
 TEST_OUT ?= runs/model-test
