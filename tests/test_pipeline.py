@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import inspect
+import json
 import shutil
 import subprocess
 import sys
@@ -661,6 +662,23 @@ def test_evaluation_breaks_recall_down_by_query_session(tiny_world, model_dir, t
         # the sessions' correct top-1 add up to the whole's
         assert sum(int(p.correct(1, 2.0).sum()) for p in parts) == int(whole.correct(1, 2.0).sum())
     assert "## Global localization per query session" in (tmp_path / "ev" / "report.md").read_text()
+    # a run into that folder that fails (or is stopped) after its map is built leaves the
+    # earlier report whole: map, queries, figures and report as they were, nothing hidden
+    import vvloc.localize.evaluation as ev
+
+    before = {p.name: p.read_bytes() for p in (tmp_path / "ev").iterdir()}
+    real_localizer = ev.Localizer
+
+    def stopped(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    ev.Localizer = stopped  # type: ignore[assignment]
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            run_evaluation(model_dir, tiny_world, "s1", ["s2"], tmp_path / "ev", **kw)
+    finally:
+        ev.Localizer = real_localizer  # type: ignore[misc]
+    assert {p.name: p.read_bytes() for p in (tmp_path / "ev").iterdir()} == before
     # robustness: the whole localizer under each perturbation, the same metrics as clean
     (tmp_path / "rob").mkdir()
     (tmp_path / "rob" / "precision_recall.png").write_bytes(b"an earlier run's loop figure")
@@ -757,6 +775,33 @@ def test_cli_refuses_misleading_inputs_before_any_work(tiny_world, map_file, mod
     r = run("eval", *ck, "--database", "s0", "--queries", "s1", "--out", str(blocker))
     assert r.returncode == 2 and "--out:" in r.stderr and "is a file" in r.stderr
     assert blocker.read_text() == "keep"
+    # ... and so is one below a file (localize said so after localizing every frame)
+    below = blocker / "sub"
+    r = run("localize", "--map", str(map_file), *ck, "--session", "s1", "--out", str(below))
+    assert r.returncode == 2 and f"--out: {below} lies below {blocker}" in r.stderr, r.stderr
+    # outputs inside the dataset would break it (a report folder among its sessions)
+    inside = tiny_world / "sessions" / "s9"
+    for cmd in (["eval", *ck, "--database", "s0", "--queries", "s1"],
+                ["localize", "--map", str(map_file), *ck, "--session", "s1"]):  # fmt: skip
+        r = run(*cmd, "--out", str(inside))
+        assert r.returncode == 2 and "lies inside the dataset" in r.stderr, r.stderr
+    assert not inside.exists()
+    # the demo checks its checkpoint and its --out before rendering minutes of world
+    r = run("demo", "--out", str(tmp_path / "d"), "--checkpoint", str(tmp_path / "nothing"))
+    assert r.returncode == 2 and "--checkpoint:" in r.stderr and "rendering" not in r.stdout
+    r = run("demo", "--out", str(blocker))
+    assert r.returncode == 2 and "--out:" in r.stderr and "rendering" not in r.stdout
+    # ... and never replaces a dataset it did not render
+    mine = tmp_path / "d2"
+    shutil.copytree(tiny_world, mine / "data")
+    rig = json.loads((mine / "data" / "rig.json").read_text())
+    rig["meta"] = {"source": "a user's own drives"}  # not a parking world vvloc sim rendered
+    (mine / "data" / "rig.json").write_text(json.dumps(rig))
+    r = run("demo", "--out", str(mine), "--frames", "10")
+    assert r.returncode == 2 and "holds a dataset the demo did not render" in r.stderr
+    assert sorted(p.name for p in (mine / "data" / "sessions").iterdir()) == sorted(
+        p.name for p in (tiny_world / "sessions").iterdir()
+    )
     # --overwrite replaces a dataset, never another folder
     notes = tmp_path / "notes"
     notes.mkdir()
@@ -766,7 +811,11 @@ def test_cli_refuses_misleading_inputs_before_any_work(tiny_world, map_file, mod
     assert (notes / "todo.txt").read_text() == "mine"
     r = run("sim", "--out", str(blocker), "--sessions", "1", "--frames", "2", "--overwrite")
     assert r.returncode == 2 and "is a file" in r.stderr
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["file.txt", "notes"]  # no .partial-*
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        "d2",
+        "file.txt",
+        "notes",
+    ]  # no .partial-*
     # malformed YAML and a --resume with nothing to resume: one line, exit 2
     bad = tmp_path / "bad.yaml"
     bad.write_text("dataset: [unclosed\n")

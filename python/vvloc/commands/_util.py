@@ -139,8 +139,20 @@ def split_names(text: str) -> list[str]:
     return [s.strip() for s in text.split(",") if s.strip()]
 
 
-def check_out_folder(out: Path, option: str = "--out") -> None:
-    """``NotADirectoryError`` naming ``option`` when ``out`` exists and is not a folder: said
-    before any work, not after it."""
-    if out.exists() and not out.is_dir():
-        raise NotADirectoryError(f"{option}: {out} exists and is a file; expected a folder")
+def check_out_folder(out: Path, option: str = "--out", *, outside: Path | None = None) -> None:
+    """Said before any work, not after it: ``NotADirectoryError`` naming ``option`` when
+    ``out``, or a folder above it, exists and is not a folder; ``ValueError`` when ``out`` is
+    or lies inside ``outside`` (the dataset, whose folders the outputs would corrupt)."""
+    for p in (out, *out.parents):
+        if p.exists():
+            if not p.is_dir():
+                what = "exists" if p == out else f"lies below {p}, which exists"
+                raise NotADirectoryError(f"{option}: {out} {what} and is a file; expected a folder")
+            break
+    if outside is not None:
+        o, d = out.resolve(), outside.resolve()
+        if o == d or d in o.parents:
+            raise ValueError(
+                f"{option}: {out} is or lies inside the dataset {outside}; write outputs to a "
+                "folder of their own"
+            )

@@ -11,7 +11,7 @@ from typing import Annotated
 
 import typer
 
-from vvloc.commands._util import cli_errors
+from vvloc.commands._util import check_out_folder, cli_errors
 
 #: Where the committed trained small model lives (relative to the repository root).
 DEFAULT_MODEL = Path(__file__).resolve().parents[3] / "models" / "synth-small"
@@ -51,6 +51,18 @@ def _reusable(data: Path, frames: int, seed: int) -> bool:
         return False
 
 
+def _ours_to_replace(data: Path) -> bool:
+    """Whether the demo may (re)render ``data``: it is missing or empty, or a parking world
+    that ``vvloc sim`` rendered (another dataset there is never replaced)."""
+    if not data.exists() or (data.is_dir() and not any(data.iterdir())):
+        return True
+    try:
+        meta = json.loads((data / "rig.json").read_text()).get("meta", {})
+    except (OSError, ValueError, AttributeError):
+        return False
+    return meta.get("generator") == "vvloc.sim" and meta.get("scene") == "parking"
+
+
 def status_warning(card: str) -> str | None:
     """The warning for a model card whose first line (``Status: ...``, any case, Markdown
     emphasis allowed) does not say OK; None when it does."""
@@ -72,14 +84,27 @@ def demo(
     seed: Annotated[int, typer.Option("--seed", help="World seed.")] = 0,
 ) -> None:
     """Map session s0 (day); held-out query sessions s3 (rain, reversed) and s4 (fog, +1.5 m)."""
+    from vvloc.checkpoints import resolve_checkpoint
     from vvloc.localize.evaluation import run_evaluation
     from vvloc.nets import ModelConfig, VVLocNet
     from vvloc.sim import simulate_dataset
 
     t0 = time.perf_counter()
     with cli_errors("demo"):
+        check_out_folder(out)
         data = out / "data"
+        if checkpoint is not None:  # checked before minutes of rendering; a run folder works
+            checkpoint = resolve_checkpoint(checkpoint)
+            try:
+                VVLocNet.load(checkpoint)
+            except (FileNotFoundError, ValueError) as e:
+                raise ValueError(f"--checkpoint: {e}") from None
         if not _reusable(data, frames, seed):
+            if not _ours_to_replace(data):
+                raise FileExistsError(
+                    f"--out: {data} holds a dataset the demo did not render; the demo renders "
+                    "its world there, so choose another --out"
+                )
             typer.echo(
                 f"rendering a synthetic parking lot ({frames} keyframes x {SESSIONS} sessions)..."
             )

@@ -71,7 +71,7 @@ def localize(
     from vvloc.localize.localizer import Localizer
 
     with cli_errors("localize"):
-        check_out_folder(out)
+        check_out_folder(out, outside=dataset)
         loc = Localizer.open(
             map_path,
             resolve_checkpoint(checkpoint),
@@ -85,6 +85,8 @@ def localize(
             snap=snap,
         )
         sess = open_dataset(dataset).session(session)
+        if len(sess) == 0:
+            raise ValueError(f"--session: session {session!r} of {dataset} has no frames")
         frames = list(sess)
         results = loc.localize_batch(frames, progress=True)
         out.mkdir(parents=True, exist_ok=True)

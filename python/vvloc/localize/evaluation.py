@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import logging
 import os
+import secrets
+import shutil
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -82,6 +84,24 @@ FIGURE_FILES = (
     "precision_recall.png",
     "confidence_curve.png",
 )
+
+
+#: The hidden folder inside a report folder that :func:`run_evaluation` writes into.
+_STAGE_PREFIX = ".vvloc-eval-partial-"
+#: Every file a report folder may hold from :func:`run_evaluation` (the report names last).
+REPORT_FILES = ("map.h5", LOOPS_MAP, "queries.csv", *FIGURE_FILES, "report.json", "report.md")
+
+
+def _move_report(work: Path, out_dir: Path) -> None:
+    """Move the finished report in ``work`` into ``out_dir``: the files of an earlier report
+    this run did not write (a figure it did not draw, the loop map of a run with ``--loops``)
+    are removed, then each new file replaces its namesake (renames, within one folder)."""
+    made = {p.name for p in work.iterdir()}
+    for name in REPORT_FILES:
+        if name not in made:
+            (out_dir / name).unlink(missing_ok=True)
+    for name in sorted(made, key=lambda n: REPORT_FILES.index(n) if n in REPORT_FILES else -1):
+        os.replace(work / name, out_dir / name)
 
 
 def perturbed(frame: Frame, label: str) -> Frame:
@@ -349,270 +369,291 @@ def run_evaluation(
                 f"{name!r} of {dataset} has no frames"
             )
     out_dir.mkdir(parents=True, exist_ok=True)  # after the inputs are checked: none left on error
-    map_path = build_map(
-        model, ds, [database], out_dir / "map.h5", store_bev=False, progress=progress
-    )
-    mapdb = MapDatabase.open(map_path, expected_config_hash=model.config_hash())
-    loc = Localizer(
-        model,
-        mapdb,
-        top_k=top_k,
-        search=search,
-        metric_candidates=metric_candidates,
-        metric_from=metric_from,
-        retrieval_weight=retrieval_weight,
-        snap=snap,
-    )
-    frames = [ds.session(s)[i] for s in queries for i in range(0, len(ds.session(s)), every)]
-    results = loc.localize_batch(frames, progress=progress)
-
-    q_pose = np.stack([f.pose for f in frames])
-    q_floor = np.array([f.floor for f in frames])
-    db_pose = np.asarray(mapdb.poses)
-    db_floor = np.asarray(mapdb.floors)
-    k = min(top_k, len(mapdb))
-    retrieved = _ranked(results, "retrieved", k)
-    reranked = _ranked(results, "reranked", k)
-    top_n = tuple(n for n in (1, 5) if n <= k)
-    kw = {"query_floors": q_floor, "db_floors": db_floor, "top_n": top_n}
-    rec_g = evaluate.recall_at_n(q_pose[:, :2], db_pose[:, :2], retrieved, **kw)
-    rec_ml = evaluate.recall_at_n(q_pose[:, :2], db_pose[:, :2], reranked, **kw)
-    per_session: dict[str, Any] = {}
-    if len(queries) > 1:
-        q_session = np.array([f.session for f in frames])
-        for s in queries:
-            sel = q_session == s
-            for label, ranked in (("VVLoc-G", retrieved), ("VVLoc-ML", reranked)):
-                per_session[f"{s}, {label}"] = evaluate.recall_at_n(
-                    q_pose[sel, :2],
-                    db_pose[:, :2],
-                    ranked[sel],
-                    query_floors=q_floor[sel],
-                    db_floors=db_floor,
-                    top_n=top_n,
-                )
-    est = np.stack([r.global_pose for r in results])
-    correct = rec_ml.correct(1, 2.0)
-    on_floor = _on_floor(results, db_floor, q_floor)
-    pose_acc = evaluate.pose_accuracy(est, q_pose, correct, kept=rec_ml.kept, same_floor=on_floor)
-    stages = ("encode", "retrieve", "rerank", "metric")
-    latency = evaluate.latency_summary(
-        {s: [r.timings_ms.get(s, np.nan) for r in results] for s in stages}
-    )
-    accepted = np.array([r.accepted for r in results], dtype=bool)
-    kept_acc = accepted & rec_ml.kept
-    rule = f"cost < {loc.accept_threshold}"
-    if loc.min_distinctiveness > 0:
-        rule += f" and distinctiveness >= {loc.min_distinctiveness:.4g} (the model's calibration)"
-    acc_precision = evaluate._ratio(float((kept_acc & correct).sum()), float(kept_acc.sum()))
-    notes = [
-        f"{len(frames)} queries from {list(queries)}, map = {database} ({len(mapdb)} keyframes)"
-        + (
-            f"; **queries {seen} were trained on** (the checkpoint's training record): not a "
-            "held-out test"
-            if seen
-            else ""
-        ),
-        f"accepted ({rule}): {accepted.mean():.1%} of all queries; top-1 within 2 m among the "
-        f"accepted kept queries: {_share(acc_precision, 'none accepted')} (among all kept: "
-        f"{_share(rec_ml.at(1, 2.0), 'none kept')})",
-    ]
-    ml = f"VVLoc-ML: the top-{k} re-ranked by yaw matching cost"
-    if loc.metric_candidates > 1:
-        source = "retrieved" if loc.metric_from == "retrieval" else "re-ranked"
-        ml += (
-            f", then the first {loc.metric_candidates} {source} candidates put first, ordered "
-            "by the cost of the coarse translation search against each"
-            + (
-                f" plus {loc.retrieval_weight:g} × its global-descriptor distance"
-                if loc.retrieval_weight > 0
-                else ""
-            )
-            + " (the lowest refined by the fine stages)"
+    # Everything is written into a hidden folder inside ``out`` and moved into place at the
+    # end: a run that fails or is stopped leaves an earlier report in ``out`` as it was (its
+    # map, queries and figures were replaced one by one before, under the old report).
+    for stale in out_dir.glob(f"{_STAGE_PREFIX}*"):  # of a run killed outright
+        shutil.rmtree(stale, ignore_errors=True)
+    work = out_dir / f"{_STAGE_PREFIX}{secrets.token_hex(6)}"
+    work.mkdir()
+    mapdb: MapDatabase | None = None
+    try:
+        map_path = build_map(
+            model, ds, [database], work / "map.h5", store_bev=False, progress=progress
         )
-    elif loc.metric_from == "retrieval":
-        ml += ", then the first retrieved candidate put first (the metric pose's keyframe)"
-    if loc.snap:
-        ml += (
-            "; the reported top-1 is the retrieved keyframe nearest to the metric pose "
-            "(snapping, same floor)"
-        )
-    notes.append(ml)
-    if loops:
-        notes.append(
-            f"loop closure over all frames of {[database, *queries]}: pairs within "
-            f"{loop_radius} in descriptor distance, same-session pairs within 10 keyframes "
-            f"excluded; the {loop_pairs} closest verified metrically"
-        )
-        if loop_sequence > 0:
-            notes.append(
-                f"VVLoc + sequence (±{loop_sequence} keyframes): a pair is kept only if the "
-                f"mean descriptor distance of its {2 * loop_sequence + 1} neighbouring keyframe "
-                "pairs (i + k, j ± k), in the better traversal direction, is below the "
-                "threshold as well (vvloc.localize.loops.sequence_distance)"
-            )
-        notes.append(
-            f"VVLoc + {FLOORS}: a pair is kept only if it agrees with the floors of the map's "
-            "sessions, in each session's own numbering: within one session the two keyframes' "
-            "floor numbers must be equal; for two sessions, the offset between their numbers "
-            "that the pair implies must be the one most single-keyframe pairs within "
-            f"{FLOOR_VOTE_FACTOR * loop_radius:g} vote for (at least {FLOOR_MIN_VOTES} votes and "
-            f"{FLOOR_MARGIN:g} × any other offset's, never a tie; otherwise none of the two "
-            "sessions' pairs is kept; two sessions that each hold one floor number are not "
-            "judged) "
-            "(vvloc.localize.loops.floor_consensus); the precision-recall sweep keeps the pairs "
-            "of these offsets. The check reads the floor numbers the sessions record, here the "
-            "labels CFER is scored against: its rows are not the paper's visual CFER"
-        )
-    if untrained_warning:
-        notes.insert(0, untrained_warning)
-    metrics: dict[str, Any] = {
-        "meta": {
-            "checkpoint": str(checkpoint),
-            "dataset": str(dataset),
-            # the world it was rendered from (vvloc sim's rig.json meta; None for other data)
-            "scene": {
-                k: ds.meta[k] for k in ("scene", "seed", "floors", "floor_marking") if k in ds.meta
-            }
-            or None,
-            "database": database,
-            "queries": ",".join(queries),
-            "model_config_hash": model.config_hash(),
-            "model_weights_hash": model.weights_hash(),
-            "top_k": k,
-            "metric_candidates": loc.metric_candidates,
-            "metric_from": loc.metric_from,
-            "retrieval_weight": loc.retrieval_weight,
-            "snap": loc.snap,
-            "device": device,
-            "hardware": hardware(),
-            "cpu": cpu_model(),
-            "torch_threads": torch.get_num_threads(),
-            "trained_on": summarize(model.training_record),
-        },
-        "training": model.training_record or None,
-        "global_localization": {"VVLoc-G": rec_g, "VVLoc-ML": rec_ml},
-        "per_session": per_session,
-        "pose_accuracy": {"VVLoc-ML": pose_acc},
-        "latency": latency,
-        "notes": notes,
-        "accepted_share": float(accepted.mean()),
-        "accepted_precision": acc_precision,
-        "min_distinctiveness": loc.min_distinctiveness,
-    }
-
-    if robustness:
-        metrics["robustness"], metrics["robustness_pose"] = _robustness(
-            loc, frames, q_pose, q_floor, db_pose, db_floor, k, progress
-        )
-        notes.append(
-            "robustness: the whole localizer on perturbed copies of the queries (map clean; "
-            "random choices drawn per query frame): "
-            + ", ".join(f"{label} ({name} {args})" for label, (name, args) in ROBUSTNESS.items())
-        )
-    if loops:
-        metrics["loop_closure"], metrics["loop_pose"], sweep, over = _loops(
+        mapdb = MapDatabase.open(map_path, expected_config_hash=model.config_hash())
+        loc = Localizer(
             model,
-            ds,
-            [database, *queries],
-            out_dir,
-            loop_pairs,
-            search,
-            progress,
-            loop_radius,
-            loop_sequence,
-            loop_sweep_pairs,
+            mapdb,
+            top_k=top_k,
+            search=search,
+            metric_candidates=metric_candidates,
+            metric_from=metric_from,
+            retrieval_weight=retrieval_weight,
+            snap=snap,
         )
-        metrics["loop_sweep_radius"] = sweep
-        if over:
-            notes.append(
-                f"loop precision-recall sweep (best F1) over the pairs within the acceptance "
-                f"radius {loop_radius} only, and those are more than about "
-                f"{loop_sweep_pairs:,} pairs (the loop_sweep_pairs memory bound)"
-            )
-        elif sweep < LOOP_SWEEP_RADIUS:
-            notes.append(
-                f"loop precision-recall sweep (best F1) over the pairs within descriptor distance "
-                f"{sweep:.4g} only, not {LOOP_SWEEP_RADIUS}: about {loop_sweep_pairs:,} pairs, "
-                "the loop_sweep_pairs memory bound"
-            )
+        frames = [ds.session(s)[i] for s in queries for i in range(0, len(ds.session(s)), every)]
+        results = loc.localize_batch(frames, progress=progress)
 
-    # per-query CSV
-    yaw_err, pos_err = evaluate.pose_errors(est, q_pose)
-    lines = [
-        "# vvloc evaluation per query. Poses: world frame x east, y north (m), yaw CCW from east"
-        " (deg). cost: matching cost (lower is better).",
-        "session,index,map_row,est_x,est_y,est_yaw_deg,gt_x,gt_y,gt_yaw_deg,pos_err_m,"
-        "yaw_err_deg,cost,accepted,top1_correct,distinctiveness,metric_row",
-    ]
-    for f, r, e, g, pe, ye, c in zip(
-        frames, results, est, q_pose, pos_err, yaw_err, correct, strict=True
-    ):
-        lines.append(
-            f"{f.session},{f.index},{r.map_row},{e[0]:.4f},{e[1]:.4f},{np.degrees(e[2]):.3f},"
-            f"{g[0]:.4f},{g[1]:.4f},{np.degrees(g[2]):.3f},{pe:.4f},{ye:.3f},{r.cost:.5f},"
-            f"{int(r.accepted)},{int(c)},{r.distinctiveness:.5f},{r.metric_row}"
+        q_pose = np.stack([f.pose for f in frames])
+        q_floor = np.array([f.floor for f in frames])
+        db_pose = np.asarray(mapdb.poses)
+        db_floor = np.asarray(mapdb.floors)
+        k = min(top_k, len(mapdb))
+        retrieved = _ranked(results, "retrieved", k)
+        reranked = _ranked(results, "reranked", k)
+        top_n = tuple(n for n in (1, 5) if n <= k)
+        kw = {"query_floors": q_floor, "db_floors": db_floor, "top_n": top_n}
+        rec_g = evaluate.recall_at_n(q_pose[:, :2], db_pose[:, :2], retrieved, **kw)
+        rec_ml = evaluate.recall_at_n(q_pose[:, :2], db_pose[:, :2], reranked, **kw)
+        per_session: dict[str, Any] = {}
+        if len(queries) > 1:
+            q_session = np.array([f.session for f in frames])
+            for s in queries:
+                sel = q_session == s
+                for label, ranked in (("VVLoc-G", retrieved), ("VVLoc-ML", reranked)):
+                    per_session[f"{s}, {label}"] = evaluate.recall_at_n(
+                        q_pose[sel, :2],
+                        db_pose[:, :2],
+                        ranked[sel],
+                        query_floors=q_floor[sel],
+                        db_floors=db_floor,
+                        top_n=top_n,
+                    )
+        est = np.stack([r.global_pose for r in results])
+        correct = rec_ml.correct(1, 2.0)
+        on_floor = _on_floor(results, db_floor, q_floor)
+        pose_acc = evaluate.pose_accuracy(
+            est, q_pose, correct, kept=rec_ml.kept, same_floor=on_floor
         )
-    with atomic_write(out_dir / "queries.csv") as f:
-        f.write("\n".join(lines) + "\n")
+        stages = ("encode", "retrieve", "rerank", "metric")
+        latency = evaluate.latency_summary(
+            {s: [r.timings_ms.get(s, np.nan) for r in results] for s in stages}
+        )
+        accepted = np.array([r.accepted for r in results], dtype=bool)
+        kept_acc = accepted & rec_ml.kept
+        rule = f"cost < {loc.accept_threshold}"
+        if loc.min_distinctiveness > 0:
+            rule += (
+                f" and distinctiveness >= {loc.min_distinctiveness:.4g} (the model's calibration)"
+            )
+        acc_precision = evaluate._ratio(float((kept_acc & correct).sum()), float(kept_acc.sum()))
+        notes = [
+            f"{len(frames)} queries from {list(queries)}, map = {database} ({len(mapdb)} keyframes)"
+            + (
+                f"; **queries {seen} were trained on** (the checkpoint's training record): not a "
+                "held-out test"
+                if seen
+                else ""
+            ),
+            f"accepted ({rule}): {accepted.mean():.1%} of all queries; top-1 within 2 m among the "
+            f"accepted kept queries: {_share(acc_precision, 'none accepted')} (among all kept: "
+            f"{_share(rec_ml.at(1, 2.0), 'none kept')})",
+        ]
+        ml = f"VVLoc-ML: the top-{k} re-ranked by yaw matching cost"
+        m_used = min(loc.metric_candidates, k)  # the localizer takes no more than it retrieved
+        if m_used > 1:
+            source = "retrieved" if loc.metric_from == "retrieval" else "re-ranked"
+            ml += (
+                f", then the first {m_used} {source} candidates put first, ordered "
+                "by the cost of the coarse translation search against each"
+                + (
+                    f" plus {loc.retrieval_weight:g} × its global-descriptor distance"
+                    if loc.retrieval_weight > 0
+                    else ""
+                )
+                + " (the lowest refined by the fine stages)"
+            )
+        elif loc.metric_from == "retrieval":
+            ml += ", then the first retrieved candidate put first (the metric pose's keyframe)"
+        if loc.snap:
+            ml += (
+                "; the reported top-1 is the retrieved keyframe nearest to the metric pose "
+                "(snapping, same floor)"
+            )
+        notes.append(ml)
+        if loops:
+            notes.append(
+                f"loop closure over all frames of {[database, *queries]}: pairs within "
+                f"{loop_radius} in descriptor distance, same-session pairs within 10 keyframes "
+                f"excluded; the {loop_pairs} closest verified metrically"
+            )
+            if loop_sequence > 0:
+                notes.append(
+                    f"VVLoc + sequence (±{loop_sequence} keyframes): a pair is kept only if the "
+                    f"mean descriptor distance of its {2 * loop_sequence + 1} neighbouring "
+                    "keyframe pairs (i + k, j ± k), in the better traversal direction, is below "
+                    "the threshold as well (vvloc.localize.loops.sequence_distance)"
+                )
+            notes.append(
+                f"VVLoc + {FLOORS}: a pair is kept only if it agrees with the floors of the map's "
+                "sessions, in each session's own numbering: within one session the two keyframes' "
+                "floor numbers must be equal; for two sessions, the offset between their numbers "
+                "that the pair implies must be the one most single-keyframe pairs within "
+                f"{FLOOR_VOTE_FACTOR * loop_radius:g} vote for (at least {FLOOR_MIN_VOTES} votes "
+                "and "
+                f"{FLOOR_MARGIN:g} × any other offset's, never a tie; otherwise none of the two "
+                "sessions' pairs is kept; two sessions that each hold one floor number are not "
+                "judged) "
+                "(vvloc.localize.loops.floor_consensus); the precision-recall sweep keeps the "
+                "pairs of these offsets. The check reads the floor numbers the sessions record, "
+                "here the labels CFER is scored against: its rows are not the paper's visual CFER"
+            )
+        if untrained_warning:
+            notes.insert(0, untrained_warning)
+        metrics: dict[str, Any] = {
+            "meta": {
+                "checkpoint": str(checkpoint),
+                "dataset": str(dataset),
+                # the world it was rendered from (vvloc sim's rig.json meta; None for other data)
+                "scene": {
+                    k: ds.meta[k]
+                    for k in ("scene", "seed", "floors", "floor_marking")
+                    if k in ds.meta
+                }
+                or None,
+                "database": database,
+                "queries": ",".join(queries),
+                "model_config_hash": model.config_hash(),
+                "model_weights_hash": model.weights_hash(),
+                "every": every,
+                "top_k": k,
+                "metric_candidates": m_used,
+                "metric_from": loc.metric_from,
+                "retrieval_weight": loc.retrieval_weight,
+                "snap": loc.snap,
+                "device": device,
+                "hardware": hardware(),
+                "cpu": cpu_model(),
+                "torch_threads": torch.get_num_threads(),
+                "trained_on": summarize(model.training_record),
+            },
+            "training": model.training_record or None,
+            "global_localization": {"VVLoc-G": rec_g, "VVLoc-ML": rec_ml},
+            "per_session": per_session,
+            "pose_accuracy": {"VVLoc-ML": pose_acc},
+            "latency": latency,
+            "notes": notes,
+            "accepted_share": float(accepted.mean()),
+            "accepted_precision": acc_precision,
+            "min_distinctiveness": loc.min_distinctiveness,
+        }
 
-    for name in FIGURE_FILES:  # a figure this run does not draw must not outlive its report
-        (out_dir / name).unlink(missing_ok=True)
-    if not loops:  # nor the loop map of an earlier run (perhaps of another model)
-        (out_dir / LOOPS_MAP).unlink(missing_ok=True)
-    figures = {}
-    figures["Recall@N at 2 m"] = viz.plot_recall_curves(
-        out_dir / "recall.png", {"VVLoc-G": rec_g.curve(2.0), "VVLoc-ML": rec_ml.curve(2.0)}
-    )
-    sel = correct & rec_ml.kept
-    subsets = {
-        "top-1 true revisits": sel,
-        "all kept queries on their floor": rec_ml.kept & on_floor,
-    }
-    figures["Error CDFs"] = viz.plot_error_cdfs(
-        out_dir / "error_cdf.png",
-        {f"VVLoc-ML, {k}": yaw_err[m] for k, m in subsets.items()},
-        {f"VVLoc-ML, {k}": pos_err[m] for k, m in subsets.items()},
-    )
-    figures["Trajectory"] = viz.plot_trajectory(
-        out_dir / "trajectory.png", db_pose[:, :2], q_pose[:, :2], correct, kept=rec_ml.kept
-    )
-    sample = int(np.argmax(sel)) if sel.any() else 0
-    h = results[sample].search
-    if h is not None and len(h.cost):
-        # the search shifts the query's BEV: its hypotheses are ξ_{q→m} translations against
-        # the keyframe it was run on (metric_row)
-        truth = geometry.relative(q_pose[sample], db_pose[int(results[sample].metric_row)])
-        figures["Translation cost (sample query)"] = viz.plot_translation_costs(
-            out_dir / "translation_costs.png",
-            h.xy,
-            h.cost,
-            estimate=h.xy[int(np.argmin(h.cost))],
-            truth=truth[:2],
-        )
-    if len(results):
-        r = results[sample]
-        dev = model_device(loc.model)
-        with torch.no_grad():  # the model's device (a CUDA model used to fail here)
-            a, b = loc.model.interact(
-                torch.from_numpy(loc_desc_of(loc, frames[sample]))[None].to(dev),
-                torch.from_numpy(mapdb.local_descriptors(int(r.metric_row)))[None].to(dev),
+        if robustness:
+            metrics["robustness"], metrics["robustness_pose"] = _robustness(
+                loc, frames, q_pose, q_floor, db_pose, db_floor, k, progress
             )
-        curve = kernels.yaw_costs(a, b)[0]  # the gateway takes tensors to the CPU
-        true_rel = geometry.relative(q_pose[sample], db_pose[int(r.metric_row)])
-        figures["Yaw cost curve (sample query, no padding)"] = viz.plot_yaw_cost_curve(
-            out_dir / "yaw_cost_curve.png", curve, true_yaw=float(true_rel[2])
-        )
-    if loops:
-        figures["Loop closure precision-recall"] = viz.plot_precision_recall(
-            out_dir / "precision_recall.png",
-            {name: res["sweep"] for name, res in metrics["loop_closure"].items()},
-        )
-        name, res = next(iter(metrics["loop_pose"].items()))
-        if len(res["confidence_curve"]["threshold"]):
-            figures[f"Confidence curve ({name}, verified pairs)"] = viz.plot_confidence_curve(
-                out_dir / "confidence_curve.png", res["confidence_curve"]
+            notes.append(
+                "robustness: the whole localizer on perturbed copies of the queries (map clean; "
+                "random choices drawn per query frame): "
+                + ", ".join(
+                    f"{label} ({name} {args})" for label, (name, args) in ROBUSTNESS.items()
+                )
             )
-    evaluate.write_report(out_dir, metrics, title="vvloc evaluation", figures=figures)
-    mapdb.close()
+        if loops:
+            metrics["loop_closure"], metrics["loop_pose"], sweep, over = _loops(
+                model,
+                ds,
+                [database, *queries],
+                work,
+                loop_pairs,
+                search,
+                progress,
+                loop_radius,
+                loop_sequence,
+                loop_sweep_pairs,
+            )
+            metrics["loop_sweep_radius"] = sweep
+            if over:
+                notes.append(
+                    f"loop precision-recall sweep (best F1) over the pairs within the acceptance "
+                    f"radius {loop_radius} only, and those are more than about "
+                    f"{loop_sweep_pairs:,} pairs (the loop_sweep_pairs memory bound)"
+                )
+            elif sweep < LOOP_SWEEP_RADIUS:
+                notes.append(
+                    "loop precision-recall sweep (best F1) over the pairs within descriptor "
+                    f"distance {sweep:.4g} only, not {LOOP_SWEEP_RADIUS}: about "
+                    f"{loop_sweep_pairs:,} pairs, the loop_sweep_pairs memory bound"
+                )
+
+        # per-query CSV
+        yaw_err, pos_err = evaluate.pose_errors(est, q_pose)
+        lines = [
+            "# vvloc evaluation per query. Poses: world frame x east, y north (m), yaw CCW from "
+            "east (deg). cost: matching cost (lower is better).",
+            "session,index,map_row,est_x,est_y,est_yaw_deg,gt_x,gt_y,gt_yaw_deg,pos_err_m,"
+            "yaw_err_deg,cost,accepted,top1_correct,distinctiveness,metric_row",
+        ]
+        for f, r, e, g, pe, ye, c in zip(
+            frames, results, est, q_pose, pos_err, yaw_err, correct, strict=True
+        ):
+            lines.append(
+                f"{f.session},{f.index},{r.map_row},{e[0]:.4f},{e[1]:.4f},{np.degrees(e[2]):.3f},"
+                f"{g[0]:.4f},{g[1]:.4f},{np.degrees(g[2]):.3f},{pe:.4f},{ye:.3f},{r.cost:.5f},"
+                f"{int(r.accepted)},{int(c)},{r.distinctiveness:.5f},{r.metric_row}"
+            )
+        with atomic_write(work / "queries.csv") as f:
+            f.write("\n".join(lines) + "\n")
+
+        figures = {}
+        figures["Recall@N at 2 m"] = viz.plot_recall_curves(
+            work / "recall.png", {"VVLoc-G": rec_g.curve(2.0), "VVLoc-ML": rec_ml.curve(2.0)}
+        )
+        sel = correct & rec_ml.kept
+        subsets = {
+            "top-1 true revisits": sel,
+            "all kept queries on their floor": rec_ml.kept & on_floor,
+        }
+        figures["Error CDFs"] = viz.plot_error_cdfs(
+            work / "error_cdf.png",
+            {f"VVLoc-ML, {k}": yaw_err[m] for k, m in subsets.items()},
+            {f"VVLoc-ML, {k}": pos_err[m] for k, m in subsets.items()},
+        )
+        figures["Trajectory"] = viz.plot_trajectory(
+            work / "trajectory.png", db_pose[:, :2], q_pose[:, :2], correct, kept=rec_ml.kept
+        )
+        sample = int(np.argmax(sel)) if sel.any() else 0
+        h = results[sample].search
+        if h is not None and len(h.cost):
+            # the search shifts the query's BEV: its hypotheses are ξ_{q→m} translations against
+            # the keyframe it was run on (metric_row)
+            truth = geometry.relative(q_pose[sample], db_pose[int(results[sample].metric_row)])
+            figures["Translation cost (sample query)"] = viz.plot_translation_costs(
+                work / "translation_costs.png",
+                h.xy,
+                h.cost,
+                estimate=h.xy[int(np.argmin(h.cost))],
+                truth=truth[:2],
+            )
+        if len(results):
+            r = results[sample]
+            dev = model_device(loc.model)
+            with torch.no_grad():  # the model's device (a CUDA model used to fail here)
+                a, b = loc.model.interact(
+                    torch.from_numpy(loc_desc_of(loc, frames[sample]))[None].to(dev),
+                    torch.from_numpy(mapdb.local_descriptors(int(r.metric_row)))[None].to(dev),
+                )
+            curve = kernels.yaw_costs(a, b)[0]  # the gateway takes tensors to the CPU
+            true_rel = geometry.relative(q_pose[sample], db_pose[int(r.metric_row)])
+            figures["Yaw cost curve (sample query, no padding)"] = viz.plot_yaw_cost_curve(
+                work / "yaw_cost_curve.png", curve, true_yaw=float(true_rel[2])
+            )
+        if loops:
+            figures["Loop closure precision-recall"] = viz.plot_precision_recall(
+                work / "precision_recall.png",
+                {name: res["sweep"] for name, res in metrics["loop_closure"].items()},
+            )
+            name, res = next(iter(metrics["loop_pose"].items()))
+            if len(res["confidence_curve"]["threshold"]):
+                figures[f"Confidence curve ({name}, verified pairs)"] = viz.plot_confidence_curve(
+                    work / "confidence_curve.png", res["confidence_curve"]
+                )
+        evaluate.write_report(work, metrics, title="vvloc evaluation", figures=figures)
+        mapdb.close()
+        _move_report(work, out_dir)
+    finally:
+        if mapdb is not None:
+            mapdb.close()
+        shutil.rmtree(work, ignore_errors=True)
     return metrics
