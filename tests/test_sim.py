@@ -351,6 +351,13 @@ def test_cli_help_shows_defaults_and_rejects_bad_values(tmp_path):
         text=True,
     )  # fmt: skip
     assert floors.returncode == 2 and "--floors" in floors.stderr, floors.stderr
+    import typing
+
+    from vvloc.commands.sim import sim
+    from vvloc.sim.simulate import MAX_FLOORS
+
+    option = typing.get_type_hints(sim, include_extras=True)["floors"].__metadata__[0]
+    assert option.max == MAX_FLOORS  # the CLI's bound is the library's
     assert not (tmp_path / "x").exists()
     with pytest.raises(ValueError, match="seed: expected an int >= 0"):
         simulate_dataset(tmp_path / "x", seed=-1)

@@ -18,6 +18,10 @@ __version__: str = _core.__version__
 logging.getLogger("vvloc").addHandler(logging.NullHandler())
 
 
+#: The most threads vvloc's kernel pool takes (the extension's bound).
+MAX_THREADS = 1024
+
+
 def set_num_threads(n: int) -> None:
     """Set the number of threads of vvloc's Rust kernel pool (``1 <= n <= 1024``).
 
@@ -27,9 +31,9 @@ def set_num_threads(n: int) -> None:
     import numpy as np
 
     if isinstance(n, bool) or not isinstance(n, (int, np.integer)):
-        raise TypeError(f"n: expected an int in [1, 1024], got {type(n).__name__}")
-    if not 1 <= int(n) <= 1024:
-        raise ValueError(f"n: expected an int in [1, 1024], got {int(n)}")
+        raise TypeError(f"n: expected an int in [1, {MAX_THREADS}], got {type(n).__name__}")
+    if not 1 <= int(n) <= MAX_THREADS:
+        raise ValueError(f"n: expected an int in [1, {MAX_THREADS}], got {int(n)}")
     _core.set_num_threads(int(n))
 
 
@@ -45,14 +49,14 @@ def _check_threads_variable() -> None:
     if text is None or text.strip() == "":
         return
     try:
-        ok = 1 <= int(text.strip()) <= 1024
+        ok = 1 <= int(text.strip()) <= MAX_THREADS
     except ValueError:
         ok = False
     if not ok:
         import warnings
 
         warnings.warn(
-            f"VVLOC_NUM_THREADS={text!r} is not an int in [1, 1024]; vvloc's kernels use "
+            f"VVLOC_NUM_THREADS={text!r} is not an int in [1, {MAX_THREADS}]; vvloc's kernels use "
             f"{get_num_threads()} threads",
             RuntimeWarning,
             stacklevel=3,

@@ -150,8 +150,9 @@ def check_out_folder(out: Path, option: str = "--out", *, outside: Path | None =
                 raise NotADirectoryError(f"{option}: {out} {what} and is a file; expected a folder")
             break
     if outside is not None:
-        o, d = out.resolve(), outside.resolve()
-        if o == d or d in o.parents:
+        from vvloc.data.sampling import inside_folder
+
+        if inside_folder(out, outside):
             raise ValueError(
                 f"{option}: {out} is or lies inside the dataset {outside}; write outputs to a "
                 "folder of their own"

@@ -82,7 +82,7 @@ def eval_command(
     from vvloc.localize.evaluation import run_evaluation
 
     with cli_errors("eval"):
-        check_out_folder(out, outside=dataset)
+        check_out_folder(out)  # (run_evaluation refuses an --out inside the dataset)
         names = split_names(queries)
         if not names:
             raise ValueError("--queries: expected at least one session name")

@@ -35,7 +35,10 @@ def sim(
     floors: Annotated[
         int | None,
         typer.Option(
-            "--floors", min=1, max=16, help="Garage storeys (garage scene only; default 2)."
+            "--floors",
+            min=1,
+            max=16,  # vvloc.sim.simulate.MAX_FLOORS (not imported here: it loads the renderer)
+            help="Garage storeys (garage scene only; default 2).",
         ),
     ] = None,
     floor_marking: Annotated[

@@ -101,6 +101,7 @@ def convert_dataset(
         RobotCar's ``origin_enu``). Nothing is left at ``out`` if any frame fails.
     """
     from vvloc.data import detect_format, open_dataset
+    from vvloc.data.sampling import inside_folder
     from vvloc.data.vvloc_format import DatasetWriter
 
     if isinstance(every, bool) or not isinstance(every, int) or every < 1:
@@ -116,8 +117,7 @@ def convert_dataset(
         size = (int(image_size[0]), int(image_size[1]))
     options = dict(reader_options)
     fmt = detect_format(src, format)
-    src_dir, out_dir = Path(src).resolve(), Path(out).resolve()
-    if out_dir == src_dir or src_dir in out_dir.parents or out_dir in src_dir.parents:
+    if inside_folder(out, src) or inside_folder(src, out):
         # writing into the source (or around it) would replace or corrupt what is read
         raise ValueError(
             f"out: {out} is, lies inside or holds the source {src}; write the converted "
@@ -147,7 +147,7 @@ def convert_dataset(
         picks[name] = strided[chosen]
     total = sum(len(v) for v in picks.values())
     converted_from: dict[str, Any] = {
-        "path": str(src_dir),
+        "path": str(Path(src).resolve()),
         "format": fmt,
         "options": {k: _jsonable(v) for k, v in reader_options.items()},
         "every": every,

@@ -418,6 +418,13 @@ def same_folder(a: Any, b: Any) -> bool:
     return Path(a).resolve() == Path(b).resolve()
 
 
+def inside_folder(path: str | os.PathLike[str], folder: str | os.PathLike[str]) -> bool:
+    """Whether ``path`` is ``folder`` or lies inside it, however spelt (resolved like
+    :func:`same_folder`): an output written there would land in the folder's contents."""
+    p, f = Path(path).resolve(), Path(folder).resolve()
+    return p == f or f in p.parents
+
+
 def _real(value: Any, name: str) -> float:
     """A finite real number (numpy scalars included, bool not) as float, else an error naming
     ``name``."""

@@ -23,7 +23,7 @@ from vvloc import evaluate, geometry, kernels, viz
 from vvloc._io import atomic_write
 from vvloc.data import Frame, open_dataset
 from vvloc.data.perturb import SEEDED, frame_seed, perturb_frame
-from vvloc.data.sampling import check_query_sessions, same_folder
+from vvloc.data.sampling import check_query_sessions, inside_folder, same_folder
 from vvloc.localize.localizer import (
     LocalizationResult,
     Localizer,
@@ -352,6 +352,11 @@ def run_evaluation(
     queries = list(queries)
     check_query_sessions(database, queries)
     out_dir = Path(out)
+    if inside_folder(out_dir, dataset):  # a report among the sessions breaks the dataset
+        raise ValueError(
+            f"out: {out} is or lies inside the dataset {dataset}; write the report to a folder "
+            "of its own"
+        )
     model = VVLocNet.load(checkpoint).to(resolve_device(device))
     ds = open_dataset(dataset)
     seen = trained_on(model.training_record, dataset, queries)
