@@ -23,7 +23,10 @@ from vvloc.localize import (
 from vvloc.localize.export import (
     DEFAULT_LOOP_SIGMAS,
     DEFAULT_ODOMETRY_SIGMAS,
+    g2o_text,
+    loop_csv_text,
     relative_pose,
+    tum_text,
     wrap_angle,
 )
 
@@ -351,3 +354,22 @@ def test_write_tum_comments_must_be_lines(tmp_path: Path) -> None:
     assert path.read_text().splitlines().count("# session: s1") == 1
     path = write_loop_csv(tmp_path / "l.csv", loops_fixture(), comments="threshold: 0.75")
     assert path.read_text().splitlines().count("# threshold: 0.75") == 1
+
+
+def test_text_functions_are_what_the_writers_write(tmp_path: Path) -> None:
+    """The CLIs write several files as one change from loop_csv_text, g2o_text and tum_text:
+    each text is byte for byte the file its writer writes."""
+    loops = loops_fixture()
+    poses = np.array([[float(i), 0.5 * i, 0.3 * i - 2.0] for i in range(12)])
+    ids = np.arange(100, 112)
+    sessions = ["a"] * 6 + ["b"] * 6
+    comments = ["map session 'a' of m.h5"]
+    write_loop_csv(tmp_path / "l.csv", loops, comments=comments)
+    assert (tmp_path / "l.csv").read_bytes() == loop_csv_text(loops, comments=comments).encode()
+    write_g2o(tmp_path / "g.g2o", poses, loops, ids=ids, sessions=sessions)
+    text = g2o_text(poses, loops, ids=ids, sessions=sessions)
+    assert (tmp_path / "g.g2o").read_bytes() == text.encode()
+    assert text.count("VERTEX_SE2") == 12 and text.count("EDGE_SE2") == 10 + 3  # 3 accepted
+    stamps = np.arange(12) * 0.1
+    write_tum(tmp_path / "t.tum", stamps, poses, comments=comments)
+    assert (tmp_path / "t.tum").read_bytes() == tum_text(stamps, poses, comments=comments).encode()

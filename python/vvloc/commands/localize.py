@@ -62,12 +62,13 @@ def localize(
     device: Annotated[str, typer.Option("--device", help="cpu, cuda[:N] or auto.")] = "cpu",
 ) -> None:
     """Write poses.tum (the accepted global poses), poses-all.tum (every frame's), queries.csv
-    and timings.json into --out."""
+    and timings.json into --out, as one change (a failed or stopped run leaves an earlier
+    run's four files as they were)."""
     import json
 
-    from vvloc._io import atomic_write
+    from vvloc._io import write_together
     from vvloc.data import open_dataset
-    from vvloc.localize.export import write_tum
+    from vvloc.localize.export import tum_text
     from vvloc.localize.localizer import Localizer
 
     with cli_errors("localize"):
@@ -100,8 +101,7 @@ def localize(
             "= cost < threshold and distinctiveness >= the model's calibration "
             "(or --min_distinctiveness)",
         ]
-        write_tum(
-            out / "poses.tum",
+        accepted_tum = tum_text(
             stamps[ok],
             poses[ok],
             comments=[
@@ -110,8 +110,7 @@ def localize(
                 "(every frame: poses-all.tum and queries.csv)",
             ],
         )
-        write_tum(
-            out / "poses-all.tum",
+        all_tum = tum_text(
             stamps,
             poses,
             comments=[
@@ -134,12 +133,17 @@ def localize(
                 f"{np.degrees(g[2]):.3f},{r.cost:.5f},{r.distinctiveness:.5f},{int(r.accepted)},"
                 f"{r.metric_row}"
             )
-        with atomic_write(out / "queries.csv") as f:
-            f.write("\n".join(lines) + "\n")
         stages = ("encode", "retrieve", "rerank", "metric")
         timings = {s: float(np.median([r.timings_ms[s] for r in results])) for s in stages}
-        with atomic_write(out / "timings.json") as f:
-            f.write(json.dumps({"median_ms": timings}, indent=2))
+        write_together(
+            out,
+            {
+                "poses.tum": accepted_tum.encode(),
+                "poses-all.tum": all_tum.encode(),
+                "queries.csv": ("\n".join(lines) + "\n").encode(),
+                "timings.json": json.dumps({"median_ms": timings}, indent=2).encode(),
+            },
+        )
     acc = np.mean([r.accepted for r in results])
     typer.echo(f"localized {len(results)} frames ({acc:.0%} accepted); outputs in {out}")
     typer.echo("median ms per stage: " + ", ".join(f"{k} {v:.1f}" for k, v in timings.items()))

@@ -108,11 +108,13 @@ def loops(
     ] = 0,
     device: Annotated[str, typer.Option("--device", help="cpu, cuda[:N] or auto.")] = "cpu",
 ) -> None:
-    """Write loops.csv, graph.g2o and one TUM trajectory per session into --out (the
-    trajectories an earlier run left there for sessions this map lacks are removed)."""
+    """Write loops.csv, graph.g2o and one TUM trajectory per session into --out, as one change
+    (a failed or stopped run leaves an earlier run's files as they were); the trajectories an
+    earlier run left there for sessions this map lacks are then removed."""
     import numpy as np
 
-    from vvloc.localize.export import G2O_MAX_ID, write_g2o, write_loop_csv, write_tum
+    from vvloc._io import write_together
+    from vvloc.localize.export import G2O_MAX_ID, g2o_text, loop_csv_text, tum_text
     from vvloc.localize.loops import detect_loops
     from vvloc.localize.mapdb import MapDatabase
     from vvloc.nets import VVLocNet
@@ -139,24 +141,25 @@ def loops(
             max_pairs=max_pairs or None,
         )
         trajectories = trajectory_file_names(db.sessions)
-        out.mkdir(parents=True, exist_ok=True)
-        write_loop_csv(out / "loops.csv", found)
-        write_g2o(
-            out / "graph.g2o",
-            db.poses,
-            found,
-            ids=db.ids,
-            sessions=[db.session_of(i) for i in range(len(db))],
-            seq=db.seq,
-        )
+        files = {
+            "loops.csv": loop_csv_text(found),
+            "graph.g2o": g2o_text(
+                db.poses,
+                found,
+                ids=db.ids,
+                sessions=[db.session_of(i) for i in range(len(db))],
+                seq=db.seq,
+            ),
+        }
         for name, file_name in trajectories.items():
             rows = db.session_rows(name)
-            write_tum(
-                out / file_name,
+            files[file_name] = tum_text(
                 db.timestamps[rows],
                 db.poses[rows],
                 comments=[f"map session {name!r} of {map_path}: its keyframes' poses"],
             )
+        out.mkdir(parents=True, exist_ok=True)
+        write_together(out, {name: text.encode() for name, text in files.items()})
         remove_stale_trajectories(out, trajectories.values())
         n_acc = int(np.sum(found.accepted))
     typer.echo(f"{len(found.i)} candidates, {n_acc} accepted loop closures; outputs in {out}")

@@ -17,6 +17,7 @@ files of that format from other tools).
 from __future__ import annotations
 
 import csv
+import io
 import math
 import os
 from collections.abc import Iterable, Sequence
@@ -36,11 +37,14 @@ __all__ = [
     "G2O_CONVENTIONS",
     "G2OGraph",
     "LoopClosures",
+    "g2o_text",
     "information_from_sigmas",
+    "loop_csv_text",
     "read_g2o",
     "read_loop_csv",
     "read_tum",
     "relative_pose",
+    "tum_text",
     "wrap_angle",
     "write_g2o",
     "write_loop_csv",
@@ -231,8 +235,18 @@ def write_loop_csv(path: PathLike, loops: LoopClosures, *, comments: Iterable[st
 
     ``#`` comment lines first state the conventions (plus ``comments``, e.g. the threshold or
     the map file); then a header row. ``accepted`` is written as 1/0. Read with
-    :func:`read_loop_csv` or e.g. ``pandas.read_csv(path, comment="#")``.
+    :func:`read_loop_csv` or e.g. ``pandas.read_csv(path, comment="#")``. The file's text is
+    :func:`loop_csv_text`.
     """
+    text = loop_csv_text(loops, comments=comments)
+    with atomic_write(path, "w", newline="") as f:
+        f.write(text)
+    return Path(path)
+
+
+def loop_csv_text(loops: LoopClosures, *, comments: Iterable[str] = ()) -> str:
+    """The text :func:`write_loop_csv` writes (``\\n`` line ends), for callers that write
+    several files as one change (:func:`vvloc._io.write_together`)."""
     if not isinstance(loops, LoopClosures):
         raise TypeError(f"loops: expected LoopClosures, got {type(loops).__name__}")
     header = _comment_lines(
@@ -245,26 +259,26 @@ def write_loop_csv(path: PathLike, loops: LoopClosures, *, comments: Iterable[st
             "accepted: 1 if the closure passed the cost threshold, else 0",
         ]
     ) + _comment_lines(comments)
-    with atomic_write(path, "w", newline="") as f:
-        for line in header:
-            f.write(line + "\n")
-        w = csv.writer(f, lineterminator="\n")
-        w.writerow(_LOOP_COLUMNS)
-        for r in range(len(loops)):
-            x, y, yaw = loops.relative_poses[r]
-            w.writerow(
-                [
-                    int(loops.i[r]),
-                    int(loops.j[r]),
-                    _r(x),
-                    _r(y),
-                    _r(yaw),
-                    _r(math.degrees(yaw)),
-                    _r(loops.costs[r]),
-                    int(bool(loops.accepted[r])),
-                ]
-            )
-    return Path(path)
+    f = io.StringIO(newline="")
+    for line in header:
+        f.write(line + "\n")
+    w = csv.writer(f, lineterminator="\n")
+    w.writerow(_LOOP_COLUMNS)
+    for r in range(len(loops)):
+        x, y, yaw = loops.relative_poses[r]
+        w.writerow(
+            [
+                int(loops.i[r]),
+                int(loops.j[r]),
+                _r(x),
+                _r(y),
+                _r(yaw),
+                _r(math.degrees(yaw)),
+                _r(loops.costs[r]),
+                int(bool(loops.accepted[r])),
+            ]
+        )
+    return f.getvalue()
 
 
 def read_loop_csv(path: PathLike) -> LoopClosures:
@@ -361,7 +375,7 @@ def write_g2o(
     loop_information: Any = None,
     only_accepted: bool = True,
 ) -> Path:
-    """Write a 2D pose graph in g2o format.
+    """Write a 2D pose graph in g2o format (the text of :func:`g2o_text`).
 
     Args:
         path: output file.
@@ -390,6 +404,34 @@ def write_g2o(
     Information matrices are written as the upper triangle I11 I12 I13 I22 I23 I33 of
     (dx, dy, dtheta).
     """
+    text = g2o_text(
+        poses,
+        loops,
+        ids=ids,
+        sessions=sessions,
+        seq=seq,
+        odometry_information=odometry_information,
+        loop_information=loop_information,
+        only_accepted=only_accepted,
+    )
+    with atomic_write(path, "w") as f:
+        f.write(text)
+    return Path(path)
+
+
+def g2o_text(
+    poses: Any,
+    loops: LoopClosures | None = None,
+    *,
+    ids: Any = None,
+    sessions: Sequence[Any] | None = None,
+    seq: Any = None,
+    odometry_information: Any = None,
+    loop_information: Any = None,
+    only_accepted: bool = True,
+) -> str:
+    """The g2o text :func:`write_g2o` writes (arguments as there; ``\\n`` line ends), for
+    callers that write several files as one change (:func:`vvloc._io.write_together`)."""
     p = _floats(poses, "poses", "(N, 3)", (None, 3))
     n = p.shape[0]
     vid = np.arange(n, dtype=np.int64) if ids is None else _ints(ids, "ids", n)
@@ -440,12 +482,11 @@ def write_g2o(
                 continue
             edge(int(loops.i[r]), int(loops.j[r]), loops.relative_poses[r], loop_info[r])
 
-    with atomic_write(path, "w") as f:
-        for v, (x, y, th) in zip(vid.tolist(), p, strict=True):
-            f.write(f"VERTEX_SE2 {v} {_r(x)} {_r(y)} {_r(wrap_angle(th))}\n")
-        for line in edge_lines:
-            f.write(line + "\n")
-    return Path(path)
+    vertex_lines = [
+        f"VERTEX_SE2 {v} {_r(x)} {_r(y)} {_r(wrap_angle(th))}"
+        for v, (x, y, th) in zip(vid.tolist(), p, strict=True)
+    ]
+    return "".join(line + "\n" for line in (*vertex_lines, *edge_lines))
 
 
 def read_g2o(path: PathLike) -> G2OGraph:
@@ -512,7 +553,8 @@ def write_tum(
     z: Any = 0.0,
     comments: Iterable[str] = (),
 ) -> Path:
-    """Write a trajectory in TUM format: ``timestamp tx ty tz qx qy qz qw`` per line.
+    """Write a trajectory in TUM format: ``timestamp tx ty tz qx qy qz qw`` per line (the
+    text of :func:`tum_text`).
 
     Args:
         timestamps: (N,) seconds.
@@ -525,6 +567,15 @@ def write_tum(
     unit quaternion (qx, qy, qz, qw) = (0, 0, sin(yaw/2), cos(yaw/2)). ``#`` header lines
     state the conventions (TUM/evo readers skip them).
     """
+    text = tum_text(timestamps, poses, z=z, comments=comments)
+    with atomic_write(path, "w") as f:
+        f.write(text)
+    return Path(path)
+
+
+def tum_text(timestamps: Any, poses: Any, *, z: Any = 0.0, comments: Iterable[str] = ()) -> str:
+    """The TUM text :func:`write_tum` writes (arguments as there; ``\\n`` line ends), for
+    callers that write several files as one change (:func:`vvloc._io.write_together`)."""
     t = _floats(timestamps, "timestamps", "(N,)", (None,))
     n = t.shape[0]
     p = _floats(poses, "poses", f"({n}, 3)", (n, 3))
@@ -548,28 +599,12 @@ def write_tum(
             *_FRAME_COMMENTS,
         ]
     ) + _comment_lines(comments)
-    with atomic_write(path, "w") as f:
-        for line in header:
-            f.write(line + "\n")
-        for r in range(n):
-            half = 0.5 * float(wrap_angle(p[r, 2]))
-            f.write(
-                " ".join(
-                    _r(v)
-                    for v in (
-                        t[r],
-                        p[r, 0],
-                        p[r, 1],
-                        zz[r],
-                        0.0,
-                        0.0,
-                        math.sin(half),
-                        math.cos(half),
-                    )
-                )
-                + "\n"
-            )
-    return Path(path)
+    lines = list(header)
+    for r in range(n):
+        half = 0.5 * float(wrap_angle(p[r, 2]))
+        values = (t[r], p[r, 0], p[r, 1], zz[r], 0.0, 0.0, math.sin(half), math.cos(half))
+        lines.append(" ".join(_r(v) for v in values))
+    return "".join(line + "\n" for line in lines)
 
 
 def read_tum(path: PathLike) -> tuple[np.ndarray, np.ndarray]:
