@@ -4,6 +4,7 @@ for the pose sign conventions of the yaw-matching path, gradients, and a tiny ov
 from __future__ import annotations
 
 import math
+import types
 
 import pytest
 import torch
@@ -340,3 +341,14 @@ def test_losses_refuse_shapes_that_would_broadcast():
     d = F.normalize(torch.rand(3, 6, 4), dim=-1)
     with pytest.raises(ValueError, match="src, tgt"):
         losses.yaw_circle_loss(d, d[:1])
+    # one yaw for a batch of three pairs (it turned every pair by the first pair's yaw)
+    bev = torch.zeros(3, 4, 4, 2)
+    for yaw in (torch.zeros(1), torch.tensor(0.5), torch.zeros(3, 1)):
+        with pytest.raises(ValueError, match=r"yaw: expected shape \(3,\), one per pair"):
+            losses.aligned_descriptors(
+                types.SimpleNamespace(config=None),  # type: ignore[arg-type]
+                bev,
+                d,
+                torch.zeros(3, 2),
+                yaw,
+            )

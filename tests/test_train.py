@@ -13,7 +13,9 @@ import numpy as np
 import pytest
 import torch
 
+import vvloc.train
 from vvloc.checkpoints import resolve_checkpoint
+from vvloc.evaluate import to_jsonable
 from vvloc.nets import VVLocNet
 from vvloc.train import (
     TrainConfig,
@@ -21,6 +23,7 @@ from vvloc.train import (
     TripletFrames,
     train,
     training_losses,
+    validation_query_count,
     validation_recall,
 )
 
@@ -1277,6 +1280,19 @@ def test_a_log_line_lost_between_the_save_and_its_write_is_written_on_resume(tin
     assert len((out / "log.jsonl").read_text().splitlines()) == 3
 
 
+def test_a_torn_last_log_line_is_cut_off_and_written_whole_on_resume(tiny_world, tmp_path):
+    cfg = _config(tiny_world, stage1_epochs=2, stage2_epochs=0, steps_per_epoch=2)
+    out = tmp_path / "run"
+    tr = Trainer(cfg, out)
+    rec = tr.run_epoch(progress=False)
+    tr.save(record=rec)
+    line = json.dumps(to_jsonable(rec), allow_nan=False)
+    (out / "log.jsonl").write_text(line[: len(line) // 2])  # killed while appending
+    train(cfg, out, resume=True, progress=False)
+    lines = (out / "log.jsonl").read_text().splitlines()
+    assert [json.loads(x)["epoch"] for x in lines] == [1, 2]  # every line valid JSON
+
+
 @pytest.mark.parametrize(
     ("key", "value", "match"),
     [
@@ -1292,12 +1308,40 @@ def test_a_log_line_lost_between_the_save_and_its_write_is_written_on_resume(tin
             [{"dataset": "y", "train_sessions": "s0"}],
             r"extra_datasets\[0\]\.train_sessions: expected a list",
         ),
+        (
+            "extra_datasets",
+            [{"dataset": "y", "anchor_share": "0.5"}],
+            r"extra_datasets\[0\]\.anchor_share: expected a share in \(0, 1\)",
+        ),
+        ("lr", float("inf"), "lr: expected a finite number > 0"),
+        ("local_lr", float("nan"), "local_lr: expected a finite number > 0"),
+        ("weight_decay", -0.1, "weight_decay: expected a finite number >= 0"),
+        ("hard_fraction", 1.5, r"hard_fraction: expected a value in \[0, 1\]"),
+        ("hard_fraction", float("nan"), r"hard_fraction: expected a value in \[0, 1\]"),
+        ("revisit_gap", -1, "revisit_gap: expected an int >= 0"),
+        ("yaw_theta_p", 2.0, "yaw_theta_p, yaw_theta_n: expected finite"),
+        ("yaw_theta_n", float("inf"), "yaw_theta_p, yaw_theta_n: expected finite"),
+        ("train_sessions", [], "train_sessions: expected a non-empty list"),
+        ("model_overrides", {"grid_sise": 64}, r"model, model_overrides: .*grid_sise"),
+        ("model", "tiny", "model, model_overrides: model: expected 'small'"),
     ],
 )
 def test_config_values_that_would_train_something_else_are_refused(key, value, match):
     with pytest.raises(ValueError, match=match):
         TrainConfig.from_dict({"dataset": "x", key: value})
     TrainConfig.from_dict({"dataset": "x", "grad_clip": 0.0})  # no clipping: allowed
+
+
+def test_config_yaml_with_a_key_twice_or_a_key_that_is_no_name_is_refused(tmp_path):
+    (tmp_path / "twice.yaml").write_text("lr: 1.0e-4\nlr: 1.0e-2\n")
+    with pytest.raises(ValueError, match="found the key 'lr' twice"):
+        TrainConfig.from_yaml(tmp_path / "twice.yaml")
+    (tmp_path / "nested.yaml").write_text("dataset: x\nsim: {seed: 1, seed: 2}\n")
+    with pytest.raises(ValueError, match="found the key 'seed' twice"):
+        TrainConfig.from_yaml(tmp_path / "nested.yaml")
+    (tmp_path / "int.yaml").write_text("dataset: x\n1: 2\n")
+    with pytest.raises(ValueError, match=r"keys must be names, got \[1\]"):
+        TrainConfig.from_yaml(tmp_path / "int.yaml")
 
 
 def test_config_types_are_checked_by_name():
@@ -1316,12 +1360,26 @@ def test_config_types_are_checked_by_name():
             TrainConfig.from_dict({**base, key: value})
 
 
-def test_validation_without_a_query_near_the_map_is_refused(tiny_world, tmp_path):
+def test_validation_without_a_query_near_the_map_is_refused(tiny_world, tmp_path, monkeypatch):
     cfg = _config(tiny_world, train_sessions=["s0", "s1"], val_sessions=["s2"], val_database="s0")
     tr = Trainer(cfg, tmp_path / "run")
+    assert validation_query_count(tr.ds, "s0", ["s2"], 1) > 0
     tr.ds = _FarAway(tr.ds)  # every pose of s2 moved 500 m away
     with pytest.raises(ValueError, match="val_sessions: no query of"):
         tr.validate()
+    # known from the poses alone: the trainer refuses it before any epoch
+    real_open = vvloc.train.open_dataset
+    monkeypatch.setattr(vvloc.train, "open_dataset", lambda root: _FarAway(real_open(root)))
+    with pytest.raises(ValueError, match=r"val_sessions: no query of \['s2'\]"):
+        Trainer(cfg, tmp_path / "far")
+    assert not (tmp_path / "far").exists()
+
+
+def test_validation_query_count_is_what_validation_scores(tiny_world):
+    tr = Trainer(_config(tiny_world), "unused")
+    for every in (1, 3):
+        res = validation_recall(tr.model, tr.ds, "s0", ["s1", "s2"], every=every, top_k=3)
+        assert validation_query_count(tr.ds, "s0", ["s1", "s2"], every) == res["queries"] > 0
 
 
 class _FarAway:
@@ -1330,6 +1388,9 @@ class _FarAway:
     def __init__(self, ds):
         self._ds = ds
         self.cameras, self.sessions, self.meta = ds.cameras, ds.sessions, ds.meta
+
+    def __getattr__(self, name):  # everything else as the dataset has it
+        return getattr(self._ds, name)
 
     def session(self, name):
         s = self._ds.session(name)

@@ -138,6 +138,11 @@ def aligned_descriptors(
     (B, T, C), rows L2-normalised; at the true pose row i of each should describe the same view.
     """
     cfg = model.config
+    if tuple(torch.as_tensor(yaw).shape) != (bev_src.shape[0],):  # one yaw would fit all pairs
+        raise ValueError(
+            f"yaw: expected shape ({bev_src.shape[0]},), one per pair, got "
+            f"{tuple(torch.as_tensor(yaw).shape)}"
+        )
     padded = bev_pad(bev_src, translation, cfg.grid_size)
     ds = model.decode_polar(polar_sample(padded, cfg.num_angles, cfg.num_radii, cfg.grid_size))
     shift = torch.as_tensor(yaw, dtype=torch.float64, device=ds.device) * (
