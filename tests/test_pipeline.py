@@ -138,7 +138,7 @@ def test_the_map_records_its_rig_and_the_localizer_compares_queries_with_it(
     loc.map.close()
 
 
-def test_localizer_options_are_checked_up_front(map_file, model_dir, tiny_world, caplog, tmp_path):
+def test_localizer_options_are_checked_up_front(map_file, model_dir, tiny_world, tmp_path):
     model = VVLocNet.load(model_dir)
     db = MapDatabase.open(map_file)
     with pytest.raises(ValueError, match="step"):
@@ -150,9 +150,9 @@ def test_localizer_options_are_checked_up_front(map_file, model_dir, tiny_world,
     model.calibration = {"min_distinctiveness": 0.2}
     with pytest.raises(ValueError, match=r"min_distinctiveness: 0\.1 needs re-ranking"):
         Localizer(model, db, rerank=False, min_distinctiveness=0.1)
-    with caplog.at_level("WARNING", logger="vvloc.localize"):
+    with pytest.warns(UserWarning, match="accepting by the cost rule alone"):
         loc = Localizer(model, db, rerank=False, top_k=3, search=SMALL_SEARCH)
-    assert loc.min_distinctiveness == 0.0 and "accepting by the cost rule alone" in caplog.text
+    assert loc.min_distinctiveness == 0.0
     frame = open_dataset(tiny_world).session("s1")[2]
     r = loc.localize(frame)
     assert r.accepted == (r.cost < 0.75)
@@ -182,10 +182,8 @@ def test_localizer_options_are_checked_up_front(map_file, model_dir, tiny_world,
     )
     assert r64.cost == r32.cost and np.array_equal(r64.global_pose, r32.global_pose)
     # one candidate has distinctiveness 0: a calibration would accept nothing, and says so
-    caplog.clear()
-    with caplog.at_level("WARNING", logger="vvloc.localize"):
+    with pytest.warns(UserWarning, match="its distinctiveness is 0, below min_distinctiveness 0.1"):
         Localizer(model, db, top_k=1, min_distinctiveness=0.1, search=SMALL_SEARCH)
-    assert "its distinctiveness is 0, below min_distinctiveness 0.1" in caplog.text
     with pytest.raises(TypeError, match="sessions: expected a list"):
         build_map(model, open_dataset(tiny_world), "s0", map_file.parent / "x.h5")
     from vvloc.data import DatasetWriter
@@ -488,7 +486,7 @@ def test_calibrate_cli_scores_the_localizers_answers_and_never_loses_a_calibrati
 
 
 def test_calibration_is_kept_with_the_checkpoint_and_gates_acceptance(
-    tiny_world, map_file, model_dir, tmp_path, caplog
+    tiny_world, map_file, model_dir, tmp_path
 ):
     import json
 
@@ -501,10 +499,8 @@ def test_calibration_is_kept_with_the_checkpoint_and_gates_acceptance(
     assert json.loads(text) == {"min_distinctiveness": None, "precision": None}
     back = VVLocNet.load(ckpt).calibration
     assert back["min_distinctiveness"] == float("inf") and np.isnan(back["precision"])
-    with caplog.at_level("WARNING", logger="vvloc.localize"):
+    with pytest.warns(UserWarning, match="calibration accepts nothing"):  # shown from Python too
         Localizer.open(map_file, ckpt)
-    assert "calibration accepts nothing" in caplog.text
-    caplog.clear()
     cal = model.calibration = {"min_distinctiveness": 0.0123, "precision": 0.9, "queries": 40}
     model.save(ckpt)
     model = VVLocNet.load(ckpt)
@@ -514,10 +510,10 @@ def test_calibration_is_kept_with_the_checkpoint_and_gates_acceptance(
     # ... and says so when its K or cost rule is not the one the calibration was measured with
     model.calibration = {**cal, "top_k": 20, "accept_threshold": 0.75}
     model.save(ckpt)
-    with caplog.at_level("WARNING", logger="vvloc.localize"):
+    with pytest.warns(UserWarning, match="measured with top_k=20"):
         Localizer.open(map_file, ckpt, top_k=3)
+    with pytest.warns(UserWarning, match="accept_threshold=0.75"):
         Localizer.open(map_file, ckpt, accept_threshold=0.5)
-    assert "measured with top_k=20" in caplog.text and "accept_threshold=0.75" in caplog.text
     model.calibration = cal
     model.save(ckpt)
     frames = [open_dataset(tiny_world).session("s1")[i] for i in range(0, 40, 8)]

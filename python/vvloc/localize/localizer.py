@@ -30,7 +30,6 @@ distinctiveness >= ``min_distinctiveness`` (the model's calibration; 0 without o
 
 from __future__ import annotations
 
-import logging
 import os
 import time
 import warnings
@@ -58,8 +57,6 @@ from vvloc.localize.metric import (
 from vvloc.nets import VVLocNet
 from vvloc.nets.model import resolve_device
 from vvloc.retrieval import DescriptorIndex
-
-log = logging.getLogger("vvloc.localize")
 
 F32 = npt.NDArray[np.float32]
 
@@ -337,27 +334,27 @@ def _check_calibration_settings(
     if not threshold:
         return
     if threshold == float("inf"):
-        log.warning(
+        warnings.warn(
             "the model's calibration accepts nothing (no distinctiveness threshold reached its "
             "target precision on the validation sessions): every result has accepted=False; "
-            "calibrate with vvloc calibrate, or pass min_distinctiveness"
+            "calibrate with vvloc calibrate, or pass min_distinctiveness",
+            stacklevel=4,
         )
         return
     cal_k, cal_cost = calibration.get("top_k"), calibration.get("accept_threshold")
     if cal_k is not None and int(cal_k) != top_k:
-        log.warning(
-            "the model's calibration was measured with top_k=%d, this localizer re-ranks %d "
-            "candidates: distinctiveness depends on K, so its precision is not the calibrated "
-            "one (vvloc calibrate with these settings, or pass min_distinctiveness)",
-            int(cal_k),
-            top_k,
+        warnings.warn(
+            f"the model's calibration was measured with top_k={int(cal_k)}, this localizer "
+            f"re-ranks {top_k} candidates: distinctiveness depends on K, so its precision is not "
+            "the calibrated one (vvloc calibrate with these settings, or pass "
+            "min_distinctiveness)",
+            stacklevel=4,
         )
     if cal_cost is not None and float(cal_cost) != accept_threshold:
-        log.warning(
-            "the model's calibration was measured with accept_threshold=%g, this localizer "
-            "uses %g: its precision is not the calibrated one",
-            float(cal_cost),
-            accept_threshold,
+        warnings.warn(
+            f"the model's calibration was measured with accept_threshold={float(cal_cost):g}, "
+            f"this localizer uses {accept_threshold:g}: its precision is not the calibrated one",
+            stacklevel=4,
         )
 
 
@@ -448,10 +445,11 @@ class Localizer:
             )
             if not self.rerank_enabled and min_distinctiveness:
                 # the calibration scores re-ranking costs: without them only the cost rule is left
-                log.warning(
-                    "rerank=False: the model's calibration (min_distinctiveness %.4g) needs the "
-                    "re-ranking costs; accepting by the cost rule alone",
-                    min_distinctiveness,
+                warnings.warn(
+                    f"rerank=False: the model's calibration (min_distinctiveness "
+                    f"{min_distinctiveness:.4g}) needs the re-ranking costs; accepting by the "
+                    "cost rule alone",
+                    stacklevel=3,
                 )
                 min_distinctiveness = 0.0
         elif not self.rerank_enabled and min_distinctiveness:
@@ -471,13 +469,12 @@ class Localizer:
             raise ValueError(f"min_distinctiveness: expected >= 0, got {min_distinctiveness}")
         self.min_distinctiveness = float(min_distinctiveness)
         if 0 < self.min_distinctiveness < float("inf") and min(self.top_k, len(mapdb)) == 1:
-            log.warning(
-                "one re-ranking candidate (top_k=%d, %d keyframes in the map): its "
-                "distinctiveness is 0, below min_distinctiveness %.4g, so no result is accepted "
-                "(pass min_distinctiveness=0 to accept by the cost rule alone)",
-                self.top_k,
-                len(mapdb),
-                self.min_distinctiveness,
+            warnings.warn(
+                f"one re-ranking candidate (top_k={self.top_k}, {len(mapdb)} keyframes in the "
+                f"map): its distinctiveness is 0, below min_distinctiveness "
+                f"{self.min_distinctiveness:.4g}, so no result is accepted (pass "
+                "min_distinctiveness=0 to accept by the cost rule alone)",
+                stacklevel=3,
             )
         self.metric_candidates = kernels._positive_int(metric_candidates, "metric_candidates")
         self.metric_from = metric_from
