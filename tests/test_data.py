@@ -359,6 +359,12 @@ def test_perturbation_arguments_are_checked_by_name():
         (lambda: perturb.mask_regions(x, fill=-1), "fill"),
         (lambda: perturb.motion_blur(x, length=2.5), "length"),
         (lambda: perturb.motion_blur(x, angle_deg=float("nan")), "angle_deg"),
+        # None would draw fresh entropy (not reproducible); -1 and 1.5 failed in numpy
+        (lambda: perturb.noise(x, seed=None), "seed"),
+        (lambda: perturb.noise(x, seed=-1), "seed"),
+        (lambda: perturb.mask_regions(x, seed=1.5), "seed"),
+        (lambda: perturb.mask_cameras(x, seed=None), "seed"),
+        (lambda: perturb.motion_blur(x, angle_deg=None, seed=None), "seed"),
     ):
         with pytest.raises((TypeError, ValueError), match=match):
             call()

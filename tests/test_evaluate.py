@@ -686,9 +686,11 @@ def test_plots_say_when_nothing_is_left_to_draw_and_svg_is_reproducible(tmp_path
     viz.plot_recall_curves(tmp_path / "r2.png", {"G": (np.arange(1, 21), np.linspace(0, 1, 20))})
     ticks = figs[-1].axes[0].get_xticks()
     assert np.allclose(ticks, np.round(ticks))
-    viz.plot_yaw_cost_curve(tmp_path / "y.png", np.arange(8.0))
-    x = figs[-1].axes[0].lines[0].get_xdata()
-    assert x[0] == -180.0 and x[-1] == 180.0
+    for t in (8, 25, 26, 120):  # 2π·60/120 is an ulp below π, 26 puts −180° on a sample
+        viz.plot_yaw_cost_curve(tmp_path / "y.png", np.arange(float(t)))
+        x = figs[-1].axes[0].lines[0].get_xdata()
+        assert x[0] <= -180.0 and x[-1] >= 180.0 and len(x) == t + 2, t
+        assert figs[-1].axes[0].get_xlim() == (-180.0, 180.0)
     # the curves of the CDF panel carry their number of queries
     viz.plot_error_cdfs(tmp_path / "c2.png", {"ML, top-1": [1.0, 2.0]}, {"ML, top-1": [0.1]})
     labels = [t.get_text() for t in figs[-1].axes[0].get_legend().get_texts()]
@@ -704,6 +706,14 @@ def test_plot_rejects_bad_input_without_leaving_files(tmp_path):
         viz.plot_translation_costs(tmp_path / "t.png", np.zeros((3, 2)), np.zeros(4))
     with pytest.raises(ValueError, match="correct"):
         viz.plot_trajectory(tmp_path / "t.png", np.zeros((3, 2)), np.zeros((2, 2)), [True])
+    with pytest.raises(ValueError, match=r"correct: expected shape \(4,\)"):
+        viz.plot_trajectory(tmp_path / "t.png", np.zeros((3, 2)), np.zeros((4, 2)), np.eye(2))
+    with pytest.raises(TypeError, match="correct: expected bools"):
+        viz.plot_trajectory(tmp_path / "t.png", np.zeros((3, 2)), np.zeros((2, 2)), [np.nan, 1])
+    with pytest.raises(TypeError, match="kept: expected bools"):
+        viz.plot_trajectory(
+            tmp_path / "t.png", np.zeros((3, 2)), np.zeros((2, 2)), [1, 0], kept=[2, 0]
+        )
     assert list(tmp_path.iterdir()) == []
 
 

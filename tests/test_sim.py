@@ -545,3 +545,92 @@ def test_car_reading_detector_assigns_floors_by_the_mapped_cars():
     r = car_reading_detector(states, base, kf, visible, a, b, margins=(1, 2))
     assert r[0] == {"margin": 1, "accepted": 1, "cross_floor": 0, "cfer": 0.0, "recall": 0.5}
     assert r[1]["accepted"] == 0 and np.isnan(r[1]["cfer"]) and r[1]["recall"] == 0.0
+    # only cross-floor pairs: no true revisit to recall, so recall is undefined, not 0
+    r = car_reading_detector(states, base, kf, visible, np.array([0]), np.array([1]))
+    assert all(np.isnan(o["recall"]) for o in r)
+    text = _markdown_row(r[0])
+    assert text.endswith("| – |")
+
+
+def _markdown_row(o):
+    from vvloc.sim.floor_cues import markdown
+
+    r = {
+        "dataset": "d",
+        "floor_marking": "walls",
+        "sessions": ["s0"],
+        "keyframes": 2,
+        "pair_radius_m": 2.0,
+        "pairs": {},
+        "car_reading_detector": [o],
+        "sees_level_sign": {},
+    }
+    return next(line for line in markdown(r).splitlines() if line.startswith(f"| {o['margin']} |"))
+
+
+def test_renderer_refuses_bad_scenes_and_poses_by_name(egl):
+    r = Renderer(make_rig(2, 16, 12))
+    w = parking_world(0)
+    v, i = w.mesh()
+    for args, match in (
+        ((v[:, :9], i), r"vertices: expected finite \(N, 10\)"),
+        ((v, i + len(v)), r"indices: expected vertex numbers in \[0, "),
+        ((v, i[:-1]), "indices: expected .* a multiple of 3"),
+        ((v, i.astype(np.float64)), "indices: expected .* integer"),
+        ((v, i, w.lights[:2], w.light_colors), r"light_colors: expected \(2, 3\)"),
+        ((v, i, w.lights[:, :3], w.light_colors), r"lights: expected \(L, 4\)"),
+        ((v, i, w.lights, None), "lights, light_colors: expected both or neither"),
+        ((v, i, w.lights, w.light_colors, np.zeros(1)), r"light_floors: expected \("),
+    ):
+        with pytest.raises(ValueError, match=match):
+            r.set_mesh(*args)
+    r.set_mesh(v, i, w.lights, w.light_colors)
+    for kwargs, match in (
+        ({"pose": (0.0, 0.0)}, "pose, z: expected a finite"),
+        ({"pose": (float("nan"), 0.0, 0.0)}, "pose, z: expected a finite"),
+        ({"pose": (0.0, 0.0, 0.0), "z": float("inf")}, "pose, z: expected a finite"),
+        ({"pose": (0.0, 0.0, 0.0), "lighting": "Day"}, "lighting: unknown preset 'Day'"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            r.render(**kwargs)
+    assert r.render((0.0, 0.0, 0.0)).shape == (2, 3, 12, 16)
+    r.release()
+
+
+def test_world_and_dataset_options_are_checked_by_name(tmp_path):
+    for call, match in (
+        (lambda: garage_world(0, n_bays=2), "n_bays: expected an int >= 3"),
+        (lambda: garage_world(0, floors=1.5), "floors: expected an int >= 1"),
+        (lambda: garage_world(0, occupancy=-3), r"occupancy: expected a share in \[0, 1\]"),
+        (lambda: parking_world(0, occupancy=float("nan")), "occupancy: expected a share"),
+        (lambda: parking_world(0).cars(change_fraction=2.0), "change_fraction: expected a share"),
+        (lambda: session_plan("parking", 2, lighting="day"), "lighting: expected a list"),
+        (lambda: simulate_dataset(tmp_path / "x", texture_strength=True), "texture_strength"),
+        (lambda: simulate_dataset(tmp_path / "x", texture_strength=-1.0), "texture_strength"),
+    ):
+        with pytest.raises((TypeError, ValueError), match=match):
+            call()
+    assert garage_world(np.int64(0), floors=np.int64(2)).floor_z.shape == (2,)
+    assert not list(tmp_path.iterdir())
+    # a meta the dataset's rig.json cannot hold is refused before any folder is made
+    from vvloc.data import DatasetWriter
+
+    with pytest.raises(TypeError, match="meta: expected plain JSON values"):
+        DatasetWriter(tmp_path / "d", make_rig(1, 8, 8), meta={"x": np.float32(0.5)})
+    assert not list(tmp_path.iterdir())
+
+
+def test_simulate_takes_numpy_numbers(egl, tmp_path):
+    out = simulate_dataset(
+        tmp_path / "np",
+        sessions=np.int64(1),
+        frames=np.int64(2),
+        seed=np.int64(3),
+        texture_strength=np.float32(0.5),
+        width=16,
+        height=16,
+        progress=False,
+    )
+    meta = json.loads((out / "rig.json").read_text())["meta"]
+    assert meta["seed"] == 3 and meta["texture_strength"] == 0.5
+    assert len(open_dataset(out).session("s0")) == 2

@@ -75,6 +75,19 @@ def _vector(x: npt.ArrayLike, name: str, length: int | None = None) -> np.ndarra
     return arr
 
 
+def _mask(x: npt.ArrayLike, name: str, length: int) -> np.ndarray:
+    """A ``(length,)`` bool array from bools or 0/1 integers (a float, NaN included, is no
+    answer to "correct?")."""
+    arr = np.asarray(x)
+    if arr.shape != (length,):
+        raise ValueError(f"{name}: expected shape ({length},), got {arr.shape}")
+    if arr.dtype != bool and not (
+        np.issubdtype(arr.dtype, np.integer) and np.isin(arr, (0, 1)).all()
+    ):
+        raise TypeError(f"{name}: expected bools (or 0/1 integers), got dtype {arr.dtype}")
+    return arr.astype(bool)
+
+
 def _points(x: npt.ArrayLike, name: str) -> np.ndarray:
     arr = np.asarray(x, dtype=np.float64)
     if arr.ndim != 2 or arr.shape[1] != 2:
@@ -220,12 +233,8 @@ def plot_trajectory(
     """
     db = _points(db_positions, "db_positions")
     q = _points(query_positions, "query_positions")
-    ok = np.asarray(correct, dtype=bool).reshape(-1)
-    if ok.shape[0] != q.shape[0]:
-        raise ValueError(f"correct: expected shape ({q.shape[0]},), got {ok.shape}")
-    keep = np.ones_like(ok) if kept is None else np.asarray(kept, dtype=bool).reshape(-1)
-    if keep.shape[0] != q.shape[0]:
-        raise ValueError(f"kept: expected shape ({q.shape[0]},), got {keep.shape}")
+    ok = _mask(correct, "correct", q.shape[0])
+    keep = np.ones_like(ok) if kept is None else _mask(kept, "kept", q.shape[0])
     fig = _new_figure(7.0, 6.0)
     ax = fig.add_subplot()
     ax.plot(db[:, 0], db[:, 1], color="0.6", linewidth=1.0, label="map", zorder=1)
@@ -279,8 +288,9 @@ def plot_yaw_cost_curve(
     yaw = np.degrees(wrap_angle(2.0 * np.pi * np.arange(c.size) / c.size))
     order = np.argsort(yaw, kind="stable")
     yaw, c = yaw[order], c[order]
-    if yaw[-1] == 180.0:  # the curve wraps: draw the +180° sample at −180° as well
-        yaw, c = np.r_[-180.0, yaw], np.r_[c[-1], c]
+    # the curve is periodic: one sample beyond each end, so that it reaches ±180° whatever T
+    # (2π s / T lands an ulp off π for some even T, and no sample lands there for odd T)
+    yaw, c = np.r_[yaw[-1] - 360.0, yaw, yaw[0] + 360.0], np.r_[c[-1], c, c[0]]
     fig = _new_figure(6.4, 3.6)
     ax = fig.add_subplot()
     ax.plot(yaw, c, color="tab:blue", label="matching cost")

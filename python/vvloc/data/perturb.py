@@ -69,6 +69,7 @@ def mask_cameras(
     ``cameras`` lists the indices to blank; if None, ``count`` distinct cameras are drawn.
     """
     images = _check(images)
+    seed = _positive_int(seed, "seed", 0)  # None would draw fresh entropy: not reproducible
     m = images.shape[0]
     value = _fill(fill)
     if cameras is None:
@@ -95,7 +96,7 @@ def motion_blur(
     length = _positive_int(length, "length", 1)
     if angle_deg is not None:
         _finite_float(angle_deg, "angle_deg")
-    rng = np.random.default_rng(seed)
+    rng = np.random.default_rng(_positive_int(seed, "seed", 0))
     out = images.copy()
     for c in _camera_list(cameras, images.shape[0]):
         ang = float(rng.uniform(0, 180)) if angle_deg is None else float(angle_deg)
@@ -136,7 +137,7 @@ def region_boxes(
     count = _positive_int(count, "count", 0)
     if not 0 < _finite_float(size, "size") <= 1:
         raise ValueError(f"size: expected a fraction of the image side in (0, 1], got {size}")
-    rng = np.random.default_rng(seed)
+    rng = np.random.default_rng(_positive_int(seed, "seed", 0))
     bh, bw = max(1, round(size * h)), max(1, round(size * w))
     boxes = []
     for c in _camera_list(cameras, m):
@@ -198,7 +199,7 @@ def noise(
     images = _check(images)
     if _finite_float(sigma, "sigma") < 0:
         raise ValueError(f"sigma: expected a finite value >= 0, got {sigma}")
-    rng = np.random.default_rng(seed)
+    rng = np.random.default_rng(_positive_int(seed, "seed", 0))
     out = images.copy()
     for c in _camera_list(cameras, images.shape[0]):
         x = images[c].astype(np.float64) + rng.normal(0.0, sigma, size=images[c].shape)

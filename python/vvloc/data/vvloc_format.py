@@ -405,8 +405,6 @@ class DatasetWriter:
                 )
         self.cameras = tuple(cameras)
         self.overwrite = overwrite
-        self._target.parent.mkdir(parents=True, exist_ok=True)
-        self._tmp = self._make_temp()
         doc = {
             "format": FORMAT_NAME,
             "version": FORMAT_VERSION,
@@ -414,8 +412,18 @@ class DatasetWriter:
         }
         if meta:
             doc["meta"] = meta
-        (self._tmp / "rig.json").write_text(json.dumps(doc, indent=2))
-        (self._tmp / "sessions").mkdir()
+        try:  # before any folder is made: a meta JSON cannot hold leaves nothing behind
+            rig_text = json.dumps(doc, indent=2)
+        except (TypeError, ValueError) as e:
+            raise TypeError(f"meta: expected plain JSON values (str, int, float, ...): {e}") from e
+        self._target.parent.mkdir(parents=True, exist_ok=True)
+        self._tmp = self._make_temp()
+        try:
+            (self._tmp / "rig.json").write_text(rig_text)
+            (self._tmp / "sessions").mkdir()
+        except BaseException:
+            shutil.rmtree(self._tmp, ignore_errors=True)
+            raise
         self._sessions: dict[str, SessionWriter] = {}
 
     def _make_temp(self) -> Path:

@@ -170,7 +170,7 @@ def car_reading_detector(
 
     Returns per margin m of ``margins`` (bays): ``accepted`` pairs, ``cross_floor`` among them,
     ``cfer`` (their share, ``nan`` without pairs) and ``recall`` (accepted true revisits / all
-    true revisits among the pairs)."""
+    true revisits among the pairs, ``nan`` without true revisits)."""
     per_floor = visible.shape[1]
     floors = states.shape[1] // per_floor
     idx = np.arange(per_floor)
@@ -183,7 +183,7 @@ def car_reading_detector(
     floor = np.argmin(mismatch, axis=1)
     lead = ranked[:, 1] - ranked[:, 0] if floors > 1 else np.full(len(floor), per_floor)
     cross = kf["floor"][a] != kf["floor"][b]
-    n_true = max(int((~cross).sum()), 1)
+    n_true = int((~cross).sum())  # 0: recall is undefined (nan), not 0
     out = []
     for m in margins:
         ok = (lead[a] >= m) & (lead[b] >= m) & (floor[a] == floor[b])
@@ -194,7 +194,7 @@ def car_reading_detector(
                 "accepted": k,
                 "cross_floor": int((ok & cross).sum()),
                 "cfer": float((ok & cross).sum() / k) if k else float("nan"),
-                "recall": float((ok & ~cross).sum() / n_true),
+                "recall": float((ok & ~cross).sum() / n_true) if n_true else float("nan"),
             }
         )
     return out
@@ -277,9 +277,9 @@ def markdown(r: dict[str, Any]) -> str:
     ]
     for o in r["car_reading_detector"]:
         cfer = "–" if o["cfer"] != o["cfer"] else f"{100 * o['cfer']:.2f} %"
+        recall = "–" if o["recall"] != o["recall"] else f"{100 * o['recall']:.1f} %"
         lines.append(
-            f"| {o['margin']} | {o['accepted']} | {o['cross_floor']} | {cfer} | "
-            f"{100 * o['recall']:.1f} % |"
+            f"| {o['margin']} | {o['accepted']} | {o['cross_floor']} | {cfer} | {recall} |"
         )
     lines += ["", "Keyframes that see a level sign of their floor (occlusion ignored):", ""]
     lines += [f"- {k}: {100 * v:.1f} %" for k, v in r["sees_level_sign"].items()]
@@ -306,7 +306,9 @@ def main() -> None:
         p.exit(2, f"floor_cues: {e}\n")
     print(markdown(r), end="")
     if a.json:
-        a.json.write_text(json.dumps(r, indent=2) + "\n")
+        from vvloc.evaluate import to_jsonable  # NaN (undefined) → null: strict JSON
+
+        a.json.write_text(json.dumps(to_jsonable(r), indent=2, allow_nan=False) + "\n")
 
 
 if __name__ == "__main__":

@@ -392,12 +392,37 @@ class Renderer:
         """Upload the scene: (N, 10) float32 vertices, (K,) uint32 indices, (L, 4) lights
         (x, y, z, range m), (L, 3) light colours and (L,) the storey of each light (only the
         lights of the rendered floor shine; without floors, lights within 8 m above do)."""
+        verts = np.ascontiguousarray(vertices, dtype=np.float32)
+        if verts.ndim != 2 or verts.shape[1] != 10 or not np.isfinite(verts).all():
+            raise ValueError(f"vertices: expected finite (N, 10) floats, got shape {verts.shape}")
+        idx = np.asarray(indices)
+        if idx.ndim != 1 or idx.size % 3 or not np.issubdtype(idx.dtype, np.integer):
+            raise ValueError(
+                f"indices: expected (K,) integer triangle corners, K a multiple of 3, got "
+                f"shape {idx.shape} of {idx.dtype}"
+            )
+        if idx.size and (idx.min() < 0 or idx.max() >= len(verts)):
+            raise ValueError(f"indices: expected vertex numbers in [0, {len(verts)})")
+        if (lights is None) != (light_colors is None):
+            raise ValueError("lights, light_colors: expected both or neither")
+        if lights is None:
+            if light_floors is not None:
+                raise ValueError("light_floors: expected None without lights")
+        else:
+            lights_arr, colours = np.asarray(lights), np.asarray(light_colors)
+            if lights_arr.ndim != 2 or lights_arr.shape[1] != 4:
+                raise ValueError(f"lights: expected (L, 4), got {lights_arr.shape}")
+            n = lights_arr.shape[0]
+            if colours.shape != (n, 3):
+                raise ValueError(f"light_colors: expected ({n}, 3), got {colours.shape}")
+            if light_floors is not None and np.shape(light_floors) != (n,):
+                raise ValueError(f"light_floors: expected ({n},), got {np.shape(light_floors)}")
         for b in self._buffers:
             b.release()
         if self.vao is not None:
             self.vao.release()
-        vbo = self.ctx.buffer(np.ascontiguousarray(vertices, dtype=np.float32).tobytes())
-        ibo = self.ctx.buffer(np.ascontiguousarray(indices, dtype=np.uint32).tobytes())
+        vbo = self.ctx.buffer(verts.tobytes())
+        ibo = self.ctx.buffer(np.ascontiguousarray(idx, dtype=np.uint32).tobytes())
         self._buffers = [vbo, ibo]
         self.vao = self.ctx.vertex_array(
             self.prog,
@@ -442,7 +467,14 @@ class Renderer:
                     f"cam_to_ego: expected finite ({len(self.cameras)}, 4, 4), got {T.shape}"
                 )
             placements = list(T)
+        if isinstance(lighting, str) and lighting not in PRESETS:
+            raise ValueError(f"lighting: unknown preset {lighting!r}; known: {sorted(PRESETS)}")
         lt = PRESETS[lighting] if isinstance(lighting, str) else lighting
+        p = np.asarray(pose, dtype=np.float64)
+        if p.shape != (3,) or not np.isfinite(p).all() or not math.isfinite(z):
+            raise ValueError(
+                f"pose, z: expected a finite (x, y, yaw) and height, got {p.tolist()} and {z}"
+            )
         T_we = ego_to_world(pose, z)
         ctx = self.ctx
         self.fbo.use()

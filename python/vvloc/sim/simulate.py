@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import math
 import os
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
@@ -49,6 +50,8 @@ def session_plan(
     and lighting, and moves 15 % of the parked cars."""
     if sessions < 1:
         raise ValueError(f"sessions: expected >= 1, got {sessions}")
+    if isinstance(lighting, str):  # one preset would cycle through its letters
+        raise TypeError(f"lighting: expected a list of preset names, got the str {lighting!r}")
     cycle = (
         tuple(lighting)
         if lighting
@@ -132,16 +135,27 @@ def simulate_dataset(
     ego frame's, as the NCLT and RobotCar readers give them); the pose stays (x, y, yaw).
     """
     for key, v in (("sessions", sessions), ("frames", frames), ("floors", floors)):
-        if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
             raise ValueError(f"{key}: expected an int >= 1, got {v!r}")
-    if floors > MAX_FLOORS:
+    sessions, frames, floors = int(sessions), int(frames), int(floors)
+    if scene == "garage" and floors > MAX_FLOORS:  # the parking lot has one level
         raise ValueError(f"floors: expected at most {MAX_FLOORS} storeys, got {floors}")
     if scene == "garage" and frames < floors:  # each floor drives its share of the frames
         raise ValueError(
             f"frames: expected at least one frame per floor ({floors}) a session, got {frames}"
         )
-    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
         raise ValueError(f"seed: expected an int >= 0, got {seed!r}")
+    seed = int(seed)
+    if (
+        isinstance(texture_strength, bool)
+        or not isinstance(texture_strength, (int, float, np.floating, np.integer))
+        or not (texture_strength >= 0 and math.isfinite(texture_strength))
+    ):
+        raise ValueError(
+            f"texture_strength: expected a finite number >= 0, got {texture_strength!r}"
+        )
+    texture_strength = float(texture_strength)  # rig.json's meta holds plain numbers
     for key, v in (("max_roll", max_roll), ("max_pitch", max_pitch)):
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0.0 <= v <= MAX_TILT:
             raise ValueError(f"{key}: expected degrees within [0, {MAX_TILT:g}], got {v!r}")

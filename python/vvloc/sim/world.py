@@ -150,7 +150,15 @@ class MeshBuilder:
         color: tuple[float, ...],
     ) -> None:
         """A seven-segment digit painted on a vertical wall: ``origin`` is its bottom-left corner,
-        ``along`` the unit wall direction (x), ``normal`` the wall's outward normal."""
+        ``along`` the unit wall direction (x), ``normal`` the wall's outward normal.
+
+        The digit reads upright to a viewer facing the wall when ``along`` points to that
+        viewer's right, (−normal_y, normal_x). Known (2026-12-05): the world builders pass the
+        opposite direction (the parking lot's wall signs, the garage's level signs and its
+        pillar numbers), so every painted digit reads mirrored (a 2 as a 5). The signs still
+        differ between floors as they should; kept because every rendered dataset and the
+        committed model were made with them, and a fix changes each image that shows a sign
+        (for the next retraining, ``models/synth-small/MODEL_CARD.md``'s last section)."""
         segs = {
             0: "abcdef",
             1: "bc",
@@ -241,6 +249,7 @@ class World:
         """The parked cars of a session: occupancy (B,) bool and colours (B, 3) of ``bays``, with
         ``change_fraction`` of the bays toggled (cars that left or arrived, new colours), drawn
         from ``session_seed``."""
+        _check_share(change_fraction, "change_fraction")
         occ = self.occupancy.copy()
         colors = self.car_colors.copy()
         if change_fraction > 0:
@@ -351,6 +360,14 @@ def _zebra(mb: MeshBuilder, x: float, y: float, width: float, z: float) -> None:
         mb.ground_rect(x, y - width / 2 + 0.5 + k, 2.5, 0.5, 0.0, z + 0.01, WHITE, PAINT)
 
 
+def _check_share(value: float, name: str) -> None:
+    """``ValueError`` naming ``name`` unless ``value`` is a number in [0, 1] (a share of bays)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.number)):
+        raise ValueError(f"{name}: expected a share in [0, 1], got {value!r}")
+    if not 0.0 <= value <= 1.0:  # NaN fails too
+        raise ValueError(f"{name}: expected a share in [0, 1], got {value!r}")
+
+
 def parking_world(
     seed: int = 0, *, n_aisles: int = 3, n_bays: int = 20, occupancy: float = 0.65
 ) -> World:
@@ -359,6 +376,7 @@ def parking_world(
     grids around it."""
     if n_aisles < 1 or n_bays < 4:
         raise ValueError(f"n_aisles >= 1 and n_bays >= 4 expected, got {n_aisles}, {n_bays}")
+    _check_share(occupancy, "occupancy")
     rng = np.random.default_rng([seed, 1])
     mb = MeshBuilder()
     bays: list[Bay] = []
@@ -550,8 +568,13 @@ def garage_world(
     every pillar (a 1.2 m band of :data:`FLOOR_COLOURS`) with the level number above it on the
     faces towards the aisles. Geometry, cars and lights are the same for both.
     Floor f's driving surface is at z = −3.2·f."""
-    if floors < 1:
-        raise ValueError(f"floors: expected >= 1, got {floors}")
+    if isinstance(floors, bool) or not isinstance(floors, (int, np.integer)) or floors < 1:
+        raise ValueError(f"floors: expected an int >= 1, got {floors!r}")
+    if isinstance(n_bays, bool) or not isinstance(n_bays, (int, np.integer)) or n_bays < 3:
+        raise ValueError(
+            f"n_bays: expected an int >= 3 (the level signs need the room), got {n_bays!r}"
+        )
+    _check_share(occupancy, "occupancy")
     if floor_marking not in FLOOR_MARKINGS:
         raise ValueError(f"floor_marking: expected one of {FLOOR_MARKINGS}, got {floor_marking!r}")
     rng = np.random.default_rng([seed, 2])
