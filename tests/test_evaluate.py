@@ -242,6 +242,24 @@ def test_an_answer_on_another_floor_is_no_accurate_pose():
         ev.pose_accuracy(est, gt, same, same_floor=np.ones(3))
 
 
+def test_pose_keyframe_row_is_chosen_without_the_poses_error():
+    # four queries built on true revisits; the fourth pose is 5 m off, so snapping reports a
+    # far keyframe as its top-1 and the top-1 row leaves it out; the pose-keyframe row keeps it
+    gt = np.zeros((4, 3))
+    est = np.array([[0.1, 0.0, 0.0], [0.0, 0.1, 0.0], [0.1, 0.1, 0.0], [5.0, 1.0, 0.0]])
+    snapped_correct = np.array([True, True, True, False])
+    acc = ev.pose_accuracy(
+        est, gt, snapped_correct, pose_keyframe_correct=np.ones(4, bool), percentiles=(100,)
+    )
+    assert list(acc) == ["true_revisit", "pose_keyframe", "all"]
+    assert acc["true_revisit"]["count"] == 3 and acc["true_revisit"]["APE@100"] < 0.2
+    assert acc["pose_keyframe"]["count"] == 4
+    assert acc["pose_keyframe"]["APE@100"] == pytest.approx(np.hypot(5.0, 1.0))
+    assert "pose_keyframe" not in ev.pose_accuracy(est, gt, snapped_correct)
+    text = "\n".join(ev._pose_table({"VVLoc-ML": acc}))
+    assert "pose's keyframe a true revisit" in text
+
+
 # ----------------------------------------------------------------------------- loop closure
 
 
@@ -431,6 +449,25 @@ def test_loop_closure_rejects_bad_input():
         ev.loop_closure_curve(pairs + 10, dist, q, db)
     with pytest.raises(ValueError, match="times"):
         ev.loop_closure_curve(pairs, dist, q, db, query_times=np.arange(4.0))
+
+
+def test_loop_closure_truth_and_positives_agree_at_the_radius():
+    # 1.2^2 + 1.6^2 rounds to 4.000...1 while its norm rounds to 2.0: the tree left the query
+    # out of the positives while the pair counted as a true loop (recall nan, precision 1)
+    q, d = np.array([[5.7, 2.1]]), np.array([[6.9, 3.7]])
+    assert np.linalg.norm(q - d) == 2.0
+    curve = ev.loop_closure_curve(np.array([[0, 0]]), np.array([0.1]), q, d, radius=2.0)
+    at = curve.at(0.2)
+    assert at["precision"] == 1.0 and at["recall"] == 1.0
+
+
+def test_symmetric_loop_closure_refuses_a_pair_listed_twice():
+    pos = np.array([[0.0, 0.0], [0.5, 0.0], [50.0, 0.0]])
+    pairs = np.array([[0, 1], [1, 0]])
+    with pytest.raises(ValueError, match="each pair is listed once"):
+        ev.loop_closure_curve(pairs, np.array([0.1, 0.1]), pos, pos, symmetric=True)
+    once = ev.loop_closure_curve(pairs[:1], np.array([0.1]), pos, pos, symmetric=True).at(0.2)
+    assert once["accepted"] == 1 and once["recall"] == 1.0
 
 
 def test_loop_closure_without_candidates():

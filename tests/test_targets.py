@@ -252,3 +252,24 @@ def test_a_garage_report_without_accepted_loops_reads_as_undefined_not_a_crash()
     figs = [f for f in figs if f.name.startswith("default garage")]
     assert figs and all(f.value == "n/a" and f.met is None for f in figs), figs
     assert all("0 of 0 accepted loops" in f.detail and "precision@2m n/a" in f.detail for f in figs)
+
+
+def test_reports_of_trained_on_query_sessions_are_refused():
+    parking = copy.deepcopy(_committed("report-test96-local"))
+    assert len(check_targets(parking)) == 9  # the committed test is held out (garages: none)
+    parking["meta"]["trained_on_queries"] = ["s81"]
+    with pytest.raises(ValueError, match=r"--parking: the report's query sessions \['s81'\]"):
+        check_targets(parking)
+    # reports written before meta.trained_on_queries say it in a note
+    older = copy.deepcopy(_committed("report-test96-local"))
+    older["meta"].pop("trained_on_queries", None)
+    older["notes"][0] += (
+        "; **queries ['s81'] were trained on** (the checkpoint's training record): not a "
+        "held-out test"
+    )
+    with pytest.raises(ValueError, match="were trained on"):
+        check_targets(older)
+    garage = copy.deepcopy(_committed("report-test96-garage"))
+    garage["meta"]["trained_on_queries"] = ["s49"]
+    with pytest.raises(ValueError, match="--garage: the report's query sessions"):
+        check_targets(_committed("report-test96"), garage=garage)

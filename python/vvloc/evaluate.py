@@ -405,6 +405,7 @@ def pose_accuracy(
     *,
     kept: npt.ArrayLike | None = None,
     same_floor: npt.ArrayLike | None = None,
+    pose_keyframe_correct: npt.ArrayLike | None = None,
     percentiles: Sequence[float] = DEFAULT_PERCENTILES,
 ) -> dict[str, dict[str, Any]]:
     """AOE/APE@p: percentiles of absolute yaw error (°) and position error (m) of global poses.
@@ -419,13 +420,20 @@ def pose_accuracy(
             query's floor; default all. An estimate on another floor joins different places
             (a (x, y, yaw) error of 0 there would be no success), so the ``all`` row leaves
             those queries out and counts them (``other_floor``).
+        pose_keyframe_correct: optional ``(Q,)`` bool, whether the keyframe the estimate was
+            built on (``metric_row``, chosen before the pose) is a true revisit. With snapping
+            the reported top-1 is the retrieved keyframe nearest the estimated pose, so
+            ``correct`` depends on the pose: a pose far off moves the top-1 away and leaves the
+            query out of ``true_revisit``. This subset is chosen without the pose's error.
         percentiles: the p of AOE@p / APE@p, in %.
 
     Returns:
-        ``{"true_revisit": row, "all": row}``; a row is ``{"count", "AOE@25", …, "APE@25", …}``
+        ``{"true_revisit": row, "all": row}``, plus ``"pose_keyframe": row`` when
+        ``pose_keyframe_correct`` is given; a row is ``{"count", "AOE@25", …, "APE@25", …}``
         (see :func:`error_percentiles`). ``true_revisit`` covers ``correct & kept`` queries (a
-        true revisit is on the query's floor), ``all`` every kept query answered on its floor,
-        plus ``other_floor``, the kept queries answered on another floor (left out).
+        true revisit is on the query's floor), ``pose_keyframe`` ``pose_keyframe_correct &
+        kept``, ``all`` every kept query answered on its floor, plus ``other_floor``, the kept
+        queries answered on another floor (left out).
     """
     yaw, pos = pose_errors(estimated, ground_truth)
     n = yaw.shape[0]
@@ -436,11 +444,14 @@ def pose_accuracy(
     )
     sub = corr & keep
     every = keep & floor_ok
-    return {
-        "true_revisit": _aoe_ape(yaw[sub], pos[sub], percentiles),
-        "all": _aoe_ape(yaw[every], pos[every], percentiles)
-        | {"other_floor": int((keep & ~floor_ok).sum())},
+    rows = {"true_revisit": _aoe_ape(yaw[sub], pos[sub], percentiles)}
+    if pose_keyframe_correct is not None:
+        basis = _bool_array(pose_keyframe_correct, "pose_keyframe_correct", n) & keep
+        rows["pose_keyframe"] = _aoe_ape(yaw[basis], pos[basis], percentiles)
+    rows["all"] = _aoe_ape(yaw[every], pos[every], percentiles) | {
+        "other_floor": int((keep & ~floor_ok).sum())
     }
+    return rows
 
 
 # ----------------------------------------------------------------------------- loop closure
@@ -698,6 +709,11 @@ def loop_closure_curve(
         raise ValueError(
             "symmetric: needs the same frames as query and map (Q == N) and causal=False"
         )
+    if symmetric and pr.size:  # a pair listed in both orders would count twice
+        ordered = np.sort(pr, axis=1)
+        ordered = ordered[ordered[:, 0] != ordered[:, 1]]
+        if len(np.unique(ordered, axis=0)) != len(ordered):
+            raise ValueError("pairs: with symmetric=True each pair is listed once (e.g. i < j)")
 
     def admissible(qi: I64Array, dj: I64Array) -> BoolArray:
         # a frame is not its own loop (symmetric: the same frames as query and map)
@@ -716,9 +732,13 @@ def loop_closure_curve(
 
     # Ground truth: every admissible map frame within the radius, on the same floor.
     if num_q and num_db:
-        near = cKDTree(q).sparse_distance_matrix(cKDTree(d), rad, output_type="ndarray")
+        # a little beyond the radius, then the pairs' own test below (the tree compares
+        # squared distances: a pair at 2.0 m by norm could fall out of it)
+        wide = rad * (1.0 + 1e-9) + 1e-12
+        near = cKDTree(q).sparse_distance_matrix(cKDTree(d), wide, output_type="ndarray")
         gi, gj = near["i"].astype(np.int64), near["j"].astype(np.int64)
-        ok = admissible(gi, gj) & same_floor(gi, gj) & (near["v"] <= rad)
+        within = np.linalg.norm(q[gi] - d[gj], axis=1) <= rad
+        ok = admissible(gi, gj) & same_floor(gi, gj) & within
         positive = np.unique(gi[ok])
     else:
         positive = np.zeros(0, dtype=np.int64)
@@ -1135,7 +1155,11 @@ def _recall_table(results: Mapping[str, Any], first: str) -> list[str]:
 
 
 def _pose_table(results: Mapping[str, Any]) -> list[str]:
-    subsets = {"true_revisit": "top-1 true revisit", "all": "all kept queries on their floor"}
+    subsets = {
+        "true_revisit": "top-1 true revisit",
+        "pose_keyframe": "pose's keyframe a true revisit",
+        "all": "all kept queries on their floor",
+    }
     first = next(iter(next(iter(results.values())).values()))
     aoe = [k for k in first if k.startswith("AOE@")]
     ape = [k for k in first if k.startswith("APE@")]

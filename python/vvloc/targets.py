@@ -187,6 +187,25 @@ WORLDS: dict[str, dict[str, Any]] = {
 }
 
 
+#: The note ``vvloc eval`` writes when the checkpoint's training record lists query sessions
+#: (what reports before ``meta.trained_on_queries`` have to tell it).
+TRAINED_ON_NOTE = "were trained on** (the checkpoint's training record)"
+
+
+def _check_held_out(name: str, report: Mapping[str, Any]) -> None:
+    """``ValueError`` when the report's queries were trained on: the targets are figures of
+    held-out sessions."""
+    seen = (report.get("meta") or {}).get("trained_on_queries")
+    if seen is None:  # reports before 2026-12-05 say it in a note only
+        notes = report.get("notes") or []
+        seen = ["(see the report's notes)"] if any(TRAINED_ON_NOTE in str(n) for n in notes) else []
+    if seen:
+        raise ValueError(
+            f"--{name}: the report's query sessions {seen} were trained on (the checkpoint's "
+            "training record): the targets are figures of held-out sessions"
+        )
+
+
 def _check_world(name: str, report: Mapping[str, Any]) -> None:
     scene = (report.get("meta") or {}).get("scene")
     if not isinstance(scene, Mapping):
@@ -207,8 +226,9 @@ def check_targets(
 
     ``parking``, ``pillars``, ``garage``: parsed ``report.json`` of ``vvloc eval`` (the garages
     evaluated with ``--loops``; either may be None: its CFER is then listed as not evaluated).
-    Raises ``ValueError`` when a report lacks its figures or when the reports are of different
-    weights (``meta.model_weights_hash``)."""
+    Raises ``ValueError`` when a report lacks its figures, when the reports are of different
+    weights (``meta.model_weights_hash``), or when a report's query sessions were trained on
+    (``meta.trained_on_queries``, or the note of older reports)."""
     reports = {"parking": parking, "pillars": pillars, "garage": garage}
     hashes = {
         name: r.get("meta", {}).get("model_weights_hash")
@@ -220,6 +240,7 @@ def check_targets(
     for name, report in reports.items():
         if report is not None:
             _check_world(name, report)
+            _check_held_out(name, report)
     figures = _parking(parking)
     for world, report in (("pillar garage", pillars), ("default garage", garage)):
         if report is None:

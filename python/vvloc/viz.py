@@ -219,6 +219,7 @@ def plot_trajectory(
     *,
     kept: npt.ArrayLike | None = None,
     retrieved_positions: npt.ArrayLike | None = None,
+    method: str = "retrieval",
 ) -> Path:
     """Map and query trajectories, each query coloured by the correctness of its retrieval.
 
@@ -230,6 +231,7 @@ def plot_trajectory(
         kept: optional ``(Q,)`` bool; excluded queries (no map frame within 2 m) are grey crosses.
         retrieved_positions: optional ``(Q, 2)`` position of each query's top-1 map frame; a thin
             segment joins the query to it.
+        method: what ranked the top-1, named in the title (``"Top-1 <method>: ..."``).
     """
     db = _points(db_positions, "db_positions")
     q = _points(query_positions, "query_positions")
@@ -259,9 +261,9 @@ def plot_trajectory(
     n_keep = int(keep.sum())
     if n_keep:
         share = 100.0 * (keep & ok).sum() / n_keep
-        ax.set_title(f"Top-1 retrieval: {share:.1f}% correct of {n_keep} queries")
+        ax.set_title(f"Top-1 {method}: {share:.1f}% correct of {n_keep} queries")
     else:
-        ax.set_title("Top-1 retrieval: no query has a map frame within 2 m")
+        ax.set_title(f"Top-1 {method}: no query has a map frame within 2 m")
     ax.grid(True, alpha=0.3)
     ax.legend(loc="best", fontsize=8)
     return save_figure(fig, path)

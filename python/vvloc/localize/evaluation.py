@@ -125,6 +125,16 @@ def _on_floor(results: Sequence[Any], db_floor: np.ndarray, q_floor: np.ndarray)
     return np.asarray(db_floor)[rows] == q_floor
 
 
+def _pose_keyframe_correct(
+    results: Sequence[Any], db_pose: np.ndarray, q_pose: np.ndarray, on_floor: np.ndarray
+) -> np.ndarray:
+    """``(Q,)`` bool: the keyframe each metric pose was built on (``metric_row``, chosen before
+    the pose) lies within 2 m of the query on its floor: a true revisit, whatever the pose."""
+    rows = np.array([r.metric_row for r in results], dtype=np.int64)
+    near = np.linalg.norm(np.asarray(db_pose)[rows, :2] - q_pose[:, :2], axis=1) <= 2.0
+    return near & on_floor
+
+
 def _robustness(
     loc: Localizer,
     frames: Sequence[Frame],
@@ -429,7 +439,12 @@ def run_evaluation(
         correct = rec_ml.correct(1, 2.0)
         on_floor = _on_floor(results, db_floor, q_floor)
         pose_acc = evaluate.pose_accuracy(
-            est, q_pose, correct, kept=rec_ml.kept, same_floor=on_floor
+            est,
+            q_pose,
+            correct,
+            kept=rec_ml.kept,
+            same_floor=on_floor,
+            pose_keyframe_correct=_pose_keyframe_correct(results, db_pose, q_pose, on_floor),
         )
         stages = ("encode", "retrieve", "rerank", "metric")
         latency = evaluate.latency_summary(
@@ -532,6 +547,7 @@ def run_evaluation(
                 "cpu": cpu_model(),
                 "torch_threads": torch.get_num_threads(),
                 "trained_on": summarize(model.training_record),
+                "trained_on_queries": list(seen),  # vvloc targets refuses a report with any
             },
             "training": model.training_record or None,
             "global_localization": {"VVLoc-G": rec_g, "VVLoc-ML": rec_ml},
@@ -616,7 +632,12 @@ def run_evaluation(
             {f"VVLoc-ML, {k}": pos_err[m] for k, m in subsets.items()},
         )
         figures["Trajectory"] = viz.plot_trajectory(
-            work / "trajectory.png", db_pose[:, :2], q_pose[:, :2], correct, kept=rec_ml.kept
+            work / "trajectory.png",
+            db_pose[:, :2],
+            q_pose[:, :2],
+            correct,
+            kept=rec_ml.kept,
+            method="VVLoc-ML (re-ranked, snapped)" if loc.snap else "VVLoc-ML (re-ranked)",
         )
         sample = int(np.argmax(sel)) if sel.any() else 0
         h = results[sample].search
