@@ -15,7 +15,9 @@ import vvloc
 def timeit(
     fn: Callable[[], Any], *, min_time: float = 0.3, repeat: int = 5, warmup: int = 1
 ) -> float:
-    """Median seconds per call of ``fn`` over ``repeat`` rounds of at least ``min_time`` each."""
+    """Median seconds per call of ``fn`` over ``repeat`` rounds of at least ``min_time`` each
+    (for an even ``repeat``, the faster of the two middle rounds: no implementation is timed
+    by its slower half)."""
     for _ in range(warmup):
         fn()
     t0 = time.perf_counter()
@@ -29,7 +31,7 @@ def timeit(
             fn()
         rounds.append((time.perf_counter() - t0) / n)
     rounds.sort()
-    return rounds[len(rounds) // 2]
+    return rounds[(len(rounds) - 1) // 2]
 
 
 def random_map(model: Any, n: int, rng: Any, *, bevs: bool = False) -> Any:
@@ -86,4 +88,5 @@ def write_json(path: str | Path, name: str, rows: list[dict[str, Any]]) -> None:
         "python": platform.python_version(),
         "rows": rows,
     }
+    Path(path).parent.mkdir(parents=True, exist_ok=True)  # bench-results/ is not committed
     Path(path).write_text(json.dumps(doc, indent=2))

@@ -7,8 +7,8 @@ A small model (``ModelConfig.small()``; weights do not change the timing) locali
 frames (4 cameras of 96×160) against a map of N keyframes whose descriptors are random unit
 vectors (only their count matters for the timing). Reported: median milliseconds per query and
 stage with one metric candidate, and the share of the metric stage spent in the Rust kernels
-(``pad_polar`` + ``estimate_yaw`` + search bookkeeping) versus the networks (decoder +
-interactor). The paper
+(``pad_polar`` + ``estimate_yaw``; the search's bookkeeping is counted with the rest) versus
+the networks (decoder + interactor). The paper
 reports 261 ms re-ranking and 238 ms metric localization on an A100 with its full model.
 For each further ``--metric_candidates`` value (default ``1,3,5,10``) the metric stage is timed
 in the same run (``Localizer(metric_candidates=M)``: coarse stage against M candidates with the

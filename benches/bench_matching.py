@@ -68,10 +68,15 @@ def bench_yaw(pairs: list[int], quick: bool) -> list[dict]:
         tv = timeit(
             lambda a=ts, b=tt: torch_estimate_yaw(a, b), min_time=mt, repeat=3 if p < 2000 else 1
         )
-        # Sanity: the torch scan is never better than the exact minimum.
+        # Checks, so that a fast wrong kernel cannot win: the torch scan is never better than
+        # the exact minimum, and each returned cost is the cost at the returned shift (by the
+        # float64 reference, on up to 20 pairs).
         est = K.estimate_yaw(src, tgt)
         _, tcost = torch_estimate_yaw(ts, tt)
         assert np.all(est.cost <= tcost.numpy() + 1e-5)
+        for i in range(min(p, 20)):
+            at_shift = ref.shift_cost(src[i], tgt[i], float(est.shift[i]))
+            assert abs(at_shift - float(est.cost[i])) <= 1e-4, (i, at_shift, est.cost[i])
         row = {
             "pairs": p,
             "rust_ms": rust * 1e3,
@@ -83,8 +88,9 @@ def bench_yaw(pairs: list[int], quick: bool) -> list[dict]:
         }
         if p == 20 and not quick:
             t0 = time.perf_counter()
-            ref.estimate_yaw(src, tgt)
+            _, _, ref_cost = ref.estimate_yaw(src, tgt)
             row["reference_ms"] = (time.perf_counter() - t0) * 1e3
+            assert np.allclose(est.cost, ref_cost, atol=1e-5), "estimate_yaw: not the reference's"
             row["reference_speedup"] = row["reference_ms"] / row["rust_ms"]
         rows.append(row)
     return rows

@@ -30,10 +30,12 @@ try:
     import faiss
 except ImportError:  # pragma: no cover - optional peer
     faiss = None
+    print("faiss-cpu is not installed: its columns are skipped (pip install faiss-cpu)")
 try:
     import torch
 except ImportError:  # pragma: no cover - optional peer
     torch = None
+    print("torch is not installed: its columns are skipped")
 
 D, K = 256, 20
 

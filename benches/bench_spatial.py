@@ -7,12 +7,14 @@ vectorised torch ``grid_sample`` path (:mod:`vvloc.reference.torch_spatial`), an
 memory-write floor of the output (filling an array of the output's size with ones: freshly
 allocated, as the kernel must, and preallocated).
 
-Usage: ``python benches/bench_spatial.py [--json PATH] [--quick]``.
+Usage: ``python benches/bench_spatial.py [--json PATH] [--quick]``; ``--tail N`` times N single
+``pad_polar`` calls instead (median and worst; run it with ``VVLOC_MADVISE_HUGEPAGE=0`` too).
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import time
 from typing import Any
 
@@ -36,16 +38,24 @@ def hypotheses() -> np.ndarray:
     return np.stack(np.meshgrid(steps, steps, indexing="ij"), axis=-1).reshape(-1, 2)
 
 
-def once(fn: Any) -> float:
-    t0 = time.perf_counter()
-    fn()
-    return time.perf_counter() - t0
+def check(kernel: str, impl: str, got: Any, want: Any, atol: float) -> None:
+    """Stop the benchmark when the Rust kernel's output is not ``want`` (a fast wrong kernel
+    must not win): float32 grid coordinates differ from float64 by ~n·2⁻²⁴ cells."""
+    diff = float(np.max(np.abs(np.asarray(got, np.float64) - np.asarray(want, np.float64))))
+    if not diff <= atol:
+        raise SystemExit(f"{kernel}: rust differs from {impl} by {diff:.3g} (> {atol:g})")
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--json", help="write the figures to this JSON file")
     parser.add_argument("--quick", action="store_true", help="skip the slow reference")
+    parser.add_argument(
+        "--tail",
+        type=int,
+        default=0,
+        help="only time this many single pad_polar calls: median and worst (tail latency)",
+    )
     args = parser.parse_args()
 
     rng = np.random.default_rng(0)
@@ -56,6 +66,19 @@ def main() -> None:
     n = len(tr)
     out_shape = (n, T, R, C)
     rows: list[dict[str, Any]] = []
+    if args.tail:
+        K.pad_polar(bev, tr, T, R, G)  # warm-up
+        calls = []
+        for _ in range(args.tail):
+            t0 = time.perf_counter()
+            K.pad_polar(bev, tr, T, R, G)
+            calls.append(1e3 * (time.perf_counter() - t0))
+        huge = os.environ.get("VVLOC_MADVISE_HUGEPAGE", "1").strip() != "0"
+        print(
+            f"pad_polar, {args.tail} single calls, huge pages {'on' if huge else 'off'}: "
+            f"median {np.median(calls):.1f} ms, best {min(calls):.1f} ms, worst {max(calls):.1f} ms"
+        )
+        return
 
     def add(kernel: str, impl: str, seconds: float, base: float | None, note: str = "") -> None:
         rows.append(
@@ -90,9 +113,16 @@ def main() -> None:
     with torch.no_grad():
         torch_s = timeit(lambda: TS.torch_pad_polar(tbev, ttr, T, R, G), min_time=0.2, repeat=2)
     add("pad_polar", "torch grid_sample", torch_s, rust, "pad then polar, chunks of 16")
+    sub = tr[:: n // 10][:11]
+    got = K.pad_polar(bev, sub, T, R, G)
+    with torch.no_grad():
+        want = TS.torch_pad_polar(tbev, torch.from_numpy(sub), T, R, G)[0].numpy()
+    check("pad_polar", "torch", got, want, 1e-3)
     if not args.quick:
-        sub = tr[:: n // 10][:11]
-        ref = once(lambda: K.pad_polar(bev, sub, T, R, G, backend="reference")) * n / len(sub)
+        t0 = time.perf_counter()
+        want = K.pad_polar(bev, sub, T, R, G, backend="reference")
+        ref = (time.perf_counter() - t0) * n / len(sub)
+        check("pad_polar", "reference", got, want, 1e-4)
         add("pad_polar", "reference", ref, rust, f"timed once on {len(sub)} hyps, scaled")
 
     # --- polar_sample, one map -----------------------------------------------------------------
@@ -105,14 +135,14 @@ def main() -> None:
             timeit(lambda: TS.torch_polar_sample(tbev, T, R, G).contiguous(), **quick),
             rust,
         )
+    got = K.polar_sample(bev, T, R, G)
+    with torch.no_grad():
+        check("polar_sample", "torch", got, TS.torch_polar_sample(tbev, T, R, G)[0].numpy(), 1e-3)
     if not args.quick:
-        add(
-            "polar_sample",
-            "reference",
-            once(lambda: K.polar_sample(bev, T, R, G, backend="reference")),
-            rust,
-            "timed once",
-        )
+        t0 = time.perf_counter()
+        want = K.polar_sample(bev, T, R, G, backend="reference")
+        add("polar_sample", "reference", time.perf_counter() - t0, rust, "timed once")
+        check("polar_sample", "reference", got, want, 1e-4)
 
     # --- bev_pad, 121 hypotheses ---------------------------------------------------------------
     rust = timeit(lambda: K.bev_pad(bev, tr, G), **quick)
@@ -131,10 +161,19 @@ def main() -> None:
             timeit(lambda: TS.torch_bev_pad(tbev, ttr, G).contiguous(), min_time=0.2, repeat=2),
             rust,
         )
+    sub = tr[:11]
+    got = K.bev_pad(bev, sub, G)
+    with torch.no_grad():
+        want = TS.torch_bev_pad(tbev, torch.from_numpy(sub), G)[0].numpy()
+    check("bev_pad", "torch", got, want, 1e-3)
     if not args.quick:
-        sub = tr[:11]
-        ref = once(lambda: K.bev_pad(bev, sub, G, backend="reference")) * n / len(sub)
+        t0 = time.perf_counter()
+        want = K.bev_pad(bev, sub, G, backend="reference")
+        ref = (time.perf_counter() - t0) * n / len(sub)
+        check("bev_pad", "reference", got, want, 1e-4)
         add("bev_pad", "reference", ref, rust, "timed once on 11 hyps, scaled")
+    checked = "torch's" if args.quick else "torch's and the reference's"
+    print(f"checked: the Rust outputs equal {checked}")
 
     print(
         f"vvloc {vvloc.__version__}: {vvloc.get_num_threads()} kernel threads, "

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import threading
 
 import numpy as np
@@ -367,3 +368,24 @@ except ValueError as e:
     assert len(lines) == 3, r.stdout
     assert lines[0].startswith("MemoryError x:") and lines[1].startswith("MemoryError bev:")
     assert lines[2].startswith("ValueError grid_size:")
+
+
+def test_huge_pages_can_be_turned_off_and_change_no_value(tmp_path):
+    # VVLOC_MADVISE_HUGEPAGE=0 (read once per process) trades the 2 MiB pages' occasional
+    # compaction stall for 4 KiB pages; the output must be the same bytes either way
+    import subprocess
+    import sys
+
+    code = (
+        "import numpy as np, sys; from vvloc import kernels as K; "
+        "rng = np.random.default_rng(0); bev = rng.standard_normal((30, 30, 64), np.float32); "
+        "t = rng.uniform(-1, 1, (40, 2)); "
+        "np.save(sys.argv[1], K.pad_polar(bev, t, 60, 20, 0.3))"  # 12 MB: above 2 MiB
+    )
+    for value in ("1", "0"):
+        env = {**os.environ, "VVLOC_MADVISE_HUGEPAGE": value}
+        run = subprocess.run(
+            [sys.executable, "-c", code, str(tmp_path / f"{value}.npy")], env=env, check=False
+        )
+        assert run.returncode == 0
+    assert np.array_equal(np.load(tmp_path / "1.npy"), np.load(tmp_path / "0.npy"))

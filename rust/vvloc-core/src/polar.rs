@@ -234,11 +234,24 @@ pub(crate) fn blend<const FMA: bool>(out: &mut [f32], taps: &Taps<'_>) {
     }
 }
 
-/// A zeroed output buffer of `len` floats. Large buffers ask Linux for transparent huge pages:
-/// the kernels write every element exactly once, so with 4 KiB pages first-touch page faults
-/// would cost as much as the computation (a 600 MB output is 150 000 faults).
-/// `arg` names the argument that sets its size `dims`: an error instead of an abort when the
-/// buffer cannot exist.
+/// Whether large outputs ask for transparent huge pages: yes unless the environment variable
+/// `VVLOC_MADVISE_HUGEPAGE` is `0` when the first output is made (read once, as numpy reads
+/// `NUMPY_MADVISE_HUGEPAGE`). Huge pages make the 600 MB `pad_polar` output about 3× faster
+/// (50 against 140 ms), but where the system compacts memory on a huge-page fault (the usual
+/// `defrag` setting, `madvise`) a call now and then waits for it (0.5-1.3 s, 2026-12-05):
+/// turning them off trades that tail for the slower, steady median.
+#[cfg(target_os = "linux")]
+fn huge_pages_wanted() -> bool {
+    static WANTED: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    *WANTED
+        .get_or_init(|| std::env::var("VVLOC_MADVISE_HUGEPAGE").map_or(true, |v| v.trim() != "0"))
+}
+
+/// A zeroed output buffer of `len` floats. Large buffers ask Linux for transparent huge pages
+/// ([`huge_pages_wanted`]): the kernels write every element exactly once, so with 4 KiB pages
+/// first-touch page faults would cost as much as the computation (a 600 MB output is 150 000
+/// faults). `arg` names the argument that sets its size `dims`: an error instead of an abort
+/// when the buffer cannot exist.
 pub(crate) fn output_buffer(arg: &'static str, dims: &[usize]) -> Result<Vec<f32>> {
     let len = checked_len(arg, dims)?;
     check_alloc::<f32>(arg, len)?;
@@ -249,7 +262,7 @@ pub(crate) fn output_buffer(arg: &'static str, dims: &[usize]) -> Result<Vec<f32
         let start = buf.as_ptr() as usize;
         let end = start + len * std::mem::size_of::<f32>();
         let (lo, hi) = (start.next_multiple_of(HUGE), end / HUGE * HUGE);
-        if hi > lo {
+        if hi > lo && huge_pages_wanted() {
             // SAFETY: [lo, hi) lies inside the allocation owned by `buf`; MADV_HUGEPAGE is only
             // a hint about how to back that range, it changes neither its contents nor its
             // validity. A failure (e.g. THP disabled) is harmless and ignored.
