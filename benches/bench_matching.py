@@ -1,5 +1,6 @@
 """Matching kernels: exact yaw estimation vs the sgemm floor, vectorised torch and the literal
-reference; translation-search overhead per stage (excluding the decoder).
+reference; roll_interp, matching_cost, yaw_costs and rerank vs the reference; translation-search
+overhead per stage (excluding the decoder).
 
 Usage: ``python benches/bench_matching.py [--json PATH] [--quick]``.
 """
@@ -96,6 +97,46 @@ def bench_yaw(pairs: list[int], quick: bool) -> list[dict]:
     return rows
 
 
+def bench_kernels(quick: bool) -> list[dict]:
+    """The other matching kernels at the localizer's sizes, Rust against the reference
+    (``backend="reference"``), each result checked against the reference's: ``roll_interp``
+    of one (T, C) descriptor, ``matching_cost`` and ``yaw_costs`` of 20 pairs, ``rerank`` of
+    one query against 20 candidates (the reference timed once on 2 of them and scaled: it is
+    a dense yaw scan per candidate; skipped with ``quick``)."""
+    src, tgt = descriptors(20, 7)
+    query = tgt[0]
+    cases = [
+        ("roll_interp", "(T, C), shift 7.3 bins", lambda b: K.roll_interp(src[0], 7.3, backend=b)),
+        ("matching_cost", "20 pairs", lambda b: K.matching_cost(src, tgt, backend=b)),
+        ("yaw_costs", "20 pairs", lambda b: K.yaw_costs(src, tgt, backend=b)),
+    ]
+    rows = []
+    for name, size, fn in cases:
+        got, want = fn("rust"), fn("reference")
+        assert np.allclose(got, want, atol=1e-5), f"{name}: not the reference's"
+        rust, refs = timeit(lambda f=fn: f("rust")), timeit(lambda f=fn: f("reference"))
+        rows.append(
+            {
+                "kernel": name,
+                "size": size,
+                "rust_ms": rust * 1e3,
+                "reference_ms": refs * 1e3,
+                "reference_x": refs / rust,
+            }
+        )
+    rust = timeit(lambda: K.rerank(src, query))
+    row = {"kernel": "rerank", "size": "1 query, 20 candidates", "rust_ms": rust * 1e3}
+    if not quick:
+        got = K.rerank(src, query)
+        t0 = time.perf_counter()
+        want = K.rerank(src[:2], query, backend="reference")
+        row["reference_ms"] = (time.perf_counter() - t0) * 1e3 * 10
+        row["reference_x"] = row["reference_ms"] / row["rust_ms"]
+        assert np.allclose(got.cost[:2], want.cost, atol=1e-5), "rerank: not the reference's"
+    rows.append(row)
+    return rows
+
+
 def bench_search() -> list[dict]:
     rows = []
     for backend in ("rust", "reference"):
@@ -136,11 +177,14 @@ def main() -> None:
     cols += ["torch_speedup", "reference_ms", "reference_speedup"]
     print(f"estimate_yaw, T={T}, C={C}, {vvloc.get_num_threads()} threads")
     print_table(yaw, cols)
+    others = bench_kernels(args.quick)
+    print("\nthe other matching kernels, checked against the reference")
+    print_table(others, ["kernel", "size", "rust_ms", "reference_ms", "reference_x"])
     search = bench_search()
     print("\nTranslationSearch overhead (decoder excluded)")
     print_table(search, ["backend", "grid", "fine_samples", "stages", "us_per_stage"])
     if args.json:
-        write_json(args.json, "matching", yaw + search)
+        write_json(args.json, "matching", yaw + others + search)
 
 
 if __name__ == "__main__":
