@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import logging
-import math
 import os
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
@@ -14,6 +13,7 @@ from tqdm import tqdm
 
 from vvloc.data.frame import Camera, euler_to_matrix
 from vvloc.data.vvloc_format import DatasetWriter
+from vvloc.kernels import _finite_float, _positive_int
 from vvloc.sim.render import PRESETS, Renderer
 from vvloc.sim.rig import make_rig
 from vvloc.sim.sequences import Drive, drive_keyframes, sample_loop
@@ -134,28 +134,20 @@ def simulate_dataset(
     tilt puts them and written as that frame's own extrinsics (``cam_to_ego.csv``, the level
     ego frame's, as the NCLT and RobotCar readers give them); the pose stays (x, y, yaw).
     """
-    for key, v in (("sessions", sessions), ("frames", frames), ("floors", floors)):
-        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
-            raise ValueError(f"{key}: expected an int >= 1, got {v!r}")
-    sessions, frames, floors = int(sessions), int(frames), int(floors)
+    sessions, frames, floors = (
+        _positive_int(v, key)
+        for key, v in (("sessions", sessions), ("frames", frames), ("floors", floors))
+    )
     if scene == "garage" and floors > MAX_FLOORS:  # the parking lot has one level
         raise ValueError(f"floors: expected at most {MAX_FLOORS} storeys, got {floors}")
     if scene == "garage" and frames < floors:  # each floor drives its share of the frames
         raise ValueError(
             f"frames: expected at least one frame per floor ({floors}) a session, got {frames}"
         )
-    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
-        raise ValueError(f"seed: expected an int >= 0, got {seed!r}")
-    seed = int(seed)
-    if (
-        isinstance(texture_strength, bool)
-        or not isinstance(texture_strength, (int, float, np.floating, np.integer))
-        or not (texture_strength >= 0 and math.isfinite(texture_strength))
-    ):
-        raise ValueError(
-            f"texture_strength: expected a finite number >= 0, got {texture_strength!r}"
-        )
-    texture_strength = float(texture_strength)  # rig.json's meta holds plain numbers
+    seed = _positive_int(seed, "seed", 0)
+    texture_strength = _finite_float(texture_strength, "texture_strength")  # a plain float
+    if texture_strength < 0:
+        raise ValueError(f"texture_strength: expected a value >= 0, got {texture_strength}")
     for key, v in (("max_roll", max_roll), ("max_pitch", max_pitch)):
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0.0 <= v <= MAX_TILT:
             raise ValueError(f"{key}: expected degrees within [0, {MAX_TILT:g}], got {v!r}")
