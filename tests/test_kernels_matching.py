@@ -349,3 +349,15 @@ def test_the_cost_of_a_near_perfect_match_is_the_curve_summed_literally(scale):
     literal = ref.shift_cost(src, tgt, float(est.shift[0]))
     assert est.cost[0] == pytest.approx(literal, rel=1e-9)
     assert abs(est.shift[0] - 5.37) < 1e-3
+
+
+@pytest.mark.parametrize("backend", ["rust", "reference"])
+def test_matching_cost_names_a_non_finite_argument_on_both_backends(backend):
+    # the Rust path leaves the finiteness test to the kernel's row check: same message
+    a = np.ones((2, 8, 4), dtype=np.float32)
+    b = a.copy()
+    b[1, 2, 3] = np.nan
+    with pytest.raises(ValueError, match=r"^b: contains non-finite values"):
+        K.matching_cost(a, b, backend=backend)
+    with pytest.raises(ValueError, match=r"^a: contains non-finite values"):
+        K.matching_cost(np.full_like(a, np.inf), a, backend=backend)

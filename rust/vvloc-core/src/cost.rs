@@ -9,16 +9,17 @@
 //! Per pair:
 //! 1. one Gram product `G = Ds·Dtᵀ` (f32, AVX-512 or AVX2/FMA when the CPU has them, a portable
 //!    fallback otherwise); squared row distances `d²[j][i] = ‖Ds_j‖² + ‖Dt_i‖² − 2·G[j][i]`
-//!    stored in *diagonal layout* `dg[k][i] = d²[(i − k) mod T][i]`, so that shift `k` reads one
-//!    contiguous row. Entries with `d² ≤ 1e-2·(‖Ds_j‖² + ‖Dt_i‖²)` (where fp32 cancellation
-//!    would hurt) are recomputed directly in f64;
+//!    (f64, row by row) stored in *diagonal layout* `dg[k][i] = d²[(i − k) mod T][i]`, so that
+//!    shift `k` reads one contiguous row (rows padded with zeros to whole vectors). Entries with
+//!    `d² ≤ 1e-2·(‖Ds_j‖² + ‖Dt_i‖²)` (where fp32 cancellation would hurt) are recomputed
+//!    directly in f64;
 //! 2. integer-shift costs `c(k) = (1/T)·Σᵢ sqrt(dg[k][i])`;
 //! 3. on `[k, k+1]`, with `a = dg[k][i]`, `b = dg[k+1][i]` and `e = ‖Ds_j − Ds_{j−1}‖²`
 //!    (`j = i − k`), the squared row distance is `(1 − w)·a + w·b − w(1 − w)·e`: any fractional
 //!    shift costs O(T). Each `c` restricted to an interval is convex (a sum of norms of affine
 //!    functions). Intervals are pruned with a Lipschitz bound and then with the tangents at both
 //!    ends (end slopes from the same entries); the survivors are minimised by safeguarded
-//!    Newton/bisection;
+//!    Newton/bisection, which stops once a Newton step no longer moves the shift (1e-14 bins);
 //! 4. the winner and every near-tie (within a small margin of the approximate best) are re-scored
 //!    from rows recomputed directly in f64 and re-minimised, so the reported shift and cost do
 //!    not suffer from fp32 cancellation.
@@ -84,7 +85,7 @@ pub const MAX_ROW_SQNORM: f64 = 1e37;
 /// that fails are the rows' norms summed (in f64).
 pub(crate) fn check_rows(x: &[f32], c: usize, arg: &'static str) -> Result<()> {
     let bound = (MAX_ROW_SQNORM / c.max(1) as f64).sqrt() as f32;
-    if x.iter().all(|v| v.abs() <= bound) {
+    if Isa::detect().all_within(x, bound) {
         return Ok(()); // false for NaN and inf: they are caught below
     }
     let ok = x.chunks(c.max(1)).all(|row| {
@@ -139,7 +140,7 @@ fn check_pairs<'a>(
     // each pair's curve holds up to three (T, T) tables (Gram-derived distances, their
     // squares and inverse roots), and one pair per thread runs at a time
     let concurrent = p.min(rayon::current_num_threads()).max(1);
-    check_alloc::<f32>("src", checked_len("src", &[3, concurrent, t, t])?)?;
+    check_alloc::<f32>("src", checked_len("src", &[3, concurrent, t, stride(t)])?)?;
     Ok((p, t, c, s, g, pt == 1 && p > 1))
 }
 
@@ -290,6 +291,18 @@ impl Isa {
         Isa::Generic
     }
 
+    /// Whether every |v| ≤ bound (false for NaN).
+    fn all_within(self, x: &[f32], bound: f32) -> bool {
+        match self {
+            // SAFETY (all arms): the target features were detected at run time by `detect`.
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx512 => unsafe { x86::all_within_avx512(x, bound) },
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx2 => unsafe { x86::all_within_avx2(x, bound) },
+            Isa::Generic => all_within(x, bound),
+        }
+    }
+
     fn sqdist(self, x: &[f32], y: &[f32]) -> f64 {
         match self {
             // SAFETY (all arms): the target features were detected at run time by `detect`.
@@ -414,15 +427,52 @@ mod x86 {
             }
             off += 16;
         }
+        // The 16 accumulators reduced together (a transposing tree of 15 additions) instead of
+        // one by one (16 reductions of 4 steps each): lane n of the result holds the sum of
+        // accumulator (r, s) = (n mod 4, n div 4).
+        let v = [0, 2, 4, 6, 8, 10, 12, 14].map(|n| {
+            let (x, y) = (acc[n / 4][n % 4], acc[(n + 1) / 4][(n + 1) % 4]);
+            // 128-bit blocks (x0 x1 y0 y1) + (x2 x3 y2 y3)
+            _mm512_add_ps(
+                _mm512_shuffle_f32x4::<0b01_00_01_00>(x, y),
+                _mm512_shuffle_f32x4::<0b11_10_11_10>(x, y),
+            )
+        });
+        let v = [0, 2, 4, 6].map(|n| {
+            let (x, y) = (v[n], v[n + 1]);
+            // (x0 x2 y0 y2) + (x1 x3 y1 y3): each 128-bit block now sums one accumulator
+            _mm512_add_ps(
+                _mm512_shuffle_f32x4::<0b10_00_10_00>(x, y),
+                _mm512_shuffle_f32x4::<0b11_01_11_01>(x, y),
+            )
+        });
+        let v = [0, 2].map(|n| {
+            let (x, y) = (v[n], v[n + 1]);
+            _mm512_add_ps(_mm512_unpacklo_ps(x, y), _mm512_unpackhi_ps(x, y))
+        });
+        let (x, y) = (_mm512_castps_pd(v[0]), _mm512_castps_pd(v[1]));
+        let sums = _mm512_add_ps(
+            _mm512_castpd_ps(_mm512_unpacklo_pd(x, y)),
+            _mm512_castpd_ps(_mm512_unpackhi_pd(x, y)),
+        );
+        let mut lanes = [0.0f32; 16];
+        // SAFETY: `lanes` holds 16 f32, the width of one unaligned 512-bit store.
+        unsafe { _mm512_storeu_ps(lanes.as_mut_ptr(), sums) };
         let mut out = [[0.0f32; 4]; 4];
-        for r in 0..4 {
-            for s in 0..4 {
-                out[r][s] = _mm512_reduce_add_ps(acc[r][s]);
-            }
+        for (n, &v) in lanes.iter().enumerate() {
+            out[n % 4][n / 4] = v;
         }
         out
     }
 
+    #[target_feature(enable = "avx512f")]
+    pub fn all_within_avx512(x: &[f32], bound: f32) -> bool {
+        all_within(x, bound)
+    }
+    #[target_feature(enable = "avx2,fma")]
+    pub fn all_within_avx2(x: &[f32], bound: f32) -> bool {
+        all_within(x, bound)
+    }
     #[target_feature(enable = "avx512f")]
     pub fn sqdist_avx512(x: &[f32], y: &[f32]) -> f64 {
         sqdist_f64(x, y)
@@ -452,6 +502,19 @@ mod x86 {
 // --------------------------------------------------------------------------------------------
 // Vectorisable helpers (inlined into the target-feature instantiations above)
 // --------------------------------------------------------------------------------------------
+
+/// Whether every |v| ≤ bound (false for NaN), a chunk at a time without stopping inside a
+/// chunk, so that the test vectorises (`all` over the values stops early: one at a time).
+#[inline(always)]
+fn all_within(x: &[f32], bound: f32) -> bool {
+    x.chunks(4096).all(|ch| {
+        let mut ok = true;
+        for v in ch {
+            ok &= v.abs() <= bound;
+        }
+        ok
+    })
+}
 
 /// `‖x − y‖²` with the differences and the sum in f64 (no cancellation).
 #[inline(always)]
@@ -492,26 +555,97 @@ fn sqnorm_f64(x: &[f32]) -> f64 {
     acc.iter().sum::<f64>() + rx.iter().map(|a| *a as f64 * *a as f64).sum::<f64>()
 }
 
-/// Sum of `f(i)` for i in 0..n with 16 f32 lanes, combined in f64.
+/// Sums of `f` over the rows of N equally long slices, M sums at once: `out[o] = Σᵢ
+/// f([x₀[i], …, x_{N−1}[i]])[o]`, accumulated in 16 f32 lanes and combined in f64. The last
+/// partial chunk is padded with zeros, so `f` must give 0 for a row of zeros. Slices are read
+/// in whole chunks (one bounds check per chunk), which is what lets the compiler vectorise `f`.
 #[inline(always)]
-fn lane_sum(n: usize, f: impl Fn(usize) -> f32) -> f64 {
+fn lane_sums<const N: usize, const M: usize>(
+    xs: [&[f32]; N],
+    f: impl Fn([f32; N]) -> [f32; M],
+) -> [f64; M] {
     const L: usize = 16;
-    let mut acc = [0.0f32; L];
+    let n = xs.first().map_or(0, |x| x.len());
+    assert!(
+        xs.iter().all(|x| x.len() == n),
+        "lane_sums: slices of unequal length"
+    );
+    let mut acc = [[0.0f32; L]; M];
     let full = n / L * L;
-    let mut i = 0;
-    while i < full {
-        for l in 0..L {
-            acc[l] += f(i + l);
-        }
-        i += L;
+    for base in (0..full).step_by(L) {
+        lane_add(
+            &mut acc,
+            std::array::from_fn(|m| &xs[m][base..base + L]),
+            &f,
+        );
     }
-    let tail: f64 = (full..n).map(|i| f(i) as f64).sum();
-    acc.iter().map(|&v| v as f64).sum::<f64>() + tail
+    if full < n {
+        let mut pad = [[0.0f32; L]; N];
+        for m in 0..N {
+            pad[m][..n - full].copy_from_slice(&xs[m][full..]);
+        }
+        lane_add(&mut acc, std::array::from_fn(|m| &pad[m][..]), &f);
+    }
+    let mut out = [0.0f64; M];
+    for o in 0..M {
+        for &v in &acc[o] {
+            out[o] += v as f64;
+        }
+    }
+    out
+}
+
+/// One chunk of [`lane_sums`]: `acc[o][l] += f(rows[·][l])[o]` (a function, not a closure, so
+/// that it is inlined into the kernels and compiled with their target features).
+#[inline(always)]
+fn lane_add<const N: usize, const M: usize, const L: usize>(
+    acc: &mut [[f32; L]; M],
+    rows: [&[f32]; N],
+    f: &impl Fn([f32; N]) -> [f32; M],
+) {
+    for l in 0..L {
+        let v = f(std::array::from_fn(|m| rows[m][l]));
+        for o in 0..M {
+            acc[o][l] += v[o];
+        }
+    }
 }
 
 // --------------------------------------------------------------------------------------------
 // Per-pair analysis
 // --------------------------------------------------------------------------------------------
+
+/// Squared norms of the T rows of a (T, C) matrix, f64. Closures would not do here: a closure is
+/// a function of its own, compiled without the kernels' target features (AVX-512, AVX2) and
+/// not always inlined, so the heavy loops are written out in `#[inline(always)]` functions.
+#[inline(always)]
+fn row_sqnorms(m: &[f32], t: usize, c: usize) -> Vec<f64> {
+    let mut out = vec![0.0; t];
+    for (j, o) in out.iter_mut().enumerate() {
+        *o = sqnorm_f64(row_of(c, m, j));
+    }
+    out
+}
+
+/// `out[i] = ‖Ds[(i − k) mod T] − Dt[i]‖²` in f64: row k of the curve, recomputed directly.
+#[inline(always)]
+fn exact_curve_row(ds: &[f32], dt: &[f32], t: usize, c: usize, k: usize) -> Vec<f64> {
+    let mut out = vec![0.0; t];
+    for (i, o) in out.iter_mut().enumerate() {
+        *o = sqdist_f64(row_of(c, ds, (i + t - k) % t), row_of(c, dt, i));
+    }
+    out
+}
+
+/// `Σᵢ sqrt(x[i])` in f64.
+#[inline(always)]
+fn sum_sqrt(x: &[f64]) -> f64 {
+    let mut acc = 0.0;
+    for &v in x {
+        acc += v.sqrt();
+    }
+    acc
+}
 
 /// Row `j` of a (rows, c) row-major matrix.
 #[inline(always)]
@@ -519,11 +653,17 @@ fn row_of(c: usize, m: &[f32], j: usize) -> &[f32] {
     &m[j * c..(j + 1) * c]
 }
 
-/// Gram-derived quantities of one pair (see the module docs).
+/// Lanes of the f32 sums of the tables below; their rows are padded with zeros to a multiple.
+const LANES: usize = 16;
+
+/// Gram-derived quantities of one pair (see the module docs). The tables are (T, S) with rows
+/// of `S = stride(T)` ≥ T entries, zero beyond T, so that every row is read in whole chunks.
 struct Curve {
-    /// (T, T) diagonal layout: `dg[k·T + i] = ‖Ds[(i − k) mod T] − Dt[i]‖²`.
+    /// Row length S of the tables.
+    stride: usize,
+    /// (T, S) diagonal layout: `dg[k·S + i] = ‖Ds[(i − k) mod T] − Dt[i]‖²` for i < T.
     dg: Vec<f32>,
-    /// (T, T) `1/sqrt(dg)` (0 where dg = 0); empty unless slopes were requested.
+    /// (T, S) `1/sqrt(dg)` (0 where dg = 0); empty unless slopes were requested.
     rinv: Vec<f32>,
     /// (T,) integer-shift costs.
     cint: Vec<f64>,
@@ -531,18 +671,9 @@ struct Curve {
 
 #[inline(always)]
 fn curve_impl<G: Gram>(ds: &[f32], dt: &[f32], t: usize, c: usize, slopes: bool, g: &G) -> Curve {
-    let ns: Vec<f64> = (0..t).map(|j| sqnorm_f64(row_of(c, ds, j))).collect();
-    let nt: Vec<f64> = (0..t).map(|i| sqnorm_f64(row_of(c, dt, i))).collect();
-    let mut dg = vec![0.0f32; t * t];
-    let mut put = |j: usize, i: usize, gji: f32| {
-        let scale = ns[j] + nt[i];
-        let mut d2 = scale - 2.0 * gji as f64;
-        if d2 <= NEAR_ZERO_REL * scale {
-            d2 = sqdist_f64(row_of(c, ds, j), row_of(c, dt, i));
-        }
-        let k = (i + t - j) % t;
-        dg[k * t + i] = d2.max(0.0) as f32;
-    };
+    let (ns, nt) = (row_sqnorms(ds, t, c), row_sqnorms(dt, t, c));
+    // 1. the Gram products G[j][i] = Ds_j · Dt_i, in (T, T) row-major order
+    let mut gm = vec![0.0f32; t * t];
     let (t4j, t4i) = (t / 4 * 4, t / 4 * 4);
     for jb in (0..t4j).step_by(4) {
         let a = [
@@ -560,72 +691,173 @@ fn curve_impl<G: Gram>(ds: &[f32], dt: &[f32], t: usize, c: usize, slopes: bool,
             ];
             let blk = g.dot4x4(a, b);
             for (r, br) in blk.iter().enumerate() {
-                for (s, &v) in br.iter().enumerate() {
-                    put(jb + r, ib + s, v);
-                }
+                gm[(jb + r) * t + ib..(jb + r) * t + ib + 4].copy_from_slice(br);
             }
         }
     }
     for j in 0..t {
         let i0 = if j < t4j { t4i } else { 0 };
         for i in i0..t {
-            put(j, i, g.dot(row_of(c, ds, j), row_of(c, dt, i)));
+            gm[j * t + i] = g.dot(row_of(c, ds, j), row_of(c, dt, i));
+        }
+    }
+    // 2. squared distances d²[j][i] = ‖Ds_j‖² + ‖Dt_i‖² − 2·G[j][i] in f64, in place, row by
+    //    row (vectorised); entries where fp32 cancellation would hurt are recomputed directly
+    let mut near: Vec<(usize, usize)> = Vec::new();
+    let mut flag = vec![false; t];
+    for (j, row) in gm.chunks_exact_mut(t).enumerate() {
+        let mut any = false;
+        for ((v, &n), f) in row.iter_mut().zip(&nt).zip(flag.iter_mut()) {
+            let scale = ns[j] + n;
+            let d2 = scale - 2.0 * *v as f64;
+            *f = d2 <= NEAR_ZERO_REL * scale;
+            any |= *f;
+            *v = d2.max(0.0) as f32;
+        }
+        if any {
+            near.extend(
+                flag.iter()
+                    .enumerate()
+                    .filter(|f| *f.1)
+                    .map(|(i, _)| (j, i)),
+            );
+        }
+    }
+    for (j, i) in near {
+        let d2 = sqdist_f64(row_of(c, ds, j), row_of(c, dt, i));
+        gm[j * t + i] = d2.max(0.0) as f32;
+    }
+    // 3. the diagonal layout dg[k][i] = d²[(i − k) mod T][i], a block of LANES columns at a
+    //    time: the block's rows of both tables stay in the first-level cache
+    let st = stride(t);
+    let mut dg = vec![0.0f32; t * st];
+    for i0 in (0..t).step_by(LANES) {
+        let i1 = (i0 + LANES).min(t);
+        for j in 0..t {
+            // entry (j, i) goes to k = (i − j) mod T, index k·S + i: a step of S + 1 per i
+            let row = &gm[j * t..(j + 1) * t];
+            let mid = j.clamp(i0, i1); // i < j wraps: k = i + T − j
+            scatter_diag(&mut dg, (i0 + t - j) * st + i0, st + 1, &row[i0..mid]);
+            scatter_diag(&mut dg, (mid - j) * st + mid, st + 1, &row[mid..i1]);
         }
     }
     let inv_t = 1.0 / t as f64;
-    let sq: Vec<f32> = dg.iter().map(|v| v.sqrt()).collect();
-    let cint: Vec<f64> = (0..t)
-        .map(|k| lane_sum(t, |i| sq[k * t + i]) * inv_t)
-        .collect();
+    let mut sq = dg.clone();
+    for v in sq.iter_mut() {
+        *v = v.sqrt();
+    }
+    let mut cint = vec![0.0; t];
+    for (k, ck) in cint.iter_mut().enumerate() {
+        *ck = lane_sums([&sq[k * st..(k + 1) * st]], |[v]| [v])[0] * inv_t;
+    }
     let rinv = if slopes {
-        sq.iter()
-            .map(|&v| if v > 0.0 { 1.0 / v } else { 0.0 })
-            .collect()
+        for v in sq.iter_mut() {
+            *v = if *v > 0.0 { 1.0 / *v } else { 0.0 };
+        }
+        sq
     } else {
         Vec::new()
     };
-    Curve { dg, rinv, cint }
+    Curve {
+        stride: st,
+        dg,
+        rinv,
+        cint,
+    }
+}
+
+/// `dst[start + n·step] = src[n]` for every n (an empty `src` writes nothing).
+#[inline(always)]
+fn scatter_diag(dst: &mut [f32], start: usize, step: usize, src: &[f32]) {
+    if let Some(d) = dst.get_mut(start..) {
+        for (x, &v) in d.iter_mut().step_by(step).zip(src) {
+            *x = v;
+        }
+    }
+}
+
+/// Row length of the curve tables for T shifts: T rounded up to whole chunks of [`LANES`].
+fn stride(t: usize) -> usize {
+    t.div_ceil(LANES) * LANES
 }
 
 /// Value, first and second derivative of `g(w) = (1/T)·Σᵢ sqrt((1−w)aᵢ + w·bᵢ − w(1−w)eᵢ)`.
+/// Rows whose squared distance is 0 at `w` contribute nothing. Summed in 8 f64 lanes (written
+/// without closures, which would be compiled without the kernels' target features).
+#[inline(always)]
 fn eval_interval(a: &[f64], b: &[f64], e: &[f64], w: f64) -> (f64, f64, f64) {
-    let (mut g0, mut g1, mut g2) = (0.0, 0.0, 0.0);
-    for ((&ai, &bi), &ei) in a.iter().zip(b).zip(e) {
-        let f = ((1.0 - w) * ai + w * bi - w * (1.0 - w) * ei).max(0.0);
-        if f > 0.0 {
-            let r = f.sqrt();
-            let d = (bi - ai - ei + 2.0 * w * ei) / (2.0 * r);
-            g0 += r;
-            g1 += d;
-            g2 += (ei - d * d).max(0.0) / r;
+    const L: usize = 8;
+    let n = a.len();
+    let (b, e) = (&b[..n], &e[..n]);
+    let mut acc = [[0.0f64; L]; 3];
+    let full = n / L * L;
+    for base in (0..full).step_by(L) {
+        for l in 0..L {
+            let i = base + l;
+            interval_row(&mut acc, l, a[i], b[i], e[i], w);
         }
     }
-    let n = a.len() as f64;
-    (g0 / n, g1 / n, g2 / n)
+    for i in full..n {
+        interval_row(&mut acc, i - full, a[i], b[i], e[i], w);
+    }
+    let m = n as f64;
+    let [g0, g1, g2] = acc.map(|v| v.iter().sum::<f64>() / m);
+    (g0, g1, g2)
+}
+
+/// One row's terms of [`eval_interval`], added to lane `l`.
+#[inline(always)]
+fn interval_row<const L: usize>(acc: &mut [[f64; L]; 3], l: usize, a: f64, b: f64, e: f64, w: f64) {
+    let f = ((1.0 - w) * a + w * b - w * (1.0 - w) * e).max(0.0);
+    let r = f.sqrt();
+    let inv = if f > 0.0 { 1.0 / r } else { 0.0 };
+    let d = 0.5 * (b - a - e + 2.0 * w * e) * inv;
+    acc[0][l] += r;
+    acc[1][l] += d;
+    acc[2][l] += (e - d * d).max(0.0) * inv;
 }
 
 /// Exact one-sided end slopes `g'(0+)`, `g'(1−)` of the interval function (rows with a zero
-/// end distance contribute `±sqrt(e)`).
+/// end distance contribute `±sqrt(e)`). Summed in 8 f64 lanes.
+#[inline(always)]
 fn end_slopes(a: &[f64], b: &[f64], e: &[f64]) -> (f64, f64) {
-    let (mut d0, mut d1) = (0.0, 0.0);
-    for ((&ai, &bi), &ei) in a.iter().zip(b).zip(e) {
-        d0 += if ai > 0.0 {
-            (bi - ai - ei) / (2.0 * ai.sqrt())
-        } else {
-            ei.sqrt()
-        };
-        d1 += if bi > 0.0 {
-            (bi - ai + ei) / (2.0 * bi.sqrt())
-        } else {
-            -ei.sqrt()
-        };
+    const L: usize = 8;
+    let n = a.len();
+    let (b, e) = (&b[..n], &e[..n]);
+    let mut acc = [[0.0f64; L]; 2];
+    let full = n / L * L;
+    for base in (0..full).step_by(L) {
+        for l in 0..L {
+            let i = base + l;
+            slope_row(&mut acc, l, a[i], b[i], e[i]);
+        }
     }
-    let n = a.len() as f64;
-    (d0 / n, d1 / n)
+    for i in full..n {
+        slope_row(&mut acc, i - full, a[i], b[i], e[i]);
+    }
+    let m = n as f64;
+    let [d0, d1] = acc.map(|v| v.iter().sum::<f64>() / m);
+    (d0, d1)
+}
+
+/// One row's terms of [`end_slopes`], added to lane `l`.
+#[inline(always)]
+fn slope_row<const L: usize>(acc: &mut [[f64; L]; 2], l: usize, a: f64, b: f64, e: f64) {
+    acc[0][l] += if a > 0.0 {
+        (b - a - e) / (2.0 * a.sqrt())
+    } else {
+        e.sqrt()
+    };
+    acc[1][l] += if b > 0.0 {
+        (b - a + e) / (2.0 * b.sqrt())
+    } else {
+        -e.sqrt()
+    };
 }
 
 /// Minimises the convex interval function on [0, 1]: returns (w*, g(w*)). Safeguarded Newton
 /// on g' = 0 inside the bracket, falling back to bisection (Numerical Recipes' `rtsafe` idea).
+#[inline(always)]
 fn minimise_interval(a: &[f64], b: &[f64], e: &[f64], c0: f64, c1: f64) -> (f64, f64) {
     let (d0, d1) = end_slopes(a, b, e);
     if d0 >= 0.0 || d1 <= 0.0 {
@@ -653,6 +885,11 @@ fn minimise_interval(a: &[f64], b: &[f64], e: &[f64], c0: f64, c1: f64) -> (f64,
             break;
         }
         let newton = if g2 > 0.0 { w - g1 / g2 } else { f64::NAN };
+        if (newton - w).abs() <= 1e-14 {
+            // converged: the Newton step no longer moves w (near the minimiser it rounds to w
+            // itself, which the bracket test below would refuse and bisect ~20 more times)
+            break;
+        }
         let next = if newton > lo && newton < hi && (g1 / g2).abs() * 2.0 <= step_old.abs() {
             newton
         } else {
@@ -670,12 +907,19 @@ fn minimise_interval(a: &[f64], b: &[f64], e: &[f64], c0: f64, c1: f64) -> (f64,
 #[inline(always)]
 fn estimate_impl<G: Gram>(ds: &[f32], dt: &[f32], t: usize, c: usize, g: &G) -> YawEstimate {
     let cv = curve_impl(ds, dt, t, c, true, g);
-    // e[j] = ‖Ds_j − Ds_{j−1}‖², exact; e2 holds two periods so that every shift reads a slice.
-    let e: Vec<f64> = (0..t)
-        .map(|j| sqdist_f64(row_of(c, ds, j), row_of(c, ds, (j + t - 1) % t)))
-        .collect();
-    let e2: Vec<f32> = e.iter().chain(e.iter()).map(|&v| v as f32).collect();
-    let lipschitz = e.iter().map(|v| v.sqrt()).sum::<f64>() / t as f64;
+    // e[j] = ‖Ds_j − Ds_{j−1}‖², exact.
+    let mut e = vec![0.0; t];
+    for (j, ej) in e.iter_mut().enumerate() {
+        *ej = sqdist_f64(row_of(c, ds, j), row_of(c, ds, (j + t - 1) % t));
+    }
+    // two periods and the padding, so that every shift reads a row-long slice (the padding's
+    // values are finite and ≥ 0, and meet zeros in dg and rinv: they add nothing)
+    let st = cv.stride;
+    let mut e2 = vec![0.0f32; t + st];
+    for (n, v) in e2.iter_mut().enumerate() {
+        *v = e[n % t] as f32;
+    }
+    let lipschitz = sum_sqrt(&e) / t as f64;
     let inv_2t = 0.5 / t as f64;
 
     // Approximate stage on the Gram-derived entries. Inside an interval its values come from
@@ -692,7 +936,6 @@ fn estimate_impl<G: Gram>(ds: &[f32], dt: &[f32], t: usize, c: usize, g: &G) -> 
     // Pass 1 (vectorised f32): end slopes, plus value and slope where the end tangents meet;
     // the three tangents give a lower bound of the interval's minimum, the value an upper bound.
     let mut open: Vec<(f64, usize)> = Vec::new(); // (lower bound, interval k)
-    let mut r = vec![0.0f32; t];
     for k in 0..t {
         let k1 = (k + 1) % t;
         let (c0, c1) = (cv.cint[k], cv.cint[k1]);
@@ -700,11 +943,16 @@ fn estimate_impl<G: Gram>(ds: &[f32], dt: &[f32], t: usize, c: usize, g: &G) -> 
         if 0.5 * (c0 + c1 - lipschitz) > best + margin(best) {
             continue;
         }
-        let (ra, rb) = (&cv.rinv[k * t..(k + 1) * t], &cv.rinv[k1 * t..(k1 + 1) * t]);
-        let (da, db) = (&cv.dg[k * t..(k + 1) * t], &cv.dg[k1 * t..(k1 + 1) * t]);
-        let er = &e2[t - k..2 * t - k]; // er[i] = e[(i − k) mod T]
-        let d0 = lane_sum(t, |i| (db[i] - da[i] - er[i]) * ra[i]) * inv_2t;
-        let d1 = lane_sum(t, |i| (db[i] - da[i] + er[i]) * rb[i]) * inv_2t;
+        let (ra, rb) = (
+            &cv.rinv[k * st..(k + 1) * st],
+            &cv.rinv[k1 * st..(k1 + 1) * st],
+        );
+        let (da, db) = (&cv.dg[k * st..(k + 1) * st], &cv.dg[k1 * st..(k1 + 1) * st]);
+        let er = &e2[t - k..t - k + st]; // er[i] = e[(i − k) mod T]
+        let [d0, d1] = lane_sums([da, db, er, ra, rb], |[a, b, e, ra, rb]| {
+            [(b - a - e) * ra, (b - a + e) * rb]
+        })
+        .map(|v| v * inv_2t);
         if d0 >= 0.0 || d1 <= 0.0 {
             continue; // the minimum is at an end: an integer shift, already in cint
         }
@@ -715,20 +963,20 @@ fn estimate_impl<G: Gram>(ds: &[f32], dt: &[f32], t: usize, c: usize, g: &G) -> 
         if c0 + d0 * wx > best + margin(best) {
             continue; // the end tangents' lower bound cannot beat the best
         }
-        let w = wx as f32;
-        for (i, ri) in r.iter_mut().enumerate() {
-            *ri = ((1.0 - w) * da[i] + w * db[i] - w * (1.0 - w) * er[i])
-                .max(0.0)
-                .sqrt();
-        }
-        let gx = lane_sum(t, |i| r[i]) / t as f64;
-        let sx = lane_sum(t, |i| {
-            if r[i] > 0.0 {
-                (db[i] - da[i] - er[i] + 2.0 * w * er[i]) / r[i]
-            } else {
-                0.0
-            }
-        }) * inv_2t;
+        // value and slope at wx, in one pass (zero rows give 0: r = 0 takes the else arm)
+        let (w, v, q) = (wx as f32, 2.0 * wx as f32, (wx * (1.0 - wx)) as f32);
+        let [gx, sx] = lane_sums([da, db, er], |[a, b, e]| {
+            let r = ((1.0 - w) * a + w * b - q * e).max(0.0).sqrt();
+            [
+                r,
+                if r > 0.0 {
+                    (b - a - e + v * e) / r
+                } else {
+                    0.0
+                },
+            ]
+        });
+        let (gx, sx) = (gx / t as f64, sx * inv_2t);
         // Lower envelope of the tangents at 0, wx, 1 (each a lower bound of a convex function).
         let lb = if sx > 0.0 {
             let wi = ((gx - sx * wx) - c0) / (d0 - sx); // tangent at 0 meets tangent at wx
@@ -746,7 +994,7 @@ fn estimate_impl<G: Gram>(ds: &[f32], dt: &[f32], t: usize, c: usize, g: &G) -> 
             break; // sorted: no later interval can beat the best either
         }
         let k1 = (k + 1) % t;
-        let (da, db) = (&cv.dg[k * t..(k + 1) * t], &cv.dg[k1 * t..(k1 + 1) * t]);
+        let (da, db) = (&cv.dg[k * st..k * st + t], &cv.dg[k1 * st..k1 * st + t]);
         for i in 0..t {
             a64[i] = da[i] as f64;
             b64[i] = db[i] as f64;
@@ -778,27 +1026,24 @@ fn estimate_impl<G: Gram>(ds: &[f32], dt: &[f32], t: usize, c: usize, g: &G) -> 
     }
     polish.sort_unstable();
     polish.dedup();
-    let mut exact_rows: std::collections::BTreeMap<usize, Vec<f64>> = Default::default();
-    let mut exact_row = |k: usize| -> Vec<f64> {
-        exact_rows
-            .entry(k)
-            .or_insert_with(|| {
-                (0..t)
-                    .map(|i| sqdist_f64(row_of(c, ds, (i + t - k) % t), row_of(c, dt, i)))
-                    .collect()
-            })
-            .clone()
-    };
+    // rows of the curve at integer shifts, recomputed directly in f64, each at most once
+    let mut exact_rows: Vec<Vec<f64>> = vec![Vec::new(); t];
+    for &k in &polish {
+        for kk in [k, (k + 1) % t] {
+            if exact_rows[kk].is_empty() {
+                exact_rows[kk] = exact_curve_row(ds, dt, t, c, kk);
+            }
+        }
+    }
     let mut result = (0usize, 0.0f64, f64::INFINITY); // (interval k, w, value)
     for &k in &polish {
         let k1 = (k + 1) % t;
-        let (ea, eb) = (exact_row(k), exact_row(k1));
+        let (ea, eb) = (&exact_rows[k], &exact_rows[k1]);
         for (i, ei) in e64.iter_mut().enumerate() {
             *ei = e[(i + t - k) % t];
         }
-        let c0 = ea.iter().map(|v| v.sqrt()).sum::<f64>() / t as f64;
-        let c1 = eb.iter().map(|v| v.sqrt()).sum::<f64>() / t as f64;
-        let (w, v) = minimise_interval(&ea, &eb, &e64, c0, c1);
+        let (c0, c1) = (sum_sqrt(ea) / t as f64, sum_sqrt(eb) / t as f64);
+        let (w, v) = minimise_interval(ea, eb, &e64, c0, c1);
         if v < result.2 {
             result = (k, w, v);
         }
@@ -807,7 +1052,7 @@ fn estimate_impl<G: Gram>(ds: &[f32], dt: &[f32], t: usize, c: usize, g: &G) -> 
     // The minimiser's value is the expanded quadratic (1−w)a + wb − w(1−w)e in f64, which
     // cancels where a row matches closely: those rows are summed literally, so that the cost
     // is c(s*) to f64 rounding.
-    let (ea, eb) = (exact_row(k), exact_row((k + 1) % t));
+    let (ea, eb) = (&exact_rows[k], &exact_rows[(k + 1) % t]);
     let mut cost = 0.0;
     for i in 0..t {
         let ei = e[(i + t - k) % t];
@@ -896,7 +1141,16 @@ mod tests {
 
     #[test]
     fn yaw_costs_match_literal_integer_shifts() {
-        for (t, c) in [(2, 1), (5, 3), (12, 37), (17, 16)] {
+        // T on both sides of the tables' row padding (rows of 16), C on both sides of a vector
+        for (t, c) in [
+            (2, 1),
+            (5, 3),
+            (12, 37),
+            (16, 16),
+            (17, 16),
+            (32, 17),
+            (33, 48),
+        ] {
             let (s, g) = (data(3, t, c, 1), data(3, t, c, 2));
             let out = yaw_costs(s.view(), g.view()).unwrap();
             for q in 0..3 {
@@ -955,7 +1209,15 @@ mod tests {
 
     #[test]
     fn estimate_yaw_is_the_dense_minimum() {
-        for (t, c) in [(2, 3), (7, 5), (24, 33), (40, 64)] {
+        for (t, c) in [
+            (2, 3),
+            (7, 5),
+            (16, 20),
+            (17, 16),
+            (24, 33),
+            (32, 8),
+            (40, 64),
+        ] {
             let (s, g) = (data(4, t, c, 3), data(4, t, c, 4));
             let est = estimate_yaw(s.view(), g.view()).unwrap();
             for q in 0..4 {
@@ -1011,13 +1273,24 @@ mod tests {
 
     #[test]
     fn generic_path_agrees_with_simd_path() {
-        let (s, g) = (data(3, 20, 45, 9), data(3, 20, 45, 10));
-        for q in 0..3 {
-            let (ds, dt) = (s.index_axis(Axis(0), q), g.index_axis(Axis(0), q));
-            let (ds, dt) = (ds.as_slice().unwrap(), dt.as_slice().unwrap());
-            let a = estimate_impl(ds, dt, 20, 45, &GenericGram);
-            let b = Isa::detect().estimate(ds, dt, 20, 45);
-            assert!((a.cost - b.cost).abs() < 1e-9 && (a.shift - b.shift).abs() < 1e-6);
+        for (t, c) in [(20, 45), (32, 64), (13, 7)] {
+            let (s, g) = (data(3, t, c, 9), data(3, t, c, 10));
+            for q in 0..3 {
+                let (ds, dt) = (s.index_axis(Axis(0), q), g.index_axis(Axis(0), q));
+                let (ds, dt) = (ds.as_slice().unwrap(), dt.as_slice().unwrap());
+                let a = estimate_impl(ds, dt, t, c, &GenericGram);
+                let b = Isa::detect().estimate(ds, dt, t, c);
+                assert!((a.cost - b.cost).abs() < 1e-9 && (a.shift - b.shift).abs() < 1e-6);
+                // the Gram-derived tables: the SIMD tile's sums agree with the portable ones
+                let (x, y) = (
+                    curve_impl(ds, dt, t, c, true, &GenericGram),
+                    Isa::detect().curve(ds, dt, t, c, true),
+                );
+                assert_eq!(x.stride, y.stride);
+                for (u, v) in x.dg.iter().zip(&y.dg) {
+                    assert!((u - v).abs() <= 1e-5 * (1.0 + u.abs()), "{t} {c}: {u} {v}");
+                }
+            }
         }
     }
 
