@@ -17,7 +17,8 @@ query is also localized, in turn, with the library's matcher (decoder in chunks,
 interactor's one-sided first TASA shared), with the decoder in chunks alone, and with the plain
 matcher before 2026-12-05 (each stage decoded in one batch, the whole interactor per pair),
 and whether all three gave the same answers (``same_answers``). The re-ranking of 20 and 100
-candidates is timed with the library's ``rerank_learned`` and with the plain interactor.
+candidates is timed with the library's ``rerank_learned`` and with the plain interactor. The
+compared versions take turns at going first, after a warm-up call of each.
 """
 
 from __future__ import annotations
@@ -94,23 +95,29 @@ MATCHERS = {
 def compare_matchers(model: VVLocNet, mapdb: MapDatabase, frames: list[Frame]) -> list[dict]:
     """Median metric stage (ms) of ``frames`` with each of :data:`MATCHERS`, for one metric
     candidate and for the localizer's default M; each frame goes through the matchers in
-    turn, so that all see the same machine; ``same_answers``: whether all gave the library's
-    pose, cost and keyframe for every frame, bit for bit."""
+    turn, so that all see the same machine, the first of them in rotation (the one after a
+    query's encoding and re-ranking would otherwise always be the same), after one untimed
+    localization with each; ``same_answers``: whether all gave the library's pose, cost and
+    keyframe for every frame, bit for bit."""
     library = localizer_module.learned_matcher
+    names = list(MATCHERS)
     out = []
     for m in (1, METRIC_CANDIDATES):
         loc = Localizer(model, mapdb, top_k=20, metric_candidates=m)
         times: dict[str, list[float]] = {name: [] for name in MATCHERS}
         same = True  # every matcher's pose and cost equal the library's, bit for bit
         try:
-            for f in frames:
-                answers = []
-                for name, matcher in MATCHERS.items():
-                    localizer_module.learned_matcher = matcher  # type: ignore[assignment]
+            for name in names:  # warm-up
+                localizer_module.learned_matcher = MATCHERS[name]  # type: ignore[assignment]
+                loc.localize(frames[0])
+            for i, f in enumerate(frames):
+                answers = {}
+                for name in names[i % len(names) :] + names[: i % len(names)]:
+                    localizer_module.learned_matcher = MATCHERS[name]  # type: ignore[assignment]
                     r = loc.localize(f)
                     times[name].append(r.timings_ms["metric"])
-                    answers.append((tuple(r.relative_pose), r.cost, r.map_row))
-                same &= all(a == answers[0] for a in answers)
+                    answers[name] = (tuple(r.relative_pose), r.cost, r.map_row)
+                same &= all(a == answers[names[0]] for a in answers.values())
         finally:
             localizer_module.learned_matcher = library
         out.append(_compared({"metric_candidates": m}, times, same))
@@ -139,8 +146,9 @@ def compare_rerank(
 
         same = all(np.array_equal(x, y) for x, y in zip(plain(), library(), strict=True))
         times: dict[str, list[float]] = {"library_ms": [], "plain_ms": []}
-        for _ in range(repeat):
-            for name, fn in (("library_ms", library), ("plain_ms", plain)):
+        pair = (("library_ms", library), ("plain_ms", plain))
+        for r in range(repeat):  # alternating which goes first
+            for name, fn in pair if r % 2 == 0 else pair[::-1]:
                 t0 = time.perf_counter()
                 fn()
                 times[name].append(1e3 * (time.perf_counter() - t0))
