@@ -276,11 +276,14 @@ enum Isa {
 }
 
 impl Isa {
+    /// The widest instruction set the CPU has, at most AVX2 when `VVLOC_NO_AVX512` is set and
+    /// the portable code when `VVLOC_NO_SIMD` is set (to test and benchmark the other paths).
     fn detect() -> Isa {
         #[cfg(target_arch = "x86_64")]
         {
             if std::env::var_os("VVLOC_NO_SIMD").is_none() {
-                if is_x86_feature_detected!("avx512f") {
+                let no_avx512 = std::env::var_os("VVLOC_NO_AVX512").is_some();
+                if is_x86_feature_detected!("avx512f") && !no_avx512 {
                     return Isa::Avx512;
                 }
                 if is_x86_feature_detected!("avx2") && is_x86_feature_detected!("fma") {
@@ -397,6 +400,69 @@ mod x86 {
         }
     }
 
+    /// AVX2/FMA Gram blocks: the 4×4 block as two 2×4 halves of 8 ymm accumulators each (the 16
+    /// accumulators of a whole block and its loads would not fit AVX2's 16 registers), 8-lane
+    /// fused multiply-adds, scalar tail.
+    pub struct Avx2Gram;
+
+    impl Gram for Avx2Gram {
+        #[inline(always)]
+        fn dot4x4(&self, a: [&[f32]; 4], b: [&[f32]; 4]) -> [[f32; 4]; 4] {
+            // SAFETY: `Avx2Gram` is only used inside `#[target_feature(enable = "avx2,fma")]`
+            // functions, which run only after run-time detection of AVX2 and FMA.
+            unsafe { dot4x4_avx2(a, b) }
+        }
+        #[inline(always)]
+        fn dot(&self, a: &[f32], b: &[f32]) -> f32 {
+            GenericGram.dot(a, b)
+        }
+    }
+
+    #[target_feature(enable = "avx2,fma")]
+    fn dot4x4_avx2(a: [&[f32]; 4], b: [&[f32]; 4]) -> [[f32; 4]; 4] {
+        let c = a[0].len();
+        // the loads below read elements 0..c / 8 · 8 of every row: all rows must have length c
+        assert!(a.iter().chain(b.iter()).all(|r| r.len() == c));
+        let full = c / 8 * 8;
+        let mut out = [[0.0f32; 4]; 4];
+        for h in 0..2 {
+            let mut acc = [_mm256_setzero_ps(); 8]; // accumulator n: rows (2h + n / 4, n % 4)
+            let mut off = 0;
+            while off < full {
+                // SAFETY: off + 8 ≤ full ≤ c, the length of every row (asserted above).
+                let av = [0, 1].map(|r| unsafe { _mm256_loadu_ps(a[2 * h + r].as_ptr().add(off)) });
+                let bv = [0, 1, 2, 3].map(|s| unsafe { _mm256_loadu_ps(b[s].as_ptr().add(off)) });
+                for n in 0..8 {
+                    acc[n] = _mm256_fmadd_ps(av[n / 4], bv[n % 4], acc[n]);
+                }
+                off += 8;
+            }
+            // transposing reduction: the pairwise sums of hadd twice, then the 128-bit halves
+            let g = [0, 4].map(|n| {
+                _mm256_hadd_ps(
+                    _mm256_hadd_ps(acc[n], acc[n + 1]),
+                    _mm256_hadd_ps(acc[n + 2], acc[n + 3]),
+                )
+            });
+            let sums = _mm256_add_ps(
+                _mm256_permute2f128_ps::<0x20>(g[0], g[1]),
+                _mm256_permute2f128_ps::<0x31>(g[0], g[1]),
+            );
+            let mut lanes = [0.0f32; 8];
+            // SAFETY: `lanes` holds 8 f32, the width of one unaligned 256-bit store.
+            unsafe { _mm256_storeu_ps(lanes.as_mut_ptr(), sums) };
+            for (n, &v) in lanes.iter().enumerate() {
+                let (r, s) = (2 * h + n / 4, n % 4);
+                let mut tail = 0.0f32;
+                for i in full..c {
+                    tail += a[r][i] * b[s][i];
+                }
+                out[r][s] = v + tail;
+            }
+        }
+        out
+    }
+
     #[target_feature(enable = "avx512f")]
     fn dot4x4_avx512(a: [&[f32]; 4], b: [&[f32]; 4]) -> [[f32; 4]; 4] {
         let c = a[0].len();
@@ -487,7 +553,7 @@ mod x86 {
     }
     #[target_feature(enable = "avx2,fma")]
     pub fn curve_avx2(ds: &[f32], dt: &[f32], t: usize, c: usize, slopes: bool) -> Curve {
-        curve_impl(ds, dt, t, c, slopes, &GenericGram)
+        curve_impl(ds, dt, t, c, slopes, &Avx2Gram)
     }
     #[target_feature(enable = "avx512f")]
     pub fn estimate_avx512(ds: &[f32], dt: &[f32], t: usize, c: usize) -> YawEstimate {
@@ -495,7 +561,7 @@ mod x86 {
     }
     #[target_feature(enable = "avx2,fma")]
     pub fn estimate_avx2(ds: &[f32], dt: &[f32], t: usize, c: usize) -> YawEstimate {
-        estimate_impl(ds, dt, t, c, &GenericGram)
+        estimate_impl(ds, dt, t, c, &Avx2Gram)
     }
 }
 
@@ -1273,22 +1339,36 @@ mod tests {
 
     #[test]
     fn generic_path_agrees_with_simd_path() {
-        for (t, c) in [(20, 45), (32, 64), (13, 7)] {
+        // every instruction set this CPU has (AVX-512 and AVX2 both run where AVX-512 does)
+        let mut isas = vec![Isa::Generic];
+        #[cfg(target_arch = "x86_64")]
+        {
+            if is_x86_feature_detected!("avx2") && is_x86_feature_detected!("fma") {
+                isas.push(Isa::Avx2);
+            }
+            if is_x86_feature_detected!("avx512f") {
+                isas.push(Isa::Avx512);
+            }
+        }
+        for (t, c) in [(20, 45), (32, 64), (13, 7), (8, 256)] {
             let (s, g) = (data(3, t, c, 9), data(3, t, c, 10));
             for q in 0..3 {
                 let (ds, dt) = (s.index_axis(Axis(0), q), g.index_axis(Axis(0), q));
                 let (ds, dt) = (ds.as_slice().unwrap(), dt.as_slice().unwrap());
                 let a = estimate_impl(ds, dt, t, c, &GenericGram);
-                let b = Isa::detect().estimate(ds, dt, t, c);
-                assert!((a.cost - b.cost).abs() < 1e-9 && (a.shift - b.shift).abs() < 1e-6);
-                // the Gram-derived tables: the SIMD tile's sums agree with the portable ones
-                let (x, y) = (
-                    curve_impl(ds, dt, t, c, true, &GenericGram),
-                    Isa::detect().curve(ds, dt, t, c, true),
-                );
-                assert_eq!(x.stride, y.stride);
-                for (u, v) in x.dg.iter().zip(&y.dg) {
-                    assert!((u - v).abs() <= 1e-5 * (1.0 + u.abs()), "{t} {c}: {u} {v}");
+                let x = curve_impl(ds, dt, t, c, true, &GenericGram);
+                for &isa in &isas {
+                    let b = isa.estimate(ds, dt, t, c);
+                    assert!(
+                        (a.cost - b.cost).abs() < 1e-9 && (a.shift - b.shift).abs() < 1e-6,
+                        "{isa:?} {t} {c}"
+                    );
+                    // the Gram-derived tables: each tile's sums agree with the portable ones
+                    let y = isa.curve(ds, dt, t, c, true);
+                    assert_eq!(x.stride, y.stride);
+                    for (u, v) in x.dg.iter().zip(&y.dg) {
+                        assert!((u - v).abs() <= 1e-5 * (1.0 + u.abs()), "{isa:?} {t} {c}");
+                    }
                 }
             }
         }
