@@ -1,5 +1,5 @@
 # vvloc: every target bootstraps .venv and builds the Rust extension first.
-#   make test    cargo tests of the core crate + pytest of the package
+#   make test    cargo tests of the core crate (release, then debug) + pytest of the package
 #   make bench   kernel benchmarks: table on stdout, JSON in bench-results/
 #   make lint    cargo fmt/clippy, ruff, mypy stubtest of the extension
 #   make demo    end-to-end demo (see README)
@@ -33,8 +33,10 @@ develop: venv
 	flock $(VENV)/.build.lock env VIRTUAL_ENV=$(CURDIR)/$(VENV) PATH=$(CURDIR)/$(VENV)/bin:$$PATH \
 	  $(PY) -m maturin develop --release -q
 
+# release (what users run) and debug (integer overflow checks and debug assertions on)
 test-rust:
 	cargo test -p vvloc-core --release
+	cargo test -p vvloc-core
 
 test-python: develop
 	@rc=0; $(PY) -m pytest $(PYTEST_ARGS) || rc=$$?; \

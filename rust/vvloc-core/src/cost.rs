@@ -802,9 +802,13 @@ fn curve_impl<G: Gram>(ds: &[f32], dt: &[f32], t: usize, c: usize, slopes: bool,
         for j in 0..t {
             // entry (j, i) goes to k = (i − j) mod T, index k·S + i: a step of S + 1 per i
             let row = &gm[j * t..(j + 1) * t];
-            let mid = j.clamp(i0, i1); // i < j wraps: k = i + T − j
-            scatter_diag(&mut dg, (i0 + t - j) * st + i0, st + 1, &row[i0..mid]);
-            scatter_diag(&mut dg, (mid - j) * st + mid, st + 1, &row[mid..i1]);
+            let mid = j.clamp(i0, i1); // columns i < j wrap: k = i + T − j
+            if i0 < mid {
+                scatter_diag(&mut dg, (i0 + t - j) * st + i0, st + 1, &row[i0..mid]);
+            }
+            if mid < i1 {
+                scatter_diag(&mut dg, (mid - j) * st + mid, st + 1, &row[mid..i1]);
+            }
         }
     }
     let inv_t = 1.0 / t as f64;
@@ -832,13 +836,11 @@ fn curve_impl<G: Gram>(ds: &[f32], dt: &[f32], t: usize, c: usize, slopes: bool,
     }
 }
 
-/// `dst[start + n·step] = src[n]` for every n (an empty `src` writes nothing).
+/// `dst[start + n·step] = src[n]` for every n; every index must lie in `dst`.
 #[inline(always)]
 fn scatter_diag(dst: &mut [f32], start: usize, step: usize, src: &[f32]) {
-    if let Some(d) = dst.get_mut(start..) {
-        for (x, &v) in d.iter_mut().step_by(step).zip(src) {
-            *x = v;
-        }
+    for (x, &v) in dst[start..].iter_mut().step_by(step).zip(src) {
+        *x = v;
     }
 }
 
