@@ -361,3 +361,61 @@ def test_matching_cost_names_a_non_finite_argument_on_both_backends(backend):
         K.matching_cost(a, b, backend=backend)
     with pytest.raises(ValueError, match=r"^a: contains non-finite values"):
         K.matching_cost(np.full_like(a, np.inf), a, backend=backend)
+
+
+def _message(fn, *args, **kw) -> str:
+    with pytest.raises(ValueError) as err:
+        fn(*args, **kw)
+    return str(err.value)
+
+
+@pytest.mark.parametrize("fn", [K.yaw_costs, K.estimate_yaw, K.rerank])
+@pytest.mark.parametrize(
+    "case",
+    ["nan_and_short_T", "nan_and_bad_tgt", "large_src_and_inf_tgt", "nan_src_and_large_src"],
+)
+def test_both_backends_name_the_same_fault_first(fn, case):
+    # the Rust backend checks values in the kernel, after the gateway's shapes: the reference
+    # backend checks in the same order (shapes; src non-finite, src too large; then tgt)
+    ok = np.ones((2, 6, 5), dtype=np.float32)
+    src, tgt = ok.copy(), ok.copy()
+    if case == "nan_and_short_T":
+        src = np.full((2, 1, 5), np.nan, dtype=np.float32)
+    elif case == "nan_and_bad_tgt":
+        src[0, 0, 0], tgt = np.nan, ok[:, :3]
+    elif case == "large_src_and_inf_tgt":
+        src[1, 2, :] = 3e18
+        tgt[0, 0, 0] = np.inf
+    else:
+        src[1, 2, :] = 3e18
+        src[0, 0, 0] = np.nan
+    rust = _message(fn, src, tgt)
+    assert rust == _message(fn, src, tgt, backend="reference")
+    want = {
+        "nan_and_short_T": "src: expected (P, T, C) with T >= 2",
+        "nan_and_bad_tgt": "tgt: expected shape",
+        "large_src_and_inf_tgt": "src: values too large",
+        "nan_src_and_large_src": "src: contains non-finite",
+    }[case]
+    assert rust.startswith(want)
+
+
+def test_matching_cost_names_the_same_fault_first_on_both_backends():
+    a = np.ones((2, 6, 5), dtype=np.float32)
+    big, inf = a.copy(), a.copy()
+    big[0, 1, :] = 3e18
+    inf[1, 0, 0] = np.inf
+    for x, y, want in [(big, inf, "a: values too large"), (inf, a[:, :3], "b: expected shape")]:
+        rust = _message(K.matching_cost, x, y)
+        assert rust == _message(K.matching_cost, x, y, backend="reference")
+        assert rust.startswith(want)
+
+
+@pytest.mark.parametrize("t", [2, 16, 17, 120])
+def test_constant_descriptors_take_the_exact_path_everywhere(t):
+    # every Gram entry of equal rows cancels: each is recomputed directly (in place, row by row)
+    src = np.full((2, t, 8), 0.25, dtype=np.float32)
+    src[1] = 0.0
+    est = K.estimate_yaw(src, src)
+    np.testing.assert_array_equal(est.cost, [0.0, 0.0])
+    np.testing.assert_array_equal(K.yaw_costs(src, src), np.zeros((2, t)))

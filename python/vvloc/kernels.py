@@ -332,32 +332,38 @@ def _check_row_norms(x: F32Array, name: str) -> None:
         return
     sq = np.einsum("...c,...c->...", x.astype(np.float64), x.astype(np.float64))
     if float(sq.max()) > MAX_ROW_SQNORM:
+        limit = f"{MAX_ROW_SQNORM:.0e}".replace("e+", "e")  # 1e37, as the Rust kernels write it
         raise ValueError(
-            f"{name}: values too large: a descriptor row's squared norm exceeds "
-            f"{MAX_ROW_SQNORM:.0e}, beyond what float32 arithmetic holds (scale the "
-            "descriptors down)"
+            f"{name}: values too large: a descriptor row's squared norm exceeds {limit}, "
+            "beyond what float32 arithmetic holds (scale the descriptors down)"
         )
 
 
+def _check_rows(x: F32Array, name: str) -> None:
+    """The reference backend's copy of the Rust matching kernels' row check, in its order:
+    non-finite values, then rows too large (the Rust backend checks in the kernel, after the
+    gateway's shape checks, so both backends name the same fault first)."""
+    if x.size and not np.isfinite(x).all():
+        raise ValueError(f"{name}: contains non-finite values (NaN or inf)")
+    _check_row_norms(x, name)
+
+
 def _check_pair_norms(s: F32Array, t: F32Array) -> None:
-    """The reference backend's copy of the Rust kernels' row-norm check (one message for both;
-    the Rust backend checks in the kernel, in the same pass as its finiteness check)."""
-    _check_row_norms(s, "src")
-    _check_row_norms(t, "tgt")
+    """:func:`_check_rows` of both sides of a batch of pairs, ``src`` first as in Rust."""
+    _check_rows(s, "src")
+    _check_rows(t, "tgt")
 
 
-def _pairs(
-    src: Any, tgt: Any, backend: Backend, *, shared_ok: bool = True
-) -> tuple[F32Array, F32Array]:
+def _pairs(src: Any, tgt: Any, *, shared_ok: bool = True) -> tuple[F32Array, F32Array]:
     """Validate descriptor pairs: ``src`` (P, T, C); ``tgt`` (P, T, C), or (1, T, C) / (T, C)
     shared by every pair when ``shared_ok``. Returns both as 3-D C-contiguous float32.
 
-    Non-finite values are refused here for the reference backend only: the Rust kernels refuse
-    them in their row check with the same message (a second pass here cost 3 ms per 200 pairs).
+    Non-finite values are refused later, after the shapes: by the Rust kernels' row check, or
+    for the reference backend by its copy, :func:`_check_pair_norms` (testing them here as well
+    cost the Rust backend 3 ms per 200 pairs).
     """
-    finite = backend == "reference"
-    s = _as_f32(src, "src", 3, "(P, T, C)", finite=finite)
-    t = _as_f32(tgt, "tgt", (2, 3) if shared_ok else 3, "(P, T, C)", finite=finite)
+    s = _as_f32(src, "src", 3, "(P, T, C)", finite=False)
+    t = _as_f32(tgt, "tgt", (2, 3) if shared_ok else 3, "(P, T, C)", finite=False)
     if t.ndim == 2:
         t = t[None]
     p, nt, c = s.shape
@@ -377,17 +383,17 @@ def matching_cost(a: Any, b: Any, *, backend: Backend = "rust") -> npt.NDArray[n
     """Matching cost ``δ(A, B) = (1/T)·Σᵢ ‖Aᵢ − Bᵢ‖₂`` (no shift) of ``a``, ``b`` (..., T, C)
     float → (...) float64. Leading dimensions must be equal; T, C ≥ 1."""
     _check_backend(backend)
-    finite = backend == "reference"  # the Rust kernel refuses non-finite values itself
-    x = _as_f32(a, "a", None, "(..., T, C)", finite=finite)
-    y = _as_f32(b, "b", None, "(..., T, C)", finite=finite)
+    # values are checked after the shapes: by the Rust kernel, or by its copy for the reference
+    x = _as_f32(a, "a", None, "(..., T, C)", finite=False)
+    y = _as_f32(b, "b", None, "(..., T, C)", finite=False)
     if x.ndim < 2 or 0 in x.shape:
         raise ValueError(f"a: expected a non-empty array (..., T, C), got shape {x.shape}")
     if y.shape != x.shape:
         raise ValueError(f"b: expected shape {x.shape} like a, got {y.shape}")
     lead, (t, c) = x.shape[:-2], x.shape[-2:]
     if backend == "reference":
-        _check_row_norms(x, "a")
-        _check_row_norms(y, "b")
+        _check_rows(x, "a")
+        _check_rows(y, "b")
         from vvloc.reference import matching as ref_matching
 
         return np.asarray(ref_matching.matching_cost(x, y), dtype=np.float64).reshape(lead)
@@ -401,7 +407,7 @@ def yaw_costs(src: Any, tgt: Any, *, backend: Backend = "rust") -> npt.NDArray[n
     ``src`` (P, T, C), ``tgt`` (P, T, C) or (T, C) shared; float → (P, T) float64.
     """
     _check_backend(backend)
-    s, t = _pairs(src, tgt, backend)
+    s, t = _pairs(src, tgt)
     if backend == "reference":
         _check_pair_norms(s, t)
         from vvloc.reference import matching as ref_matching
@@ -421,7 +427,7 @@ def estimate_yaw(src: Any, tgt: Any, *, backend: Backend = "rust") -> YawEstimat
     Gram products (a scene periodic under a half turn), it may return the other basin.
     """
     _check_backend(backend)
-    s, t = _pairs(src, tgt, backend)
+    s, t = _pairs(src, tgt)
     if backend == "reference":
         _check_pair_norms(s, t)
         from vvloc.reference import matching as ref_matching
@@ -438,7 +444,7 @@ def rerank(src: Any, tgt: Any, *, backend: Backend = "rust") -> Rerank:
     input order).
     """
     _check_backend(backend)
-    s, t = _pairs(src, tgt, backend)
+    s, t = _pairs(src, tgt)
     if backend == "reference":
         _check_pair_norms(s, t)
         from vvloc.reference import matching as ref_matching

@@ -137,8 +137,9 @@ fn check_pairs<'a>(
     let g = contiguous(tgt, "tgt")?;
     check_rows(&s, c, "src")?;
     check_rows(&g, c, "tgt")?;
-    // each pair's curve holds up to three (T, T) tables (Gram-derived distances, their
-    // squares and inverse roots), and one pair per thread runs at a time
+    // each pair's curve holds up to three (T, S) tables at once (the Gram products and the
+    // diagonal distances, then the distances and their roots), and one pair per thread runs
+    // at a time
     let concurrent = p.min(rayon::current_num_threads()).max(1);
     check_alloc::<f32>("src", checked_len("src", &[3, concurrent, t, stride(t)])?)?;
     Ok((p, t, c, s, g, pt == 1 && p > 1))
@@ -769,7 +770,7 @@ fn curve_impl<G: Gram>(ds: &[f32], dt: &[f32], t: usize, c: usize, slopes: bool,
     }
     // 2. squared distances d²[j][i] = ‖Ds_j‖² + ‖Dt_i‖² − 2·G[j][i] in f64, in place, row by
     //    row (vectorised); entries where fp32 cancellation would hurt are recomputed directly
-    let mut near: Vec<(usize, usize)> = Vec::new();
+    //    (in place, row by row: no list of them, which could hold every entry)
     let mut flag = vec![false; t];
     for (j, row) in gm.chunks_exact_mut(t).enumerate() {
         let mut any = false;
@@ -781,17 +782,12 @@ fn curve_impl<G: Gram>(ds: &[f32], dt: &[f32], t: usize, c: usize, slopes: bool,
             *v = d2.max(0.0) as f32;
         }
         if any {
-            near.extend(
-                flag.iter()
-                    .enumerate()
-                    .filter(|f| *f.1)
-                    .map(|(i, _)| (j, i)),
-            );
+            for (i, (v, &f)) in row.iter_mut().zip(&flag).enumerate() {
+                if f {
+                    *v = sqdist_f64(row_of(c, ds, j), row_of(c, dt, i)).max(0.0) as f32;
+                }
+            }
         }
-    }
-    for (j, i) in near {
-        let d2 = sqdist_f64(row_of(c, ds, j), row_of(c, dt, i));
-        gm[j * t + i] = d2.max(0.0) as f32;
     }
     // 3. the diagonal layout dg[k][i] = d²[(i − k) mod T][i], a block of LANES columns at a
     //    time: the block's rows of both tables stay in the first-level cache
@@ -811,6 +807,7 @@ fn curve_impl<G: Gram>(ds: &[f32], dt: &[f32], t: usize, c: usize, slopes: bool,
             }
         }
     }
+    drop(gm); // at most two (T, S) tables and the small vectors are alive from here
     let inv_t = 1.0 / t as f64;
     let mut sq = dg.clone();
     for v in sq.iter_mut() {
