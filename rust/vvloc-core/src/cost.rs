@@ -157,10 +157,17 @@ fn contiguous<'a>(x: &'a ArrayView3<'a, f32>, arg: &'static str) -> Result<Cow<'
     }
 }
 
+/// Whether the pair kernels (`matching_cost`, `yaw_costs`, `estimate_yaw`, `rerank`) run
+/// without rayon for a batch of `pairs` pairs, on the calling thread (callers may then skip the
+/// hand-over to a thread pool).
+pub fn runs_sequentially(pairs: usize) -> bool {
+    pairs <= 1
+}
+
 /// Runs `f` for every pair index, in parallel when there is more than one pair. Each pair is
 /// computed sequentially, so results do not depend on the thread count.
 fn per_pair<T: Send, F: Fn(usize) -> T + Sync + Send>(p: usize, f: F) -> Vec<T> {
-    if p <= 1 {
+    if runs_sequentially(p) {
         (0..p).map(f).collect()
     } else {
         (0..p).into_par_iter().with_min_len(1).map(f).collect()

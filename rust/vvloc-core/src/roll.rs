@@ -12,6 +12,12 @@ use rayon::prelude::*;
 /// Output elements below which the spatial kernels run sequentially (no rayon overhead).
 pub(crate) const PAR_THRESHOLD: usize = 1 << 15;
 
+/// Whether [`roll_interp`] of an array of `len` elements runs without rayon, on the calling
+/// thread (callers may then skip the hand-over to a thread pool).
+pub fn runs_sequentially(len: usize) -> bool {
+    len < PAR_THRESHOLD
+}
+
 /// Splits a real shift into `(⌊s⌋ mod n, s − ⌊s⌋)`, exactly for any finite `s`.
 ///
 /// `n` must be ≥ 1. The modulus is taken in f64, which is exact for integral values.
@@ -65,7 +71,7 @@ pub fn roll_interp(x: ArrayViewD<'_, f32>, shift: f64, axis: usize) -> Result<Ar
                 *d = w0 * a + w1 * b;
             }
         };
-        if out.len() < PAR_THRESHOLD {
+        if runs_sequentially(out.len()) {
             out.chunks_mut(inner).enumerate().for_each(row);
         } else {
             out.par_chunks_mut(inner)

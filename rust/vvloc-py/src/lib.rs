@@ -1,8 +1,9 @@
 //! `vvloc._core`: thin PyO3 bindings of `vvloc-core`.
 //!
 //! Each `#[pyfunction]` validates its arguments, takes numpy views, releases the GIL, runs the
-//! core kernel inside vvloc's own rayon pool ([`pool::run`]) and wraps the result. No algorithm
-//! lives here. Each area registers its functions from its own file.
+//! core kernel inside vvloc's own rayon pool ([`pool::run`]; on the calling thread when the
+//! kernel is known to run sequentially for that input, [`pool::run_where`]) and wraps the
+//! result. No algorithm lives here. Each area registers its functions from its own file.
 
 mod errors;
 mod pool;

@@ -32,7 +32,11 @@ fn matching_cost<'py>(
     b: PyReadonlyArray3<'py, f32>,
 ) -> PyResult<F64Vec<'py>> {
     let (a, b) = (a.as_array(), b.as_array());
-    let out = to_py(pool::run(py, || cost::matching_cost(a, b))?)?;
+    let out = to_py(pool::run_where(
+        py,
+        cost::runs_sequentially(a.shape()[0]),
+        || cost::matching_cost(a, b),
+    )?)?;
     Ok(out.into_pyarray(py))
 }
 
@@ -44,7 +48,11 @@ fn yaw_costs<'py>(
     tgt: PyReadonlyArray3<'py, f32>,
 ) -> PyResult<Bound<'py, PyArray2<f64>>> {
     let (s, t) = (src.as_array(), tgt.as_array());
-    let out = to_py(pool::run(py, || cost::yaw_costs(s, t))?)?;
+    let out = to_py(pool::run_where(
+        py,
+        cost::runs_sequentially(s.shape()[0]),
+        || cost::yaw_costs(s, t),
+    )?)?;
     Ok(out.into_pyarray(py))
 }
 
@@ -56,7 +64,11 @@ fn estimate_yaw<'py>(
     tgt: PyReadonlyArray3<'py, f32>,
 ) -> PyResult<(F64Vec<'py>, F64Vec<'py>, F64Vec<'py>)> {
     let (s, t) = (src.as_array(), tgt.as_array());
-    let est = to_py(pool::run(py, || cost::estimate_yaw(s, t))?)?;
+    let est = to_py(pool::run_where(
+        py,
+        cost::runs_sequentially(s.shape()[0]),
+        || cost::estimate_yaw(s, t),
+    )?)?;
     Ok(estimates_to_py(py, &est))
 }
 
@@ -74,7 +86,11 @@ fn rerank<'py>(
     F64Vec<'py>,
 )> {
     let (s, t) = (src.as_array(), tgt.as_array());
-    let r = to_py(pool::run(py, || cost::rerank(s, t))?)?;
+    let r = to_py(pool::run_where(
+        py,
+        cost::runs_sequentially(s.shape()[0]),
+        || cost::rerank(s, t),
+    )?)?;
     let order: Vec<i64> = r.order.iter().map(|&k| k as i64).collect();
     let (shift, yaw, c) = estimates_to_py(py, &r.estimates);
     Ok((order.into_pyarray(py), c, yaw, shift))

@@ -79,6 +79,21 @@ where
     Ok(py.detach(move || pool.install(f)))
 }
 
+/// Runs `f` with the GIL released: on the calling thread when `sequential` (the kernel is known
+/// not to use rayon for this input, so the pool's thread count is not at stake), which saves
+/// the ~20 µs hand-over to a pool thread and back; inside vvloc's pool otherwise ([`run`]).
+pub fn run_where<T, F>(py: Python<'_>, sequential: bool, f: F) -> PyResult<T>
+where
+    T: Send,
+    F: FnOnce() -> T + Send,
+{
+    if sequential {
+        Ok(py.detach(f))
+    } else {
+        run(py, f)
+    }
+}
+
 /// The most threads vvloc's kernel pool may have (building thousands of threads takes
 /// seconds and helps nothing).
 const MAX_THREADS: i64 = 1024;

@@ -31,7 +31,8 @@ fn roll_interp<'py>(
     let axis = usize::try_from(axis).map_err(|_| {
         PyValueError::new_err(format!("axis: expected 0 <= axis < {ndim}, got {axis}"))
     })?;
-    let out = to_py(pool::run(py, || {
+    let sequential = vvloc_core::roll::runs_sequentially(view.len());
+    let out = to_py(pool::run_where(py, sequential, || {
         vvloc_core::roll::roll_interp(view, shift, axis)
     })?)?;
     Ok(out.into_pyarray(py))
