@@ -3,6 +3,10 @@ the translation search schedule, thread-count independence and bad inputs."""
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 import torch
@@ -419,3 +423,23 @@ def test_constant_descriptors_take_the_exact_path_everywhere(t):
     est = K.estimate_yaw(src, src)
     np.testing.assert_array_equal(est.cost, [0.0, 0.0])
     np.testing.assert_array_equal(K.yaw_costs(src, src), np.zeros((2, t)))
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self/task"), reason="counts threads in /proc")
+def test_single_pair_calls_start_no_thread_pool():
+    # one pair runs sequentially, on the calling thread: neither vvloc's pool nor rayon's
+    # global one may be started for it (asking rayon for its thread count would start the latter)
+    code = (
+        "import os, numpy as np\n"
+        "from vvloc import kernels as K\n"
+        "n = lambda: len(os.listdir('/proc/self/task'))\n"
+        "a = np.random.default_rng(0).random((1, 8, 4), dtype=np.float32)\n"
+        "before = n()\n"
+        "K.estimate_yaw(a, a); K.yaw_costs(a, a); K.rerank(a, a[0]); K.matching_cost(a, a)\n"
+        "K.roll_interp(a[0], 0.5)\n"
+        "print(before, n())\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True
+    ).stdout.split()
+    assert out[0] == out[1], out

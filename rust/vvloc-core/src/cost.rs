@@ -140,7 +140,13 @@ fn check_pairs<'a>(
     // each pair's curve holds up to three (T, S) tables at once (the Gram products and the
     // diagonal distances, then the distances and their roots), and one pair per thread runs
     // at a time
-    let concurrent = p.min(rayon::current_num_threads()).max(1);
+    // (no rayon call when the pairs run sequentially: outside a pool, asking rayon for its
+    // thread count would start its global pool)
+    let concurrent = if runs_sequentially(p) {
+        1
+    } else {
+        p.min(rayon::current_num_threads()).max(1)
+    };
     check_alloc::<f32>("src", checked_len("src", &[3, concurrent, t, stride(t)])?)?;
     Ok((p, t, c, s, g, pt == 1 && p > 1))
 }
