@@ -290,13 +290,14 @@ enum Isa {
 }
 
 impl Isa {
-    /// The widest instruction set the CPU has, at most AVX2 when `VVLOC_NO_AVX512` is set and
-    /// the portable code when `VVLOC_NO_SIMD` is set (to test and benchmark the other paths).
+    /// The widest instruction set the CPU has, at most AVX2 when `VVLOC_NO_AVX512` is on and
+    /// the portable code when `VVLOC_NO_SIMD` is on (to test and benchmark the other paths;
+    /// see [`switch_on`]).
     fn detect() -> Isa {
         #[cfg(target_arch = "x86_64")]
         {
-            if std::env::var_os("VVLOC_NO_SIMD").is_none() {
-                let no_avx512 = std::env::var_os("VVLOC_NO_AVX512").is_some();
+            if !switch_on(std::env::var("VVLOC_NO_SIMD").ok().as_deref()) {
+                let no_avx512 = switch_on(std::env::var("VVLOC_NO_AVX512").ok().as_deref());
                 if is_x86_feature_detected!("avx512f") && !no_avx512 {
                     return Isa::Avx512;
                 }
@@ -352,6 +353,13 @@ impl Isa {
             Isa::Generic => estimate_impl(ds, dt, t, c, &GenericGram),
         }
     }
+}
+
+/// Whether an on/off environment switch with value `v` is on: set, and neither empty nor "0"
+/// (so that `VVLOC_NO_AVX512=0` leaves AVX-512 on, as `VVLOC_MADVISE_HUGEPAGE=0` turns huge
+/// pages off).
+fn switch_on(v: Option<&str>) -> bool {
+    v.is_some_and(|v| !matches!(v.trim(), "" | "0"))
 }
 
 /// A 4×4 block of dot products: `out[r][s] = a_r · b_s` (f32).
@@ -1347,6 +1355,21 @@ mod tests {
         let mut sorted = r.order.clone();
         sorted.sort_unstable();
         assert_eq!(sorted, (0..5).collect::<Vec<_>>());
+    }
+
+    #[test]
+    fn environment_switches_are_on_unless_unset_empty_or_zero() {
+        for (v, on) in [
+            (None, false),
+            (Some(""), false),
+            (Some("0"), false),
+            (Some(" 0 "), false),
+        ] {
+            assert_eq!(switch_on(v), on, "{v:?}");
+        }
+        for v in ["1", "yes", "true", "2"] {
+            assert!(switch_on(Some(v)), "{v}");
+        }
     }
 
     #[test]
