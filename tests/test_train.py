@@ -16,11 +16,13 @@ import torch
 import vvloc.train
 from vvloc.checkpoints import resolve_checkpoint
 from vvloc.evaluate import to_jsonable
+from vvloc.losses import random_translation_bias
 from vvloc.nets import VVLocNet
 from vvloc.train import (
     TrainConfig,
     Trainer,
     TripletFrames,
+    near_seed,
     train,
     training_losses,
     validation_query_count,
@@ -43,6 +45,26 @@ def _config(root, **kw) -> TrainConfig:
     )
     base.update(kw)
     return TrainConfig.from_dict(base)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 7])
+def test_the_near_loss_draws_its_offsets_from_a_stream_of_its_own(seed):
+    # until 2026-12-05 its seed equalled the translation-bias loss's at seed 0, so every near
+    # offset pointed along the bias offset of its pair
+    for step in (0, 1, 30, 999):
+        bias = random_translation_bias(64, (1.0, 3.0), seed * 1_000_003 + step)
+        near = random_translation_bias(64, (0.25, 1.0), near_seed(seed, step))
+        cos = (bias * near).sum(1) / (bias.norm(dim=1) * near.norm(dim=1))
+        assert (cos.abs() > 0.9999).sum() < 8, (seed, step)  # all 64 under the old seed 0
+        assert cos.mean().abs() < 0.4, (seed, step)  # 64 independent directions: |mean| ~ 0.09
+    old = random_translation_bias(64, (0.25, 1.0), 0 * 1_000_033 + 30)
+    bias = random_translation_bias(64, (1.0, 3.0), 0 * 1_000_003 + 30)
+    assert torch.allclose(
+        old / old.norm(dim=1, keepdim=True), bias / bias.norm(dim=1, keepdim=True)
+    )
+    seeds = {near_seed(seed, step) for step in range(2000)}
+    assert len(seeds) == 2000 and all(0 <= s < 2**63 for s in seeds)
+    assert near_seed(seed, 5) == near_seed(seed, 5) != near_seed(seed + 1, 5)
 
 
 @pytest.mark.parametrize(("rerank_weight", "near_weight"), [(0.0, 0.0), (1.0, 0.0), (0.0, 1.0)])

@@ -813,12 +813,18 @@ def near_losses(
         slope=float(cfg.tbias_near_slope),
         bias_range=(lo, hi),
         zero_share=float(cfg.tbias_near_zero),
-        # Known (2026-12-05): at seed 0 this equals translation_bias_loss's seed (seed ·
-        # 1 000 003 + step), so each pair's near offset points along its bias offset. Kept:
-        # models/synth-small's step 5 trained so (seed 0), and `make model` retrains its bytes;
-        # a stream of its own is for the next retraining (the card's last section).
-        seed=cfg.seed * 1_000_033 + step,
+        seed=near_seed(cfg.seed, step),
     )
+
+
+def near_seed(seed: int, step: int) -> int:
+    """The generator seed of :func:`near_losses` at ``step`` of a run seeded ``seed``: a stream
+    of its own, 63 bits of numpy's ``SeedSequence([seed, step, 1])``. The translation-bias loss
+    keeps ``seed · 1 000 003 + step``; until 2026-12-05 the near loss used ``seed · 1 000 033 +
+    step``, which at seed 0 is the same number, so each pair's near offset was a rescaled copy
+    of its bias offset (``models/synth-small/MODEL_CARD.md``, "Step 5 again")."""
+    hi, lo = np.random.SeedSequence([seed, step, 1]).generate_state(2, np.uint32)
+    return (int(hi) << 31) | (int(lo) >> 1)
 
 
 _NO_VALIDATION_QUERY = (
