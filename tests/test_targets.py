@@ -85,6 +85,37 @@ def test_step_fives_reports_give_its_cards_figures():
     assert len(cfer) == 4
 
 
+def test_step_five_with_the_near_loss_seed_stream_gives_its_cards_figures():
+    # models/synth-small/MODEL_CARD.md, "Step 5 again with the near loss's own seed stream": the
+    # committed weights since then, on the pre-registered test and the fresh sessions
+    want = {
+        "report-test96-near-seed": ("83.0 %", "+4.4 points", "0.83°", "0.37 m", "0.38°", "0.21 m"),
+        "report-fresh-near-seed": ("81.4 %", "+4.3 points", "0.86°", "0.40 m", "0.40°", "0.26 m"),
+    }
+    for name, values in want.items():
+        report = _committed(name)
+        assert report["meta"]["model_weights_hash"].startswith("e4c243028d117005")
+        figs = check_targets(report)
+        parking = [f for f in figs if f.name.startswith("parking: ")]
+        assert [f.value for f in parking] == list(values), name
+        assert all(f.met for f in parking), name
+        time = _by_name(figs)["training time"]
+        assert (time.value, time.met) == ("76.6 min", True)
+    # retrieval and the global descriptors are step 4's: every CFER is the one before, pair
+    # for pair
+    new = _targets(
+        "report-test96-near-seed",
+        "report-test96-pillars-near-seed",
+        "report-test96-garage-near-seed",
+    )
+    before = _targets("report-test96", "report-test96-pillars", "report-test96-garage")
+    cfer = [(f.name, f.value, f.met, f.detail) for f in new if "CFER" in f.name]
+    assert cfer == [(f.name, f.value, f.met, f.detail) for f in before if "CFER" in f.name]
+    assert len(cfer) == 4
+    written = json.loads((MODEL / "report-test96-near-seed" / "targets.json").read_text())
+    assert [(f["name"], f["value"]) for f in written["figures"]] == [(f.name, f.value) for f in new]
+
+
 def test_the_floor_checks_rows_are_not_the_issues_figures():
     # models/synth-small/MODEL_CARD.md, "Loop closures checked against the sessions' floors":
     # its test reports add rows with the floor check, which vvloc targets leaves out; the rest
