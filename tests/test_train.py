@@ -67,6 +67,16 @@ def test_the_near_loss_draws_its_offsets_from_a_stream_of_its_own(seed):
     assert near_seed(seed, 5) == near_seed(seed, 5) != near_seed(seed + 1, 5)
 
 
+def test_the_near_losses_are_seeded_by_near_seed(monkeypatch, tiny_world):
+    seen = []
+    monkeypatch.setattr(
+        vvloc.train, "near_translation_loss", lambda *a, **kw: seen.append(kw["seed"])
+    )
+    cfg = _config(tiny_world, tbias_near_weight=1.0, seed=5)
+    vvloc.train.near_losses(None, None, None, None, None, cfg, 17)
+    assert seen == [near_seed(5, 17)]
+
+
 @pytest.mark.parametrize(("rerank_weight", "near_weight"), [(0.0, 0.0), (1.0, 0.0), (0.0, 1.0)])
 def test_a_few_steps_on_fixed_triplets_lower_every_loss(tiny_world, rerank_weight, near_weight):
     cfg = _config(tiny_world, rerank_weight=rerank_weight, tbias_near_weight=near_weight)
