@@ -60,60 +60,60 @@ def test_the_committed_models_reports_give_its_cards_figures():
     assert "default garage: CFER, sequence-checked" in text
 
 
-def test_step_fives_reports_give_its_cards_figures():
-    # models/synth-small/MODEL_CARD.md, "Step 5": the pre-registered test and the fresh sessions
-    want = {
-        "report-test96-local": ("83.0 %", "+4.4 points", "0.86°", "0.38 m", "0.34°", "0.21 m"),
-        "report-fresh-local": ("81.5 %", "+4.5 points", "0.82°", "0.41 m", "0.41°", "0.26 m"),
-    }
-    for name, values in want.items():
+# models/synth-small/MODEL_CARD.md: "Step 5" (the first step 5) and "Step 5 again with the near
+# loss's own seed stream" (the committed one since 2026-12-05), each on the pre-registered test
+# and the fresh sessions: report suffix, weights fingerprint, training time, parking figures
+STEP_FIVES = {
+    "local": (
+        "8b6bdae7e78224b0",
+        "78.6 min",
+        ("83.0 %", "+4.4 points", "0.86°", "0.38 m", "0.34°", "0.21 m"),
+        ("81.5 %", "+4.5 points", "0.82°", "0.41 m", "0.41°", "0.26 m"),
+    ),
+    "near-seed": (
+        "e4c243028d117005",
+        "76.6 min",
+        ("83.0 %", "+4.4 points", "0.83°", "0.37 m", "0.38°", "0.21 m"),
+        ("81.4 %", "+4.3 points", "0.86°", "0.40 m", "0.40°", "0.26 m"),
+    ),
+}
+
+
+@pytest.mark.parametrize("suffix", sorted(STEP_FIVES))
+def test_step_fives_reports_give_its_cards_figures(suffix):
+    fingerprint, minutes, test, fresh = STEP_FIVES[suffix]
+    for name, values in ((f"report-test96-{suffix}", test), (f"report-fresh-{suffix}", fresh)):
         report = _committed(name)
-        assert report["meta"]["model_weights_hash"].startswith("8b6bdae7e78224b0")
+        assert report["meta"]["model_weights_hash"].startswith(fingerprint)
         figs = check_targets(report)
         parking = [f for f in figs if f.name.startswith("parking: ")]
         assert [f.value for f in parking] == list(values), name
         assert all(f.met for f in parking), name
         time = _by_name(figs)["training time"]
-        assert (time.value, time.met) == ("78.6 min", True)
-    # the garages: step 5 leaves the global descriptors as they were, and so every CFER
-    local = _targets(
-        "report-test96-local", "report-test96-pillars-local", "report-test96-garage-local"
+        assert (time.value, time.met) == (minutes, True)
+    # the garages: step 5 leaves the global descriptors as step 4 made them, and so every CFER
+    mine = _targets(
+        f"report-test96-{suffix}",
+        f"report-test96-pillars-{suffix}",
+        f"report-test96-garage-{suffix}",
     )
     before = _targets("report-test96", "report-test96-pillars", "report-test96-garage")
-    cfer = [(f.name, f.value, f.met, f.detail) for f in local if "CFER" in f.name]
+    cfer = [(f.name, f.value, f.met, f.detail) for f in mine if "CFER" in f.name]
     assert cfer == [(f.name, f.value, f.met, f.detail) for f in before if "CFER" in f.name]
     assert len(cfer) == 4
 
 
-def test_step_five_with_the_near_loss_seed_stream_gives_its_cards_figures():
-    # models/synth-small/MODEL_CARD.md, "Step 5 again with the near loss's own seed stream": the
-    # committed weights since then, on the pre-registered test and the fresh sessions
-    want = {
-        "report-test96-near-seed": ("83.0 %", "+4.4 points", "0.83°", "0.37 m", "0.38°", "0.21 m"),
-        "report-fresh-near-seed": ("81.4 %", "+4.3 points", "0.86°", "0.40 m", "0.40°", "0.26 m"),
-    }
-    for name, values in want.items():
-        report = _committed(name)
-        assert report["meta"]["model_weights_hash"].startswith("e4c243028d117005")
-        figs = check_targets(report)
-        parking = [f for f in figs if f.name.startswith("parking: ")]
-        assert [f.value for f in parking] == list(values), name
-        assert all(f.met for f in parking), name
-        time = _by_name(figs)["training time"]
-        assert (time.value, time.met) == ("76.6 min", True)
-    # retrieval and the global descriptors are step 4's: every CFER is the one before, pair
-    # for pair
-    new = _targets(
+def test_the_committed_step_fives_targets_file_is_its_reports():
+    written = json.loads((MODEL / "report-test96-near-seed" / "targets.json").read_text())
+    figs = _targets(
         "report-test96-near-seed",
         "report-test96-pillars-near-seed",
         "report-test96-garage-near-seed",
     )
-    before = _targets("report-test96", "report-test96-pillars", "report-test96-garage")
-    cfer = [(f.name, f.value, f.met, f.detail) for f in new if "CFER" in f.name]
-    assert cfer == [(f.name, f.value, f.met, f.detail) for f in before if "CFER" in f.name]
-    assert len(cfer) == 4
-    written = json.loads((MODEL / "report-test96-near-seed" / "targets.json").read_text())
-    assert [(f["name"], f["value"]) for f in written["figures"]] == [(f.name, f.value) for f in new]
+    assert written["weights_hash"].startswith("e4c243028d117005")
+    assert [(f["name"], f["value"]) for f in written["figures"]] == [
+        (f.name, f.value) for f in figs
+    ]
 
 
 def test_the_floor_checks_rows_are_not_the_issues_figures():
