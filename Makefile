@@ -3,9 +3,9 @@
 #   make bench   kernel benchmarks: table on stdout, JSON in bench-results/
 #   make lint    cargo fmt/clippy, ruff, mypy stubtest of the extension
 #   make demo    end-to-end demo (see README)
-#   make model   the committed small model from scratch (five steps, 68-80 min on 2 cores; the
-#                committed bytes on the CPU that trained them, other weights elsewhere:
-#                models/synth-small/MODEL_CARD.md)
+#   make model   the committed small model from scratch (five steps, 46-80 min on 2 cores; the
+#                committed bytes on the two AMD EPYC CPUs checked, other weights may come
+#                elsewhere: models/synth-small/MODEL_CARD.md)
 #   make model-test  the committed model's test on what make model trained (CHECKPOINT=...),
 #                against the issue's targets (≈ 8 min, plus ≈ 15-25 min rendering the first time)
 #   make model-v3  the recipe of the previous default, models/synth-small-v3 (in a clean runs/)
@@ -62,7 +62,7 @@ demo: develop
 # with the re-ranking loss (GeM head), the head stage on it (NetVLAD, three worlds), the floor
 # fine-tune (stage 2 on three worlds, 6 epochs), the head stage again and the local stage
 # (decoder + interactor with the near translation loss); runs/synth-small-local/best/ is the
-# model (models/synth-small, byte for byte on the machine that trained it). Re-running it
+# model (models/synth-small, byte for byte on the two AMD EPYC CPUs checked). Re-running it
 # resumes or skips what a previous run already did; delete runs/synth-small* left from another
 # recipe first.
 # `make model-v3` runs models/synth-small-v3's recipe: configs/synth-small.yaml (the paper's
