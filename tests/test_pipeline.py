@@ -869,3 +869,54 @@ def test_trained_on_reads_the_training_record(tmp_path, monkeypatch):
     assert trained_on(record, "data/lot-test", ["s1"]) == []  # another dataset
     assert trained_on({}, "data/lot", ["s1"]) == []  # no record (an earlier vvloc's weights)
     assert trained_on({"runs": [{"recorded": False}]}, "data/lot", ["s1"]) == []
+
+
+def _fake_render(root, sessions, lighting=None, **world):
+    """rig.json meta and session.json files as ``vvloc sim`` writes them, without images."""
+    from dataclasses import asdict
+
+    from vvloc.sim.simulate import session_plan
+
+    meta = {"generator": "vvloc.sim", "scene": "parking", "seed": 0} | world
+    root.mkdir(parents=True)
+    (root / "rig.json").write_text(json.dumps({"cameras": [], "meta": meta}))
+    for spec in session_plan(meta["scene"], sessions, meta["seed"], lighting):
+        (root / "sessions" / spec.name).mkdir(parents=True)
+        (root / "sessions" / spec.name / "session.json").write_text(json.dumps(asdict(spec)))
+
+
+def test_trained_on_knows_a_trained_session_rendered_again_elsewhere(tmp_path, monkeypatch):
+    from vvloc.localize.evaluation import trained_on
+
+    monkeypatch.chdir(tmp_path)
+    sim = {"scene": "parking", "sessions": 20, "frames": 300, "seed": 0}
+    garage = {"scene": "garage", "floors": 2, "sessions": 6, "frames": 300, "seed": 0}
+    record = {
+        "runs": [
+            {
+                "config": {
+                    "dataset": "data/lot",
+                    "sim": sim,
+                    "train_sessions": ["s0", "s1", "s2", "s5"],
+                    "extra_datasets": [{"dataset": "data/garage", "sim": garage}],
+                }
+            }
+        ]
+    }
+    # the README's `vvloc sim --sessions 3` into another folder: the same drives of one world
+    _fake_render(tmp_path / "mine", 6)
+    assert trained_on(record, "mine", ["s1", "s3", "s4", "s5"]) == ["s1", "s5"]
+    # another world seed, another scene, tilted queries, other lighting: not the same sessions
+    _fake_render(tmp_path / "seed1", 3, seed=1)
+    _fake_render(tmp_path / "pillars", 3, scene="garage", floors=2, floor_marking="pillars")
+    _fake_render(tmp_path / "tilted", 3, max_roll=5.0)
+    _fake_render(tmp_path / "day", 3, lighting=["day"])
+    for other in ("seed1", "pillars", "tilted", "day"):
+        assert trained_on(record, other, ["s1", "s2"]) == [], other
+    # the garage source trained every session of its world (no train_sessions)
+    _fake_render(tmp_path / "walls", 3, scene="garage", floors=2)
+    assert trained_on(record, "walls", ["s1", "s2"]) == ["s1", "s2"]
+    # a dataset that vvloc sim did not render, or without session.json, is judged by path only
+    (tmp_path / "mine" / "sessions" / "s1" / "session.json").unlink()
+    assert trained_on(record, "mine", ["s1", "s5"]) == ["s5"]
+    assert trained_on(record, tmp_path / "nowhere", ["s1"]) == []

@@ -78,7 +78,7 @@ from vvloc._io import atomic_write
 from vvloc.checkpoints import resolve_checkpoint
 from vvloc.data import TripletSampler, open_dataset
 from vvloc.data.augment import PhotometricAugment
-from vvloc.data.sampling import check_query_sessions, same_folder
+from vvloc.data.sampling import check_query_sessions, rendered_world, same_folder, sim_world
 from vvloc.evaluate import nearest_map_distance, to_jsonable
 from vvloc.localize.localizer import frames_to_tensors
 from vvloc.losses import (
@@ -938,17 +938,10 @@ def _check_rendered_like(root: Path, sim: dict[str, Any]) -> None:
     """Refuse a rendered dataset whose recorded world (``rig.json`` ``meta``: scene, seed, the
     vehicle's tilt bounds, and for a garage floors and floor marking) differs from what ``sim``
     would render."""
-    rig = root / "rig.json"
-    meta = json.loads(rig.read_text()).get("meta", {}) if rig.is_file() else {}
-    if meta.get("generator") != "vvloc.sim":
+    have = rendered_world(root)
+    if have is None:
         return
-    want = {"scene": sim.get("scene", "parking"), "seed": sim.get("seed", 0)}
-    have = {"scene": meta.get("scene"), "seed": meta.get("seed")}
-    for key in ("max_roll", "max_pitch"):  # absent from a level dataset's meta
-        want[key], have[key] = float(sim.get(key, 0.0)), float(meta.get(key, 0.0))
-    if want["scene"] == "garage":
-        want |= {"floors": sim.get("floors", 2), "floor_marking": sim.get("floor_marking", "walls")}
-        have |= {"floors": meta.get("floors"), "floor_marking": meta.get("floor_marking", "walls")}
+    want = sim_world(sim)
     if want != have:
         raise ValueError(
             f"dataset {root} was rendered as {have}, but the config's sim section renders "

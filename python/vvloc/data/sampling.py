@@ -9,6 +9,7 @@ frames of different worlds are never positives, whatever their coordinates.
 
 from __future__ import annotations
 
+import json
 import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -416,6 +417,39 @@ def same_folder(a: Any, b: Any) -> bool:
     if not isinstance(a, (str, os.PathLike)) or not isinstance(b, (str, os.PathLike)):
         return False
     return Path(a).resolve() == Path(b).resolve()
+
+
+def sim_world(sim: dict[str, Any]) -> dict[str, Any]:
+    """The world a ``sim`` section (arguments of :func:`vvloc.sim.simulate_dataset`) renders:
+    scene, seed, the query vehicle's tilt bounds (degrees), and for a garage its floors and
+    floor marking, with the simulator's defaults filled in."""
+    world = {"scene": sim.get("scene", "parking"), "seed": sim.get("seed", 0)}
+    for key in ("max_roll", "max_pitch"):
+        world[key] = float(sim.get(key, 0.0))
+    if world["scene"] == "garage":
+        world |= {
+            "floors": sim.get("floors", 2),
+            "floor_marking": sim.get("floor_marking", "walls"),
+        }
+    return world
+
+
+def rendered_world(root: str | os.PathLike[str]) -> dict[str, Any] | None:
+    """The world ``vvloc sim`` recorded in ``root``'s ``rig.json`` (``meta``), in the form of
+    :func:`sim_world`; None for a dataset that ``vvloc sim`` did not render."""
+    rig = Path(root) / "rig.json"
+    try:
+        meta = json.loads(rig.read_text()).get("meta", {})
+    except (OSError, ValueError, AttributeError):
+        return None
+    if not isinstance(meta, dict) or meta.get("generator") != "vvloc.sim":
+        return None
+    world = {"scene": meta.get("scene"), "seed": meta.get("seed")}
+    for key in ("max_roll", "max_pitch"):  # absent from a level dataset's meta
+        world[key] = float(meta.get(key, 0.0))
+    if world["scene"] == "garage":
+        world |= {"floors": meta.get("floors"), "floor_marking": meta.get("floor_marking", "walls")}
+    return world
 
 
 def inside_folder(path: str | os.PathLike[str], folder: str | os.PathLike[str]) -> bool:

@@ -8,6 +8,7 @@ metric-localization global poses (DESIGN.md §3 frames).
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import secrets
@@ -23,7 +24,13 @@ from vvloc import evaluate, geometry, kernels, viz
 from vvloc._io import atomic_write
 from vvloc.data import Frame, open_dataset
 from vvloc.data.perturb import SEEDED, frame_seed, perturb_frame
-from vvloc.data.sampling import check_query_sessions, inside_folder, same_folder
+from vvloc.data.sampling import (
+    check_query_sessions,
+    inside_folder,
+    rendered_world,
+    same_folder,
+    sim_world,
+)
 from vvloc.localize.localizer import (
     LocalizationResult,
     Localizer,
@@ -288,24 +295,57 @@ def trained_on(
 ) -> list[str]:
     """Those of ``sessions`` of ``dataset`` that the runs of a training ``record``
     (:mod:`vvloc.provenance`: the checkpoint's ``training.json``) trained on, as their configs'
-    ``dataset`` / ``train_sessions`` and ``extra_datasets`` say (paths compared from the
-    working directory; a source without ``train_sessions`` trained all its sessions). A
-    record without configs (weights of an earlier vvloc) gives none."""
+    ``dataset`` / ``train_sessions`` and ``extra_datasets`` say (a source without
+    ``train_sessions`` trained all its sessions). A session counts when the source is this
+    folder (paths compared from the working directory), or when ``vvloc sim`` rendered both:
+    the source's ``sim`` section renders this dataset's world (:func:`rendered_world`) and the
+    session, by name, is a trained one whose plan (lighting, seed: ``session.json``) it shares.
+    Such a session is the same drive through the same world under the same light and cars,
+    whatever folder holds it or how many keyframes it has. A record without configs (weights
+    of an earlier vvloc) gives none."""
+    world = rendered_world(dataset)
     trained: set[str] = set()
     for run in record.get("runs", []) if isinstance(record, dict) else []:
         cfg = run.get("config") if isinstance(run, dict) else None
         if not isinstance(cfg, dict):
             continue
-        sources = [(cfg.get("dataset"), cfg.get("train_sessions"))]
+        sources = [(cfg.get("dataset"), cfg.get("train_sessions"), cfg.get("sim"))]
         sources += [
-            (e.get("dataset"), e.get("train_sessions"))
+            (e.get("dataset"), e.get("train_sessions"), e.get("sim"))
             for e in cfg.get("extra_datasets") or []
             if isinstance(e, dict)
         ]
-        for path, names in sources:
+        for path, names, sim in sources:
             if same_folder(path, dataset):
                 trained.update(sessions if names is None else names)
+            elif world is not None and isinstance(sim, dict) and sim_world(sim) == world:
+                candidates = sessions if names is None else [s for s in sessions if s in names]
+                trained.update(s for s in candidates if _planned_alike(dataset, s, sim))
     return [s for s in sessions if s in trained]
+
+
+def _planned_alike(dataset: str | os.PathLike[str], session: str, sim: dict[str, Any]) -> bool:
+    """Whether ``session`` of the rendered ``dataset`` has the lighting and seed that ``sim``
+    plans for a session of that name (its ``session.json``; False where it has none)."""
+    from vvloc.sim.simulate import session_plan  # the renderer's plan, not its GL context
+
+    if not (session[:1] == "s" and session[1:].isdigit()):
+        return False
+    try:
+        meta = json.loads((Path(dataset) / "sessions" / session / "session.json").read_text())
+        lighting = sim.get("lighting")
+        plan = session_plan(
+            sim.get("scene", "parking"),
+            int(session[1:]) + 1,
+            sim.get("seed", 0),
+            lighting.split(",") if isinstance(lighting, str) else lighting,
+        )[-1]
+    except (OSError, ValueError, TypeError):
+        return False
+    return isinstance(meta, dict) and (meta.get("lighting"), meta.get("seed")) == (
+        plan.lighting,
+        plan.seed,
+    )
 
 
 def run_evaluation(
