@@ -104,3 +104,31 @@ def test_the_rust_pool_works_in_forked_children_as_in_the_parent():
         vvloc.set_num_threads(before)
     for g in got:
         np.testing.assert_array_equal(g, want)
+
+
+@pytest.mark.parametrize(
+    "command",
+    [
+        ["map", "build", "--dataset", "nowhere", "--sessions", "s0", "--out", "m.h5"],
+        ["localize", "--map", "m.h5", "--dataset", "nowhere", "--session", "s1", "--out", "o"],
+        ["loops", "--map", "m.h5", "--out", "o"],
+        ["eval", "--dataset", "nowhere", "--database", "s0", "--queries", "s1", "--out", "o"],
+        ["calibrate", "--dataset", "nowhere", "--queries", "s1"],
+    ],
+)
+def test_the_network_commands_set_torchs_threads(command, tmp_path, monkeypatch):
+    import torch
+    from typer.testing import CliRunner
+
+    from vvloc.cli import app
+
+    monkeypatch.chdir(tmp_path)
+    seen = []
+    monkeypatch.setattr(torch, "set_num_threads", seen.append)
+    args = [*command, "--checkpoint", "nowhere"]
+    result = CliRunner().invoke(app, [*args, "--threads", "1"])
+    assert seen == [1] and result.exit_code == 2  # then refused: no such dataset or map
+    result = CliRunner().invoke(app, args)
+    assert seen == [1]  # not given: torch's default stays
+    result = CliRunner().invoke(app, [*args, "--threads", "0"])
+    assert result.exit_code == 2 and "--threads" in result.output and seen == [1]

@@ -33,6 +33,31 @@ MetricCandidates = Annotated[
 ]
 
 
+#: ``--threads`` of the commands that run the networks (``eval``, ``localize``, ``loops``,
+#: ``map build``, ``calibrate``): PyTorch's CPU threads, as :func:`set_torch_threads` sets them.
+Threads = Annotated[
+    int | None,
+    typer.Option(
+        "--threads",
+        min=1,
+        help="PyTorch CPU threads for the networks (default: torch's, all cores). On a machine "
+        "that other work keeps busy, 1 can be many times faster (README, 'Threads'). The Rust "
+        "kernels' pool is set apart: VVLOC_NUM_THREADS.",
+    ),
+]
+
+
+def set_torch_threads(threads: int | None) -> None:
+    """``torch.set_num_threads(threads)`` when ``threads`` is given (the networks' CPU threads;
+    None leaves torch's default, which ``OMP_NUM_THREADS`` sets). vvloc's Rust kernels keep
+    their own pool (``VVLOC_NUM_THREADS``); answers can move in their last bits with the torch
+    thread count (README, "Threads")."""
+    if threads is not None:
+        import torch
+
+        torch.set_num_threads(threads)
+
+
 class MetricFromChoice(str, Enum):
     """The orderings ``--metric_from`` takes its candidates from: ``Localizer(metric_from=)``'s
     ``METRIC_FROM``, spelled out as a class so that typer lists them and type checkers see them

@@ -16,8 +16,10 @@ from vvloc.commands._util import (
     MetricFromChoice,
     RetrievalWeight,
     Snap,
+    Threads,
     cli_errors,
     parse_device,
+    set_torch_threads,
     split_names,
 )
 from vvloc.localize.metric import METRIC_CANDIDATES, RETRIEVAL_WEIGHT
@@ -46,6 +48,7 @@ def calibrate(
     retrieval_weight: RetrievalWeight = RETRIEVAL_WEIGHT,
     snap: Snap = True,
     device: Annotated[str, typer.Option("--device", help="cpu, cuda[:N] or auto.")] = "cpu",
+    threads: Threads = None,
     overwrite: Annotated[
         bool, typer.Option("--overwrite", help="Replace the checkpoint's calibration.json.")
     ] = False,
@@ -68,6 +71,7 @@ def calibrate(
     from vvloc.nets.model import CALIBRATION_FILE, calibration_json
 
     with cli_errors("calibrate"):
+        set_torch_threads(threads)
         names = split_names(queries)
         if not names:
             raise ValueError("--queries: expected at least one session name")

@@ -14,9 +14,11 @@ from vvloc.commands._util import (
     MetricFromChoice,
     RetrievalWeight,
     Snap,
+    Threads,
     check_out_folder,
     cli_errors,
     parse_device,
+    set_torch_threads,
     split_names,
 )
 from vvloc.localize.metric import METRIC_CANDIDATES, RETRIEVAL_WEIGHT
@@ -33,6 +35,7 @@ def eval_command(
     top_k: Annotated[int, typer.Option("--top_k", min=1, help="Retrieved candidates.")] = 20,
     every: Annotated[int, typer.Option("--every", min=1, help="Use every n-th query.")] = 1,
     device: Annotated[str, typer.Option("--device", help="cpu, cuda[:N] or auto.")] = "cpu",
+    threads: Threads = None,
     robustness: Annotated[
         bool,
         typer.Option(
@@ -82,6 +85,7 @@ def eval_command(
     from vvloc.localize.evaluation import run_evaluation
 
     with cli_errors("eval"):
+        set_torch_threads(threads)
         check_out_folder(out)  # (run_evaluation refuses an --out inside the dataset)
         names = split_names(queries)
         if not names:

@@ -16,9 +16,11 @@ from vvloc.commands._util import (
     MetricFromChoice,
     RetrievalWeight,
     Snap,
+    Threads,
     check_out_folder,
     cli_errors,
     parse_device,
+    set_torch_threads,
 )
 from vvloc.localize.metric import METRIC_CANDIDATES, RETRIEVAL_WEIGHT
 
@@ -60,6 +62,7 @@ def localize(
     retrieval_weight: RetrievalWeight = RETRIEVAL_WEIGHT,
     snap: Snap = True,
     device: Annotated[str, typer.Option("--device", help="cpu, cuda[:N] or auto.")] = "cpu",
+    threads: Threads = None,
 ) -> None:
     """Write poses.tum (the accepted global poses), poses-all.tum (every frame's), queries.csv
     and timings.json into --out, as one change (a failed or stopped run leaves an earlier
@@ -72,6 +75,7 @@ def localize(
     from vvloc.localize.localizer import Localizer
 
     with cli_errors("localize"):
+        set_torch_threads(threads)
         check_out_folder(out, outside=dataset)
         loc = Localizer.open(
             map_path,

@@ -10,7 +10,14 @@ from typing import Annotated
 import typer
 
 from vvloc.checkpoints import resolve_checkpoint
-from vvloc.commands._util import CostThreshold, check_out_folder, cli_errors, parse_device
+from vvloc.commands._util import (
+    CostThreshold,
+    Threads,
+    check_out_folder,
+    cli_errors,
+    parse_device,
+    set_torch_threads,
+)
 
 
 def trajectory_file_names(sessions: Sequence[str]) -> dict[str, str]:
@@ -107,6 +114,7 @@ def loops(
         int, typer.Option("--max_pairs", min=0, help="Closest candidates to verify (0: all).")
     ] = 0,
     device: Annotated[str, typer.Option("--device", help="cpu, cuda[:N] or auto.")] = "cpu",
+    threads: Threads = None,
 ) -> None:
     """Write loops.csv, graph.g2o and one TUM trajectory per session into --out, as one change
     (a failed or stopped run leaves an earlier run's files as they were); the trajectories an
@@ -120,6 +128,7 @@ def loops(
     from vvloc.nets import VVLocNet
 
     with cli_errors("loops"):
+        set_torch_threads(threads)
         check_out_folder(out)
         model = VVLocNet.load(resolve_checkpoint(checkpoint)).to(parse_device(device))
         # detect_loops checks the weights fingerprint (once, so an old map warns once)

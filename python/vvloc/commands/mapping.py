@@ -9,7 +9,7 @@ from typing import Annotated
 import typer
 
 from vvloc.checkpoints import resolve_checkpoint
-from vvloc.commands._util import cli_errors, parse_device, split_names
+from vvloc.commands._util import Threads, cli_errors, parse_device, set_torch_threads, split_names
 
 map_app = typer.Typer(help="Build and inspect map databases.", no_args_is_help=True)
 
@@ -27,6 +27,7 @@ def build(
         bool, typer.Option("--no_bev", help="Do not store BEVs (then no loop detection).")
     ] = False,
     device: Annotated[str, typer.Option("--device", help="cpu, cuda[:N] or auto.")] = "cpu",
+    threads: Threads = None,
     overwrite: Annotated[
         bool, typer.Option("--overwrite", help="Replace an existing map file at --out.")
     ] = False,
@@ -41,6 +42,7 @@ def build(
     from vvloc.nets import VVLocNet
 
     with cli_errors("map build"):
+        set_torch_threads(threads)
         if out.is_file() and not overwrite:
             raise FileExistsError(f"--out: {out} exists; pass --overwrite to replace it")
         model = VVLocNet.load(resolve_checkpoint(checkpoint)).to(parse_device(device))
