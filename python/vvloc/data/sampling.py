@@ -437,16 +437,15 @@ def sim_world(sim: dict[str, Any]) -> dict[str, Any]:
 def rendered_world(root: str | os.PathLike[str]) -> dict[str, Any] | None:
     """The world ``vvloc sim`` recorded in ``root``'s ``rig.json`` (``meta``), in the form of
     :func:`sim_world`; None for a dataset that ``vvloc sim`` did not render."""
-    rig = Path(root) / "rig.json"
     try:
-        meta = json.loads(rig.read_text()).get("meta", {})
-    except (OSError, ValueError, AttributeError):
+        meta = json.loads((Path(root) / "rig.json").read_text()).get("meta", {})
+        if not isinstance(meta, dict) or meta.get("generator") != "vvloc.sim":
+            return None
+        world = {"scene": meta.get("scene"), "seed": meta.get("seed")}
+        for key in ("max_roll", "max_pitch"):  # absent from a level dataset's meta
+            world[key] = float(meta.get(key, 0.0))
+    except (OSError, ValueError, TypeError, AttributeError):  # no rig.json, or not this one's
         return None
-    if not isinstance(meta, dict) or meta.get("generator") != "vvloc.sim":
-        return None
-    world = {"scene": meta.get("scene"), "seed": meta.get("seed")}
-    for key in ("max_roll", "max_pitch"):  # absent from a level dataset's meta
-        world[key] = float(meta.get(key, 0.0))
     if world["scene"] == "garage":
         world |= {"floors": meta.get("floors"), "floor_marking": meta.get("floor_marking", "walls")}
     return world
