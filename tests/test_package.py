@@ -129,6 +129,6 @@ def test_the_network_commands_set_torchs_threads(command, tmp_path, monkeypatch)
     result = CliRunner().invoke(app, [*args, "--threads", "1"])
     assert seen == [1] and result.exit_code == 2  # then refused: no such dataset or map
     result = CliRunner().invoke(app, args)
-    assert seen == [1]  # not given: torch's default stays
+    assert seen == [1] and result.exit_code == 2  # not given: torch's default stays
     result = CliRunner().invoke(app, [*args, "--threads", "0"])
     assert result.exit_code == 2 and "--threads" in result.output and seen == [1]

@@ -333,12 +333,11 @@ def _planned_alike(dataset: str | os.PathLike[str], session: str, sim: dict[str,
         return False
     try:
         meta = json.loads((Path(dataset) / "sessions" / session / "session.json").read_text())
-        lighting = sim.get("lighting")
         plan = session_plan(
             sim.get("scene", "parking"),
             int(session[1:]) + 1,
             sim.get("seed", 0),
-            lighting.split(",") if isinstance(lighting, str) else lighting,
+            sim.get("lighting"),
         )[-1]
     except (OSError, ValueError, TypeError):
         return False
