@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 import os
 import stat
+import threading
 from pathlib import Path
 from typing import Any
 
@@ -12,7 +13,7 @@ import h5py
 import numpy as np
 import pytest
 
-from vvloc._io import atomic_write
+from vvloc._io import AtomicPath, atomic_write, write_together
 from vvloc.localize import MapDatabase, MapError, MapWriter, model_config_hash
 from vvloc.localize.mapdb import FORMAT_VERSION
 
@@ -733,6 +734,58 @@ def test_atomic_write_into_missing_directory_fails_cleanly(tmp_path: Path) -> No
     with pytest.raises(IsADirectoryError, match="is a folder"), atomic_write(tmp_path) as f:
         f.write("x")
     assert os.listdir(tmp_path) == []
+
+
+def _read_fifo(path: Path, got: list[bytes]) -> threading.Thread:
+    def read() -> None:
+        with open(path, "rb") as f:
+            got.append(f.read())
+
+    reader = threading.Thread(target=read, daemon=True)
+    reader.start()
+    return reader
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="named pipes")
+def test_atomic_write_to_a_stream_writes_it_in_place_and_never_replaces_it(tmp_path: Path) -> None:
+    # `--csv /dev/null` as root once turned /dev/null into a plain file (the rename replaced
+    # the device node); a named pipe stands in for the device here
+    fifo = tmp_path / "pipe"
+    os.mkfifo(fifo)
+    got: list[bytes] = []
+    reader = _read_fifo(fifo, got)
+    with atomic_write(fifo) as f:
+        f.write("streamed\n")
+    reader.join(timeout=30)
+    assert got == [b"streamed\n"]
+    assert stat.S_ISFIFO(fifo.stat().st_mode) and os.listdir(tmp_path) == ["pipe"]
+
+    got.clear()
+    reader = _read_fifo(fifo, got)
+    with pytest.raises(RuntimeError), atomic_write(fifo, "wb") as fb:
+        fb.write(b"partial")
+        raise RuntimeError("boom")
+    reader.join(timeout=30)
+    assert stat.S_ISFIFO(fifo.stat().st_mode) and os.listdir(tmp_path) == ["pipe"]
+
+    got.clear()
+    reader = _read_fifo(fifo, got)
+    write_together(tmp_path, {"pipe": b"together", "file.bin": b"plain"})
+    reader.join(timeout=30)
+    assert got == [b"together"] and stat.S_ISFIFO(fifo.stat().st_mode)
+    assert (tmp_path / "file.bin").read_bytes() == b"plain"
+    assert sorted(os.listdir(tmp_path)) == ["file.bin", "pipe"]
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="named pipes")
+def test_a_map_is_not_written_into_a_stream(tmp_path: Path) -> None:
+    fifo = tmp_path / "map.h5"
+    os.mkfifo(fifo)
+    with pytest.raises(ValueError, match=r"path: .*map\.h5 is not a regular file"):
+        MapWriter(fifo, model_config=CONFIG, grid_size=0.3)
+    with pytest.raises(ValueError, match="not a regular file"):
+        AtomicPath(fifo, streams=False)
+    assert stat.S_ISFIFO(fifo.stat().st_mode) and os.listdir(tmp_path) == ["map.h5"]
 
 
 SIGTERM_WRITER = """

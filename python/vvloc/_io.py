@@ -58,9 +58,17 @@ class AtomicPath:
     link kept, as writing into it would. A process killed outright (SIGKILL, power loss) may
     leave the hidden temporary file behind; the destination is intact either way. :meth:`commit`
     and :meth:`abort` may also be called explicitly (once).
+
+    A destination that exists and is not a regular file (``/dev/null``, ``/dev/stdout``, a named
+    pipe) is a stream, not a file to replace: renaming over it would destroy the device node
+    (as root, ``/dev/null`` would become a plain file that every later ``> /dev/null`` fills).
+    With ``streams=True`` (the default) such a destination is written directly, as a plain
+    ``open`` would (``tmp`` is the destination itself; commit and abort touch nothing); with
+    ``streams=False`` (a writer that needs a seekable file, such as an HDF5 map) it is refused
+    with a ``ValueError``.
     """
 
-    def __init__(self, path: str | os.PathLike[str]) -> None:
+    def __init__(self, path: str | os.PathLike[str], *, streams: bool = True) -> None:
         self.path = Path(os.fspath(path))
         if self.path.name in ("", ".", ".."):
             raise ValueError(f"path: expected a file path, got {os.fspath(path)!r}")
@@ -72,8 +80,20 @@ class AtomicPath:
             raise FileNotFoundError(
                 f"{self.path}: its folder {self.path.parent} does not exist (create it first)"
             )
-        self.tmp = self._create_temp()
         self._done = False
+        try:
+            self.direct = not stat.S_ISREG(os.stat(self.path).st_mode)
+        except FileNotFoundError:
+            self.direct = False
+        if self.direct:
+            if not streams:
+                raise ValueError(
+                    f"path: {self.path} is not a regular file (a device, pipe or socket); "
+                    "expected the path of a file to write"
+                )
+            self.tmp = self.path  # a stream: written in place, never renamed over or removed
+            return
+        self.tmp = self._create_temp()
 
     def _create_temp(self) -> Path:
         directory = self.path.parent
@@ -97,6 +117,8 @@ class AtomicPath:
         if self._done:
             raise RuntimeError(f"{self.path}: atomic write already finished")
         self._done = True
+        if self.direct:
+            return
         try:
             _fsync_file(self.tmp)
             with contextlib.suppress(FileNotFoundError):  # a rewrite keeps the file's mode
@@ -113,6 +135,8 @@ class AtomicPath:
         self._remove_temp()
 
     def _remove_temp(self) -> None:
+        if self.direct:
+            return
         with contextlib.suppress(FileNotFoundError):
             os.unlink(self.tmp)
 
@@ -175,7 +199,8 @@ def write_together(folder: str | os.PathLike[str], files: dict[str, bytes]) -> N
             pending.append(ap)
             with open(ap.tmp, "wb") as f:
                 f.write(data)
-            _fsync_file(ap.tmp)
+            if not ap.direct:
+                _fsync_file(ap.tmp)
         for ap in pending:
             ap.commit()
     except BaseException:

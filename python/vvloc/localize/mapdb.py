@@ -510,7 +510,7 @@ class MapWriter:
             )
         self._max_chunk_rows = 1 << 16 if expected_keyframes is None else int(expected_keyframes)
         self.path = Path(os.fspath(path))
-        self._atomic = AtomicPath(self.path)
+        self._atomic = AtomicPath(self.path, streams=False)  # HDF5 needs a seekable file
         try:
             self._h5 = h5py.File(self._atomic.tmp, "w", libver=_LIBVER)
         except BaseException:
