@@ -156,6 +156,12 @@ def test_localizer_options_are_checked_up_front(map_file, model_dir, tiny_world,
     frame = open_dataset(tiny_world).session("s1")[2]
     r = loc.localize(frame)
     assert r.accepted == (r.cost < 0.75)
+    # printing a result gives one line with its answer, not every search hypothesis
+    text = repr(r)
+    assert "\n" not in text and len(text) < 600, text
+    assert text.startswith(f"LocalizationResult(map_row={r.map_row}, map_id={r.map_id}, ")
+    assert f"accepted={r.accepted}, cost={r.cost:.4f}" in text
+    assert r.search is not None and f"search=<{len(r.search.cost)} hypotheses>" in text
     # images the network would misread are refused before any work, naming the frame
     bad = frame.images.astype(np.float32) / 255.0
     bad[0, 0, 3, 3] = np.nan  # spread through the BEV into the global descriptor

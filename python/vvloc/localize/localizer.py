@@ -30,6 +30,7 @@ distinctiveness >= ``min_distinctiveness`` (the model's calibration; 0 without o
 
 from __future__ import annotations
 
+import math
 import os
 import time
 import warnings
@@ -322,6 +323,28 @@ class LocalizationResult:
     search: kernels.SearchHistory | None = None
     distinctiveness: float = float("nan")
     metric_row: int = -1
+
+    def __repr__(self) -> str:
+        """One line: the answer, its confidence and the sizes of the arrays (the default
+        dataclass repr printed every search hypothesis, hundreds of lines)."""
+
+        def pose(p: npt.NDArray[np.float64]) -> str:
+            x, y, yaw = (float(v) for v in p)
+            return f"(x={x:.3f} m, y={y:.3f} m, yaw={math.degrees(yaw):.2f}°)"
+
+        top = ", ".join(str(int(r)) for r in self.reranked[:5])
+        more = ", …" if len(self.reranked) > 5 else ""
+        hypotheses = "None" if self.search is None else f"<{len(self.search.cost)} hypotheses>"
+        timings = ", ".join(f"{k}={v:.1f}" for k, v in self.timings_ms.items())
+        return (
+            f"LocalizationResult(map_row={self.map_row}, map_id={self.map_id}, "
+            f"map_session={self.map_session!r}, accepted={self.accepted}, cost={self.cost:.4f}, "
+            f"distinctiveness={self.distinctiveness:.4f}, "
+            f"relative_pose={pose(self.relative_pose)}, global_pose={pose(self.global_pose)}, "
+            f"metric_row={self.metric_row}, reranked=[{top}{more}] of {len(self.reranked)}, "
+            f"retrieved=<{len(self.retrieved)} rows>, search={hypotheses}, "
+            f"timings_ms={{{timings}}})"
+        )
 
 
 def _check_calibration_settings(
