@@ -903,6 +903,14 @@ def test_map_info_reports_the_map_and_verify_reads_every_byte(tmp_path: Path) ->
         "séance-0: 6 keyframes" in r.stdout and "weights fingerprint 0123456789abcdef" in r.stdout
     )
     assert "rig: front 16x8" in r.stdout and "BEV (6, 5, 4) float16" in r.stdout
+    # counts take their noun's singular for 1
+    one = tmp_path / "one.h5"
+    kf = keyframes(2, bev=False)
+    kf.update(sessions=["s0", "s0"], floors=np.array([1, 1]), seq=np.array([0, 3]))
+    MapDatabase.from_arrays(**kf, model_config=CONFIG, grid_size=0.3).save(one)
+    r = subprocess.run([*cli, str(one)], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert "keyframes: 2 in 1 session\n" in r.stdout and "  s0: 2 keyframes, floor 1\n" in r.stdout
     flip_byte_in_chunk(path, "bev", 5)  # lazily read: found by --verify only
     assert subprocess.run([*cli, str(path)], capture_output=True).returncode == 0
     r = subprocess.run([*cli, str(path), "--verify"], capture_output=True, text=True)

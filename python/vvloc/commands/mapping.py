@@ -14,6 +14,11 @@ from vvloc.commands._util import Threads, cli_errors, parse_device, set_torch_th
 map_app = typer.Typer(help="Build and inspect map databases.", no_args_is_help=True)
 
 
+def _s(n: int) -> str:
+    """The plural ending of a count's noun: "" for 1, "s" otherwise."""
+    return "" if n == 1 else "s"
+
+
 @map_app.command("build")
 def build(
     checkpoint: Annotated[Path, typer.Option("--checkpoint", help="Checkpoint or run folder.")],
@@ -87,12 +92,14 @@ def info(
             f"map: {map_path}",
             f"format version {meta.format_version}, written by vvloc {meta.vvloc_version} at "
             f"{meta.created_utc}",
-            f"keyframes: {len(db)} in {len(db.sessions)} sessions",
+            f"keyframes: {len(db)} in {len(db.sessions)} session{_s(len(db.sessions))}",
         ]
         for s, name in enumerate(db.sessions):
             rows = db.session_index == s
             floors = sorted(int(f) for f in np.unique(db.floors[rows]))
-            lines.append(f"  {name}: {int(rows.sum())} keyframes, floors {floors}")
+            n = int(rows.sum())
+            floor_list = ", ".join(str(f) for f in floors)
+            lines.append(f"  {name}: {n} keyframe{_s(n)}, floor{_s(len(floors))} {floor_list}")
         bev = "none (no loop detection)" if db.bev_shape is None else f"{db.bev_shape} float16"
         lines += [
             f"descriptors ({meta.descriptor_dtype}): global ({db.global_dim},), local-view "
