@@ -306,6 +306,11 @@ def test_bad_types_and_backend():
         K.estimate_yaw("abc", _OK)
     with pytest.raises(ValueError, match="backend"):
         K.estimate_yaw(_OK, _OK, backend="cuda")  # type: ignore[arg-type]
+    # the message lists each shape the target may take once (P = 1: the shared one is (P, T, C))
+    with pytest.raises(ValueError, match=r"tgt: expected shape \(1, 8, 4\) or \(8, 4\) to match"):
+        K.estimate_yaw(np.zeros((1, 8, 4)), np.zeros((1, 8, 3)))
+    with pytest.raises(ValueError, match=r"expected shape \(3, 8, 4\) or \(1, 8, 4\) or \(8, 4\)"):
+        K.estimate_yaw(np.zeros((3, 8, 4)), np.zeros((2, 8, 4)))
     with pytest.raises(ValueError, match="b"):
         K.matching_cost(np.zeros((3, 4)), np.zeros((3, 5)))
     with pytest.raises(ValueError, match="a"):

@@ -374,7 +374,10 @@ def _pairs(src: Any, tgt: Any, *, shared_ok: bool = True) -> tuple[F32Array, F32
     if c == 0:
         raise ValueError(f"src: expected (P, T, C) with C >= 1 channels, got {s.shape}")
     if t.shape[1:] != (nt, c) or t.shape[0] not in ((p, 1) if shared_ok else (p,)):
-        want = f"({p}, {nt}, {c})" + (f", (1, {nt}, {c}) or ({nt}, {c})" if shared_ok else "")
+        shapes = [f"({p}, {nt}, {c})"]
+        if shared_ok:
+            shapes += ([] if p == 1 else [f"(1, {nt}, {c})"]) + [f"({nt}, {c})"]
+        want = " or ".join(shapes)
         raise ValueError(f"tgt: expected shape {want} to match src, got {t.shape}")
     return s, t
 
