@@ -539,8 +539,13 @@ def test_load_rejects_mismatched_checkpoints(tmp_path):
     meta_path.write_text(json.dumps(meta))
     with pytest.raises(ValueError, match="version 99"):
         VVLocNet.load(tmp_path)
-    with pytest.raises(FileNotFoundError, match=r"directory: .*nothing.*not a vvloc checkpoint\)"):
+    with pytest.raises(FileNotFoundError, match=r"directory: \S*nothing does not exist \(expected"):
         VVLocNet.load(tmp_path / "nothing")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(FileNotFoundError, match=r"directory: .*empty.*not a vvloc checkpoint\)"):
+        VVLocNet.load(tmp_path / "empty")
+    with pytest.raises(FileNotFoundError, match=r"model.safetensors is a file, not a folder"):
+        VVLocNet.load(meta_path.parent / "model.safetensors")
     run = tmp_path / "run"  # a training run's folder: the message points at its checkpoints
     _model(tiny_config(), seed=1).save(run / "checkpoint")
     with pytest.raises(FileNotFoundError, match=r"is a training run: load \S*/run/checkpoint\)"):

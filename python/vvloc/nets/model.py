@@ -352,6 +352,12 @@ class VVLocNet(nn.Module):
         ``UserWarning`` (it is informational; the weights load)."""
         device = resolve_device(map_location, argument="map_location")
         src = Path(directory)
+        if not src.is_dir():
+            what = "is a file, not a folder" if src.exists() else "does not exist"
+            raise FileNotFoundError(
+                f"directory: {src} {what} (expected a vvloc checkpoint folder holding "
+                f"{CONFIG_FILE} and {WEIGHTS_FILE}, or a training run's best/ or checkpoint/)"
+            )
         cfg_path, w_path = src / CONFIG_FILE, src / WEIGHTS_FILE
         for p in (cfg_path, w_path):
             if not p.is_file():
