@@ -613,6 +613,10 @@ def test_write_report_markdown_and_json(tmp_path):
         assert heading in text, heading
     assert "| VVLoc-G | 9/10 | 88.9 | 88.9 | 100.0 | 100.0 | 100.0 |" in text
     assert "| VVLoc-ML | 9/10 | 100.0 |" in text
+    # the "kept" column is defined once, under the first recall table, with the keep radius
+    assert data["global_localization"]["VVLoc-G"]["eligibility_radius_m"] == 2.0
+    assert text.count("*kept*: queries with a map frame within 2 m of their true position") == 1
+    assert text.index("*kept*") < text.index("## Metric pose accuracy")
     row = "| s1 | 0.350 | 3 | 66.7 | 66.7 | 0.667 | – | – | – | – / – / – | 0.750 | 0.900 |"
     assert row in text
     assert "| s1 | cost < 0.75 | 2 | 0 | 2.50 | 1.20 | 100.0 | 100.0 |" in text

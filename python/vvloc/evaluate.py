@@ -174,6 +174,8 @@ class RecallResult:
         first_hit: ``(Q, len(radii))`` int64, 0-based rank of the first retrieved map frame
             within the radius (same floor when floors are given), ``-1`` when none of the K is.
         num_retrieved: K, the number of ranked results per query.
+        eligibility_radius: the keep rule's radius (m): a query is kept when a map frame lies
+            within it (see :func:`recall_at_n`).
     """
 
     top_n: tuple[int, ...]
@@ -182,6 +184,7 @@ class RecallResult:
     kept: BoolArray
     first_hit: I64Array
     num_retrieved: int
+    eligibility_radius: float = 2.0
 
     @property
     def num_queries(self) -> int:
@@ -228,6 +231,7 @@ class RecallResult:
         return {
             "num_queries": self.num_queries,
             "num_kept": self.num_kept,
+            "eligibility_radius_m": self.eligibility_radius,
             "top_n": list(self.top_n),
             "radii_m": list(self.radii),
             "recall": {
@@ -311,7 +315,7 @@ def recall_at_n(
     for i, n in enumerate(ns):
         counted = kept[:, None] & (first_hit >= 0) & (first_hit < n)
         recall[i] = counted.sum(axis=0) / num_kept if num_kept else np.nan
-    return RecallResult(ns, rs, recall, kept, first_hit, k)
+    return RecallResult(ns, rs, recall, kept, first_hit, k, elig)
 
 
 def evaluate_robustness(
@@ -1142,8 +1146,9 @@ def _table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> list[str]:
     return [*lines, ""]
 
 
-def _recall_table(results: Mapping[str, Any], first: str) -> list[str]:
-    """Rows: ``first`` column (method / perturbation) then Recall@N at each radius, in %."""
+def _recall_table(results: Mapping[str, Any], first: str, define_kept: bool = False) -> list[str]:
+    """Rows: ``first`` column (method / perturbation) then Recall@N at each radius, in %;
+    ``define_kept`` adds a line under the table saying what the "kept" column counts."""
     any_res = next(iter(results.values()))
     ns, radii = any_res["top_n"], any_res["radii_m"]
     header = [first, "kept"] + [f"R@{n} {r:g} m" for n in ns for r in radii]
@@ -1151,7 +1156,18 @@ def _recall_table(results: Mapping[str, Any], first: str) -> list[str]:
     for name, res in results.items():
         cells = [_pct(res["recall"].get(str(n), {}).get(f"{r:g}")) for n in ns for r in radii]
         rows.append([name, f"{res['num_kept']}/{res['num_queries']}", *cells])
-    return _table(header, rows)
+    if not define_kept:
+        return _table(header, rows)
+    elig = {res.get("eligibility_radius_m") for res in results.values()}
+    within = f"{elig.pop():g} m" if len(elig) == 1 and None not in elig else "the keep radius"
+    return [
+        *_table(header, rows)[:-1],
+        "",
+        f"*kept*: queries with a map frame within {within} of their true position (on their "
+        "floor where floors are known), out of all; recall is over the kept ones (a query "
+        "without a true revisit in the map is left out).",
+        "",
+    ]
 
 
 def _pose_table(results: Mapping[str, Any]) -> list[str]:
@@ -1291,12 +1307,17 @@ def render_markdown(
         "loop_pose": _loop_pose_table,
         "latency": _latency_table,
     }
+    kept_defined = False
     for key, (heading, first) in _SECTIONS.items():
         section = m.get(key)
         if not section:
             continue
         lines += [f"## {heading}", ""]
-        lines += _recall_table(section, first) if first else builders[key](section)
+        if first:
+            lines += _recall_table(section, first, define_kept=not kept_defined)
+            kept_defined = True
+        else:
+            lines += builders[key](section)
     notes = m.get("notes")
     if notes:
         lines += ["## Notes", ""]
