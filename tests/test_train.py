@@ -1149,6 +1149,15 @@ def test_cli_train_says_what_the_weights_were_trained_on(tiny_world, tmp_path):
     r = subprocess.run(exe, capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     assert f"trained on: cpu on {hardware()}; 1 run, " in r.stdout
+    # the captured log's progress shows real counts with the losses, and keeps the epoch's
+    # last line (a bar refreshed by its losses printed 0/N at every step)
+    counts = [
+        (int(m[1]), int(m[2]))
+        for line in r.stderr.replace("\r", "\n").splitlines()
+        if (m := re.search(r"\| (\d+)/(\d+) \[.*loss=", line))
+    ]
+    assert counts and all(done > 0 for done, _ in counts), r.stderr
+    assert counts[-1][0] == counts[-1][1], r.stderr
     # a finished run of an earlier vvloc (no record), resumed: it says so, and exits cleanly
     (tmp_path / "run" / "checkpoint" / "training.json").unlink()
     r = subprocess.run([*exe, "--resume"], capture_output=True, text=True)

@@ -59,6 +59,7 @@ import os
 import random
 import secrets
 import shutil
+import sys
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -632,6 +633,13 @@ class TrainConfig:
     def to_dict(self) -> dict[str, Any]:
         """Plain dict (YAML/JSON serialisable)."""
         return dataclasses.asdict(self)
+
+
+def _keep_bars() -> bool:
+    """Whether an epoch's progress bar stays when the epoch ends: not in a terminal (the next
+    epoch's bar takes its place), yes in a captured log, where its last line is the epoch's
+    count and losses."""
+    return not sys.stderr.isatty()
 
 
 def pick_device(name: str = "auto") -> torch.device:
@@ -1569,7 +1577,7 @@ class Trainer:
             loader,
             desc=f"epoch {self.epoch + 1}/{self.total_epochs} (stage {stage})",
             disable=not progress,
-            leave=False,
+            leave=_keep_bars(),
         )
         n = 0
         for batch in bar:
@@ -1597,6 +1605,7 @@ class Trainer:
                 tri=f"{parts.triplet:.3f}",
                 yaw=f"{parts.yaw:.3f}",
                 hard=len(self.sampler.hard),
+                refresh=False,
             )
         record: dict[str, Any] = {
             "epoch": self.epoch + 1,
@@ -1717,7 +1726,7 @@ class Trainer:
             range(cfg.head_steps_per_epoch),
             desc=f"epoch {self.epoch + 1}/{self.total_epochs} (head stage)",
             disable=not progress,
-            leave=False,
+            leave=_keep_bars(),
         )
         for k in bar:
             if k and k % HEAD_REFRESH == 0:
@@ -1736,7 +1745,11 @@ class Trainer:
             sums["hinge"] += float(l_hinge.detach())
             violated += wrong
             self.step += 1
-            bar.set_postfix(loss=f"{float(loss.detach()):.3f}", tri=f"{float(l_tri.detach()):.3f}")
+            bar.set_postfix(
+                loss=f"{float(loss.detach()):.3f}",
+                tri=f"{float(l_tri.detach()):.3f}",
+                refresh=False,
+            )
         self.head_untrained = False
         n = cfg.head_steps_per_epoch
         record: dict[str, Any] = {
@@ -1826,7 +1839,7 @@ class Trainer:
             range(cfg.local_steps_per_epoch),
             desc=f"epoch {self.epoch + 1}/{self.total_epochs} (local stage)",
             disable=not progress,
-            leave=False,
+            leave=_keep_bars(),
         )
         for _ in bar:
             pairs = self.sampler.sample_random(cfg.local_batch_size)[:, :2]
@@ -1840,7 +1853,9 @@ class Trainer:
                 sums[key] += float(value.detach())
             self.step += 1
             bar.set_postfix(
-                loss=f"{float(loss.detach()):.3f}", near=f"{float(l_near.detach()):.4f}"
+                loss=f"{float(loss.detach()):.3f}",
+                near=f"{float(l_near.detach()):.4f}",
+                refresh=False,
             )
         self.model.eval()
         n = cfg.local_steps_per_epoch
