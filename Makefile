@@ -1,7 +1,7 @@
 # vvloc: every target bootstraps .venv and builds the Rust extension first.
 #   make test    cargo tests of the core crate (release, then debug) + pytest of the package
 #   make bench   kernel benchmarks: table on stdout, JSON in bench-results/
-#   make lint    cargo fmt/clippy, ruff, mypy stubtest of the extension
+#   make lint    cargo fmt/clippy, ruff, mypy of the package and stubtest of the extension
 #   make demo    end-to-end demo (see README)
 #   make model   the committed small model from scratch (five steps, 46-80 min on 2 cores; the
 #                committed bytes on the two AMD EPYC CPUs checked, other weights may come
@@ -53,6 +53,7 @@ lint: develop
 	cargo clippy --workspace --all-targets --release -- -D warnings
 	$(PY) -m ruff check python tests benches
 	$(PY) -m ruff format --check python tests benches
+	$(PY) -m mypy python/vvloc
 	$(PY) -m mypy.stubtest vvloc._core
 
 demo: develop

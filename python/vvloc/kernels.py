@@ -27,10 +27,12 @@ Backend = Literal["rust", "reference"]
 F32Array = npt.NDArray[np.float32]
 
 
-def _check_backend(backend: str) -> str:
-    if backend not in ("rust", "reference"):
-        raise ValueError(f"backend: expected 'rust' or 'reference', got {backend!r}")
-    return backend
+def _check_backend(backend: str) -> Backend:
+    if backend == "rust":
+        return "rust"
+    if backend == "reference":
+        return "reference"
+    raise ValueError(f"backend: expected 'rust' or 'reference', got {backend!r}")
 
 
 def _as_f32(

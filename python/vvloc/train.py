@@ -1366,11 +1366,13 @@ class Trainer:
         # how the run is executed may change: workers, threads and device (the last two
         # can move the weights' last bits, as on another machine)
         free = ("stage2_epochs", *RESUMABLE_CHANGES)
-        saved = {**TrainConfig().to_dict(), **state["config"]}
-        saved = {k: v for k, v in saved.items() if k not in free}
+        saved_cfg = {**TrainConfig().to_dict(), **state["config"]}
+        saved_cfg = {k: v for k, v in saved_cfg.items() if k not in free}
         current = {k: v for k, v in self.cfg.to_dict().items() if k not in free}
-        if saved != current:
-            differ = sorted(k for k in set(saved) | set(current) if saved.get(k) != current.get(k))
+        if saved_cfg != current:
+            differ = sorted(
+                k for k in set(saved_cfg) | set(current) if saved_cfg.get(k) != current.get(k)
+            )
             raise ValueError(
                 f"{self._state_path()}: the run in {self.out} was started with another config "
                 f"(differing: {', '.join(differ)}); use a new --out directory or the same config"
@@ -1455,16 +1457,18 @@ class Trainer:
             )
         torch.set_rng_state(state["torch_rng"])
         if state.get("cuda_rng") is not None and torch.cuda.is_available():
-            saved, visible = list(state["cuda_rng"]), torch.cuda.device_count()
-            if len(saved) != visible:  # another machine, or CUDA_VISIBLE_DEVICES: not an error
+            cuda_states, visible = list(state["cuda_rng"]), torch.cuda.device_count()
+            if (
+                len(cuda_states) != visible
+            ):  # another machine, or CUDA_VISIBLE_DEVICES: not an error
                 log.warning(
                     "the run saved the RNG of %d CUDA devices, %d are visible: restoring the "
                     "first %d",
-                    len(saved),
+                    len(cuda_states),
                     visible,
-                    min(len(saved), visible),
+                    min(len(cuda_states), visible),
                 )
-            for index, rng_state in enumerate(saved[:visible]):
+            for index, rng_state in enumerate(cuda_states[:visible]):
                 torch.cuda.set_rng_state(rng_state, index)
         self.epoch = int(state["epoch"])
         self.step = int(state["step"])

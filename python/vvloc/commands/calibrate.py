@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 
@@ -113,7 +113,7 @@ def calibrate(
                     retrieval_weight=retrieval_weight,
                     snap=snap,
                 )
-                kw = {"target_precision": precision, "min_accepted": min_accepted}
+                kw: dict[str, Any] = {"target_precision": precision, "min_accepted": min_accepted}
                 cal = calibrate_localizer(loc, frames, progress=True, **kw)
         cal |= {"dataset": str(dataset), "database": database, "sessions": names, "every": every}
         if not cal["accepted"]:

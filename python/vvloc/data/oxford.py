@@ -345,7 +345,9 @@ def open_oxford(
             [sdir / CAMERA_SPECS[c][0] / f"{t}.png" for t in s[p[keep]]]
             for c, s, p in zip(cameras, stamps, picks, strict=True)
         ]
-        cams, luts, patterns = [], [], []
+        cams: list[Camera] = []
+        luts: list[tuple[np.ndarray, np.ndarray] | None] = []
+        patterns: list[str] = []
         for c, ps in zip(cameras, paths, strict=True):
             _, _, model, sensor, pattern = CAMERA_SPECS[c]
             K, G, lut_path = read_model(models, model)

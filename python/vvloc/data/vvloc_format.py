@@ -277,7 +277,7 @@ class SessionWriter:
     def add(
         self,
         timestamp: int,
-        pose: Sequence[float],
+        pose: Sequence[float] | np.ndarray,
         images: np.ndarray,
         *,
         z: float = 0.0,

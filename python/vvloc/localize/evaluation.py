@@ -159,7 +159,7 @@ def _robustness(
     recalls: dict[str, Any] = {}
     poses: dict[str, Any] = {}
     top_n = tuple(n for n in (1, 5) if n <= k)
-    kw = {"query_floors": q_floor, "db_floors": db_floor, "top_n": top_n}
+    kw: dict[str, Any] = {"query_floors": q_floor, "db_floors": db_floor, "top_n": top_n}
     for label in ROBUSTNESS:
         log.info("robustness: localizing the queries with %s", label)
         results = loc.localize_batch([perturbed(f, label) for f in frames], progress=progress)
@@ -457,7 +457,7 @@ def run_evaluation(
         retrieved = _ranked(results, "retrieved", k)
         reranked = _ranked(results, "reranked", k)
         top_n = tuple(n for n in (1, 5) if n <= k)
-        kw = {"query_floors": q_floor, "db_floors": db_floor, "top_n": top_n}
+        kw: dict[str, Any] = {"query_floors": q_floor, "db_floors": db_floor, "top_n": top_n}
         rec_g = evaluate.recall_at_n(q_pose[:, :2], db_pose[:, :2], retrieved, **kw)
         rec_ml = evaluate.recall_at_n(q_pose[:, :2], db_pose[:, :2], reranked, **kw)
         per_session: dict[str, Any] = {}

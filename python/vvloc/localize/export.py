@@ -23,7 +23,7 @@ import os
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, SupportsFloat
 
 import numpy as np
 
@@ -87,7 +87,7 @@ _FRAME_COMMENTS = (
 G2O_MAX_ID = 2**31 - 1
 
 
-def _r(x: float) -> str:
+def _r(x: SupportsFloat) -> str:
     """Shortest text that parses back to the same float64."""
     return repr(float(x))
 

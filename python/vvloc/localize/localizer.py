@@ -34,7 +34,7 @@ import math
 import os
 import time
 import warnings
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -232,7 +232,9 @@ def rerank_learned(model: VVLocNet, query: torch.Tensor, cands: torch.Tensor) ->
     return kernels.rerank(a.float().cpu().numpy(), b.float().cpu().numpy())
 
 
-def learned_matcher(model: VVLocNet, desc_tgts: F32):  # type: ignore[no-untyped-def]
+def learned_matcher(
+    model: VVLocNet, desc_tgts: F32
+) -> tuple[Callable[[F32], torch.Tensor], Callable[[torch.Tensor, int], tuple[F32, F32]]]:
     """The ``decode`` and ``interact`` callbacks of :func:`metric_localize_best` for the learned
     networks (eval mode, as :func:`encode_frames`; no gradients). ``decode`` takes padded polar
     BEVs (N, T, R, C) float32 through the decoder (:func:`decode_in_chunks`) and the part of the
@@ -604,6 +606,8 @@ class Localizer:
         ξ_{m→q} (3,), cost, search history, each row's score (M,): coarse-stage cost + bias,
         the chosen row the first of the lowest)."""
         tgts = self.map.local_descriptors(np.asarray(rows, dtype=np.int64))
+        decode: Callable[[F32], Any]
+        interact: Callable[[Any, int], tuple[Any, Any]] | None
         if self.decoder == "radial_mean":
             decode, interact = RadialMeanDecoder(), None
         else:

@@ -538,10 +538,12 @@ def verify_pairs(
     bar = tqdm(total=len(rows_i), desc="loops", disable=not progress)
     for at in groups:
         tgts = np.stack([mapdb.local_descriptors(int(j)) for j in rows_j[at]])
+        decode, interact = learned_matcher(model, tgts)
         results = metric_localize_each(
             mapdb.bev(int(rows_i[at[0]])),
             tgts,
-            *learned_matcher(model, tgts),
+            decode,
+            interact,
             search or SearchConfig(),
             float(cfg.grid_size),
             int(cfg.num_angles),

@@ -187,7 +187,7 @@ class BestMatch(NamedTuple):
     (``coarse_cost`` (M,) float64) and the score the target was chosen by (``score`` (M,)
     float64: ``coarse_cost + bias``; ``index`` is the first of its lowest)."""
 
-    index: int
+    index: int  # type: ignore[assignment]  # the field shadows tuple.index (public API)
     result: MetricResult
     coarse_cost: npt.NDArray[np.float64]
     score: npt.NDArray[np.float64]

@@ -325,7 +325,7 @@ class VVLocNet(nn.Module):
         }
         if self.calibration:
             files[CALIBRATION_FILE] = calibration_json(self.calibration).encode()
-        if self.training_record:
+        if isinstance(runs, list) and self.training_record:
             files[TRAINING_FILE] = record_json(weights, runs).encode()
         out.mkdir(parents=True, exist_ok=True)
         write_together(out, files)
