@@ -155,6 +155,37 @@ def test_an_interrupted_overwrite_keeps_the_old_dataset_whole(tmp_path, monkeypa
     assert sorted(p.name for p in tmp_path.iterdir()) == ["ds"]
 
 
+def test_overwrite_replaces_a_dataset_and_nothing_else(tmp_path):
+    cams = make_rig(1, W, H)
+    frame = np.zeros((1, 3, H, W), np.uint8)
+    # a folder with a rig.json of another tool: not a dataset, kept whole
+    other = tmp_path / "proj"
+    (other / "src").mkdir(parents=True)
+    (other / "rig.json").write_text("{}")
+    (other / "src" / "main.py").write_text("code")
+    with pytest.raises(FileExistsError, match=r"its rig\.json is not a vvloc rig"):
+        DatasetWriter(other, cams, overwrite=True)
+    # a dataset holding a user's files besides rig.json and sessions/: they are named, kept
+    root = tmp_path / "ds"
+    _write(root, {"s0": _line(2)}, cameras=cams)
+    (root / "notes.txt").write_text("mine")
+    (root / "runs" / "important").mkdir(parents=True)
+    with pytest.raises(
+        FileExistsError, match=r"holds more than a vvloc dataset \(notes.txt, runs\)"
+    ):
+        DatasetWriter(root, cams, overwrite=True)
+    assert (other / "src" / "main.py").read_text() == "code"
+    assert (root / "notes.txt").read_text() == "mine" and (root / "runs" / "important").is_dir()
+    assert open_dataset(root).sessions == ["s0"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ds", "proj"]  # nothing hidden left
+    (root / "notes.txt").unlink()
+    (root / "runs" / "important").rmdir()
+    (root / "runs").rmdir()
+    with DatasetWriter(root, cams, overwrite=True) as w:  # a dataset alone is replaced
+        w.add_session("s9").add(1, (0, 0, 0), frame)
+    assert open_dataset(root).sessions == ["s9"]
+
+
 def test_writer_refuses_the_working_folder_and_replaces_symlink_targets(tmp_path, monkeypatch):
     import os
     import stat

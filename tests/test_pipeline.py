@@ -804,6 +804,13 @@ def test_cli_refuses_misleading_inputs_before_any_work(tiny_world, map_file, mod
     assert sorted(p.name for p in (mine / "data" / "sessions").iterdir()) == sorted(
         p.name for p in (tiny_world / "sessions").iterdir()
     )
+    # a parking world vvloc sim rendered, with sessions beyond the demo's: not the demo's
+    rig["meta"] = {"generator": "vvloc.sim", "scene": "parking", "seed": 5}
+    (mine / "data" / "rig.json").write_text(json.dumps(rig))
+    shutil.copytree(mine / "data" / "sessions" / "s0", mine / "data" / "sessions" / "s7")
+    r = run("demo", "--out", str(mine), "--frames", "10")
+    assert r.returncode == 2 and "holds a dataset the demo did not render" in r.stderr
+    assert (mine / "data" / "sessions" / "s7").is_dir()
     # --overwrite replaces a dataset, never another folder
     notes = tmp_path / "notes"
     notes.mkdir()

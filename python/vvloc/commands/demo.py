@@ -53,14 +53,19 @@ def _reusable(data: Path, frames: int, seed: int) -> bool:
 
 def _ours_to_replace(data: Path) -> bool:
     """Whether the demo may (re)render ``data``: it is missing or empty, or a parking world
-    that ``vvloc sim`` rendered (another dataset there is never replaced)."""
+    that ``vvloc sim`` rendered with the demo's sessions and nothing else (another dataset
+    there, or one with more sessions, is never replaced)."""
     if not data.exists() or (data.is_dir() and not any(data.iterdir())):
         return True
     try:
         meta = json.loads((data / "rig.json").read_text()).get("meta", {})
     except (OSError, ValueError, AttributeError):
         return False
-    return meta.get("generator") == "vvloc.sim" and meta.get("scene") == "parking"
+    if not (meta.get("generator") == "vvloc.sim" and meta.get("scene") == "parking"):
+        return False
+    sessions = data / "sessions"
+    found = {p.name for p in sessions.iterdir()} if sessions.is_dir() else set()
+    return found <= {f"s{i}" for i in range(SESSIONS)}
 
 
 def status_warning(card: str) -> str | None:

@@ -354,6 +354,30 @@ class SessionWriter:
             self._extrinsics_file.close()
 
 
+def _check_replaceable(root: Path) -> None:
+    """Refuse to let ``overwrite`` replace ``root`` unless it holds a vvloc dataset and nothing
+    else: a ``rig.json`` of this format beside ``sessions/``. Replacing removes the whole
+    folder, so anything a user keeps there (notes, runs, another tool's files) would go too."""
+    rig = root / "rig.json"
+    try:
+        doc = json.loads(rig.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError):
+        doc = None
+    if not (isinstance(doc, dict) and doc.get("format") == FORMAT_NAME):
+        why = "no rig.json" if not rig.is_file() else "its rig.json is not a vvloc rig"
+        raise FileExistsError(
+            f"{root} is not a vvloc dataset ({why}): overwrite replaces only a dataset; "
+            "choose another folder or empty this one"
+        )
+    others = sorted(p.name for p in root.iterdir() if p.name not in ("rig.json", "sessions"))
+    if others:
+        listed = ", ".join(others[:5]) + (f" and {len(others) - 5} more" if len(others) > 5 else "")
+        raise FileExistsError(
+            f"{root} holds more than a vvloc dataset ({listed}): overwrite would delete them "
+            "with it; move them out or choose another folder"
+        )
+
+
 class DatasetWriter:
     """Writes a vvloc-format dataset atomically: into a hidden temporary folder beside ``root``,
     renamed to ``root`` by :meth:`close`; on an exception inside ``with`` nothing is left behind.
@@ -397,12 +421,7 @@ class DatasetWriter:
                     f"{self.root} exists and is not empty (--overwrite, or overwrite=True in "
                     "Python, replaces a dataset there)"
                 )
-            if not (self.root / "rig.json").is_file():
-                # overwrite replaces a dataset, never an arbitrary folder
-                raise FileExistsError(
-                    f"{self.root} is not a vvloc dataset (no rig.json): overwrite replaces only "
-                    "a dataset; choose another folder or empty this one"
-                )
+            _check_replaceable(self.root)
         self.cameras = tuple(cameras)
         self.overwrite = overwrite
         doc = {
