@@ -1134,6 +1134,40 @@ def test_a_bad_training_record_is_ignored_with_a_warning_and_never_blocks_the_we
     assert not (tmp_path / "never").exists()
 
 
+def test_a_new_run_never_replaces_what_its_folder_holds(tiny_world, tmp_path):
+    from vvloc.train import check_run_folder, train
+
+    cfg = _config(tiny_world, stage1_epochs=1, stage2_epochs=0)
+    # a folder with a user's checkpoint/ and notes but no trainer_state.pt: refused, kept
+    work = tmp_path / "work"
+    (work / "checkpoint").mkdir(parents=True)
+    (work / "checkpoint" / "weights.pt").write_text("mine")
+    (work / "train_config.yaml").write_text("my notes")
+    with pytest.raises(FileExistsError, match=r"is not empty \(checkpoint, train_config.yaml\)"):
+        train(cfg, work, progress=False)
+    assert (work / "checkpoint" / "weights.pt").read_text() == "mine"
+    assert (work / "train_config.yaml").read_text() == "my notes"
+    assert sorted(p.name for p in work.iterdir()) == ["checkpoint", "train_config.yaml"]
+    # a run folder inside the dataset would read as a session: refused before any work
+    for inside in (tiny_world / "sessions", tiny_world):
+        with pytest.raises(ValueError, match="lies inside the dataset"):
+            train(cfg, inside, progress=False)
+    assert sorted(p.name for p in (tiny_world / "sessions").iterdir()) == ["s0", "s1", "s2"]
+    # a finished run needs --resume; a new or empty folder trains
+    train(cfg, tmp_path / "run", progress=False)
+    with pytest.raises(FileExistsError, match="already holds a training run"):
+        check_run_folder(cfg, tmp_path / "run", resume=False)
+    check_run_folder(cfg, tmp_path / "run", resume=True)
+    (tmp_path / "empty").mkdir()
+    check_run_folder(cfg, tmp_path / "empty", resume=False)
+    # a run stopped before its first checkpoint left its config only: a new run starts it again
+    stopped = tmp_path / "stopped"
+    stopped.mkdir()
+    shutil.copy(tmp_path / "run" / "train_config.yaml", stopped / "train_config.yaml")
+    (stopped / ".checkpoint.partial-0123456789ab").mkdir()
+    check_run_folder(cfg, stopped, resume=False)
+
+
 def test_cli_train_says_what_the_weights_were_trained_on(tiny_world, tmp_path):
     import subprocess
     import sys

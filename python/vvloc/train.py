@@ -79,7 +79,13 @@ from vvloc._io import atomic_write
 from vvloc.checkpoints import resolve_checkpoint
 from vvloc.data import TripletSampler, open_dataset
 from vvloc.data.augment import PhotometricAugment
-from vvloc.data.sampling import check_query_sessions, rendered_world, same_folder, sim_world
+from vvloc.data.sampling import (
+    check_query_sessions,
+    inside_folder,
+    rendered_world,
+    same_folder,
+    sim_world,
+)
 from vvloc.evaluate import nearest_map_distance, to_jsonable
 from vvloc.localize.localizer import frames_to_tensors
 from vvloc.losses import (
@@ -2008,25 +2014,70 @@ class Trainer:
         return records
 
 
+def _unfinished_run_file(path: Path) -> bool:
+    """Whether ``path`` is what a run stopped before its first checkpoint leaves in its folder
+    (its ``train_config.yaml``, a hidden half-written checkpoint folder): a new run there
+    starts it again."""
+    if path.name == "train_config.yaml" and path.is_file():
+        try:
+            TrainConfig.from_yaml(path)
+        except (OSError, ValueError, TypeError, yaml.YAMLError):
+            return False
+        return True
+    return path.is_dir() and path.name.startswith((".checkpoint.partial-", ".best.partial-"))
+
+
+def check_run_folder(cfg: TrainConfig, out: Path, resume: bool) -> None:
+    """Refuse a run folder ``out`` that would lose or corrupt data: ``ValueError`` when it is
+    or lies inside a dataset of ``cfg`` (the run's folders would read as sessions);
+    ``FileExistsError``, without ``resume``, when it already holds a run (``--resume``
+    continues it) or anything else (a new run would replace its ``checkpoint/`` and ``best/``
+    folders and its ``train_config.yaml``)."""
+    roots = [cfg.dataset, *(e["dataset"] for e in cfg.extra_datasets)]
+    roots += [e["dataset"] for e in cfg.val_loops]
+    for root in roots:
+        if inside_folder(out, root):
+            raise ValueError(
+                f"--out: {out} is or lies inside the dataset {root}; write the run to a folder "
+                "of its own (e.g. runs/<name>)"
+            )
+    if resume or not out.is_dir():
+        return
+    if (out / "trainer_state.pt").exists():
+        raise FileExistsError(
+            f"{out} already holds a training run: pass --resume to continue it, "
+            "or choose another --out"
+        )
+    found = sorted(p.name for p in out.iterdir() if not _unfinished_run_file(p))
+    if found:
+        listed = ", ".join(found[:5]) + (f" and {len(found) - 5} more" if len(found) > 5 else "")
+        raise FileExistsError(
+            f"--out: {out} is not empty ({listed}) and holds no run to resume (no "
+            "trainer_state.pt); a new run would replace its checkpoint/, best/ and "
+            "train_config.yaml: choose a new or empty folder"
+        )
+
+
 def train(
     config: str | os.PathLike[str] | TrainConfig,
     out_dir: str | os.PathLike[str],
     resume: bool = False,
     progress: bool = True,
 ) -> Trainer:
-    """Train (or resume) a model from a YAML config path or a :class:`TrainConfig`."""
+    """Train (or resume) a model from a YAML config path or a :class:`TrainConfig`.
+
+    ``out_dir`` is the run's folder: a new run needs it missing or empty (a run writes
+    ``checkpoint/``, ``best/``, ``train_config.yaml`` and ``log.jsonl`` there and replaces its
+    own), ``resume`` needs the ``trainer_state.pt`` of a run there. It must lie outside every
+    dataset the config reads. Both are checked before any dataset is rendered or opened."""
     cfg = config if isinstance(config, TrainConfig) else TrainConfig.from_yaml(config)
+    out = Path(out_dir)
+    check_run_folder(cfg, out, resume)
     trainer = Trainer(cfg, out_dir)
-    if resume:
-        if not trainer.resume():
-            raise FileNotFoundError(
-                f"--resume: no run to resume in {out_dir} (no trainer_state.pt); drop --resume "
-                "to start one"
-            )
-    elif (Path(out_dir) / "trainer_state.pt").exists():
-        raise FileExistsError(
-            f"{out_dir} already holds a training run: pass --resume to continue it, "
-            "or choose another --out"
+    if resume and not trainer.resume():
+        raise FileNotFoundError(
+            f"--resume: no run to resume in {out_dir} (no trainer_state.pt); drop --resume "
+            "to start one"
         )
     trainer.fit(progress=progress)
     return trainer
