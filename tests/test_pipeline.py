@@ -685,6 +685,7 @@ def test_evaluation_breaks_recall_down_by_query_session(tiny_world, model_dir, t
     (tmp_path / "rob").mkdir()
     (tmp_path / "rob" / "precision_recall.png").write_bytes(b"an earlier run's loop figure")
     (tmp_path / "rob" / "loops_map.h5").write_bytes(b"an earlier run's loop map")
+    (tmp_path / "rob" / "report.json").write_text('{"meta": {}, "global_localization": {}}')
     rob = run_evaluation(
         model_dir, tiny_world, "s0", ["s1"], tmp_path / "rob", robustness=True, **kw
     )
@@ -839,6 +840,39 @@ def test_cli_refuses_misleading_inputs_before_any_work(tiny_world, map_file, mod
     r = run("train", "--config", str(good), "--out", str(blocker))
     assert r.returncode == 2 and "--out:" in r.stderr and "is a file" in r.stderr
     assert blocker.read_text() == "keep"
+
+
+def test_report_and_localize_folders_never_replace_files_they_did_not_write(tmp_path):
+    from vvloc.commands.localize import HEADER, OUTPUTS, _check_localize_folder
+    from vvloc.localize.evaluation import check_report_folder
+
+    for check in (check_report_folder, _check_localize_folder):
+        check(tmp_path / "new")  # missing or empty: fine
+        check(tmp_path)
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "report.md").write_text("my analysis")
+    (mine / "map.h5").write_text("my map")
+    with pytest.raises(FileExistsError, match=r"holds map.h5, report.md, which no earlier vvloc"):
+        check_report_folder(mine)
+    (mine / "report.json").write_text('{"notes": "mine"}')  # a JSON, not a vvloc report's
+    with pytest.raises(FileExistsError, match="which no earlier vvloc eval report wrote"):
+        check_report_folder(mine)
+    # an earlier report is replaced whole
+    (mine / "report.json").write_text('{"meta": {}, "global_localization": {}}')
+    check_report_folder(mine)
+    # localize never replaces the report's queries.csv, and replaces its own outputs
+    (mine / "queries.csv").write_text("# vvloc evaluation per query\n")
+    with pytest.raises(
+        FileExistsError, match=r"holds queries.csv, which no earlier vvloc localize"
+    ):
+        _check_localize_folder(mine)
+    loc = tmp_path / "loc"
+    loc.mkdir()
+    for name in OUTPUTS:
+        (loc / name).write_text("x")
+    (loc / "queries.csv").write_text(HEADER + "\n")
+    _check_localize_folder(loc)
 
 
 def test_cli_version_and_quiet_logs(tmp_path):

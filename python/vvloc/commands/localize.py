@@ -36,6 +36,29 @@ HEADER = (
 )
 
 
+#: The files ``vvloc localize`` writes into its --out.
+OUTPUTS = ("poses.tum", "poses-all.tum", "queries.csv", "timings.json")
+
+
+def _check_localize_folder(out: Path) -> None:
+    """``FileExistsError`` when ``out`` holds files named as localize's outputs that an earlier
+    ``vvloc localize`` did not write (its ``queries.csv`` starts with :data:`HEADER`): a
+    ``vvloc eval`` report's ``queries.csv``, or a user's files, are never replaced."""
+    if not out.is_dir():
+        return
+    try:
+        with open(out / "queries.csv", encoding="utf-8") as f:
+            ours = f.readline().startswith(HEADER.split(".")[0])
+    except (OSError, UnicodeDecodeError):
+        ours = False
+    clash = [name for name in OUTPUTS if (out / name).exists()]
+    if clash and not ours:
+        raise FileExistsError(
+            f"--out: {out} holds {', '.join(clash)}, which no earlier vvloc localize wrote; "
+            "its outputs would replace them: choose another folder"
+        )
+
+
 def localize(
     map_path: Annotated[Path, typer.Option("--map", help="Map file (.h5).")],
     dataset: Annotated[Path, typer.Option("--dataset", help="Dataset folder.")],
@@ -77,6 +100,7 @@ def localize(
     with cli_errors("localize"):
         set_torch_threads(threads)
         check_out_folder(out, outside=dataset)
+        _check_localize_folder(out)
         loc = Localizer.open(
             map_path,
             resolve_checkpoint(checkpoint),

@@ -99,6 +99,33 @@ _STAGE_PREFIX = ".vvloc-eval-partial-"
 REPORT_FILES = ("map.h5", LOOPS_MAP, "queries.csv", *FIGURE_FILES, "report.json", "report.md")
 
 
+def _is_report(out_dir: Path) -> bool:
+    """Whether ``out_dir`` holds a report :func:`run_evaluation` wrote (its ``report.json``)."""
+    try:
+        doc = json.loads((out_dir / "report.json").read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError):
+        return False
+    return (
+        isinstance(doc, dict) and isinstance(doc.get("meta"), dict) and "global_localization" in doc
+    )
+
+
+def check_report_folder(out_dir: Path) -> None:
+    """Refuse a report folder whose files a report would replace without being a report's:
+    ``FileExistsError`` naming them when ``out_dir`` holds files named as a report's
+    (:data:`REPORT_FILES`: ``map.h5``, ``queries.csv``, figures, ``report.md`` ...) but no
+    ``report.json`` of an earlier evaluation. An earlier report there is replaced whole."""
+    if not out_dir.is_dir() or _is_report(out_dir):
+        return
+    clash = [name for name in REPORT_FILES if (out_dir / name).exists()]
+    if clash:
+        raise FileExistsError(
+            f"out: {out_dir} holds {', '.join(clash)}, which no earlier vvloc eval report "
+            "wrote (no report.json of one); the report would replace them: choose another "
+            "folder"
+        )
+
+
 def _move_report(work: Path, out_dir: Path) -> None:
     """Move the finished report in ``work`` into ``out_dir``: the files of an earlier report
     this run did not write (a figure it did not draw, the loop map of a run with ``--loops``)
@@ -406,6 +433,7 @@ def run_evaluation(
             f"out: {out} is or lies inside the dataset {dataset}; write the report to a folder "
             "of its own"
         )
+    check_report_folder(out_dir)
     model = VVLocNet.load(checkpoint).to(resolve_device(device))
     ds = open_dataset(dataset)
     seen = trained_on(model.training_record, dataset, queries)
