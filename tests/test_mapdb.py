@@ -777,6 +777,35 @@ def test_atomic_write_to_a_stream_writes_it_in_place_and_never_replaces_it(tmp_p
     assert sorted(os.listdir(tmp_path)) == ["file.bin", "pipe"]
 
 
+STDOUT_WRITER = """
+import sys
+from vvloc._io import atomic_write
+print("before", flush=True)
+with atomic_write("/dev/stdout") as f:
+    f.write("report\\n")
+print("after", flush=True)
+"""
+
+
+@pytest.mark.skipif(not os.path.exists("/dev/stdout"), reason="/dev/stdout")
+def test_atomic_write_to_dev_stdout_writes_the_processs_stdout(tmp_path: Path) -> None:
+    import subprocess
+    import sys
+
+    cmd = [sys.executable, "-c", STDOUT_WRITER]
+    # a pipe (its real path is no file to put a temporary beside)
+    r = subprocess.run(cmd, capture_output=True, text=True, cwd=tmp_path)
+    assert r.returncode == 0 and r.stdout == "before\nreport\nafter\n", r.stderr
+    # a file the shell redirected stdout to: written through the descriptor, not renamed over
+    # (the process's later output went to the replaced file, lost)
+    out = tmp_path / "out.txt"
+    with open(out, "w") as f:
+        r = subprocess.run(cmd, stdout=f, stderr=subprocess.PIPE, text=True, cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert out.read_text() == "before\nreport\nafter\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out.txt"]
+
+
 @pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="named pipes")
 def test_a_map_is_not_written_into_a_stream(tmp_path: Path) -> None:
     fifo = tmp_path / "map.h5"

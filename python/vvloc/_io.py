@@ -12,8 +12,10 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
 import secrets
 import stat
+import sys
 from collections.abc import Iterator
 from pathlib import Path
 from types import TracebackType
@@ -44,6 +46,50 @@ def _fsync_dir(path: Path) -> None:
         os.close(fd)
 
 
+def _is_stream(path: Path) -> bool:
+    """Whether ``path`` is to be written in place, as a plain ``open`` would, and never renamed
+    over: it exists and is not a regular file or folder (a device, named pipe or socket,
+    followed through symbolic links), or it names a process's open file (``/dev/stdout``,
+    ``/dev/fd/N``, ``/proc/<pid>/fd/N``), which may be a regular file a shell redirected: a
+    rename would take the file's name from under the open descriptor."""
+    try:
+        mode = os.stat(path).st_mode
+    except OSError:
+        return False
+    if stat.S_ISDIR(mode):
+        return False  # refused as a folder
+    if not stat.S_ISREG(mode):
+        return True
+    return any(
+        p.startswith(("/dev/", "/proc/")) for p in (os.path.abspath(path), os.path.realpath(path))
+    )
+
+
+def _own_descriptor(path: Path) -> int | None:
+    """The descriptor of this process that ``path`` names (``/dev/stdout`` 1, ``/dev/stderr``
+    2, ``/dev/fd/N``, ``/proc/self/fd/N``, ``/proc/<this pid>/fd/N``), else None."""
+    text = os.path.abspath(path)
+    named = {"/dev/stdin": 0, "/dev/stdout": 1, "/dev/stderr": 2}
+    if text in named:
+        return named[text]
+    m = re.fullmatch(rf"/(?:dev/fd|proc/(?:self|{os.getpid()})/fd)/(\d+)", text)
+    return int(m[1]) if m else None
+
+
+def _open(path: Path, mode: str, **kwargs: Any) -> IO[Any]:
+    """``open(path, mode)``, except that a path naming one of this process's descriptors
+    (:func:`_own_descriptor`) writes through a duplicate of it: a file a shell redirected
+    stdout to is written at the descriptor's offset, after what the process printed, not
+    truncated and overwritten by a second, independent opening."""
+    fd = _own_descriptor(path)
+    if fd is None:
+        return open(path, mode, **kwargs)
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(AttributeError, OSError, ValueError):
+            stream.flush()  # what was printed comes first
+    return os.fdopen(os.dup(fd), mode, **kwargs)
+
+
 class AtomicPath:
     """A temporary path next to ``path`` that replaces ``path`` on :meth:`commit`.
 
@@ -59,9 +105,11 @@ class AtomicPath:
     leave the hidden temporary file behind; the destination is intact either way. :meth:`commit`
     and :meth:`abort` may also be called explicitly (once).
 
-    A destination that exists and is not a regular file (``/dev/null``, ``/dev/stdout``, a named
-    pipe) is a stream, not a file to replace: renaming over it would destroy the device node
-    (as root, ``/dev/null`` would become a plain file that every later ``> /dev/null`` fills).
+    A destination that exists and is not a regular file (``/dev/null``, a named pipe), or that
+    names an open file of a process (``/dev/stdout``, ``/dev/fd/N``: a terminal, a pipe or a
+    file a shell redirected to) is a stream, not a file to replace: renaming over it would
+    destroy the device node (as root, ``/dev/null`` would become a plain file that every later
+    ``> /dev/null`` fills) or take a redirected file's name from under its descriptor.
     With ``streams=True`` (the default) such a destination is written directly, as a plain
     ``open`` would (``tmp`` is the destination itself; commit and abort touch nothing); with
     ``streams=False`` (a writer that needs a seekable file, such as an HDF5 map) it is refused
@@ -72,19 +120,8 @@ class AtomicPath:
         self.path = Path(os.fspath(path))
         if self.path.name in ("", ".", ".."):
             raise ValueError(f"path: expected a file path, got {os.fspath(path)!r}")
-        if self.path.is_symlink():
-            self.path = Path(os.path.realpath(self.path))  # replace the target, keep the link
-        if self.path.is_dir():
-            raise IsADirectoryError(f"{self.path}: is a folder; expected the path of a file")
-        if not self.path.parent.is_dir():
-            raise FileNotFoundError(
-                f"{self.path}: its folder {self.path.parent} does not exist (create it first)"
-            )
         self._done = False
-        try:
-            self.direct = not stat.S_ISREG(os.stat(self.path).st_mode)
-        except FileNotFoundError:
-            self.direct = False
+        self.direct = _is_stream(self.path)
         if self.direct:
             if not streams:
                 raise ValueError(
@@ -93,6 +130,14 @@ class AtomicPath:
                 )
             self.tmp = self.path  # a stream: written in place, never renamed over or removed
             return
+        if self.path.is_symlink():
+            self.path = Path(os.path.realpath(self.path))  # replace the target, keep the link
+        if self.path.is_dir():
+            raise IsADirectoryError(f"{self.path}: is a folder; expected the path of a file")
+        if not self.path.parent.is_dir():
+            raise FileNotFoundError(
+                f"{self.path}: its folder {self.path.parent} does not exist (create it first)"
+            )
         self.tmp = self._create_temp()
 
     def _create_temp(self) -> Path:
@@ -177,10 +222,10 @@ def atomic_write(
         raise ValueError(f"mode: expected 'w' or 'wb', got {mode!r}")
     with AtomicPath(path) as tmp:
         if mode == "wb":
-            with open(tmp, "wb") as fb:
+            with _open(tmp, "wb") as fb:
                 yield fb
         else:
-            with open(tmp, "w", encoding=encoding, newline=newline) as ft:
+            with _open(tmp, "w", encoding=encoding, newline=newline) as ft:
                 yield ft
 
 
@@ -197,7 +242,7 @@ def write_together(folder: str | os.PathLike[str], files: dict[str, bytes]) -> N
         for name, data in files.items():
             ap = AtomicPath(folder / name)
             pending.append(ap)
-            with open(ap.tmp, "wb") as f:
+            with _open(ap.tmp, "wb") as f:
                 f.write(data)
             if not ap.direct:
                 _fsync_file(ap.tmp)
