@@ -1160,12 +1160,25 @@ def test_a_new_run_never_replaces_what_its_folder_holds(tiny_world, tmp_path):
     check_run_folder(cfg, tmp_path / "run", resume=True)
     (tmp_path / "empty").mkdir()
     check_run_folder(cfg, tmp_path / "empty", resume=False)
-    # a run stopped before its first checkpoint left its config only: a new run starts it again
+    # a run of this config stopped before its first trainer_state.pt: a new run starts it again
     stopped = tmp_path / "stopped"
-    stopped.mkdir()
-    shutil.copy(tmp_path / "run" / "train_config.yaml", stopped / "train_config.yaml")
+    shutil.copytree(tmp_path / "run", stopped)
+    (stopped / "trainer_state.pt").unlink()
+    (stopped / "log.jsonl").unlink()
     (stopped / ".checkpoint.partial-0123456789ab").mkdir()
+    (stopped / ".trainer_state.pt.0123456789ab.tmp").write_bytes(b"half")
     check_run_folder(cfg, stopped, resume=False)
+    train(cfg, stopped, progress=False)
+    assert (stopped / "trainer_state.pt").is_file()
+    # ... but not one of another config, nor a run whose log says it finished epochs
+    other = dataclasses.replace(cfg, seed=cfg.seed + 1)
+    (stopped / "trainer_state.pt").unlink()
+    with pytest.raises(
+        FileExistsError, match=r"not empty \(\.trainer_state\S* checkpoint, log.jsonl, train_config"
+    ):
+        check_run_folder(other, stopped, resume=False)
+    with pytest.raises(FileExistsError, match=r"not empty \(log.jsonl\)"):
+        check_run_folder(cfg, stopped, resume=False)
 
 
 def test_cli_train_says_what_the_weights_were_trained_on(tiny_world, tmp_path):

@@ -2014,25 +2014,32 @@ class Trainer:
         return records
 
 
-def _unfinished_run_file(path: Path) -> bool:
-    """Whether ``path`` is what a run stopped before its first checkpoint leaves in its folder
-    (its ``train_config.yaml``, a hidden half-written checkpoint folder): a new run there
-    starts it again."""
-    if path.name == "train_config.yaml" and path.is_file():
-        try:
-            TrainConfig.from_yaml(path)
-        except (OSError, ValueError, TypeError, yaml.YAMLError):
-            return False
-        return True
-    return path.is_dir() and path.name.startswith((".checkpoint.partial-", ".best.partial-"))
+def _same_run(cfg: TrainConfig, out: Path) -> bool:
+    """Whether ``out/train_config.yaml`` is ``cfg``'s, up to how a run is executed
+    (:data:`RESUMABLE_CHANGES`): the folder is this config's run, stopped before its first
+    ``trainer_state.pt``."""
+    try:
+        saved = TrainConfig.from_yaml(out / "train_config.yaml").to_dict()
+    except (OSError, ValueError, TypeError, yaml.YAMLError):
+        return False
+    current = cfg.to_dict()
+    return all(saved.get(k) == v for k, v in current.items() if k not in RESUMABLE_CHANGES)
+
+
+#: What a run stopped before its first ``trainer_state.pt`` may leave besides its config:
+#: ``best/`` and ``checkpoint/`` of its first epoch and hidden half-written files and folders.
+_STOPPED_RUN_LEFTOVERS = ("checkpoint", "best")
+_STOPPED_RUN_HIDDEN = (".checkpoint.", ".best.", ".trainer_state.pt.", ".log.jsonl.")
 
 
 def check_run_folder(cfg: TrainConfig, out: Path, resume: bool) -> None:
     """Refuse a run folder ``out`` that would lose or corrupt data: ``ValueError`` when it is
     or lies inside a dataset of ``cfg`` (the run's folders would read as sessions);
     ``FileExistsError``, without ``resume``, when it already holds a run (``--resume``
-    continues it) or anything else (a new run would replace its ``checkpoint/`` and ``best/``
-    folders and its ``train_config.yaml``)."""
+    continues it) or anything else. The one exception is a run of the same config stopped
+    before its first ``trainer_state.pt`` (its ``train_config.yaml``, its first epoch's
+    ``checkpoint/`` and ``best/``, hidden half-written files): a new run starts it again,
+    replacing them."""
     roots = [cfg.dataset, *(e["dataset"] for e in cfg.extra_datasets)]
     roots += [e["dataset"] for e in cfg.val_loops]
     for root in roots:
@@ -2048,13 +2055,22 @@ def check_run_folder(cfg: TrainConfig, out: Path, resume: bool) -> None:
             f"{out} already holds a training run: pass --resume to continue it, "
             "or choose another --out"
         )
-    found = sorted(p.name for p in out.iterdir() if not _unfinished_run_file(p))
+    found = sorted(p.name for p in out.iterdir())
+    if _same_run(cfg, out):
+        found = [
+            n
+            for n in found
+            if n != "train_config.yaml"
+            and n not in _STOPPED_RUN_LEFTOVERS
+            and not n.startswith(_STOPPED_RUN_HIDDEN)
+        ]
     if found:
         listed = ", ".join(found[:5]) + (f" and {len(found) - 5} more" if len(found) > 5 else "")
         raise FileExistsError(
-            f"--out: {out} is not empty ({listed}) and holds no run to resume (no "
-            "trainer_state.pt); a new run would replace its checkpoint/, best/ and "
-            "train_config.yaml: choose a new or empty folder"
+            f"--out: {out} is not empty ({listed}) and holds no run of this config to resume "
+            "(no trainer_state.pt); a new run would replace its checkpoint/, best/, "
+            "train_config.yaml and log.jsonl: choose a new or empty folder (or delete the "
+            "folder to start this run again)"
         )
 
 
@@ -2066,10 +2082,12 @@ def train(
 ) -> Trainer:
     """Train (or resume) a model from a YAML config path or a :class:`TrainConfig`.
 
-    ``out_dir`` is the run's folder: a new run needs it missing or empty (a run writes
-    ``checkpoint/``, ``best/``, ``train_config.yaml`` and ``log.jsonl`` there and replaces its
-    own), ``resume`` needs the ``trainer_state.pt`` of a run there. It must lie outside every
-    dataset the config reads. Both are checked before any dataset is rendered or opened."""
+    ``out_dir`` is the run's folder: a new run needs it missing or empty, or holding what a
+    run of the same config stopped before its first ``trainer_state.pt`` left
+    (:func:`check_run_folder`; a run writes ``checkpoint/``, ``best/``, ``train_config.yaml``
+    and ``log.jsonl`` there and replaces its own); ``resume`` needs the ``trainer_state.pt`` of
+    a run there. It must lie outside every dataset the config reads. Both are checked before
+    any dataset is rendered or opened."""
     cfg = config if isinstance(config, TrainConfig) else TrainConfig.from_yaml(config)
     out = Path(out_dir)
     check_run_folder(cfg, out, resume)
