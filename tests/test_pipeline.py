@@ -875,6 +875,29 @@ def test_report_and_localize_folders_never_replace_files_they_did_not_write(tmp_
     _check_localize_folder(loc)
 
 
+def test_eval_localize_and_demo_refuse_a_folder_of_files_they_did_not_write(
+    tiny_world, map_file, model_dir, tmp_path
+):
+    from vvloc.localize.evaluation import run_evaluation
+
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "report.md").write_text("my analysis")
+    (mine / "queries.csv").write_text("# vvloc evaluation per query\n")
+    before = {p.name: p.read_bytes() for p in mine.iterdir()}
+    with pytest.raises(FileExistsError, match="no earlier vvloc eval report"):
+        run_evaluation(model_dir, tiny_world, "s0", ["s1"], mine, every=5)
+    exe = [sys.executable, "-m", "vvloc.cli"]
+    run = lambda *a: subprocess.run([*exe, *a], capture_output=True, text=True)  # noqa: E731
+    r = run("localize", "--map", str(map_file), "--dataset", str(tiny_world), "--session", "s2",
+            "--checkpoint", str(model_dir), "--out", str(mine))  # fmt: skip
+    assert r.returncode == 2 and "which no earlier vvloc localize wrote" in r.stderr, r.stderr
+    r = run("demo", "--out", str(mine), "--frames", "10")
+    assert r.returncode == 2 and "no earlier vvloc eval report" in r.stderr, r.stderr
+    assert "rendering" not in r.stdout and not (mine / "data").exists()
+    assert {p.name: p.read_bytes() for p in mine.iterdir()} == before
+
+
 def test_cli_version_and_quiet_logs(tmp_path):
     exe = [sys.executable, "-m", "vvloc.cli"]
     r = subprocess.run([*exe, "--version"], capture_output=True, text=True)

@@ -90,13 +90,14 @@ def demo(
 ) -> None:
     """Map session s0 (day); held-out query sessions s3 (rain, reversed) and s4 (fog, +1.5 m)."""
     from vvloc.checkpoints import resolve_checkpoint
-    from vvloc.localize.evaluation import run_evaluation
+    from vvloc.localize.evaluation import check_report_folder, run_evaluation
     from vvloc.nets import ModelConfig, VVLocNet
     from vvloc.sim import simulate_dataset
 
     t0 = time.perf_counter()
     with cli_errors("demo"):
         check_out_folder(out)
+        check_report_folder(out)  # the report's files, refused before minutes of rendering
         data = out / "data"
         if checkpoint is not None:  # checked before minutes of rendering; a run folder works
             checkpoint = resolve_checkpoint(checkpoint)

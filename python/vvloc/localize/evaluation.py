@@ -401,6 +401,9 @@ def run_evaluation(
     """Evaluate a checkpoint on ``dataset``: map = ``database`` session, queries = every
     ``every``-th frame of each session in ``queries``. Writes ``out/map.h5``,
     ``out/report.md``, ``out/report.json``, ``out/queries.csv`` and plots; returns the metrics.
+    An earlier report in ``out`` is replaced whole; files named as a report's that no earlier
+    report wrote are refused before any work (:func:`check_report_folder`), as is an ``out``
+    inside ``dataset``.
     The report's meta names this machine (``hardware``) and, from the checkpoint's
     ``training.json``, the hardware and wall time that produced the weights (``trained_on``,
     :func:`vvloc.provenance.summarize`; its runs are the JSON's ``training``, ``{"runs": [...]}``).
