@@ -21,7 +21,13 @@ from pathlib import Path
 from types import TracebackType
 from typing import IO, Any
 
-__all__ = ["AtomicPath", "atomic_path", "atomic_write", "write_together"]
+__all__ = ["AtomicPath", "atomic_path", "atomic_write", "list_entries", "write_together"]
+
+
+def list_entries(names: list[str], limit: int = 5) -> str:
+    """The first ``limit`` of a folder's entry ``names`` for a message: ``"a, b and 3 more"``."""
+    more = f" and {len(names) - limit} more" if len(names) > limit else ""
+    return ", ".join(names[:limit]) + more
 
 
 def _fsync_file(path: Path) -> None:

@@ -75,7 +75,7 @@ from tqdm import tqdm
 
 import vvloc
 from vvloc import geometry
-from vvloc._io import atomic_write
+from vvloc._io import atomic_write, list_entries
 from vvloc.checkpoints import resolve_checkpoint
 from vvloc.data import TripletSampler, open_dataset
 from vvloc.data.augment import PhotometricAugment
@@ -2065,10 +2065,9 @@ def check_run_folder(cfg: TrainConfig, out: Path, resume: bool) -> None:
             and not n.startswith(_STOPPED_RUN_HIDDEN)
         ]
     if found:
-        listed = ", ".join(found[:5]) + (f" and {len(found) - 5} more" if len(found) > 5 else "")
         raise FileExistsError(
-            f"--out: {out} is not empty ({listed}) and holds no run of this config to resume "
-            "(no trainer_state.pt); a new run would replace its checkpoint/, best/, "
+            f"--out: {out} is not empty ({list_entries(found)}) and holds no run of this config "
+            "to resume (no trainer_state.pt); a new run would replace its checkpoint/, best/, "
             "train_config.yaml and log.jsonl: choose a new or empty folder (or delete the "
             "folder to start this run again)"
         )

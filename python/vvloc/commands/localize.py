@@ -24,8 +24,10 @@ from vvloc.commands._util import (
 )
 from vvloc.localize.metric import METRIC_CANDIDATES, RETRIEVAL_WEIGHT
 
+#: How localize's queries.csv starts: an earlier localize's outputs are the ones it replaces.
+MARKER = "# vvloc localize."
 HEADER = (
-    "# vvloc localize. timestamp: seconds. Frames (DESIGN.md §3): world x east, y north, z up "
+    f"{MARKER} timestamp: seconds. Frames (DESIGN.md §3): world x east, y north, z up "
     "(m); yaw CCW "
     "(deg in this file). relative_* = the query frame expressed in the map keyframe's frame "
     "(x forward, y left). cost = matching cost, lower is better; distinctiveness = mean minus "
@@ -42,13 +44,13 @@ OUTPUTS = ("poses.tum", "poses-all.tum", "queries.csv", "timings.json")
 
 def _check_localize_folder(out: Path) -> None:
     """``FileExistsError`` when ``out`` holds files named as localize's outputs that an earlier
-    ``vvloc localize`` did not write (its ``queries.csv`` starts with :data:`HEADER`): a
+    ``vvloc localize`` did not write (its ``queries.csv`` starts with :data:`MARKER`): a
     ``vvloc eval`` report's ``queries.csv``, or a user's files, are never replaced."""
     if not out.is_dir():
         return
     try:
         with open(out / "queries.csv", encoding="utf-8") as f:
-            ours = f.readline().startswith(HEADER.split(".")[0])
+            ours = f.readline().startswith(MARKER)
     except (OSError, UnicodeDecodeError):
         ours = False
     clash = [name for name in OUTPUTS if (out / name).exists()]

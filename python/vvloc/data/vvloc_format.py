@@ -30,6 +30,7 @@ from typing import Any
 
 import numpy as np
 
+from vvloc._io import list_entries
 from vvloc.data.frame import Camera, Dataset, Session, load_rgb
 
 FORMAT_NAME = "vvloc"
@@ -371,10 +372,9 @@ def _check_replaceable(root: Path) -> None:
         )
     others = sorted(p.name for p in root.iterdir() if p.name not in ("rig.json", "sessions"))
     if others:
-        listed = ", ".join(others[:5]) + (f" and {len(others) - 5} more" if len(others) > 5 else "")
         raise FileExistsError(
-            f"{root} holds more than a vvloc dataset ({listed}): overwrite would delete them "
-            "with it; move them out or choose another folder"
+            f"{root} holds more than a vvloc dataset ({list_entries(others)}): overwrite would "
+            "delete them with it; move them out or choose another folder"
         )
 
 
