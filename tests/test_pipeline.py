@@ -8,6 +8,7 @@ search itself is pinned by the geometry oracle (tests/test_metric_localize.py).
 from __future__ import annotations
 
 import dataclasses
+import importlib.util
 import inspect
 import json
 import shutil
@@ -340,6 +341,11 @@ def test_cli_map_localize_loops_end_to_end(tiny_world, model_dir, tmp_path):
     assert len(graph.vertex_ids) == 2 * len(open_dataset(tiny_world).session("s0"))
     n_acc = int(loops.accepted.sum())
     assert len(graph.edges) == 2 * (len(graph.vertex_ids) // 2 - 1) + n_acc
+    if importlib.util.find_spec("gtsam") is not None:  # a dev dependency: a real g2o reader
+        import gtsam
+
+        g, initial = gtsam.readG2o(str(tmp_path / "loops" / "graph.g2o"), False)
+        assert (g.size(), initial.size()) == (len(graph.edges), len(graph.vertex_ids))
     assert len(loops.i) <= 3
     # the floor check (on by default) has nothing to judge on a one-floor map
     r = loops_cli(
