@@ -36,7 +36,7 @@ def test_the_committed_models_reports_give_its_cards_figures():
             _committed("report-test96-garage"),
         )
     )
-    # models/synth-small/MODEL_CARD.md, "Against the issue's targets"
+    # models/synth-small/HISTORY.md, "Against the issue's targets" (steps 1-4's weights)
     expected = {
         "parking: Recall@1 (2 m) re-ranked": ("82.2 %", True),
         "parking: gain of re-ranking over retrieval alone": ("+3.5 points", True),
@@ -60,7 +60,7 @@ def test_the_committed_models_reports_give_its_cards_figures():
     assert "default garage: CFER, sequence-checked" in text
 
 
-# models/synth-small/MODEL_CARD.md: "Step 5" (the first step 5) and "Step 5 again with the near
+# models/synth-small/HISTORY.md: "Step 5" (the first step 5) and "Step 5 again with the near
 # loss's own seed stream" (the committed one since 2026-12-05), each on the pre-registered test
 # and the fresh sessions: report suffix, weights fingerprint, training time, parking figures
 STEP_FIVES = {
@@ -117,7 +117,7 @@ def test_the_committed_step_fives_targets_file_is_its_reports():
 
 
 def test_the_floor_checks_rows_are_not_the_issues_figures():
-    # models/synth-small/MODEL_CARD.md, "Loop closures checked against the sessions' floors":
+    # models/synth-small/HISTORY.md, "Loop closures checked against the sessions' floors":
     # its test reports add rows with the floor check, which vvloc targets leaves out; the rest
     # repeats step 5's committed garage reports
     floors = _targets(

@@ -836,7 +836,7 @@ def near_seed(seed: int, step: int) -> int:
     of its own, 63 bits of numpy's ``SeedSequence([seed, step, 1])``. The translation-bias loss
     keeps ``seed · 1 000 003 + step``; until 2026-12-05 the near loss used ``seed · 1 000 033 +
     step``, which at seed 0 is the same number, so each pair's near offset was a rescaled copy
-    of its bias offset (``models/synth-small/MODEL_CARD.md``, "Step 5 again")."""
+    of its bias offset (``models/synth-small/HISTORY.md``, "Step 5 again")."""
     hi, lo = np.random.SeedSequence([seed, step, 1]).generate_state(2, np.uint32)
     return (int(hi) << 31) | (int(lo) >> 1)
 

@@ -197,7 +197,7 @@ def confirm_sequence(
 #: session pairs' floor offsets are voted by the single-keyframe candidates within
 #: ``FLOOR_VOTE_FACTOR`` × the acceptance radius, and an offset is taken when it has at least
 #: ``FLOOR_MIN_VOTES`` votes and ``FLOOR_MARGIN`` times as many as any other offset of the pair.
-#: Chosen on the default garage's validation sessions (models/synth-small's card, "Loop
+#: Chosen on the default garage's validation sessions (models/synth-small/HISTORY.md, "Loop
 #: closures checked against the sessions' floors").
 FLOOR_VOTE_FACTOR = 2.0
 FLOOR_MARGIN = 2.0

@@ -24,7 +24,7 @@ Decoder = Callable[[npt.NDArray[np.float32]], Any]
 #: The localizer's defaults (``Localizer``, ``vvloc eval`` / ``vvloc localize``): M, the
 #: metric candidates given to :func:`metric_localize_best`, chosen by coarse matching cost +
 #: λ × global-descriptor distance (``retrieval_weight``, the ``bias`` here). Chosen together on
-#: the parking validation sessions of two trained models (models/synth-small's card, "Metric
+#: the parking validation sessions of two trained models (models/synth-small/HISTORY.md, "Metric
 #: candidates ordered with the descriptor distance"): M = 3, λ = 0 (the defaults before
 #: 2026-12-03) gave 83.5 % and 81.1 % Recall@1 at 2 m, M = 5, λ = 2 85.7 % and 83.9 %. Kept
 #: here, beside the search, so that the CLI reads them without importing the localizer.

@@ -160,7 +160,7 @@ class MeshBuilder:
         pillar numbers), so every painted digit reads mirrored (a 2 as a 5). The signs still
         differ between floors as they should; kept because every rendered dataset and the
         committed model were made with them, and a fix changes each image that shows a sign
-        (for the next retraining, ``models/synth-small/MODEL_CARD.md``, "Held for the next
+        (for the next retraining, ``models/synth-small/HISTORY.md``, "Held for the next
         retraining")."""
         segs = {
             0: "abcdef",
