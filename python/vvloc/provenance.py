@@ -39,7 +39,7 @@ A *run* is one ``vvloc train --out DIR`` run, resumed or not::
 deterministic on one machine's CPU (not on CUDA, :mod:`vvloc.train`), but the same code,
 config and data trained with other CPU kernels
 (another processor, or torch limited to other instructions) give other weights from the first
-epoch on (the default model's card, "Retraining on another machine").
+epoch on (`models/synth-small-v3/MODEL_CARD.md`, "Retraining on another machine").
 
 ``seconds`` is the time to *produce* the weights with the recipe: once the run has ended, the
 record of ``best/`` too counts the whole run (its ``weights_epoch`` may be earlier than the
