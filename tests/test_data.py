@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import json
+import re
+import warnings
+
 import numpy as np
 import pytest
 
@@ -104,6 +108,105 @@ def test_missing_image_and_unknown_camera_are_named(tmp_path):
         open_dataset(root2)
     with pytest.raises(FileNotFoundError):
         open_dataset(tmp_path / "nope")
+
+
+def _edit_rig(root, edit):
+    """Apply ``edit(doc)`` to ``root``'s rig.json."""
+    doc = json.loads((root / "rig.json").read_text())
+    edit(doc)
+    (root / "rig.json").write_text(json.dumps(doc))
+
+
+@pytest.mark.parametrize(
+    ("edit", "match"),
+    [
+        (lambda c: c["K"][0].__setitem__(0, -40.0), r"focal lengths fx, fy > 0"),
+        (lambda c: c["K"][1].__setitem__(1, 0.0), r"focal lengths fx, fy > 0"),
+        (lambda c: c["K"].__setitem__(2, [0.0, 0.1, 1.0]), r"pinhole matrix"),
+        (  # the rotation scaled by 1.5
+            lambda c: c.__setitem__(
+                "cam_to_ego", (np.array(c["cam_to_ego"]) @ np.diag([1.5, 1.5, 1.5, 1.0])).tolist()
+            ),
+            "rigid",
+        ),
+        (  # a reflection: orthonormal, determinant -1
+            lambda c: c.__setitem__("cam_to_ego", np.diag([1.0, 1.0, -1.0, 1.0]).tolist()),
+            "determinant",
+        ),
+        (lambda c: c.__setitem__("width", W + 8), r"share one image size.*'front' 24x12"),
+    ],
+)
+def test_a_rig_of_ones_own_is_checked_camera_by_camera(tmp_path, edit, match):
+    # a user's own rig.json: a camera that is no pinhole, extrinsics that are no rigid motion
+    # and a camera of another size are refused by name, before any image is read
+    root = tmp_path / "ds"
+    _write(root, {"s0": _line(2)})
+    _edit_rig(root, lambda doc: edit(doc["cameras"][0]))
+    with pytest.raises(DatasetFormatError, match=r"rig\.json: .*" + match):
+        open_dataset(root)
+
+
+def test_rows_out_of_time_order_are_refused_by_line(tmp_path):
+    root = tmp_path / "ds"
+    _write(root, {"s0": _line(3)})
+    p = root / "sessions" / "s0" / "poses.csv"
+    lines = p.read_text().splitlines()
+    for rows, line in (
+        ([lines[0], lines[1], lines[3], lines[2]], 4),
+        ([lines[0], lines[1], lines[1]], 3),
+    ):
+        p.write_text("\n".join(rows) + "\n")
+        with pytest.raises(DatasetFormatError, match=rf"poses\.csv, line {line}: timestamp"):
+            open_dataset(root)
+
+
+def test_images_other_than_8_bit_are_refused_and_grey_or_alpha_converted(tmp_path):
+    from PIL import Image
+
+    root = tmp_path / "ds"
+    _write(root, {"s0": _line(1)})
+    png = root / "sessions" / "s0" / "front" / "1000.png"
+    with Image.open(png) as im:
+        rgb = np.asarray(im.convert("RGB"))
+    Image.fromarray(rgb[..., 1]).save(png)  # grey: replicated
+    assert np.array_equal(
+        open_dataset(root).session("s0")[0].images[0], np.stack([rgb[..., 1]] * 3)
+    )
+    Image.fromarray(np.dstack([rgb, np.full((H, W), 7, np.uint8)])).save(png)  # RGBA: alpha dropped
+    assert np.array_equal(open_dataset(root).session("s0")[0].images[0], rgb.transpose(2, 0, 1))
+    Image.fromarray(rgb[..., 0].astype(np.uint16) * 257).save(png)  # 16-bit grey: not clipped white
+    with Image.open(png) as im:
+        assert im.mode.startswith("I")
+    with pytest.raises(DatasetFormatError, match=r"front/1000\.png: image mode .* not 8 bits"):
+        open_dataset(root).session("s0")[0]
+
+
+def test_a_yaw_in_degrees_or_as_a_compass_heading_is_warned_about(tmp_path):
+    # a drive along three straight roads, heading along each (yaw CCW from x, radians); not
+    # along the axes, where a compass heading would look like driving backwards
+    side = np.arange(0.0, 60.0, 1.0)
+    yaw = np.repeat(np.radians([30.0, 120.0, 210.0]), len(side))
+    steps = np.column_stack([np.cos(yaw), np.sin(yaw)])
+    xy = np.cumsum(steps, axis=0)
+    floors = np.zeros(len(yaw), int)
+    root = tmp_path / "ds"
+    _write(root, {"good": (np.column_stack([xy, yaw]), floors)})
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        open_dataset(root)  # the right convention: no warning
+    p = root / "sessions" / "good" / "poses.csv"
+    rows = [line.split(",") for line in p.read_text().splitlines()]
+    for values, match in (
+        (np.degrees(yaw), r"yaw reaches 210\.0 .*degrees\?"),
+        (np.pi / 2 - yaw, r"the yaw differs from the direction of travel .* radians"),
+    ):
+        for row, v in zip(rows[1:], values, strict=True):
+            row[4] = repr(float(v))
+        p.write_text("\n".join(",".join(r) for r in rows) + "\n")
+        with pytest.warns(UserWarning) as caught:
+            open_dataset(root)
+        texts = [str(w.message) for w in caught]
+        assert any(re.search(r"^session good: " + match, t) for t in texts), texts
 
 
 def test_writer_leaves_nothing_behind_on_error(tmp_path):

@@ -44,10 +44,17 @@ class Camera:
             raise ValueError(
                 f"camera {self.name!r}: K must be a finite (3, 3) array, got {K.shape}"
             )
+        if K[0, 0] <= 0 or K[1, 1] <= 0 or not np.allclose(K[2], (0.0, 0.0, 1.0), atol=1e-9):
+            raise ValueError(
+                f"camera {self.name!r}: K must be a pinhole matrix [[fx, s, cx], [0, fy, cy], "
+                f"[0, 0, 1]] with focal lengths fx, fy > 0 (pixels), got {K.tolist()}"
+            )
         if T.shape != (4, 4) or not np.all(np.isfinite(T)):
             raise ValueError(
                 f"camera {self.name!r}: cam_to_ego must be finite (4, 4), got {T.shape}"
             )
+        if not is_rigid(T):
+            raise ValueError(f"camera {self.name!r}: cam_to_ego must be a {RIGID}")
         object.__setattr__(self, "K", K)
         object.__setattr__(self, "cam_to_ego", T)
         object.__setattr__(self, "width", int(self.width))
@@ -310,12 +317,45 @@ class Dataset:
         return f"Dataset({str(self.root)!r}, sessions={self.sessions}, frames={n}, cameras={cams})"
 
 
+#: PIL modes of 8-bit images that :func:`load_rgb` converts to RGB (grey replicated, alpha
+#: dropped, a palette looked up); 16-bit and float images are refused, not clipped.
+EIGHT_BIT_MODES = frozenset({"RGB", "RGBA", "RGBX", "L", "LA", "P", "PA", "1", "CMYK", "YCbCr"})
+
+
 def load_rgb(path: Path) -> np.ndarray:
-    """Read an image file as (H, W, 3) uint8 RGB (grey images are replicated)."""
+    """Read an image file as (H, W, 3) uint8 RGB (grey images are replicated, alpha dropped).
+
+    Raises:
+        ValueError naming the file: an image of more than 8 bits per channel (16-bit PNG or
+            TIFF, float), which converting would clip to white.
+    """
     from PIL import Image
 
     with Image.open(path) as im:
+        if im.mode not in EIGHT_BIT_MODES:
+            raise ValueError(
+                f"{path}: image mode {im.mode!r} is not 8 bits per channel; vvloc reads 8-bit "
+                "RGB (or grey) images: scale it to 8 bits first"
+            )
         return np.asarray(im.convert("RGB"), dtype=np.uint8)
+
+
+#: What :func:`is_rigid` accepts, for error messages.
+RIGID = (
+    "finite rigid transform (rotation orthonormal to 1e-6 with determinant +1, bottom row 0 0 0 1)"
+)
+
+
+def is_rigid(T: np.ndarray) -> bool:
+    """Whether ``T`` (..., 4, 4) holds finite rigid transforms (:data:`RIGID`)."""
+    T = np.asarray(T, dtype=np.float64)
+    R = T[..., :3, :3]
+    return bool(
+        np.isfinite(T).all()
+        and np.allclose(np.swapaxes(R, -1, -2) @ R, np.eye(3), atol=1e-6)
+        and (np.linalg.det(R) > 0).all()
+        and (T[..., 3, :] == (0.0, 0.0, 0.0, 1.0)).all()
+    )
 
 
 def euler_to_matrix(

@@ -23,6 +23,7 @@ import os
 import secrets
 import shutil
 import stat
+import warnings
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 from types import TracebackType
@@ -31,7 +32,8 @@ from typing import Any
 import numpy as np
 
 from vvloc._io import list_entries
-from vvloc.data.frame import Camera, Dataset, Session, load_rgb
+from vvloc.data.frame import RIGID, Camera, Dataset, Session, is_rigid, load_rgb
+from vvloc.data.heading import heading_warning
 
 FORMAT_NAME = "vvloc"
 FORMAT_VERSION = 1
@@ -77,7 +79,10 @@ class VvlocSession(Session):
             path = self.image_path(index, cam.name)
             if not path.is_file():
                 raise DatasetFormatError(f"{path}: image missing (frame {index})")
-            img = load_rgb(path)
+            try:
+                img = load_rgb(path)
+            except ValueError as e:
+                raise DatasetFormatError(str(e)) from e
             if img.shape != (cam.height, cam.width, 3):
                 raise DatasetFormatError(
                     f"{path}: image is {img.shape[1]}x{img.shape[0]}, "
@@ -106,6 +111,12 @@ def read_rig(path: Path) -> tuple[list[Camera], dict[str, Any]]:
     names = [c.name for c in cameras]
     if len(set(names)) != len(names):
         raise DatasetFormatError(f"{path}: duplicate camera names {names}")
+    sizes = [f"{c.name!r} {c.width}x{c.height}" for c in cameras]
+    if len({(c.width, c.height) for c in cameras}) > 1:
+        raise DatasetFormatError(
+            f"{path}: cameras must share one image size (a Frame stacks them into one "
+            f"(M, 3, H, W) array; resize the images and scale K), got {', '.join(sizes)}"
+        )
     return cameras, doc
 
 
@@ -119,7 +130,7 @@ def read_poses(path: Path) -> np.ndarray:
     if not path.is_file():
         raise DatasetFormatError(f"{path}: poses file missing")
     rows = []
-    seen: set[int] = set()
+    last: int | None = None
     for line, row in _csv_rows(path, POSES_HEADER):
         try:
             ts = int(row[0])
@@ -129,9 +140,13 @@ def read_poses(path: Path) -> np.ndarray:
             raise DatasetFormatError(f"{path}, line {line}: malformed row {row}: {e}") from e
         if not all(math.isfinite(v) for v in (x, y, z, yaw)):
             raise DatasetFormatError(f"{path}, line {line}: non-finite value in {row}")
-        if ts in seen:
-            raise DatasetFormatError(f"{path}, line {line}: duplicate timestamp {ts}")
-        seen.add(ts)
+        if last is not None and ts <= last:
+            raise DatasetFormatError(
+                f"{path}, line {line}: timestamp {ts} does not follow the row before's {last} "
+                "(rows in time order, each timestamp once: the order is the drive's, which "
+                "the loop detector's temporal window and sequence check read)"
+            )
+        last = ts
         rows.append((ts, x, y, z, yaw, floor))
     return np.array(rows, dtype=_ROW_DTYPE)
 
@@ -154,23 +169,6 @@ def _csv_rows(path: Path, header: tuple[str, ...]) -> Iterator[tuple[int, list[s
                     f"{path}, line {reader.line_num}: expected {len(header)} fields, got {len(row)}"
                 )
             yield reader.line_num, row
-
-
-#: What :func:`_rigid` accepts, for error messages.
-RIGID = (
-    "finite rigid transform (rotation orthonormal to 1e-6 with determinant +1, bottom row 0 0 0 1)"
-)
-
-
-def _rigid(T: np.ndarray) -> bool:
-    """Whether ``T`` (..., 4, 4) holds finite rigid transforms, as ``cam_to_ego.csv`` keeps."""
-    R = T[..., :3, :3]
-    return bool(
-        np.isfinite(T).all()
-        and np.allclose(np.swapaxes(R, -1, -2) @ R, np.eye(3), atol=1e-6)
-        and (np.linalg.det(R) > 0).all()
-        and (T[..., 3, :] == (0.0, 0.0, 0.0, 1.0)).all()
-    )
 
 
 def read_extrinsics(path: Path, timestamps: np.ndarray, cameras: Sequence[Camera]) -> np.ndarray:
@@ -202,7 +200,7 @@ def read_extrinsics(path: Path, timestamps: np.ndarray, cameras: Sequence[Camera
                 f"{path}, line {line}: a second row for timestamp {ts}, camera {row[1]!r}"
             )
         out[k, m, :3] = vals
-        if not _rigid(out[k, m]):
+        if not is_rigid(out[k, m]):
             raise DatasetFormatError(f"{path}, line {line}: not a {RIGID}")
         seen[k, m] = True
     if not seen.all():
@@ -214,6 +212,29 @@ def read_extrinsics(path: Path, timestamps: np.ndarray, cameras: Sequence[Camera
     return out
 
 
+def yaw_warnings(name: str, rows: np.ndarray) -> list[str]:
+    """Warnings about a session's yaw convention (``poses.csv`` rows from :func:`read_poses`).
+
+    A yaw beyond ±2π is most likely in degrees; a yaw at a steady offset from the direction
+    of travel (:func:`vvloc.data.heading.heading_warning`) is likely in another convention,
+    e.g. a compass heading (clockwise from north). Either turns every relative pose."""
+    notes = []
+    yaw = rows["yaw"]
+    if len(yaw) and float(np.abs(yaw).max()) > 2 * math.pi:
+        notes.append(
+            f"session {name}: yaw reaches {float(np.abs(yaw).max()):.1f} in poses.csv; vvloc "
+            "reads yaw in radians (counter-clockwise from the world's x axis): degrees?"
+        )
+    poses = np.stack([rows["x"], rows["y"], yaw], axis=1)
+    note = heading_warning(name, poses)
+    if note is not None:
+        notes.append(
+            f"{note}; in the vvloc format yaw is radians counter-clockwise from the world's x "
+            "axis (docs/dataset-format.md)"
+        )
+    return notes
+
+
 def open_vvloc(root: str | os.PathLike[str]) -> Dataset:
     """Open a vvloc-format dataset lazily and validate its structure.
 
@@ -221,7 +242,10 @@ def open_vvloc(root: str | os.PathLike[str]) -> Dataset:
     ``ds.meta`` is ``rig.json``'s optional ``meta`` object (``vvloc sim`` records its world:
     scene, seed, floors, floor_marking).
     Raises :class:`DatasetFormatError` (a ``ValueError``) naming the file and line for a malformed
-    row, a camera folder that is not in the rig, or a missing image.
+    row, rows out of time order, a camera that is not a pinhole with a rigid ``cam_to_ego``,
+    cameras of different image sizes, a camera folder that is not in the rig, or a missing
+    image. Warns (``UserWarning``) when a session's yaw looks like degrees or another
+    convention (:func:`yaw_warnings`).
     """
     root = Path(root)
     cameras, doc = read_rig(root / "rig.json")
@@ -250,6 +274,8 @@ def open_vvloc(root: str | os.PathLike[str]) -> Dataset:
         extrinsics = None
         if (d / EXTRINSICS_FILE).is_file():
             extrinsics = read_extrinsics(d / EXTRINSICS_FILE, rows["timestamp"], cameras)
+        for note in yaw_warnings(d.name, rows):
+            warnings.warn(note, stacklevel=2)
         sessions[d.name] = VvlocSession(d, d.name, cameras, rows, extrinsics)
     meta = doc.get("meta")
     return Dataset(root, cameras, sessions, meta=meta if isinstance(meta, dict) else None)
@@ -340,7 +366,7 @@ class SessionWriter:
         if T.shape != (m, 4, 4) or not np.issubdtype(T.dtype, np.floating):
             raise ValueError(f"cam_to_ego: expected float ({m}, 4, 4), got {T.dtype} {T.shape}")
         T = T.astype(np.float64)
-        if not _rigid(T):
+        if not is_rigid(T):
             raise ValueError(f"cam_to_ego: expected finite rigid transforms ({RIGID}s)")
         return [
             [ts, cam.name, *(repr(float(v)) for v in T[k, :3].ravel())]
