@@ -132,3 +132,30 @@ def test_the_network_commands_set_torchs_threads(command, tmp_path, monkeypatch)
     assert seen == [1] and result.exit_code == 2  # not given: torch's default stays
     result = CliRunner().invoke(app, [*args, "--threads", "0"])
     assert result.exit_code == 2 and "--threads" in result.output and seen == [1]
+
+
+def test_an_error_raised_in_a_dataloader_worker_is_told_in_its_own_words():
+    # torch re-raises a worker's exception as the same type, its message "Caught ... in
+    # DataLoader worker process N." and the worker's traceback; the CLI prints the worker's
+    # message on its line
+    from torch.utils.data import DataLoader, Dataset
+
+    from vvloc.commands._util import error_text
+    from vvloc.data import DatasetFormatError
+
+    class Broken(Dataset):
+        def __len__(self) -> int:
+            return 2
+
+        def __getitem__(self, index: int) -> None:
+            raise DatasetFormatError("/d/s0/front/1.png: image is 120x72,\nrig.json says 128x72")
+
+    with pytest.raises(DatasetFormatError) as caught:
+        list(DataLoader(Broken(), num_workers=1))
+    assert str(caught.value).startswith("Caught DatasetFormatError in DataLoader worker")
+    assert error_text(caught.value) == (
+        "/d/s0/front/1.png: image is 120x72,\nrig.json says 128x72 (in DataLoader worker process 0)"
+    )
+    plain = DatasetFormatError("/d/rig.json: bad")
+    assert error_text(plain) == "/d/rig.json: bad"
+    assert error_text(KeyError("s9")) == "s9"

@@ -127,6 +127,27 @@ Snap = Annotated[
 ]
 
 
+def error_text(e: BaseException) -> str:
+    """The message of ``e`` for one line: a ``KeyError``'s key, and for an exception that a
+    DataLoader worker raised (torch re-raises it in the main process as the same type, its
+    message "Caught ... in DataLoader worker process N." and the worker's whole traceback)
+    the worker's own message."""
+    if isinstance(e, KeyError) and e.args:
+        return str(e.args[0])
+    text = str(e)
+    head, sep, trace = text.partition("\nOriginal Traceback")
+    if not (head.startswith("Caught ") and sep):
+        return text
+    lines = trace.splitlines()
+    message = text
+    for k in range(len(lines) - 1, -1, -1):  # the last "module.ErrorType: message" line
+        name, colon, first = lines[k].partition(": ")
+        if colon and not name.startswith(" ") and name.split(".")[-1] == type(e).__name__:
+            message = "\n".join([first, *lines[k + 1 :]]).strip()
+            break
+    return f"{message} ({head.removeprefix('Caught ').split(' ', 1)[-1].rstrip('.')})"
+
+
 @contextlib.contextmanager
 def cli_errors(command: str) -> Iterator[None]:
     """Turn library exceptions into one-line messages and exit code 2 (bad input) or 1."""
@@ -143,11 +164,10 @@ def cli_errors(command: str) -> Iterator[None]:
         KeyError,
         TypeError,
     ) as e:
-        msg = e.args[0] if isinstance(e, KeyError) and e.args else e
-        typer.echo(f"vvloc {command}: error: {msg}", err=True)
+        typer.echo(f"vvloc {command}: error: {error_text(e)}", err=True)
         raise typer.Exit(code=EXIT_USAGE) from e
     except (RuntimeError, OSError) as e:
-        typer.echo(f"vvloc {command}: failed: {e}", err=True)
+        typer.echo(f"vvloc {command}: failed: {error_text(e)}", err=True)
         raise typer.Exit(code=EXIT_FAILURE) from e
 
 
