@@ -556,6 +556,15 @@ def test_a_dataset_rendered_by_another_config_or_missing_val_sessions_are_clear_
     sim = {"scene": "parking", "sessions": 5, "frames": 40, "seed": 0}
     with pytest.raises(ValueError, match=r"lacks sessions \['s3', 's4'\]"):
         Trainer(_config(tiny_world, sim=sim), tmp_path / "run")
+    # a dataset of one's own (no rendered world in its rig.json) under a config copied with
+    # its sim section: the message says to delete that section, not to move the data away
+    own = tmp_path / "own"
+    shutil.copytree(tiny_world, own)
+    doc = json.loads((own / "rig.json").read_text())
+    doc.pop("meta", None)
+    (own / "rig.json").write_text(json.dumps(doc))
+    with pytest.raises(ValueError, match=r"not rendered by vvloc sim .* delete the config's sim"):
+        Trainer(_config(own, sim=sim), tmp_path / "run")
     # another world than the one recorded in rig.json: refused, naming both
     others = ({"seed": 1}, {"scene": "garage"}, {"scene": "garage", "floor_marking": "pillars"})
     for other in others:

@@ -973,6 +973,13 @@ def _ensure_dataset(dataset: str, sim: dict[str, Any] | None) -> None:
         if sim and isinstance(sim.get("sessions"), int):
             have = set(open_dataset(root).sessions)
             missing = [f"s{i}" for i in range(sim["sessions"]) if f"s{i}" not in have]
+            if missing and rendered_world(root) is None:
+                raise ValueError(
+                    f"dataset {root} was not rendered by vvloc sim (its rig.json records no "
+                    f"rendered world) and lacks sessions {missing} that the config's sim section "
+                    "would render: for a dataset of your own, delete the config's sim section "
+                    "and name your sessions in train_sessions (and val_sessions, val_database)"
+                )
             if missing:
                 raise ValueError(
                     f"dataset {root} lacks sessions {missing} that the config's sim section "

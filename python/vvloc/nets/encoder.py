@@ -213,7 +213,9 @@ class BevEncoder(nn.Module):
         b, m = feats[0].shape[:2]
         if m > self.cfg.max_cameras:
             raise ValueError(
-                f"images: {m} cameras exceed ModelConfig.max_cameras={self.cfg.max_cameras}"
+                f"images: {m} cameras exceed ModelConfig.max_cameras={self.cfg.max_cameras} "
+                "(the camera embeddings a model holds; a training config raises it with "
+                "model_overrides: {max_cameras: N}, which makes another model)"
             )
         n_d = len(self.cfg.pillar_heights)
         q = self.pillars.shape[0]

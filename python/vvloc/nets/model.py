@@ -267,7 +267,9 @@ class VVLocNet(nn.Module):
             )
         if m > self.config.max_cameras:
             raise ValueError(
-                f"images: {m} cameras exceed ModelConfig.max_cameras={self.config.max_cameras}"
+                f"images: {m} cameras exceed ModelConfig.max_cameras={self.config.max_cameras} "
+                "(the camera embeddings a model holds; a training config raises it with "
+                "model_overrides: {max_cameras: N}, which makes another model)"
             )
         dev, dtype = self.encoder.queries.device, self.encoder.queries.dtype
         return (
