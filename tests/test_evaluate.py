@@ -623,6 +623,13 @@ def test_write_report_markdown_and_json(tmp_path):
     assert not list(tmp_path.glob(".*.tmp"))
 
 
+def test_report_header_says_which_world_and_when_there_is_none():
+    rendered = ev.render_markdown({"meta": {"scene": {"scene": "garage", "floors": 2}}})
+    assert "- **scene**: scene: garage, floors: 2" in rendered
+    own = ev.render_markdown({"meta": {"dataset": "data/mine", "scene": None}})
+    assert "- **scene**: – (not rendered by vvloc sim)" in own and "None" not in own
+
+
 def test_report_and_figure_files_get_the_mode_of_a_plain_open(tmp_path):
     old = os.umask(0o027)
     try:

@@ -1297,6 +1297,8 @@ def render_markdown(
     for k, v in meta.items():
         if isinstance(v, dict):  # e.g. the world: "scene: parking, seed: 0"
             v = ", ".join(f"{a}: {b}" for a, b in v.items())
+        elif v is None and k == "scene":  # a dataset that vvloc sim did not render
+            v = "– (not rendered by vvloc sim)"
         lines.append(f"- **{k}**: {v}")
     if meta:
         lines.append("")
