@@ -196,6 +196,12 @@ def test_a_yaw_in_degrees_or_as_a_compass_heading_is_warned_about(tmp_path):
         open_dataset(root)  # the right convention: no warning
     p = root / "sessions" / "good" / "poses.csv"
     rows = [line.split(",") for line in p.read_text().splitlines()]
+    for row, v in zip(rows[1:], yaw + np.radians(1.4), strict=True):
+        row[4] = repr(float(v))
+    p.write_text("\n".join(",".join(r) for r in rows) + "\n")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        open_dataset(root)  # a grid convergence's 1.4°: the converters warned, not every open
     for values, match in (
         (np.degrees(yaw), r"yaw reaches 210\.0 .*degrees\?"),
         (np.pi / 2 - yaw, r"the yaw differs from the direction of travel .* radians"),

@@ -72,11 +72,13 @@ def heading_offset(
     return float(np.degrees(np.median(offset))), int(offset.size)
 
 
-def heading_warning(name: str, poses: npt.ArrayLike) -> str | None:
-    """A warning text when session ``name``'s :func:`heading_offset` exceeds
-    :data:`WARN_OFFSET_DEG` over at least :data:`MIN_STRETCHES` stretches, else None."""
+def heading_warning(
+    name: str, poses: npt.ArrayLike, *, limit_deg: float = WARN_OFFSET_DEG
+) -> str | None:
+    """A warning text when session ``name``'s :func:`heading_offset` exceeds ``limit_deg``
+    (degrees) over at least :data:`MIN_STRETCHES` stretches, else None."""
     offset, count = heading_offset(poses)
-    if count < MIN_STRETCHES or abs(offset) <= WARN_OFFSET_DEG:
+    if count < MIN_STRETCHES or abs(offset) <= limit_deg:
         return None
     return (
         f"session {name}: the yaw differs from the direction of travel by a median of "

@@ -111,8 +111,8 @@ def read_rig(path: Path) -> tuple[list[Camera], dict[str, Any]]:
     names = [c.name for c in cameras]
     if len(set(names)) != len(names):
         raise DatasetFormatError(f"{path}: duplicate camera names {names}")
-    sizes = [f"{c.name!r} {c.width}x{c.height}" for c in cameras]
     if len({(c.width, c.height) for c in cameras}) > 1:
+        sizes = [f"{c.name!r} {c.width}x{c.height}" for c in cameras]
         raise DatasetFormatError(
             f"{path}: cameras must share one image size (a Frame stacks them into one "
             f"(M, 3, H, W) array; resize the images and scale K), got {', '.join(sizes)}"
@@ -212,12 +212,20 @@ def read_extrinsics(path: Path, timestamps: np.ndarray, cameras: Sequence[Camera
     return out
 
 
+#: Opening a dataset warns about a session whose yaw keeps a steady offset of more than this
+#: (degrees) from its direction of travel: a yaw convention other than the format's.
+CONVENTION_OFFSET_DEG = 5.0
+
+
 def yaw_warnings(name: str, rows: np.ndarray) -> list[str]:
     """Warnings about a session's yaw convention (``poses.csv`` rows from :func:`read_poses`).
 
-    A yaw beyond ±2π is most likely in degrees; a yaw at a steady offset from the direction
-    of travel (:func:`vvloc.data.heading.heading_warning`) is likely in another convention,
-    e.g. a compass heading (clockwise from north). Either turns every relative pose."""
+    A yaw beyond ±2π is most likely in degrees; a yaw at a steady offset of more than
+    :data:`CONVENTION_OFFSET_DEG` from the direction of travel
+    (:func:`vvloc.data.heading.heading_warning`) is likely in another convention, e.g. a
+    compass heading (clockwise from north). Either turns every relative pose. (The NCLT and
+    RobotCar readers warn from 0.5° when they convert; a dataset keeps such an offset, and
+    opening it does not warn again.)"""
     notes = []
     yaw = rows["yaw"]
     if len(yaw) and float(np.abs(yaw).max()) > 2 * math.pi:
@@ -226,7 +234,7 @@ def yaw_warnings(name: str, rows: np.ndarray) -> list[str]:
             "reads yaw in radians (counter-clockwise from the world's x axis): degrees?"
         )
     poses = np.stack([rows["x"], rows["y"], yaw], axis=1)
-    note = heading_warning(name, poses)
+    note = heading_warning(name, poses, limit_deg=CONVENTION_OFFSET_DEG)
     if note is not None:
         notes.append(
             f"{note}; in the vvloc format yaw is radians counter-clockwise from the world's x "
