@@ -207,6 +207,15 @@ class ModelConfig:
 
     # --- serialisation ---------------------------------------------------------------------
 
+    def check_num_cameras(self, m: int) -> None:
+        """Raise ``ValueError`` (naming ``images``) when ``m`` cameras exceed ``max_cameras``."""
+        if m > self.max_cameras:
+            raise ValueError(
+                f"images: {m} cameras exceed ModelConfig.max_cameras={self.max_cameras} "
+                "(the camera embeddings a model holds; a training config raises it with "
+                "model_overrides: {max_cameras: N}, which makes another model)"
+            )
+
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON-compatible dict (tuples become lists)."""
         d = dataclasses.asdict(self)

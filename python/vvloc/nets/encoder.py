@@ -211,12 +211,7 @@ class BevEncoder(nn.Module):
         the input images of size ``image_size`` (Hi, Wi); cam_to_ego (B, M, 4, 4).
         Returns the BEV (B, H, W, C)."""
         b, m = feats[0].shape[:2]
-        if m > self.cfg.max_cameras:
-            raise ValueError(
-                f"images: {m} cameras exceed ModelConfig.max_cameras={self.cfg.max_cameras} "
-                "(the camera embeddings a model holds; a training config raises it with "
-                "model_overrides: {max_cameras: N}, which makes another model)"
-            )
+        self.cfg.check_num_cameras(m)
         n_d = len(self.cfg.pillar_heights)
         q = self.pillars.shape[0]
         ref, visible = project_points(

@@ -265,12 +265,7 @@ class VVLocNet(nn.Module):
             raise ValueError(
                 f"cam_to_ego: expected shape ({b}, {m}, 4, 4), got {tuple(cam_to_ego.shape)}"
             )
-        if m > self.config.max_cameras:
-            raise ValueError(
-                f"images: {m} cameras exceed ModelConfig.max_cameras={self.config.max_cameras} "
-                "(the camera embeddings a model holds; a training config raises it with "
-                "model_overrides: {max_cameras: N}, which makes another model)"
-            )
+        self.config.check_num_cameras(m)
         dev, dtype = self.encoder.queries.device, self.encoder.queries.dtype
         return (
             images.to(dev),
