@@ -28,6 +28,7 @@ from vvloc.localize.localizer import (
     RETRIEVAL_WEIGHT,
     Localizer,
     build_map,
+    check_training_rig,
     encode_frames,
 )
 from vvloc.localize.loops import detect_loops, loop_candidates
@@ -137,6 +138,61 @@ def test_the_map_records_its_rig_and_the_localizer_compares_queries_with_it(
     with pytest.raises(ValueError, match=r"^loc: expected shape"):
         loc.localize_encoded(g, lv[:, :3], bev)
     loc.map.close()
+
+
+def test_a_rig_other_than_the_models_training_rig_is_warned_about_once(
+    tiny_world, map_file, model_dir, tmp_path, monkeypatch
+):
+    import warnings
+
+    import vvloc.localize.localizer as localizer
+
+    monkeypatch.setattr(localizer, "_WARNED_RIGS", set())
+    ds = open_dataset(tiny_world)
+    model = VVLocNet.load(model_dir)
+    assert model.training_rig is None  # saved outside a run: nothing to compare with
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        Localizer(model, MapDatabase.open(map_file), top_k=3).map.close()
+    # weights trained on this rig: its map, and a recalibration of it, are the same rig
+    model.training_record = {"runs": [{"rig": [c.to_json() for c in ds.cameras]}]}
+    assert [c.to_json() for c in model.training_rig] == [c.to_json() for c in ds.cameras]
+    K, cam_to_ego = ds.cameras[0].K, ds.cameras[0].cam_to_ego
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        Localizer(model, MapDatabase.open(map_file), top_k=3).map.close()
+        recalibrated = [
+            dataclasses.replace(c, K=K * [[1.05], [1.05], [1.0]], cam_to_ego=cam_to_ego)
+            if i == 0
+            else c
+            for i, c in enumerate(ds.cameras)
+        ]
+        assert check_training_rig(model, recalibrated, "recalibrated") == ""
+    # weights trained on a 3-camera rig: building a map of the 4-camera dataset says so, and
+    # localizing on that map in the same process does not say it again
+    trained = VVLocNet.load(model_dir)
+    trained.training_record = {"runs": [{"rig": [c.to_json() for c in ds.cameras[1:]]}]}
+    ckpt = trained.save(tmp_path / "trained-on-3")
+    trained = VVLocNet.load(ckpt)
+    with pytest.warns(UserWarning) as caught:
+        out = build_map(trained, ds, ["s2"], tmp_path / "m.h5", progress=False)
+    (w,) = [str(c.message) for c in caught]
+    assert w.startswith(
+        "the dataset's rig is not the rig the model was trained on (4 cameras, against 3; "
+        "trained on 3 cameras of 160x96 px)"
+    )
+    assert "Train on this rig's data" in w
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        Localizer.open(out, ckpt, top_k=3).map.close()
+    # another process (here: a cleared registry) opening that map is told too
+    monkeypatch.setattr(localizer, "_WARNED_RIGS", set())
+    with pytest.warns(UserWarning, match=r"map .*m\.h5's rig is not the rig the model was"):
+        Localizer.open(out, ckpt, top_k=3).map.close()
+    # images resized to half size (K scaled with them) are another rig to the networks
+    half = [c.resized(80, 48) for c in ds.cameras]
+    with pytest.warns(UserWarning, match="half is not the rig"):
+        assert check_training_rig(model, half, "half") == "images of 80x48 px, against 160x96"
 
 
 def test_localizer_options_are_checked_up_front(map_file, model_dir, tiny_world, tmp_path):

@@ -12,6 +12,13 @@ CPU = {"hardware": "x86_64, 2 cores", "device": "cpu", "device_name": None}
 H200 = {"hardware": "x86_64, 16 cores", "device": "cuda", "device_name": "NVIDIA H200"}
 
 
+def _cam(fx: float = 100.0, w: int = 160) -> dict:
+    """A rig.json camera entry: a level camera looking forward from 1.5 m up."""
+    to_ego = [[0.0, 0.0, 1.0, 0.0], [-1.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.0, 1.5], [0, 0, 0, 1.0]]
+    K = [[fx, 0.0, w / 2], [0.0, 100.0, 48.0], [0.0, 0.0, 1.0]]
+    return {"name": "front", "width": w, "height": 96, "K": K, "cam_to_ego": to_ego}
+
+
 def _run(seconds: float | None, *procs: dict, **kw) -> dict:
     return {"seconds": seconds, "processes": list(procs or [CPU])} | kw
 
@@ -76,6 +83,20 @@ def test_json_safe_replaces_non_finite_floats_only():
         ({"format": "vvloc.training", "version": 1, "runs": [{"processes": 3}]}, "processes"),
         ({"format": "vvloc.training", "version": 1, "runs": [{"seconds": "1"}]}, "'seconds'"),
         ({"format": "vvloc.training", "version": 1, "runs": []}, "'weights_hash'"),
+        ({"format": "vvloc.training", "version": 1, "runs": [{"rig": []}]}, r"runs\[0\].rig"),
+        ({"format": "vvloc.training", "version": 1, "runs": [{"rig": [3]}]}, r"runs\[0\].rig"),
+        (
+            {"format": "vvloc.training", "version": 1, "runs": [{"rig": [{"name": "f"}]}]},
+            r"runs\[0\].rig: camera entry 'f' lacks keys",
+        ),
+        (
+            {"format": "vvloc.training", "version": 1, "runs": [{}, {"rig": [_cam(fx=-1.0)]}]},
+            r"runs\[1\].rig: camera 'front': K must be a pinhole",
+        ),
+        (
+            {"format": "vvloc.training", "version": 1, "runs": [{"rig": [_cam(), _cam(w=80)]}]},
+            "more than one image size",
+        ),
     ],
 )
 def test_a_malformed_record_is_refused_naming_its_source(record, match):

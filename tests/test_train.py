@@ -1021,6 +1021,7 @@ def _record(path: Path) -> dict:
 
 
 def test_every_checkpoint_records_the_runs_that_produced_it(tiny_world, tmp_path, monkeypatch):
+    from vvloc.data import open_dataset
     from vvloc.provenance import cpu_model, hardware, libraries, summarize
 
     cfg_a = _config(tiny_world, stage1_epochs=1, stage2_epochs=0, device="cpu")
@@ -1032,6 +1033,9 @@ def test_every_checkpoint_records_the_runs_that_produced_it(tiny_world, tmp_path
     assert (run["epochs_run"], run["epochs"], run["weights_epoch"]) == (1, 1, 1)
     assert run["complete"] and run["init_weights_hash"] is None and run["seconds"] > 0
     assert run["config"] == first.cfg.to_dict() and run["out"] == str(tmp_path / "a")
+    # the cameras it trained on, which maps from another rig are checked against
+    cameras = open_dataset(tiny_world).cameras
+    assert run["rig"] == [c.to_json() for c in cameras]
     (proc,) = run["processes"]
     assert proc["hardware"] == hardware() and proc["device"] == "cpu"
     assert proc["device_name"] is None and proc["torch_threads"] == torch.get_num_threads()
@@ -1043,6 +1047,7 @@ def test_every_checkpoint_records_the_runs_that_produced_it(tiny_world, tmp_path
     # loading keeps the record, saving elsewhere keeps it with the weights
     loaded = VVLocNet.load(tmp_path / "a" / "checkpoint")
     assert loaded.training_record == {"runs": rec_a["runs"]}
+    assert [c.to_json() for c in loaded.training_rig] == run["rig"]
     assert _record(loaded.save(tmp_path / "copy")) == rec_a
     # a run from that checkpoint carries its record first, then its own run; best/ is kept at
     # the first validated epoch (2 of 3) here

@@ -1209,6 +1209,9 @@ class Trainer:
             "seconds": None if None in seconds else round(sum(seconds), 1),
             "processes": procs,
             "init_weights_hash": self.init_weights_hash,
+            # the cameras the networks met (extra datasets share them): a map from another
+            # rig is warned about (vvloc.localize.check_training_rig)
+            "rig": [c.to_json() for c in self.ds.cameras],
         }
         if self.joint_stopped is not None:
             run["joint_stopped_early"] = self.joint_stopped

@@ -30,6 +30,7 @@ distinctiveness >= ``min_distinctiveness`` (the model's calibration; 0 without o
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import time
@@ -46,7 +47,9 @@ from tqdm import tqdm
 
 from vvloc import geometry, kernels
 from vvloc.checkpoints import resolve_checkpoint
-from vvloc.data import Frame
+from vvloc.data import Camera, Frame
+from vvloc.data.frame import stack_calibration
+from vvloc.data.rig import SAME_MAP, SAME_MODEL, describe_rig, rig_difference
 from vvloc.localize.mapdb import MapDatabase, MapError, MapWriter, check_weights
 from vvloc.localize.metric import (
     METRIC_CANDIDATES,
@@ -64,12 +67,6 @@ F32 = npt.NDArray[np.float32]
 #: Where :class:`Localizer`'s M metric candidates come from (``metric_from``): the first M of
 #: the retrieval order, or of the yaw re-ranking.
 METRIC_FROM = ("retrieval", "rerank")
-#: A query camera turned by more than this (radians, 14°) or moved by more than this (metres)
-#: from where the map's rig has it makes the frame "from another rig" (a warning). A tilting
-#: vehicle's levelled frames turn their cameras by its roll and pitch (a few degrees) and motion
-#: compensation moves them by speed × exposure gap (0.4 m at 14 m/s and 30 ms).
-RIG_ANGLE_TOLERANCE = 0.25
-RIG_SHIFT_TOLERANCE = 1.0
 
 
 @dataclass
@@ -278,6 +275,41 @@ def check_map_model(mapdb: MapDatabase, model: VVLocNet) -> None:
             f"but the model is {model.config_hash()}; rebuild the map with this model"
         )
     check_weights(mapdb.weights_hash, model.weights_hash(), where)
+    if mapdb.rig is not None:
+        check_training_rig(model, [Camera.from_json(c) for c in mapdb.rig], f"{where}'s rig")
+
+
+#: (weights fingerprint, rig) pairs warned about by :func:`check_training_rig`: building a map
+#: and localizing on it in one process warn once.
+_WARNED_RIGS: set[tuple[str, str]] = set()
+
+
+def check_training_rig(model: VVLocNet, cameras: Sequence[Camera], what: str) -> str:
+    """Warn (``UserWarning``, once per weights and rig in a process) when ``cameras`` (image
+    order, one image size) leave the rig ``model`` was trained on
+    (:attr:`VVLocNet.training_rig`) by more than :data:`vvloc.data.rig.SAME_MODEL`: other
+    cameras, another image size or another mounting. The networks met only their training rig
+    (each camera slot has a learnt embedding), so descriptors and poses from another may be far
+    off, and nothing else would say so. ``what`` names the rig in the message ("map x.h5's
+    rig"). Returns the difference in words, "" when there is none or the model records no
+    training rig."""
+    trained = model.training_rig
+    if trained is None or not cameras:
+        return ""
+    K, cam_to_ego = stack_calibration(cameras)
+    why = rig_difference(trained, K, cam_to_ego, (cameras[0].width, cameras[0].height), SAME_MODEL)
+    key = (model.weights_hash(), json.dumps([c.to_json() for c in cameras]))
+    if why and key not in _WARNED_RIGS:
+        _WARNED_RIGS.add(key)
+        warnings.warn(
+            f"{what} is not the rig the model was trained on ({why}; trained on "
+            f"{describe_rig(trained)}): the networks met only their training rig, so their "
+            "descriptors and poses on this one may be far off. Train on this rig's data (README, "
+            "'Your own rig's data'), or measure the model on it with vvloc eval first",
+            UserWarning,
+            stacklevel=3,
+        )
+    return why
 
 
 @dataclass
@@ -524,17 +556,7 @@ class Localizer:
         self.decoder = decoder
         self.index = DescriptorIndex(mapdb.global_descriptors)
         self._rig_warned = False  # a query from another rig is reported once (_check_rig)
-        rig = mapdb.rig
-        self._rig_arrays = (
-            None
-            if rig is None
-            else (
-                len(rig),
-                (rig[0]["width"], rig[0]["height"]),
-                np.array([c["K"] for c in rig]),
-                np.linalg.inv(np.array([c["cam_to_ego"] for c in rig], dtype=np.float64)),
-            )
-        )
+        self._map_rig = None if mapdb.rig is None else [Camera.from_json(c) for c in mapdb.rig]
         cfg = model.config
         self.grid_size = float(cfg.grid_size)
         self.num_angles = int(cfg.num_angles)
@@ -644,30 +666,12 @@ class Localizer:
         return int(on_floor[int(np.argmin(d))])
 
     def _check_rig(self, frame: Frame, i: int) -> None:
-        """Warn (once) when ``frame`` comes from a rig other than the one the map records."""
-        if self._rig_arrays is None or self._rig_warned:
+        """Warn (once) when ``frame`` comes from a rig other than the one the map records
+        (:data:`vvloc.data.rig.SAME_MAP`)."""
+        if self._map_rig is None or self._rig_warned:
             return
-        count, (width, height), K, ego_to_rig = self._rig_arrays
-        m, _, h, w = frame.images.shape
-        why = ""
-        if m != count:
-            why = f"{m} cameras, the map's rig {count}"
-        elif (w, h) != (width, height):
-            why = f"images {w}x{h}, the map's {width}x{height}"
-        elif not np.allclose(frame.K, K, rtol=1e-3, atol=1e-3):
-            why = "other intrinsics than the map's rig"
-        else:
-            # a frame's own extrinsics (a levelled tilting vehicle, motion compensation) stay
-            # within a few degrees and decimetres of the rig's; another mounting does not
-            D = ego_to_rig @ np.asarray(frame.cam_to_ego, dtype=np.float64)
-            cos = (np.trace(D[:, :3, :3], axis1=1, axis2=2) - 1.0) / 2.0
-            angle = np.arccos(np.clip(cos, -1.0, 1.0))
-            shift = np.linalg.norm(D[:, :3, 3], axis=1)
-            if (angle > RIG_ANGLE_TOLERANCE).any() or (shift > RIG_SHIFT_TOLERANCE).any():
-                why = (
-                    f"cameras turned by up to {np.degrees(angle.max()):.1f}° and moved by up "
-                    f"to {shift.max():.2f} m from where the map's rig has them"
-                )
+        h, w = frame.images.shape[2:]
+        why = rig_difference(self._map_rig, frame.K, frame.cam_to_ego, (w, h), SAME_MAP)
         if why:
             self._rig_warned = True
             warnings.warn(
@@ -691,8 +695,8 @@ class Localizer:
         Frames with non-finite calibration, or images that are not (M, 3, H, W) uint8 (or
         float in [0, 1]), are refused before any work (``ValueError`` naming the frame); frames
         from a rig other than the map's (camera count, image size, intrinsics, or a camera
-        turned by more than ``RIG_ANGLE_TOLERANCE`` or moved by more than
-        ``RIG_SHIFT_TOLERANCE`` from where the map's rig has it, when the map records its rig)
+        turned or moved from where the map's rig has it by more than
+        :data:`vvloc.data.rig.SAME_MAP` allows, when the map records its rig)
         are localized with a warning, once per localizer: the model met only its training rig,
         and its poses may be far off. A tilting vehicle's levelled frames and motion-compensated
         cameras (``Session.frame_cam_to_ego``) stay within those bounds."""
@@ -845,6 +849,8 @@ def build_map(
     total = sum(len(dataset.session(s)) for s in sessions)
     if total == 0:
         raise ValueError(f"sessions: {list(sessions)} hold no frames: a map needs keyframes")
+    cameras = list(getattr(dataset, "cameras", ()))
+    check_training_rig(model, cameras, "the dataset's rig")
     cfg = model.config
     with MapWriter(
         out,
@@ -854,7 +860,7 @@ def build_map(
         weights_hash=model.weights_hash(),
         dtype=dtype,  # type: ignore[arg-type]
         expected_keyframes=total,
-        rig=list(getattr(dataset, "cameras", ())) or None,
+        rig=cameras or None,
     ) as writer:
         bar = tqdm(total=total, desc="map", disable=not progress)
         for name in sessions:

@@ -18,6 +18,7 @@ from safetensors.torch import load_file, save
 from torch import Tensor, nn
 
 from vvloc._io import write_together
+from vvloc.data.frame import Camera
 from vvloc.nets.backbone import FPN, ResNetBackbone, normalise_images
 from vvloc.nets.config import CONFIG_VERSION, ModelConfig
 from vvloc.nets.decoder import Interactor, LocalViewDecoder
@@ -195,6 +196,18 @@ class VVLocNet(nn.Module):
             h.update(f"{name}|{t.dtype}|{tuple(t.shape)}|".encode())
             h.update(t.reshape(-1).view(torch.uint8).numpy().tobytes())
         return h.hexdigest()
+
+    @property
+    def training_rig(self) -> list[Camera] | None:
+        """The cameras (image order) that the last run of :attr:`training_record` recording its
+        rig trained on (``runs[].rig``, written by ``vvloc train`` since 2026-12-05); None when
+        no run records one (weights from outside a run, or from an earlier vvloc)."""
+        runs = self.training_record.get("runs") if isinstance(self.training_record, dict) else None
+        for run in reversed(runs if isinstance(runs, list) else []):
+            rig = run.get("rig") if isinstance(run, dict) else None
+            if rig:
+                return [Camera.from_json(c) for c in rig]
+        return None
 
     # --- forward pieces --------------------------------------------------------------------
 

@@ -1,0 +1,112 @@
+"""How far one camera rig is from another: a query frame's from its map's, a map's from the rig
+its model was trained on.
+
+A network meets only the cameras it was trained with: each camera slot has its own learnt
+embedding, and the image features depend on how many pixels an object covers (the focal length)
+and on which way the camera looks. :func:`rig_difference` says, in words, where a rig leaves a
+reference rig by more than a :class:`RigTolerance`; an empty string means "the same rig" within
+it. Frames follow DESIGN.md §3 (ego x-forward/y-left/z-up, cameras OpenCV).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from vvloc.data.frame import Camera
+
+__all__ = ["SAME_MAP", "SAME_MODEL", "RigTolerance", "describe_rig", "rig_difference"]
+
+
+@dataclass(frozen=True)
+class RigTolerance:
+    """How far a rig may stray from a reference and still count as the same.
+
+    ``size`` and ``focal`` are relative (0.1: 10 % of the reference's image width/height, of
+    its fx/fy); ``principal`` is a share of the image size (cx, cy); ``angle`` (radians) and
+    ``shift`` (metres) bound each camera's turn and move from where the reference has it in
+    the ego frame.
+    """
+
+    size: float
+    focal: float
+    principal: float
+    angle: float
+    shift: float
+
+
+#: A query frame against its map's rig (:class:`vvloc.localize.Localizer`): the very rig, its
+#: calibration to rounding, except that a frame's own extrinsics may differ by a tilting
+#: vehicle's levelling (a few degrees) and motion compensation (speed × exposure gap, 0.4 m at
+#: 14 m/s and 30 ms): 14° and 1 m.
+SAME_MAP = RigTolerance(size=0.0, focal=1e-3, principal=1e-3, angle=0.25, shift=1.0)
+
+#: A map's rig against the rig the model was trained on: a recalibration or a copy of the rig on
+#: another vehicle (focal lengths within 10 %, principal points within 5 % of the image, image
+#: sizes within 10 %, cameras within 14° and 1 m) is the same rig to the networks; other
+#: cameras, another image size or another mounting is not.
+SAME_MODEL = RigTolerance(size=0.1, focal=0.1, principal=0.05, angle=0.25, shift=1.0)
+
+
+def describe_rig(cameras: Sequence[Camera]) -> str:
+    """A rig in a few words, e.g. ``"4 cameras of 160x96 px"``."""
+    sizes = sorted({f"{c.width}x{c.height}" for c in cameras})
+    n = len(cameras)
+    return f"{n} camera{'' if n == 1 else 's'} of {' / '.join(sizes)} px"
+
+
+def _rotation_angle(r: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+    """Angles (radians) of rotation matrices (..., 3, 3)."""
+    cos = (np.trace(r, axis1=-2, axis2=-1) - 1.0) / 2.0
+    return np.arccos(np.clip(cos, -1.0, 1.0))
+
+
+def rig_difference(
+    reference: Sequence[Camera],
+    K: npt.ArrayLike,
+    cam_to_ego: npt.ArrayLike,
+    size: tuple[int, int],
+    tolerance: RigTolerance,
+) -> str:
+    """Where a rig leaves ``reference`` by more than ``tolerance``, in words ("" when it does
+    not): the first of camera count, image size, intrinsics, mounting that differs.
+
+    Args:
+        reference: the reference rig's cameras, in image order (one image size: a vvloc rig).
+        K: (M, 3, 3) intrinsics of the rig compared, pixels, image order.
+        cam_to_ego: (M, 4, 4) camera-to-ego transforms of the rig compared, metres.
+        size: (width, height) of the compared rig's images, pixels.
+        tolerance: how far counts as the same rig (:data:`SAME_MAP`, :data:`SAME_MODEL`).
+    """
+    k = np.asarray(K, dtype=np.float64)
+    t = np.asarray(cam_to_ego, dtype=np.float64)
+    m = len(reference)
+    if k.shape[0] != m:
+        return f"{k.shape[0]} cameras, against {m}"
+    width, height = size
+    ref_w, ref_h = reference[0].width, reference[0].height
+    if abs(width - ref_w) > tolerance.size * ref_w or abs(height - ref_h) > tolerance.size * ref_h:
+        return f"images of {width}x{height} px, against {ref_w}x{ref_h}"
+    ref_k = np.stack([c.K for c in reference])
+    focal = np.abs(k[:, [0, 1], [0, 1]] / ref_k[:, [0, 1], [0, 1]] - 1.0)
+    principal = np.abs(k[:, [0, 1], [2, 2]] - ref_k[:, [0, 1], [2, 2]]) / np.array([ref_w, ref_h])
+    if (focal > tolerance.focal).any() or (principal > tolerance.principal).any():
+        i = int(np.argmax(np.maximum(focal.max(axis=1), principal.max(axis=1))))
+        return (
+            f"other intrinsics (camera {i}: fx, fy {k[i, 0, 0]:.1f}, {k[i, 1, 1]:.1f} px "
+            f"against {ref_k[i, 0, 0]:.1f}, {ref_k[i, 1, 1]:.1f})"
+        )
+    # each compared camera in the reference camera's frame: a turn and a move
+    ego_to_ref = np.linalg.inv(np.stack([c.cam_to_ego for c in reference]))
+    d = ego_to_ref @ t
+    angle = _rotation_angle(d[:, :3, :3])
+    shift = np.linalg.norm(d[:, :3, 3], axis=1)
+    if (angle > tolerance.angle).any() or (shift > tolerance.shift).any():
+        return (
+            f"cameras turned by up to {np.degrees(angle.max()):.1f}° and moved by up to "
+            f"{shift.max():.2f} m from where the other rig has them"
+        )
+    return ""

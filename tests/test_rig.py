@@ -1,0 +1,93 @@
+"""Rig comparison (vvloc.data.rig) on hand-made rigs: what counts as the same rig to a map and to
+a model, and what the difference is called."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from vvloc.data import Camera
+from vvloc.data.frame import stack_calibration
+from vvloc.data.rig import SAME_MAP, SAME_MODEL, describe_rig, rig_difference
+
+# OpenCV camera axes (x right, y down, z forward) in the ego frame (x forward, y left, z up) of
+# a camera looking forward
+FORWARD = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+
+
+def _camera(name: str, yaw_deg: float, width: int = 160, height: int = 96) -> Camera:
+    """A level camera 1.5 m up at the vehicle's centre, looking ``yaw_deg`` left of forward."""
+    t = np.eye(4)
+    t[:3, :3] = Rotation.from_euler("z", yaw_deg, degrees=True).as_matrix() @ FORWARD
+    t[2, 3] = 1.5
+    f = 0.6 * width
+    K = np.array([[f, 0.0, (width - 1) / 2], [0.0, f, (height - 1) / 2], [0.0, 0.0, 1.0]])
+    return Camera(name, width, height, K, t)
+
+
+RIG = [_camera(n, yaw) for n, yaw in (("front", 0), ("left", 90), ("back", 180), ("right", -90))]
+
+
+def _difference(cameras: list[Camera], tolerance=SAME_MODEL) -> str:
+    K, cam_to_ego = stack_calibration(cameras)
+    return rig_difference(RIG, K, cam_to_ego, (cameras[0].width, cameras[0].height), tolerance)
+
+
+def _with(i: int, *, K=None, turn_deg: float = 0.0, move: float = 0.0) -> list[Camera]:
+    """RIG with camera ``i`` given ``K``, turned about ego z and moved along ego x."""
+    cams = list(RIG)
+    c = cams[i]
+    t = c.cam_to_ego.copy()
+    t[:3, :3] = Rotation.from_euler("z", turn_deg, degrees=True).as_matrix() @ t[:3, :3]
+    t[0, 3] += move
+    cams[i] = Camera(c.name, c.width, c.height, c.K if K is None else K, t)
+    return cams
+
+
+@pytest.mark.parametrize("tolerance", [SAME_MAP, SAME_MODEL])
+def test_a_rig_is_the_same_as_itself(tolerance):
+    assert _difference(list(RIG), tolerance) == ""
+    assert describe_rig(RIG) == "4 cameras of 160x96 px"
+    assert describe_rig(RIG[:1]) == "1 camera of 160x96 px"
+
+
+def test_another_camera_count_or_image_size_is_another_rig():
+    assert _difference(RIG[:3]) == "3 cameras, against 4"
+    # the same cameras for images of half the size: the same geometry, other pixels
+    half = [c.resized(80, 48) for c in RIG]
+    assert _difference(half) == "images of 80x48 px, against 160x96"
+    # a few pixels of cropping are not, to a model; to a map (the very rig) they are
+    cropped = [c.resized(156, 96) for c in RIG]
+    assert _difference(cropped, SAME_MODEL) == ""
+    assert _difference(cropped, SAME_MAP) == "images of 156x96 px, against 160x96"
+
+
+def test_a_recalibration_is_the_same_rig_to_a_model_but_not_to_a_map():
+    K = RIG[2].K.copy()
+    K[0, 0] *= 1.05  # fx 5 % longer
+    K[1, 2] += 3.0  # cy 3 px lower (3 % of the height)
+    assert _difference(_with(2, K=K, turn_deg=3.0, move=0.2), SAME_MODEL) == ""
+    assert _difference(_with(2, K=K), SAME_MAP).startswith("other intrinsics (camera 2: fx, fy")
+    # focal length 20 % longer (a narrower lens) is another camera, named by its index
+    K[0, 0] = K[1, 1] = 1.2 * RIG[2].K[0, 0]
+    assert _difference(_with(2, K=K)) == (
+        "other intrinsics (camera 2: fx, fy 115.2, 115.2 px against 96.0, 96.0)"
+    )
+    # a principal point 10 % of the width off
+    K = RIG[1].K.copy()
+    K[0, 2] += 16.0
+    assert _difference(_with(1, K=K)).startswith("other intrinsics (camera 1:")
+
+
+def test_another_mounting_is_another_rig():
+    # within 14° and 1 m: a levelled tilting vehicle's frame, a rig copied on another vehicle
+    assert _difference(_with(0, turn_deg=10.0, move=0.9)) == ""
+    assert _difference(_with(3, turn_deg=20.0)) == (
+        "cameras turned by up to 20.0° and moved by up to 0.00 m from where the other rig has them"
+    )
+    assert _difference(_with(1, move=1.5)).endswith(
+        "moved by up to 1.50 m from where the other rig has them"
+    )
+    # the same cameras in another order: slots 0 and 2 hold each other's camera, turned 180°
+    assert "turned by up to 180.0°" in _difference([RIG[2], RIG[1], RIG[0], RIG[3]])
