@@ -69,7 +69,6 @@ from pathlib import Path
 from typing import Any
 
 from vvloc._io import atomic_write
-from vvloc.data.frame import Camera
 
 __all__ = [
     "TRAINING_FILE",
@@ -190,6 +189,8 @@ def validate_record(record: Any, source: str) -> dict[str, Any]:
         if not all(_seconds_ok(x.get("seconds")) for x in [run, *procs]):
             raise ValueError(f"{source}: runs[{k}]: 'seconds' must be a number or null")
         if "rig" in run:
+            from vvloc.data.frame import Camera  # here: vvloc.data loads scipy, the CLI must not
+
             try:
                 rig = run["rig"]
                 if not isinstance(rig, list) or not rig:
