@@ -78,6 +78,46 @@ def test_map_from_another_model_is_refused(map_file, tmp_path):
         Localizer.open(map_file, d)
 
 
+def test_a_map_whose_arrays_are_not_the_models_outputs_is_refused(map_file, model_dir):
+    from vvloc.localize import MapError
+
+    model = VVLocNet.load(model_dir)
+    cfg = model.config
+    with MapDatabase.open(map_file) as db:
+        rows = np.arange(len(db))
+        arrays = dict(
+            poses=db.poses,
+            timestamps=db.timestamps,
+            sessions="s0",
+            global_descriptors=db.global_descriptors,
+            local_descriptors=db.local_descriptors(rows),
+            bevs=db.bev(rows),
+        )
+    hashes = dict(
+        model_config=cfg.to_dict(),
+        config_hash=model.config_hash(),
+        weights_hash=model.weights_hash(),
+        grid_size=cfg.grid_size,
+    )
+    h, c = cfg.bev_height, cfg.channels
+    changes = [
+        ("bevs", arrays["bevs"][:, : h // 2, : h // 2], rf"BEVs are \({h // 2}, {h // 2}, {c}\)"),
+        ("bevs", arrays["bevs"][..., : c // 2], rf"BEVs are \({h}, {h}, {c // 2}\)"),
+        ("local_descriptors", arrays["local_descriptors"][..., : c // 2], "local-view desc"),
+        (
+            "global_descriptors",
+            arrays["global_descriptors"][:, :4],
+            r"global descriptors are \(4,\)",
+        ),
+    ]
+    for key, value, match in changes:
+        mem = MapDatabase.from_arrays(**{**arrays, key: value}, **hashes)
+        with pytest.raises(MapError, match=f"in-memory map: its {match}.* the model's"):
+            Localizer(model, mem)
+        with pytest.raises(MapError, match=f"in-memory map: its {match}"):
+            detect_loops(model, mem, radius=2.0, window=0, progress=False)
+
+
 def test_the_map_records_its_rig_and_the_localizer_compares_queries_with_it(
     tiny_world, map_file, model_dir, tmp_path
 ):

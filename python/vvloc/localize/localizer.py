@@ -265,8 +265,10 @@ def learned_matcher(
 
 def check_map_model(mapdb: MapDatabase, model: VVLocNet) -> None:
     """Refuse a map that ``model`` did not build: :class:`~vvloc.localize.mapdb.MapError` (a
-    ``ValueError``) when its config hash or its weights fingerprint differs from the model's;
-    a ``UserWarning`` when the map records no weights fingerprint (written by an older vvloc).
+    ``ValueError``) when its config hash or its weights fingerprint differs from the model's,
+    or its descriptors' or BEVs' shapes per keyframe are not the model's outputs'; a
+    ``UserWarning`` when the map records no weights fingerprint (written by an older vvloc),
+    and when its rig is not the model's training rig (:func:`check_training_rig`).
     """
     where = "in-memory map" if mapdb.path is None else f"map {mapdb.path}"
     if mapdb.config_hash != model.config_hash():
@@ -275,6 +277,23 @@ def check_map_model(mapdb: MapDatabase, model: VVLocNet) -> None:
             f"but the model is {model.config_hash()}; rebuild the map with this model"
         )
     check_weights(mapdb.weights_hash, model.weights_hash(), where)
+    # a map assembled from arrays (MapDatabase.from_arrays, MapWriter) records the model's
+    # hashes but may hold arrays of other networks: refused here, not as wrong poses later
+    cfg = model.config
+    shapes = [
+        ("global descriptors", (mapdb.global_dim,), (model.global_dim,)),
+        ("local-view descriptors", tuple(mapdb.local_shape), (cfg.num_angles, cfg.channels)),
+    ]
+    if mapdb.bev_shape is not None:
+        shapes.append(
+            ("BEVs", tuple(mapdb.bev_shape), (cfg.bev_height, cfg.bev_width, cfg.channels))
+        )
+    for what, got, want in shapes:
+        if got != want:
+            raise MapError(
+                f"{where}: its {what} are {got} per keyframe, the model's {want}: not the "
+                "outputs of this model's networks (build maps with build_map or vvloc map build)"
+            )
     if mapdb.rig is not None:
         check_training_rig(model, [Camera.from_json(c) for c in mapdb.rig], f"{where}'s rig")
 
