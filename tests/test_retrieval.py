@@ -257,6 +257,24 @@ def test_save_load_round_trip(tmp_path, dtype):
     assert os.listdir(tmp_path) == ["map.vvidx"]  # no temporary file left behind
 
 
+def test_save_replaces_a_file_as_every_vvloc_file_is_replaced(tmp_path):
+    x = clustered(40, 8, 3)
+    private = tmp_path / "private.vvidx"
+    private.write_bytes(b"old")
+    private.chmod(0o600)
+    DescriptorIndex(x).save(private)
+    assert private.stat().st_mode & 0o777 == 0o600  # a private file stays private
+    np.testing.assert_array_equal(DescriptorIndex.load(private).descriptors, x)
+    # a link's target is replaced, the link kept
+    target = tmp_path / "target.vvidx"
+    target.write_bytes(b"old")
+    link = tmp_path / "link.vvidx"
+    link.symlink_to(target)
+    DescriptorIndex(x).save(link)
+    assert link.is_symlink() and len(DescriptorIndex.load(target)) == 40
+    assert sorted(os.listdir(tmp_path)) == ["link.vvidx", "private.vvidx", "target.vvidx"]
+
+
 def test_truncated_or_corrupted_file_is_a_clear_error(tmp_path):
     path = tmp_path / "map.vvidx"
     DescriptorIndex(clustered(50, 8, 8)).save(path)

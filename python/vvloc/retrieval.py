@@ -32,6 +32,7 @@ import numpy as np
 import numpy.typing as npt
 
 from vvloc import _core
+from vvloc._io import atomic_write
 from vvloc.kernels import _as_f32, _positive_float, _positive_int
 
 DTYPES = ("float32", "float16", "bfloat16", "int8")
@@ -197,8 +198,13 @@ class DescriptorIndex:
         return self._inner.radius(q, float(r32), _exclusion(exclude, q.shape[0]))
 
     def save(self, path: str | os.PathLike[str]) -> None:
-        """Write the index atomically to ``path`` (format: ``vvloc_core::retrieval::format``)."""
-        self._inner.save(os.fspath(path))
+        """Write the index atomically to ``path`` (format: ``vvloc_core::retrieval::format``),
+        as every vvloc file is written (:class:`vvloc._io.AtomicPath`): a temporary sibling
+        renamed over ``path`` once complete, an existing file's mode kept, a symbolic link's
+        target replaced (the link kept), a device or pipe written into, never renamed over."""
+        data = self._inner.to_bytes()
+        with atomic_write(path, "wb") as f:
+            f.write(data)
 
     @staticmethod
     def load(path: str | os.PathLike[str]) -> DescriptorIndex:

@@ -13,6 +13,7 @@ use numpy::{
 };
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
+use pyo3::types::PyBytes;
 use std::sync::{RwLock, RwLockReadGuard};
 use vvloc_core::retrieval::{DescriptorIndex as CoreIndex, Dtype, Exclusion};
 
@@ -151,8 +152,11 @@ impl DescriptorIndex {
         ))
     }
 
-    fn save(&self, py: Python<'_>, path: std::path::PathBuf) -> PyResult<()> {
-        to_py(py.detach(|| self.read().save(&path)))
+    /// The index in the file format of `vvloc_core::retrieval::format` (the Python wrapper
+    /// writes it with vvloc's atomic writer, which keeps a file's mode and follows links).
+    fn to_bytes<'py>(&self, py: Python<'py>) -> Bound<'py, PyBytes> {
+        let bytes = py.detach(|| vvloc_core::retrieval::format::to_bytes(&self.read()));
+        PyBytes::new(py, &bytes)
     }
 
     #[staticmethod]

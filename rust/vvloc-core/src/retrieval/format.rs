@@ -127,7 +127,10 @@ pub fn from_bytes(bytes: &[u8]) -> Result<DescriptorIndex> {
 }
 
 impl DescriptorIndex {
-    /// Writes the index to `path` atomically (temporary sibling + rename).
+    /// Writes the index to `path` atomically (temporary sibling + rename). A plain version for
+    /// Rust callers: the new file has the default mode and a symbolic link at `path` is
+    /// replaced; Python's `DescriptorIndex.save` writes [`to_bytes`] with vvloc's atomic
+    /// writer instead (a file's mode kept, links followed, devices written into).
     pub fn save(&self, path: &Path) -> Result<()> {
         let bytes = to_bytes(self);
         let name = path
