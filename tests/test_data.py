@@ -233,6 +233,33 @@ def test_writer_leaves_nothing_behind_on_error(tmp_path):
         DatasetWriter(tmp_path / "ds", cams)
 
 
+def test_the_writer_refuses_what_the_reader_would_refuse_naming_the_argument(tmp_path):
+    cams = make_rig(2, W, H)
+    img = np.zeros((2, 3, H, W), np.uint8)
+    with DatasetWriter(tmp_path / "ds", cams) as w:
+        s = w.add_session("s0")
+        bad = [
+            (dict(pose=(np.nan, 0.0, 0.0)), ValueError, "pose: expected 3 finite numbers"),
+            (dict(pose=(0.0, 0.0, np.inf)), ValueError, "pose"),
+            (dict(pose=(0.0, 0.0)), ValueError, "pose"),
+            (dict(pose="0 0 0"), ValueError, "pose"),
+            (dict(timestamp=3000.7), ValueError, "timestamp: expected a whole number"),
+            (dict(timestamp="3000"), TypeError, "timestamp: expected an int"),
+            (dict(floor=1.9), ValueError, "floor: expected a whole number"),
+            (dict(floor=True), TypeError, "floor"),
+            (dict(z=np.nan), ValueError, "z: expected a finite height"),
+        ]
+        for change, error, match in bad:
+            args = {"timestamp": 1000, "pose": (0.0, 0.0, 0.0), **change}
+            kw = {k: change[k] for k in ("floor", "z") if k in change}
+            with pytest.raises(error, match=match):
+                s.add(args["timestamp"], args["pose"], img, **kw)
+        s.add(2000.0, np.array([1.0, 2.0, 0.5]), img, floor=np.int64(1), z=np.float32(-3.0))
+    (frame,) = open_dataset(tmp_path / "ds").session("s0")
+    assert (frame.t, frame.floor) == (0.002, 1)  # seconds
+    np.testing.assert_array_equal(frame.pose, [1.0, 2.0, 0.5])
+
+
 def test_an_interrupted_overwrite_keeps_the_old_dataset_whole(tmp_path, monkeypatch):
     """The old dataset is renamed aside, not deleted, until the new one is in place: an
     interrupt between the two renames puts it back (it was left half deleted before)."""

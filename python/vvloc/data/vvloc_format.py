@@ -290,6 +290,16 @@ def open_vvloc(root: str | os.PathLike[str]) -> Dataset:
 
 
 # ------------------------------------------------------------------------------------------ writer
+def _whole(value: Any, name: str) -> int:
+    """``value`` as an int when it is a whole number (an int, or a float without a fraction),
+    else ``TypeError``/``ValueError`` naming ``name``: a fraction is never cut silently."""
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+        raise TypeError(f"{name}: expected an int, got {type(value).__name__}")
+    if not (np.isfinite(value) and float(value).is_integer()):
+        raise ValueError(f"{name}: expected a whole number, got {value!r}")
+    return int(value)
+
+
 class SessionWriter:
     """Appends frames to one session of a :class:`DatasetWriter` (use via ``add_session``)."""
 
@@ -333,10 +343,21 @@ class SessionWriter:
         """
         from PIL import Image
 
-        ts = int(timestamp)
+        ts = _whole(timestamp, "timestamp")
         if self._last_ts is not None and ts <= self._last_ts:
             raise ValueError(f"timestamp: must increase, got {ts} after {self._last_ts}")
-        x, y, yaw = (float(v) for v in pose)
+        floor = _whole(floor, "floor")
+        try:
+            p = None if isinstance(pose, str) else np.asarray(pose, dtype=np.float64)
+        except (TypeError, ValueError):
+            p = None
+        if p is None or p.shape != (3,) or not np.isfinite(p).all():
+            raise ValueError(f"pose: expected 3 finite numbers (x, y, yaw) m, m, rad, got {pose!r}")
+        x, y, yaw = (float(v) for v in p)
+        if isinstance(z, bool) or not isinstance(z, (int, float, np.integer, np.floating)):
+            raise TypeError(f"z: expected a float (m), got {type(z).__name__}")
+        if not np.isfinite(z):
+            raise ValueError(f"z: expected a finite height (m), got {z!r}")
         m = len(self.cameras)
         h, w = self.cameras[0].height, self.cameras[0].width
         if images.dtype != np.uint8 or images.shape != (m, 3, h, w):
