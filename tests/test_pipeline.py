@@ -30,6 +30,7 @@ from vvloc.localize.localizer import (
     build_map,
     check_training_rig,
     encode_frames,
+    frames_to_tensors,
 )
 from vvloc.localize.loops import detect_loops, loop_candidates
 from vvloc.localize.metric import SearchConfig
@@ -337,6 +338,20 @@ def test_localize_poses_are_consistent_and_batch_equals_single(tiny_world, map_f
         assert abs(r.relative_pose[0]) <= 1.2 + 0.6 and abs(r.relative_pose[1]) <= 1.2 + 0.6
         assert set(r.timings_ms) == {"encode", "retrieve", "rerank", "metric"}
         assert r.accepted == (r.cost < 0.75)
+
+
+def test_frames_of_other_shapes_localize_in_one_call_as_alone(tiny_world, map_file, model_dir):
+    loc = Localizer.open(map_file, model_dir, top_k=3, search=SMALL_SEARCH)
+    f = open_dataset(tiny_world).session("s1")[2]
+    three = dataclasses.replace(f, images=f.images[:3], K=f.K[:3], cam_to_ego=f.cam_to_ego[:3])
+    with pytest.warns(UserWarning, match="from another rig"):  # once, for the 3-camera frame
+        batch = loc.localize_batch([f, three, f])
+    for frame, r in zip([f, three, f], batch, strict=True):
+        single = loc.localize(frame)
+        assert single.map_row == r.map_row
+        np.testing.assert_allclose(single.relative_pose, r.relative_pose, atol=1e-5)
+    with pytest.raises(ValueError, match=r"frames\[1\]: images \(3, 3, .*frames\[0\] \(4, 3"):
+        frames_to_tensors([f, three], torch.device("cpu"))
 
 
 def test_loop_candidates_exclude_temporal_neighbours(map_file):

@@ -86,9 +86,16 @@ def frames_to_tensors(
     frames: Sequence[Frame], device: torch.device
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Stack frames into model inputs: images (B, M, 3, H, W) uint8, K (B, M, 3, 3) float32,
-    cam_to_ego (B, M, 4, 4) float32, on ``device``."""
+    cam_to_ego (B, M, 4, 4) float32, on ``device``. The frames must share one image shape
+    (``ValueError`` naming the first that does not)."""
     if not frames:
         raise ValueError("frames: expected at least one frame")
+    for i, f in enumerate(frames):
+        if f.images.shape != frames[0].images.shape:
+            raise ValueError(
+                f"frames[{i}]: images {f.images.shape}, frames[0] {frames[0].images.shape}: "
+                "frames stacked into one batch must share camera count and image size"
+            )
     images = torch.from_numpy(np.stack([f.images for f in frames])).to(device)
     k = torch.from_numpy(np.stack([f.K for f in frames]).astype(np.float32)).to(device)
     t = torch.from_numpy(np.stack([f.cam_to_ego for f in frames]).astype(np.float32)).to(device)
@@ -142,7 +149,9 @@ def encode_frames(
     progress: bool = False,
     total: int | None = None,
 ) -> Encoded:
-    """Encode frames in batches (eval mode, no gradients); see :class:`Encoded`."""
+    """Encode frames in batches of up to ``batch_size`` (eval mode, no gradients); see
+    :class:`Encoded`. A frame whose images differ in shape (camera count, image size) from the
+    batch's begins a new batch."""
     model.eval()
     device = model_device(model)
     g_all: list[F32] = []
@@ -159,6 +168,8 @@ def encode_frames(
         batch.clear()
 
     for f in tqdm(frames, desc="encode", total=total, disable=not progress, leave=False):
+        if batch and f.images.shape != batch[0].images.shape:
+            flush()  # frames of another rig or image size stack only with their own kind
         batch.append(f)
         if len(batch) == batch_size:
             flush()
@@ -708,8 +719,9 @@ class Localizer:
     def localize_batch(
         self, frames: Sequence[Frame], *, batch_size: int = 8, progress: bool = False
     ) -> list[LocalizationResult]:
-        """Localize many frames: encoding is batched; results equal :meth:`localize`'s (to
-        float rounding: batches of other sizes sum in other orders, ~1e-8 in the cost).
+        """Localize many frames: encoding is batched (frames of another camera count or image
+        size in batches of their own); results equal :meth:`localize`'s (to float rounding:
+        batches of other sizes sum in other orders, ~1e-8 in the cost).
 
         Frames with non-finite calibration, or images that are not (M, 3, H, W) uint8 (or
         float in [0, 1]), are refused before any work (``ValueError`` naming the frame); frames
