@@ -186,6 +186,16 @@ def test_bad_arguments_name_the_argument():
         sequence_distance(g, sessions, seqs, one, np.array([8]), 1)
     with pytest.raises(ValueError, match="descriptors"):
         sequence_distance(g[0], sessions, seqs, one, one, 1)
+    with pytest.raises(TypeError, match="radius: expected a positive float, got str"):
+        descriptor_loop_candidates(g, sessions, seqs, radius="0.1")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="radius: expected a finite value > 0, got inf"):
+        descriptor_loop_candidates(g, sessions, seqs, radius=np.inf)
+    with pytest.raises(TypeError, match="window: expected an int >= 0, got float"):
+        descriptor_loop_candidates(g, sessions, seqs, window=1.7)  # type: ignore[arg-type]
+    # a radius beyond float32's range (the index's distances) takes every pair (window 0: no
+    # temporal neighbours)
+    every = descriptor_loop_candidates(g, sessions, seqs, radius=1e39, window=0)
+    assert len(every.i) == len(g) * (len(g) - 1) // 2
 
 
 def random_drives(n: int, sessions: int = 3, d: int = 16, seed: int = 0):
@@ -454,7 +464,7 @@ def test_loop_candidates_of_a_map_keep_one_floor_with_the_check():
     assert set(zip(seq_kept.i.tolist(), seq_kept.j.tolist(), strict=True)) <= pairs
     # one floor number per session: nothing to judge, the candidates are those without the check
     flat = descriptor_map(g, sessions, seqs)
-    with pytest.raises(ValueError, match=r"radius: expected > 0, got -0\.1"):
+    with pytest.raises(ValueError, match=r"radius: expected a finite value > 0, got -0\.1"):
         loop_candidates(db, radius=-0.1, check_floors=True)
     with pytest.raises(TypeError, match="check_floors"):
         loop_candidates(db, radius=0.1, check_floors="false")  # type: ignore[arg-type]

@@ -542,6 +542,18 @@ def test_detect_loops_api_returns_ids_and_costs(map_file, model_dir):
         with pytest.raises(TypeError, match="max_pairs"):
             detect_loops(model, db, max_pairs=2.5, **kw)  # type: ignore[arg-type]
         assert len(detect_loops(model, db, max_pairs=0, **kw).i) == 0
+        # every argument is checked up front, by name, even when no pair is left to verify
+        base = {"max_pairs": 0, "progress": False}
+        for change, error, match in [
+            ({"radius": "0.1"}, TypeError, "radius: expected a positive float, got str"),
+            ({"radius": float("inf")}, ValueError, "radius: expected a finite value > 0"),
+            ({"window": None}, TypeError, "window: expected an int >= 0, got NoneType"),
+            ({"window": 1.7}, TypeError, "window: expected an int >= 0, got float"),
+            ({"search": {"step": 0.6}}, TypeError, "search: expected a SearchConfig, got dict"),
+            ({"search": SearchConfig(step=-1.0)}, ValueError, "step: expected a finite value"),
+        ]:
+            with pytest.raises(error, match=match):
+                detect_loops(model, db, **{**base, **change})
 
 
 def test_loops_cli_removes_only_its_own_stale_trajectories(tmp_path):

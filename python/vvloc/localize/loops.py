@@ -143,6 +143,17 @@ def sequence_distance(
     return best
 
 
+#: The largest float32: the Rust index's radius queries compare float32 distances.
+F32_MAX = float(np.finfo(np.float32).max)
+
+
+def _radius_and_window(radius: Any, window: Any) -> tuple[float, int]:
+    """A loop detector's descriptor ``radius`` (a finite float > 0) and temporal ``window``
+    (an int >= 0: keyframes of one session this close in sequence number are neighbours, not
+    loops), named in the error otherwise."""
+    return _positive_float(radius, "radius"), _positive_int(window, "window", minimum=0)
+
+
 def descriptor_loop_candidates(
     descriptors: np.ndarray,
     sessions: np.ndarray,
@@ -156,16 +167,14 @@ def descriptor_loop_candidates(
     int): one radius query per row on the Rust index. ``sequence = L > 0`` also requires the
     pair's :func:`sequence_distance` with half-window L (and the same ``window``) to be below
     ``radius``."""
-    if not radius > 0:
-        raise ValueError(f"radius: expected > 0, got {radius}")
-    if window < 0:
-        raise ValueError(f"window: expected >= 0, got {window}")
+    radius, window = _radius_and_window(radius, window)
     sequence = _positive_int(sequence, "sequence", minimum=0)
     groups = np.asarray(sessions, dtype=np.int64)
     seq = np.asarray(seqs, dtype=np.int64)
     index = DescriptorIndex(descriptors, groups=groups, seqs=seq)
+    # the index compares float32 distances: a radius beyond float32's range takes every pair
     offsets, idx, dist = index.radius(
-        descriptors, radius, exclude=Exclusion(groups, seq, window=int(window))
+        descriptors, min(radius, F32_MAX), exclude=Exclusion(groups, seq, window=window)
     )
     qi = np.repeat(np.arange(len(groups), dtype=np.int64), np.diff(offsets))
     keep = qi < idx
@@ -495,13 +504,14 @@ def loop_candidates(
     everywhere, which the check reads as one floor per session: it then keeps every candidate,
     unless some sessions of the map do carry floor numbers (mixing them misjudges the pairs)."""
     g, sess, seq = mapdb.global_descriptors, mapdb.session_index, mapdb.seq
-    if not radius > 0:  # before the voters' radius is derived from it
-        raise ValueError(f"radius: expected > 0, got {radius}")
+    radius, window = _radius_and_window(radius, window)  # before the voters' radius
     if not isinstance(check_floors, (bool, np.bool_)):
         raise TypeError(f"check_floors: expected a bool, got {type(check_floors).__name__}")
     if not check_floors:
         return descriptor_loop_candidates(g, sess, seq, radius, window, sequence)
-    voters = descriptor_loop_candidates(g, sess, seq, FLOOR_VOTE_FACTOR * radius, window)
+    voters = descriptor_loop_candidates(
+        g, sess, seq, min(FLOOR_VOTE_FACTOR * radius, F32_MAX), window
+    )
     cand = voters.within(radius)
     sequence = _positive_int(sequence, "sequence", minimum=0)
     if sequence:
@@ -585,6 +595,10 @@ def detect_loops(
     """
     check_map_model(mapdb, model)
     cost_threshold = _cost_threshold(cost_threshold, "cost_threshold")
+    radius, window = _radius_and_window(radius, window)
+    if search is not None and not isinstance(search, SearchConfig):
+        raise TypeError(f"search: expected a SearchConfig, got {type(search).__name__}")
+    (search or SearchConfig()).validate()  # a bad one fails here, not at the first pair
     if max_pairs is not None:
         max_pairs = _positive_int(max_pairs, "max_pairs", minimum=0)
     if not mapdb.has_bev:
