@@ -290,6 +290,24 @@ def test_localizer_options_are_checked_up_front(map_file, model_dir, tiny_world,
         Localizer(model, db, top_k=1, min_distinctiveness=0.1, search=SMALL_SEARCH)
     with pytest.raises(TypeError, match="sessions: expected a list"):
         build_map(model, open_dataset(tiny_world), "s0", map_file.parent / "x.h5")
+    # a path where an object belongs, or a batch size that is not one, is named
+    ds = open_dataset(tiny_world)
+    for call, error, match in [
+        (lambda: build_map(model, str(tiny_world), ["s0"], tmp_path / "x.h5"), TypeError,
+         r"dataset: expected a vvloc dataset \(vvloc.data.open_dataset\(path\)\), got str"),
+        (lambda: build_map(str(model_dir), ds, ["s0"], tmp_path / "x.h5"), TypeError,
+         r"model: expected a VVLocNet \(VVLocNet.load\(checkpoint\)\), got str"),
+        (lambda: build_map(model, ds, ["s0"], tmp_path / "x.h5", batch_size=0), ValueError,
+         "batch_size: expected an int >= 1, got 0"),
+        (lambda: build_map(model, ds, ["s0"], tmp_path / "x.h5", batch_size=2.0), TypeError,
+         "batch_size"),
+        (lambda: Localizer(model, str(map_file)), TypeError,
+         r"mapdb: expected a MapDatabase \(MapDatabase.open\(path\), or Localizer.open"),
+        (lambda: Localizer(None, db), TypeError, "model: expected a VVLocNet"),
+    ]:  # fmt: skip
+        with pytest.raises(error, match=match):
+            call()
+    assert not (tmp_path / "x.h5").exists()
     from vvloc.data import DatasetWriter
 
     with DatasetWriter(tmp_path / "empty", open_dataset(tiny_world).cameras) as w:

@@ -47,7 +47,7 @@ from tqdm import tqdm
 
 from vvloc import geometry, kernels
 from vvloc.checkpoints import resolve_checkpoint
-from vvloc.data import Camera, Frame
+from vvloc.data import Camera, Dataset, Frame
 from vvloc.data.frame import stack_calibration
 from vvloc.data.rig import SAME_MAP, SAME_MODEL, describe_rig, rig_difference
 from vvloc.localize.mapdb import MapDatabase, MapError, MapWriter, check_weights
@@ -272,6 +272,14 @@ def learned_matcher(
         return a.float().cpu().numpy(), b.float().cpu().numpy()
 
     return decode, interact
+
+
+def _check_model(model: Any) -> None:
+    """``TypeError`` naming ``model`` when it is not a :class:`VVLocNet`."""
+    if not isinstance(model, VVLocNet):
+        raise TypeError(
+            f"model: expected a VVLocNet (VVLocNet.load(checkpoint)), got {type(model).__name__}"
+        )
 
 
 def check_map_model(mapdb: MapDatabase, model: VVLocNet) -> None:
@@ -517,6 +525,12 @@ class Localizer:
             raise TypeError(f"metric_from: expected a str, got {type(metric_from).__name__}")
         if metric_from not in METRIC_FROM:
             raise ValueError(f"metric_from: expected one of {METRIC_FROM}, got {metric_from!r}")
+        _check_model(model)
+        if not isinstance(mapdb, MapDatabase):
+            raise TypeError(
+                f"mapdb: expected a MapDatabase (MapDatabase.open(path), or Localizer.open(map "
+                f"path, checkpoint)), got {type(mapdb).__name__}"
+            )
         check_map_model(mapdb, model)
         self.model = model.eval()
         self.map = mapdb
@@ -853,7 +867,7 @@ class Localizer:
 
 def build_map(
     model: VVLocNet,
-    dataset: Any,
+    dataset: Dataset,
     sessions: Sequence[str],
     out: str | os.PathLike[str],
     *,
@@ -866,6 +880,13 @@ def build_map(
     atomically). ``store_bev`` keeps the float16 BEVs that loop-closure detection needs. Keyframe
     ids are the running row numbers, sequence numbers each frame's index in its session; the
     map records the dataset's rig (its cameras), which the localizer compares queries with."""
+    _check_model(model)
+    if not isinstance(dataset, Dataset):
+        raise TypeError(
+            "dataset: expected a vvloc dataset (vvloc.data.open_dataset(path)), got "
+            f"{type(dataset).__name__}"
+        )
+    batch_size = kernels._positive_int(batch_size, "batch_size")
     if isinstance(sessions, str):
         raise TypeError(f"sessions: expected a list of session names, got the str {sessions!r}")
     if not sessions:
@@ -880,7 +901,7 @@ def build_map(
     total = sum(len(dataset.session(s)) for s in sessions)
     if total == 0:
         raise ValueError(f"sessions: {list(sessions)} hold no frames: a map needs keyframes")
-    cameras = list(getattr(dataset, "cameras", ()))
+    cameras = list(dataset.cameras)
     check_training_rig(model, cameras, "the dataset's rig")
     cfg = model.config
     with MapWriter(
