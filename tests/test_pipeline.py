@@ -285,6 +285,12 @@ def test_localizer_options_are_checked_up_front(map_file, model_dir, tiny_world,
         *(a.astype(np.float64) for a in (enc.global_desc[0], enc.local_desc[0], enc.bev[0]))
     )
     assert r64.cost == r32.cost and np.array_equal(r64.global_pose, r32.global_pose)
+    # values no encoder gives are refused by the argument's name, not by a kernel's
+    encoded = {"g": enc.global_desc[0], "loc": enc.local_desc[0], "bev": enc.bev[0]}
+    for name in encoded:
+        for scale, match in ((1e20, rf"{name}: values up to .* beyond ±1e\+06"), (np.nan, name)):
+            with pytest.raises(ValueError, match=match):
+                loc.localize_encoded(**{**encoded, name: encoded[name] * scale})
     # one candidate has distinctiveness 0: a calibration would accept nothing, and says so
     with pytest.warns(UserWarning, match="its distinctiveness is 0, below min_distinctiveness 0.1"):
         Localizer(model, db, top_k=1, min_distinctiveness=0.1, search=SMALL_SEARCH)

@@ -69,6 +69,12 @@ F32 = npt.NDArray[np.float32]
 METRIC_FROM = ("retrieval", "rerank")
 
 
+#: The largest magnitude :meth:`Localizer.localize_encoded` takes in an encoded query: the
+#: encoder's descriptors are L2-normalised and its BEVs of order 1, and products of values far
+#: beyond this overflow the float32 sums of retrieval and matching.
+MAX_ENCODED = 1e6
+
+
 @dataclass
 class Encoded:
     """Encoder outputs of N frames as numpy arrays (float32).
@@ -773,7 +779,8 @@ class Localizer:
     ) -> LocalizationResult:
         """Localize an already encoded query: global descriptor g (Dg,), local-view descriptor
         loc (T, C), BEV (H, W, C) (e.g. encoded in a batch on a GPU elsewhere), float32, of
-        the map's sizes (``ValueError`` naming the argument otherwise)."""
+        the map's sizes, finite and within ±:data:`MAX_ENCODED` (``ValueError`` naming the
+        argument otherwise)."""
         cfg = self.model.config
         want = {
             "g": (int(self.map.global_descriptors.shape[1]),),
@@ -786,6 +793,16 @@ class Localizer:
                 raise ValueError(f"{name}: expected shape {want[name]}, got {shape}")
         # float32 for the networks and kernels (a float64 loc reached the interactor as double)
         g, loc, bev = (kernels._as_f32(a, n) for a, n in ((g, "g"), (loc, "loc"), (bev, "bev")))
+        for name, arr in (("g", g), ("loc", loc), ("bev", bev)):
+            if not np.isfinite(arr).all():
+                raise ValueError(f"{name}: holds non-finite values (NaN or inf)")
+            top = float(np.abs(arr).max(initial=0.0))
+            if top > MAX_ENCODED:
+                raise ValueError(
+                    f"{name}: values up to {top:.3g}, beyond ±{MAX_ENCODED:g}: not the outputs of "
+                    "the encoder (its descriptors are L2-normalised, its BEVs of order 1), and "
+                    "float32 sums of their products overflow"
+                )
         timings = {"encode": t_encode_ms}
         t0 = time.perf_counter()
         rows, dist = self.retrieve(g)
