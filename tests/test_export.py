@@ -212,6 +212,8 @@ def test_read_g2o_skips_comments_and_other_tags(tmp_path: Path) -> None:
         ("VERTEX_SE2 0 0 0 0\nVERTEX_SE2 0 1 1 1\n", ":2: .*repeated"),
         ("EDGE_SE2 0 1 1 0 0 1 0 0 1 0\n", ":1: .*EDGE_SE2"),
         ("VERTEX_SE2 0 x 0 0\n", ":1: malformed"),
+        ("VERTEX_SE2 0 0 nan 0\n", ":1: malformed g2o line: non-finite value"),
+        ("EDGE_SE2 0 1 1 0 0 1 0 0 inf 0 1\n", ":1: malformed g2o line: non-finite value"),
     ],
 )
 def test_read_g2o_refuses_malformed_lines(tmp_path: Path, text: str, match: str) -> None:
@@ -328,6 +330,10 @@ def test_tum_validation_leaves_no_file(tmp_path: Path) -> None:
     bad.write_text("0 1 2 3 0 0 0\n")
     with pytest.raises(ValueError, match=r"bad\.txt:1: expected 8 fields"):
         read_tum(bad)
+    for value in ("nan", "inf", "-inf"):  # refused as the writer refuses them
+        bad.write_text(f"# header\n0 1 2 0 0 0 0 1\n1 {value} 2 0 0 0 0 1\n")
+        with pytest.raises(ValueError, match=r"bad\.txt:3: non-finite value"):
+            read_tum(bad)
 
 
 def test_tum_planar_header_and_wrapped_yaw(tmp_path: Path) -> None:

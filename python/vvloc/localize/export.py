@@ -509,6 +509,10 @@ def read_g2o(path: PathLike) -> G2OGraph:
             if not tok or tok[0].startswith("#"):
                 continue
             try:
+                if tok[0] in ("VERTEX_SE2", "EDGE_SE2") and not all(
+                    math.isfinite(float(t)) for t in tok[1:]
+                ):
+                    raise ValueError("non-finite value (nan or inf)")
                 if tok[0] == "VERTEX_SE2":
                     if len(tok) != 5:
                         raise ValueError(
@@ -627,9 +631,12 @@ def read_tum(path: PathLike) -> tuple[np.ndarray, np.ndarray]:
                     f"got {len(tok)}"
                 )
             try:
-                rows.append([float(v) for v in tok])
+                row = [float(v) for v in tok]
             except ValueError as e:
                 raise ValueError(f"{p}:{lineno}: malformed TUM line: {e}") from e
+            if not all(math.isfinite(v) for v in row):
+                raise ValueError(f"{p}:{lineno}: non-finite value (nan or inf) in a TUM line")
+            rows.append(row)
     a = np.array(rows, np.float64).reshape(-1, 8)
     q = a[:, 4:8]
     norm = np.linalg.norm(q, axis=1)
