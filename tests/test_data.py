@@ -248,6 +248,9 @@ def test_the_writer_refuses_what_the_reader_would_refuse_naming_the_argument(tmp
             (dict(floor=1.9), ValueError, "floor: expected a whole number"),
             (dict(floor=True), TypeError, "floor"),
             (dict(z=np.nan), ValueError, "z: expected a finite height"),
+            (dict(z=10**400), ValueError, "z: expected a finite height"),
+            (dict(timestamp=2**70), ValueError, "timestamp: expected a whole number within int64"),
+            (dict(timestamp=np.inf), ValueError, "timestamp: expected a whole number"),
         ]
         for change, error, match in bad:
             args = {"timestamp": 1000, "pose": (0.0, 0.0, 0.0), **change}

@@ -196,6 +196,14 @@ def test_bad_arguments_name_the_argument():
     # temporal neighbours)
     every = descriptor_loop_candidates(g, sessions, seqs, radius=1e39, window=0)
     assert len(every.i) == len(g) * (len(g) - 1) // 2
+    # one below float32's smallest distance takes the identical rows alone
+    twin = np.concatenate([g, g[:1]])
+    none = descriptor_loop_candidates(
+        twin, np.arange(len(twin)), np.zeros(len(twin), np.int64), 1e-50
+    )
+    assert (none.i.tolist(), none.j.tolist()) == ([0], [len(g)])
+    with pytest.raises(TypeError, match="window: expected an int >= 0, got float"):
+        sweep_radius(g, sessions, seqs, 10, window=1.7)  # type: ignore[arg-type]
 
 
 def random_drives(n: int, sessions: int = 3, d: int = 16, seed: int = 0):

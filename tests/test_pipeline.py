@@ -191,13 +191,14 @@ def test_a_rig_other_than_the_models_training_rig_is_warned_about_once(
     monkeypatch.setattr(localizer, "_WARNED_RIGS", set())
     ds = open_dataset(tiny_world)
     model = VVLocNet.load(model_dir)
-    assert model.training_rig is None  # saved outside a run: nothing to compare with
+    assert model.training_rigs is None  # saved outside a run: nothing to compare with
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         Localizer(model, MapDatabase.open(map_file), top_k=3).map.close()
     # weights trained on this rig: its map, and a recalibration of it, are the same rig
-    model.training_record = {"runs": [{"rig": [c.to_json() for c in ds.cameras]}]}
-    assert [c.to_json() for c in model.training_rig] == [c.to_json() for c in ds.cameras]
+    rig = [c.to_json() for c in ds.cameras]
+    model.training_record = {"runs": [{"rigs": [rig]}]}
+    assert [[c.to_json() for c in r] for r in model.training_rigs] == [rig]
     K, cam_to_ego = ds.cameras[0].K, ds.cameras[0].cam_to_ego
     with warnings.catch_warnings():
         warnings.simplefilter("error")
@@ -212,7 +213,7 @@ def test_a_rig_other_than_the_models_training_rig_is_warned_about_once(
     # weights trained on a 3-camera rig: building a map of the 4-camera dataset says so, and
     # localizing on that map in the same process does not say it again
     trained = VVLocNet.load(model_dir)
-    trained.training_record = {"runs": [{"rig": [c.to_json() for c in ds.cameras[1:]]}]}
+    trained.training_record = {"runs": [{"rigs": [rig]}, {"rigs": [rig[1:]]}]}  # the last run's
     ckpt = trained.save(tmp_path / "trained-on-3")
     trained = VVLocNet.load(ckpt)
     with pytest.warns(UserWarning) as caught:
@@ -222,6 +223,7 @@ def test_a_rig_other_than_the_models_training_rig_is_warned_about_once(
         "the dataset's rig is not the rig the model was trained on (4 cameras, against 3; "
         "trained on 3 cameras of 160x96 px)"
     )
+    assert caught[0].filename == __file__  # named at the line that called build_map
     assert "Train on this rig's data" in w
     with warnings.catch_warnings():
         warnings.simplefilter("error")
@@ -234,6 +236,14 @@ def test_a_rig_other_than_the_models_training_rig_is_warned_about_once(
     half = [c.resized(80, 48) for c in ds.cameras]
     with pytest.warns(UserWarning, match="half is not the rig"):
         assert check_training_rig(model, half, "half") == "images of 80x48 px, against 160x96"
+    # a run on two rigs (extra datasets of other cameras): a map of either is no surprise
+    model.training_record = {"runs": [{"rigs": [rig, [c.to_json() for c in half]]}]}
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert check_training_rig(model, half, "half") == ""
+        assert check_training_rig(model, ds.cameras, "full") == ""
+    with pytest.warns(UserWarning, match=r"\(3 cameras, against 4; .* px and 1 other rig\)"):
+        check_training_rig(model, ds.cameras[1:], "three")
 
 
 def test_localizer_options_are_checked_up_front(map_file, model_dir, tiny_world, tmp_path):
@@ -288,9 +298,8 @@ def test_localizer_options_are_checked_up_front(map_file, model_dir, tiny_world,
     # values no encoder gives are refused by the argument's name, not by a kernel's
     encoded = {"g": enc.global_desc[0], "loc": enc.local_desc[0], "bev": enc.bev[0]}
     for name in encoded:
-        for scale, match in ((1e20, rf"{name}: values up to .* beyond ±1e\+06"), (np.nan, name)):
-            with pytest.raises(ValueError, match=match):
-                loc.localize_encoded(**{**encoded, name: encoded[name] * scale})
+        with pytest.raises(ValueError, match=rf"{name}: values up to .* beyond ±1e\+06"):
+            loc.localize_encoded(**{**encoded, name: encoded[name] * 1e20})
     # one candidate has distinctiveness 0: a calibration would accept nothing, and says so
     with pytest.warns(UserWarning, match="its distinctiveness is 0, below min_distinctiveness 0.1"):
         Localizer(model, db, top_k=1, min_distinctiveness=0.1, search=SMALL_SEARCH)

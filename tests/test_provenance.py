@@ -83,19 +83,24 @@ def test_json_safe_replaces_non_finite_floats_only():
         ({"format": "vvloc.training", "version": 1, "runs": [{"processes": 3}]}, "processes"),
         ({"format": "vvloc.training", "version": 1, "runs": [{"seconds": "1"}]}, "'seconds'"),
         ({"format": "vvloc.training", "version": 1, "runs": []}, "'weights_hash'"),
-        ({"format": "vvloc.training", "version": 1, "runs": [{"rig": []}]}, r"runs\[0\].rig"),
-        ({"format": "vvloc.training", "version": 1, "runs": [{"rig": [3]}]}, r"runs\[0\].rig"),
+        ({"format": "vvloc.training", "version": 1, "runs": [{"rigs": []}]}, r"runs\[0\].rigs: "),
+        ({"format": "vvloc.training", "version": 1, "runs": [{"rigs": [[]]}]}, r"rigs\[0\]: "),
+        ({"format": "vvloc.training", "version": 1, "runs": [{"rigs": [[3]]}]}, r"rigs\[0\]: "),
         (
-            {"format": "vvloc.training", "version": 1, "runs": [{"rig": [{"name": "f"}]}]},
-            r"runs\[0\].rig: camera entry 'f' lacks keys",
+            {"format": "vvloc.training", "version": 1, "runs": [{"rigs": [[{"name": "f"}]]}]},
+            r"runs\[0\].rigs\[0\]: camera entry 'f' lacks keys",
         ),
         (
-            {"format": "vvloc.training", "version": 1, "runs": [{}, {"rig": [_cam(fx=-1.0)]}]},
-            r"runs\[1\].rig: camera 'front': K must be a pinhole",
+            {
+                "format": "vvloc.training",
+                "version": 1,
+                "runs": [{}, {"rigs": [[_cam()], [_cam(fx=-1.0)]]}],
+            },
+            r"runs\[1\].rigs\[1\]: camera 'front': K must be a pinhole",
         ),
         (
-            {"format": "vvloc.training", "version": 1, "runs": [{"rig": [_cam(), _cam(w=80)]}]},
-            "more than one image size",
+            {"format": "vvloc.training", "version": 1, "runs": [{"rigs": [[_cam(), _cam(w=80)]]}]},
+            r"rigs\[0\]: cameras of more than one image size",
         ),
     ],
 )

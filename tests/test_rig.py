@@ -77,7 +77,14 @@ def test_a_recalibration_is_the_same_rig_to_a_model_but_not_to_a_map():
     # a principal point 10 % of the width off
     K = RIG[1].K.copy()
     K[0, 2] += 16.0
-    assert _difference(_with(1, K=K)).startswith("other intrinsics (camera 1:")
+    assert _difference(_with(1, K=K)) == (
+        "other intrinsics (camera 1: cx, cy, skew 95.5, 47.5, 0.0 px against 79.5, 47.5, 0.0)"
+    )
+    # a skewed K (another camera model, a transposed calibration) is not the map's rig
+    K = RIG[3].K.copy()
+    K[0, 1] = 2.0
+    assert _difference(_with(3, K=K), SAME_MODEL) == ""
+    assert "camera 3: cx, cy, skew 79.5, 47.5, 2.0 px" in _difference(_with(3, K=K), SAME_MAP)
 
 
 def test_another_mounting_is_another_rig():

@@ -1035,7 +1035,7 @@ def test_every_checkpoint_records_the_runs_that_produced_it(tiny_world, tmp_path
     assert run["config"] == first.cfg.to_dict() and run["out"] == str(tmp_path / "a")
     # the cameras it trained on, which maps from another rig are checked against
     cameras = open_dataset(tiny_world).cameras
-    assert run["rig"] == [c.to_json() for c in cameras]
+    assert run["rigs"] == [[c.to_json() for c in cameras]]
     (proc,) = run["processes"]
     assert proc["hardware"] == hardware() and proc["device"] == "cpu"
     assert proc["device_name"] is None and proc["torch_threads"] == torch.get_num_threads()
@@ -1047,7 +1047,7 @@ def test_every_checkpoint_records_the_runs_that_produced_it(tiny_world, tmp_path
     # loading keeps the record, saving elsewhere keeps it with the weights
     loaded = VVLocNet.load(tmp_path / "a" / "checkpoint")
     assert loaded.training_record == {"runs": rec_a["runs"]}
-    assert [c.to_json() for c in loaded.training_rig] == run["rig"]
+    assert [[c.to_json() for c in r] for r in loaded.training_rigs] == run["rigs"]
     assert _record(loaded.save(tmp_path / "copy")) == rec_a
     # a run from that checkpoint carries its record first, then its own run; best/ is kept at
     # the first validated epoch (2 of 3) here

@@ -22,9 +22,11 @@ A *run* is one ``vvloc train --out DIR`` run, resumed or not::
      "seconds": 4021.3,                   # wall time of the run, s (null: not all measured)
      "processes": [<process>, ...],       # one per process that trained it (resume: several)
      "init_weights_hash": "<hash of the init_checkpoint's weights>" | null,
-     "rig": [<camera>, ...]}              # the cameras it trained on, image order, as the
-                                          # dataset's rig.json has them (Camera.to_json);
-                                          # absent in records written before 2026-12-05
+     "rigs": [[<camera>, ...], ...]}      # the rigs it trained on: each the cameras in
+                                          # image order as a rig.json has them
+                                          # (Camera.to_json), the dataset's first, then those
+                                          # of extra_datasets that differ; absent in records
+                                          # written before 2026-12-05
 
     <process> = {"hardware": "x86_64, 2 cores", "device": "cpu" | "cuda" (torch's type),
                  "device_name": null | "NVIDIA H200", "torch_threads": 2,
@@ -188,18 +190,21 @@ def validate_record(record: Any, source: str) -> dict[str, Any]:
             raise ValueError(f"{source}: runs[{k}].processes must be a list of objects")
         if not all(_seconds_ok(x.get("seconds")) for x in [run, *procs]):
             raise ValueError(f"{source}: runs[{k}]: 'seconds' must be a number or null")
-        if "rig" in run:
+        if "rigs" in run:
             from vvloc.data.frame import Camera  # here: vvloc.data loads scipy, the CLI must not
 
-            try:
-                rig = run["rig"]
-                if not isinstance(rig, list) or not rig:
-                    raise ValueError("expected a non-empty list of camera entries")
-                cams = [Camera.from_json(c) for c in rig]
-                if len({(c.width, c.height) for c in cams}) > 1:
-                    raise ValueError("cameras of more than one image size")
-            except (TypeError, ValueError, AttributeError) as e:
-                raise ValueError(f"{source}: runs[{k}].rig: {e}") from None
+            where, rigs = f"{source}: runs[{k}].rigs", run["rigs"]
+            if not isinstance(rigs, list) or not rigs:
+                raise ValueError(f"{where}: expected a non-empty list of rigs")
+            for r, rig in enumerate(rigs):
+                try:
+                    if not isinstance(rig, list) or not rig:
+                        raise ValueError("expected a non-empty list of camera entries")
+                    cams = [Camera.from_json(c) for c in rig]
+                    if len({(c.width, c.height) for c in cams}) > 1:
+                        raise ValueError("cameras of more than one image size")
+                except (TypeError, ValueError, AttributeError) as e:
+                    raise ValueError(f"{where}[{r}]: {e}") from None
     if not isinstance(record.get("weights_hash"), str):
         raise ValueError(f"{source}: 'weights_hash' must be a string")
     return record

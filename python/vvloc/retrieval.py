@@ -201,10 +201,11 @@ class DescriptorIndex:
         """Write the index atomically to ``path`` (format: ``vvloc_core::retrieval::format``),
         as every vvloc file is written (:class:`vvloc._io.AtomicPath`): a temporary sibling
         renamed over ``path`` once complete, an existing file's mode kept, a symbolic link's
-        target replaced (the link kept), a device or pipe written into, never renamed over."""
-        data = self._inner.to_bytes()
+        target replaced (the link kept), a device or pipe written into, never renamed over.
+        The destination is checked before the index is serialised; the serialised bytes are
+        held in memory while they are written (about N · d · the storage dtype's bytes)."""
         with atomic_write(path, "wb") as f:
-            f.write(data)
+            f.write(self._inner.to_bytes())
 
     @staticmethod
     def load(path: str | os.PathLike[str]) -> DescriptorIndex:

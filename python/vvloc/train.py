@@ -1209,13 +1209,23 @@ class Trainer:
             "seconds": None if None in seconds else round(sum(seconds), 1),
             "processes": procs,
             "init_weights_hash": self.init_weights_hash,
-            # the cameras the networks met (extra datasets share them): a map from another
-            # rig is warned about (vvloc.localize.check_training_rig)
-            "rig": [c.to_json() for c in self.ds.cameras],
+            # the rigs the networks met (the dataset's, then other ones of extra datasets): a
+            # map from another is warned about (vvloc.localize.localizer.check_training_rig)
+            "rigs": self._rigs(),
         }
         if self.joint_stopped is not None:
             run["joint_stopped_early"] = self.joint_stopped
         return {"runs": [*self.earlier_runs, run]}
+
+    def _rigs(self) -> list[list[dict[str, Any]]]:
+        """The distinct rigs of the training datasets (``Camera.to_json`` entries in image
+        order), ``dataset``'s first."""
+        rigs: list[list[dict[str, Any]]] = []
+        for ds in self._datasets:
+            rig = [c.to_json() for c in ds.cameras]
+            if rig not in rigs:
+                rigs.append(rig)
+        return rigs
 
     def _saved_record(self, folder: Path) -> dict[str, Any] | None:
         """``folder``'s ``training.json`` as this trainer wrote it, or None (with a warning when

@@ -26,7 +26,8 @@ class RigTolerance:
     """How far a rig may stray from a reference and still count as the same.
 
     ``size`` and ``focal`` are relative (0.1: 10 % of the reference's image width/height, of
-    its fx/fy); ``principal`` is a share of the image size (cx, cy); ``angle`` (radians) and
+    its fx/fy); ``principal`` is a share of the image size (cx and the skew of the width, cy of
+    the height); ``angle`` (radians) and
     ``shift`` (metres) bound each camera's turn and move from where the reference has it in
     the ego frame.
     """
@@ -64,6 +65,13 @@ def _rotation_angle(r: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
     return np.arccos(np.clip(cos, -1.0, 1.0))
 
 
+def _entries(k: npt.NDArray[np.float64], what: str) -> list[float]:
+    """The entries of one K (3, 3) that ``what`` names ("fx, fy" or "cx, cy, skew")."""
+    if what == "fx, fy":
+        return [float(k[0, 0]), float(k[1, 1])]
+    return [float(k[0, 2]), float(k[1, 2]), float(k[0, 1])]
+
+
 def rig_difference(
     reference: Sequence[Camera],
     K: npt.ArrayLike,
@@ -91,14 +99,19 @@ def rig_difference(
     if abs(width - ref_w) > tolerance.size * ref_w or abs(height - ref_h) > tolerance.size * ref_h:
         return f"images of {width}x{height} px, against {ref_w}x{ref_h}"
     ref_k = np.stack([c.K for c in reference])
+    # fx, fy relative to the reference's; cx, cy and the skew as shares of the image size
     focal = np.abs(k[:, [0, 1], [0, 1]] / ref_k[:, [0, 1], [0, 1]] - 1.0)
-    principal = np.abs(k[:, [0, 1], [2, 2]] - ref_k[:, [0, 1], [2, 2]]) / np.array([ref_w, ref_h])
-    if (focal > tolerance.focal).any() or (principal > tolerance.principal).any():
-        i = int(np.argmax(np.maximum(focal.max(axis=1), principal.max(axis=1))))
-        return (
-            f"other intrinsics (camera {i}: fx, fy {k[i, 0, 0]:.1f}, {k[i, 1, 1]:.1f} px "
-            f"against {ref_k[i, 0, 0]:.1f}, {ref_k[i, 1, 1]:.1f})"
-        )
+    offset = np.abs(k[:, [0, 1, 0], [2, 2, 1]] - ref_k[:, [0, 1, 0], [2, 2, 1]])
+    offset /= np.array([ref_w, ref_h, ref_w])
+    for values, bound, what in (
+        (focal, tolerance.focal, "fx, fy"),
+        (offset, tolerance.principal, "cx, cy, skew"),
+    ):
+        if (values > bound).any():
+            i = int(np.argmax(values.max(axis=1)))
+            ours = ", ".join(f"{v:.1f}" for v in _entries(k[i], what))
+            theirs = ", ".join(f"{v:.1f}" for v in _entries(ref_k[i], what))
+            return f"other intrinsics (camera {i}: {what} {ours} px against {theirs})"
     # each compared camera in the reference camera's frame: a turn and a move
     ego_to_ref = np.linalg.inv(np.stack([c.cam_to_ego for c in reference]))
     d = ego_to_ref @ t

@@ -295,9 +295,12 @@ def _whole(value: Any, name: str) -> int:
     else ``TypeError``/``ValueError`` naming ``name``: a fraction is never cut silently."""
     if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
         raise TypeError(f"{name}: expected an int, got {type(value).__name__}")
-    if not (np.isfinite(value) and float(value).is_integer()):
-        raise ValueError(f"{name}: expected a whole number, got {value!r}")
-    return int(value)
+    if isinstance(value, (float, np.floating)) and not float(value).is_integer():
+        raise ValueError(f"{name}: expected a whole number, got {value!r}")  # nan, inf too
+    whole = int(value)
+    if not -(2**63) <= whole < 2**63:  # what the readers' int64 columns hold
+        raise ValueError(f"{name}: expected a whole number within int64, got {value!r}")
+    return whole
 
 
 class SessionWriter:
@@ -356,7 +359,11 @@ class SessionWriter:
         x, y, yaw = (float(v) for v in p)
         if isinstance(z, bool) or not isinstance(z, (int, float, np.integer, np.floating)):
             raise TypeError(f"z: expected a float (m), got {type(z).__name__}")
-        if not np.isfinite(z):
+        try:
+            finite = math.isfinite(z)
+        except OverflowError:  # an int beyond float's range
+            finite = False
+        if not finite:
             raise ValueError(f"z: expected a finite height (m), got {z!r}")
         m = len(self.cameras)
         h, w = self.cameras[0].height, self.cameras[0].width

@@ -70,8 +70,9 @@ METRIC_FROM = ("retrieval", "rerank")
 
 
 #: The largest magnitude :meth:`Localizer.localize_encoded` takes in an encoded query: the
-#: encoder's descriptors are L2-normalised and its BEVs of order 1, and products of values far
-#: beyond this overflow the float32 sums of retrieval and matching.
+#: encoder's global descriptors are L2-normalised and its local-view descriptors and BEVs of
+#: order 1, and products of values far beyond this overflow the float32 sums of retrieval and
+#: matching.
 MAX_ENCODED = 1e6
 
 
@@ -288,12 +289,14 @@ def _check_model(model: Any) -> None:
         )
 
 
-def check_map_model(mapdb: MapDatabase, model: VVLocNet) -> None:
+def check_map_model(mapdb: MapDatabase, model: VVLocNet, *, stacklevel: int = 2) -> None:
     """Refuse a map that ``model`` did not build: :class:`~vvloc.localize.mapdb.MapError` (a
     ``ValueError``) when its config hash or its weights fingerprint differs from the model's,
     or its descriptors' or BEVs' shapes per keyframe are not the model's outputs'; a
     ``UserWarning`` when the map records no weights fingerprint (written by an older vvloc),
-    and when its rig is not the model's training rig (:func:`check_training_rig`).
+    and when its rig is not the model's training rig (:func:`check_training_rig`; maps of
+    vvloc before 2026-12-05 record no rig and are not checked). ``stacklevel``: which frame
+    the warnings name, 1 the line calling this function, 2 (the default) its caller's.
     """
     where = "in-memory map" if mapdb.path is None else f"map {mapdb.path}"
     if mapdb.config_hash != model.config_hash():
@@ -320,7 +323,8 @@ def check_map_model(mapdb: MapDatabase, model: VVLocNet) -> None:
                 "outputs of this model's networks (build maps with build_map or vvloc map build)"
             )
     if mapdb.rig is not None:
-        check_training_rig(model, [Camera.from_json(c) for c in mapdb.rig], f"{where}'s rig")
+        rig = [Camera.from_json(c) for c in mapdb.rig]
+        check_training_rig(model, rig, f"{where}'s rig", stacklevel=stacklevel + 1)
 
 
 #: (weights fingerprint, rig) pairs warned about by :func:`check_training_rig`: building a map
@@ -328,32 +332,41 @@ def check_map_model(mapdb: MapDatabase, model: VVLocNet) -> None:
 _WARNED_RIGS: set[tuple[str, str]] = set()
 
 
-def check_training_rig(model: VVLocNet, cameras: Sequence[Camera], what: str) -> str:
+def check_training_rig(
+    model: VVLocNet, cameras: Sequence[Camera], what: str, *, stacklevel: int = 2
+) -> str:
     """Warn (``UserWarning``, once per weights and rig in a process) when ``cameras`` (image
-    order, one image size) leave the rig ``model`` was trained on
-    (:attr:`VVLocNet.training_rig`) by more than :data:`vvloc.data.rig.SAME_MODEL`: other
-    cameras, another image size or another mounting. The networks met only their training rig
-    (each camera slot has a learnt embedding), so descriptors and poses from another may be far
-    off, and nothing else would say so. ``what`` names the rig in the message ("map x.h5's
-    rig"). Returns the difference in words, "" when there is none or the model records no
-    training rig."""
-    trained = model.training_rig
-    if trained is None or not cameras:
+    order, one image size) leave every rig ``model`` was trained on
+    (:attr:`VVLocNet.training_rigs`) by more than :data:`vvloc.data.rig.SAME_MODEL`: other
+    cameras, another image size or another mounting. The networks met only their training
+    rigs (each camera slot has a learnt embedding), so descriptors and poses from another may
+    be far off, and nothing else would say so. ``what`` names the rig in the message ("map
+    x.h5's rig"); ``stacklevel``: which frame the warning names, 1 the line calling this
+    function, 2 (the default) its caller's. Returns the difference from the first training rig
+    in words, "" when one of them matches or the model records none."""
+    trained = model.training_rigs
+    if not trained or not cameras:
         return ""
     K, cam_to_ego = stack_calibration(cameras)
-    why = rig_difference(trained, K, cam_to_ego, (cameras[0].width, cameras[0].height), SAME_MODEL)
+    size = (cameras[0].width, cameras[0].height)
+    whys = [rig_difference(rig, K, cam_to_ego, size, SAME_MODEL) for rig in trained]
+    if "" in whys:
+        return ""
     key = (model.weights_hash(), json.dumps([c.to_json() for c in cameras]))
-    if why and key not in _WARNED_RIGS:
-        _WARNED_RIGS.add(key)
+    if key not in _WARNED_RIGS:
+        n = len(trained) - 1
+        others = f" and {n} other rig{'' if n == 1 else 's'}" if n else ""
         warnings.warn(
-            f"{what} is not the rig the model was trained on ({why}; trained on "
-            f"{describe_rig(trained)}): the networks met only their training rig, so their "
-            "descriptors and poses on this one may be far off. Train on this rig's data (README, "
-            "'Your own rig's data'), or measure the model on it with vvloc eval first",
+            f"{what} is not the rig the model was trained on ({whys[0]}; trained on "
+            f"{describe_rig(trained[0])}{others}): the networks met only their training rigs, "
+            "so their descriptors and poses on this one may be far off. Train on this rig's "
+            "data (README, 'Your own rig's data'), or measure the model on it with vvloc eval "
+            "first",
             UserWarning,
-            stacklevel=3,
+            stacklevel=stacklevel + 1,
         )
-    return why
+        _WARNED_RIGS.add(key)  # after the warning: one turned into an error is given again
+    return whys[0]
 
 
 @dataclass
@@ -537,7 +550,7 @@ class Localizer:
                 f"mapdb: expected a MapDatabase (MapDatabase.open(path), or Localizer.open(map "
                 f"path, checkpoint)), got {type(mapdb).__name__}"
             )
-        check_map_model(mapdb, model)
+        check_map_model(mapdb, model)  # its warnings name the line that made this localizer
         self.model = model.eval()
         self.map = mapdb
         self.top_k = kernels._positive_int(top_k, "top_k")
@@ -793,15 +806,13 @@ class Localizer:
                 raise ValueError(f"{name}: expected shape {want[name]}, got {shape}")
         # float32 for the networks and kernels (a float64 loc reached the interactor as double)
         g, loc, bev = (kernels._as_f32(a, n) for a, n in ((g, "g"), (loc, "loc"), (bev, "bev")))
-        for name, arr in (("g", g), ("loc", loc), ("bev", bev)):
-            if not np.isfinite(arr).all():
-                raise ValueError(f"{name}: holds non-finite values (NaN or inf)")
+        for name, arr in (("g", g), ("loc", loc), ("bev", bev)):  # finite: _as_f32 checks
             top = float(np.abs(arr).max(initial=0.0))
             if top > MAX_ENCODED:
                 raise ValueError(
                     f"{name}: values up to {top:.3g}, beyond ±{MAX_ENCODED:g}: not the outputs of "
-                    "the encoder (its descriptors are L2-normalised, its BEVs of order 1), and "
-                    "float32 sums of their products overflow"
+                    "the encoder (its global descriptors are L2-normalised, its local-view "
+                    "descriptors and BEVs of order 1), and float32 sums of their products overflow"
                 )
         timings = {"encode": t_encode_ms}
         t0 = time.perf_counter()
@@ -896,7 +907,11 @@ def build_map(
     """Encode every frame of ``sessions`` of ``dataset`` and write a map to ``out`` (HDF5,
     atomically). ``store_bev`` keeps the float16 BEVs that loop-closure detection needs. Keyframe
     ids are the running row numbers, sequence numbers each frame's index in its session; the
-    map records the dataset's rig (its cameras), which the localizer compares queries with."""
+    map records the dataset's rig (its cameras), which the localizer compares queries with.
+    ``TypeError`` when ``model`` is not a :class:`VVLocNet` or ``dataset`` not a
+    :class:`vvloc.data.Dataset` (``open_dataset(path)``), ``ValueError`` naming a bad
+    ``sessions`` or ``batch_size``; a ``UserWarning`` when the dataset's rig is not one the
+    model was trained on (:func:`check_training_rig`)."""
     _check_model(model)
     if not isinstance(dataset, Dataset):
         raise TypeError(
@@ -919,7 +934,7 @@ def build_map(
     if total == 0:
         raise ValueError(f"sessions: {list(sessions)} hold no frames: a map needs keyframes")
     cameras = list(dataset.cameras)
-    check_training_rig(model, cameras, "the dataset's rig")
+    check_training_rig(model, cameras, "the dataset's rig")  # named at build_map's caller
     cfg = model.config
     with MapWriter(
         out,

@@ -143,8 +143,12 @@ def sequence_distance(
     return best
 
 
-#: The largest float32: the Rust index's radius queries compare float32 distances.
-F32_MAX = float(np.finfo(np.float32).max)
+def _index_radius(radius: float) -> float:
+    """A radius (finite, > 0) for the Rust index's radius query, which compares float32
+    distances: one beyond float32's range takes every pair, one below its smallest subnormal
+    the identical rows alone, as the radius itself would."""
+    f32 = np.finfo(np.float32)
+    return min(max(radius, float(f32.smallest_subnormal)), float(f32.max))
 
 
 def _radius_and_window(radius: Any, window: Any) -> tuple[float, int]:
@@ -172,9 +176,8 @@ def descriptor_loop_candidates(
     groups = np.asarray(sessions, dtype=np.int64)
     seq = np.asarray(seqs, dtype=np.int64)
     index = DescriptorIndex(descriptors, groups=groups, seqs=seq)
-    # the index compares float32 distances: a radius beyond float32's range takes every pair
     offsets, idx, dist = index.radius(
-        descriptors, min(radius, F32_MAX), exclude=Exclusion(groups, seq, window=window)
+        descriptors, _index_radius(radius), exclude=Exclusion(groups, seq, window=window)
     )
     qi = np.repeat(np.arange(len(groups), dtype=np.int64), np.diff(offsets))
     keep = qi < idx
@@ -470,6 +473,7 @@ def sweep_radius(
     max_pairs = _positive_int(max_pairs, "max_pairs")
     sample = _positive_int(sample, "sample")
     r_max = _positive_float(r_max, "r_max")
+    window = _positive_int(window, "window", minimum=0)
     groups = np.asarray(sessions, dtype=np.int64)
     seq = np.asarray(seqs, dtype=np.int64)
     n = len(groups)
@@ -479,8 +483,8 @@ def sweep_radius(
     index = DescriptorIndex(descriptors, groups=groups, seqs=seq)
     _, _, dist = index.radius(
         np.asarray(descriptors)[rows],
-        r_max,
-        exclude=Exclusion(groups[rows], seq[rows], window=int(window)),
+        _index_radius(r_max),
+        exclude=Exclusion(groups[rows], seq[rows], window=window),
     )
     # directed neighbours of the sampled rows → undirected pairs of all rows
     allowed = max_pairs * 2 * len(rows) // n
@@ -510,7 +514,7 @@ def loop_candidates(
     if not check_floors:
         return descriptor_loop_candidates(g, sess, seq, radius, window, sequence)
     voters = descriptor_loop_candidates(
-        g, sess, seq, min(FLOOR_VOTE_FACTOR * radius, F32_MAX), window
+        g, sess, seq, _index_radius(FLOOR_VOTE_FACTOR * radius), window
     )
     cand = voters.within(radius)
     sequence = _positive_int(sequence, "sequence", minimum=0)

@@ -198,15 +198,17 @@ class VVLocNet(nn.Module):
         return h.hexdigest()
 
     @property
-    def training_rig(self) -> list[Camera] | None:
-        """The cameras (image order) that the last run of :attr:`training_record` recording its
-        rig trained on (``runs[].rig``, written by ``vvloc train`` since 2026-12-05); None when
-        no run records one (weights from outside a run, or from an earlier vvloc)."""
+    def training_rigs(self) -> list[list[Camera]] | None:
+        """The rigs (each its cameras in image order) that these weights were last trained on:
+        those of the last run of :attr:`training_record` that records them (``runs[].rigs``,
+        written by ``vvloc train`` since 2026-12-05; several when its extra datasets had other
+        cameras). After a fine-tuning on another rig that is the new rig alone. None when no
+        run records one (weights from outside a run, or from an earlier vvloc)."""
         runs = self.training_record.get("runs") if isinstance(self.training_record, dict) else None
         for run in reversed(runs if isinstance(runs, list) else []):
-            rig = run.get("rig") if isinstance(run, dict) else None
-            if rig:
-                return [Camera.from_json(c) for c in rig]
+            rigs = run.get("rigs") if isinstance(run, dict) else None
+            if rigs:
+                return [[Camera.from_json(c) for c in rig] for rig in rigs]
         return None
 
     # --- forward pieces --------------------------------------------------------------------
