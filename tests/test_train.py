@@ -1524,3 +1524,21 @@ def test_worker_processes_load_the_same_batches_as_the_main_process(tiny_world, 
     ):
         assert torch.equal(x, y), name
     assert np.array_equal(a.sampler.hard, b.sampler.hard)
+
+
+def test_a_run_records_each_distinct_rig_of_its_datasets():
+    """An extra dataset of another mounting (same camera count and image size, which batches
+    need) adds its rig to the record; one of the dataset's rig adds nothing."""
+    from types import SimpleNamespace
+
+    from vvloc.data import Camera
+    from vvloc.sim.rig import make_rig
+
+    rig = make_rig(4, 32, 24)
+    moved = [Camera(c.name, c.width, c.height, c.K, c.cam_to_ego) for c in rig]
+    lifted = moved[0].cam_to_ego.copy()
+    lifted[2, 3] += 0.5
+    moved[0] = Camera(moved[0].name, 32, 24, moved[0].K, lifted)
+    sets = [SimpleNamespace(cameras=c) for c in (rig, make_rig(4, 32, 24), moved)]
+    rigs = Trainer._rigs(SimpleNamespace(_datasets=sets))  # type: ignore[arg-type]
+    assert rigs == [[c.to_json() for c in rig], [c.to_json() for c in moved]]
