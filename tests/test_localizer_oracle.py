@@ -69,7 +69,7 @@ def test_localizer_recovers_the_query_world_pose(seed, metric_candidates, tmp_pa
     map_poses = np.array([(4.0 * k, 0.5 * k, rng.uniform(-np.pi, np.pi)) for k in range(5)])
     bevs = np.stack([bev_at(field, p) for p in map_poses])
     local = decode(kernels.polar_sample(bevs, T, R, G))
-    glob = rng.standard_normal((5, 16)).astype(np.float32)
+    glob = rng.standard_normal((5, model.global_dim)).astype(np.float32)
     glob /= np.linalg.norm(glob, axis=1, keepdims=True)
     path = _save_map(model, tmp_path, map_poses, glob, local)
     target = 2
@@ -88,16 +88,16 @@ def test_localizer_recovers_the_query_world_pose(seed, metric_candidates, tmp_pa
             metric_candidates=metric_candidates,
             metric_from="rerank",  # the query's global descriptor (zeros) tells nothing
         )
-        res = loc.localize_encoded(np.zeros(16, np.float32), q_local, q_bev)
+        res = loc.localize_encoded(np.zeros(model.global_dim, np.float32), q_local, q_bev)
         if metric_candidates > 1:
             # the first M re-ranked candidates are ordered by their coarse-stage cost, and the
             # lowest one is refined (snapping off: the order is the search's alone)
             kw = {"top_k": 5, "search": search, "decoder": "radial_mean", "snap": False}
             kw["metric_from"] = "rerank"
             one = Localizer(model, mapdb, metric_candidates=1, **kw)
-            ref = one.localize_encoded(np.zeros(16, np.float32), q_local, q_bev)
+            ref = one.localize_encoded(np.zeros(model.global_dim, np.float32), q_local, q_bev)
             many = Localizer(model, mapdb, metric_candidates=metric_candidates, **kw)
-            got = many.localize_encoded(np.zeros(16, np.float32), q_local, q_bev)
+            got = many.localize_encoded(np.zeros(model.global_dim, np.float32), q_local, q_bev)
             m = metric_candidates
             coarse = {}
             for row in ref.reranked[:m]:
@@ -129,7 +129,7 @@ def test_metric_candidates_are_the_first_of_the_chosen_ordering(metric_from, wei
     decode = RadialMeanDecoder()
     map_poses = np.array([(4.0 * k, 0.5 * k, rng.uniform(-np.pi, np.pi)) for k in range(5)])
     local = decode(kernels.polar_sample(np.stack([bev_at(field, p) for p in map_poses]), T, R, G))
-    glob = np.eye(5, 16, dtype=np.float32)
+    glob = np.eye(5, model.global_dim, dtype=np.float32)
     glob[3, 4] = glob[1, 3] = 0.5  # retrieval order from keyframe 4's descriptor: 4, 3, ...
     glob /= np.linalg.norm(glob, axis=1, keepdims=True)
     path = _save_map(model, tmp_path, map_poses, glob, local)
@@ -266,7 +266,7 @@ def test_snapping_reports_the_keyframe_nearest_to_the_metric_pose(upper_floor, t
     n = 6
     map_poses = np.array([(1.5 * k, 0.0, rng.uniform(-np.pi, np.pi)) for k in range(n)])
     local = decode(kernels.polar_sample(np.stack([bev_at(field, p) for p in map_poses]), T, R, G))
-    glob = np.eye(n, 16, dtype=np.float32)
+    glob = np.eye(n, model.global_dim, dtype=np.float32)
     floors = np.zeros(n, np.int64)
     if upper_floor:
         floors[3] = 1
