@@ -247,8 +247,9 @@ def test_the_writer_refuses_what_the_reader_would_refuse_naming_the_argument(tmp
             (dict(timestamp="3000"), TypeError, "timestamp: expected an int"),
             (dict(floor=1.9), ValueError, "floor: expected a whole number"),
             (dict(floor=True), TypeError, "floor"),
-            (dict(z=np.nan), ValueError, "z: expected a finite height"),
-            (dict(z=10**400), ValueError, "z: expected a finite height"),
+            (dict(z=np.nan), ValueError, "z: expected a finite value"),
+            (dict(z=10**400), ValueError, "z: expected a finite value"),
+            (dict(z="0"), TypeError, "z: expected a float"),
             (dict(timestamp=2**70), ValueError, "timestamp: expected a whole number within int64"),
             (dict(timestamp=np.inf), ValueError, "timestamp: expected a whole number"),
         ]

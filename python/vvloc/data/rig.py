@@ -27,9 +27,8 @@ class RigTolerance:
 
     ``size`` and ``focal`` are relative (0.1: 10 % of the reference's image width/height, of
     its fx/fy); ``principal`` is a share of the image size (cx and the skew of the width, cy of
-    the height); ``angle`` (radians) and
-    ``shift`` (metres) bound each camera's turn and move from where the reference has it in
-    the ego frame.
+    the height); ``angle`` (radians) and ``shift`` (metres) bound each camera's turn and move
+    from where the reference has it in the ego frame.
     """
 
     size: float

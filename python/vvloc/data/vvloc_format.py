@@ -34,6 +34,7 @@ import numpy as np
 from vvloc._io import list_entries
 from vvloc.data.frame import RIGID, Camera, Dataset, Session, is_rigid, load_rgb
 from vvloc.data.heading import heading_warning
+from vvloc.kernels import _finite_float
 
 FORMAT_NAME = "vvloc"
 FORMAT_VERSION = 1
@@ -357,14 +358,7 @@ class SessionWriter:
         if p is None or p.shape != (3,) or not np.isfinite(p).all():
             raise ValueError(f"pose: expected 3 finite numbers (x, y, yaw) m, m, rad, got {pose!r}")
         x, y, yaw = (float(v) for v in p)
-        if isinstance(z, bool) or not isinstance(z, (int, float, np.integer, np.floating)):
-            raise TypeError(f"z: expected a float (m), got {type(z).__name__}")
-        try:
-            finite = math.isfinite(z)
-        except OverflowError:  # an int beyond float's range
-            finite = False
-        if not finite:
-            raise ValueError(f"z: expected a finite height (m), got {z!r}")
+        z = _finite_float(z, "z")  # metres
         m = len(self.cameras)
         h, w = self.cameras[0].height, self.cameras[0].width
         if images.dtype != np.uint8 or images.shape != (m, 3, h, w):

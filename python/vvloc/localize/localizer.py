@@ -807,7 +807,7 @@ class Localizer:
         # float32 for the networks and kernels (a float64 loc reached the interactor as double)
         g, loc, bev = (kernels._as_f32(a, n) for a, n in ((g, "g"), (loc, "loc"), (bev, "bev")))
         for name, arr in (("g", g), ("loc", loc), ("bev", bev)):  # finite: _as_f32 checks
-            top = float(np.abs(arr).max(initial=0.0))
+            top = max(float(arr.max(initial=0.0)), -float(arr.min(initial=0.0)))  # no copy
             if top > MAX_ENCODED:
                 raise ValueError(
                     f"{name}: values up to {top:.3g}, beyond ±{MAX_ENCODED:g}: not the outputs of "
