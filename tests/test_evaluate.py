@@ -406,6 +406,15 @@ def test_a_perfect_self_loop_detector_scores_recall_one():
     ).at(0.1)  # (the pairs' order and orientation do not matter)
     four = ev.self_loop_closure_curve(pairs[:4], np.full(4, 0.05), pos, floors, sessions, seqs, 1)
     assert four.at(0.1)["recall"] == pytest.approx(0.8)
+    # a pair exactly at the threshold: accepted by the sweep's rule (≤), not by the loop
+    # detector's at its radius (strict: <), in the pair counts and the recall alike
+    tie = ev.self_loop_closure_curve(
+        pairs, np.array([0.05] * 4 + [0.1]), pos, floors, sessions, seqs, 1
+    )
+    assert (tie.at(0.1)["accepted"], tie.at(0.1)["recall"]) == (5, 1.0)
+    strict = tie.at(0.1, strict=True)
+    assert (strict["accepted"], strict["recall"]) == (4, pytest.approx(0.8))
+    assert tie.summary(0.1, strict=True)["at_threshold"] == strict
     # the one-sided reading (the pair's first frame only) is what causal / query-map data get
     one_sided = ev.loop_closure_curve(pairs, np.full(5, 0.05), pos, pos)
     assert one_sided.at(0.1)["recall"] == pytest.approx(0.5)

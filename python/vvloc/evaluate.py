@@ -495,8 +495,10 @@ class LoopClosureCurve:
         """The recall denominator: queries with at least one true revisit."""
         return int(self.query_first_true.shape[0])
 
-    def at(self, threshold: float) -> dict[str, Any]:
-        """Metrics when pairs with score ≤ ``threshold`` are accepted.
+    def at(self, threshold: float, *, strict: bool = False) -> dict[str, Any]:
+        """Metrics when pairs with score ≤ ``threshold`` are accepted (``strict``: score <
+        ``threshold``, the loop detector's rule at its radius; the two differ only for scores
+        exactly at the threshold).
 
         Returns ``{"threshold", "accepted", "true_accepted", "precision", "recall", "f1",
         "cfer"}``: precision = true accepted pairs / accepted pairs; recall = queries with ≥ 1
@@ -504,10 +506,12 @@ class LoopClosureCurve:
         CFER = accepted pairs joining different floors / accepted pairs. Undefined → ``nan``.
         """
         t = float(threshold)
-        k = int(np.searchsorted(self.distances, t, side="right"))
+        k = int(np.searchsorted(self.distances, t, side="left" if strict else "right"))
         tp = int(self.is_true[:k].sum())
         precision = _ratio(tp, k)
-        recall = _ratio((self.query_first_true <= t).sum(), self.num_positive_queries)
+        first = self.query_first_true
+        found = (first < t) if strict else (first <= t)
+        recall = _ratio(found.sum(), self.num_positive_queries)
         cfer = _ratio(self.is_cross_floor[:k].sum(), k) if self.has_floors else float("nan")
         return {
             "threshold": t,
@@ -580,9 +584,14 @@ class LoopClosureCurve:
         return {"target_recall": r} | point
 
     def summary(
-        self, threshold: float, recalls: tuple[float, ...] = SUMMARY_RECALLS
+        self,
+        threshold: float,
+        recalls: tuple[float, ...] = SUMMARY_RECALLS,
+        *,
+        strict: bool = False,
     ) -> dict[str, Any]:
-        """JSON-friendly: metrics :meth:`at` ``threshold``, ``best_f1``, :meth:`at_recall` of
+        """JSON-friendly: metrics :meth:`at` ``threshold`` (``strict`` as there), ``best_f1``,
+        :meth:`at_recall` of
         each of ``recalls`` (``at_recall``, a list), the counts (one sweep for all) and the
         precision–recall sweep itself at up to :data:`SUMMARY_SWEEP_POINTS` thresholds
         (``sweep``: :func:`thin_sweep` of :meth:`sweep`; it keeps the best-F1 point)."""
@@ -592,7 +601,7 @@ class LoopClosureCurve:
             "num_queries": self.num_queries,
             "num_positive_queries": self.num_positive_queries,
             "num_pairs": int(self.distances.size),
-            "at_threshold": self.at(threshold),
+            "at_threshold": self.at(threshold, strict=strict),
             "best_f1": self.best_f1(sweep),
             "at_recall": [self.at_recall(r, sweep) for r in recalls],
             "sweep": thin_sweep(sweep, SUMMARY_SWEEP_POINTS),

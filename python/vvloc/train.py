@@ -936,7 +936,7 @@ def loop_validation(
     curve = evaluate.self_loop_closure_curve(
         np.stack([cand.i, cand.j], axis=1), cand.distance, pos, floors, group, seq, window
     )
-    at = curve.at(radius)
+    at = curve.at(radius, strict=True)  # the detector's rule: distance < radius
     cross = int(curve.is_cross_floor[: int(at["accepted"])].sum())  # pairs sorted by distance
     return {
         "frames": len(frames),

@@ -273,8 +273,9 @@ def _loops(
             curve = evaluate.self_loop_closure_curve(
                 pairs, cand.distance, pos, floors, sess, seq, 10
             )
-            closure[name] = curve.summary(radius)
-            accepted = cand.distance <= radius  # the pairs the curve accepts at the radius
+            # at the radius, the pairs the detector accepts: distance < radius
+            closure[name] = curve.summary(radius, strict=True)
+            accepted = cand.distance < radius
             closure[name]["events"] = evaluate.cross_floor_events(
                 pairs[accepted], pos, floors, sess
             )
