@@ -179,6 +179,16 @@ def test_images_other_than_8_bit_are_refused_and_grey_or_alpha_converted(tmp_pat
         assert im.mode.startswith("I")
     with pytest.raises(DatasetFormatError, match=r"front/1000\.png: image mode .* not 8 bits"):
         open_dataset(root).session("s0")[0]
+    # a copy cut short: PIL reads the header and fails only when decoding, naming no file
+    Image.fromarray(rgb).save(png)
+    png.write_bytes(png.read_bytes()[: png.stat().st_size // 2])
+    with pytest.raises(
+        DatasetFormatError, match=r"front/1000\.png: not a readable image \(.*trunc"
+    ):
+        open_dataset(root).session("s0")[0]
+    png.write_text("not an image")
+    with pytest.raises(DatasetFormatError, match=r"front/1000\.png: not a readable image"):
+        open_dataset(root).session("s0")[0]
 
 
 def test_a_yaw_in_degrees_or_as_a_compass_heading_is_warned_about(tmp_path):

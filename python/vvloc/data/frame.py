@@ -327,17 +327,25 @@ def load_rgb(path: Path) -> np.ndarray:
 
     Raises:
         ValueError naming the file: an image of more than 8 bits per channel (16-bit PNG or
-            TIFF, float), which converting would clip to white.
+            TIFF, float), which converting would clip to white; a file that is not an image
+            or is damaged (truncated by an interrupted copy: PIL finds out only when it
+            decodes the pixels, and its message names no file).
+        FileNotFoundError: no such file.
     """
-    from PIL import Image
+    from PIL import Image, UnidentifiedImageError
 
-    with Image.open(path) as im:
-        if im.mode not in EIGHT_BIT_MODES:
-            raise ValueError(
-                f"{path}: image mode {im.mode!r} is not 8 bits per channel; vvloc reads 8-bit "
-                "RGB (or grey) images: scale it to 8 bits first"
-            )
-        return np.asarray(im.convert("RGB"), dtype=np.uint8)
+    try:
+        with Image.open(path) as im:
+            if im.mode not in EIGHT_BIT_MODES:
+                raise ValueError(
+                    f"{path}: image mode {im.mode!r} is not 8 bits per channel; vvloc reads "
+                    "8-bit RGB (or grey) images: scale it to 8 bits first"
+                )
+            return np.asarray(im.convert("RGB"), dtype=np.uint8)
+    except FileNotFoundError:
+        raise
+    except (UnidentifiedImageError, OSError, SyntaxError) as e:  # PIL's decoder errors
+        raise ValueError(f"{path}: not a readable image ({e})") from None
 
 
 #: What :func:`is_rigid` accepts, for error messages.
