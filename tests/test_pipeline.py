@@ -612,7 +612,7 @@ def test_calibrate_cli_scores_the_localizers_answers_and_never_loses_a_calibrati
 
     from vvloc.commands.demo import DEFAULT_MODEL
 
-    # the committed model on the tiny world (its training world, other sessions)
+    # the committed model on the tiny world (its training world)
     ckpt = tmp_path / "model"
     VVLocNet.load(DEFAULT_MODEL).save(ckpt)
     before = (ckpt / "calibration.json").read_bytes()
@@ -641,6 +641,9 @@ def test_calibrate_cli_scores_the_localizers_answers_and_never_loses_a_calibrati
     text = (ckpt / "calibration.json").read_text()
     cal = json.loads(text, parse_constant=lambda c: pytest.fail(f"not strict JSON: {c}"))
     assert cal["sessions"] == ["s1", "s2"] and cal["top_k"] == 5 and cal["database"] == "s0"
+    # the tiny world is the committed model's training world: its s1, s2 are drives it
+    # trained on, and calibrating on them is said to be too lenient, as vvloc eval says
+    assert "warning: --queries ['s1', 's2'] of" in r.stderr and "were trained on" in r.stderr
     assert cal["target_precision"] == 0.5 and cal["every"] == 4
     assert cal["localizer"] == {
         "metric_candidates": 3,

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -65,6 +66,7 @@ def calibrate(
     from vvloc.data import open_dataset
     from vvloc.data.sampling import check_query_sessions
     from vvloc.localize.calibrate import calibrate_localizer
+    from vvloc.localize.evaluation import trained_on
     from vvloc.localize.localizer import Localizer, build_map
     from vvloc.localize.mapdb import MapDatabase
     from vvloc.nets import VVLocNet
@@ -86,6 +88,15 @@ def calibrate(
         model = VVLocNet.load(ckpt).to(parse_device(device))
         ds = open_dataset(dataset)
         check_query_sessions(database, names)
+        seen = trained_on(model.training_record, dataset, names)
+        if seen:  # as vvloc eval says: a threshold measured on them accepts too much elsewhere
+            warnings.warn(
+                f"--queries {seen} of {dataset} were trained on (the checkpoint's training "
+                "record): a threshold measured on them is too lenient for new sessions; "
+                "calibrate on held-out sessions",
+                UserWarning,
+                stacklevel=1,
+            )
         for name in [database, *names]:
             ds.session(name)  # KeyError naming the known sessions
         frames = [f for name in names for f in ds.session(name)[::every]]  # loads only these
