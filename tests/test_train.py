@@ -450,7 +450,7 @@ def test_patience_stops_the_joint_stage_and_the_head_stage_follows(
     exe = [sys.executable, "-m", "vvloc.cli", "train", "--config", str(tmp_path / "cfg.yaml")]
     r = subprocess.run([*exe, "--out", str(tmp_path / "early"), "--resume"], capture_output=True)
     assert r.returncode == 0, r.stderr
-    assert b"trained 6 epochs;" in r.stdout
+    assert b"nothing to train: the run had done its 6 epochs;" in r.stdout  # not "trained"
     assert b"the joint stage stopped early after epoch 5 (patience 2)" in r.stdout
     longer = dataclasses.replace(cfg, stage2_epochs=9)
     with pytest.raises(ValueError, match="stopped its joint stage early after epoch 5"):
@@ -1210,6 +1210,7 @@ def test_cli_train_says_what_the_weights_were_trained_on(tiny_world, tmp_path):
     r = subprocess.run(exe, capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     assert f"trained on: cpu on {hardware()}; 1 run, " in r.stdout
+    assert "trained 1 epoch; latest checkpoint" in r.stdout
     # the captured log's progress shows real counts with the losses, and keeps the epoch's
     # last line (a bar refreshed by its losses printed 0/N at every step)
     counts = [
@@ -1224,6 +1225,12 @@ def test_cli_train_says_what_the_weights_were_trained_on(tiny_world, tmp_path):
     r = subprocess.run([*exe, "--resume"], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     assert "trained on: no training record for these weights" in r.stdout
+    assert "nothing to train: the run had done its 1 epoch;" in r.stdout
+    # a longer run resumed says which epochs this call trained
+    (tmp_path / "cfg.yaml").write_text(yaml.safe_dump({**cfg, "stage2_epochs": 1}))
+    r = subprocess.run([*exe, "--resume"], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert "trained epoch 2 (resumed after epoch 1); latest checkpoint" in r.stdout
 
 
 def test_the_smoke_config_trains_end_to_end(egl, tmp_path):

@@ -41,7 +41,15 @@ def train(
             resolve_device(device, argument="--device")  # refused by name before any work
             cfg = dataclasses.replace(cfg, device=device)
         trainer = run_training(cfg, out, resume=resume)
-    typer.echo(f"trained {trainer.epoch} epochs; latest checkpoint: {trainer.checkpoint_dir}")
+    start, end = int(trainer.process["epochs"][0]), trainer.epoch  # this process's epochs
+    if end == start:
+        done = f"nothing to train: the run had done its {end} epoch{'' if end == 1 else 's'}"
+    elif start:
+        which = f"epoch {end}" if end == start + 1 else f"epochs {start + 1}-{end}"
+        done = f"trained {which} (resumed after epoch {start})"
+    else:
+        done = f"trained {end} epoch{'' if end == 1 else 's'}"
+    typer.echo(f"{done}; latest checkpoint: {trainer.checkpoint_dir}")
     if trainer.joint_stopped is not None:
         typer.echo(
             f"the joint stage stopped early after epoch {trainer.joint_stopped} "
