@@ -1549,3 +1549,20 @@ def test_a_run_records_each_distinct_rig_of_its_datasets():
     sets = [SimpleNamespace(cameras=c) for c in (rig, make_rig(4, 32, 24), moved)]
     rigs = Trainer._rigs(SimpleNamespace(_datasets=sets))  # type: ignore[arg-type]
     assert rigs == [[c.to_json() for c in rig], [c.to_json() for c in moved]]
+
+
+def test_a_second_process_training_into_a_run_folder_is_refused(tiny_world, tmp_path):
+    """A run folder is held by the process training into it (flock on the folder: nothing is
+    left behind); another run into it, resumed or not, is refused before any work."""
+    from vvloc.train import run_lock
+
+    cfg = _config(tiny_world, stage1_epochs=1, stage2_epochs=0, device="cpu")
+    out = tmp_path / "run"
+    out.mkdir()
+    with run_lock(out):  # as the other process would hold it
+        for resume in (False, True):
+            with pytest.raises(ValueError, match="another process is training into"):
+                train(cfg, out, resume=resume, progress=False)
+        assert list(out.iterdir()) == []
+    tr = train(cfg, out, progress=False)  # let go: the folder trains
+    assert tr.epoch == 1 and not [p for p in out.iterdir() if p.name.endswith(".lock")]

@@ -2110,11 +2110,40 @@ def train(
     cfg = config if isinstance(config, TrainConfig) else TrainConfig.from_yaml(config)
     out = Path(out_dir)
     check_run_folder(cfg, out, resume)
-    trainer = Trainer(cfg, out_dir)
-    if resume and not trainer.resume():
-        raise FileNotFoundError(
-            f"--resume: no run to resume in {out_dir} (no trainer_state.pt); drop --resume "
-            "to start one"
-        )
-    trainer.fit(progress=progress)
+    out.mkdir(parents=True, exist_ok=True)
+    with run_lock(out):
+        check_run_folder(cfg, out, resume)  # again, now that no other run can change it
+        trainer = Trainer(cfg, out_dir)
+        if resume and not trainer.resume():
+            raise FileNotFoundError(
+                f"--resume: no run to resume in {out_dir} (no trainer_state.pt); drop --resume "
+                "to start one"
+            )
+        trainer.fit(progress=progress)
     return trainer
+
+
+@contextlib.contextmanager
+def run_lock(out: Path) -> Iterator[None]:
+    """Hold the run folder ``out`` (it exists) for one training process: an exclusive
+    ``flock`` on the folder itself, so no file is left behind and a killed process lets go at
+    once. A second ``vvloc train`` into the same folder (a ``--resume`` started while a run
+    goes on) is refused with ``ValueError`` instead of training the same epochs twice and
+    renaming the same checkpoints. Where ``fcntl`` is missing (Windows) nothing is locked."""
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - not a platform vvloc builds for
+        yield
+        return
+    fd = os.open(out, os.O_RDONLY)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise ValueError(
+                f"--out: another process is training into {out}; wait for it to end (then "
+                "--resume continues its run), or choose another --out"
+            ) from None
+        yield
+    finally:
+        os.close(fd)  # releases the lock
