@@ -570,8 +570,33 @@ def test_a_dataset_rendered_by_another_config_or_missing_val_sessions_are_clear_
     for other in others:
         with pytest.raises(ValueError, match=r"was rendered as .*'scene': 'parking'"):
             Trainer(_config(tiny_world, sim={**sim, "sessions": 3, **other}), tmp_path / "run")
-    with pytest.raises(KeyError, match="s7"):
-        Trainer(_config(tiny_world, train_sessions=["s0", "s1"], val_sessions=["s7"]), "unused")
+    # a session name that is wrong, repeated or empty is refused naming its key
+    bad = [
+        ({"train_sessions": ["s0", "s9"]}, r"train_sessions: \['s9'\] not in .*its sessions: s0"),
+        ({"val_sessions": ["s7"]}, r"val_sessions: \['s7'\] not in "),
+        ({"val_database": "s8"}, r"val_database: \['s8'\] not in [^(]*; its"),
+        ({"train_sessions": ["s0", "s1", "s0"]}, r"train_sessions: \['s0'\] named more than once"),
+    ]
+    for change, match in bad:
+        kw = {"train_sessions": ["s0", "s1"], "val_sessions": ["s2"], **change}
+        with pytest.raises(ValueError, match=match):
+            Trainer(_config(tiny_world, **kw), "unused")
+    # own data without the default map session: the message says the name was a default
+    renamed = tmp_path / "renamed"
+    shutil.copytree(tiny_world, renamed)
+    (renamed / "sessions" / "s0").rename(renamed / "sessions" / "map")
+    with pytest.raises(ValueError, match=r"val_database: \['s0'\] .*\(its default: set it"):
+        Trainer(_config(renamed, train_sessions=["s1"], val_sessions=["s2"]), "unused")
+    empty = tmp_path / "empty"
+    shutil.copytree(tiny_world, empty)
+    poses = empty / "sessions" / "s1" / "poses.csv"
+    poses.write_text(poses.read_text().splitlines()[0] + "\n")
+    for cam in (empty / "sessions" / "s1").iterdir():
+        if cam.is_dir():
+            shutil.rmtree(cam)
+            cam.mkdir()
+    with pytest.raises(ValueError, match=r"train_sessions: sessions \['s1'\] of .* hold no frames"):
+        Trainer(_config(empty, train_sessions=["s0", "s1"]), "unused")
 
 
 def test_init_checkpoint_starts_from_trained_weights_and_refuses_another_model(
@@ -1467,6 +1492,15 @@ def test_config_types_are_checked_by_name():
     for key, (value, match) in cases.items():
         with pytest.raises(ValueError, match=match):
             TrainConfig.from_dict({**base, key: value})
+    # NCLT's sessions are named by date, which unquoted YAML reads as dates
+    import yaml
+
+    for text, key in (
+        ("train_sessions: [2012-01-08]", "train_sessions"),
+        ("val_database: 2012-01-08", "val_database"),
+    ):
+        with pytest.raises(ValueError, match=rf"{key}: expected .*quote .*'2012-01-08'"):
+            TrainConfig.from_dict({**base, **yaml.safe_load(text)})
 
 
 def test_validation_without_a_query_near_the_map_is_refused(tiny_world, tmp_path, monkeypatch):

@@ -308,12 +308,16 @@ class TrainConfig:
         checks: dict[str, tuple[Any, str]] = {
             "int": (integer, "an int"),
             "float": (number, "a number"),
-            "str": (lambda v: isinstance(v, str), "a str"),
+            "str": (
+                lambda v: isinstance(v, str),
+                "a str (quote one YAML reads as a date or number: '2012-01-08')",
+            ),
             "int | None": (lambda v: v is None or integer(v), "an int or null"),
             "str | None": (lambda v: v is None or isinstance(v, str), "a str or null"),
             "list[str] | None": (
                 lambda v: v is None or (isinstance(v, list) and all(isinstance(x, str) for x in v)),
-                "a list of session names or null (write [s0], not s0)",
+                "a list of session names or null (write [s0], not s0; quote names YAML reads "
+                "as dates or numbers: ['2012-01-08'])",
             ),
             "list[int]": (
                 lambda v: isinstance(v, list) and all(integer(x) for x in v),
@@ -997,6 +1001,34 @@ def _ensure_dataset(dataset: str, sim: dict[str, Any] | None) -> None:
     simulate_dataset(root, **sim)
 
 
+def _check_session_keys(cfg: TrainConfig, ds: Any) -> None:
+    """Refuse, naming the config key, a session of ``train_sessions``, ``val_sessions`` or
+    ``val_database`` that ``ds`` (``cfg.dataset``) lacks, holds no frame of, or that the key
+    names twice: before any epoch, and not with the sampler's or validation's words."""
+    known = set(ds.sessions)
+    keys: list[tuple[str, list[str]]] = [("train_sessions", list(cfg.train_sessions or []))]
+    if cfg.val_sessions:
+        keys += [("val_sessions", list(cfg.val_sessions)), ("val_database", [cfg.val_database])]
+    for key, names in keys:
+        repeated = sorted({n for n in names if names.count(n) > 1})
+        if repeated:
+            raise ValueError(f"{key}: {repeated} named more than once")
+        missing = [n for n in names if n not in known]
+        if missing:
+            default = (
+                " (its default: set it to your map session)"
+                if (key == "val_database" and cfg.val_database == TrainConfig().val_database)
+                else ""
+            )
+            raise ValueError(
+                f"{key}: {missing} not in {cfg.dataset}{default}; its sessions: "
+                f"{list_entries(sorted(known), 12)}"
+            )
+        empty = [n for n in names if len(ds.session(n)) == 0]
+        if empty:
+            raise ValueError(f"{key}: sessions {empty} of {cfg.dataset} hold no frames")
+
+
 def _is_checkpoint(path: Path) -> bool:
     """Whether ``path`` is a checkpoint folder, or a run folder that holds one."""
     return (resolve_checkpoint(path) / "config.json").is_file()
@@ -1039,6 +1071,7 @@ class Trainer:
                     "(convert them to one rig size with vvloc convert)"
                 )
         self._datasets = [self.ds, *(d for d, _ in extra)]
+        _check_session_keys(cfg, self.ds)
         self.sampler = TripletSampler(
             self.ds,
             pos_radius=cfg.pos_radius,
