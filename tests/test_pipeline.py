@@ -1104,6 +1104,16 @@ def test_trained_on_reads_the_training_record(tmp_path, monkeypatch):
     assert trained_on(record, "data/lot-test", ["s1"]) == []  # another dataset
     assert trained_on({}, "data/lot", ["s1"]) == []  # no record (an earlier vvloc's weights)
     assert trained_on({"runs": [{"recorded": False}]}, "data/lot", ["s1"]) == []
+    # a run records where it ran: its relative dataset is found from any working directory
+    # (the record's cwd), as well as from the one it names relative to
+    ran = {"runs": [{"cwd": str(tmp_path), "config": {"dataset": "lot", "train_sessions": ["s1"]}}]}
+    assert trained_on(ran, tmp_path / "lot", ["s1", "s2"]) == ["s1"]
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    assert trained_on(ran, tmp_path / "lot", ["s1", "s2"]) == ["s1"]
+    assert trained_on(ran, "lot", ["s1"]) == ["s1"]  # elsewhere/lot, as the config's text reads
+    assert trained_on(ran, tmp_path / "other", ["s1"]) == []
 
 
 def _fake_render(root, sessions, lighting=None, **world):

@@ -5,6 +5,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import json
+import os
 import re
 import shutil
 from pathlib import Path
@@ -1058,6 +1059,7 @@ def test_every_checkpoint_records_the_runs_that_produced_it(tiny_world, tmp_path
     assert (run["epochs_run"], run["epochs"], run["weights_epoch"]) == (1, 1, 1)
     assert run["complete"] and run["init_weights_hash"] is None and run["seconds"] > 0
     assert run["config"] == first.cfg.to_dict() and run["out"] == str(tmp_path / "a")
+    assert run["cwd"] == os.getcwd()  # what its relative paths are relative to
     # the cameras it trained on, which maps from another rig are checked against
     cameras = open_dataset(tiny_world).cameras
     assert run["rigs"] == [[c.to_json() for c in cameras]]

@@ -12,6 +12,7 @@ saves (``checkpoint/`` and ``best/``), ``vvloc train`` prints its summary when i
 A *run* is one ``vvloc train --out DIR`` run, resumed or not::
 
     {"out": "runs/synth-small",           # --out as given (relative to where training ran)
+     "cwd": "/home/me/vvloc",             # where training ran (absent before 2026-12-05)
      "config": {...},                     # the resolved TrainConfig (paths as given)
      "epochs": 29,                        # the config's epochs: stage 1 + stage 2 + head stage
      "epochs_run": 29,                    # epochs trained when this file was written

@@ -1049,6 +1049,7 @@ class Trainer:
         t_setup = time.perf_counter()
         self.cfg = cfg
         self.out = Path(out_dir)
+        self.cwd = os.getcwd()  # the config's relative paths are read from here
         self.device = pick_device(cfg.device)
         if cfg.threads:
             torch.set_num_threads(int(cfg.threads))
@@ -1234,6 +1235,7 @@ class Trainer:
         seconds = [p["seconds"] for p in procs]
         run = {
             "out": str(self.out),
+            "cwd": self.cwd,  # what the config's relative paths are relative to
             "config": self.cfg.to_dict(),
             "epochs": self.cfg.epochs,
             "epochs_run": self.epoch,

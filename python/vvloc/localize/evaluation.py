@@ -325,7 +325,9 @@ def trained_on(
     (:mod:`vvloc.provenance`: the checkpoint's ``training.json``) trained on, as their configs'
     ``dataset`` / ``train_sessions`` and ``extra_datasets`` say (a source without
     ``train_sessions`` trained all its sessions). A session counts when the source is this
-    folder (paths compared from the working directory), or when ``vvloc sim`` rendered both:
+    folder (a relative path compared from the working directory, and from the run's own
+    ``cwd`` where the record has it: evaluating from elsewhere finds it too), or when
+    ``vvloc sim`` rendered both:
     the source's ``sim`` section renders this dataset's world (:func:`rendered_world`) and the
     session, by name, is a trained one whose plan (lighting, seed: ``session.json``) it shares.
     Such a session is the same drive through the same world under the same light and cars,
@@ -343,8 +345,12 @@ def trained_on(
             for e in cfg.get("extra_datasets") or []
             if isinstance(e, dict)
         ]
+        cwd = run.get("cwd")  # where the run resolved its relative paths (since 2026-12-05)
         for path, names, sim in sources:
-            if same_folder(path, dataset):
+            here = same_folder(path, dataset)
+            if not here and isinstance(cwd, str) and isinstance(path, str):
+                here = same_folder(os.path.join(cwd, path), dataset)  # joins only a relative one
+            if here:
                 trained.update(sessions if names is None else names)
             elif world is not None and isinstance(sim, dict) and sim_world(sim) == world:
                 candidates = sessions if names is None else [s for s in sessions if s in names]
