@@ -2145,16 +2145,22 @@ def train(
     cfg = config if isinstance(config, TrainConfig) else TrainConfig.from_yaml(config)
     out = Path(out_dir)
     check_run_folder(cfg, out, resume)
-    out.mkdir(parents=True, exist_ok=True)
-    with run_lock(out):
-        check_run_folder(cfg, out, resume)  # again, now that no other run can change it
-        trainer = Trainer(cfg, out_dir)
-        if resume and not trainer.resume():
-            raise FileNotFoundError(
-                f"--resume: no run to resume in {out_dir} (no trainer_state.pt); drop --resume "
-                "to start one"
-            )
-        trainer.fit(progress=progress)
+    created = not out.exists()
+    out.mkdir(parents=True, exist_ok=True)  # to lock it
+    try:
+        with run_lock(out):
+            check_run_folder(cfg, out, resume)  # again, now that no other run can change it
+            trainer = Trainer(cfg, out_dir)
+            if resume and not trainer.resume():
+                raise FileNotFoundError(
+                    f"--resume: no run to resume in {out_dir} (no trainer_state.pt); drop "
+                    "--resume to start one"
+                )
+            trainer.fit(progress=progress)
+    except BaseException:
+        if created and not any(out.iterdir()):  # a run refused before any work leaves no folder
+            out.rmdir()
+        raise
     return trainer
 
 
