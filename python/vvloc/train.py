@@ -1086,9 +1086,7 @@ class Trainer:
             cross_floor_same_session=cfg.cross_floor_same_session,
             anchor_shares=[e.get("anchor_share") for e in cfg.extra_datasets],
         )
-        if cfg.val_sessions:
-            for name in [cfg.val_database, *cfg.val_sessions]:
-                self.ds.session(name)  # KeyError naming the known sessions, before any epoch
+        if cfg.val_sessions:  # its sessions exist and hold frames: _check_session_keys
             kept = validation_query_count(
                 self.ds, cfg.val_database, cfg.val_sessions, cfg.val_every
             )
