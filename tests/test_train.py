@@ -1349,6 +1349,48 @@ def test_resume_refuses_other_data_and_names_a_differing_key(tiny_world, tmp_pat
         Trainer(cfg, out).resume()
 
 
+def test_resume_fingerprints_only_the_sessions_the_run_reads(tiny_world, tmp_path):
+    world = tmp_path / "world"
+    shutil.copytree(tiny_world, world)
+    cfg = _config(
+        world,
+        stage1_epochs=2,
+        stage2_epochs=0,
+        steps_per_epoch=2,
+        train_sessions=["s0", "s1"],
+        val_sessions=["s2"],
+    )
+    out = tmp_path / "run"
+    tr = Trainer(cfg, out)
+    tr.run_epoch(progress=False)
+    tr.save()
+    saved = torch.load(out / "trainer_state.pt", weights_only=False)["data"]
+    assert saved.startswith("v2:")
+    assert [label for label, _ in tr._read_sessions()] == ["s0", "s1", "val:s0", "val:s2"]
+    # a session another run will use, added to the folder, leaves this run resumable
+    shutil.copytree(world / "sessions" / "s2", world / "sessions" / "s9")
+    resumed = Trainer(cfg, out)
+    assert resumed.resume() and resumed.epoch == 1
+    assert resumed.data_fingerprint() == saved
+    # a state written before 2026-12-06 (every session of the folder hashed) says why
+    state = torch.load(out / "trainer_state.pt", weights_only=False)
+    legacy = resumed._legacy_data_fingerprint()
+    torch.save({**state, "data": legacy}, out / "trainer_state.pt")
+    assert Trainer(cfg, out).resume()  # the folder as it was when that state was written
+    shutil.rmtree(world / "sessions" / "s9")
+    with pytest.raises(ValueError, match="a session added since counts too"):
+        Trainer(cfg, out).resume()
+    # a validation session's poses are read: changing them is refused
+    torch.save(state, out / "trainer_state.pt")
+    poses = world / "sessions" / "s2" / "poses.csv"
+    rows = poses.read_text().splitlines()
+    head, first = rows[0], rows[1].split(",")
+    first[1] = str(float(first[1]) + 5.0)
+    poses.write_text("\n".join([head, ",".join(first), *rows[2:]]) + "\n")
+    with pytest.raises(ValueError, match="the training data changed"):
+        Trainer(cfg, out).resume()
+
+
 def test_a_non_finite_loss_stops_before_the_step(tiny_world, tmp_path, monkeypatch):
     import vvloc.train as train_module
 

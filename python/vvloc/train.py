@@ -79,6 +79,7 @@ from vvloc._io import atomic_write, list_entries
 from vvloc.checkpoints import resolve_checkpoint
 from vvloc.data import TripletSampler, open_dataset
 from vvloc.data.augment import PhotometricAugment
+from vvloc.data.frame import Session
 from vvloc.data.sampling import (
     check_query_sessions,
     inside_folder,
@@ -1029,6 +1030,14 @@ def _check_session_keys(cfg: TrainConfig, ds: Any) -> None:
             raise ValueError(f"{key}: sessions {empty} of {cfg.dataset} hold no frames")
 
 
+def _hash_session(h: Any, label: str, sess: Session) -> None:
+    """Feed ``label``, the length, the poses (float64) and the floors (int64) of ``sess`` to
+    the hash ``h`` (a ``hashlib`` object)."""
+    h.update(f"{label}:{len(sess)};".encode())
+    h.update(np.ascontiguousarray(sess.poses, dtype="<f8").tobytes())
+    h.update(np.ascontiguousarray(sess.floors, dtype="<i8").tobytes())
+
+
 def _is_checkpoint(path: Path) -> bool:
     """Whether ``path`` is a checkpoint folder, or a run folder that holds one."""
     return (resolve_checkpoint(path) / "config.json").is_file()
@@ -1399,16 +1408,37 @@ class Trainer:
         with atomic_write(self._state_path(), "wb") as fb:
             torch.save(state, fb)
 
+    def _read_sessions(self) -> list[tuple[str, Session]]:
+        """``(label, session)`` of every session the run reads: the sampler's training
+        sessions (in its order, extra datasets' labelled by their folder), then the validation
+        database and queries, then each ``val_loops`` entry's sessions."""
+        read = [(label, src.session(name)) for src, name, label in self.sampler.slots]
+        if self.cfg.val_sessions:
+            for name in [self.cfg.val_database, *self.cfg.val_sessions]:
+                read.append((f"val:{name}", self.ds.session(name)))
+        for k, (loop_ds, entry) in enumerate(self.loop_sets):
+            read += [
+                (f"val_loops[{k}]:{name}", loop_ds.session(name)) for name in entry["sessions"]
+            ]
+        return read
+
     def data_fingerprint(self) -> str:
-        """SHA-256 over the training datasets' sessions (names, lengths, poses, floors): what
-        the sampler's frame ids point into, compared on ``--resume``."""
+        """``"v2:"`` and a SHA-256 over the sessions the run reads (labels, lengths, poses,
+        floors; :meth:`_read_sessions`): what the sampler's frame ids and the validation point
+        into, compared on ``--resume``. A session the run does not read (one added to the
+        dataset folder for another run) leaves it as it was."""
+        h = hashlib.sha256()
+        for label, sess in self._read_sessions():
+            _hash_session(h, label, sess)
+        return f"v2:{h.hexdigest()}"
+
+    def _legacy_data_fingerprint(self) -> str:
+        """The fingerprint of trainer states written before 2026-12-06: a SHA-256 over every
+        session of the training datasets, read or not (compared on resuming such a state)."""
         h = hashlib.sha256()
         for ds in self._datasets:
             for name in ds.sessions:
-                sess = ds.session(name)
-                h.update(f"{name}:{len(sess)};".encode())
-                h.update(np.ascontiguousarray(sess.poses, dtype="<f8").tobytes())
-                h.update(np.ascontiguousarray(sess.floors, dtype="<i8").tobytes())
+                _hash_session(h, name, ds.session(name))
         return h.hexdigest()
 
     def resume(self) -> bool:
@@ -1478,12 +1508,20 @@ class Trainer:
                 f"init_checkpoint: {self.out}"
             )
         data = state.get("data")
-        if data is not None and data != self.data_fingerprint():
+        if data is not None and data.startswith("v2:") and data != self.data_fingerprint():
             raise ValueError(
                 f"{self._state_path()}: the training data changed since the run started (the "
-                "sessions' frames or poses differ); the sampler's pools would pair other "
-                "frames: use a new --out directory"
+                "frames, poses or floors of a training or validation session differ); the "
+                "sampler's pools would pair other frames: use a new --out directory"
             )
+        if data is not None and not data.startswith("v2:"):  # a state of before 2026-12-06
+            if data != self._legacy_data_fingerprint():
+                raise ValueError(
+                    f"{self._state_path()}: the training data changed since the run started "
+                    "(this run's state, written before vvloc 2026-12-06, fingerprints every "
+                    "session of the datasets' folders, so a session added since counts too); "
+                    "use a new --out directory, or remove the sessions added since"
+                )
         for folder in (self.checkpoint_dir, self.best_dir):  # a stop inside a folder's swap
             self._recover_folder(folder)
         loaded = VVLocNet.load(self.checkpoint_dir)

@@ -255,6 +255,12 @@ class TripletSampler:
             out.append(c[(world[c] == world[i]) & (self.level_of[c] != self.level_of[i])])
         return out
 
+    @property
+    def slots(self) -> list[tuple[Dataset, str, str]]:
+        """``(dataset, session name, label)`` of each session drawn from, in the order of
+        :attr:`sessions` (the primary dataset's first)."""
+        return list(self._slots)
+
     def __len__(self) -> int:
         """Number of frames indexed (global ids run from 0 to len - 1)."""
         return len(self.positions)
