@@ -114,9 +114,10 @@ def test_rerank_loss_hand_computed_and_zero_when_the_margin_is_met():
     # the negative's best roll: rows (1,0)->(0.6,0.8) sqrt(0.8), (0,1)->(0.6,0.8) sqrt(0.4)
     c_neg = (math.sqrt(0.8) + math.sqrt(0.4)) / 2
     assert losses.rerank_loss(model, a, pos, neg).item() == 0.0  # c_neg > 0 + 0.1
-    assert losses.rerank_loss(model, a, neg, pos).item() == pytest.approx(c_neg + 0.1, abs=1e-6)
+    # float32 (0.6 and 0.8 are not exact there; torch 2.15 lands 1.03e-6 from the float64 value)
+    assert losses.rerank_loss(model, a, neg, pos).item() == pytest.approx(c_neg + 0.1, abs=1e-5)
     assert losses.rerank_loss(model, a, pos, neg, margin=1.0).item() == pytest.approx(
-        1.0 - c_neg, abs=1e-6
+        1.0 - c_neg, abs=1e-5
     )
 
 
