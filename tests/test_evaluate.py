@@ -739,6 +739,11 @@ def test_plots_say_when_nothing_is_left_to_draw_and_svg_is_reproducible(tmp_path
     assert all(any(t.startswith("no data") for t in texts(f)) for f in figs[:3])
     assert figs[3].axes[0].lines[0].get_marker() == "o"  # one verified pair is drawn
     assert not texts(figs[3])
+    # pairs verified, every one across floors: the means leave them out, and the plot says so
+    viz.plot_confidence_curve(
+        tmp_path / "k2.png", {"kept_share": [0.5, 1.0], "mRRE_deg": nan[:2], "mRTE_m": nan[:2]}
+    )
+    assert texts(figs[-1]) == ["no data: no verified pair on one floor"]
     # Recall@N ticks are whole numbers; the yaw curve covers −180° as well as +180°
     viz.plot_recall_curves(tmp_path / "r2.png", {"G": (np.arange(1, 21), np.linspace(0, 1, 20))})
     ticks = figs[-1].axes[0].get_xticks()

@@ -367,7 +367,8 @@ def plot_confidence_curve(path: str | os.PathLike[str], curve: Mapping[str, npt.
     Args:
         path: output image.
         curve: ``vvloc.evaluate.confidence_curve`` output (``kept_share``, ``mRRE_deg``,
-            ``mRTE_m`` arrays of equal length).
+            ``mRTE_m`` arrays of equal length; the means are nan where every kept pair joins
+            two floors, which the means leave out).
     """
     kept = _vector(curve["kept_share"], "curve['kept_share']")
     rre = _vector(curve["mRRE_deg"], "curve['mRRE_deg']", kept.shape[0])
@@ -376,8 +377,10 @@ def plot_confidence_curve(path: str | os.PathLike[str], curve: Mapping[str, npt.
     ax = fig.add_subplot()
     # markers: a curve of one point (one verified pair) is otherwise not drawn
     ax.plot(100.0 * kept, rre, color="tab:blue", marker="o", markersize=2, label="mRRE (°)")
-    if not np.isfinite(rre).any():
+    if not len(kept):
         _no_data(ax, "no verified pair")
+    elif not np.isfinite(rre).any():  # pairs verified, each joining two floors (left out)
+        _no_data(ax, "no verified pair on one floor")
     ax.set_xlabel("pairs kept (%)")
     ax.set_ylabel("mRRE (°)", color="tab:blue")
     ax2 = ax.twinx()

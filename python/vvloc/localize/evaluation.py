@@ -221,7 +221,7 @@ def _loops(
     sweep_pairs: int,
 ) -> tuple[dict[str, Any], dict[str, Any], float, bool]:
     """Loop closure over all frames of ``sessions`` (one map with BEVs), accepted at descriptor
-    distance ≤ ``radius``: single keyframes (the paper's test) and, for ``sequence = L > 0``,
+    distance < ``radius``: single keyframes (the paper's test) and, for ``sequence = L > 0``,
     with the sequence-consistency check of half-window L (:mod:`vvloc.localize.loops`); each
     also with the floor check (:func:`vvloc.localize.loops.floor_consensus`: the session pairs'
     floor offsets voted by the single keyframes within ``FLOOR_VOTE_FACTOR`` × ``radius``; the
@@ -419,7 +419,7 @@ def run_evaluation(
     of the retrieval order or of the yaw re-ranking, ordered by coarse cost + ``retrieval_weight``
     × descriptor distance; the reported keyframe snapped to the metric pose).
     ``loops``: also loop closure over all frames of ``database`` + ``queries``, accepted at
-    global-descriptor distance ≤ ``loop_radius`` (the first ``loop_pairs`` verified metrically),
+    global-descriptor distance < ``loop_radius`` (the first ``loop_pairs`` verified metrically),
     for single keyframes and, when ``loop_sequence`` L > 0, with the sequence-consistency check
     of half-window L as well (:func:`vvloc.localize.loops.sequence_distance`). The loops'
     precision-recall sweep scores every pair within descriptor distance 0.5, or, when that
