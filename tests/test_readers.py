@@ -187,6 +187,35 @@ def test_nclt_reader_reports_bad_files(tmp_path):
         open_dataset(tmp_path, cameras=(1,))
 
 
+def test_nclt_reader_checks_its_options_and_the_raw_image_size(tmp_path):
+    _nclt(tmp_path, with_map=True)
+    for kw, err, match in (
+        ({"cameras": (1, 1)}, ValueError, r"cameras: \['1'\] listed more than once"),
+        ({"cameras": ()}, ValueError, "cameras: expected at least one camera"),
+        ({"cameras": 1}, TypeError, "cameras: expected a list"),
+        ({"cameras": (1,), "tolerance_us": -1}, ValueError, "tolerance_us: expected"),
+        ({"cameras": (1,), "tolerance_us": "50000"}, TypeError, "tolerance_us: expected an int"),
+        ({"cameras": (1,), "image_size": (96,)}, ValueError, "image_size: expected"),
+    ):
+        with pytest.raises(err, match=match):
+            open_dataset(tmp_path, **kw)
+    # the map reads the raw image's pixels: a raw image of another size is refused, not
+    # undistorted with a map for another size (nor cropped by it)
+    d = tmp_path / DATE / "lb3" / "Cam1"
+    Image.fromarray(np.zeros((30, 40, 3), np.uint8)).save(d / "1200000.tiff")
+    s = open_dataset(tmp_path, cameras=(1,)).session(DATE)
+    with pytest.raises(DatasetFormatError, match=r"1200000\.tiff: image is 40x30"):
+        s[1]
+    for t in (1_000_000, 1_400_000):
+        Image.fromarray(np.zeros((30, 40, 3), np.uint8)).save(d / f"{t}.tiff")
+    with pytest.raises(DatasetFormatError, match="the undistortion map is 8x6"):
+        open_dataset(tmp_path, cameras=(1,))
+    # a damaged map names its file
+    (tmp_path / "cam_params" / "U2D_Cam1_8X6.txt").write_text("8 6\n0 0 x 1\n")
+    with pytest.raises(DatasetFormatError, match=r"U2D_Cam1_8X6\.txt: malformed map line"):
+        open_dataset(tmp_path, cameras=(1,))
+
+
 def test_demosaic_is_exact_on_constant_and_linear_images():
     for pattern in ("rggb", "gbrg", "grbg", "bggr"):
         rgb = np.empty((8, 10, 3), np.uint8)
@@ -330,6 +359,34 @@ def test_oxford_reader_reports_bad_files(tmp_path):
         open_dataset(tmp_path, cameras=("roof",))
 
 
+def test_oxford_reader_refuses_what_it_would_read_wrong(tmp_path):
+    sess = _oxford(tmp_path)
+    with pytest.raises(ValueError, match="listed more than once"):
+        open_dataset(tmp_path, cameras=("stereo_centre", "stereo_centre"))
+    with pytest.raises(TypeError, match="cameras: expected a list"):
+        open_dataset(tmp_path, cameras="stereo_centre")
+    # a 16-bit mosaic would keep only its low 8 bits: refused, naming the file
+    first = sess / "stereo" / "centre" / "100.png"
+    good = first.read_bytes()
+    Image.fromarray(mosaic(np.full((6, 8, 3), 1000, np.uint16), "gbrg")).save(first)
+    s = open_dataset(tmp_path, cameras=("stereo_centre",)).session(sess.name)
+    with pytest.raises(DatasetFormatError, match=r"100\.png: image mode 'I;16' is not 8 bits"):
+        s[0]
+    # a damaged image, read lazily or when the reader opens: a DatasetFormatError naming it
+    first.write_bytes(good[:60])
+    s = open_dataset(tmp_path, cameras=("stereo_centre",)).session(sess.name)
+    with pytest.raises(DatasetFormatError, match=r"100\.png: not a readable image"):
+        s[0]
+    first.write_bytes(b"not a png")
+    with pytest.raises(DatasetFormatError, match=r"100\.png: not a readable image"):
+        open_dataset(tmp_path, cameras=("stereo_centre",))
+    first.write_bytes(good)
+    # a timestamp listed twice would give two frames of one image
+    (sess / "stereo.timestamps").write_text("100 1\n200000 1\n200000 1\n400000 1\n")
+    with pytest.raises(DatasetFormatError, match=r"stereo\.timestamps: timestamps listed more"):
+        open_dataset(tmp_path, cameras=("stereo_centre",))
+
+
 # ---------------------------------------------------------------------------------------------
 # conversion into the vvloc format
 
@@ -421,6 +478,85 @@ def test_convert_leaves_nothing_behind_on_failure(tmp_path, monkeypatch):
     with pytest.raises(OSError, match="disk went away"):
         convert_dataset(src, tmp_path / "a", cameras=(1,))
     assert sorted(p.name for p in tmp_path.iterdir()) == ["nclt"]  # no folder, no partial one
+
+
+def test_convert_refuses_before_reading_and_leaves_no_folder_it_made(tmp_path, monkeypatch):
+    import vvloc.data as data_module
+
+    src = tmp_path / "nclt"
+    _nclt(src)
+    with pytest.raises(TypeError, match="sessions: expected a list of session names"):
+        convert_dataset(src, tmp_path / "a", sessions=DATE, cameras=(1,))
+    # numpy scalars are numbers
+    out = convert_dataset(
+        src, tmp_path / "np", every=np.int64(1), min_distance=np.float32(0.5), cameras=(1,)
+    )
+    assert len(open_dataset(out).session(DATE)) == 2
+    # a non-empty out is refused before the (slow) source is read
+    opened = []
+    monkeypatch.setattr(data_module, "open_dataset", lambda *a, **k: opened.append(a))
+    with pytest.raises(FileExistsError, match="exists and is not empty"):
+        convert_dataset(src, out, cameras=(1,))
+    assert not opened
+    monkeypatch.undo()
+    # a session without any frame (no ground truth near its images) is refused, not written
+    gt = src / f"groundtruth_{DATE}.csv"
+    gt.write_text("5000000,1,2,3,0,0,0\n")
+    with pytest.raises(DatasetFormatError, match=r"sessions \['2012-01-08'\] hold no frame"):
+        convert_dataset(src, tmp_path / "new" / "deeper" / "out", cameras=(1,), tolerance_us=10)
+    # a failure leaves none of the folders the writer made above out
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["nclt", "np"]
+
+
+def test_the_writer_refuses_cameras_of_one_name_and_removes_parents_it_made(tmp_path):
+    from vvloc.data import DatasetWriter
+
+    cam = Camera("front", 8, 6, np.array([[4.0, 0, 3.5], [0, 4, 2.5], [0, 0, 1]]), np.eye(4))
+    with pytest.raises(ValueError, match=r"cameras: names \['front'\] repeated"):
+        DatasetWriter(tmp_path / "a", [cam, cam])
+    with pytest.raises(RuntimeError, match="stop"):
+        with DatasetWriter(tmp_path / "b" / "c" / "d", [cam]) as w:
+            w.add_session("s0").add(0, (0.0, 0.0, 0.0), np.zeros((1, 3, 6, 8), np.uint8))
+            raise RuntimeError("stop")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_converted_rendered_session_keeps_its_plan(tmp_path):
+    # the trained-on check of eval / calibrate / targets compares a rendered session's
+    # lighting and seed (session.json): a resized or thinned copy keeps them
+    import json
+
+    from vvloc.data import DatasetWriter
+    from vvloc.localize.evaluation import trained_on
+    from vvloc.sim.simulate import session_plan
+
+    cam = Camera("front", 8, 6, np.array([[4.0, 0, 3.5], [0, 4, 2.5], [0, 0, 1]]), np.eye(4))
+    src = tmp_path / "synth"
+    meta = {"generator": "vvloc.sim", "scene": "parking", "seed": 0}
+    with DatasetWriter(src, [cam], meta=meta) as w:
+        for spec in session_plan("parking", 3, 0):
+            s = w.add_session(spec.name, meta={"lighting": spec.lighting, "seed": spec.seed})
+            for k in range(3):
+                s.add(k, (float(k), 0.0, 0.0), np.zeros((1, 3, 6, 8), np.uint8))
+    copy = convert_dataset(src, tmp_path / "synth-every2", every=2)
+    own = json.loads((src / "sessions" / "s1" / "session.json").read_text())
+    assert json.loads((copy / "sessions" / "s1" / "session.json").read_text()) == {
+        **own,
+        "source_session": "s1",
+    }
+    record = {
+        "runs": [
+            {
+                "config": {
+                    "dataset": "elsewhere/synth-parking",
+                    "train_sessions": ["s0", "s1"],
+                    "sim": {"scene": "parking", "seed": 0},
+                }
+            }
+        ]
+    }
+    assert trained_on(record, src, ["s1", "s2"]) == ["s1"]
+    assert trained_on(record, copy, ["s1", "s2"]) == ["s1"]
 
 
 def test_a_converted_dataset_converted_again_records_both_conversions(tmp_path):

@@ -10,7 +10,9 @@ partial folder). ``vvloc convert`` is its command line.
 
 from __future__ import annotations
 
+import json
 import math
+import numbers
 import os
 from collections.abc import Sequence
 from pathlib import Path
@@ -44,7 +46,7 @@ def select_keyframes(
     if not np.isfinite(p).all():
         raise ValueError("poses: contains non-finite values")
     for name, v in (("min_distance", min_distance), ("min_angle_deg", min_angle_deg)):
-        if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+        if isinstance(v, bool) or not (isinstance(v, numbers.Real) and math.isfinite(v) and v >= 0):
             raise ValueError(f"{name}: expected a finite number >= 0, got {v!r}")
     if len(p) == 0:
         return np.zeros(0, np.int64)
@@ -93,6 +95,12 @@ def convert_dataset(
         **reader_options: passed to the source's reader (e.g. ``ego_height``, ``cameras``,
             ``upright`` for NCLT; ``ego_height``, ``cameras``, ``tolerance_us`` for RobotCar).
 
+    Raises:
+        FileExistsError: ``out`` exists and is not empty (without ``overwrite``), before the
+            source is read.
+        DatasetFormatError: a chosen session holds no frame (e.g. NCLT images without ground
+            truth within ``tolerance_us``); leave it out with ``sessions``.
+
     Returns:
         ``out``. Poses, heights (``Frame.z``), floors and microsecond timestamps are copied,
         and each frame's own ``cam_to_ego`` where the source gives frames their own (NCLT's
@@ -102,10 +110,18 @@ def convert_dataset(
     """
     from vvloc.data import detect_format, open_dataset
     from vvloc.data.sampling import inside_folder
-    from vvloc.data.vvloc_format import DatasetWriter
+    from vvloc.data.vvloc_format import DatasetFormatError, DatasetWriter, check_dataset_target
 
-    if isinstance(every, bool) or not isinstance(every, int) or every < 1:
+    if isinstance(every, bool) or not isinstance(every, (int, np.integer)) or every < 1:
         raise ValueError(f"every: expected an int >= 1, got {every!r}")
+    every = int(every)
+    select_keyframes(np.zeros((0, 3)), min_distance=min_distance, min_angle_deg=min_angle_deg)
+    min_distance, min_angle_deg = float(min_distance), float(min_angle_deg)  # checked: numbers
+    if isinstance(sessions, str):
+        raise TypeError(
+            f"sessions: expected a list of session names, got the str {sessions!r} "
+            f"(one session: [{sessions!r}])"
+        )
     size = None
     if image_size is not None:
         if len(image_size) != 2 or any(
@@ -127,6 +143,7 @@ def convert_dataset(
         if "image_size" in options:
             raise TypeError("image_size: give it once, not also as a reader option")
         options["image_size"] = size  # the raw readers resize as they read: one interpolation
+    check_dataset_target(out, overwrite)  # before the source is read (slow for raw folders)
     ds = open_dataset(src, format=fmt, **options)
     names = list(ds.sessions) if sessions is None else list(sessions)
     repeated = sorted({n for n in names if names.count(n) > 1})
@@ -145,6 +162,17 @@ def convert_dataset(
             s.poses[strided], min_distance=min_distance, min_angle_deg=min_angle_deg
         )
         picks[name] = strided[chosen]
+    empty = [name for name in names if len(ds.session(name)) == 0]
+    if empty:
+        raise DatasetFormatError(
+            f"{src}: sessions {empty} hold no frame as read"
+            + (
+                f" (tolerance_us={options['tolerance_us']}: no image has a pose that near)"
+                if "tolerance_us" in options
+                else " (e.g. no image with a pose near it in time)"
+            )
+            + "; leave them out with sessions (--sessions) or check the source"
+        )
     total = sum(len(v) for v in picks.values())
     converted_from: dict[str, Any] = {
         "path": str(Path(src).resolve()),
@@ -166,7 +194,7 @@ def convert_dataset(
                 bar = tqdm(total=total, desc="vvloc convert", unit="frame")
             for name in names:
                 s = ds.session(name)
-                w = writer.add_session(name, meta={"source_session": name})
+                w = writer.add_session(name, meta=_session_meta(src, fmt, name))
                 for i in picks[name]:
                     f = s[int(i)]
                     images = f.images
@@ -194,6 +222,22 @@ def convert_dataset(
         if bar is not None:
             bar.close()
     return Path(out)
+
+
+def _session_meta(src: str | os.PathLike[str], fmt: str, name: str) -> dict[str, Any]:
+    """The written ``session.json`` of session ``name``: a vvloc source's own (a rendered
+    session's lighting and seed, which the trained-on check compares) and ``source_session``."""
+    meta: dict[str, Any] = {}
+    if fmt == "vvloc":
+        path = Path(src) / "sessions" / name / "session.json"
+        try:
+            own = json.loads(path.read_text())
+        except (OSError, ValueError):  # none, or unreadable: the reader ignores it too
+            own = None
+        if isinstance(own, dict):
+            meta.update(own)
+    meta["source_session"] = name
+    return meta
 
 
 def _jsonable(v: Any) -> Any:

@@ -332,6 +332,16 @@ def load_rgb(path: Path) -> np.ndarray:
             decodes the pixels, and its message names no file).
         FileNotFoundError: no such file.
     """
+    return _load_8bit(path, keep_grey=False)
+
+
+def load_raw(path: Path) -> np.ndarray:
+    """Read an 8-bit image file as it is stored: (H, W) uint8 for a single-channel image (a
+    raw Bayer mosaic, a grey image), else (H, W, 3) uint8 RGB. Raises as :func:`load_rgb`."""
+    return _load_8bit(path, keep_grey=True)
+
+
+def _load_8bit(path: Path, keep_grey: bool) -> np.ndarray:
     from PIL import Image, UnidentifiedImageError
 
     try:
@@ -341,6 +351,8 @@ def load_rgb(path: Path) -> np.ndarray:
                     f"{path}: image mode {im.mode!r} is not 8 bits per channel; vvloc reads "
                     "8-bit RGB (or grey) images: scale it to 8 bits first"
                 )
+            if keep_grey and im.mode == "L":
+                return np.asarray(im, dtype=np.uint8)
             return np.asarray(im.convert("RGB"), dtype=np.uint8)
     except FileNotFoundError:
         raise
@@ -455,6 +467,45 @@ def ego_frames(
     frame_cam_to_ego = ego_world[:, None] @ at_cams @ cams[None]
     frame_cam_to_ego[..., 3, :] = (0.0, 0.0, 0.0, 1.0)  # exact bottom rows after the products
     return poses, z, frame_cam_to_ego
+
+
+def check_reader_options(
+    cameras: Sequence[Any], image_size: Any, tolerance_us: Any
+) -> tuple[tuple[int, int] | None, int]:
+    """Check a raw reader's shared options by name (``TypeError`` / ``ValueError``):
+    ``cameras`` a non-empty list, each listed once; ``image_size`` None or (width, height)
+    positive ints; ``tolerance_us`` an int >= 0 in microseconds. Returns ``(image_size,
+    tolerance_us)`` as plain ints."""
+    if isinstance(cameras, (str, bytes)) or not hasattr(cameras, "__iter__"):
+        raise TypeError(f"cameras: expected a list of cameras, got {cameras!r}")
+    names = list(cameras)
+    if not names:
+        raise ValueError("cameras: expected at least one camera")
+    repeated = sorted({str(c) for c in names if names.count(c) > 1})
+    if repeated:
+        raise ValueError(f"cameras: {repeated} listed more than once")
+    size = None
+    if image_size is not None:
+        if (
+            isinstance(image_size, (str, bytes))
+            or not hasattr(image_size, "__len__")
+            or len(image_size) != 2
+            or any(
+                isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1
+                for v in image_size
+            )
+        ):
+            raise ValueError(
+                f"image_size: expected (width, height) positive ints, got {image_size!r}"
+            )
+        size = (int(image_size[0]), int(image_size[1]))
+    if isinstance(tolerance_us, bool) or not isinstance(tolerance_us, (int, np.integer)):
+        raise TypeError(
+            f"tolerance_us: expected an int (microseconds), got {type(tolerance_us).__name__}"
+        )
+    if tolerance_us < 0:
+        raise ValueError(f"tolerance_us: expected microseconds >= 0, got {tolerance_us}")
+    return size, int(tolerance_us)
 
 
 def nearest_within(

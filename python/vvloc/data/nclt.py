@@ -59,6 +59,7 @@ from vvloc.data.frame import (
     Camera,
     Dataset,
     Session,
+    check_reader_options,
     ego_frames,
     euler_to_matrix,
     load_rgb,
@@ -98,7 +99,10 @@ def read_undistortion_map(path: Path) -> tuple[np.ndarray, np.ndarray]:
         if len(header) < 2:
             raise DatasetFormatError(f"{path}, line 1: expected two sizes in the header")
         cols, rows = header[0], header[1]
-        data = np.loadtxt(f, dtype=np.float64, ndmin=2)
+        try:
+            data = np.loadtxt(f, dtype=np.float64, ndmin=2)
+        except ValueError as e:  # numpy's message names no file
+            raise DatasetFormatError(f"{path}: malformed map line: {e}") from None
     if data.shape[1] != 4:
         raise DatasetFormatError(
             f"{path}: expected lines 'row col v u', got {data.shape[1]} columns"
@@ -161,12 +165,12 @@ class NcltSession(Session):
         for cam, d, m, k in parts:
             path = d / f"{int(self.timestamps[index])}.tiff"
             img = load_rgb(path)
-            if m is not None:
-                img = remap_bilinear(img, *m)
-            if (img.shape[1], img.shape[0]) != self._native:
+            if (img.shape[1], img.shape[0]) != self._native:  # the size the map reads from
                 raise DatasetFormatError(
                     f"{path}: image is {img.shape[1]}x{img.shape[0]}, expected {self._native}"
                 )
+            if m is not None:
+                img = remap_bilinear(img, *m)
             img = np.ascontiguousarray(np.rot90(img, k))
             out.append(resize_rgb(img, cam.width, cam.height).transpose(2, 0, 1))
         return np.ascontiguousarray(np.stack(out))
@@ -217,6 +221,7 @@ def open_nclt(
             ``cam_to_ego``).
     """
     root = Path(root)
+    image_size, tolerance_us = check_reader_options(cameras, image_size, tolerance_us)
     dates = _find_date_dirs(root)
     if not dates:
         raise DatasetFormatError(f"{root}: no <date>/lb3 folder found (NCLT layout)")
@@ -257,6 +262,12 @@ def open_nclt(
                 if u2d[0] not in map_cache:  # one map per camera, shared by every date
                     map_cache[u2d[0]] = read_undistortion_map(u2d[0])
                 m = map_cache[u2d[0]]
+                if m[0].shape[::-1] != tuple(native):  # the map reads the raw image's pixels
+                    raise DatasetFormatError(
+                        f"{u2d[0]}: the undistortion map is {m[0].shape[1]}x{m[0].shape[0]}, "
+                        f"the images (e.g. {dirs[0]}) are {native[0]}x{native[1]}: a map of "
+                        "another image size"
+                    )
             elif rig is None:
                 warnings.warn(
                     f"{params}: no U2D_Cam{i}_*.txt undistortion map; Cam{i}'s images are used "
@@ -300,7 +311,7 @@ def open_nclt(
             date,
             dirs,
             cams,
-            _native_size(maps, native),
+            (int(native[0]), int(native[1])),  # the raw images' (width, height)
             maps,
             turns,
             utimes,
@@ -311,12 +322,3 @@ def open_nclt(
         rig = rig or cams
     assert rig is not None
     return Dataset(root, rig, sessions)
-
-
-def _native_size(
-    maps: list[tuple[np.ndarray, np.ndarray] | None], native: tuple[int, ...]
-) -> tuple[int, int]:
-    m = maps[0]
-    if m is not None:
-        return (m[0].shape[1], m[0].shape[0])
-    return (int(native[0]), int(native[1]))

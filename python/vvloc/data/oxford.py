@@ -74,9 +74,11 @@ from vvloc.data.frame import (
     Camera,
     Dataset,
     Session,
+    check_reader_options,
     ego_frames,
     euler_to_matrix,
     interpolate_rows,
+    load_raw,
     nearest_within,
 )
 from vvloc.data.heading import heading_warning
@@ -107,7 +109,15 @@ def read_timestamps(path: Path) -> np.ndarray:
             out.append(int(parts[0]))
         except ValueError as e:
             raise DatasetFormatError(f"{path}, line {line}: malformed timestamp {text!r}") from e
-    return np.array(sorted(out), dtype=np.int64)
+    stamps = np.array(sorted(out), dtype=np.int64)
+    repeated = np.unique(stamps[1:][np.diff(stamps) == 0])
+    if len(repeated):
+        raise DatasetFormatError(
+            f"{path}: timestamps listed more than once: {repeated[:5].tolist()}"
+            + (f" and {len(repeated) - 5} more" if len(repeated) > 5 else "")
+            + " (one image per timestamp; remove the repeated lines)"
+        )
+    return stamps
 
 
 def read_ins(path: Path, *, good_only: bool = True) -> np.ndarray:
@@ -207,14 +217,14 @@ class OxfordSession(Session):
         self._luts = luts
 
     def _load_images(self, index: int) -> np.ndarray:
-        from PIL import Image
-
         out = []
         parts = zip(self.cameras, self._paths, self._patterns, self._luts, strict=True)
         for cam, paths, pattern, lut in parts:
-            with Image.open(paths[index]) as im:
-                raw = np.asarray(im)
-            img = demosaic_bilinear(raw, pattern) if raw.ndim == 2 else raw[..., :3]
+            try:
+                raw = load_raw(paths[index])  # 8-bit only: a 16-bit image is refused, not cut
+            except ValueError as e:
+                raise DatasetFormatError(str(e)) from e
+            img = demosaic_bilinear(raw, pattern) if raw.ndim == 2 else raw
             img = np.asarray(img, dtype=np.uint8)
             if lut is not None:
                 img = remap_bilinear(img, *lut)
@@ -279,8 +289,9 @@ def open_oxford(
     root = Path(root)
     models = Path(models_dir) if models_dir is not None else root / "models"
     extr = Path(extrinsics_dir) if extrinsics_dir is not None else root / "extrinsics"
+    image_size, tolerance_us = check_reader_options(cameras, image_size, tolerance_us)
     unknown = [c for c in cameras if c not in CAMERA_SPECS]
-    if unknown or not cameras:
+    if unknown:
         raise ValueError(
             f"cameras: expected names from {sorted(CAMERA_SPECS)}, got {list(cameras)}"
         )
@@ -351,8 +362,11 @@ def open_oxford(
         for c, ps in zip(cameras, paths, strict=True):
             _, _, model, sensor, pattern = CAMERA_SPECS[c]
             K, G, lut_path = read_model(models, model)
-            with Image.open(ps[0]) as im:
-                w, h = im.size
+            try:
+                with Image.open(ps[0]) as im:
+                    w, h = im.size
+            except (OSError, SyntaxError) as e:  # FileNotFoundError, PIL's decoder errors
+                raise DatasetFormatError(f"{ps[0]}: not a readable image ({e})") from None
             T_camera_vehicle = read_extrinsics(extr, sensor, required=sensor != "stereo")
             cam_to_ego = FRD_TO_FLU @ np.linalg.inv(T_camera_vehicle) @ G
             cams.append(Camera(c, w, h, K, cam_to_ego).with_ego_origin_lowered(height))

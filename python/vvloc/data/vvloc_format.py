@@ -434,6 +434,30 @@ def _check_replaceable(root: Path) -> None:
         )
 
 
+def check_dataset_target(root: str | os.PathLike[str], overwrite: bool) -> None:
+    """Refuse ``root`` as the folder of a dataset to write, before any work: the working
+    directory or a folder above it (``ValueError``), a file, or a non-empty folder without
+    ``overwrite`` (``FileExistsError``), or one with ``overwrite`` that is not a vvloc dataset
+    (:func:`_check_replaceable`)."""
+    root = Path(root)
+    target = Path(os.path.realpath(root))
+    cwd = Path.cwd().resolve()
+    if target == cwd or target in cwd.parents:
+        raise ValueError(
+            f"{root}: is the working directory or a folder above it; write the "
+            "dataset to a folder of its own (e.g. data/synth)"
+        )
+    if root.exists() and not root.is_dir():
+        raise FileExistsError(f"{root} exists and is a file, not a dataset folder")
+    if root.is_dir() and any(root.iterdir()):
+        if not overwrite:
+            raise FileExistsError(
+                f"{root} exists and is not empty (--overwrite, or overwrite=True in "
+                "Python, replaces a dataset there)"
+            )
+        _check_replaceable(root)
+
+
 class DatasetWriter:
     """Writes a vvloc-format dataset atomically: into a hidden temporary folder beside ``root``,
     renamed to ``root`` by :meth:`close`; on an exception inside ``with`` nothing is left behind.
@@ -459,25 +483,15 @@ class DatasetWriter:
         # Work on the real folder: "." has no name to put a temporary folder beside, and a
         # symlink is kept while its target is replaced (as vvloc._io's atomic files do).
         self._target = Path(os.path.realpath(self.root))
-        cwd = Path.cwd().resolve()
-        if self._target == cwd or self._target in cwd.parents:
-            raise ValueError(
-                f"{self.root}: is the working directory or a folder above it; write the "
-                "dataset to a folder of its own (e.g. data/synth)"
-            )
         if not cameras:
             raise ValueError("cameras: expected at least one camera")
         if len({(c.width, c.height) for c in cameras}) != 1:
             raise ValueError("cameras: all cameras of a written dataset must share one image size")
-        if self.root.exists() and not self.root.is_dir():
-            raise FileExistsError(f"{self.root} exists and is a file, not a dataset folder")
-        if self.root.is_dir() and any(self.root.iterdir()):
-            if not overwrite:
-                raise FileExistsError(
-                    f"{self.root} exists and is not empty (--overwrite, or overwrite=True in "
-                    "Python, replaces a dataset there)"
-                )
-            _check_replaceable(self.root)
+        names = [c.name for c in cameras]
+        repeated = sorted({n for n in names if names.count(n) > 1})
+        if repeated:
+            raise ValueError(f"cameras: names {repeated} repeated (each camera has its own folder)")
+        check_dataset_target(self.root, overwrite)
         self.cameras = tuple(cameras)
         self.overwrite = overwrite
         doc = {
@@ -491,13 +505,17 @@ class DatasetWriter:
             rig_text = json.dumps(doc, indent=2)
         except (TypeError, ValueError) as e:
             raise TypeError(f"meta: expected plain JSON values (str, int, float, ...): {e}") from e
+        # the folders above the target that this writer makes, removed again by abort()
+        self._made_parents = [d for d in self._target.parents if not d.exists()]
         self._target.parent.mkdir(parents=True, exist_ok=True)
-        self._tmp = self._make_temp()
         try:
+            self._tmp = self._make_temp()
             (self._tmp / "rig.json").write_text(rig_text)
             (self._tmp / "sessions").mkdir()
         except BaseException:
-            shutil.rmtree(self._tmp, ignore_errors=True)
+            if hasattr(self, "_tmp"):
+                shutil.rmtree(self._tmp, ignore_errors=True)
+            self._remove_made_parents()
             raise
         self._sessions: dict[str, SessionWriter] = {}
 
@@ -555,6 +573,16 @@ class DatasetWriter:
         for w in self._sessions.values():
             w.close()
         shutil.rmtree(self._tmp, ignore_errors=True)
+        self._remove_made_parents()
+
+    def _remove_made_parents(self) -> None:
+        """Remove the folders above the target that this writer made, deepest first, where
+        they are still empty (another process may have written into one since)."""
+        for d in self._made_parents:  # Path.parents runs from the deepest up
+            try:
+                d.rmdir()
+            except OSError:
+                break
 
     def __enter__(self) -> DatasetWriter:
         return self
