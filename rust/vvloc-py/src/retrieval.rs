@@ -154,9 +154,9 @@ impl DescriptorIndex {
 
     /// The index in the file format of `vvloc_core::retrieval::format` (the Python wrapper
     /// writes it with vvloc's atomic writer, which keeps a file's mode and follows links).
-    fn to_bytes<'py>(&self, py: Python<'py>) -> Bound<'py, PyBytes> {
-        let bytes = py.detach(|| vvloc_core::retrieval::format::to_bytes(&self.read()));
-        PyBytes::new(py, &bytes)
+    fn to_bytes<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyBytes>> {
+        let bytes = to_py(py.detach(|| vvloc_core::retrieval::format::to_bytes(&self.read())))?;
+        Ok(PyBytes::new(py, &bytes))
     }
 
     #[staticmethod]

@@ -51,28 +51,39 @@ fn io_err(path: &Path, e: std::io::Error) -> Error {
     }
 }
 
-/// Serialises the index into the version-1 byte layout.
-pub fn to_bytes(index: &DescriptorIndex) -> Vec<u8> {
+/// Serialises the index into the version-1 byte layout; [`Error::Memory`] (not an abort)
+/// when the bytes cannot be allocated.
+pub fn to_bytes(index: &DescriptorIndex) -> Result<Vec<u8>> {
     let n = index.len();
-    let mut payload = Vec::with_capacity(n * (index.dim() * 4 + 16));
-    for v in index.rows() {
-        payload.extend_from_slice(&v.to_le_bytes());
-    }
-    for v in index.groups().iter().chain(index.seqs()) {
-        payload.extend_from_slice(&v.to_le_bytes());
-    }
+    let total = n
+        .checked_mul(index.dim() * 4 + 16)
+        .and_then(|p| p.checked_add(HEADER));
+    let mut out = Vec::new();
+    total
+        .and_then(|t| out.try_reserve_exact(t).ok())
+        .ok_or_else(|| Error::Memory {
+            arg: "index",
+            what: format!("the {n} entries' bytes"),
+        })?;
     let mut meta = Vec::with_capacity(24);
     meta.extend_from_slice(&VERSION.to_le_bytes());
     meta.extend_from_slice(&index.dtype().code().to_le_bytes());
     meta.extend_from_slice(&(n as u64).to_le_bytes());
     meta.extend_from_slice(&(index.dim() as u64).to_le_bytes());
-    let sum = checksum(&[&meta, &payload]);
-    let mut out = Vec::with_capacity(HEADER + payload.len());
     out.extend_from_slice(MAGIC);
     out.extend_from_slice(&meta);
-    out.extend_from_slice(&sum.to_le_bytes());
-    out.extend_from_slice(&payload);
-    out
+    out.extend_from_slice(&[0; 8]); // the checksum, once the payload is written
+    for i in 0..n {
+        for v in index.row(i) {
+            out.extend_from_slice(&v.to_le_bytes());
+        }
+    }
+    for v in index.groups().iter().chain(index.seqs()) {
+        out.extend_from_slice(&v.to_le_bytes());
+    }
+    let sum = checksum(&[&meta, &out[HEADER..]]);
+    out[HEADER - 8..HEADER].copy_from_slice(&sum.to_le_bytes());
+    Ok(out)
 }
 
 /// Parses a version-1 file's bytes; any inconsistency is an [`Error::Format`].
@@ -100,7 +111,12 @@ pub fn from_bytes(bytes: &[u8]) -> Result<DescriptorIndex> {
         .and_then(|b| b.checked_add(n.checked_mul(16)?))
         .and_then(|b| b.checked_add(HEADER as u64))
         .ok_or_else(|| bad("header sizes overflow"))?;
-    if d == 0 || expected != bytes.len() as u64 {
+    if d == 0 {
+        return Err(bad(
+            "header says d=0 (descriptors have at least one dimension)",
+        ));
+    }
+    if expected != bytes.len() as u64 {
         return Err(bad(&format!(
             "header says N={n}, d={d} ({expected} bytes) but the file has {} bytes (truncated?)",
             bytes.len()
@@ -111,6 +127,7 @@ pub fn from_bytes(bytes: &[u8]) -> Result<DescriptorIndex> {
         return Err(bad("checksum mismatch (corrupted file)"));
     }
     let (n, d) = (n as usize, d as usize);
+    crate::error::check_alloc::<f32>("bytes", n * d)?; // the rows, then the index's own copy
     let (desc, rest) = payload.split_at(n * d * 4);
     let (groups, seqs) = rest.split_at(n * 8);
     let f32s: Vec<f32> = desc
@@ -132,7 +149,7 @@ impl DescriptorIndex {
     /// replaced; Python's `DescriptorIndex.save` writes [`to_bytes`] with vvloc's atomic
     /// writer instead (a file's mode kept, links followed, devices written into).
     pub fn save(&self, path: &Path) -> Result<()> {
-        let bytes = to_bytes(self);
+        let bytes = to_bytes(self)?;
         let name = path
             .file_name()
             .ok_or_else(|| Error::value("path", format!("not a file path: {}", path.display())))?;

@@ -331,6 +331,7 @@ impl DescriptorIndex {
         if self.len + n > u32::MAX as usize {
             return Err(Error::value("descriptors", "at most 2^32 - 1 entries"));
         }
+        self.reserve_for(self.len + n)?;
         let old = self.len;
         self.len += n;
         let nb = self.nblocks();
@@ -380,8 +381,10 @@ impl DescriptorIndex {
                 }
             }
         }
-        self.groups
-            .extend(groups.map_or(vec![0; n], |g| g.to_vec()));
+        match groups {
+            Some(g) => self.groups.extend_from_slice(g),
+            None => self.groups.extend(std::iter::repeat_n(0, n)),
+        }
         self.seqs
             .extend(seqs.map_or_else(|| (old as i64..self.len as i64).collect(), |s| s.to_vec()));
         if rescale {
@@ -392,6 +395,40 @@ impl DescriptorIndex {
             self.pack_blocks(old / BLOCK);
         }
         Ok(())
+    }
+
+    /// Reserves every buffer [`Self::add`] grows for `len` entries, before anything changes:
+    /// an allocation that fails is [`Error::Memory`] (the index as it was), not an abort.
+    fn reserve_for(&mut self, len: usize) -> Result<()> {
+        fn grow<T>(v: &mut Vec<T>, parts: &[usize]) -> Result<()> {
+            let total = parts.iter().try_fold(1usize, |a, &b| a.checked_mul(b));
+            let more = total.map(|t| t.saturating_sub(v.len()));
+            match more.map(|m| v.try_reserve(m)) {
+                // amortised: many small adds stay linear
+                Some(Ok(())) => Ok(()),
+                _ => Err(Error::Memory {
+                    arg: "descriptors",
+                    what: format!(
+                        "{} elements of {} bytes",
+                        total.map_or("more than usize::MAX".to_string(), |t| t.to_string()),
+                        std::mem::size_of::<T>()
+                    ),
+                }),
+            }
+        }
+        let (d, nb) = (self.dim, len.div_ceil(BLOCK));
+        grow(&mut self.data, &[nb, d, BLOCK])?;
+        grow(&mut self.norms, &[nb, BLOCK])?;
+        grow(&mut self.head_norms, &[nb, SEGMENTS, BLOCK])?;
+        grow(&mut self.tail_norms, &[nb, SEGMENTS, BLOCK])?;
+        grow(&mut self.groups, &[len])?;
+        grow(&mut self.seqs, &[len])?;
+        match self.dtype {
+            Dtype::F32 => Ok(()),
+            Dtype::F16 => grow(&mut self.packed, &[nb, d, BLOCK]),
+            Dtype::BF16 => grow(&mut self.packed, &[nb, d.div_ceil(2), BLOCK, 2]),
+            Dtype::I8 => grow(&mut self.packed8, &[nb, d.div_ceil(4), BLOCK, 4]),
+        }
     }
 
     fn repack(&mut self) {
@@ -1012,47 +1049,59 @@ impl DescriptorIndex {
         // less than any compressed copy: single radius queries use it for every dtype.
         let packed = self.use_packed(nq) && self.head == 0;
         let chunks = self.chunks(nq * self.dim, 4);
-        let scan = |packed: Option<(usize, &PackedQuery<'_>)>, bound: f32| -> Vec<Vec<Hit>> {
-            let sinks: Vec<BelowSink> = chunks
-                .par_iter()
-                .map(|&(b0, b1)| {
-                    let mut s = BelowSink {
-                        bound,
-                        hits: vec![Vec::new(); nq],
-                        ex,
-                    };
-                    match packed {
-                        None => self.scan_f32(queries, &qn, b0, b1, &mut s),
-                        Some((qi, pq)) => self.scan_packed(pq, qi, qn[qi], b0, b1, &mut s),
-                    }
-                    s
-                })
-                .collect();
-            let mut merged: Vec<Vec<Hit>> = vec![Vec::new(); nq];
-            for s in sinks {
-                for (m, h) in merged.iter_mut().zip(s.hits) {
-                    m.extend(h);
-                }
-            }
-            merged
+        let out_of_memory = || Error::Memory {
+            arg: "r",
+            what: "the hits within the radius".to_string(),
         };
+        let scan =
+            |packed: Option<(usize, &PackedQuery<'_>)>, bound: f32| -> Result<Vec<Vec<Hit>>> {
+                let sinks: Vec<BelowSink> = chunks
+                    .par_iter()
+                    .map(|&(b0, b1)| {
+                        let mut s = BelowSink::new(bound, nq, ex);
+                        match packed {
+                            None => self.scan_f32(queries, &qn, b0, b1, &mut s),
+                            Some((qi, pq)) => self.scan_packed(pq, qi, qn[qi], b0, b1, &mut s),
+                        }
+                        s
+                    })
+                    .collect();
+                if sinks.iter().any(|s| s.out_of_memory) {
+                    return Err(out_of_memory());
+                }
+                let mut merged: Vec<Vec<Hit>> = vec![Vec::new(); nq];
+                for s in sinks {
+                    for (m, h) in merged.iter_mut().zip(s.hits) {
+                        m.try_reserve(h.len()).map_err(|_| out_of_memory())?;
+                        m.extend(h);
+                    }
+                }
+                Ok(merged)
+            };
         let mut per_query: Vec<Vec<Hit>> = if packed {
             (0..nq)
                 .map(|qi| {
                     let q = &queries[qi * self.dim..(qi + 1) * self.dim];
                     let (pq, eps) = self.packed_query(q);
-                    let cands = std::mem::take(&mut scan(Some((qi, &pq)), r2 + eps)[qi]);
-                    self.rescore(q, qn[qi], &cands)
+                    let cands = std::mem::take(&mut scan(Some((qi, &pq)), r2 + eps)?[qi]);
+                    Ok(self.rescore(q, qn[qi], &cands))
                 })
-                .collect()
+                .collect::<Result<_>>()?
         } else {
-            scan(None, r2)
+            scan(None, r2)?
         };
+        let total: usize = per_query.iter().map(Vec::len).sum();
         let mut res = RadiusResult {
             offsets: Vec::with_capacity(nq + 1),
             indices: Vec::new(),
             distances: Vec::new(),
         };
+        res.indices
+            .try_reserve_exact(total)
+            .map_err(|_| out_of_memory())?;
+        res.distances
+            .try_reserve_exact(total)
+            .map_err(|_| out_of_memory())?;
         res.offsets.push(0);
         for hits in per_query.iter_mut() {
             hits.retain(|h| h.sq.sqrt() < r);

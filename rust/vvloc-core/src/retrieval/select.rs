@@ -151,17 +151,40 @@ pub(crate) struct BelowSink<'a> {
     pub bound: f32,
     pub hits: Vec<Vec<Hit>>,
     pub ex: Excluder<'a>,
+    /// A hit list could not grow (out of memory): the scan's result is incomplete, and the
+    /// caller reports [`crate::Error::Memory`] instead of aborting the process.
+    pub out_of_memory: bool,
+}
+
+impl<'a> BelowSink<'a> {
+    pub fn new(bound: f32, nq: usize, ex: Excluder<'a>) -> Self {
+        BelowSink {
+            bound,
+            hits: vec![Vec::new(); nq],
+            ex,
+            out_of_memory: false,
+        }
+    }
 }
 
 impl Sink for BelowSink<'_> {
     #[inline]
     fn threshold(&self, _q: usize) -> f32 {
-        self.bound
+        if self.out_of_memory {
+            f32::NEG_INFINITY // the result is lost: offer nothing more
+        } else {
+            self.bound
+        }
     }
     #[inline]
     fn offer(&mut self, q: usize, row: usize, sq: f32) {
-        if !self.ex.excluded(q, row) {
-            self.hits[q].push(Hit {
+        if !self.out_of_memory && !self.ex.excluded(q, row) {
+            let hits = &mut self.hits[q];
+            if hits.len() == hits.capacity() && hits.try_reserve(hits.len().max(64)).is_err() {
+                self.out_of_memory = true;
+                return;
+            }
+            hits.push(Hit {
                 sq,
                 row: row as u32,
             });

@@ -216,7 +216,7 @@ fn bad_input_is_an_error_not_a_panic() {
 #[test]
 fn a_forged_header_with_a_huge_dimension_is_refused() {
     // an empty index (N = 0) claiming d = 2^40, with a valid checksum: 40 bytes in all
-    let mut bytes = format::to_bytes(&DescriptorIndex::new(4, Dtype::F32).unwrap());
+    let mut bytes = format::to_bytes(&DescriptorIndex::new(4, Dtype::F32).unwrap()).unwrap();
     assert_eq!(bytes.len(), 40);
     bytes[24..32].copy_from_slice(&(1u64 << 40).to_le_bytes());
     let sum = format::checksum(&[&bytes[8..32], &bytes[40..]]);
@@ -318,17 +318,9 @@ fn compressed_error_bound_holds() {
                 let (pq, eps2) = idx.packed_query(q);
                 assert_eq!(eps, eps2);
                 let (mut approx, mut exact): (Vec<Hit>, Vec<Hit>) = (Vec::new(), Vec::new());
-                let mut a = BelowSink {
-                    bound: f32::INFINITY,
-                    hits: vec![Vec::new(); 1],
-                    ex: idx.excluder(1, None).unwrap(),
-                };
+                let mut a = BelowSink::new(f32::INFINITY, 1, idx.excluder(1, None).unwrap());
                 idx.scan_packed(&pq, 0, qn, 0, idx.nblocks(), &mut a);
-                let mut e = BelowSink {
-                    bound: f32::INFINITY,
-                    hits: vec![Vec::new(); 1],
-                    ex: idx.excluder(1, None).unwrap(),
-                };
+                let mut e = BelowSink::new(f32::INFINITY, 1, idx.excluder(1, None).unwrap());
                 idx.scan_f32(q, &[qn], 0, idx.nblocks(), &mut e);
                 approx.extend(&a.hits[0]);
                 exact.extend(&e.hits[0]);
@@ -461,7 +453,7 @@ fn int8_save_load_round_trip() {
     let d = 70;
     let data = clustered(300, d, 61);
     let idx = DescriptorIndex::from_rows(&data, d, Dtype::I8, None, None).unwrap();
-    let back = format::from_bytes(&format::to_bytes(&idx)).unwrap();
+    let back = format::from_bytes(&format::to_bytes(&idx).unwrap()).unwrap();
     assert_eq!(back.dtype(), Dtype::I8);
     assert_eq!(back.packed8, idx.packed8);
     assert_eq!(back.scales, idx.scales);
@@ -515,4 +507,36 @@ fn compressed_topk_stays_exact_when_many_rows_tie_near_the_kth() {
         assert_eq!(got.indices, want.indices, "{dtype:?}");
         assert_eq!(got.distances, want.distances, "{dtype:?}");
     }
+}
+
+#[test]
+fn an_add_that_cannot_be_allocated_is_an_error_and_changes_nothing() {
+    let mut idx =
+        DescriptorIndex::from_rows(&[1.0, 2.0, 3.0, 4.0], 4, Dtype::BF16, None, None).unwrap();
+    for len in [1usize << 60, usize::MAX] {
+        assert!(matches!(
+            idx.reserve_for(len),
+            Err(Error::Memory {
+                arg: "descriptors",
+                ..
+            })
+        ));
+    }
+    assert_eq!(idx.len(), 1);
+    assert_eq!(idx.row(0), vec![1.0, 2.0, 3.0, 4.0]);
+    idx.add(&[0.0, 0.0, 0.0, 1.0], None, None).unwrap();
+    assert_eq!(
+        idx.topk(&[0.0, 0.0, 0.0, 1.0], 1, None).unwrap().indices,
+        vec![1]
+    );
+}
+
+#[test]
+fn a_header_with_d_zero_says_so() {
+    let mut bytes = format::to_bytes(&DescriptorIndex::new(4, Dtype::F32).unwrap()).unwrap();
+    bytes[24..32].copy_from_slice(&0u64.to_le_bytes());
+    let sum = format::checksum(&[&bytes[8..32], &bytes[40..]]);
+    bytes[32..40].copy_from_slice(&sum.to_le_bytes());
+    let e = format::from_bytes(&bytes).unwrap_err();
+    assert!(e.to_string().contains("header says d=0"), "{e}");
 }
