@@ -395,6 +395,83 @@ print(DescriptorIndex(np.zeros((3, 4))).topk(np.zeros((0, 4)), 5)[0].shape)
     assert len(raw) == 50
 
 
+def test_out_of_memory_is_a_memory_error_not_an_abort():
+    # under an address-space limit (ulimit -v, common on clusters), building an index or
+    # collecting radius hits that do not fit raised nothing: the allocator aborted the process
+    import subprocess
+    import sys
+
+    code = """
+import resource
+import numpy as np
+from vvloc import DescriptorIndex
+
+def used():
+    with open("/proc/self/status") as f:
+        return next(int(l.split()[1]) * 1024 for l in f if l.startswith("VmSize:"))
+
+x = np.ones((2_000_000, 64), np.float32)  # 512 MiB, allocated before the limit
+small = DescriptorIndex(np.random.default_rng(0).standard_normal((2_000, 64)))
+q = np.zeros((50_000, 64), np.float32)  # every row a hit: 10^8 hits, 800 MB
+resource.setrlimit(resource.RLIMIT_AS, (used() + (256 << 20),) * 2)
+for what, call in (("build", lambda: DescriptorIndex(x)), ("add", lambda: small.add(x)),
+                   ("radius", lambda: small.radius(q, 1e6))):
+    try:
+        call()
+        print(what, "fitted")
+    except MemoryError as e:
+        print(what, "MemoryError", str(e).split(":")[0])
+print(len(small))
+"""
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert r.stdout.splitlines() == [
+        "build MemoryError descriptors",
+        "add MemoryError descriptors",
+        "radius MemoryError r",
+        "2000",  # the failed add left the index as it was
+    ], r.stdout
+
+
+def test_misaligned_and_bfloat16_input_is_taken():
+    # np.frombuffer at an odd offset gives C-contiguous memory that is not aligned: it was
+    # refused as "not C-contiguous" (and the kernels viewed it misaligned)
+    x = clustered(40, 8, 3)
+    buf = bytearray(x.nbytes + 1)
+    u = np.frombuffer(buf, dtype=np.float32, count=x.size, offset=1).reshape(x.shape)
+    u[...] = x
+    assert u.flags.c_contiguous and not u.flags.aligned
+    want = DescriptorIndex(x).topk(x[:3], 4)
+    got = DescriptorIndex(u).topk(u[:3], 4)
+    assert np.array_equal(want[0], got[0]) and np.array_equal(want[1], got[1])
+    from vvloc import kernels
+
+    t = torch.tensor([[0.5, -1.0], [2.0, 0.25]], dtype=torch.bfloat16)
+    bev = np.ones((4, 4, 2), np.float32)
+    assert np.array_equal(
+        kernels.bev_pad(bev, t, 0.5), kernels.bev_pad(bev, t.float().numpy(), 0.5)
+    )
+
+
+def test_rows_the_float32_expansion_cannot_order_warn():
+    rng = np.random.default_rng(0)
+    offset = 100.0 + 0.01 * rng.standard_normal((200, 16))
+    with pytest.warns(UserWarning, match="share an offset far larger than their spread"):
+        DescriptorIndex(offset)
+    with pytest.warns(UserWarning, match="norms are below 1e-15"):
+        DescriptorIndex(rng.standard_normal((20, 8)) * 1e-24)
+    index = DescriptorIndex(clustered(50, 8, 1))  # unit-norm clusters: no warning
+    with pytest.warns(UserWarning, match="share an offset"):
+        index.add(offset[:, :8])
+    # centred, the same rows are ordered as float64 orders them
+    centred = offset - offset.mean(axis=0)
+    q = centred[7] + 0.001 * rng.standard_normal(16)
+    idx, _ = DescriptorIndex(centred).topk(q, 3)
+    exact = np.argsort(np.linalg.norm(centred - q, axis=1))[:3]
+    assert idx[0].tolist() == exact.tolist()
+    DescriptorIndex(np.ones((5, 4)))  # one row repeated: all tie, nothing to warn about
+
+
 def test_thread_count_is_bounded():
     before = vvloc.get_num_threads()
     try:

@@ -35,6 +35,25 @@ def _check_backend(backend: str) -> Backend:
     raise ValueError(f"backend: expected 'rust' or 'reference', got {backend!r}")
 
 
+def _numpy(x: Any) -> Any:
+    """A torch tensor as a numpy array (moved to the CPU; bfloat16, which numpy lacks, widened
+    exactly to float32); anything else as it is."""
+    if hasattr(x, "detach") and hasattr(x, "cpu"):  # torch.Tensor, without importing torch
+        x = x.detach().cpu()
+        if str(x.dtype) == "torch.bfloat16":
+            x = x.float()
+        x = x.numpy()
+    return x
+
+
+def _c_array(arr: Any, dtype: Any) -> Any:
+    """``arr`` as a C-contiguous, aligned array of ``dtype`` (copied only when needed): the
+    Rust kernels view the memory directly, and ``np.ascontiguousarray`` keeps a misaligned
+    buffer (``np.frombuffer(..., offset=1)``) misaligned."""
+    out = np.ascontiguousarray(arr, dtype=dtype)
+    return out if out.flags.aligned else out.copy()
+
+
 def _as_f32(
     x: Any,
     name: str,
@@ -50,11 +69,7 @@ def _as_f32(
     ``"(H, W, C)"``. Non-finite values are rejected when ``finite`` is true.
     """
     shape_doc = f" {shape_doc}" if shape_doc else ""
-    if hasattr(x, "detach") and hasattr(x, "cpu"):  # torch.Tensor, without importing torch
-        x = x.detach().cpu()
-        if str(x.dtype) == "torch.bfloat16":  # numpy has no bfloat16: widen exactly
-            x = x.float()
-        x = x.numpy()
+    x = _numpy(x)
     if isinstance(x, (str, bytes)) or x is None:
         raise TypeError(f"{name}: expected a float array{shape_doc}, got {type(x).__name__}")
     arr = np.asarray(x)
@@ -82,7 +97,7 @@ def _as_f32(
                 f"{name}: values beyond float32's range (|x| > {f32_max:.3g}); the kernels "
                 "compute in float32"
             )
-    out = np.ascontiguousarray(arr, dtype=np.float32)
+    out = _c_array(arr, np.float32)
     if finite and out.size and not np.isfinite(out).all():
         raise ValueError(f"{name}: contains non-finite values (NaN or inf)")
     return out
@@ -144,8 +159,7 @@ def _bev(bev: Any, batched: bool = False) -> F32Array:
 def _translations(translations: Any) -> npt.NDArray[np.float64]:
     """Translations (N, 2) metres as C-contiguous float64 (kept in double: they set fill rows)."""
     # Validated in float64: a float32 copy would overflow huge (valid) shifts.
-    if hasattr(translations, "detach") and hasattr(translations, "cpu"):
-        translations = translations.detach().cpu().numpy()
+    translations = _numpy(translations)
     if isinstance(translations, (str, bytes)) or translations is None:
         raise TypeError(f"translations: expected a float array (N, 2), got {type(translations)}")
     probe = np.asarray(translations)
@@ -155,7 +169,7 @@ def _translations(translations: Any) -> npt.NDArray[np.float64]:
         raise TypeError(f"translations: expected a real-valued array (N, 2), got {probe.dtype}")
     if probe.ndim != 2 or probe.shape[1] != 2:
         raise ValueError(f"translations: expected shape (N, 2), got shape {probe.shape}")
-    out = np.ascontiguousarray(probe, dtype=np.float64)
+    out = _c_array(probe, np.float64)
     if not np.isfinite(out).all():
         raise ValueError("translations: contains non-finite values (NaN or inf)")
     return out
@@ -304,16 +318,14 @@ class SearchHistory(NamedTuple):
 
 def _f64_vector(x: Any, name: str, n: int) -> npt.NDArray[np.float64]:
     """Validate a finite real vector of length ``n`` and return it as C-contiguous float64."""
-    if hasattr(x, "detach") and hasattr(x, "cpu"):
-        x = x.detach().cpu().numpy()
-    arr = np.asarray(x)
+    arr = np.asarray(_numpy(x))
     if arr.dtype == object or not (
         np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)
     ):
         raise TypeError(f"{name}: expected a real-valued array ({n},), got dtype {arr.dtype}")
     if arr.shape != (n,):
         raise ValueError(f"{name}: expected shape ({n},), got {arr.shape}")
-    out = np.ascontiguousarray(arr, dtype=np.float64)
+    out = _c_array(arr, np.float64)
     if not np.isfinite(out).all():
         raise ValueError(f"{name}: contains non-finite values (NaN or inf)")
     return out

@@ -18,6 +18,13 @@ identical to ``"float32"``. The compressed copy serves single queries and batche
 than 8; batches of 8 or more (compute-bound) and, when d >= 64, every radius query (the
 early-abandoning float32 scan reads fewer bytes) scan the float32 originals for every dtype.
 
+The expansion suits descriptors spread around the origin, as the network's unit-norm ones are
+(its float32 error, about 2⁻²³·(‖q‖² + ‖x‖²), is 1e-7 of their distances). It cannot order
+descriptors that share a large offset (a spread of 1e-3 of their norm is lost to cancellation)
+or whose squares underflow float32 (norms below about 1e-15): building or extending an index
+with such rows warns (:data:`CONDITIONING`); subtract their mean or scale them first, which
+leaves the order of L2 distances as it was.
+
 Loop closure excludes temporal neighbours with an :class:`Exclusion`: each map entry has a group
 id (e.g. a session; default 0) and a sequence number (default: its index in the map).
 """
@@ -25,6 +32,7 @@ id (e.g. a session; default 0) and a sequence number (default: its index in the 
 from __future__ import annotations
 
 import os
+import warnings
 from dataclasses import dataclass
 from typing import Any
 
@@ -33,9 +41,50 @@ import numpy.typing as npt
 
 from vvloc import _core
 from vvloc._io import atomic_write
-from vvloc.kernels import _as_f32, _positive_float, _positive_int
+from vvloc.kernels import _as_f32, _c_array, _positive_float, _positive_int
 
 DTYPES = ("float32", "float16", "bfloat16", "int8")
+
+#: Rows whose mean squared spread about their mean is below this share of their largest
+#: squared norm, or whose largest norm is below :data:`TINY_NORM`, warn (module docstring).
+CONDITIONING = 1e-5
+TINY_NORM = 1e-15
+
+
+def _check_conditioning(rows: npt.NDArray[np.float32], name: str) -> None:
+    """Warn (``UserWarning``) when the float32 distance expansion cannot order ``rows``
+    (N, d): a large shared offset or norms whose squares underflow (module docstring)."""
+    n = rows.shape[0]
+    if n < 2:
+        return
+    step = max(1, (1 << 20) // rows.shape[1])
+
+    def chunks() -> Any:  # float64 chunks of 8 MiB, one at a time: no copy of the map
+        return (rows[i : i + step].astype(np.float64) for i in range(0, n, step))
+
+    top = max(float((c * c).sum(axis=1).max()) for c in chunks())
+    if top == 0.0:
+        return
+    mean = sum(c.sum(axis=0) for c in chunks()) / n
+    spread = sum(float(((c - mean) ** 2).sum()) for c in chunks()) / n
+    if spread == 0.0:
+        return  # one descriptor repeated: every distance ties, whatever the rounding
+    if np.sqrt(top) < TINY_NORM:
+        why = f"their norms are below {TINY_NORM:g} (their float32 squares underflow)"
+    elif spread < CONDITIONING * top:
+        why = (
+            f"they share an offset far larger than their spread (mean squared spread "
+            f"{spread:.3g}, largest squared norm {top:.3g})"
+        )
+    else:
+        return
+    warnings.warn(
+        f"{name}: the index's float32 distances ‖q‖² + ‖x‖² − 2q·x cannot order these rows: "
+        f"{why}; subtract their mean (and scale them) before indexing: L2 distances keep "
+        "their order",
+        UserWarning,
+        stacklevel=3,
+    )
 
 
 def _as_i64(x: Any, name: str, n: int) -> npt.NDArray[np.int64]:
@@ -50,7 +99,7 @@ def _as_i64(x: Any, name: str, n: int) -> npt.NDArray[np.int64]:
         raise ValueError(f"{name}: expected shape ({n},), got {arr.shape}")
     if arr.dtype.kind == "u" and arr.size and arr.max() > np.iinfo(np.int64).max:
         raise ValueError(f"{name}: values must fit in int64, got {arr.max()}")
-    return np.ascontiguousarray(arr, dtype=np.int64)
+    return _c_array(arr, np.int64)
 
 
 @dataclass(frozen=True)
@@ -141,6 +190,7 @@ class DescriptorIndex:
         n = rows.shape[0]
         g = None if groups is None else _as_i64(groups, "groups", n)
         s = None if seqs is None else _as_i64(seqs, "seqs", n)
+        _check_conditioning(rows, "descriptors")
         self._inner = _core.DescriptorIndex(rows, dtype, g, s)
 
     def add(self, descriptors: Any, groups: Any = None, seqs: Any = None) -> None:
@@ -149,6 +199,7 @@ class DescriptorIndex:
         n = rows.shape[0]
         g = None if groups is None else _as_i64(groups, "groups", n)
         s = None if seqs is None else _as_i64(seqs, "seqs", n)
+        _check_conditioning(rows, "descriptors")
         self._inner.add(rows, g, s)
 
     def topk(
