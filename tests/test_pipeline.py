@@ -605,6 +605,44 @@ def test_loops_cli_removes_only_its_own_stale_trajectories(tmp_path):
     assert left == ["trajectory_mine.tum", "trajectory_notes.tum", "trajectory_s0.tum"]
 
 
+def test_loops_cli_never_replaces_files_it_did_not_write(tmp_path):
+    from vvloc.commands.loops import check_loops_folder
+    from vvloc.localize import LoopClosures
+    from vvloc.localize.export import write_loop_csv, write_tum
+
+    out = tmp_path / "out"
+    out.mkdir()
+    mine = ["trajectory_s0.tum"]
+    check_loops_folder(out, mine)  # empty: fine
+    (out / "graph.g2o").write_text("my own graph\n")
+    with pytest.raises(FileExistsError, match=r"holds graph\.g2o, which no earlier vvloc loops"):
+        check_loops_folder(out, mine)
+    # an earlier run's loops.csv vouches for its graph.g2o; a user's trajectory is still kept
+    none = LoopClosures(
+        np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0),
+        np.zeros(0, bool),
+    )  # fmt: skip
+    write_loop_csv(out / "loops.csv", none)
+    check_loops_folder(out, mine)
+    write_tum(out / "trajectory_s0.tum", [0.0], np.zeros((1, 3)))  # not vvloc loops' header
+    with pytest.raises(FileExistsError, match=r"holds trajectory_s0\.tum"):
+        check_loops_folder(out, mine)
+    write_tum(
+        out / "trajectory_s0.tum", [0.0], np.zeros((1, 3)),
+        comments=["map session 's0' of map.h5: its keyframes' poses"],
+    )  # fmt: skip
+    check_loops_folder(out, mine)
+    (out / "loops.csv").write_text("my,csv\n")
+    with pytest.raises(FileExistsError, match=r"holds loops\.csv, graph\.g2o"):
+        check_loops_folder(out, mine)
+    # nor inside a dataset, whose folders the outputs would corrupt
+    data = tmp_path / "data"
+    (data / "sessions" / "s0").mkdir(parents=True)
+    (data / "rig.json").write_text("{}")
+    with pytest.raises(ValueError, match="lies inside the dataset"):
+        check_loops_folder(data / "sessions" / "s0", mine)
+
+
 def test_calibrate_cli_scores_the_localizers_answers_and_never_loses_a_calibration(
     tiny_world, tmp_path
 ):

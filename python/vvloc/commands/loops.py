@@ -53,6 +53,39 @@ def _written_by_loops(path: Path) -> bool:
     )
 
 
+def check_loops_folder(out: Path, trajectory_files: Iterable[str]) -> None:
+    """``ValueError`` (``--out``) when ``out`` is or lies inside a vvloc dataset (a
+    ``rig.json`` beside ``sessions/``); ``FileExistsError`` when it holds a file this run
+    would write (``loops.csv``, ``graph.g2o``, its ``trajectory_*.tum``) that no earlier
+    ``vvloc loops`` wrote: an earlier run's ``loops.csv`` starts with its header (and vouches
+    for the ``graph.g2o`` beside it, which g2o readers allow no header in), its trajectories
+    with theirs. A user's files are never replaced."""
+    for folder in (out, *out.parents):  # the map does not say which dataset built it
+        if (folder / "rig.json").is_file() and (folder / "sessions").is_dir():
+            raise ValueError(
+                f"--out: {out} is or lies inside the dataset {folder}; write outputs to a "
+                "folder of their own"
+            )
+    if not out.is_dir():
+        return
+    try:
+        with open(out / "loops.csv", encoding="utf-8") as f:
+            ours = f.readline().startswith("# vvloc loop closures")
+    except (OSError, UnicodeDecodeError):
+        ours = False
+    clash = [name for name in ("loops.csv", "graph.g2o") if (out / name).exists() and not ours]
+    clash += [
+        name
+        for name in trajectory_files
+        if (out / name).exists() and not _written_by_loops(out / name)
+    ]
+    if clash:
+        raise FileExistsError(
+            f"--out: {out} holds {', '.join(clash)}, which no earlier vvloc loops wrote; its "
+            "outputs would replace them: choose another folder"
+        )
+
+
 def remove_stale_trajectories(out: Path, keep: Iterable[str]) -> list[Path]:
     """Delete the ``trajectory_*.tum`` files of an earlier ``vvloc loops`` run into ``out``
     that this run does not write (sessions of another map), so that the folder holds one
@@ -133,6 +166,7 @@ def loops(
         model = VVLocNet.load(resolve_checkpoint(checkpoint)).to(parse_device(device))
         # detect_loops checks the weights fingerprint (once, so an old map warns once)
         db = MapDatabase.open(map_path, expected_config_hash=model.config_hash())
+        check_loops_folder(out, trajectory_file_names(db.sessions).values())  # before the work
         ids = np.asarray(db.ids)
         if len(ids) and (ids.min() < 0 or ids.max() > G2O_MAX_ID):  # before the long detection
             raise ValueError(
