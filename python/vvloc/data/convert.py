@@ -45,9 +45,7 @@ def select_keyframes(
         raise ValueError(f"poses: expected shape (N, 3), got {p.shape}")
     if not np.isfinite(p).all():
         raise ValueError("poses: contains non-finite values")
-    for name, v in (("min_distance", min_distance), ("min_angle_deg", min_angle_deg)):
-        if isinstance(v, bool) or not (isinstance(v, numbers.Real) and math.isfinite(v) and v >= 0):
-            raise ValueError(f"{name}: expected a finite number >= 0, got {v!r}")
+    min_distance, min_angle_deg = _spacing(min_distance, min_angle_deg)
     if len(p) == 0:
         return np.zeros(0, np.int64)
     if min_distance == 0 and min_angle_deg == 0:
@@ -61,6 +59,15 @@ def select_keyframes(
         if (min_distance > 0 and moved >= min_distance) or (min_angle_deg > 0 and turned >= angle):
             keep.append(i)
     return np.array(keep, dtype=np.int64)
+
+
+def _spacing(min_distance: Any, min_angle_deg: Any) -> tuple[float, float]:
+    """``(min_distance, min_angle_deg)`` as floats; ``ValueError`` naming one that is not a
+    finite number >= 0 (numpy scalars count as numbers, bools do not)."""
+    for name, v in (("min_distance", min_distance), ("min_angle_deg", min_angle_deg)):
+        if isinstance(v, bool) or not (isinstance(v, numbers.Real) and math.isfinite(v) and v >= 0):
+            raise ValueError(f"{name}: expected a finite number >= 0, got {v!r}")
+    return float(min_distance), float(min_angle_deg)
 
 
 def convert_dataset(
@@ -109,28 +116,20 @@ def convert_dataset(
         RobotCar's ``origin_enu``). Nothing is left at ``out`` if any frame fails.
     """
     from vvloc.data import detect_format, open_dataset
+    from vvloc.data.frame import check_image_size
     from vvloc.data.sampling import inside_folder
     from vvloc.data.vvloc_format import DatasetFormatError, DatasetWriter, check_dataset_target
 
     if isinstance(every, bool) or not isinstance(every, (int, np.integer)) or every < 1:
         raise ValueError(f"every: expected an int >= 1, got {every!r}")
     every = int(every)
-    select_keyframes(np.zeros((0, 3)), min_distance=min_distance, min_angle_deg=min_angle_deg)
-    min_distance, min_angle_deg = float(min_distance), float(min_angle_deg)  # checked: numbers
+    min_distance, min_angle_deg = _spacing(min_distance, min_angle_deg)
     if isinstance(sessions, str):
         raise TypeError(
             f"sessions: expected a list of session names, got the str {sessions!r} "
             f"(one session: [{sessions!r}])"
         )
-    size = None
-    if image_size is not None:
-        if len(image_size) != 2 or any(
-            isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1 for v in image_size
-        ):
-            raise ValueError(
-                f"image_size: expected (width, height) positive ints, got {image_size}"
-            )
-        size = (int(image_size[0]), int(image_size[1]))
+    size = check_image_size(image_size)
     options = dict(reader_options)
     fmt = detect_format(src, format)
     if inside_folder(out, src) or inside_folder(src, out):

@@ -469,6 +469,23 @@ def ego_frames(
     return poses, z, frame_cam_to_ego
 
 
+def check_image_size(image_size: Any) -> tuple[int, int] | None:
+    """``image_size`` as (width, height) plain ints, or None; ``ValueError`` naming it unless
+    it is None or two positive ints."""
+    if image_size is None:
+        return None
+    if (
+        isinstance(image_size, (str, bytes))
+        or not hasattr(image_size, "__len__")
+        or len(image_size) != 2
+        or any(
+            isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1 for v in image_size
+        )
+    ):
+        raise ValueError(f"image_size: expected (width, height) positive ints, got {image_size!r}")
+    return (int(image_size[0]), int(image_size[1]))
+
+
 def check_reader_options(
     cameras: Sequence[Any], image_size: Any, tolerance_us: Any
 ) -> tuple[tuple[int, int] | None, int]:
@@ -484,21 +501,7 @@ def check_reader_options(
     repeated = sorted({str(c) for c in names if names.count(c) > 1})
     if repeated:
         raise ValueError(f"cameras: {repeated} listed more than once")
-    size = None
-    if image_size is not None:
-        if (
-            isinstance(image_size, (str, bytes))
-            or not hasattr(image_size, "__len__")
-            or len(image_size) != 2
-            or any(
-                isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1
-                for v in image_size
-            )
-        ):
-            raise ValueError(
-                f"image_size: expected (width, height) positive ints, got {image_size!r}"
-            )
-        size = (int(image_size[0]), int(image_size[1]))
+    size = check_image_size(image_size)
     if isinstance(tolerance_us, bool) or not isinstance(tolerance_us, (int, np.integer)):
         raise TypeError(
             f"tolerance_us: expected an int (microseconds), got {type(tolerance_us).__name__}"
