@@ -166,7 +166,8 @@ def loops(
         model = VVLocNet.load(resolve_checkpoint(checkpoint)).to(parse_device(device))
         # detect_loops checks the weights fingerprint (once, so an old map warns once)
         db = MapDatabase.open(map_path, expected_config_hash=model.config_hash())
-        check_loops_folder(out, trajectory_file_names(db.sessions).values())  # before the work
+        trajectories = trajectory_file_names(db.sessions)
+        check_loops_folder(out, trajectories.values())  # before the long detection
         ids = np.asarray(db.ids)
         if len(ids) and (ids.min() < 0 or ids.max() > G2O_MAX_ID):  # before the long detection
             raise ValueError(
@@ -183,7 +184,6 @@ def loops(
             cost_threshold=threshold,
             max_pairs=max_pairs or None,
         )
-        trajectories = trajectory_file_names(db.sessions)
         files = {
             "loops.csv": loop_csv_text(found),
             "graph.g2o": g2o_text(

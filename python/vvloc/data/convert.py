@@ -65,7 +65,9 @@ def _spacing(min_distance: Any, min_angle_deg: Any) -> tuple[float, float]:
     """``(min_distance, min_angle_deg)`` as floats; ``ValueError`` naming one that is not a
     finite number >= 0 (numpy scalars count as numbers, bools do not)."""
     for name, v in (("min_distance", min_distance), ("min_angle_deg", min_angle_deg)):
-        if isinstance(v, bool) or not (isinstance(v, numbers.Real) and math.isfinite(v) and v >= 0):
+        if isinstance(v, bool) or not (
+            isinstance(v, numbers.Real) and math.isfinite(v) and float(v) >= 0
+        ):
             raise ValueError(f"{name}: expected a finite number >= 0, got {v!r}")
     return float(min_distance), float(min_angle_deg)
 

@@ -127,7 +127,7 @@ pub fn from_bytes(bytes: &[u8]) -> Result<DescriptorIndex> {
         return Err(bad("checksum mismatch (corrupted file)"));
     }
     let (n, d) = (n as usize, d as usize);
-    crate::error::check_alloc::<f32>("bytes", n * d)?; // the rows, then the index's own copy
+    crate::error::check_alloc::<f32>("index", n * d)?; // the rows, then the index's own copy
     let (desc, rest) = payload.split_at(n * d * 4);
     let (groups, seqs) = rest.split_at(n * 8);
     let f32s: Vec<f32> = desc
