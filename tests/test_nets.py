@@ -550,6 +550,12 @@ def test_load_rejects_mismatched_checkpoints(tmp_path):
     _model(tiny_config(), seed=1).save(run / "checkpoint")
     with pytest.raises(FileNotFoundError, match=r"is a training run: load \S*/run/checkpoint\)"):
         VVLocNet.load(run)
+    # the CLI's form: a run resolves to its checkpoint, a bad path names the option
+    from vvloc.checkpoints import checkpoint_folder
+
+    assert checkpoint_folder(run) == run / "checkpoint"
+    with pytest.raises(FileNotFoundError, match=r"^--checkpoint: .*empty.*config.json not found"):
+        checkpoint_folder(tmp_path / "empty", "--checkpoint")
 
 
 def test_load_refuses_edited_truncated_or_malformed_checkpoints(tmp_path):

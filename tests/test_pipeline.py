@@ -971,6 +971,8 @@ def test_cli_refuses_misleading_inputs_before_any_work(tiny_world, map_file, mod
     assert r.returncode == 2 and "the map session 's0' is among the queries" in r.stderr
     r = run("eval", *ck, "--database", "s0", "--queries", "s1,s1", "--out", str(tmp_path / "e"))
     assert r.returncode == 2 and "named more than once" in r.stderr
+    r = run("eval", *ck, "--database", "s0", "--queries", "s1,s9", "--out", str(tmp_path / "e"))
+    assert r.returncode == 2 and "queries: no session 's9' in" in r.stderr, r.stderr
     assert not (tmp_path / "e").exists()
     # an --out that is a file is refused before localizing anything
     blocker = tmp_path / "file.txt"
@@ -995,6 +997,19 @@ def test_cli_refuses_misleading_inputs_before_any_work(tiny_world, map_file, mod
     # the demo checks its checkpoint and its --out before rendering minutes of world
     r = run("demo", "--out", str(tmp_path / "d"), "--checkpoint", str(tmp_path / "nothing"))
     assert r.returncode == 2 and "--checkpoint:" in r.stderr and "rendering" not in r.stdout
+    # every command names the option a bad checkpoint came from, not the library's argument
+    r = run("eval", "--checkpoint", str(tmp_path / "nothing"), "--dataset", str(tiny_world),
+            "--database", "s0", "--queries", "s1", "--out", str(tmp_path / "e"))  # fmt: skip
+    assert r.returncode == 2 and f"--checkpoint: {tmp_path / 'nothing'} does not exist" in r.stderr
+    r = run("loops", "--map", str(map_file), "--checkpoint", str(tiny_world), "--out",
+            str(tmp_path / "l"))  # fmt: skip
+    assert r.returncode == 2 and "--checkpoint: " in r.stderr
+    assert "config.json not found" in r.stderr
+    # a NaN --radius passed typer's max=2 (NaN > 2 is false)
+    r = run("loops", "--map", str(map_file), "--checkpoint", str(model_dir), "--radius", "nan",
+            "--out", str(tmp_path / "l"))  # fmt: skip
+    assert r.returncode == 2 and "'--radius': expected a descriptor distance" in r.stderr
+    assert not (tmp_path / "l").exists() and not (tmp_path / "e").exists()
     r = run("demo", "--out", str(blocker))
     assert r.returncode == 2 and "--out:" in r.stderr and "rendering" not in r.stdout
     # ... and never replaces a dataset it did not render

@@ -8,7 +8,7 @@ from typing import Annotated, Any
 
 import typer
 
-from vvloc.checkpoints import resolve_checkpoint
+from vvloc.checkpoints import checkpoint_folder
 from vvloc.commands._util import (
     EXIT_FAILURE,
     CostThreshold,
@@ -79,7 +79,7 @@ def calibrate(
             raise ValueError("--queries: expected at least one session name")
         if not 0.0 < precision <= 1.0:
             raise ValueError(f"--precision: expected a value in (0, 1], got {precision}")
-        ckpt = resolve_checkpoint(checkpoint)
+        ckpt = checkpoint_folder(checkpoint, "--checkpoint")
         target = ckpt / CALIBRATION_FILE
         if target.exists() and not overwrite:
             raise FileExistsError(

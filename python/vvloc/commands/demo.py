@@ -89,7 +89,7 @@ def demo(
     seed: Annotated[int, typer.Option("--seed", help="World seed.")] = 0,
 ) -> None:
     """Map session s0 (day); held-out query sessions s3 (rain, reversed) and s4 (fog, +1.5 m)."""
-    from vvloc.checkpoints import resolve_checkpoint
+    from vvloc.checkpoints import checkpoint_folder
     from vvloc.localize.evaluation import check_report_folder, run_evaluation
     from vvloc.nets import ModelConfig, VVLocNet
     from vvloc.sim import simulate_dataset
@@ -100,7 +100,7 @@ def demo(
         check_report_folder(out)  # the report's files, refused before minutes of rendering
         data = out / "data"
         if checkpoint is not None:  # checked before minutes of rendering; a run folder works
-            checkpoint = resolve_checkpoint(checkpoint)
+            checkpoint = checkpoint_folder(checkpoint, "--checkpoint")
             try:
                 VVLocNet.load(checkpoint)
             except (FileNotFoundError, ValueError) as e:

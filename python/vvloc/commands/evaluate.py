@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-from vvloc.checkpoints import resolve_checkpoint
+from vvloc.checkpoints import checkpoint_folder
 from vvloc.commands._util import (
     MetricCandidates,
     MetricFrom,
@@ -91,7 +91,7 @@ def eval_command(
         if not names:
             raise ValueError("--queries: expected at least one session name")
         run_evaluation(
-            resolve_checkpoint(checkpoint),
+            checkpoint_folder(checkpoint, "--checkpoint"),
             dataset,
             database,
             names,

@@ -8,7 +8,7 @@ from typing import Annotated
 import numpy as np
 import typer
 
-from vvloc.checkpoints import resolve_checkpoint
+from vvloc.checkpoints import checkpoint_folder
 from vvloc.commands._util import (
     CostThreshold,
     MetricCandidates,
@@ -105,7 +105,7 @@ def localize(
         _check_localize_folder(out)
         loc = Localizer.open(
             map_path,
-            resolve_checkpoint(checkpoint),
+            checkpoint_folder(checkpoint, "--checkpoint"),
             device=parse_device(device),
             top_k=top_k,
             accept_threshold=threshold,

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import re
 from collections.abc import Iterable, Sequence
 from pathlib import Path
@@ -9,7 +10,7 @@ from typing import Annotated
 
 import typer
 
-from vvloc.checkpoints import resolve_checkpoint
+from vvloc.checkpoints import checkpoint_folder
 from vvloc.commands._util import (
     CostThreshold,
     Threads,
@@ -102,6 +103,13 @@ def remove_stale_trajectories(out: Path, keep: Iterable[str]) -> list[Path]:
     return stale
 
 
+def _a_radius(value: float) -> float:
+    # said before the map and the model load; NaN would pass typer's max=2 (NaN > 2 is false)
+    if not (math.isfinite(value) and 0.0 < value <= 2.0):
+        raise typer.BadParameter(f"expected a descriptor distance in (0, 2], got {value}")
+    return value
+
+
 def loops(
     map_path: Annotated[Path, typer.Option("--map", help="Map file (.h5) with BEVs.")],
     out: Annotated[Path, typer.Option("--out", help="Output folder.")],
@@ -115,7 +123,7 @@ def loops(
         float,
         typer.Option(
             "--radius",
-            max=2.0,
+            callback=_a_radius,
             help="Global-descriptor L2 distance below which a pair is a candidate (unit-norm "
             "descriptors: distances lie in [0, 2]; every candidate is verified metrically).",
         ),
@@ -163,7 +171,9 @@ def loops(
     with cli_errors("loops"):
         set_torch_threads(threads)
         check_out_folder(out)
-        model = VVLocNet.load(resolve_checkpoint(checkpoint)).to(parse_device(device))
+        model = VVLocNet.load(checkpoint_folder(checkpoint, "--checkpoint")).to(
+            parse_device(device)
+        )
         # detect_loops checks the weights fingerprint (once, so an old map warns once)
         db = MapDatabase.open(map_path, expected_config_hash=model.config_hash())
         trajectories = trajectory_file_names(db.sessions)

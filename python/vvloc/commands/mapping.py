@@ -8,7 +8,7 @@ from typing import Annotated
 
 import typer
 
-from vvloc.checkpoints import resolve_checkpoint
+from vvloc.checkpoints import checkpoint_folder
 from vvloc.commands._util import Threads, cli_errors, parse_device, set_torch_threads, split_names
 
 map_app = typer.Typer(help="Build and inspect map databases.", no_args_is_help=True)
@@ -50,7 +50,9 @@ def build(
         set_torch_threads(threads)
         if out.is_file() and not overwrite:
             raise FileExistsError(f"--out: {out} exists; pass --overwrite to replace it")
-        model = VVLocNet.load(resolve_checkpoint(checkpoint)).to(parse_device(device))
+        model = VVLocNet.load(checkpoint_folder(checkpoint, "--checkpoint")).to(
+            parse_device(device)
+        )
         ds = open_dataset(dataset)
         path = build_map(
             model,

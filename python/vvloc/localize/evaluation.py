@@ -446,6 +446,13 @@ def run_evaluation(
     check_report_folder(out_dir)
     model = VVLocNet.load(checkpoint).to(resolve_device(device))
     ds = open_dataset(dataset)
+    # sessions checked before the trained-on warning, which a missing one would follow
+    for name in [database, *queries]:
+        argument = "database" if name == database else "queries"
+        if name not in ds.sessions:
+            raise KeyError(f"{argument}: no session {name!r} in {dataset}; sessions: {ds.sessions}")
+        if len(ds.session(name)) == 0:
+            raise ValueError(f"{argument}: session {name!r} of {dataset} has no frames")
     seen = trained_on(model.training_record, dataset, queries)
     if seen:
         log.warning(
@@ -454,12 +461,6 @@ def run_evaluation(
             seen,
             dataset,
         )
-    for name in [database, *queries]:
-        if len(ds.session(name)) == 0:  # (a KeyError names the known sessions)
-            raise ValueError(
-                f"{'database' if name == database else 'queries'}: session "
-                f"{name!r} of {dataset} has no frames"
-            )
     out_dir.mkdir(parents=True, exist_ok=True)  # after the inputs are checked: none left on error
     # Everything is written into a hidden folder inside ``out`` and moved into place at the
     # end: a run that fails or is stopped leaves an earlier report in ``out`` as it was (its

@@ -18,6 +18,7 @@ from safetensors.torch import load_file, save
 from torch import Tensor, nn
 
 from vvloc._io import write_together
+from vvloc.checkpoints import CONFIG_FILE, WEIGHTS_FILE, check_checkpoint_files
 from vvloc.data.frame import Camera
 from vvloc.nets.backbone import FPN, ResNetBackbone, normalise_images
 from vvloc.nets.config import CONFIG_VERSION, ModelConfig
@@ -27,8 +28,6 @@ from vvloc.nets.heads import make_global_head
 from vvloc.nets.polar import polar_sample
 from vvloc.provenance import TRAINING_FILE, read_record, record_json
 
-WEIGHTS_FILE = "model.safetensors"
-CONFIG_FILE = "config.json"
 #: Optional acceptance calibration of a checkpoint (see :func:`vvloc.localize.calibrate`).
 CALIBRATION_FILE = "calibration.json"
 
@@ -364,22 +363,8 @@ class VVLocNet(nn.Module):
         ``UserWarning`` (it is informational; the weights load)."""
         device = resolve_device(map_location, argument="map_location")
         src = Path(directory)
-        if not src.is_dir():
-            what = "is a file, not a folder" if src.exists() else "does not exist"
-            raise FileNotFoundError(
-                f"directory: {src} {what} (expected a vvloc checkpoint folder holding "
-                f"{CONFIG_FILE} and {WEIGHTS_FILE}, or a training run's best/ or checkpoint/)"
-            )
+        check_checkpoint_files(src, "directory")
         cfg_path, w_path = src / CONFIG_FILE, src / WEIGHTS_FILE
-        for p in (cfg_path, w_path):
-            if not p.is_file():
-                inside = [
-                    str(src / d)
-                    for d in ("best", "checkpoint")
-                    if (src / d / CONFIG_FILE).is_file()
-                ]
-                hint = f"; {src} is a training run: load {' or '.join(inside)}" if inside else ""
-                raise FileNotFoundError(f"directory: {p} not found (not a vvloc checkpoint{hint})")
         meta = _json_object(cfg_path)
         if meta.get("format") != CHECKPOINT_FORMAT:
             raise ValueError(
