@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import os
+import shutil
 import stat
+import subprocess
+import sys
 import threading
 from pathlib import Path
 from typing import Any
@@ -692,6 +696,73 @@ def test_failed_write_leaves_previous_map_and_no_temp_file(
     assert file_sha(path) == before
     with MapDatabase.open(path) as db:
         np.testing.assert_array_equal(db.poses, keyframes()["poses"])
+
+
+def test_a_disk_too_small_for_the_map_is_said_before_hdf5_writes(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # HDF5 crashes the interpreter when the disk fills under it: the writer checks first
+    from types import SimpleNamespace
+
+    from vvloc.localize import mapdb
+
+    path = saved(tmp_path)
+    before = file_sha(path)
+    real = mapdb.shutil.disk_usage
+    free = {"bytes": 0}
+    monkeypatch.setattr(mapdb.shutil, "disk_usage", lambda p: SimpleNamespace(free=free["bytes"]))
+    with pytest.raises(
+        OSError, match=r"map.h5: not enough free space for the map: 12 keyframes"
+    ) as e:
+        make_map(seed=1).save(path)
+    assert e.value.errno == errno.ENOSPC
+    assert sorted(os.listdir(tmp_path)) == ["map.h5"] and file_sha(path) == before
+    # room for the first batch and not for the second: refused before the second is written
+    kf = keyframes(bev=False)
+    first = {k: v[:6] for k, v in kf.items()}
+    free["bytes"] = real(tmp_path).free
+    with MapWriter(tmp_path / "other.h5", model_config=CONFIG, grid_size=0.3) as w:
+        w.append(**first)
+        free["bytes"] = 0
+        with pytest.raises(OSError, match="not enough free space"):
+            w.append(**{k: v[6:] for k, v in kf.items()})
+        free["bytes"] = real(tmp_path).free  # space made: the writer goes on
+        w.append(**{k: v[6:] for k, v in kf.items()})
+    with MapDatabase.open(tmp_path / "other.h5") as db:
+        assert len(db) == N
+
+
+def test_a_full_file_system_is_an_oserror_not_a_crash(tmp_path: Path) -> None:
+    # a real full disk: a 1 MiB tmpfs (root only; skipped where mount is not allowed)
+    mnt = tmp_path / "tiny"
+    mnt.mkdir()
+    if os.geteuid() != 0 or shutil.which("mount") is None:
+        pytest.skip("needs root to mount a small tmpfs")
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1M", "tmpfs", str(mnt)],
+                       capture_output=True)  # fmt: skip
+    if r.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {r.stderr.decode().strip()}")
+    try:
+        code = (
+            "import numpy as np, sys\n"
+            "from vvloc.localize import MapDatabase\n"
+            "n = 100\n"
+            "db = MapDatabase.from_arrays(poses=np.zeros((n, 3)), timestamps=np.arange(n) * 1.0,"
+            " sessions='s0', global_descriptors=np.eye(n, 64),"
+            " local_descriptors=np.ones((n, 60, 64)),"
+            " model_config={'a': 1}, grid_size=0.6)\n"
+            "try:\n"
+            "    db.save(sys.argv[1])\n"
+            "except OSError as e:\n"
+            "    print('OSError', e.errno, e)\n"
+        )
+        r = subprocess.run([sys.executable, "-c", code, str(mnt / "map.h5")],
+                           capture_output=True, text=True, timeout=120)  # fmt: skip
+        assert r.returncode == 0, r.stderr[-2000:]  # not -11 (SIGSEGV)
+        assert f"OSError {errno.ENOSPC}" in r.stdout and "not enough free space" in r.stdout
+        assert os.listdir(mnt) == []
+    finally:
+        subprocess.run(["umount", str(mnt)], check=True)
 
 
 def test_interrupted_writer_leaves_nothing(tmp_path: Path) -> None:

@@ -51,9 +51,11 @@ models of one architecture share a config hash) to :meth:`MapDatabase.open`.
 from __future__ import annotations
 
 import datetime as _dt
+import errno
 import hashlib
 import json
 import os
+import shutil
 import warnings
 import weakref
 from collections.abc import Mapping, Sequence
@@ -119,6 +121,10 @@ _REQUIRED_ATTRS = (
 _SMALL_CHUNK_BYTES = 1 << 16
 _LAZY_CHUNK_BYTES = 1 << 14  # paper-sized rows (>= 16 KiB) get one chunk per keyframe
 _COPY_BLOCK_BYTES = 64 << 20
+#: Free space a map writer keeps beyond its estimate of the file (HDF5's metadata, the chunk
+#: index, the attributes): HDF5 crashes the interpreter when the disk fills under it.
+_SPACE_MARGIN_BYTES = 1 << 20
+_CHUNK_INDEX_BYTES = 128  # an upper bound per chunk: its index entry and checksum
 
 
 class MapError(ValueError):
@@ -379,6 +385,10 @@ def _validate_batch(
 # Writing
 
 
+def _mib(n: int) -> str:
+    return f"{n / (1 << 20):.1f} MiB"
+
+
 def _rows_per_chunk(row_bytes: int, target: int) -> int:
     return max(1, min(1 << 16, target // max(row_bytes, 1)))
 
@@ -476,6 +486,12 @@ class MapWriter:
     file at ``path`` untouched. Invalid input to :meth:`append` raises ``TypeError`` /
     ``ValueError`` before anything is written and leaves the writer usable; an error while
     writing aborts the writer.
+
+    Before each batch and before the metadata the writer checks that the file system holds the
+    map as it will be (whole chunks, their index, the metadata, a few MiB spare) and raises
+    ``OSError`` (``ENOSPC``) naming the space needed, before HDF5 writes: with the disk full
+    under it, HDF5 (2.0, h5py 3.16) crashes the interpreter at close. Another process filling
+    the disk between the check and the write can still reach that crash.
     """
 
     def __init__(
@@ -525,6 +541,7 @@ class MapWriter:
         self._digests: dict[str, Any] = {}
         self._shapes: dict[str, tuple[int, ...]] = {}
         self._has_bev: bool | None = None
+        self._layout: dict[str, tuple[int, int]] = {}  # dataset → (rows per chunk, row bytes)
         self._state = "open"
 
     def __len__(self) -> int:
@@ -624,6 +641,9 @@ class MapWriter:
         }
         if b.bev is not None:
             data["bev"] = b.bev
+        if self._n == 0:
+            self._layout = {name: self._chunking(name, arr) for name, arr in data.items()}
+        self._check_space(self._n + k)
         try:
             if self._n == 0:
                 self._create_datasets(data)
@@ -645,18 +665,47 @@ class MapWriter:
         self._shapes.update(shapes)
         self._has_bev = has_bev
 
+    def _stored_dtype(self, name: str) -> np.dtype[Any]:
+        return _META_DATASETS.get(name, _BEV_DTYPE if name == "bev" else self._dtype)
+
+    def _chunking(self, name: str, arr: np.ndarray) -> tuple[int, int]:
+        """(rows per chunk, bytes per row) of dataset ``name`` holding rows like ``arr``'s."""
+        row_bytes = int(np.prod(arr.shape[1:], dtype=np.int64)) * self._stored_dtype(name).itemsize
+        target = _LAZY_CHUNK_BYTES if name in _LAZY else _SMALL_CHUNK_BYTES
+        return min(self._max_chunk_rows, _rows_per_chunk(row_bytes, target)), row_bytes
+
+    def _check_space(self, rows: int) -> None:
+        """``OSError`` (``ENOSPC``) unless the temporary file's file system can take the map of
+        ``rows`` keyframes (whole chunks, their index, the metadata and a margin) beyond what
+        the file holds now."""
+        size = _SPACE_MARGIN_BYTES + 2 * len(self._config_json) + 64 * (len(self._sessions) + 1)
+        if self._rig is not None:
+            size += 2 * len(json.dumps(self._rig))
+        for chunk_rows, row_bytes in self._layout.values():
+            chunks = -(-rows // chunk_rows)
+            size += chunks * (chunk_rows * row_bytes + _CHUNK_INDEX_BYTES)
+        try:
+            held = os.stat(self._atomic.tmp).st_blocks * 512
+            free = shutil.disk_usage(self._atomic.tmp.parent).free
+        except (OSError, AttributeError):  # no st_blocks (Windows) or no statvfs: unchecked
+            return
+        if free < size - held:
+            raise OSError(
+                errno.ENOSPC,
+                f"{self.path}: not enough free space for the map: {rows} keyframes need about "
+                f"{_mib(size - held)} more, {_mib(free)} are free on {self._atomic.tmp.parent}",
+            )
+
     def _create_datasets(self, data: Mapping[str, np.ndarray]) -> None:
         for name, arr in data.items():
             tail = arr.shape[1:]
-            dtype = _META_DATASETS.get(name, _BEV_DTYPE if name == "bev" else self._dtype)
-            row_bytes = int(np.prod(tail, dtype=np.int64)) * dtype.itemsize
-            target = _LAZY_CHUNK_BYTES if name in _LAZY else _SMALL_CHUNK_BYTES
+            chunk_rows, _ = self._layout[name]
             self._h5.create_dataset(
                 name,
                 shape=(0, *tail),
                 maxshape=(None, *tail),
-                dtype=dtype,
-                chunks=(min(self._max_chunk_rows, _rows_per_chunk(row_bytes, target)), *tail),
+                dtype=self._stored_dtype(name),
+                chunks=(chunk_rows, *tail),
                 fletcher32=True,
             )
             self._digests[name] = hashlib.sha256()
@@ -673,6 +722,7 @@ class MapWriter:
         from vvloc import __version__
 
         try:
+            self._check_space(self._n)  # the disk may have filled since the last batch
             names = list(self._sessions)
             width = max(1, *(len(n.encode("utf-8")) for n in names))
             ds = self._h5.create_dataset(
