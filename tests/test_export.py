@@ -379,3 +379,13 @@ def test_text_functions_are_what_the_writers_write(tmp_path: Path) -> None:
     stamps = np.arange(12) * 0.1
     write_tum(tmp_path / "t.tum", stamps, poses, comments=comments)
     assert (tmp_path / "t.tum").read_bytes() == tum_text(stamps, poses, comments=comments).encode()
+
+
+def test_csv_rows_quote_fields_that_hold_commas() -> None:
+    import csv
+
+    from vvloc._io import csv_row
+
+    line = csv_row(3, "day,1", 'say "hi"', 0.5)
+    assert line == '3,"day,1","say ""hi""",0.5'
+    assert next(csv.reader([line])) == ["3", "day,1", 'say "hi"', "0.5"]

@@ -161,10 +161,24 @@ def test_the_map_records_its_rig_and_the_localizer_compares_queries_with_it(
     ):
         fresh.localize(dataclasses.replace(frame, cam_to_ego=lower))
     fresh.map.close()
-    # non-finite calibration is refused, whatever the rig
+    # calibration a rig.json could not hold is refused, whatever the rig (a singular
+    # cam_to_ego failed inside the encoder's matrix inverse, a zero K gave an answer)
     bad = dataclasses.replace(frame, K=np.full_like(frame.K, np.nan))
-    with pytest.raises(ValueError, match=r"frames\[1\]: K or cam_to_ego holds non-finite"):
+    with pytest.raises(ValueError, match=r"frames\[1\]\.K: expected finite \(4, 3, 3\)"):
         loc.localize_batch([frame, bad])
+    singular = frame.cam_to_ego.copy()
+    singular[:, 3, :] = 0
+    for change, match in [
+        ({"cam_to_ego": singular}, r"frames\[0\]\.cam_to_ego: expected a finite rigid"),
+        ({"K": np.zeros_like(frame.K)}, r"frames\[0\]\.K: expected pinhole matrices"),
+        ({"K": np.swapaxes(frame.K, 1, 2)}, r"frames\[0\]\.K: expected pinhole matrices"),
+        ({"K": frame.K[:3]}, r"frames\[0\]\.K: expected finite \(4, 3, 3\) intrinsics"),
+    ]:
+        with pytest.raises(ValueError, match=match):
+            loc.localize(dataclasses.replace(frame, **change))
+    assert len(loc.localize_batch(f for f in [frame])) == 1  # a generator is taken
+    with pytest.raises(TypeError, match=r"^frames: expected a sequence of vvloc.data.Frame"):
+        loc.localize_batch(frame)  # type: ignore[arg-type]
     with pytest.raises(TypeError, match=r"frames\[0\]: expected a vvloc.data.Frame"):
         loc.localize_batch([frame.images])
     with pytest.raises(ValueError, match="batch_size"):
@@ -971,6 +985,11 @@ def test_cli_refuses_misleading_inputs_before_any_work(tiny_world, map_file, mod
     assert r.returncode == 2 and "the map session 's0' is among the queries" in r.stderr
     r = run("eval", *ck, "--database", "s0", "--queries", "s1,s1", "--out", str(tmp_path / "e"))
     assert r.returncode == 2 and "named more than once" in r.stderr
+    loc = ["localize", "--checkpoint", str(model_dir), "--dataset", str(tiny_world)]
+    r = run(*loc, "--map", str(map_file), "--session", "s9", "--out", str(tmp_path / "e"))
+    assert r.returncode == 2 and "--session: no session 's9' in" in r.stderr, r.stderr
+    r = run(*loc, "--map", str(tmp_path / "no.h5"), "--session", "s1", "--out", str(tmp_path / "e"))
+    assert r.returncode == 2 and "--map: map file not found" in r.stderr, r.stderr
     r = run("eval", *ck, "--database", "s0", "--queries", "s1,s9", "--out", str(tmp_path / "e"))
     assert r.returncode == 2 and "queries: no session 's9' in" in r.stderr, r.stderr
     assert not (tmp_path / "e").exists()
@@ -1091,6 +1110,54 @@ def test_report_and_localize_folders_never_replace_files_they_did_not_write(tmp_
         (loc / name).write_text("x")
     (loc / "queries.csv").write_text(HEADER + "\n")
     _check_localize_folder(loc)
+
+
+def test_map_build_replaces_only_a_map_and_never_writes_into_the_dataset(tmp_path, monkeypatch):
+    from pathlib import Path
+
+    from vvloc.commands._util import check_out_folder
+    from vvloc.commands.mapping import check_map_out
+    from vvloc.localize import MapDatabase
+
+    data = tmp_path / "data"
+    (data / "sessions" / "s0").mkdir(parents=True)
+    (data / "rig.json").write_text("{}")
+    notes = tmp_path / "notes.txt"
+    notes.write_text("mine")
+    n = 3
+    old = MapDatabase.from_arrays(
+        poses=np.zeros((n, 3)), timestamps=np.arange(n) * 1.0, sessions="s0",
+        global_descriptors=np.eye(n, 8), local_descriptors=np.ones((n, 4, 2)),
+        model_config={"a": 1}, grid_size=0.6,
+    ).save(tmp_path / "old.h5")  # fmt: skip
+    check_map_out(tmp_path / "new.h5", overwrite=False, dataset=data)
+    check_map_out(old, overwrite=True, dataset=data)  # an earlier map: replaced with --overwrite
+    with pytest.raises(FileExistsError, match=r"^--out: .*old.h5 exists; pass --overwrite"):
+        check_map_out(old, overwrite=False, dataset=data)
+    # a user's file, or the dataset's own files, were replaced by --overwrite
+    for target in (notes, data / "rig.json"):
+        with pytest.raises((FileExistsError, ValueError), match=r"^--out: "):
+            check_map_out(target, overwrite=True, dataset=data)
+    with pytest.raises(FileExistsError, match="is not a vvloc map; --overwrite replaces only"):
+        check_map_out(notes, overwrite=True, dataset=data)
+    with pytest.raises(ValueError, match="lies inside the dataset"):
+        check_map_out(data / "map.h5", overwrite=False, dataset=data)
+    with pytest.raises(IsADirectoryError, match=r"^--out: "):
+        check_map_out(tmp_path, overwrite=True, dataset=data)
+    with pytest.raises(ValueError, match=r"^--out: expected the path of a map file"):
+        check_map_out(Path(""), overwrite=False, dataset=data)
+    with pytest.raises(FileNotFoundError, match=r"^--out: the folder .* does not exist"):
+        check_map_out(tmp_path / "nowhere" / "m.h5", overwrite=False, dataset=data)
+    with pytest.raises(ValueError, match=r"^--out: /dev/null is not a regular file"):
+        check_map_out(Path("/dev/null"), overwrite=True, dataset=data)
+    assert notes.read_text() == "mine" and (data / "rig.json").read_text() == "{}"
+    # a folder that cannot be written is said before any work (root ignores mode bits, so the
+    # check is faked; a read-only mount was found after every frame was localized)
+    monkeypatch.setattr("os.access", lambda p, mode: False)
+    with pytest.raises(PermissionError, match=r"^--out: the folder .* is not writable"):
+        check_map_out(tmp_path / "m.h5", overwrite=False, dataset=data)
+    with pytest.raises(PermissionError, match=r"^--out: .*, the folder .*loc is to be made in, is"):
+        check_out_folder(tmp_path / "loc")
 
 
 def test_eval_localize_and_demo_refuse_a_folder_of_files_they_did_not_write(

@@ -11,6 +11,8 @@ an existing file at the destination is left untouched.
 from __future__ import annotations
 
 import contextlib
+import csv
+import io
 import os
 import re
 import secrets
@@ -21,7 +23,23 @@ from pathlib import Path
 from types import TracebackType
 from typing import IO, Any
 
-__all__ = ["AtomicPath", "atomic_path", "atomic_write", "list_entries", "write_together"]
+__all__ = [
+    "AtomicPath",
+    "atomic_path",
+    "atomic_write",
+    "csv_row",
+    "list_entries",
+    "write_together",
+]
+
+
+def csv_row(*fields: object) -> str:
+    """One CSV line (no line end) of ``fields`` as ``str()`` gives them; a field holding a
+    comma, a double quote or a line break is quoted (RFC 4180), so that a session named
+    ``day,1`` keeps its column."""
+    buf = io.StringIO()
+    csv.writer(buf, lineterminator="").writerow(fields)
+    return buf.getvalue()
 
 
 def list_entries(names: list[str], limit: int = 5) -> str:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import os
 from collections.abc import Iterator
 from enum import Enum
 from pathlib import Path
@@ -160,6 +161,7 @@ def cli_errors(command: str) -> Iterator[None]:
         FileExistsError,
         IsADirectoryError,
         NotADirectoryError,
+        PermissionError,
         ValueError,
         KeyError,
         TypeError,
@@ -169,6 +171,17 @@ def cli_errors(command: str) -> Iterator[None]:
     except (RuntimeError, OSError) as e:
         typer.echo(f"vvloc {command}: failed: {error_text(e)}", err=True)
         raise typer.Exit(code=EXIT_FAILURE) from e
+
+
+@contextlib.contextmanager
+def named(option: str, *types: type[Exception]) -> Iterator[None]:
+    """Prefix the message of an exception of ``types`` raised in the block with ``option``
+    (the CLI option its input came from), keeping its type: ``--map: map file not found: ...``
+    rather than the library's words alone."""
+    try:
+        yield
+    except types as e:
+        raise type(e)(f"{option}: {error_text(e)}") from None
 
 
 def parse_device(device: str) -> torch.device:
@@ -186,13 +199,18 @@ def split_names(text: str) -> list[str]:
 
 def check_out_folder(out: Path, option: str = "--out", *, outside: Path | None = None) -> None:
     """Said before any work, not after it: ``NotADirectoryError`` naming ``option`` when
-    ``out``, or a folder above it, exists and is not a folder; ``ValueError`` when ``out`` is
-    or lies inside ``outside`` (the dataset, whose folders the outputs would corrupt)."""
+    ``out``, or a folder above it, exists and is not a folder; ``PermissionError`` when the
+    folder, or the nearest one above it that exists, cannot be written (a read-only file
+    system: found after every frame was localized before); ``ValueError`` when ``out`` is or
+    lies inside ``outside`` (the dataset, whose folders the outputs would corrupt)."""
     for p in (out, *out.parents):
         if p.exists():
             if not p.is_dir():
                 what = "exists" if p == out else f"lies below {p}, which exists"
                 raise NotADirectoryError(f"{option}: {out} {what} and is a file; expected a folder")
+            if not os.access(p, os.W_OK | os.X_OK):
+                what = "" if p == out else f", the folder {out} is to be made in,"
+                raise PermissionError(f"{option}: {p}{what} is not writable")
             break
     if outside is not None:
         from vvloc.data.sampling import inside_folder

@@ -19,6 +19,7 @@ from vvloc.commands._util import (
     Snap,
     Threads,
     cli_errors,
+    named,
     parse_device,
     set_torch_threads,
     split_names,
@@ -88,6 +89,9 @@ def calibrate(
         model = VVLocNet.load(ckpt).to(parse_device(device))
         ds = open_dataset(dataset)
         check_query_sessions(database, names)
+        for option, name in [("--database", database), *(("--queries", n) for n in names)]:
+            with named(option, KeyError):  # naming the known sessions, before any warning
+                ds.session(name)
         seen = trained_on(model.training_record, dataset, names)
         if seen:  # as vvloc eval says: a threshold measured on them accepts too much elsewhere
             warnings.warn(
@@ -97,8 +101,6 @@ def calibrate(
                 UserWarning,
                 stacklevel=1,
             )
-        for name in [database, *names]:
-            ds.session(name)  # KeyError naming the known sessions
         frames = [f for name in names for f in ds.session(name)[::every]]  # loads only these
         # what would fail after the map is built fails before it
         if not frames:

@@ -19,6 +19,7 @@ from vvloc.commands._util import (
     Threads,
     check_out_folder,
     cli_errors,
+    named,
     parse_device,
     set_torch_threads,
 )
@@ -94,30 +95,34 @@ def localize(
     run's four files as they were)."""
     import json
 
-    from vvloc._io import write_together
+    from vvloc._io import csv_row, write_together
     from vvloc.data import open_dataset
     from vvloc.localize.export import tum_text
     from vvloc.localize.localizer import Localizer
+    from vvloc.localize.mapdb import MapError
 
     with cli_errors("localize"):
         set_torch_threads(threads)
         check_out_folder(out, outside=dataset)
         _check_localize_folder(out)
-        loc = Localizer.open(
-            map_path,
-            checkpoint_folder(checkpoint, "--checkpoint"),
-            device=parse_device(device),
-            top_k=top_k,
-            accept_threshold=threshold,
-            min_distinctiveness=min_distinctiveness,
-            metric_candidates=metric_candidates,
-            metric_from=metric_from.value,
-            retrieval_weight=retrieval_weight,
-            snap=snap,
-        )
-        sess = open_dataset(dataset).session(session)
+        with named("--session", KeyError):  # said before the model and the map load
+            sess = open_dataset(dataset).session(session)
         if len(sess) == 0:
             raise ValueError(f"--session: session {session!r} of {dataset} has no frames")
+        ckpt = checkpoint_folder(checkpoint, "--checkpoint")
+        with named("--map", MapError, FileNotFoundError):
+            loc = Localizer.open(
+                map_path,
+                ckpt,
+                device=parse_device(device),
+                top_k=top_k,
+                accept_threshold=threshold,
+                min_distinctiveness=min_distinctiveness,
+                metric_candidates=metric_candidates,
+                metric_from=metric_from.value,
+                retrieval_weight=retrieval_weight,
+                snap=snap,
+            )
         frames = list(sess)
         results = loc.localize_batch(frames, progress=True)
         out.mkdir(parents=True, exist_ok=True)
@@ -157,11 +162,24 @@ def localize(
         ]
         for f, r in zip(frames, results, strict=True):
             rel, g = r.relative_pose, r.global_pose
-            lines.append(
-                f"{f.index},{f.t:.6f},{r.map_row},{r.map_id},{r.map_session},{rel[0]:.4f},"
-                f"{rel[1]:.4f},{np.degrees(rel[2]):.3f},{g[0]:.4f},{g[1]:.4f},"
-                f"{np.degrees(g[2]):.3f},{r.cost:.5f},{r.distinctiveness:.5f},{int(r.accepted)},"
-                f"{r.metric_row}"
+            lines.append(  # a session name with a comma is quoted (RFC 4180)
+                csv_row(
+                    f.index,
+                    f"{f.t:.6f}",
+                    r.map_row,
+                    r.map_id,
+                    r.map_session,
+                    f"{rel[0]:.4f}",
+                    f"{rel[1]:.4f}",
+                    f"{np.degrees(rel[2]):.3f}",
+                    f"{g[0]:.4f}",
+                    f"{g[1]:.4f}",
+                    f"{np.degrees(g[2]):.3f}",
+                    f"{r.cost:.5f}",
+                    f"{r.distinctiveness:.5f}",
+                    int(r.accepted),
+                    r.metric_row,
+                )
             )
         stages = ("encode", "retrieve", "rerank", "metric")
         timings = {s: float(np.median([r.timings_ms[s] for r in results])) for s in stages}

@@ -16,6 +16,7 @@ from vvloc.commands._util import (
     Threads,
     check_out_folder,
     cli_errors,
+    named,
     parse_device,
     set_torch_threads,
 )
@@ -165,7 +166,7 @@ def loops(
     from vvloc._io import write_together
     from vvloc.localize.export import G2O_MAX_ID, g2o_text, loop_csv_text, tum_text
     from vvloc.localize.loops import detect_loops
-    from vvloc.localize.mapdb import MapDatabase
+    from vvloc.localize.mapdb import MapDatabase, MapError
     from vvloc.nets import VVLocNet
 
     with cli_errors("loops"):
@@ -175,7 +176,8 @@ def loops(
             parse_device(device)
         )
         # detect_loops checks the weights fingerprint (once, so an old map warns once)
-        db = MapDatabase.open(map_path, expected_config_hash=model.config_hash())
+        with named("--map", MapError, FileNotFoundError):
+            db = MapDatabase.open(map_path, expected_config_hash=model.config_hash())
         trajectories = trajectory_file_names(db.sessions)
         check_loops_folder(out, trajectories.values())  # before the long detection
         ids = np.asarray(db.ids)

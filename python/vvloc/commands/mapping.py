@@ -3,6 +3,7 @@ what a map holds, and whether every byte of it is intact."""
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Annotated
 
@@ -17,6 +18,42 @@ map_app = typer.Typer(help="Build and inspect map databases.", no_args_is_help=T
 def _s(n: int) -> str:
     """The plural ending of a count's noun: "" for 1, "s" otherwise."""
     return "" if n == 1 else "s"
+
+
+def check_map_out(out: Path, *, overwrite: bool, dataset: Path) -> None:
+    """``vvloc map build --out``, said before the model loads: a file path in an existing,
+    writable folder, outside the dataset; an existing file only with ``overwrite``, and then
+    only a vvloc map (the README: outputs never replace what vvloc did not write)."""
+    from vvloc._io import _is_stream
+    from vvloc.data.sampling import inside_folder
+    from vvloc.localize.mapdb import is_map_file
+
+    if out.name in ("", ".", ".."):
+        raise ValueError(f"--out: expected the path of a map file (.h5), got {str(out)!r}")
+    if out.is_dir():
+        raise IsADirectoryError(f"--out: {out} is a folder; expected the path of a map file")
+    if _is_stream(out):
+        raise ValueError(
+            f"--out: {out} is not a regular file (a device, pipe or socket); a map is written "
+            "to a file"
+        )
+    if dataset.exists() and inside_folder(out, dataset):
+        raise ValueError(
+            f"--out: {out} lies inside the dataset {dataset}; write the map outside it"
+        )
+    parent = out.resolve().parent
+    if not parent.is_dir():
+        raise FileNotFoundError(f"--out: the folder {parent} does not exist (create it first)")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise PermissionError(f"--out: the folder {parent} is not writable")
+    if out.exists():
+        if not overwrite:
+            raise FileExistsError(f"--out: {out} exists; pass --overwrite to replace it")
+        if not is_map_file(out):
+            raise FileExistsError(
+                f"--out: {out} exists and is not a vvloc map; --overwrite replaces only a map "
+                "(remove the file yourself if it is a damaged one)"
+            )
 
 
 @map_app.command("build")
@@ -34,13 +71,14 @@ def build(
     device: Annotated[str, typer.Option("--device", help="cpu, cuda[:N] or auto.")] = "cpu",
     threads: Threads = None,
     overwrite: Annotated[
-        bool, typer.Option("--overwrite", help="Replace an existing map file at --out.")
+        bool, typer.Option("--overwrite", help="Replace an existing vvloc map at --out.")
     ] = False,
 ) -> None:
     """Build a map (global + local-view descriptors, poses, BEVs) from dataset sessions.
 
-    An existing file at --out is replaced only with --overwrite (then atomically: the old map
-    stays whole until the new one is complete)."""
+    An existing map at --out is replaced only with --overwrite (then atomically: the old map
+    stays whole until the new one is complete); any other file there, and an --out inside the
+    dataset, are refused."""
 
     from vvloc.data import open_dataset
     from vvloc.localize.localizer import build_map
@@ -48,8 +86,7 @@ def build(
 
     with cli_errors("map build"):
         set_torch_threads(threads)
-        if out.is_file() and not overwrite:
-            raise FileExistsError(f"--out: {out} exists; pass --overwrite to replace it")
+        check_map_out(out, overwrite=overwrite, dataset=dataset)
         model = VVLocNet.load(checkpoint_folder(checkpoint, "--checkpoint")).to(
             parse_device(device)
         )

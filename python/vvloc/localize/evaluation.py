@@ -21,7 +21,7 @@ import numpy as np
 import torch
 
 from vvloc import evaluate, geometry, kernels, viz
-from vvloc._io import atomic_write
+from vvloc._io import atomic_write, csv_row
 from vvloc.data import Frame, open_dataset
 from vvloc.data.perturb import SEEDED, frame_seed, perturb_frame
 from vvloc.data.sampling import (
@@ -687,10 +687,25 @@ def run_evaluation(
         for f, r, e, g, pe, ye, c in zip(
             frames, results, est, q_pose, pos_err, yaw_err, correct, strict=True
         ):
-            lines.append(
-                f"{f.session},{f.index},{r.map_row},{e[0]:.4f},{e[1]:.4f},{np.degrees(e[2]):.3f},"
-                f"{g[0]:.4f},{g[1]:.4f},{np.degrees(g[2]):.3f},{pe:.4f},{ye:.3f},{r.cost:.5f},"
-                f"{int(r.accepted)},{int(c)},{r.distinctiveness:.5f},{r.metric_row}"
+            lines.append(  # a session name with a comma is quoted (RFC 4180)
+                csv_row(
+                    f.session,
+                    f.index,
+                    r.map_row,
+                    f"{e[0]:.4f}",
+                    f"{e[1]:.4f}",
+                    f"{np.degrees(e[2]):.3f}",
+                    f"{g[0]:.4f}",
+                    f"{g[1]:.4f}",
+                    f"{np.degrees(g[2]):.3f}",
+                    f"{pe:.4f}",
+                    f"{ye:.3f}",
+                    f"{r.cost:.5f}",
+                    int(r.accepted),
+                    int(c),
+                    f"{r.distinctiveness:.5f}",
+                    r.metric_row,
+                )
             )
         with atomic_write(work / "queries.csv") as f:
             f.write("\n".join(lines) + "\n")

@@ -48,7 +48,7 @@ from tqdm import tqdm
 from vvloc import geometry, kernels
 from vvloc.checkpoints import resolve_checkpoint
 from vvloc.data import Camera, Dataset, Frame
-from vvloc.data.frame import stack_calibration
+from vvloc.data.frame import RIGID, is_rigid, stack_calibration
 from vvloc.data.rig import SAME_MAP, SAME_MODEL, describe_rig, rig_difference
 from vvloc.localize.mapdb import MapDatabase, MapError, MapWriter, check_weights
 from vvloc.localize.metric import (
@@ -129,6 +129,28 @@ def _check_images(images: Any, name: str) -> None:
             f"{name}: float images must lie in [0, 1], got values in [{lo:g}, {hi:g}] "
             "(pass uint8 for the 0-255 scale)"
         )
+
+
+def _check_calibration(K: Any, cam_to_ego: Any, cameras: int, name: str) -> None:
+    """A frame's calibration, as a dataset's ``rig.json`` is held to (:class:`Camera`): K
+    (M, 3, 3) finite pinhole matrices (fx, fy > 0, bottom row 0 0 1), cam_to_ego (M, 4, 4)
+    rigid transforms, M = ``cameras``; ``ValueError`` naming ``name.K`` / ``name.cam_to_ego``
+    otherwise (a singular transform failed inside the encoder's matrix inverse)."""
+    K, T = np.asarray(K), np.asarray(cam_to_ego)
+    if K.shape != (cameras, 3, 3) or not np.isfinite(K).all():
+        raise ValueError(f"{name}.K: expected finite ({cameras}, 3, 3) intrinsics, got {K.shape}")
+    if T.shape != (cameras, 4, 4) or not np.isfinite(T).all():
+        raise ValueError(
+            f"{name}.cam_to_ego: expected finite ({cameras}, 4, 4) transforms, got {T.shape}"
+        )
+    K = K.astype(np.float64)
+    if (K[:, 0, 0] <= 0).any() or (K[:, 1, 1] <= 0).any() or not np.allclose(K[:, 2], (0, 0, 1)):
+        raise ValueError(
+            f"{name}.K: expected pinhole matrices [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with "
+            "focal lengths fx, fy > 0 (pixels)"
+        )
+    if not is_rigid(T):
+        raise ValueError(f"{name}.cam_to_ego: expected a {RIGID} per camera")
 
 
 def model_device(model: torch.nn.Module) -> torch.device:
@@ -750,14 +772,15 @@ class Localizer:
         return self.localize_batch([frame])[0]
 
     def localize_batch(
-        self, frames: Sequence[Frame], *, batch_size: int = 8, progress: bool = False
+        self, frames: Iterable[Frame], *, batch_size: int = 8, progress: bool = False
     ) -> list[LocalizationResult]:
         """Localize many frames: encoding is batched (frames of another camera count or image
         size in batches of their own); results equal :meth:`localize`'s (to float rounding:
         batches of other sizes sum in other orders, ~1e-8 in the cost).
 
-        Frames with non-finite calibration, or images that are not (M, 3, H, W) uint8 (or
-        float in [0, 1]), are refused before any work (``ValueError`` naming the frame); frames
+        Frames whose calibration is not M finite pinhole intrinsics and rigid camera-to-ego
+        transforms, or whose images are not (M, 3, H, W) uint8 (or float in [0, 1]), are
+        refused before any work (``ValueError`` naming the frame); frames
         from a rig other than the map's (camera count, image size, intrinsics, or a camera
         turned or moved from where the map's rig has it by more than
         :data:`vvloc.data.rig.SAME_MAP` allows, when the map records its rig)
@@ -765,12 +788,16 @@ class Localizer:
         and its poses may be far off. A tilting vehicle's levelled frames and motion-compensated
         cameras (``Session.frame_cam_to_ego``) stay within those bounds."""
         batch_size = kernels._positive_int(batch_size, "batch_size")
+        if isinstance(frames, Frame) or not isinstance(frames, Iterable):
+            raise TypeError(
+                f"frames: expected a sequence of vvloc.data.Frame, got {type(frames).__name__}"
+            )
+        frames = list(frames)  # a generator is taken too
         for i, f in enumerate(frames):
             if not isinstance(f, Frame):
                 raise TypeError(f"frames[{i}]: expected a vvloc.data.Frame, got {type(f).__name__}")
-            if not (np.isfinite(f.K).all() and np.isfinite(f.cam_to_ego).all()):
-                raise ValueError(f"frames[{i}]: K or cam_to_ego holds non-finite values")
             _check_images(f.images, f"frames[{i}].images")
+            _check_calibration(f.K, f.cam_to_ego, len(f.images), f"frames[{i}]")
             self._check_rig(f, i)
         results: list[LocalizationResult] = []
         for start in tqdm(

@@ -788,6 +788,19 @@ class MapWriter:
             raise MapError(f"{self.path}: the map writer was aborted; nothing was written")
 
 
+def is_map_file(path: PathLike) -> bool:
+    """Whether ``path`` is an HDF5 file whose ``format`` attribute names a vvloc map (of any
+    version, its data not checked): what ``vvloc map build --overwrite`` may replace."""
+    try:
+        with h5py.File(os.fspath(path), "r") as h5:
+            fmt = h5.attrs["format"] if "format" in h5.attrs else None
+    except Exception:  # not HDF5, unreadable, damaged header: not known to be a map
+        return False
+    if isinstance(fmt, bytes):
+        fmt = fmt.decode("utf-8", errors="replace")
+    return fmt == FORMAT_NAME
+
+
 # ---------------------------------------------------------------------------------------------
 # Reading
 
