@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import copy
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -255,6 +256,26 @@ def test_cli_prints_the_table_writes_json_and_fails_when_strict_and_missed(tmp_p
         [*exe[:-4], "--parking", str(tmp_path / "none")], capture_output=True, text=True
     )
     assert bad.returncode == 2 and "vvloc targets: error" in bad.stderr
+    # --out replaces an earlier figures file, never a report (its own input) or a user's file
+    r = subprocess.run([*exe, "--out", str(tmp_path / "t.json")], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    report = tmp_path / "report-copy"
+    shutil.copytree(MODEL / "report-test96", report)
+    notes = tmp_path / "notes.txt"
+    notes.write_text("mine")
+    before = (report / "report.json").read_bytes()
+    for target in (report / "report.json", notes, tmp_path / "notes.json"):
+        if target.suffix == ".json" and not target.exists():
+            target.write_text('{"figures": [], "mine": 1}')
+        kept = target.read_bytes()
+        r = subprocess.run(
+            [*exe[:-4], "--parking", str(report), "--out", str(target)],
+            capture_output=True,
+            text=True,
+        )
+        assert r.returncode == 2 and "is not a figures file that vvloc targets wrote" in r.stderr
+        assert target.read_bytes() == kept
+    assert (report / "report.json").read_bytes() == before
 
 
 def test_make_model_test_runs_the_committed_models_test():
@@ -272,6 +293,20 @@ def test_make_model_test_runs_the_committed_models_test():
         )
         assert ("--loops" in args) == bool(name)
     assert "targets --parking" in recipe
+
+
+def test_a_parking_report_without_kept_queries_or_with_a_malformed_section_is_not_a_crash():
+    parking = copy.deepcopy(_committed("report-test96"))
+    for entry in parking["global_localization"].values():
+        entry["num_kept"] = 0
+        entry["recall"] = {n: {r: None for r in v} for n, v in entry["recall"].items()}
+    figs = [f for f in check_targets(parking) if f.name.startswith("parking")]
+    assert len(figs) == 6 and all(f.value == "n/a" and f.met is None for f in figs), figs
+    assert all("0 kept queries" in f.detail for f in figs)
+    parking = copy.deepcopy(_committed("report-test96"))
+    parking["pose_accuracy"] = []  # hand-edited: an AttributeError escaped
+    with pytest.raises(ValueError, match=r"^malformed report: a section is not what vvloc eval"):
+        check_targets(parking)
 
 
 def test_a_garage_report_without_accepted_loops_reads_as_undefined_not_a_crash():

@@ -86,9 +86,11 @@ def _at_most(name: str, value: float | None, limit: float, unit: str, fmt: str) 
 def _parking(report: Mapping[str, Any]) -> list[Figure]:
     gl = report.get("global_localization", {})
     try:
+        kept = int(gl["VVLoc-ML"]["num_kept"])
+        if kept == 0:  # no query had a map keyframe within 2 m: recall is undefined
+            return _parking_undefined(report)
         reranked = float(gl["VVLoc-ML"]["recall"]["1"]["2"])
         retrieval = float(gl["VVLoc-G"]["recall"]["1"]["2"])
-        kept = int(gl["VVLoc-ML"]["num_kept"])
     except (KeyError, TypeError) as e:
         raise ValueError(
             f"parking report: no Recall@1 at 2 m for VVLoc-ML and VVLoc-G ({e})"
@@ -127,6 +129,21 @@ def _parking(report: Mapping[str, Any]) -> list[Figure]:
             )
             figures.append(replace(fig, detail=f"{count} queries"))
     return figures
+
+
+def _parking_undefined(report: Mapping[str, Any]) -> list[Figure]:
+    """The parking figures of a report without a kept query: each n/a, none met."""
+    why = "0 kept queries (none has a map keyframe within 2 m)"
+    names = [
+        ("parking: Recall@1 (2 m) re-ranked", ">= 80.6 %"),
+        ("parking: gain of re-ranking over retrieval alone", ">= +3.0 points"),
+        *(
+            (f"parking: {kind}@{pct} % (true revisits)", f"<= {limit:.2f}{unit}")
+            for pct, aoe, ape in ((50, 1.6, 0.7), (25, 0.7, 0.3))
+            for kind, limit, unit in (("AOE", aoe, "°"), ("APE", ape, " m"))
+        ),
+    ]
+    return [Figure(name, target, "n/a", None, why) for name, target in names]
 
 
 def _cfer(report: Mapping[str, Any], world: str) -> list[Figure]:
@@ -226,9 +243,21 @@ def check_targets(
 
     ``parking``, ``pillars``, ``garage``: parsed ``report.json`` of ``vvloc eval`` (the garages
     evaluated with ``--loops``; either may be None: its CFER is then listed as not evaluated).
-    Raises ``ValueError`` when a report lacks its figures, when the reports are of different
-    weights (``meta.model_weights_hash``), or when a report's query sessions were trained on
-    (``meta.trained_on_queries``, or the note of older reports)."""
+    Raises ``ValueError`` when a report lacks its figures or holds them in another shape (a
+    hand-edited file), when the reports are of different weights (``meta.model_weights_hash``),
+    or when a report's query sessions were trained on (``meta.trained_on_queries``, or the note
+    of older reports)."""
+    try:
+        return _check_targets(parking, pillars, garage)
+    except (AttributeError, TypeError) as e:  # a section that is not an object, e.g. a list
+        raise ValueError(f"malformed report: a section is not what vvloc eval writes ({e})") from e
+
+
+def _check_targets(
+    parking: Mapping[str, Any],
+    pillars: Mapping[str, Any] | None = None,
+    garage: Mapping[str, Any] | None = None,
+) -> list[Figure]:
     reports = {"parking": parking, "pillars": pillars, "garage": garage}
     hashes = {
         name: r.get("meta", {}).get("model_weights_hash")

@@ -10,6 +10,31 @@ import typer
 
 from vvloc.commands._util import cli_errors
 
+#: The keys of the JSON ``vvloc targets --out`` writes: an existing file is replaced only when
+#: it holds exactly these (an earlier run's figures), never a report or a user's file.
+OUT_KEYS = frozenset({"weights_hash", "figures"})
+
+
+def check_targets_out(out: Path) -> None:
+    """``--out`` of ``vvloc targets``, said before the reports are read: a new path, a stream,
+    or a file that an earlier ``vvloc targets`` wrote (it replaced any file, the report it read
+    included)."""
+    from vvloc._io import _is_stream
+
+    if not out.exists() or _is_stream(out):
+        return
+    if out.is_dir():
+        raise IsADirectoryError(f"--out: {out} is a folder; expected the path of a .json file")
+    try:
+        doc = json.loads(out.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError):
+        doc = None
+    if not (isinstance(doc, dict) and set(doc) == OUT_KEYS):
+        raise FileExistsError(
+            f"--out: {out} exists and is not a figures file that vvloc targets wrote; it would "
+            "be replaced: choose another path"
+        )
+
 
 def targets(
     parking: Annotated[
@@ -36,6 +61,8 @@ def targets(
     from vvloc.targets import check_targets, figures_json, read_report, targets_markdown
 
     with cli_errors("targets"):
+        if out is not None:
+            check_targets_out(out)
         park = read_report(parking)
         figures = check_targets(
             park,
@@ -46,7 +73,9 @@ def targets(
         if out is not None:
             out.parent.mkdir(parents=True, exist_ok=True)
             with atomic_write(out, "w") as f:
-                json.dump({"weights_hash": weights, "figures": figures_json(figures)}, f, indent=1)
+                doc = {"weights_hash": weights, "figures": figures_json(figures)}
+                assert set(doc) == OUT_KEYS
+                json.dump(doc, f, indent=1)
     typer.echo(targets_markdown(figures, weights), nl=False)
     if strict and any(f.met is False for f in figures):
         raise typer.Exit(code=1)
