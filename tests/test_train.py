@@ -1407,7 +1407,7 @@ def test_a_non_finite_loss_stops_before_the_step(tiny_world, tmp_path, monkeypat
         return loss * float("nan"), dataclasses.replace(parts, total=float("nan")), correct
 
     monkeypatch.setattr(train_module, "training_losses", nan_loss)
-    with pytest.raises(FloatingPointError, match="non-finite loss"):
+    with pytest.raises(FloatingPointError, match=r"non-finite loss .*keeps the last finished"):
         tr.run_epoch(progress=False)
     for k, v in tr.model.state_dict().items():  # no step was taken with it
         assert torch.equal(v, good[k])
@@ -1522,6 +1522,34 @@ def test_config_yaml_with_a_key_twice_or_a_key_that_is_no_name_is_refused(tmp_pa
         TrainConfig.from_yaml(tmp_path / "int.yaml")
 
 
+def test_an_empty_or_undecodable_config_file_is_refused(tmp_path):
+    # an empty file (or comments alone) started a full run of every default
+    for text in ("", "# just a comment\n"):
+        (tmp_path / "c.yaml").write_text(text)
+        with pytest.raises(ValueError, match=r"c.yaml: empty config \(expected a mapping"):
+            TrainConfig.from_yaml(tmp_path / "c.yaml")
+    (tmp_path / "c.yaml").write_bytes(b"dataset: caf\xe9\n")
+    with pytest.raises(ValueError, match=r"c.yaml: not a UTF-8 text file"):
+        TrainConfig.from_yaml(tmp_path / "c.yaml")
+
+
+def test_resume_without_a_run_is_refused_before_the_world_is_rendered(tmp_path, monkeypatch):
+    def render(*a, **k):
+        raise AssertionError("rendered")
+
+    monkeypatch.setattr(vvloc.train, "_ensure_dataset", render)
+    cfg = TrainConfig.from_dict(
+        {"dataset": str(tmp_path / "world"), "sim": {"sessions": 2, "frames": 4}}
+    )
+    with pytest.raises(FileNotFoundError, match=r"--resume: no run to resume .* drop --resume"):
+        vvloc.train.train(cfg, tmp_path / "new", resume=True)
+    (tmp_path / "notarun").mkdir()
+    (tmp_path / "notarun" / "notes.txt").write_text("mine")
+    with pytest.raises(FileNotFoundError, match=r"holds other files: choose another --out"):
+        vvloc.train.train(cfg, tmp_path / "notarun", resume=True)
+    assert not (tmp_path / "new").exists() and not (tmp_path / "world").exists()
+
+
 def test_config_types_are_checked_by_name():
     base = {"dataset": "x"}
     cases = {
@@ -1532,10 +1560,18 @@ def test_config_types_are_checked_by_name():
         "num_workers": (True, "num_workers: expected an int"),
         "triplet_margin": (-0.5, "triplet_margin: expected a finite number >= 0"),
         "neg_radius": (1.0, "pos_radius, neg_radius"),
+        # infinite weights and margins gave a non-finite loss at the first step
+        "rerank_margin": (float("inf"), "rerank_margin: expected a finite number >= 0"),
+        "rerank_weight": (float("inf"), "rerank_weight: expected a finite number >= 0"),
+        "tbias_near_slope": (float("inf"), "tbias_near_slope: expected a finite number >= 0"),
+        "tbias_near_range": ([0.25, float("inf")], r"tbias_near_range: .* finite"),
     }
     for key, (value, match) in cases.items():
         with pytest.raises(ValueError, match=match):
             TrainConfig.from_dict({**base, key: value})
+    # no epoch at all trained nothing and named a checkpoint it never wrote
+    with pytest.raises(ValueError, match=r"local_epochs: expected at least one epoch, got 0"):
+        TrainConfig.from_dict({**base, "stage1_epochs": 0, "stage2_epochs": 0})
     # NCLT's sessions are named by date, which unquoted YAML reads as dates
     import yaml
 
@@ -1644,3 +1680,54 @@ def test_a_second_process_training_into_a_run_folder_is_refused(tiny_world, tmp_
         assert list(out.iterdir()) == []
     tr = train(cfg, out, progress=False)  # let go: the folder trains
     assert tr.epoch == 1 and not [p for p in out.iterdir() if p.name.endswith(".lock")]
+
+
+def test_a_group_sigterm_stops_a_run_with_workers_as_sigterm_not_a_crash(tiny_world, tmp_path):
+    # systemd, Slurm and `kill -TERM -PGID` signal every process of the group: the data workers
+    # died first and the run ended as "DataLoader worker ... is killed by signal" (exit 1, or
+    # 143 with a traceback)
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    config = tmp_path / "c.yaml"
+    config.write_text(
+        f"dataset: {tiny_world}\nmodel: small\nstage1_epochs: 3\nstage2_epochs: 0\n"
+        "steps_per_epoch: 200\nbatch_size: 1\nnum_workers: 2\nthreads: 1\n"
+    )
+    out = tmp_path / "run"
+    cmd = [sys.executable, "-m", "vvloc.cli", "train", "--config", str(config), "--out", str(out)]
+    proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        children = Path(f"/proc/{proc.pid}/task/{proc.pid}/children")
+        deadline = time.monotonic() + 120
+        while len(children.read_text().split()) < 2:  # the two workers run
+            assert proc.poll() is None and time.monotonic() < deadline
+            time.sleep(0.2)
+        time.sleep(1.0)  # batches in flight
+        os.killpg(proc.pid, signal.SIGTERM)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 128 + signal.SIGTERM, err[-2000:]
+    assert "Traceback" not in err and "killed by signal" not in err, err[-2000:]
+
+
+def test_a_non_finite_loss_in_the_first_epoch_is_one_line_saying_nothing_was_saved(
+    tiny_world, tmp_path
+):
+    import subprocess
+    import sys
+
+    config = tmp_path / "c.yaml"
+    config.write_text(
+        f"dataset: {tiny_world}\nmodel: small\nstage1_epochs: 1\nstage2_epochs: 0\n"
+        "steps_per_epoch: 3\nbatch_size: 2\nlr: 1.0e+8\ngrad_clip: 0\n"
+    )
+    cmd = [sys.executable, "-m", "vvloc.cli", "train", "--config", str(config), "--out"]
+    r = subprocess.run([*cmd, str(tmp_path / "run")], capture_output=True, text=True)
+    assert r.returncode == 1 and "Traceback" not in r.stderr, r.stderr[-2000:]
+    assert "vvloc train: failed: epoch 1, step " in r.stderr
+    assert "no epoch had finished: nothing was saved" in r.stderr

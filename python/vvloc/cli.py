@@ -8,6 +8,7 @@ import logging
 import os
 import signal
 import sys
+import threading
 import warnings
 from types import FrameType
 
@@ -69,18 +70,35 @@ app.command("demo")(demo)
 app.command("targets")(targets)
 
 
+def _quiet_broken_connections(args: threading.ExceptHookArgs) -> None:
+    """A thread's exception hook for a worker whose parent is stopping: a broken connection
+    (``ConnectionError``, ``EOFError``) is expected and not printed; anything else is."""
+    if args.exc_type is not None and issubclass(args.exc_type, (ConnectionError, EOFError)):
+        return
+    threading.__excepthook__(args)
+
+
 def _exit_on_sigterm() -> None:
     """Make ``SIGTERM`` (``kill``, ``timeout``, job schedulers) end the command the way Ctrl-C
     does, by an exception, so that every atomic writer removes its temporary file (a killed
-    ``map build`` leaves no ``.map.h5.*.tmp`` behind). Exit status 143 = 128 + SIGTERM. Child
-    processes (data-loading workers) inherit the handler, so it only acts in the process that
-    installed it; anywhere else it restores the default and re-sends the signal."""
+    ``map build`` leaves no ``.map.h5.*.tmp`` behind). Exit status 143 = 128 + SIGTERM.
+
+    Child processes (data-loading workers) inherit the handler. A worker whose vvloc parent
+    lives lets the first ``SIGTERM`` pass: a group kill (``kill -TERM -PGID``, systemd, Slurm)
+    reaches the parent too, which then shuts its workers down; a worker that died first made
+    the parent fail with "DataLoader worker ... is killed by signal" (exit 1, or 143 with a
+    traceback). A second ``SIGTERM`` (torch terminates a worker that does not stop), or one
+    once the parent is gone, ends the worker."""
     pid = os.getpid()
 
     def handler(signum: int, frame: FrameType | None) -> None:
-        if os.getpid() != pid:
+        if os.getpid() != pid:  # a child
             signal.signal(signum, signal.SIG_DFL)
-            os.kill(os.getpid(), signum)
+            if os.getppid() != pid:
+                os.kill(os.getpid(), signum)
+            # the parent stops: a batch it no longer takes breaks torch's fd-sharing
+            # connection in a thread of this worker, which would print a traceback
+            threading.excepthook = _quiet_broken_connections
             return
         raise SystemExit(128 + signum)
 

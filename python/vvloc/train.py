@@ -59,6 +59,7 @@ import os
 import random
 import secrets
 import shutil
+import signal
 import sys
 import time
 from collections.abc import Iterator
@@ -289,9 +290,16 @@ class TrainConfig:
         if not path.is_file():
             raise FileNotFoundError(f"config file not found: {path}")
         try:
-            raw = yaml.load(path.read_text(), Loader=_UniqueKeyLoader) or {}
+            raw = yaml.load(path.read_text(encoding="utf-8"), Loader=_UniqueKeyLoader)
+        except UnicodeDecodeError as e:
+            raise ValueError(f"{path}: not a UTF-8 text file ({e})") from e
         except yaml.YAMLError as e:
             raise ValueError(f"{path}: not valid YAML: {e}".replace("\n", " ")) from e
+        if raw is None:  # an empty file, or comments alone: not every default by accident
+            raise ValueError(
+                f"{path}: empty config (expected a mapping of training settings; write {{}} "
+                "for every default)"
+            )
         if not isinstance(raw, dict):
             raise ValueError(f"{path}: expected a mapping at the top level")
         return cls.from_dict(raw, source=str(path))
@@ -397,9 +405,12 @@ class TrainConfig:
                 f"pos_radius, neg_radius: expected 0 < pos_radius < neg_radius, got "
                 f"{self.pos_radius} and {self.neg_radius}"
             )
-        for name in ("stage1_epochs", "stage2_epochs", "head_epochs", "local_epochs"):
+        stages = ("stage1_epochs", "stage2_epochs", "head_epochs", "local_epochs")
+        for name in stages:
             if int(getattr(self, name)) < 0:
                 raise ValueError(f"{name}: expected >= 0")
+        if sum(int(getattr(self, name)) for name in stages) == 0:  # it wrote no checkpoint
+            raise ValueError(f"{', '.join(stages)}: expected at least one epoch, got 0 in all")
         for name in (
             "steps_per_epoch",
             "batch_size",
@@ -449,27 +460,36 @@ class TrainConfig:
                         f"{name}: {stage} without stages 1-2 needs init_checkpoint (the trained "
                         f"encoder whose {uses})"
                     )
-        for name in ("tbias_near_weight", "tbias_near_slope"):
+        for name in ("tbias_near_weight", "tbias_near_slope"):  # inf: a non-finite loss
             value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not value >= 0:
-                raise ValueError(f"{name}: expected a number >= 0, got {value!r}")
+            if (
+                isinstance(value, bool)
+                or not isinstance(value, (int, float))
+                or not (value >= 0 and math.isfinite(value))
+            ):
+                raise ValueError(f"{name}: expected a finite number >= 0, got {value!r}")
         near = self.tbias_near_range
         if (
             not isinstance(near, (list, tuple))
             or len(near) != 2
             or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in near)
-            or not 0 < near[0] <= near[1]
+            or not 0 < near[0] <= near[1] < math.inf
         ):
             raise ValueError(
-                f"tbias_near_range: expected [low, high] metres with 0 < low <= high, got {near!r}"
+                "tbias_near_range: expected [low, high] metres with 0 < low <= high, finite, "
+                f"got {near!r}"
             )
         zero = self.tbias_near_zero
         if isinstance(zero, bool) or not isinstance(zero, (int, float)) or not 0 <= zero <= 1:
             raise ValueError(f"tbias_near_zero: expected a value in [0, 1], got {zero!r}")
         for name in ("rerank_weight", "rerank_margin"):
             value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not value >= 0:
-                raise ValueError(f"{name}: expected a number >= 0, got {value!r}")
+            if (
+                isinstance(value, bool)
+                or not isinstance(value, (int, float))
+                or not (value >= 0 and math.isfinite(value))
+            ):
+                raise ValueError(f"{name}: expected a finite number >= 0, got {value!r}")
         if not 0 < self.lr_decay <= 1:
             raise ValueError("lr_decay: expected in (0, 1]")
         if self.num_workers < 0:
@@ -1660,6 +1680,7 @@ class Trainer:
             shuffle=False,
             num_workers=cfg.num_workers,
             persistent_workers=False,
+            worker_init_fn=_keep_sigterm_handler,
         )
         self.model.train()
         sums: dict[str, float] = {
@@ -1686,9 +1707,14 @@ class Trainer:
                 self.model, batch, cfg, stage, self.step, self.device
             )
             if not math.isfinite(parts.total):  # before the step: the weights stay finite
+                kept = (
+                    f"the checkpoint in {self.checkpoint_dir} keeps the last finished epoch"
+                    if self.epoch > 0
+                    else "no epoch had finished: nothing was saved"
+                )
                 raise FloatingPointError(
-                    f"epoch {self.epoch + 1}, step {self.step}: non-finite loss {parts} (the "
-                    f"checkpoint in {self.checkpoint_dir} keeps the last finished epoch)"
+                    f"epoch {self.epoch + 1}, step {self.step}: non-finite loss {parts} ({kept}; "
+                    "a smaller lr, a grad_clip or smaller loss weights and margins may help)"
                 )
             self.optimizer.zero_grad(set_to_none=True)
             loss.backward()
@@ -2123,11 +2149,22 @@ _STOPPED_RUN_LEFTOVERS = ("checkpoint", "best")
 _STOPPED_RUN_HIDDEN = (".checkpoint.", ".best.", ".trainer_state.pt.", ".log.jsonl.")
 
 
+def _keep_sigterm_handler(worker_id: int) -> None:
+    """In a data-loading worker: reinstate the Python ``SIGTERM`` handler the worker inherited
+    (the ``vvloc`` command's, :func:`vvloc.cli._exit_on_sigterm`), which torch's worker set-up
+    replaced with one that dies of a group kill's ``SIGTERM`` before the main process can stop
+    its workers, making the run end as a crash. Without a Python handler, nothing changes."""
+    handler = signal.getsignal(signal.SIGTERM)
+    if callable(handler):
+        signal.signal(signal.SIGTERM, handler)
+
+
 def check_run_folder(cfg: TrainConfig, out: Path, resume: bool) -> None:
     """Refuse a run folder ``out`` that would lose or corrupt data: ``ValueError`` when it is
     or lies inside a dataset of ``cfg`` (the run's folders would read as sessions);
     ``FileExistsError``, without ``resume``, when it already holds a run (``--resume``
-    continues it) or anything else. The one exception is a run of the same config stopped
+    continues it) or anything else; ``FileNotFoundError``, with ``resume``, when it holds no
+    run (no ``trainer_state.pt``). The one exception is a run of the same config stopped
     before its first ``trainer_state.pt`` (its ``train_config.yaml``, its first epoch's
     ``checkpoint/`` and ``best/``, hidden half-written files): a new run starts it again,
     replacing them."""
@@ -2139,7 +2176,18 @@ def check_run_folder(cfg: TrainConfig, out: Path, resume: bool) -> None:
                 f"--out: {out} is or lies inside the dataset {root}; write the run to a folder "
                 "of its own (e.g. runs/<name>)"
             )
-    if resume or not out.is_dir():
+    if resume:  # said before a dataset is rendered or opened, as a new run's checks are
+        if not (out / "trainer_state.pt").is_file():
+            what = (
+                "drop --resume to start one"
+                if not out.is_dir() or not any(out.iterdir())
+                else "the folder holds other files: choose another --out to start one"
+            )
+            raise FileNotFoundError(
+                f"--resume: no run to resume in {out} (no trainer_state.pt); {what}"
+            )
+        return
+    if not out.is_dir():
         return
     if (out / "trainer_state.pt").exists():
         raise FileExistsError(
@@ -2187,11 +2235,8 @@ def train(
         with run_lock(out):
             check_run_folder(cfg, out, resume)  # again, now that no other run can change it
             trainer = Trainer(cfg, out_dir)
-            if resume and not trainer.resume():
-                raise FileNotFoundError(
-                    f"--resume: no run to resume in {out_dir} (no trainer_state.pt); drop "
-                    "--resume to start one"
-                )
+            if resume and not trainer.resume():  # removed between the check and the lock
+                raise FileNotFoundError(f"--resume: no run to resume in {out_dir}")
             trainer.fit(progress=progress)
     except BaseException:
         if created and not any(out.iterdir()):  # a run refused before any work leaves no folder
