@@ -86,6 +86,21 @@ def test_malformed_row_names_file_and_line(tmp_path):
         open_dataset(root)
 
 
+def test_files_that_are_not_utf8_text_are_named(tmp_path):
+    # a binary file in place of poses.csv or rig.json said "'utf-8' codec can't decode" alone
+    root = tmp_path / "ds"
+    _write(root, {"s0": _line(3)})
+    p = root / "sessions" / "s0" / "poses.csv"
+    good = p.read_bytes()
+    p.write_bytes(good + b"\x89PNG\r\n")
+    with pytest.raises(DatasetFormatError, match=r"poses\.csv: not UTF-8 text \(.* in position"):
+        open_dataset(root)
+    p.write_bytes(good)
+    (root / "rig.json").write_bytes(b"\x89PNG\r\n\x1a\n")
+    with pytest.raises(DatasetFormatError, match=r"rig\.json: cannot read rig: 'utf-8' codec"):
+        open_dataset(root)
+
+
 def test_a_missing_dataset_and_a_file_are_told_apart(tmp_path):
     with pytest.raises(FileNotFoundError, match="no such dataset folder"):
         open_dataset(tmp_path / "nothing")

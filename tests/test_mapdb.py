@@ -143,6 +143,10 @@ def test_session_and_id_lookups() -> None:
     assert db.row_of(int(kf["ids"][4])) == 4
     with pytest.raises(KeyError, match="999"):
         db.row_of(999)
+    assert db.row_of(np.int32(kf["ids"][4])) == 4
+    for bad in (float(kf["ids"][4]) + 0.7, str(kf["ids"][4]), True):  # 1.7 read as id 1
+        with pytest.raises(TypeError, match=r"^keyframe_id: expected an int"):
+            db.row_of(bad)  # type: ignore[arg-type]
     rows = db.session_rows("s1")
     np.testing.assert_array_equal(rows, np.arange(N // 2, N))
     with pytest.raises(KeyError, match="nope"):
@@ -267,6 +271,7 @@ def test_writer_with_no_keyframes_writes_nothing(tmp_path: Path) -> None:
     ("change", "exc", "match"),
     [
         ({"poses": np.zeros((N, 2))}, ValueError, r"poses.*\(N, 3\)"),
+        ({"poses": [[0, 0, 0]] * (N - 1) + [[0, 0]]}, ValueError, "poses: .*ragged rows"),
         ({"poses": np.full((N, 3), np.nan)}, ValueError, "poses.*non-finite"),
         ({"timestamps": np.zeros(N - 1)}, ValueError, "timestamps"),
         ({"sessions": ["a"] * (N - 1)}, ValueError, "sessions"),

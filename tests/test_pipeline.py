@@ -192,7 +192,12 @@ def test_the_map_records_its_rig_and_the_localizer_compares_queries_with_it(
         loc.localize_encoded(g, lv, bev)
     with pytest.raises(ValueError, match=r"^loc: expected shape"):
         loc.localize_encoded(g, lv[:, :3], bev)
+    bev = np.zeros((cfg.bev_height, cfg.bev_width, cfg.channels), np.float32)
+    with pytest.raises(ValueError, match=r"^t_encode_ms: expected a finite time"):
+        loc.localize_encoded(g, lv, bev, "x")  # type: ignore[arg-type]
     loc.map.close()
+    with pytest.raises(FileNotFoundError, match=r"^checkpoint: \S*nothing does not exist"):
+        Localizer.open(map_file, tmp_path / "nothing")
 
 
 def test_a_rig_other_than_the_models_training_rig_is_warned_about_once(
@@ -330,6 +335,10 @@ def test_localizer_options_are_checked_up_front(map_file, model_dir, tiny_world,
          "batch_size: expected an int >= 1, got 0"),
         (lambda: build_map(model, ds, ["s0"], tmp_path / "x.h5", batch_size=2.0), TypeError,
          "batch_size"),
+        (lambda: build_map(model, ds, ["s0"], tmp_path / "x.h5", store_bev="no"), TypeError,
+         "store_bev: expected a bool, got str"),
+        (lambda: build_map(model, ds, [0], tmp_path / "x.h5"), TypeError,
+         r"sessions: expected session names \(str\)"),
         (lambda: Localizer(model, str(map_file)), TypeError,
          r"mapdb: expected a MapDatabase \(MapDatabase.open\(path\), or Localizer.open"),
         (lambda: Localizer(None, db), TypeError, "model: expected a VVLocNet"),
@@ -337,6 +346,10 @@ def test_localizer_options_are_checked_up_front(map_file, model_dir, tiny_world,
         with pytest.raises(error, match=match):
             call()
     assert not (tmp_path / "x.h5").exists()
+    # a generator of names is read once (its duplicate check consumed it: "[] hold no frames")
+    gen = build_map(model, ds, (s for s in ["s0"]), tmp_path / "gen.h5", progress=False)
+    with MapDatabase.open(gen) as built:
+        assert list(built.sessions) == ["s0"]
     from vvloc.data import DatasetWriter
 
     with DatasetWriter(tmp_path / "empty", open_dataset(tiny_world).cameras) as w:

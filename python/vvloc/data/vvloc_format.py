@@ -96,8 +96,8 @@ class VvlocSession(Session):
 def read_rig(path: Path) -> tuple[list[Camera], dict[str, Any]]:
     """Read ``rig.json``: the cameras and the whole document."""
     try:
-        doc = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as e:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as e:  # JSONDecodeError and UnicodeDecodeError among them
         raise DatasetFormatError(f"{path}: cannot read rig: {e}") from e
     if not isinstance(doc, dict) or not isinstance(doc.get("cameras"), list) or not doc["cameras"]:
         raise DatasetFormatError(f"{path}: expected an object with a non-empty 'cameras' list")
@@ -154,22 +154,31 @@ def read_poses(path: Path) -> np.ndarray:
 
 def _csv_rows(path: Path, header: tuple[str, ...]) -> Iterator[tuple[int, list[str]]]:
     """(line number, fields) of every non-blank row of a CSV file whose first line must be
-    ``header`` and whose rows must have as many fields; errors name the file and the line."""
-    with path.open(newline="") as f:
+    ``header`` and whose rows must have as many fields; errors name the file and the line (a
+    file that is not UTF-8 text: the file and the byte)."""
+    with path.open(newline="", encoding="utf-8") as f:
         reader = csv.reader(f)
-        first = next(reader, None)
-        if first is None or tuple(h.strip() for h in first) != header:
+        try:
+            yield from _checked_rows(path, reader, header)
+        except UnicodeDecodeError as e:
+            raise DatasetFormatError(f"{path}: not UTF-8 text ({e})") from None
+
+
+def _checked_rows(
+    path: Path, reader: Any, header: tuple[str, ...]
+) -> Iterator[tuple[int, list[str]]]:
+    """:func:`_csv_rows` of an open ``csv.reader``."""
+    first = next(reader, None)
+    if first is None or tuple(h.strip() for h in first) != header:
+        raise DatasetFormatError(f"{path}, line 1: header must be {','.join(header)}, got {first}")
+    for row in reader:
+        if not row or all(not c.strip() for c in row):
+            continue
+        if len(row) != len(header):
             raise DatasetFormatError(
-                f"{path}, line 1: header must be {','.join(header)}, got {first}"
+                f"{path}, line {reader.line_num}: expected {len(header)} fields, got {len(row)}"
             )
-        for row in reader:
-            if not row or all(not c.strip() for c in row):
-                continue
-            if len(row) != len(header):
-                raise DatasetFormatError(
-                    f"{path}, line {reader.line_num}: expected {len(header)} fields, got {len(row)}"
-                )
-            yield reader.line_num, row
+        yield reader.line_num, row
 
 
 def read_extrinsics(path: Path, timestamps: np.ndarray, cameras: Sequence[Camera]) -> np.ndarray:

@@ -46,7 +46,7 @@ import torch
 from tqdm import tqdm
 
 from vvloc import geometry, kernels
-from vvloc.checkpoints import resolve_checkpoint
+from vvloc.checkpoints import checkpoint_folder
 from vvloc.data import Camera, Dataset, Frame
 from vvloc.data.frame import RIGID, is_rigid, stack_calibration
 from vvloc.data.rig import SAME_MAP, SAME_MODEL, describe_rig, rig_difference
@@ -660,7 +660,9 @@ class Localizer:
         :func:`check_map_model`; the map is closed again when the localizer cannot be made).
         ``checkpoint`` may also be a training run's folder: its ``best/`` when it has one, else
         its ``checkpoint/``, as the CLI takes it."""
-        model = VVLocNet.load(resolve_checkpoint(checkpoint)).to(resolve_device(device))
+        model = VVLocNet.load(checkpoint_folder(checkpoint, "checkpoint")).to(
+            resolve_device(device)
+        )
         mapdb = MapDatabase.open(map_path, expected_config_hash=model.config_hash())
         try:
             return cls(model, mapdb, **kwargs)
@@ -841,7 +843,13 @@ class Localizer:
                     "the encoder (its global descriptors are L2-normalised, its local-view "
                     "descriptors and BEVs of order 1), and float32 sums of their products overflow"
                 )
-        timings = {"encode": t_encode_ms}
+        if (
+            isinstance(t_encode_ms, (bool, np.bool_))
+            or not isinstance(t_encode_ms, (int, float, np.number))
+            or not (math.isfinite(t_encode_ms) and t_encode_ms >= 0)
+        ):
+            raise ValueError(f"t_encode_ms: expected a finite time >= 0 (ms), got {t_encode_ms!r}")
+        timings = {"encode": float(t_encode_ms)}
         t0 = time.perf_counter()
         rows, dist = self.retrieve(g)
         timings["retrieve"] = (time.perf_counter() - t0) * 1e3
@@ -923,7 +931,7 @@ class Localizer:
 def build_map(
     model: VVLocNet,
     dataset: Dataset,
-    sessions: Sequence[str],
+    sessions: Iterable[str],
     out: str | os.PathLike[str],
     *,
     dtype: str = "float32",
@@ -948,6 +956,15 @@ def build_map(
     batch_size = kernels._positive_int(batch_size, "batch_size")
     if isinstance(sessions, str):
         raise TypeError(f"sessions: expected a list of session names, got the str {sessions!r}")
+    if not isinstance(sessions, Iterable):
+        raise TypeError(
+            f"sessions: expected a list of session names, got {type(sessions).__name__}"
+        )
+    sessions = list(sessions)  # a generator is read once
+    if not all(isinstance(s, str) for s in sessions):
+        raise TypeError(f"sessions: expected session names (str), got {sessions!r:.80}")
+    if not isinstance(store_bev, (bool, np.bool_)):
+        raise TypeError(f"store_bev: expected a bool, got {type(store_bev).__name__}")
     if not sessions:
         raise ValueError("sessions: expected at least one session name")
     repeated = sorted({s for s in sessions if list(sessions).count(s) > 1})

@@ -239,7 +239,10 @@ def _to_numpy(x: Any, name: str) -> np.ndarray:
         x = x.detach().cpu().numpy()
     if x is None or isinstance(x, (str, bytes)):
         raise TypeError(f"{name}: expected an array, got {type(x).__name__}")
-    return np.asarray(x)
+    try:
+        return np.asarray(x)
+    except ValueError as e:  # nested lists of unequal lengths
+        raise ValueError(f"{name}: expected a rectangular array, got ragged rows ({e})") from None
 
 
 def _float_array(
@@ -1357,7 +1360,12 @@ class MapDatabase:
         return rows[np.argsort(self._seq[rows], kind="stable")].astype(np.int64)
 
     def row_of(self, keyframe_id: int) -> int:
-        """The row of the keyframe with id ``keyframe_id`` (``KeyError`` if absent)."""
+        """The row of the keyframe with id ``keyframe_id`` (``KeyError`` if absent, ``TypeError``
+        for anything but an int: 1.7 read as id 1)."""
+        if isinstance(keyframe_id, (bool, np.bool_)) or not isinstance(
+            keyframe_id, (int, np.integer)
+        ):
+            raise TypeError(f"keyframe_id: expected an int, got {type(keyframe_id).__name__}")
         if self._id_to_row is None:
             self._id_to_row = {int(k): r for r, k in enumerate(self._ids.tolist())}
         try:
