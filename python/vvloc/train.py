@@ -2163,8 +2163,7 @@ def check_run_folder(cfg: TrainConfig, out: Path, resume: bool) -> None:
     """Refuse a run folder ``out`` that would lose or corrupt data: ``ValueError`` when it is
     or lies inside a dataset of ``cfg`` (the run's folders would read as sessions);
     ``FileExistsError``, without ``resume``, when it already holds a run (``--resume``
-    continues it) or anything else; ``FileNotFoundError``, with ``resume``, when it holds no
-    run (no ``trainer_state.pt``). The one exception is a run of the same config stopped
+    continues it) or anything else. The one exception is a run of the same config stopped
     before its first ``trainer_state.pt`` (its ``train_config.yaml``, its first epoch's
     ``checkpoint/`` and ``best/``, hidden half-written files): a new run starts it again,
     replacing them."""
@@ -2176,18 +2175,7 @@ def check_run_folder(cfg: TrainConfig, out: Path, resume: bool) -> None:
                 f"--out: {out} is or lies inside the dataset {root}; write the run to a folder "
                 "of its own (e.g. runs/<name>)"
             )
-    if resume:  # said before a dataset is rendered or opened, as a new run's checks are
-        if not (out / "trainer_state.pt").is_file():
-            what = (
-                "drop --resume to start one"
-                if not out.is_dir() or not any(out.iterdir())
-                else "the folder holds other files: choose another --out to start one"
-            )
-            raise FileNotFoundError(
-                f"--resume: no run to resume in {out} (no trainer_state.pt); {what}"
-            )
-        return
-    if not out.is_dir():
+    if resume or not out.is_dir():
         return
     if (out / "trainer_state.pt").exists():
         raise FileExistsError(
@@ -2229,11 +2217,15 @@ def train(
     cfg = config if isinstance(config, TrainConfig) else TrainConfig.from_yaml(config)
     out = Path(out_dir)
     check_run_folder(cfg, out, resume)
+    if resume and not out.is_dir():
+        _no_run_to_resume(out)
     created = not out.exists()
     out.mkdir(parents=True, exist_ok=True)  # to lock it
     try:
         with run_lock(out):
             check_run_folder(cfg, out, resume)  # again, now that no other run can change it
+            if resume and not (out / "trainer_state.pt").is_file():  # before any rendering
+                _no_run_to_resume(out)
             trainer = Trainer(cfg, out_dir)
             if resume and not trainer.resume():  # removed between the check and the lock
                 raise FileNotFoundError(f"--resume: no run to resume in {out_dir}")
@@ -2243,6 +2235,16 @@ def train(
             out.rmdir()
         raise
     return trainer
+
+
+def _no_run_to_resume(out: Path) -> None:
+    """``FileNotFoundError`` for ``--resume`` into ``out``, which holds no ``trainer_state.pt``."""
+    what = (
+        "drop --resume to start one"
+        if not out.is_dir() or not any(out.iterdir())
+        else "the folder holds other files: choose another --out to start one"
+    )
+    raise FileNotFoundError(f"--resume: no run to resume in {out} (no trainer_state.pt); {what}")
 
 
 @contextlib.contextmanager
