@@ -886,3 +886,12 @@ def test_calibration_rejects_bad_arguments(kw, err, match):
         ev.calibrate_acceptance([0.1, 0.2], np.array([True, False]), **kw)
     with pytest.raises(TypeError, match="correct"):
         ev.calibrate_acceptance([0.1, 0.2], [1, 0])
+
+
+def test_recall_top_n_must_be_int_ranks():
+    # a float rank was truncated (1.5 → 1) and a str split into digits ("15" → (1, 5))
+    q, db = np.zeros((1, 2)), np.zeros((3, 2))
+    for bad in ([1.5], "15", [True]):
+        with pytest.raises(TypeError, match=r"^top_n: expected a sequence of int ranks"):
+            ev.recall_at_n(q, db, [[0, 1, 2]], top_n=bad)
+    assert (ev.recall_at_n(q, db, [[0, 1, 2]], top_n=[np.int64(2)]).recall == 1.0).all()

@@ -1731,3 +1731,14 @@ def test_a_non_finite_loss_in_the_first_epoch_is_one_line_saying_nothing_was_sav
     assert r.returncode == 1 and "Traceback" not in r.stderr, r.stderr[-2000:]
     assert "vvloc train: failed: epoch 1, step " in r.stderr
     assert "no epoch had finished: nothing was saved" in r.stderr
+
+
+def test_a_bad_sim_section_is_named_as_the_configs_key(tmp_path):
+    from vvloc.train import _ensure_dataset
+
+    world = tmp_path / "world"
+    with pytest.raises(ValueError, match=r"^sim: unknown keys \['frame'\] \(known: \["):
+        _ensure_dataset(str(world), {"frame": 10})
+    with pytest.raises(ValueError, match=r"^extra_datasets\[1\]\.sim: frames: expected"):
+        _ensure_dataset(str(world), {"frames": -5}, "extra_datasets[1].sim")
+    assert not world.exists()

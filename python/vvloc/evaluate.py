@@ -286,6 +286,10 @@ def recall_at_n(
     if idx.size and (idx.min() < -1 or idx.max() >= num_db):
         raise ValueError(f"retrieved: indices must lie in [-1, {num_db}) (N = {num_db} map frames)")
     floors = _floors(query_floors, db_floors, num_q, num_db)
+    if isinstance(top_n, (str, bytes)) or not all(
+        isinstance(n, (int, np.integer)) and not isinstance(n, bool) for n in top_n
+    ):  # 1.5 read as 1, "15" as (1, 5)
+        raise TypeError(f"top_n: expected a sequence of int ranks, got {top_n!r}")
     ns = tuple(int(n) for n in top_n)
     if not ns or any(not 1 <= n <= k for n in ns):
         raise ValueError(f"top_n: expected ranks in 1..K = {k}, got {tuple(top_n)}")

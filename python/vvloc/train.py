@@ -988,9 +988,9 @@ def _check_rendered_like(root: Path, sim: dict[str, Any]) -> None:
         )
 
 
-def _ensure_dataset(dataset: str, sim: dict[str, Any] | None) -> None:
+def _ensure_dataset(dataset: str, sim: dict[str, Any] | None, key: str = "sim") -> None:
     """Render ``dataset`` from ``sim`` (arguments of :func:`vvloc.sim.simulate_dataset`) when it
-    does not exist yet."""
+    does not exist yet; errors in ``sim`` name the config's ``key``."""
     root = Path(dataset)
     if root.exists():
         if sim:
@@ -1016,10 +1016,19 @@ def _ensure_dataset(dataset: str, sim: dict[str, Any] | None) -> None:
         raise FileNotFoundError(
             f"dataset {root} does not exist and the config has no 'sim' section to render it"
         )
+    import inspect
+
     from vvloc.sim import simulate_dataset
 
+    known = [p for p in inspect.signature(simulate_dataset).parameters if p != "out"]
+    unknown = sorted(set(sim) - set(known))
+    if unknown:  # said as the config's key, not as simulate_dataset()'s keyword argument
+        raise ValueError(f"{key}: unknown keys {unknown} (known: {known})")
     log.info("rendering the training dataset into %s", root)
-    simulate_dataset(root, **sim)
+    try:
+        simulate_dataset(root, **sim)
+    except (TypeError, ValueError) as e:  # "frames: expected ..." is the config's sim.frames
+        raise (TypeError if isinstance(e, TypeError) else ValueError)(f"{key}: {e}") from e
 
 
 def _check_session_keys(cfg: TrainConfig, ds: Any) -> None:
@@ -1086,8 +1095,8 @@ class Trainer:
         _ensure_dataset(cfg.dataset, cfg.sim)
         self.ds = open_dataset(cfg.dataset)
         extra = []
-        for e in cfg.extra_datasets:
-            _ensure_dataset(e["dataset"], e.get("sim"))
+        for i, e in enumerate(cfg.extra_datasets):
+            _ensure_dataset(e["dataset"], e.get("sim"), f"extra_datasets[{i}].sim")
             extra.append((open_dataset(e["dataset"]), e.get("train_sessions")))
             rig, other = self.ds.cameras, extra[-1][0].cameras
             if len(rig) != len(other) or (rig[0].width, rig[0].height) != (
