@@ -65,7 +65,7 @@ import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 import numpy as np
 import torch
@@ -2246,7 +2246,7 @@ def train(
     return trainer
 
 
-def _no_run_to_resume(out: Path) -> None:
+def _no_run_to_resume(out: Path) -> NoReturn:
     """``FileNotFoundError`` for ``--resume`` into ``out``, which holds no ``trainer_state.pt``."""
     what = (
         "drop --resume to start one"
