@@ -170,8 +170,8 @@ def test_the_map_records_its_rig_and_the_localizer_compares_queries_with_it(
     singular[:, 3, :] = 0
     for change, match in [
         ({"cam_to_ego": singular}, r"frames\[0\]\.cam_to_ego: expected a finite rigid"),
-        ({"K": np.zeros_like(frame.K)}, r"frames\[0\]\.K: expected pinhole matrices"),
-        ({"K": np.swapaxes(frame.K, 1, 2)}, r"frames\[0\]\.K: expected pinhole matrices"),
+        ({"K": np.zeros_like(frame.K)}, r"frames\[0\]\.K: expected a pinhole matrix"),
+        ({"K": np.swapaxes(frame.K, 1, 2)}, r"frames\[0\]\.K: expected a pinhole matrix"),
         ({"K": frame.K[:3]}, r"frames\[0\]\.K: expected finite \(4, 3, 3\) intrinsics"),
     ]:
         with pytest.raises(ValueError, match=match):

@@ -44,11 +44,8 @@ class Camera:
             raise ValueError(
                 f"camera {self.name!r}: K must be a finite (3, 3) array, got {K.shape}"
             )
-        if K[0, 0] <= 0 or K[1, 1] <= 0 or not np.allclose(K[2], (0.0, 0.0, 1.0), atol=1e-9):
-            raise ValueError(
-                f"camera {self.name!r}: K must be a pinhole matrix [[fx, s, cx], [0, fy, cy], "
-                f"[0, 0, 1]] with focal lengths fx, fy > 0 (pixels), got {K.tolist()}"
-            )
+        if not is_pinhole(K):
+            raise ValueError(f"camera {self.name!r}: K must be a {PINHOLE}, got {K.tolist()}")
         if T.shape != (4, 4) or not np.all(np.isfinite(T)):
             raise ValueError(
                 f"camera {self.name!r}: cam_to_ego must be finite (4, 4), got {T.shape}"
@@ -364,6 +361,23 @@ def _load_8bit(path: Path, keep_grey: bool) -> np.ndarray:
 RIGID = (
     "finite rigid transform (rotation orthonormal to 1e-6 with determinant +1, bottom row 0 0 0 1)"
 )
+
+
+#: What :func:`is_pinhole` accepts, for messages.
+PINHOLE = (
+    "pinhole matrix [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with focal lengths fx, fy > 0 (pixels)"
+)
+
+
+def is_pinhole(K: np.ndarray) -> bool:
+    """Whether ``K`` (..., 3, 3) holds finite pinhole intrinsics (:data:`PINHOLE`)."""
+    K = np.asarray(K, dtype=np.float64)
+    return bool(
+        np.isfinite(K).all()
+        and (K[..., 0, 0] > 0).all()
+        and (K[..., 1, 1] > 0).all()
+        and np.allclose(K[..., 2, :], (0.0, 0.0, 1.0), atol=1e-9)
+    )
 
 
 def is_rigid(T: np.ndarray) -> bool:

@@ -48,7 +48,7 @@ from tqdm import tqdm
 from vvloc import geometry, kernels
 from vvloc.checkpoints import checkpoint_folder
 from vvloc.data import Camera, Dataset, Frame
-from vvloc.data.frame import RIGID, is_rigid, stack_calibration
+from vvloc.data.frame import PINHOLE, RIGID, is_pinhole, is_rigid, stack_calibration
 from vvloc.data.rig import SAME_MAP, SAME_MODEL, describe_rig, rig_difference
 from vvloc.localize.mapdb import MapDatabase, MapError, MapWriter, check_weights
 from vvloc.localize.metric import (
@@ -143,12 +143,8 @@ def _check_calibration(K: Any, cam_to_ego: Any, cameras: int, name: str) -> None
         raise ValueError(
             f"{name}.cam_to_ego: expected finite ({cameras}, 4, 4) transforms, got {T.shape}"
         )
-    K = K.astype(np.float64)
-    if (K[:, 0, 0] <= 0).any() or (K[:, 1, 1] <= 0).any() or not np.allclose(K[:, 2], (0, 0, 1)):
-        raise ValueError(
-            f"{name}.K: expected pinhole matrices [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with "
-            "focal lengths fx, fy > 0 (pixels)"
-        )
+    if not is_pinhole(K):
+        raise ValueError(f"{name}.K: expected a {PINHOLE} per camera")
     if not is_rigid(T):
         raise ValueError(f"{name}.cam_to_ego: expected a {RIGID} per camera")
 
@@ -967,7 +963,7 @@ def build_map(
         raise TypeError(f"store_bev: expected a bool, got {type(store_bev).__name__}")
     if not sessions:
         raise ValueError("sessions: expected at least one session name")
-    repeated = sorted({s for s in sessions if list(sessions).count(s) > 1})
+    repeated = sorted({s for s in sessions if sessions.count(s) > 1})
     if repeated:
         raise ValueError(f"sessions: {repeated} named more than once (each keyframe once)")
     known = set(dataset.sessions)
