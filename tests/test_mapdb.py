@@ -901,7 +901,8 @@ _exit_on_sigterm()
 with AtomicPath(sys.argv[1]) as tmp:
     tmp.write_text("partial")
     print("ready", flush=True)
-    time.sleep(60)
+    for _ in range(600):  # a busy main thread, as in a command (see the test's comment)
+        time.sleep(0.1)
 """
 
 
@@ -914,6 +915,9 @@ def test_the_clis_sigterm_handler_lets_a_writer_remove_its_temporary_file(tmp_pa
     target = tmp_path / "map.h5"
     target.write_text("old map")
     cmd = [sys.executable, "-c", SIGTERM_WRITER, str(target)]
+    # The writer sleeps in short steps: the kernel may hand a process-directed SIGTERM to a
+    # helper thread (OpenBLAS's, started by numpy), and Python runs its handler only when the
+    # main thread next executes bytecode; one long sleep(60) then outlasted the wait (CI, 272935e).
     with subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True) as proc:
         assert proc.stdout is not None and proc.stdout.readline().strip() == "ready"
         proc.send_signal(signal.SIGTERM)
