@@ -700,6 +700,20 @@ def test_calibrate_cli_scores_the_localizers_answers_and_never_loses_a_calibrati
         r = run(*bad, "--overwrite")
         assert r.returncode == 2 and said in r.stderr, r.stderr
         assert "map:" not in r.stderr  # the map's progress bar never started
+    # ... as does a query set with no revisit of the map (said after the whole map was built)
+    far = tmp_path / "far"
+    shutil.copytree(tiny_world, far)
+    for name in ("s1", "s2"):
+        poses = far / "sessions" / name / "poses.csv"
+        head, *rows = poses.read_text().splitlines()
+        assert head.startswith("timestamp,x,")
+        cells = [row.split(",") for row in rows]
+        shifted = [",".join([c[0], str(float(c[1]) + 500.0), *c[2:]]) for c in cells]
+        poses.write_text("\n".join([head, *shifted]) + "\n")
+    far_exe = [str(far) if a == str(tiny_world) else a for a in exe]
+    r = subprocess.run([*far_exe, "--overwrite"], capture_output=True, text=True)
+    assert r.returncode == 2 and "--queries: no query has a map keyframe within 2 m" in r.stderr
+    assert "map:" not in r.stderr, r.stderr
     assert (ckpt / "calibration.json").read_bytes() == before
     r = run("--precision", "0.5", "--min_accepted", "2", "--overwrite", "--metric_candidates", "3")
     assert r.returncode == 0, r.stderr
@@ -989,6 +1003,21 @@ def test_calibration_of_results_scores_the_reported_keyframe_under_the_cost_rule
         calibration_of_results(res, q + np.array([50.0, 0, 0]), **kw)  # another world
 
 
+def test_calibrate_localizer_refuses_queries_far_from_the_map_before_localizing_them():
+    from types import SimpleNamespace
+
+    from vvloc.localize.calibrate import calibrate_localizer
+
+    def never(*args: object, **kwargs: object) -> None:
+        pytest.fail("localized the queries before finding none revisits the map")
+
+    db = SimpleNamespace(poses=np.array([[0.0, 0, 0], [10, 0, 0]]), floors=np.array([0, 1]))
+    loc = SimpleNamespace(map=db, localize_batch=never, accept_threshold=0.75)
+    frames = [SimpleNamespace(pose=np.array([10.5, 0, 0]), floor=0)]  # near a keyframe above
+    with pytest.raises(ValueError, match="frames: no query has a map keyframe within 2 m"):
+        calibrate_localizer(loc, frames)  # type: ignore[arg-type]
+
+
 def test_cli_refuses_misleading_inputs_before_any_work(tiny_world, map_file, model_dir, tmp_path):
     exe = [sys.executable, "-m", "vvloc.cli"]
     run = lambda *a: subprocess.run([*exe, *a], capture_output=True, text=True)  # noqa: E731
@@ -1004,7 +1033,12 @@ def test_cli_refuses_misleading_inputs_before_any_work(tiny_world, map_file, mod
     r = run(*loc, "--map", str(tmp_path / "no.h5"), "--session", "s1", "--out", str(tmp_path / "e"))
     assert r.returncode == 2 and "--map: map file not found" in r.stderr, r.stderr
     r = run("eval", *ck, "--database", "s0", "--queries", "s1,s9", "--out", str(tmp_path / "e"))
-    assert r.returncode == 2 and "queries: no session 's9' in" in r.stderr, r.stderr
+    assert r.returncode == 2 and "--queries: no session 's9' in" in r.stderr, r.stderr
+    r = run("eval", *ck, "--database", "s9", "--queries", "s1", "--out", str(tmp_path / "e"))
+    assert r.returncode == 2 and "--database: no session 's9' in" in r.stderr, r.stderr
+    # eval names its options as the command line spells them, not run_evaluation's arguments
+    r = run("eval", *ck, "--loop_radius", "nan", "--out", str(tmp_path / "e"))
+    assert r.returncode == 2 and "'--loop_radius': expected a descriptor distance" in r.stderr
     assert not (tmp_path / "e").exists()
     # an --out that is a file is refused before localizing anything
     blocker = tmp_path / "file.txt"
@@ -1192,7 +1226,11 @@ def test_eval_localize_and_demo_refuse_a_folder_of_files_they_did_not_write(
     assert r.returncode == 2 and "which no earlier vvloc localize wrote" in r.stderr, r.stderr
     r = run("demo", "--out", str(mine), "--frames", "10")
     assert r.returncode == 2 and "no earlier vvloc eval report" in r.stderr, r.stderr
+    assert f"--out: {mine} holds" in r.stderr  # the option, as the command line spells it
     assert "rendering" not in r.stdout and not (mine / "data").exists()
+    r = run("eval", "--checkpoint", str(model_dir), "--dataset", str(tiny_world),
+            "--out", str(mine))  # fmt: skip
+    assert r.returncode == 2 and f"--out: {mine} holds queries.csv, report.md" in r.stderr, r.stderr
     assert {p.name: p.read_bytes() for p in mine.iterdir()} == before
 
 

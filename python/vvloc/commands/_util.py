@@ -5,7 +5,7 @@ from __future__ import annotations
 import contextlib
 import math
 import os
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from enum import Enum
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
@@ -14,6 +14,8 @@ import typer
 
 if TYPE_CHECKING:
     import torch
+
+    from vvloc.data import Dataset
 
 #: Exit codes: 0 success, 1 runtime failure, 2 bad arguments or inputs (missing file, wrong
 #: checkpoint, malformed data).
@@ -182,6 +184,22 @@ def named(option: str, *types: type[Exception]) -> Iterator[None]:
         yield
     except types as e:
         raise type(e)(f"{option}: {error_text(e)}") from None
+
+
+def check_sessions(dataset: Path, sessions: Iterable[tuple[str, str]]) -> Dataset:
+    """Open ``dataset`` and check each ``(option, name)`` of ``sessions`` before any model or
+    map loads: ``KeyError`` naming the option (and the dataset's sessions) when there is no
+    session ``name``, ``ValueError`` naming it when the session holds no frames. Returns the
+    opened dataset."""
+    from vvloc.data import open_dataset
+
+    ds = open_dataset(dataset)
+    for option, name in sessions:
+        with named(option, KeyError):
+            sess = ds.session(name)
+        if len(sess) == 0:
+            raise ValueError(f"{option}: session {name!r} of {dataset} has no frames")
+    return ds
 
 
 def parse_device(device: str) -> torch.device:

@@ -18,8 +18,8 @@ from vvloc.commands._util import (
     RetrievalWeight,
     Snap,
     Threads,
+    check_sessions,
     cli_errors,
-    named,
     parse_device,
     set_torch_threads,
     split_names,
@@ -63,10 +63,11 @@ def calibrate(
     the target, nothing is written and the command fails (exit 1)."""
     import tempfile
 
+    import numpy as np
+
     from vvloc._io import atomic_write
-    from vvloc.data import open_dataset
     from vvloc.data.sampling import check_query_sessions
-    from vvloc.localize.calibrate import calibrate_localizer
+    from vvloc.localize.calibrate import calibrate_localizer, check_revisits
     from vvloc.localize.evaluation import trained_on
     from vvloc.localize.localizer import Localizer, build_map
     from vvloc.localize.mapdb import MapDatabase
@@ -86,12 +87,9 @@ def calibrate(
             raise FileExistsError(
                 f"{target} exists (the checkpoint's calibration): pass --overwrite to replace it"
             )
+        check_query_sessions(database, names, "--queries")
+        ds = check_sessions(dataset, [("--database", database), *(("--queries", n) for n in names)])
         model = VVLocNet.load(ckpt).to(parse_device(device))
-        ds = open_dataset(dataset)
-        check_query_sessions(database, names)
-        for option, name in [("--database", database), *(("--queries", n) for n in names)]:
-            with named(option, KeyError):  # naming the known sessions, before any warning
-                ds.session(name)
         seen = trained_on(model.training_record, dataset, names)
         if seen:  # as vvloc eval says: a threshold measured on them accepts too much elsewhere
             warnings.warn(
@@ -103,10 +101,13 @@ def calibrate(
             )
         frames = [f for name in names for f in ds.session(name)[::every]]  # loads only these
         # what would fail after the map is built fails before it
-        if not frames:
-            raise ValueError(f"--queries: sessions {names} hold no frames")
-        if len(ds.session(database)) == 0:
-            raise ValueError(f"--database: session {database} holds no frames")
+        check_revisits(  # the queries a calibration is measured on
+            np.concatenate([ds.session(n).poses[::every] for n in names]),
+            np.concatenate([ds.session(n).floors[::every] for n in names]),
+            ds.session(database).poses,
+            ds.session(database).floors,
+            "--queries",
+        )
         if min_accepted > len(frames):
             raise ValueError(
                 f"--min_accepted: {min_accepted} accepted queries can never be reached with "

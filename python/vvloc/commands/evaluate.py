@@ -16,12 +16,20 @@ from vvloc.commands._util import (
     Snap,
     Threads,
     check_out_folder,
+    check_sessions,
     cli_errors,
     parse_device,
     set_torch_threads,
     split_names,
 )
 from vvloc.localize.metric import METRIC_CANDIDATES, RETRIEVAL_WEIGHT
+
+
+def _a_loop_radius(value: float) -> float:
+    # NaN would pass a min/max range (every comparison with it is false)
+    if not 0.0 < value <= 0.5:
+        raise typer.BadParameter(f"expected a descriptor distance in (0, 0.5], got {value}")
+    return value
 
 
 def eval_command(
@@ -59,6 +67,7 @@ def eval_command(
         float,
         typer.Option(
             "--loop_radius",
+            callback=_a_loop_radius,
             help="Loop closures accepted below this global-descriptor distance, in (0, 0.5].",
         ),
     ] = 0.1,
@@ -82,14 +91,18 @@ def eval_command(
     ] = 20_000_000,
 ) -> None:
     """Write report.md/report.json/plots with Recall@N, AOE/APE and per-stage latency."""
-    from vvloc.localize.evaluation import run_evaluation
+    from vvloc.data.sampling import check_query_sessions
+    from vvloc.localize.evaluation import check_report_folder, run_evaluation
 
     with cli_errors("eval"):
         set_torch_threads(threads)
-        check_out_folder(out)  # (run_evaluation refuses an --out inside the dataset)
+        check_out_folder(out, outside=dataset)
+        check_report_folder(out, "--out")
         names = split_names(queries)
         if not names:
             raise ValueError("--queries: expected at least one session name")
+        check_query_sessions(database, names, "--queries")
+        check_sessions(dataset, [("--database", database), *(("--queries", n) for n in names)])
         run_evaluation(
             checkpoint_folder(checkpoint, "--checkpoint"),
             dataset,

@@ -18,6 +18,7 @@ from vvloc.commands._util import (
     Snap,
     Threads,
     check_out_folder,
+    check_sessions,
     cli_errors,
     named,
     parse_device,
@@ -96,7 +97,6 @@ def localize(
     import json
 
     from vvloc._io import csv_row, write_together
-    from vvloc.data import open_dataset
     from vvloc.localize.export import tum_text
     from vvloc.localize.localizer import Localizer
     from vvloc.localize.mapdb import MapError
@@ -105,10 +105,7 @@ def localize(
         set_torch_threads(threads)
         check_out_folder(out, outside=dataset)
         _check_localize_folder(out)
-        with named("--session", KeyError):  # said before the model and the map load
-            sess = open_dataset(dataset).session(session)
-        if len(sess) == 0:
-            raise ValueError(f"--session: session {session!r} of {dataset} has no frames")
+        sess = check_sessions(dataset, [("--session", session)]).session(session)
         ckpt = checkpoint_folder(checkpoint, "--checkpoint")
         with named("--map", MapError, FileNotFoundError):
             loc = Localizer.open(

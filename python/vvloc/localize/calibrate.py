@@ -163,6 +163,31 @@ def calibrate(
     return cal
 
 
+def check_revisits(
+    query_poses: npt.ArrayLike,
+    query_floors: npt.ArrayLike,
+    db_poses: npt.ArrayLike,
+    db_floors: npt.ArrayLike,
+    argument: str = "query_poses",
+) -> None:
+    """``ValueError`` naming ``argument`` when no query has a map keyframe within 2 m on its
+    floor (the queries a calibration is measured on, as :func:`vvloc.evaluate.recall_at_n`
+    keeps them): said from the poses alone, before any query is localized or map built.
+
+    Args:
+        query_poses: ``(Q, 3)`` world poses (x, y m; yaw rad); ``query_floors`` ``(Q,)``.
+        db_poses: ``(N, 3)`` the map keyframes' world poses; ``db_floors`` ``(N,)``.
+    """
+    q = np.asarray(query_poses, dtype=np.float64).reshape(-1, 3)
+    d = np.asarray(db_poses, dtype=np.float64).reshape(-1, 3)
+    nearest = evaluate.nearest_map_distance(q[:, :2], d[:, :2], query_floors, db_floors)
+    if not (nearest <= 2.0).any():
+        raise ValueError(
+            f"{argument}: no query has a map keyframe within 2 m on its floor (another world or "
+            "another map session?): nothing to calibrate on"
+        )
+
+
 def calibration_of_results(
     results: Sequence[LocalizationResult],
     query_poses: npt.ArrayLike,
@@ -212,10 +237,7 @@ def calibration_of_results(
     )
     kept = rec.kept
     if not kept.any():
-        raise ValueError(
-            "query_poses: no query has a map keyframe within 2 m on its floor (another world or "
-            "another map session?): nothing to calibrate on"
-        )
+        check_revisits(q_pose, query_floors, db_poses, db_floors)  # raises
     right = rec.correct(1, 2.0)
     passing = kept & np.array([r.cost < accept_threshold for r in results], dtype=bool)
     score = np.array([r.distinctiveness for r in results], dtype=np.float64)
@@ -248,11 +270,14 @@ def calibrate_localizer(
     that acceptance gates. Does not change ``loc`` or its model."""
     if not frames:
         raise ValueError("frames: expected at least one query frame")
+    poses = np.stack([f.pose for f in frames])
+    floors = np.array([f.floor for f in frames], dtype=np.int64)
+    check_revisits(poses, floors, loc.map.poses, loc.map.floors, "frames")  # before localizing
     results = loc.localize_batch(list(frames), progress=progress)
     cal = calibration_of_results(
         results,
-        np.stack([f.pose for f in frames]),
-        np.array([f.floor for f in frames], dtype=np.int64),
+        poses,
+        floors,
         np.asarray(loc.map.poses),
         np.asarray(loc.map.floors),
         accept_threshold=loc.accept_threshold,

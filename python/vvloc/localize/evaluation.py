@@ -110,17 +110,17 @@ def _is_report(out_dir: Path) -> bool:
     )
 
 
-def check_report_folder(out_dir: Path) -> None:
+def check_report_folder(out_dir: Path, argument: str = "out") -> None:
     """Refuse a report folder whose files a report would replace without being a report's:
-    ``FileExistsError`` naming them when ``out_dir`` holds files named as a report's
-    (:data:`REPORT_FILES`: ``map.h5``, ``queries.csv``, figures, ``report.md`` ...) but no
-    ``report.json`` of an earlier evaluation. An earlier report there is replaced whole."""
+    ``FileExistsError`` naming them (and ``argument``) when ``out_dir`` holds files named as a
+    report's (:data:`REPORT_FILES`: ``map.h5``, ``queries.csv``, figures, ``report.md`` ...) but
+    no ``report.json`` of an earlier evaluation. An earlier report there is replaced whole."""
     if not out_dir.is_dir() or _is_report(out_dir):
         return
     clash = [name for name in REPORT_FILES if (out_dir / name).exists()]
     if clash:
         raise FileExistsError(
-            f"out: {out_dir} holds {', '.join(clash)}, which no earlier vvloc eval report "
+            f"{argument}: {out_dir} holds {', '.join(clash)}, which no earlier vvloc eval report "
             "wrote (no report.json of one); the report would replace them: choose another "
             "folder"
         )
