@@ -969,6 +969,28 @@ def test_select_by_retrieval_keeps_the_epoch_that_retrieves_best(tiny_world, tmp
     assert train(last, tmp_path / "last", progress=False).best["epoch"] == 4  # the worst retriever
 
 
+def test_sessions_and_datasets_of_extra_datasets_and_val_loops_are_refused_by_key(
+    tiny_world, tmp_path
+):
+    # they said "no session 's99' in ..." or "no such dataset folder" without the config's key
+    base = {"train_sessions": ["s0", "s1"], "val_sessions": ["s2"]}
+    twin = tmp_path / "twin"
+    shutil.copytree(tiny_world, twin)
+    for kw, said in (
+        ({"extra_datasets": [{"dataset": str(tmp_path / "none")}]},
+         r"^extra_datasets\[0\]\.dataset: .*none does not exist and extra_datasets\[0\] has no"),
+        ({"extra_datasets": [{"dataset": str(twin), "train_sessions": ["s1", "s99"]}]},
+         r"^extra_datasets\[0\]\.train_sessions: \['s99'\] not in .*; its sessions: s0, s1, s2"),
+        ({"val_loops": [{"dataset": str(tmp_path / "none"), "sessions": ["s2"]}]},
+         r"^val_loops\[0\]\.dataset: .*none: no such dataset folder"),
+        ({"val_loops": [{"dataset": str(tiny_world), "sessions": ["s2", "s99"]}]},
+         r"^val_loops\[0\]\.sessions: \['s99'\] not in .*; its sessions: s0, s1, s2"),
+    ):  # fmt: skip
+        with pytest.raises((ValueError, FileNotFoundError), match=said):
+            Trainer(_config(tiny_world, **base, **kw), tmp_path / "run")
+    assert not (tmp_path / "run").exists()
+
+
 def test_bad_val_loops_are_refused_by_name():
     base = {"dataset": "x", "train_sessions": ["s0"], "val_sessions": ["s1"]}
     with pytest.raises(ValueError, match=r"val_loops: needs val_sessions"):
@@ -1740,5 +1762,5 @@ def test_a_bad_sim_section_is_named_as_the_configs_key(tmp_path):
     with pytest.raises(ValueError, match=r"^sim: unknown keys \['frame'\] \(known: \["):
         _ensure_dataset(str(world), {"frame": 10})
     with pytest.raises(ValueError, match=r"^extra_datasets\[1\]\.sim: frames: expected"):
-        _ensure_dataset(str(world), {"frames": -5}, "extra_datasets[1].sim")
+        _ensure_dataset(str(world), {"frames": -5}, "extra_datasets[1].")
     assert not world.exists()

@@ -62,7 +62,7 @@ import shutil
 import signal
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, NoReturn
@@ -988,9 +988,11 @@ def _check_rendered_like(root: Path, sim: dict[str, Any]) -> None:
         )
 
 
-def _ensure_dataset(dataset: str, sim: dict[str, Any] | None, key: str = "sim") -> None:
+def _ensure_dataset(dataset: str, sim: dict[str, Any] | None, prefix: str = "") -> None:
     """Render ``dataset`` from ``sim`` (arguments of :func:`vvloc.sim.simulate_dataset`) when it
-    does not exist yet; errors in ``sim`` name the config's ``key``."""
+    does not exist yet; errors name the config's keys, ``{prefix}dataset`` and ``{prefix}sim``
+    (``prefix`` is ``extra_datasets[i].`` for an extra dataset)."""
+    key = f"{prefix}sim"
     root = Path(dataset)
     if root.exists():
         if sim:
@@ -1013,8 +1015,9 @@ def _ensure_dataset(dataset: str, sim: dict[str, Any] | None, key: str = "sim") 
                 )
         return
     if not sim:
+        where = f"{prefix.rstrip('.')} has" if prefix else "the config has"
         raise FileNotFoundError(
-            f"dataset {root} does not exist and the config has no 'sim' section to render it"
+            f"{prefix}dataset: {root} does not exist and {where} no 'sim' section to render it"
         )
     import inspect
 
@@ -1035,28 +1038,40 @@ def _check_session_keys(cfg: TrainConfig, ds: Any) -> None:
     """Refuse, naming the config key, a session of ``train_sessions``, ``val_sessions`` or
     ``val_database`` that ``ds`` (``cfg.dataset``) lacks, holds no frame of, or that the key
     names twice: before any epoch, and not with the sampler's or validation's words."""
-    known = set(ds.sessions)
     keys: list[tuple[str, list[str]]] = [("train_sessions", list(cfg.train_sessions or []))]
     if cfg.val_sessions:
         keys += [("val_sessions", list(cfg.val_sessions)), ("val_database", [cfg.val_database])]
     for key, names in keys:
-        repeated = sorted({n for n in names if names.count(n) > 1})
-        if repeated:
-            raise ValueError(f"{key}: {repeated} named more than once")
-        missing = [n for n in names if n not in known]
-        if missing:
-            default = (
-                " (its default: set it to your map session)"
-                if (key == "val_database" and cfg.val_database == TrainConfig().val_database)
-                else ""
-            )
-            raise ValueError(
-                f"{key}: {missing} not in {cfg.dataset}{default}; its sessions: "
-                f"{list_entries(sorted(known), 12)}"
-            )
-        empty = [n for n in names if len(ds.session(n)) == 0]
-        if empty:
-            raise ValueError(f"{key}: sessions {empty} of {cfg.dataset} hold no frames")
+        default = key == "val_database" and cfg.val_database == TrainConfig().val_database
+        note = " (its default: set it to your map session)" if default else ""
+        _check_sessions(key, cfg.dataset, ds, names, note)
+
+
+def _check_sessions(key: str, dataset: str, ds: Any, names: Sequence[str], note: str = "") -> None:
+    """``ValueError`` naming the config's ``key`` when ``names`` repeat a session, name one that
+    ``ds`` (opened from ``dataset``) lacks (``note`` follows the dataset), or one with no frame."""
+    names = list(names)
+    repeated = sorted({n for n in names if names.count(n) > 1})
+    if repeated:
+        raise ValueError(f"{key}: {repeated} named more than once")
+    known = set(ds.sessions)
+    missing = [n for n in names if n not in known]
+    if missing:
+        raise ValueError(
+            f"{key}: {missing} not in {dataset}{note}; its sessions: "
+            f"{list_entries(sorted(known), 12)}"
+        )
+    empty = [n for n in names if len(ds.session(n)) == 0]
+    if empty:
+        raise ValueError(f"{key}: sessions {empty} of {dataset} hold no frames")
+
+
+def _open_named(key: str, dataset: str) -> Any:
+    """``open_dataset(dataset)`` with its errors prefixed by the config's ``key``."""
+    try:
+        return open_dataset(dataset)
+    except (FileNotFoundError, NotADirectoryError, ValueError) as e:
+        raise type(e)(f"{key}: {e}") from e
 
 
 def _hash_session(h: Any, label: str, sess: Session) -> None:
@@ -1096,8 +1111,11 @@ class Trainer:
         self.ds = open_dataset(cfg.dataset)
         extra = []
         for i, e in enumerate(cfg.extra_datasets):
-            _ensure_dataset(e["dataset"], e.get("sim"), f"extra_datasets[{i}].sim")
-            extra.append((open_dataset(e["dataset"]), e.get("train_sessions")))
+            _ensure_dataset(e["dataset"], e.get("sim"), f"extra_datasets[{i}].")
+            opened = _open_named(f"extra_datasets[{i}].dataset", e["dataset"])
+            key = f"extra_datasets[{i}].train_sessions"
+            _check_sessions(key, e["dataset"], opened, e.get("train_sessions") or [])
+            extra.append((opened, e.get("train_sessions")))
             rig, other = self.ds.cameras, extra[-1][0].cameras
             if len(rig) != len(other) or (rig[0].width, rig[0].height) != (
                 other[0].width,
@@ -1131,10 +1149,11 @@ class Trainer:
             if kept == 0:  # known from the poses: refused before stage 1, not after it
                 raise ValueError(_NO_VALIDATION_QUERY.format(cfg=cfg))
         self.loop_sets = []  # (dataset, entry) of val_loops, opened before any epoch
-        for entry in cfg.val_loops:
-            loop_ds = open_dataset(entry["dataset"])
-            for name in entry["sessions"]:
-                loop_ds.session(name)
+        for k, entry in enumerate(cfg.val_loops):
+            loop_ds = _open_named(f"val_loops[{k}].dataset", entry["dataset"])
+            _check_sessions(
+                f"val_loops[{k}].sessions", entry["dataset"], loop_ds, entry["sessions"]
+            )
             self.loop_sets.append((loop_ds, entry))
         self.model = VVLocNet(cfg.model_config()).to(self.device)
         # True while the global head holds no trained weights (the head stage initialises it)
