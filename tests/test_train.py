@@ -138,6 +138,16 @@ def test_fit_writes_checkpoint_log_and_resume_continues_from_the_same_step(tiny_
     assert longer.resume() and longer.epoch == 2
     longer.fit(progress=False)
     assert longer.epoch == 3
+    # a truncated or foreign trainer state is refused naming the file (torch said "Ran out of
+    # input" or "pickle data was truncated" alone, neither a ValueError nor an OSError)
+    state = (out / "trainer_state.pt").read_bytes()
+    for damaged in (b"", state[: len(state) // 2], b"garbage" * 10):
+        (out / "trainer_state.pt").write_bytes(damaged)
+        with pytest.raises(ValueError, match=r"trainer_state.pt: not a readable trainer state"):
+            Trainer(cfg, out).resume()
+    torch.save({"weights": 1}, out / "trainer_state.pt")
+    with pytest.raises(ValueError, match=r"\(a dict without the run's config\)"):
+        Trainer(cfg, out).resume()
 
 
 def test_resumed_run_equals_uninterrupted_run(tiny_world, tmp_path):

@@ -1047,6 +1047,26 @@ def _check_session_keys(cfg: TrainConfig, ds: Any) -> None:
         _check_sessions(key, cfg.dataset, ds, names, note)
 
 
+def _load_trainer_state(path: Path) -> dict[str, Any]:
+    """``torch.load`` of a run's ``trainer_state.pt``: ``ValueError`` naming the file when it
+    is truncated (a disk that filled, a copy cut short) or not a trainer state; torch says
+    ``EOFError: Ran out of input`` or ``pickle data was truncated`` without the file."""
+    import pickle
+
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=False)
+    except (RuntimeError, EOFError, pickle.UnpicklingError) as e:
+        why: str = str(e).split(". ")[0]
+    else:
+        if isinstance(state, dict) and "config" in state:
+            return state
+        why = f"a {type(state).__name__} without the run's config"
+    raise ValueError(
+        f"{path}: not a readable trainer state ({why}): this run cannot be resumed; start a new "
+        "run into another folder (init_checkpoint: its checkpoint/ to keep its weights)"
+    )
+
+
 def _check_sessions(key: str, dataset: str, ds: Any, names: Sequence[str], note: str = "") -> None:
     """``ValueError`` naming the config's ``key`` when ``names`` repeat a session, name one that
     ``ds`` (opened from ``dataset``) lacks (``note`` follows the dataset), or one with no frame."""
@@ -1497,7 +1517,7 @@ class Trainer:
         if not self._state_path().is_file():
             return False
         t0 = time.perf_counter()
-        state = torch.load(self._state_path(), map_location="cpu", weights_only=False)
+        state = _load_trainer_state(self._state_path())
         # Extending a run (more joint epochs) is allowed; any other change is a different run.
         # keys added to TrainConfig after the run started count as their defaults
         # how the run is executed may change: workers, threads and device (the last two
