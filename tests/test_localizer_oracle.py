@@ -77,6 +77,12 @@ def test_localizer_recovers_the_query_world_pose(seed, metric_candidates, tmp_pa
     q_pose = np.array(compose(map_poses[target], xi))
     q_bev = bev_at(field, q_pose)
     q_local = decode(kernels.polar_sample(q_bev, T, R, G))
+    # a unit global descriptor orthogonal to every keyframe's: equally far from each, it tells
+    # nothing (as a query descriptor of zeros did, which the localizer now refuses)
+    basis = np.linalg.qr(glob.T.astype(np.float64))[0]
+    q_g = np.ones(model.global_dim) - basis @ (basis.T @ np.ones(model.global_dim))
+    q_g = (q_g / np.linalg.norm(q_g)).astype(np.float32)
+    assert np.ptp(np.linalg.norm(glob - q_g, axis=1)) < 1e-5
     search = SearchConfig(half_range=3.0, step=0.6, fine_samples=32, stages=5, seed=seed)
     with MapDatabase.open(path, expected_config_hash=model.config_hash()) as mapdb:
         loc = Localizer(
@@ -86,18 +92,18 @@ def test_localizer_recovers_the_query_world_pose(seed, metric_candidates, tmp_pa
             search=search,
             decoder="radial_mean",
             metric_candidates=metric_candidates,
-            metric_from="rerank",  # the query's global descriptor (zeros) tells nothing
+            metric_from="rerank",  # the query's global descriptor tells nothing
         )
-        res = loc.localize_encoded(np.zeros(model.global_dim, np.float32), q_local, q_bev)
+        res = loc.localize_encoded(q_g, q_local, q_bev)
         if metric_candidates > 1:
             # the first M re-ranked candidates are ordered by their coarse-stage cost, and the
             # lowest one is refined (snapping off: the order is the search's alone)
             kw = {"top_k": 5, "search": search, "decoder": "radial_mean", "snap": False}
             kw["metric_from"] = "rerank"
             one = Localizer(model, mapdb, metric_candidates=1, **kw)
-            ref = one.localize_encoded(np.zeros(model.global_dim, np.float32), q_local, q_bev)
+            ref = one.localize_encoded(q_g, q_local, q_bev)
             many = Localizer(model, mapdb, metric_candidates=metric_candidates, **kw)
-            got = many.localize_encoded(np.zeros(model.global_dim, np.float32), q_local, q_bev)
+            got = many.localize_encoded(q_g, q_local, q_bev)
             m = metric_candidates
             coarse = {}
             for row in ref.reranked[:m]:

@@ -505,7 +505,7 @@ def test_verify_pairs_shares_each_sources_coarse_stage_and_equals_one_search_per
         poses=np.zeros((n, 3)),
         timestamps=np.arange(n, dtype=np.float64),
         sessions="s0",
-        global_descriptors=np.eye(n, 4, dtype=np.float32),
+        global_descriptors=np.eye(n, 8, dtype=np.float32),
         local_descriptors=rng.standard_normal((n, cfg.num_angles, cfg.channels)).astype(np.float32),
         model_config=cfg.to_dict(),
         grid_size=cfg.grid_size,

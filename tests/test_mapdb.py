@@ -260,6 +260,15 @@ def test_the_rig_round_trips_and_is_validated(tmp_path: Path) -> None:
         MapDatabase.from_arrays(**kf, model_config=CONFIG, grid_size=0.3, rig="front")
 
 
+def test_writer_refuses_a_batch_of_unnormalised_global_descriptors(tmp_path: Path) -> None:
+    kf = keyframes()
+    with MapWriter(tmp_path / "map.h5", model_config=CONFIG, grid_size=0.3) as w:
+        with pytest.raises(ValueError, match=r"global_descriptors: expected L2-normalised"):
+            w.append(**{**kf, "global_descriptors": kf["global_descriptors"] * 3})
+        w.append(**kf)  # the refused batch added nothing
+    assert len(MapDatabase.open(tmp_path / "map.h5")) == N
+
+
 def test_writer_with_no_keyframes_writes_nothing(tmp_path: Path) -> None:
     w = MapWriter(tmp_path / "map.h5", model_config=CONFIG, grid_size=0.3)
     with pytest.raises(ValueError, match="at least one keyframe"):
@@ -278,6 +287,16 @@ def test_writer_with_no_keyframes_writes_nothing(tmp_path: Path) -> None:
         ({"sessions": [1] * N}, TypeError, "sessions"),
         ({"global_descriptors": np.zeros((N, DG), dtype=complex)}, TypeError, "global_desc"),
         ({"local_descriptors": np.zeros((N, T))}, ValueError, "local_descriptors"),
+        (  # unnormalised global descriptors rank by their length: refused
+            {"global_descriptors": np.ones((N, DG))},
+            ValueError,
+            r"global_descriptors: expected L2-normalised .* row 0 has norm 4 \(12 of 12 not",
+        ),
+        (
+            {"global_descriptors": np.vstack([np.eye(N - 1, DG), np.zeros((1, DG))])},
+            ValueError,
+            r"global_descriptors: .* row 11 has norm 0 \(1 of 12",
+        ),
         ({"ids": np.zeros(N, np.int64)}, ValueError, "ids.*unique"),
         ({"seq": np.zeros(N, np.int64)}, ValueError, "seq.*unique within a session"),
         ({"seq": np.zeros(N)}, TypeError, "seq.*integer"),
@@ -753,7 +772,7 @@ def test_a_full_file_system_is_an_oserror_not_a_crash(tmp_path: Path) -> None:
             "from vvloc.localize import MapDatabase\n"
             "n = 100\n"
             "db = MapDatabase.from_arrays(poses=np.zeros((n, 3)), timestamps=np.arange(n) * 1.0,"
-            " sessions='s0', global_descriptors=np.eye(n, 64),"
+            " sessions='s0', global_descriptors=np.eye(n, 64)[np.arange(n) % 64],"
             " local_descriptors=np.ones((n, 60, 64)),"
             " model_config={'a': 1}, grid_size=0.6)\n"
             "try:\n"

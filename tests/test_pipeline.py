@@ -37,6 +37,12 @@ from vvloc.localize.metric import SearchConfig
 from vvloc.nets import ModelConfig, VVLocNet
 from vvloc.provenance import cpu_model
 
+
+def unit_rows(x: np.ndarray) -> np.ndarray:
+    """``x`` (N, D) with each row divided by its L2 norm."""
+    return x / np.linalg.norm(x, axis=1, keepdims=True)
+
+
 SMALL_SEARCH = SearchConfig(half_range=1.2, step=0.6, fine_samples=8, stages=2)
 
 
@@ -107,7 +113,7 @@ def test_a_map_whose_arrays_are_not_the_models_outputs_is_refused(map_file, mode
         ("local_descriptors", arrays["local_descriptors"][..., : c // 2], "local-view desc"),
         (
             "global_descriptors",
-            arrays["global_descriptors"][:, :4],
+            unit_rows(arrays["global_descriptors"][:, :4]),
             r"global descriptors are \(4,\)",
         ),
     ]
@@ -186,6 +192,7 @@ def test_the_map_records_its_rig_and_the_localizer_compares_queries_with_it(
     # already-encoded queries of the wrong size are refused by name
     cfg = loc.model.config
     g = np.zeros(loc.map.global_descriptors.shape[1], np.float32)
+    g[0] = 1.0  # unit length, as the encoder gives it
     lv = np.zeros(loc.map.local_shape, np.float32)
     bev = np.zeros((cfg.bev_height // 2, cfg.bev_width // 2, cfg.channels), np.float32)
     with pytest.raises(ValueError, match=r"^bev: expected shape"):
@@ -195,6 +202,10 @@ def test_the_map_records_its_rig_and_the_localizer_compares_queries_with_it(
     bev = np.zeros((cfg.bev_height, cfg.bev_width, cfg.channels), np.float32)
     with pytest.raises(ValueError, match=r"^t_encode_ms: expected a finite time"):
         loc.localize_encoded(g, lv, bev, "x")  # type: ignore[arg-type]
+    # a global descriptor that is not unit length would rank by its length: refused
+    for bad, norm in ((g * 0, "0"), (g * 2, "2"), (g * 1.05, "1.05")):
+        with pytest.raises(ValueError, match=rf"^g: expected L2-normalised .* norm {norm}"):
+            loc.localize_encoded(bad, lv, bev)
     loc.map.close()
     with pytest.raises(FileNotFoundError, match=r"^checkpoint: \S*nothing does not exist"):
         Localizer.open(map_file, tmp_path / "nothing")

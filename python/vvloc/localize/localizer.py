@@ -50,7 +50,7 @@ from vvloc.checkpoints import checkpoint_folder
 from vvloc.data import Camera, Dataset, Frame
 from vvloc.data.frame import PINHOLE, RIGID, is_pinhole, is_rigid, stack_calibration
 from vvloc.data.rig import SAME_MAP, SAME_MODEL, describe_rig, rig_difference
-from vvloc.localize.mapdb import MapDatabase, MapError, MapWriter, check_weights
+from vvloc.localize.mapdb import MapDatabase, MapError, MapWriter, check_unit_rows, check_weights
 from vvloc.localize.metric import (
     METRIC_CANDIDATES,
     RETRIEVAL_WEIGHT,
@@ -839,6 +839,7 @@ class Localizer:
                     "the encoder (its global descriptors are L2-normalised, its local-view "
                     "descriptors and BEVs of order 1), and float32 sums of their products overflow"
                 )
+        check_unit_rows(g, "g")
         if (
             isinstance(t_encode_ms, (bool, np.bool_))
             or not isinstance(t_encode_ms, (int, float, np.number))

@@ -329,6 +329,27 @@ class _Batch:
         return int(self.ids.shape[0])
 
 
+#: How far from 1 the L2 norm of a global descriptor may be: float16 storage moves it by
+#: about 1e-3; a descriptor that was never normalised is off by far more.
+UNIT_TOLERANCE = 1e-2
+
+
+def check_unit_rows(g: np.ndarray, name: str) -> None:
+    """``ValueError`` naming ``name`` when a row of ``g`` (``(N, Dg)`` or one ``(Dg,)``
+    descriptor) is not of unit L2 norm within :data:`UNIT_TOLERANCE`: descriptor distances,
+    the loop radius (≤ 0.5) and re-ranking weights are defined on unit vectors, and an
+    unnormalised descriptor ranks by its length instead."""
+    norms = np.linalg.norm(np.atleast_2d(g).astype(np.float64), axis=1)
+    bad = np.flatnonzero(np.abs(norms - 1.0) > UNIT_TOLERANCE)
+    if bad.size:
+        where = f"row {bad[0]} has" if g.ndim == 2 else "it has"
+        raise ValueError(
+            f"{name}: expected L2-normalised global descriptors (unit length, as the encoder "
+            f"gives them), but {where} norm {norms[bad[0]]:.4g} ({bad.size} of {norms.size} not "
+            "unit); divide each by its norm"
+        )
+
+
 def _validate_batch(
     *,
     poses: Any,
@@ -355,6 +376,7 @@ def _validate_batch(
         raise ValueError(
             f"descriptors: dimensions must be > 0, got global {g.shape}, local {loc.shape}"
         )
+    check_unit_rows(g, "global_descriptors")
     b = None
     if bevs is not None:
         b = _float_array(bevs, "bevs", f"({k}, H, W, C)", 4, k, _BEV_DTYPE)
@@ -570,7 +592,8 @@ class MapWriter:
             poses: (k, 3) world-frame (x, y, yaw): metres, radians CCW.
             timestamps: (k,) seconds.
             sessions: one session name for all k, or k names.
-            global_descriptors: (k, Dg) float.
+            global_descriptors: (k, Dg) float, each row of unit L2 norm (as the encoder gives
+                them; :func:`check_unit_rows`, ``ValueError`` otherwise).
             local_descriptors: (k, T, C) float.
             ids: (k,) int keyframe ids, unique in the map; default: running row numbers.
             seq: (k,) int sequence numbers, unique within a session; default: a running count
