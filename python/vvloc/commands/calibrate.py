@@ -99,8 +99,7 @@ def calibrate(
                 UserWarning,
                 stacklevel=1,
             )
-        frames = [f for name in names for f in ds.session(name)[::every]]  # loads only these
-        # what would fail after the map is built fails before it
+        # what would fail after the map is built fails before it (from the poses alone)
         check_revisits(  # the queries a calibration is measured on
             np.concatenate([ds.session(n).poses[::every] for n in names]),
             np.concatenate([ds.session(n).floors[::every] for n in names]),
@@ -108,6 +107,7 @@ def calibrate(
             ds.session(database).floors,
             "--queries",
         )
+        frames = [f for name in names for f in ds.session(name)[::every]]  # loads only these
         if min_accepted > len(frames):
             raise ValueError(
                 f"--min_accepted: {min_accepted} accepted queries can never be reached with "
