@@ -259,6 +259,14 @@ TR = np.zeros((1, 2))
         (lambda b: K.roll_interp(BEV, 1.0, 1.5, backend=b), TypeError, "axis"),
         (lambda b: K.roll_interp(BEV, np.inf, backend=b), ValueError, "shift"),
         (lambda b: K.roll_interp(np.float32(1.0), 1.0, backend=b), ValueError, "x"),
+        # more dimensions than the Rust binding's arrays hold: was a PanicException
+        (lambda b: K.roll_interp(np.ones((1,) * 33), 0.5, backend=b), ValueError, "x: .* 32"),
+        # nested sequences of unequal lengths: was numpy's "inhomogeneous shape" alone
+        (lambda b: K.bev_pad(BEV, [[0.3], [0.3, 0.0]], 0.3, backend=b), ValueError, "transl"),
+        (lambda b: K.roll_interp([[1.0], [1.0, 2.0]], 0.5, backend=b), ValueError, "x: .*rect"),
+        # a polar radius past float64: the reference said OverflowError without a name
+        (lambda b: K.polar_sample(BEV, 4, 4, 1e308, backend=b), ValueError, "grid_size"),
+        (lambda b: K.pad_polar(BEV, TR, 4, 4, 1e308, backend=b), ValueError, "grid_size"),
     ],
 )
 def test_bad_input_names_the_argument(backend, call, exc, arg):
@@ -307,6 +315,18 @@ def test_outputs_larger_than_memory_raise_memory_error():
         K.bev_pad(q, [[0.0, 0.0]], 10**400)
     with pytest.raises(ValueError, match=r"^shift: expected a finite value"):
         K.roll_interp(q, -(10**400))
+
+
+@pytest.mark.parametrize("backend", ["rust", "reference"])
+def test_polar_outputs_larger_than_memory_are_named_by_both_backends(backend):
+    q = np.zeros((8, 8, 4), np.float32)
+    for call in (
+        lambda: K.polar_sample(q, 10**12, 2, 0.3, backend=backend),  # 7 TiB
+        lambda: K.polar_sample(q, 2**62, 2**62, 0.3, backend=backend),  # past the address space
+        lambda: K.pad_polar(q, [[0.0, 0.0]], 10**12, 2, 0.3, backend=backend),
+    ):
+        with pytest.raises(MemoryError, match=r"^num_angles: the result needs"):
+            call()
 
 
 def test_empty_outputs_whose_other_axes_no_array_can_have_are_errors_not_crashes():

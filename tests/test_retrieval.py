@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import warnings
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -470,6 +471,28 @@ def test_rows_the_float32_expansion_cannot_order_warn():
     exact = np.argsort(np.linalg.norm(centred - q, axis=1))[:3]
     assert idx[0].tolist() == exact.tolist()
     DescriptorIndex(np.ones((5, 4)))  # one row repeated: all tie, nothing to warn about
+
+
+def test_an_index_built_one_row_at_a_time_warns_as_one_built_at_once(tmp_path):
+    # each batch of one row passed the check (fewer than 2 rows), and the top-3 of row 37
+    # came back as [0, 1, 2] at distance 0: the whole index is judged, once
+    rows = 100.0 + 0.01 * np.random.default_rng(0).standard_normal((50, 16))
+    index = DescriptorIndex(rows[:1])
+    with pytest.warns(UserWarning, match="cannot order the index with these rows: .*offset"):
+        for r in rows[1:]:
+            index.add(r[None])
+    index.save(tmp_path / "i.vvidx")
+    loaded = DescriptorIndex.load(tmp_path / "i.vvidx")
+    with pytest.warns(UserWarning, match="share an offset") as caught:
+        loaded.add(rows[:2])
+    assert len(caught) == 1  # the batch's own warning, not a second for the index
+    fine = DescriptorIndex(clustered(50, 8, 1)[:1])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        for r in clustered(50, 8, 1)[1:]:
+            fine.add(r[None])  # unit-norm clusters: no warning
+        DescriptorIndex.load(tmp_path / "i.vvidx").add(rows[2:3])  # already ill, said before
+    assert len(fine) == 50
 
 
 def test_thread_count_is_bounded():

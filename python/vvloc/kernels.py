@@ -46,6 +46,18 @@ def _numpy(x: Any) -> Any:
     return x
 
 
+def _asarray(x: Any, name: str, shape_doc: str) -> Any:
+    """``np.asarray(x)``, with nested sequences of unequal lengths refused naming ``name``
+    (numpy says "setting an array element with a sequence ... inhomogeneous shape")."""
+    try:
+        return np.asarray(x)
+    except ValueError:
+        raise ValueError(
+            f"{name}: expected a rectangular array{shape_doc}, got nested sequences of unequal "
+            "lengths"
+        ) from None
+
+
 def _c_array(arr: Any, dtype: Any) -> Any:
     """``arr`` as a C-contiguous, aligned array of ``dtype`` (copied only when needed): the
     Rust kernels view the memory directly, and ``np.ascontiguousarray`` keeps a misaligned
@@ -72,7 +84,7 @@ def _as_f32(
     x = _numpy(x)
     if isinstance(x, (str, bytes)) or x is None:
         raise TypeError(f"{name}: expected a float array{shape_doc}, got {type(x).__name__}")
-    arr = np.asarray(x)
+    arr = _asarray(x, name, shape_doc)
     if arr.dtype == object or not (
         np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)
     ):
@@ -162,7 +174,7 @@ def _translations(translations: Any) -> npt.NDArray[np.float64]:
     translations = _numpy(translations)
     if isinstance(translations, (str, bytes)) or translations is None:
         raise TypeError(f"translations: expected a float array (N, 2), got {type(translations)}")
-    probe = np.asarray(translations)
+    probe = _asarray(translations, "translations", " (N, 2)")
     if probe.dtype == object or not (
         np.issubdtype(probe.dtype, np.floating) or np.issubdtype(probe.dtype, np.integer)
     ):
@@ -175,17 +187,25 @@ def _translations(translations: Any) -> npt.NDArray[np.float64]:
     return out
 
 
+#: The most dimensions :func:`roll_interp` takes (numpy allows 64; the Rust binding's dynamic
+#: arrays hold 32).
+MAX_ROLL_NDIM = 32
+
+
 def roll_interp(x: Any, shift: float, axis: int = 0, backend: Backend = "rust") -> F32Array:
     """Interpolated circular roll of ``x`` by ``shift`` elements along ``axis`` (DESIGN.md §3).
 
     ``roll(x, s)[i] = x[(i − s) mod n]`` (``torch.roll`` semantics); for real ``s``,
     ``(1 − w)·roll(x, ⌊s⌋) + w·roll(x, ⌊s⌋ + 1)`` with ``w = s − ⌊s⌋`` (continuous in ``s``).
-    ``x``: any real array of ndim >= 1; ``axis`` may be negative. Returns float32, same shape.
+    ``x``: any real array of 1 to :data:`MAX_ROLL_NDIM` dimensions; ``axis`` may be negative.
+    Returns float32, same shape.
     """
     backend = _check_backend(backend)
     arr = _as_f32(x, "x")
     if np.ndim(x) == 0:  # checked on the input: ascontiguousarray makes scalars 1-D
         raise ValueError("x: expected an array with at least 1 dimension, got a scalar")
+    if arr.ndim > MAX_ROLL_NDIM:  # rust-numpy's dynamic arrays panic beyond it
+        raise ValueError(f"x: expected at most {MAX_ROLL_NDIM} dimensions, got {arr.ndim}")
     s = _finite_float(shift, "shift")
     if isinstance(axis, bool) or not isinstance(axis, (int, np.integer)):
         raise TypeError(f"axis: expected an int, got {type(axis).__name__}")
@@ -223,6 +243,33 @@ def bev_pad(bev: Any, translations: Any, grid_size: float, backend: Backend = "r
     return _core.bev_pad(q, t, g)
 
 
+def _check_polar_radius(bev: F32Array, grid_size: float) -> None:
+    """``ValueError`` naming ``grid_size`` when the polar radius min(H, W)·g/2 overflows (the
+    Rust kernels' check, made here for both backends)."""
+    if not math.isfinite(min(bev.shape[-3], bev.shape[-2]) * grid_size / 2.0):
+        raise ValueError(
+            f"grid_size: expected the polar radius min(H, W)·g/2 to be finite, got g = {grid_size}"
+        )
+
+
+def _reference_output(arg: str, call: Any) -> Any:
+    """``call()`` of a reference kernel, with numpy's refusal to allocate its output (a
+    ``MemoryError``, or "array is too big" for a size past the address space) said as the Rust
+    backend says it: a ``MemoryError`` naming ``arg``, the argument that sets the size."""
+    try:
+        return call()
+    except MemoryError as e:
+        raise MemoryError(
+            f"{arg}: the result needs more than this machine can allocate ({e})"
+        ) from None
+    except ValueError as e:
+        if "array is too big" not in str(e):
+            raise
+        raise MemoryError(
+            f"{arg}: the result needs an array larger than this machine can allocate ({e})"
+        ) from None
+
+
 def polar_sample(
     bev: Any, num_angles: int, num_radii: int, grid_size: float, backend: Backend = "rust"
 ) -> F32Array:
@@ -238,10 +285,11 @@ def polar_sample(
     t = _positive_int(num_angles, "num_angles")
     r = _positive_int(num_radii, "num_radii")
     g = _positive_float(grid_size, "grid_size")
+    _check_polar_radius(q, g)
     if backend == "reference":
         from vvloc.reference import spatial as ref
 
-        return ref.polar_sample(q, t, r, g)
+        return _reference_output("num_angles", lambda: ref.polar_sample(q, t, r, g))
     from vvloc import _core
 
     return _core.polar_sample(q, t, r, g)
@@ -266,10 +314,11 @@ def pad_polar(
     t = _positive_int(num_angles, "num_angles")
     r = _positive_int(num_radii, "num_radii")
     g = _positive_float(grid_size, "grid_size")
+    _check_polar_radius(q, g)
     if backend == "reference":
         from vvloc.reference import spatial as ref
 
-        return ref.pad_polar(q, tr, t, r, g)
+        return _reference_output("num_angles", lambda: ref.pad_polar(q, tr, t, r, g))
     from vvloc import _core
 
     return _core.pad_polar(q, tr, t, r, g)
@@ -318,7 +367,7 @@ class SearchHistory(NamedTuple):
 
 def _f64_vector(x: Any, name: str, n: int) -> npt.NDArray[np.float64]:
     """Validate a finite real vector of length ``n`` and return it as C-contiguous float64."""
-    arr = np.asarray(_numpy(x))
+    arr = _asarray(_numpy(x), name, f" ({n},)")
     if arr.dtype == object or not (
         np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)
     ):

@@ -41,7 +41,7 @@ import numpy.typing as npt
 
 from vvloc import _core
 from vvloc._io import atomic_write
-from vvloc.kernels import _as_f32, _c_array, _positive_float, _positive_int
+from vvloc.kernels import _as_f32, _asarray, _c_array, _positive_float, _positive_int
 
 DTYPES = ("float32", "float16", "bfloat16", "int8")
 
@@ -51,46 +51,85 @@ CONDITIONING = 1e-5
 TINY_NORM = 1e-15
 
 
-def _check_conditioning(rows: npt.NDArray[np.float32], name: str) -> None:
-    """Warn (``UserWarning``) when the float32 distance expansion cannot order ``rows``
-    (N, d): a large shared offset or norms whose squares underflow (module docstring)."""
-    n = rows.shape[0]
-    if n < 2:
-        return
-    step = max(1, (1 << 20) // rows.shape[1])
+@dataclass(frozen=True)
+class _Spread:
+    """Running statistics of indexed rows, float64: count ``n``, ``mean`` (d,), ``m2`` =
+    Σ‖x − mean‖², ``top`` = the largest ‖x‖²."""
 
-    def chunks() -> Any:  # float64 chunks of 8 MiB, one at a time: no copy of the map
-        return (rows[i : i + step].astype(np.float64) for i in range(0, n, step))
+    n: int
+    mean: npt.NDArray[np.float64]
+    m2: float
+    top: float
 
-    top = max(float((c * c).sum(axis=1).max()) for c in chunks())
-    if top == 0.0:
-        return
-    mean = sum(c.sum(axis=0) for c in chunks()) / n
-    spread = sum(float(((c - mean) ** 2).sum()) for c in chunks()) / n
-    if spread == 0.0:
-        return  # one descriptor repeated: every distance ties, whatever the rounding
-    if np.sqrt(top) < TINY_NORM:
-        why = f"their norms are below {TINY_NORM:g} (their float32 squares underflow)"
-    elif spread < CONDITIONING * top:
-        why = (
-            f"they share an offset far larger than their spread (mean squared spread "
-            f"{spread:.3g}, largest squared norm {top:.3g})"
-        )
-    else:
-        return
+    @staticmethod
+    def of(rows: npt.NDArray[np.float32]) -> _Spread:
+        """The statistics of ``rows`` (N, d), two passes over float64 chunks of 8 MiB (no
+        float64 copy of the map)."""
+        n, d = rows.shape
+        step = max(1, (1 << 20) // max(d, 1))
+
+        def chunks() -> Any:
+            return (rows[i : i + step].astype(np.float64) for i in range(0, n, step))
+
+        if n == 0:
+            return _Spread(0, np.zeros(d), 0.0, 0.0)
+        top = max(float((c * c).sum(axis=1).max()) for c in chunks())
+        mean = sum(c.sum(axis=0) for c in chunks()) / n
+        m2 = sum(float(((c - mean) ** 2).sum()) for c in chunks())
+        return _Spread(n, mean, m2, top)
+
+    def merged(self, other: _Spread) -> _Spread:
+        """The statistics of both sets of rows (Chan et al.'s pairwise update, stable where
+        Σ‖x‖²/n − ‖mean‖² would cancel)."""
+        if self.n == 0 or other.n == 0:
+            return other if self.n == 0 else self
+        n = self.n + other.n
+        delta = other.mean - self.mean
+        mean = self.mean + delta * (other.n / n)
+        m2 = self.m2 + other.m2 + float(delta @ delta) * self.n * other.n / n
+        return _Spread(n, mean, m2, max(self.top, other.top))
+
+    def problem(self) -> str | None:
+        """Why the float32 distance expansion cannot order these rows, or None: a large shared
+        offset or norms whose squares underflow (module docstring)."""
+        if self.n < 2 or self.top == 0.0 or self.m2 == 0.0:
+            return None  # one descriptor (repeated): every distance ties, whatever the rounding
+        spread = self.m2 / self.n
+        if np.sqrt(self.top) < TINY_NORM:
+            return f"their norms are below {TINY_NORM:g} (their float32 squares underflow)"
+        if spread < CONDITIONING * self.top:
+            return (
+                f"they share an offset far larger than their spread (mean squared spread "
+                f"{spread:.3g}, largest squared norm {self.top:.3g})"
+            )
+        return None
+
+
+def _warn_conditioning(name: str, why: str, what: str = "these rows", stacklevel: int = 4) -> None:
+    """The conditioning warning, attributed to the caller ``stacklevel`` - 1 frames up."""
     warnings.warn(
-        f"{name}: the index's float32 distances ‖q‖² + ‖x‖² − 2q·x cannot order these rows: "
+        f"{name}: the index's float32 distances ‖q‖² + ‖x‖² − 2q·x cannot order {what}: "
         f"{why}; subtract their mean (and scale them) before indexing: L2 distances keep "
         "their order",
         UserWarning,
-        stacklevel=3,
+        stacklevel=stacklevel,
     )
+
+
+def _check_conditioning(rows: npt.NDArray[np.float32], name: str) -> _Spread:
+    """Warn (``UserWarning``) when the float32 distance expansion cannot order ``rows``
+    (N, d) (:meth:`_Spread.problem`); returns their statistics."""
+    spread = _Spread.of(rows)
+    why = spread.problem()
+    if why is not None:
+        _warn_conditioning(name, why)
+    return spread
 
 
 def _as_i64(x: Any, name: str, n: int) -> npt.NDArray[np.int64]:
     if hasattr(x, "detach") and hasattr(x, "cpu"):
         x = x.detach().cpu().numpy()
-    arr = np.asarray(x)
+    arr = _asarray(x, name, f" ({n},)")
     if arr.ndim == 0 and n >= 0:
         arr = np.full(n, arr)
     if not np.issubdtype(arr.dtype, np.integer):
@@ -181,6 +220,7 @@ class DescriptorIndex:
     ) -> None:
         if _inner is not None:
             self._inner = _inner
+            self._spread: _Spread | None = None  # computed when first needed (add)
             return
         if dtype not in DTYPES:
             raise ValueError(f"dtype: expected one of {DTYPES}, got {dtype!r}")
@@ -190,17 +230,29 @@ class DescriptorIndex:
         n = rows.shape[0]
         g = None if groups is None else _as_i64(groups, "groups", n)
         s = None if seqs is None else _as_i64(seqs, "seqs", n)
-        _check_conditioning(rows, "descriptors")
+        spread = _check_conditioning(rows, "descriptors")
         self._inner = _core.DescriptorIndex(rows, dtype, g, s)
+        self._spread = spread
 
     def add(self, descriptors: Any, groups: Any = None, seqs: Any = None) -> None:
-        """Append descriptors (n, d); ``groups`` default 0, ``seqs`` default their map index."""
+        """Append descriptors (n, d); ``groups`` default 0, ``seqs`` default their map index.
+
+        Warns as the constructor does when the rows added, or the whole index with them,
+        cannot be ordered by the float32 distances (an index built one row at a time too)."""
         rows = _matrix(descriptors, "descriptors", self.dim)
         n = rows.shape[0]
         g = None if groups is None else _as_i64(groups, "groups", n)
         s = None if seqs is None else _as_i64(seqs, "seqs", n)
-        _check_conditioning(rows, "descriptors")
+        batch = _check_conditioning(rows, "descriptors")
+        if self._spread is None:  # a loaded index: its statistics, once
+            self._spread = _Spread.of(self._inner.descriptors())
+        before = self._spread
+        after = before.merged(batch)
+        why = after.problem()
+        if why is not None and batch.problem() is None and before.problem() is None:
+            _warn_conditioning("descriptors", why, "the index with these rows", stacklevel=3)
         self._inner.add(rows, g, s)
+        self._spread = after
 
     def topk(
         self, queries: Any, k: int, exclude: Exclusion | None = None
