@@ -212,8 +212,28 @@ def test_read_g2o_skips_comments_and_other_tags(tmp_path: Path) -> None:
         ("VERTEX_SE2 0 0 0 0\nVERTEX_SE2 0 1 1 1\n", ":2: .*repeated"),
         ("EDGE_SE2 0 1 1 0 0 1 0 0 1 0\n", ":1: .*EDGE_SE2"),
         ("VERTEX_SE2 0 x 0 0\n", ":1: malformed"),
-        ("VERTEX_SE2 0 0 nan 0\n", ":1: malformed g2o line: non-finite value"),
-        ("EDGE_SE2 0 1 1 0 0 1 0 0 inf 0 1\n", ":1: malformed g2o line: non-finite value"),
+        ("VERTEX_SE2 0 0 nan 0\n", ":1: malformed g2o line: y: non-finite value"),
+        ("EDGE_SE2 0 1 1 0 0 1 0 0 inf 0 1\n", ":1: malformed g2o line: I22: non-finite value"),
+        # an id past int64 was an OverflowError naming no file; past g2o's ints or negative
+        ("VERTEX_SE2 99999999999999999999 0 0 0\n", ":1: .*id: 9+ does not fit in a 64-bit"),
+        ("VERTEX_SE2 2147483648 0 0 0\n", r":1: .*id: g2o vertex ids lie in \[0, 2147483647\]"),
+        ("VERTEX_SE2 -1 0 0 0\n", r":1: .*id: g2o vertex ids lie in \[0, "),
+        # numbers C does not read as Python does (1_0 read as 10)
+        ("VERTEX_SE2 0 1_0 2 3\n", ":1: .*x: expected a number, got '1_0'"),
+        (
+            "VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 0 0 0\nEDGE_SE2 0 1_0 1 0 0 1 0 0 1 0 1\n",
+            ":3: .*j: expected an integer",
+        ),
+        # what write_g2o refuses: self-edges, indefinite information, edges to no vertex
+        ("VERTEX_SE2 0 0 0 0\nEDGE_SE2 0 0 1 0 0 1 0 0 1 0 1\n", ":2: .*from vertex 0 to itself"),
+        (
+            "VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 0 0 0\nEDGE_SE2 0 1 1 0 0 -1 0 0 -1 0 -1\n",
+            ":3: .*not positive definite",
+        ),
+        (
+            "VERTEX_SE2 0 0 0 0\nEDGE_SE2 0 5 1 0 0 1 0 0 1 0 1\n",
+            ":2: EDGE_SE2 0 5 joins vertex 5, which no VERTEX_SE2 line defines",
+        ),
     ],
 )
 def test_read_g2o_refuses_malformed_lines(tmp_path: Path, text: str, match: str) -> None:
@@ -221,6 +241,47 @@ def test_read_g2o_refuses_malformed_lines(tmp_path: Path, text: str, match: str)
     path.write_text(text)
     with pytest.raises(ValueError, match=match):
         read_g2o(path)
+
+
+def test_readers_skip_a_byte_order_mark(tmp_path: Path) -> None:
+    # a BOM hid the first line's tag: vertex 0 vanished and its edge still read
+    g2o = tmp_path / "bom.g2o"
+    g2o.write_text(
+        "VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 1 0 0\nEDGE_SE2 0 1 1 0 0 1 0 0 1 0 1\n",
+        encoding="utf-8-sig",
+    )
+    assert read_g2o(g2o).vertex_ids.tolist() == [0, 1]
+    tum = tmp_path / "bom.tum"
+    tum.write_text("0.5 1 2 0 0 0 0 1\n", encoding="utf-8-sig")
+    assert read_tum(tum)[0].tolist() == [0.5]
+    loops = LoopClosures(i=[3], j=[4], relative_poses=[[1.0, 0, 0]], costs=[0.2], accepted=[True])
+    csv_path = tmp_path / "bom.csv"
+    csv_path.write_text(loop_csv_text(loops), encoding="utf-8-sig")
+    assert read_loop_csv(csv_path).i.tolist() == [3]
+
+
+@pytest.mark.parametrize(
+    ("text", "match"),
+    [
+        ("", "no header line"),
+        ("# only comments\n", "no header line"),
+        ("a,b,c\n", r":1: the header lacks columns \['i', 'j'"),
+        ("i,j,x,y,yaw,cost,accepted,i\n1,2,0,0,0,0.1,1,7\n", r":1: .*columns \['i'\] more than"),
+        ("i,j,x,y,yaw,cost,accepted\n1,2,0,0,0,0.1,1,EXTRA\n", ":2: .*header's 7 fields, got 8"),
+        ("i,j,x,y,yaw,cost,accepted\n1.5,2,0,0,0,0.1,1\n", ":2: .*i: expected an integer"),
+        ("i,j,x,y,yaw,cost,accepted\n1,2,0,0,0,0.1,yes\n", ":2: .*accepted: expected 1, 0"),
+        ("i,j,x,y,yaw,cost,accepted\n1,2,1_000.5,0,0,0.1,1\n", ":2: .*x: expected a number"),
+        ("i,j,x,y,yaw,cost,accepted\n1,99999999999999999999,0,0,0,0.1,1\n", ":2: .*j: .*64-bit"),
+        ("# c\ni,j,x,y,yaw,cost,accepted\n\n1,2,0,0,nan,0.1,1\n", ":4: .*yaw: non-finite"),
+    ],
+)
+def test_read_loop_csv_refuses_what_its_writer_never_writes(
+    tmp_path: Path, text: str, match: str
+) -> None:
+    path = tmp_path / "bad.csv"
+    path.write_text(text)
+    with pytest.raises(ValueError, match=match):
+        read_loop_csv(path)
 
 
 def test_write_g2o_validates(tmp_path: Path) -> None:
@@ -332,7 +393,7 @@ def test_tum_validation_leaves_no_file(tmp_path: Path) -> None:
         read_tum(bad)
     for value in ("nan", "inf", "-inf"):  # refused as the writer refuses them
         bad.write_text(f"# header\n0 1 2 0 0 0 0 1\n1 {value} 2 0 0 0 0 1\n")
-        with pytest.raises(ValueError, match=r"bad\.txt:3: non-finite value"):
+        with pytest.raises(ValueError, match=r"bad\.txt:3: malformed TUM line: tx: non-finite"):
             read_tum(bad)
 
 

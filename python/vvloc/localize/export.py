@@ -20,6 +20,7 @@ import csv
 import io
 import math
 import os
+import re
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -82,7 +83,6 @@ _FRAME_COMMENTS = (
 )
 
 
-#: The largest g2o vertex id (ids are C ints).
 #: The largest vertex id a g2o file takes (g2o reads ids as 32-bit ints).
 G2O_MAX_ID = 2**31 - 1
 
@@ -90,6 +90,41 @@ G2O_MAX_ID = 2**31 - 1
 def _r(x: SupportsFloat) -> str:
     """Shortest text that parses back to the same float64."""
     return repr(float(x))
+
+
+# Numbers as C's strtol/strtod (g2o, spreadsheets) read them: Python alone reads '1_000'.
+_INT_TEXT = re.compile(r"[+-]?[0-9]+")
+_FLOAT_TEXT = re.compile(
+    r"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?|[+-]?(?:inf|infinity|nan)",
+    re.IGNORECASE,
+)
+
+
+def _int_field(text: str, what: str) -> int:
+    """A field of a file read as a 64-bit integer; ``ValueError`` naming ``what`` otherwise."""
+    if not _INT_TEXT.fullmatch(text):
+        raise ValueError(f"{what}: expected an integer, got {text!r}")
+    v = int(text)
+    if not -(2**63) <= v < 2**63:
+        raise ValueError(f"{what}: {text} does not fit in a 64-bit integer")
+    return v
+
+
+def _float_field(text: str, what: str) -> float:
+    """A field of a file read as a finite float; ``ValueError`` naming ``what`` otherwise."""
+    if not _FLOAT_TEXT.fullmatch(text):
+        raise ValueError(f"{what}: expected a number, got {text!r}")
+    v = float(text)
+    if not math.isfinite(v):
+        raise ValueError(f"{what}: non-finite value {text!r} (nan or inf)")
+    return v
+
+
+def _vertex_id(text: str, what: str) -> int:
+    v = _int_field(text, what)
+    if not 0 <= v <= G2O_MAX_ID:
+        raise ValueError(f"{what}: g2o vertex ids lie in [0, {G2O_MAX_ID}], got {v}")
+    return v
 
 
 def _to_array(x: Any, name: str) -> np.ndarray:
@@ -282,36 +317,60 @@ def loop_csv_text(loops: LoopClosures, *, comments: Iterable[str] = ()) -> str:
 
 
 def read_loop_csv(path: PathLike) -> LoopClosures:
-    """Read a loop-closure CSV written by :func:`write_loop_csv` (``#`` lines skipped)."""
+    """Read a loop-closure CSV written by :func:`write_loop_csv`.
+
+    ``#`` and blank lines are skipped; the first other line is the header, which must name
+    the columns ``i, j, x, y, yaw, cost, accepted`` once each (others, such as ``yaw_deg``, are
+    ignored); every row has the header's number of fields. Ids are integers, values finite
+    numbers as C reads them, ``accepted`` is 1/0/true/false. Anything else raises
+    ``ValueError`` naming the file, the line and the column.
+    """
     p = Path(os.fspath(path))
-    with open(p, encoding="utf-8", newline="") as f:
-        rows = list(csv.DictReader(line for line in f if not line.lstrip().startswith("#")))
+    with open(p, encoding="utf-8-sig", newline="") as f:  # a BOM would rename column i
+        lines = [
+            (n, line)
+            for n, line in enumerate(f, start=1)
+            if line.strip() and not line.lstrip().startswith("#")
+        ]
     need = ("i", "j", "x", "y", "yaw", "cost", "accepted")
-    cols: dict[str, list[str]] = {c: [] for c in need}
-    for n, row in enumerate(rows, start=1):
-        missing = [c for c in need if row.get(c) in (None, "")]
-        if missing:
-            raise ValueError(f"{p}: data row {n}: missing columns {missing}")
-        for c in need:
-            cols[c].append(row[c].strip())
-    try:
-        flags = {"1": True, "0": False, "true": True, "false": False}
-        acc = [flags[v.lower()] for v in cols["accepted"]]
-        return LoopClosures(
-            i=np.array([int(v) for v in cols["i"]], np.int64),
-            j=np.array([int(v) for v in cols["j"]], np.int64),
-            relative_poses=np.array(
-                [
-                    [float(v) for v in xyz]
-                    for xyz in zip(cols["x"], cols["y"], cols["yaw"], strict=True)
-                ],
-                np.float64,
-            ).reshape(-1, 3),
-            costs=np.array([float(v) for v in cols["cost"]], np.float64),
-            accepted=np.array(acc, bool),
+    if not lines:
+        raise ValueError(
+            f"{p}: no header line (columns {', '.join(_LOOP_COLUMNS)}): not a vvloc "
+            "loop-closure CSV"
         )
-    except (KeyError, ValueError) as e:
-        raise ValueError(f"{p}: malformed loop-closure CSV: {e}") from e
+    head_line, head = lines[0]
+    header = [h.strip() for h in next(csv.reader([head]))]
+    missing = [c for c in need if c not in header]
+    if missing:
+        raise ValueError(f"{p}:{head_line}: the header lacks columns {missing}, got {header}")
+    repeated = sorted({c for c in need if header.count(c) > 1})
+    if repeated:
+        raise ValueError(f"{p}:{head_line}: the header names columns {repeated} more than once")
+    at = {c: header.index(c) for c in need}
+    flags = {"1": True, "0": False, "true": True, "false": False}
+    cols: dict[str, list[Any]] = {c: [] for c in need}
+    for lineno, line in lines[1:]:
+        fields = [v.strip() for v in next(csv.reader([line]))]
+        try:
+            if len(fields) != len(header):
+                raise ValueError(f"expected the header's {len(header)} fields, got {len(fields)}")
+            for c in ("i", "j"):
+                cols[c].append(_int_field(fields[at[c]], c))
+            for c in ("x", "y", "yaw", "cost"):
+                cols[c].append(_float_field(fields[at[c]], c))
+            flag = fields[at["accepted"]]
+            if flag.lower() not in flags:
+                raise ValueError(f"accepted: expected 1, 0, true or false, got {flag!r}")
+            cols["accepted"].append(flags[flag.lower()])
+        except ValueError as e:
+            raise ValueError(f"{p}:{lineno}: malformed loop-closure row: {e}") from None
+    return LoopClosures(
+        i=np.array(cols["i"], np.int64),
+        j=np.array(cols["j"], np.int64),
+        relative_poses=np.array([cols["x"], cols["y"], cols["yaw"]], np.float64).T.reshape(-1, 3),
+        costs=np.array(cols["cost"], np.float64),
+        accepted=np.array(cols["accepted"], bool),
+    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -493,55 +552,77 @@ def read_g2o(path: PathLike) -> G2OGraph:
     """Read the ``VERTEX_SE2`` and ``EDGE_SE2`` lines of a g2o file.
 
     Blank lines and ``#`` comments are skipped, as are lines with other tags (``FIX``, 3D
-    types, ...). A malformed vertex/edge line or a repeated vertex id raises ``ValueError``
-    naming the file and line.
+    types, ...). ``ValueError`` naming the file and line for a malformed vertex or edge line
+    (field count, a number C would not read, a non-finite value, a vertex id outside
+    [0, :data:`G2O_MAX_ID`]), a repeated vertex id, an edge from a vertex to itself, an
+    information matrix that is not positive definite, or an edge whose endpoints no
+    ``VERTEX_SE2`` line defines: what :func:`write_g2o` refuses to write.
     """
     p = Path(os.fspath(path))
     vids: list[int] = []
     vposes: list[list[float]] = []
     edges: list[tuple[int, int]] = []
+    edge_lines: list[int] = []
     meas: list[list[float]] = []
-    infos: list[np.ndarray] = []
+    upper: list[list[float]] = []
     seen: set[int] = set()
-    with open(p, encoding="utf-8") as f:
+    edge_fields = ("dx", "dy", "dtheta", "I11", "I12", "I13", "I22", "I23", "I33")
+    with open(p, encoding="utf-8-sig") as f:  # a BOM would hide the first line's tag
         for lineno, line in enumerate(f, start=1):
             tok = line.split()
             if not tok or tok[0].startswith("#"):
                 continue
             try:
-                if tok[0] in ("VERTEX_SE2", "EDGE_SE2") and not all(
-                    math.isfinite(float(t)) for t in tok[1:]
-                ):
-                    raise ValueError("non-finite value (nan or inf)")
                 if tok[0] == "VERTEX_SE2":
                     if len(tok) != 5:
                         raise ValueError(
                             f"expected 'VERTEX_SE2 id x y theta', got {len(tok)} fields"
                         )
-                    v = int(tok[1])
+                    v = _vertex_id(tok[1], "id")
                     if v in seen:
                         raise ValueError(f"vertex id {v} repeated")
                     seen.add(v)
                     vids.append(v)
-                    vposes.append([float(t) for t in tok[2:5]])
+                    xyt = zip(tok[2:], ("x", "y", "theta"), strict=True)
+                    vposes.append([_float_field(t, n) for t, n in xyt])
                 elif tok[0] == "EDGE_SE2":
                     if len(tok) != 12:
                         raise ValueError(
                             "expected 'EDGE_SE2 i j dx dy dtheta I11 I12 I13 I22 I23 I33', "
                             f"got {len(tok)} fields"
                         )
-                    edges.append((int(tok[1]), int(tok[2])))
-                    meas.append([float(t) for t in tok[3:6]])
-                    a, b, c, d, e, g = (float(t) for t in tok[6:12])
-                    infos.append(np.array([[a, b, c], [b, d, e], [c, e, g]]))
+                    a, b = _vertex_id(tok[1], "i"), _vertex_id(tok[2], "j")
+                    if a == b:
+                        raise ValueError(f"an edge from vertex {a} to itself")
+                    values = [_float_field(t, n) for t, n in zip(tok[3:], edge_fields, strict=True)]
+                    edges.append((a, b))
+                    edge_lines.append(lineno)
+                    meas.append(values[:3])
+                    upper.append(values[3:])
             except ValueError as err:
-                raise ValueError(f"{p}:{lineno}: malformed g2o line: {err}") from err
+                raise ValueError(f"{p}:{lineno}: malformed g2o line: {err}") from None
+    u = np.array(upper, np.float64).reshape(-1, 6)
+    info = u[:, [0, 1, 2, 1, 3, 4, 2, 4, 5]].reshape(-1, 3, 3)
+    if len(info):
+        bad = np.flatnonzero(np.linalg.eigvalsh(info).min(axis=1) <= 0.0)
+        if bad.size:
+            raise ValueError(
+                f"{p}:{edge_lines[bad[0]]}: malformed g2o line: the information matrix is not "
+                "positive definite"
+            )
+    for (a, b), lineno in zip(edges, edge_lines, strict=True):
+        for v in (a, b):
+            if v not in seen:
+                raise ValueError(
+                    f"{p}:{lineno}: EDGE_SE2 {a} {b} joins vertex {v}, which no VERTEX_SE2 line "
+                    "defines"
+                )
     return G2OGraph(
         vertex_ids=np.array(vids, np.int64),
         vertex_poses=np.array(vposes, np.float64).reshape(-1, 3),
         edges=np.array(edges, np.int64).reshape(-1, 2),
         measurements=np.array(meas, np.float64).reshape(-1, 3),
-        information=np.array(infos, np.float64).reshape(-1, 3, 3),
+        information=info,
     )
 
 
@@ -620,7 +701,8 @@ def read_tum(path: PathLike) -> tuple[np.ndarray, np.ndarray]:
     """
     p = Path(os.fspath(path))
     rows: list[list[float]] = []
-    with open(p, encoding="utf-8") as f:
+    names = ("timestamp", "tx", "ty", "tz", "qx", "qy", "qz", "qw")
+    with open(p, encoding="utf-8-sig") as f:  # a BOM would make the first line malformed
         for lineno, line in enumerate(f, start=1):
             tok = line.split()
             if not tok or tok[0].startswith("#"):
@@ -631,11 +713,9 @@ def read_tum(path: PathLike) -> tuple[np.ndarray, np.ndarray]:
                     f"got {len(tok)}"
                 )
             try:
-                row = [float(v) for v in tok]
+                row = [_float_field(v, n) for v, n in zip(tok, names, strict=True)]
             except ValueError as e:
-                raise ValueError(f"{p}:{lineno}: malformed TUM line: {e}") from e
-            if not all(math.isfinite(v) for v in row):
-                raise ValueError(f"{p}:{lineno}: non-finite value (nan or inf) in a TUM line")
+                raise ValueError(f"{p}:{lineno}: malformed TUM line: {e}") from None
             rows.append(row)
     a = np.array(rows, np.float64).reshape(-1, 8)
     q = a[:, 4:8]
