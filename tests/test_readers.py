@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import warnings
 
 import numpy as np
 import pytest
@@ -214,6 +215,31 @@ def test_nclt_reader_checks_its_options_and_the_raw_image_size(tmp_path):
     (tmp_path / "cam_params" / "U2D_Cam1_8X6.txt").write_text("8 6\n0 0 x 1\n")
     with pytest.raises(DatasetFormatError, match=r"U2D_Cam1_8X6\.txt: malformed map line"):
         open_dataset(tmp_path, cameras=(1,))
+
+
+def test_an_undistortion_map_cut_short_or_with_fractional_indices_is_said(tmp_path):
+    from vvloc.data.nclt import read_undistortion_map
+
+    w, h = 8, 6
+    lines = [f"{w} {h}"] + [f"{r} {c} {r} {c}" for r in range(h) for c in range(w)]
+    path = tmp_path / "U2D_Cam1_8X6.txt"
+    path.write_text("\n".join(lines[: 1 + 20]) + "\n")  # cut after 20 of 48 pixels
+    with pytest.warns(
+        UserWarning, match=r"lists 20 of the 48 output pixels \(first missing: row 2"
+    ):
+        mapu, _ = read_undistortion_map(path)
+    assert (mapu[3:] == -1).all()  # they read outside the image: black
+    path.write_text("\n".join([*lines[:-1], "5.9 7.9 5 7"]) + "\n")  # was read as row 5, col 7
+    with pytest.raises(DatasetFormatError, match=r"indices must be integers, got row 5.9, col 7.9"):
+        read_undistortion_map(path)
+    path.write_text("\n".join([*lines[:-1], "5 7 nan 7"]) + "\n")
+    with pytest.raises(DatasetFormatError, match=r"map line 48: non-finite value"):
+        read_undistortion_map(path)
+    path.write_text("\n".join(lines) + "\n")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        mapu, mapv = read_undistortion_map(path)  # complete: no warning
+    assert (mapu == np.arange(w)[None, :]).all() and (mapv == np.arange(h)[:, None]).all()
 
 
 def test_demosaic_is_exact_on_constant_and_linear_images():

@@ -107,6 +107,15 @@ def read_undistortion_map(path: Path) -> tuple[np.ndarray, np.ndarray]:
         raise DatasetFormatError(
             f"{path}: expected lines 'row col v u', got {data.shape[1]} columns"
         )
+    if not np.isfinite(data).all():
+        k = int(np.flatnonzero(~np.isfinite(data).all(axis=1))[0]) + 1
+        raise DatasetFormatError(f"{path}: map line {k}: non-finite value (nan or inf)")
+    frac = data[:, :2] != np.round(data[:, :2])
+    if frac.any():  # a fractional index was truncated to a neighbouring pixel
+        k = int(np.flatnonzero(frac.any(axis=1))[0])
+        raise DatasetFormatError(
+            f"{path}: pixel indices must be integers, got row {data[k, 0]:g}, col {data[k, 1]:g}"
+        )
     mapu = np.full((rows, cols), -1.0, dtype=np.float32)
     mapv = np.full((rows, cols), -1.0, dtype=np.float32)
     r, c = data[:, 0].astype(np.int64), data[:, 1].astype(np.int64)
@@ -114,6 +123,15 @@ def read_undistortion_map(path: Path) -> tuple[np.ndarray, np.ndarray]:
         raise DatasetFormatError(f"{path}: pixel index outside the {rows}x{cols} map")
     mapv[r, c] = data[:, 2]
     mapu[r, c] = data[:, 3]
+    covered = np.zeros((rows, cols), dtype=bool)
+    covered[r, c] = True
+    if not covered.all():  # a file cut short: those pixels would be black in every image
+        warnings.warn(
+            f"{path}: the undistortion map lists {int(covered.sum())} of the {rows * cols} "
+            f"output pixels (first missing: row {int(np.argmin(covered) // cols)}); the others "
+            "read black in every converted image: is the file complete?",
+            stacklevel=2,
+        )
     return mapu, mapv
 
 
