@@ -559,3 +559,9 @@ def test_trajectory_file_names_are_safe_and_distinct():
     assert names["run_a"] == "trajectory_run_a-3.tum"
     assert names["S0"] == "trajectory_S0-2.tum"  # s0's file on a case-insensitive file system
     assert len(set(names.values())) == len(names)
+    # a name too long for a file name is cut and ends in a hash of the whole name (was
+    # "File name too long" after the whole detection)
+    long_a, long_b = "x" * 250, "x" * 249 + "y"
+    names = trajectory_file_names([long_a, long_b])
+    assert all(len(n) <= 11 + 120 + 4 for n in names.values())
+    assert names[long_a] != names[long_b] and names[long_a].startswith("trajectory_xxx")

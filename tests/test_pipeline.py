@@ -641,6 +641,36 @@ def test_loops_cli_removes_only_its_own_stale_trajectories(tmp_path):
     assert gone == [tmp_path / "trajectory_old.tum"]
     left = sorted(p.name for p in tmp_path.iterdir())
     assert left == ["trajectory_mine.tum", "trajectory_notes.tum", "trajectory_s0.tum"]
+    # an earlier run's session S0 is another file than s0's on a case-sensitive file system:
+    # stale (it was kept, compared in lower case); one file on a case-insensitive one: kept
+    comment = "map session 'S0' of earlier.h5: its keyframes' poses"
+    write_tum(tmp_path / "trajectory_S0.tum", [0.0], one, comments=[comment])
+    same = (tmp_path / "trajectory_S0.tum").samefile(tmp_path / "trajectory_s0.tum")
+    gone = remove_stale_trajectories(tmp_path, ["trajectory_s0.tum"])
+    assert gone == ([] if same else [tmp_path / "trajectory_S0.tum"])
+    assert (tmp_path / "trajectory_s0.tum").is_file()
+
+
+def test_loops_cli_leaves_no_folder_it_made_when_its_write_fails(
+    map_file, model_dir, tmp_path, monkeypatch
+):
+    from typer.testing import CliRunner
+
+    import vvloc._io
+    from vvloc.cli import app
+
+    def disk_full(*args: object, **kwargs: object) -> None:
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(vvloc._io, "write_together", disk_full)
+    out = tmp_path / "loops"
+    args = ["loops", "--map", str(map_file), "--checkpoint", str(model_dir), "--out", str(out)]
+    result = CliRunner().invoke(app, [*args, "--max_pairs", "2", "--threads", "1"])
+    assert result.exit_code == 1 and "No space left on device" in result.output
+    assert not out.exists()  # was left behind, empty
+    out.mkdir()  # a folder of the user's stays
+    result = CliRunner().invoke(app, [*args, "--max_pairs", "2", "--threads", "1"])
+    assert result.exit_code == 1 and out.is_dir()
 
 
 def test_loops_cli_never_replaces_files_it_did_not_write(tmp_path):

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
+import hashlib
 import math
+import os
 import re
 from collections.abc import Iterable, Sequence
 from pathlib import Path
@@ -21,19 +24,30 @@ from vvloc.commands._util import (
     set_torch_threads,
 )
 
+#: The most characters of a session name that go into its trajectory's file name: longer
+#: ones are cut and end in a hash of the whole name (file names hold 255 bytes, and the
+#: temporary file written first adds about 20).
+MAX_SESSION_IN_NAME = 120
+
 
 def trajectory_file_names(sessions: Sequence[str]) -> dict[str, str]:
     """File name ``trajectory_<session>.tum`` of each map session, safe on every file system.
 
     A session name is used as it is when it holds only letters, digits, ``.``, ``_`` and
     ``-`` (the usual case: ``s0``, ``2012-01-08``); other characters (``/``, spaces, ...)
-    become ``_``, and a name that would then repeat another's gets ``-2``, ``-3``, ... so that
-    no session's file overwrites another's. The TUM file's header names its session.
+    become ``_``, a name longer than :data:`MAX_SESSION_IN_NAME` is cut and ends in 12 hex
+    digits of its SHA-256, and a name that would then repeat another's gets ``-2``, ``-3``,
+    ... so that no session's file overwrites another's. The TUM file's header names its
+    session.
     """
     names: dict[str, str] = {}
     taken: set[str] = set()
     for session in sessions:
-        stem = "trajectory_" + re.sub(r"[^A-Za-z0-9._-]", "_", session)
+        safe = re.sub(r"[^A-Za-z0-9._-]", "_", session)
+        if len(safe) > MAX_SESSION_IN_NAME:  # file names hold 255 bytes, temporaries more
+            digest = hashlib.sha256(session.encode()).hexdigest()[:12]
+            safe = f"{safe[: MAX_SESSION_IN_NAME - 13]}-{digest}"
+        stem = "trajectory_" + safe
         file_name, k = f"{stem}.tum", 1
         while file_name.lower() in taken:  # case-insensitive file systems too
             k += 1
@@ -88,16 +102,31 @@ def check_loops_folder(out: Path, trajectory_files: Iterable[str]) -> None:
         )
 
 
+def _stat(path: Path) -> os.stat_result | None:
+    try:
+        return path.stat()
+    except OSError:
+        return None
+
+
 def remove_stale_trajectories(out: Path, keep: Iterable[str]) -> list[Path]:
     """Delete the ``trajectory_*.tum`` files of an earlier ``vvloc loops`` run into ``out``
     that this run does not write (sessions of another map), so that the folder holds one
     run's trajectories only. Files without that run's header are left alone. Returns the
     deleted paths."""
-    keep = {k.lower() for k in keep}
+    keep = set(keep)
+    # on a case-insensitive file system a kept file may be listed under an earlier run's
+    # spelling (trajectory_S0.tum for trajectory_s0.tum): the same file, compared by inode
+    kept = {(st.st_dev, st.st_ino) for st in (_stat(out / k) for k in keep) if st is not None}
+
+    def is_kept(p: Path) -> bool:
+        st = _stat(p)
+        return p.name in keep or (st is not None and (st.st_dev, st.st_ino) in kept)
+
     stale = [
         p
         for p in sorted(out.glob("trajectory_*.tum"))
-        if p.name.lower() not in keep and p.is_file() and _written_by_loops(p)
+        if not is_kept(p) and p.is_file() and _written_by_loops(p)
     ]
     for p in stale:
         p.unlink()
@@ -213,8 +242,15 @@ def loops(
                 db.poses[rows],
                 comments=[f"map session {name!r} of {map_path}: its keyframes' poses"],
             )
+        made = not out.exists()
         out.mkdir(parents=True, exist_ok=True)
-        write_together(out, {name: text.encode() for name, text in files.items()})
+        try:
+            write_together(out, {name: text.encode() for name, text in files.items()})
+        except BaseException:
+            if made:  # the folder this run made, left empty by the failed write
+                with contextlib.suppress(OSError):
+                    out.rmdir()
+            raise
         remove_stale_trajectories(out, trajectories.values())
         n_acc = int(np.sum(found.accepted))
     typer.echo(f"{len(found.i)} candidates, {n_acc} accepted loop closures; outputs in {out}")
