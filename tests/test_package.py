@@ -159,3 +159,14 @@ def test_an_error_raised_in_a_dataloader_worker_is_told_in_its_own_words():
     plain = DatasetFormatError("/d/rig.json: bad")
     assert error_text(plain) == "/d/rig.json: bad"
     assert error_text(KeyError("s9")) == "s9"
+
+
+def test_option_names_are_read_as_a_csv_line():
+    from vvloc.commands._util import split_names
+
+    assert split_names("s1, s2,,", "--queries") == ["s1", "s2"]
+    # a session named with a comma (vvloc convert keeps a source's names) in double quotes
+    assert split_names('"day,1", s2', "--sessions") == ["day,1", "s2"]
+    assert split_names("", "--sessions") == []
+    with pytest.raises(ValueError, match=r"^--sessions: cannot read .* in double quotes"):
+        split_names('"day,1', "--sessions")

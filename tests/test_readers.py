@@ -616,6 +616,15 @@ def test_cli_convert(tmp_path):
     assert r.returncode == 2 and "--width and --height go together" in r.stderr
     r = run("--out", str(tmp_path / "d"), "--motion_compensation")
     assert r.returncode == 2 and "--motion_compensation applies to RobotCar" in r.stderr
+    # the library's errors are said with the options they came from
+    for args, said in (
+        (("--cameras", "1", "--min_angle", "inf"), "--min_angle: expected a finite number"),
+        (("--cameras", "1,1"), "--cameras: ['1'] listed more than once"),
+        (("--cameras", "1", "--sessions", "nope"), "--sessions: no session 'nope' in"),
+        (("--sessions", '"nope'), "--sessions: cannot read '\"nope' as comma-separated names"),
+    ):
+        r = run("--out", str(tmp_path / "d"), *args)
+        assert r.returncode == 2 and said in r.stderr, r.stderr
     assert not (tmp_path / "d").exists()
     # the Segway's frames are levelled unless --no_level (this fixture's Segway stands level:
     # every frame's extrinsics are the rig's, written all the same)

@@ -210,9 +210,34 @@ def parse_device(device: str) -> torch.device:
     return resolve_device(device, argument="--device")
 
 
-def split_names(text: str) -> list[str]:
-    """'s1, s2' → ['s1', 's2']."""
-    return [s.strip() for s in text.split(",") if s.strip()]
+def split_names(text: str, option: str) -> list[str]:
+    """A comma-separated option's names: ``'s1, s2'`` → ``['s1', 's2']``. Read as a CSV line,
+    so a name holding a comma is given in double quotes: ``'"day,1",s2'`` → ``['day,1', 's2']``
+    (``vvloc convert`` keeps a source's session names, commas included)."""
+    import csv
+
+    try:
+        fields = next(csv.reader([text], skipinitialspace=True, strict=True), [])
+    except csv.Error as e:
+        raise ValueError(
+            f"{option}: cannot read {text!r} as comma-separated names ({e}); a name holding a "
+            'comma goes in double quotes: "day,1",s2'
+        ) from None
+    return [s.strip() for s in fields if s.strip()]
+
+
+@contextlib.contextmanager
+def as_options(options: dict[str, str]) -> Iterator[None]:
+    """Say an error whose message starts with a library argument's name (``min_angle_deg:
+    ...``, :func:`named`'s convention) with the option its value came from (``--min_angle:
+    ...``), keeping its type; other errors pass as they are."""
+    try:
+        yield
+    except (ValueError, TypeError, KeyError) as e:
+        arg, sep, rest = error_text(e).partition(": ")
+        if not (sep and arg in options):
+            raise
+        raise type(e)(f"{options[arg]}: {rest}") from None
 
 
 def check_out_folder(out: Path, option: str = "--out", *, outside: Path | None = None) -> None:

@@ -76,7 +76,7 @@ def calibrate(
 
     with cli_errors("calibrate"):
         set_torch_threads(threads)
-        names = split_names(queries)
+        names = split_names(queries, "--queries")
         if not names:
             raise ValueError("--queries: expected at least one session name")
         if not 0.0 < precision <= 1.0:

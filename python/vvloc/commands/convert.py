@@ -9,7 +9,18 @@ from typing import Annotated, Any
 
 import typer
 
-from vvloc.commands._util import EXIT_USAGE, cli_errors, split_names
+from vvloc.commands._util import EXIT_USAGE, as_options, cli_errors, split_names
+
+#: convert_dataset's arguments and reader options, as the command line spells them.
+_OPTION_OF = {
+    "sessions": "--sessions",
+    "every": "--every",
+    "min_distance": "--min_distance",
+    "min_angle_deg": "--min_angle",
+    "image_size": "--width/--height",
+    "cameras": "--cameras",
+    "ego_height": "--ego_height",
+}
 
 
 class SourceFormat(str, Enum):
@@ -113,7 +124,7 @@ def convert(
         fmt = detect_format(src, format.value)
         options: dict[str, Any] = {}
         if cameras:
-            names = split_names(cameras)
+            names = split_names(cameras, "--cameras")
             if fmt == "nclt":
                 if not all(n.isdigit() for n in names):
                     _fail(f"--cameras: NCLT cameras are numbers 1-5, got {cameras!r}")
@@ -134,17 +145,18 @@ def convert(
             if fmt != "oxford":
                 _fail("--motion_compensation applies to RobotCar sources only")
             options["motion_compensation"] = motion_compensation
-        path = convert_dataset(
-            src,
-            out,
-            format=fmt,
-            sessions=split_names(sessions) or None,
-            every=every,
-            min_distance=min_distance,
-            min_angle_deg=min_angle,
-            image_size=(width, height) if width is not None and height is not None else None,
-            overwrite=overwrite,
-            progress=True,
-            **options,
-        )
+        with as_options(_OPTION_OF):
+            path = convert_dataset(
+                src,
+                out,
+                format=fmt,
+                sessions=split_names(sessions, "--sessions") or None,
+                every=every,
+                min_distance=min_distance,
+                min_angle_deg=min_angle,
+                image_size=(width, height) if width is not None and height is not None else None,
+                overwrite=overwrite,
+                progress=True,
+                **options,
+            )
     typer.echo(f"wrote {path}")

@@ -94,7 +94,7 @@ def build(
         path = build_map(
             model,
             ds,
-            split_names(sessions),
+            split_names(sessions, "--sessions"),
             out,
             dtype="float16" if float16 else "float32",
             store_bev=not no_bev,

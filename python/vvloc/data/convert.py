@@ -151,7 +151,10 @@ def convert_dataset(
     if repeated:
         raise ValueError(f"sessions: {repeated} listed more than once")
     for name in names:
-        ds.session(name)  # a KeyError naming the known sessions, before anything is written
+        try:  # a KeyError naming the known sessions, before anything is written
+            ds.session(name)
+        except KeyError as e:
+            raise KeyError(f"sessions: {e.args[0] if e.args else name}") from None
     cameras = list(ds.cameras)
     if size is not None and (cameras[0].width, cameras[0].height) != size:
         cameras = [c.resized(*size) for c in cameras]
