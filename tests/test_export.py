@@ -450,3 +450,20 @@ def test_csv_rows_quote_fields_that_hold_commas() -> None:
     line = csv_row(3, "day,1", 'say "hi"', 0.5)
     assert line == '3,"day,1","say ""hi""",0.5'
     assert next(csv.reader([line])) == ["3", "day,1", 'say "hi"', "0.5"]
+
+
+def test_keyframe_csv_maps_vertex_ids_to_sessions_and_times() -> None:
+    from vvloc.localize.export import keyframe_csv_text
+
+    poses = np.array([[1.0, 2.0, 3 * math.pi / 2], [0.5, 0.0, 0.1]])
+    text = keyframe_csv_text(
+        [7, 9], ["day,1", "s2"], [0, 4], [1.7e9 + 0.123456, 2.5], [0, -1], poses
+    )
+    rows = [r for r in text.splitlines() if not r.startswith("#")]
+    assert rows[0] == "id,session,seq,timestamp,floor,x,y,yaw"
+    assert rows[1].startswith('7,"day,1",0,1700000000.123456,0,1.0,2.0,')  # quoted, µs kept
+    assert float(rows[1].rsplit(",", 1)[1]) == pytest.approx(-math.pi / 2)  # wrapped
+    with pytest.raises(ValueError, match="sessions: expected 2 session names"):
+        keyframe_csv_text([7, 9], ["s1"], [0, 1], [0.0, 1.0], [0, 0], poses)
+    with pytest.raises(TypeError, match="ids: expected an integer array"):
+        keyframe_csv_text([7.0, 9.0], ["a", "b"], [0, 1], [0.0, 1.0], [0, 0], poses)

@@ -7,6 +7,7 @@ search itself is pinned by the geometry oracle (tests/test_metric_localize.py).
 
 from __future__ import annotations
 
+import csv
 import dataclasses
 import importlib.util
 import inspect
@@ -523,6 +524,17 @@ def test_cli_map_localize_loops_end_to_end(tiny_world, model_dir, tmp_path):
     assert len(graph.vertex_ids) == 2 * len(open_dataset(tiny_world).session("s0"))
     n_acc = int(loops.accepted.sum())
     assert len(graph.edges) == 2 * (len(graph.vertex_ids) // 2 - 1) + n_acc
+    # keyframes.csv maps every vertex id back to its session, sequence number and time
+    with MapDatabase.open(map_path) as db:
+        text = (tmp_path / "loops" / "keyframes.csv").read_text()
+        assert text.startswith("# vvloc keyframes")
+        rows = list(csv.DictReader(line for line in text.splitlines() if line[0] != "#"))
+        assert [int(r["id"]) for r in rows] == graph.vertex_ids.tolist() == db.ids.tolist()
+        assert [r["session"] for r in rows] == [db.session_of(i) for i in range(len(db))]
+        assert [float(r["timestamp"]) for r in rows] == db.timestamps.tolist()
+        assert [int(r["seq"]) for r in rows] == db.seq.tolist()
+        xyt = np.array([[float(r[k]) for k in ("x", "y", "yaw")] for r in rows])
+        np.testing.assert_allclose(xyt, graph.vertex_poses, rtol=0, atol=1e-12)
     if importlib.util.find_spec("gtsam") is not None:  # a dev dependency: a real g2o reader
         import gtsam
 
@@ -699,6 +711,11 @@ def test_loops_cli_never_replaces_files_it_did_not_write(tmp_path):
         out / "trajectory_s0.tum", [0.0], np.zeros((1, 3)),
         comments=["map session 's0' of map.h5: its keyframes' poses"],
     )  # fmt: skip
+    check_loops_folder(out, mine)
+    (out / "keyframes.csv").write_text("my,table\n")  # not vouched for by loops.csv
+    with pytest.raises(FileExistsError, match=r"holds keyframes\.csv, which no earlier"):
+        check_loops_folder(out, mine)
+    (out / "keyframes.csv").write_text("# vvloc keyframes: ...\n")
     check_loops_folder(out, mine)
     (out / "loops.csv").write_text("my,csv\n")
     with pytest.raises(FileExistsError, match=r"holds loops\.csv, graph\.g2o"):

@@ -69,13 +69,21 @@ def _written_by_loops(path: Path) -> bool:
     )
 
 
+def _starts_with(path: Path, head: str) -> bool:
+    try:
+        with open(path, encoding="utf-8") as f:
+            return f.readline().startswith(head)
+    except (OSError, UnicodeDecodeError):
+        return False
+
+
 def check_loops_folder(out: Path, trajectory_files: Iterable[str]) -> None:
     """``ValueError`` (``--out``) when ``out`` is or lies inside a vvloc dataset (a
     ``rig.json`` beside ``sessions/``); ``FileExistsError`` when it holds a file this run
-    would write (``loops.csv``, ``graph.g2o``, its ``trajectory_*.tum``) that no earlier
-    ``vvloc loops`` wrote: an earlier run's ``loops.csv`` starts with its header (and vouches
-    for the ``graph.g2o`` beside it, which g2o readers allow no header in), its trajectories
-    with theirs. A user's files are never replaced."""
+    would write (``loops.csv``, ``graph.g2o``, ``keyframes.csv``, its ``trajectory_*.tum``)
+    that no earlier ``vvloc loops`` wrote: an earlier run's ``loops.csv`` starts with its
+    header (and vouches for the ``graph.g2o`` beside it, which g2o readers allow no header
+    in), its ``keyframes.csv`` and trajectories with theirs. A user's files are never replaced."""
     for folder in (out, *out.parents):  # the map does not say which dataset built it
         if (folder / "rig.json").is_file() and (folder / "sessions").is_dir():
             raise ValueError(
@@ -90,6 +98,8 @@ def check_loops_folder(out: Path, trajectory_files: Iterable[str]) -> None:
     except (OSError, UnicodeDecodeError):
         ours = False
     clash = [name for name in ("loops.csv", "graph.g2o") if (out / name).exists() and not ours]
+    if (out / "keyframes.csv").exists() and not _starts_with(out / "keyframes.csv", "# vvloc keyf"):
+        clash.append("keyframes.csv")
     clash += [
         name
         for name in trajectory_files
@@ -187,13 +197,20 @@ def loops(
     device: Annotated[str, typer.Option("--device", help="cpu, cuda[:N] or auto.")] = "cpu",
     threads: Threads = None,
 ) -> None:
-    """Write loops.csv, graph.g2o and one TUM trajectory per session into --out, as one change
+    """Write loops.csv, graph.g2o, keyframes.csv (each vertex id's session, sequence number,
+    timestamp and floor) and one TUM trajectory per session into --out, as one change
     (a failed or stopped run leaves an earlier run's files as they were); the trajectories an
     earlier run left there for sessions this map lacks are then removed."""
     import numpy as np
 
     from vvloc._io import write_together
-    from vvloc.localize.export import G2O_MAX_ID, g2o_text, loop_csv_text, tum_text
+    from vvloc.localize.export import (
+        G2O_MAX_ID,
+        g2o_text,
+        keyframe_csv_text,
+        loop_csv_text,
+        tum_text,
+    )
     from vvloc.localize.loops import detect_loops
     from vvloc.localize.mapdb import MapDatabase, MapError
     from vvloc.nets import VVLocNet
@@ -233,6 +250,15 @@ def loops(
                 ids=db.ids,
                 sessions=[db.session_of(i) for i in range(len(db))],
                 seq=db.seq,
+            ),
+            "keyframes.csv": keyframe_csv_text(
+                db.ids,
+                [db.session_of(i) for i in range(len(db))],
+                db.seq,
+                db.timestamps,
+                db.floors,
+                db.poses,
+                comments=[f"map {map_path}"],
             ),
         }
         for name, file_name in trajectories.items():

@@ -40,6 +40,7 @@ __all__ = [
     "LoopClosures",
     "g2o_text",
     "information_from_sigmas",
+    "keyframe_csv_text",
     "loop_csv_text",
     "read_g2o",
     "read_loop_csv",
@@ -313,6 +314,58 @@ def loop_csv_text(loops: LoopClosures, *, comments: Iterable[str] = ()) -> str:
                 int(bool(loops.accepted[r])),
             ]
         )
+    return f.getvalue()
+
+
+_KEYFRAME_COLUMNS = ("id", "session", "seq", "timestamp", "floor", "x", "y", "yaw")
+
+
+def keyframe_csv_text(
+    ids: Any,
+    sessions: Sequence[str],
+    seq: Any,
+    timestamps: Any,
+    floors: Any,
+    poses: Any,
+    *,
+    comments: Iterable[str] = (),
+) -> str:
+    """The keyframe table beside a pose graph: one row per g2o vertex id with its session,
+    sequence number, timestamp and floor, so that an optimised graph (keyed by vertex id) maps
+    back to sessions and times. ``\n`` line ends, ``#`` header lines.
+
+    Args:
+        ids: (N,) int vertex ids (the map's keyframe ids).
+        sessions: N session names; seq: (N,) int sequence numbers within a session.
+        timestamps: (N,) seconds (written with microseconds kept: ``repr`` of the float).
+        floors: (N,) int storeys; poses: (N, 3) world (x, y, yaw), metres and radians CCW,
+            the graph's initial vertex poses.
+    """
+    p = _floats(poses, "poses", "(N, 3)", (None, 3))
+    n = p.shape[0]
+    vid, sq, fl = _ints(ids, "ids", n), _ints(seq, "seq", n), _ints(floors, "floors", n)
+    t = _floats(timestamps, "timestamps", f"({n},)", (n,))
+    if isinstance(sessions, str) or len(sessions) != n:
+        raise ValueError(f"sessions: expected {n} session names")
+    header = _comment_lines(
+        [
+            "vvloc keyframes: the g2o vertex ids of graph.g2o and loops.csv (i, j), with their "
+            "session, sequence number within it, timestamp (s) and floor",
+            "x, y, yaw: the keyframe's world pose, the graph's initial vertex pose",
+            *_FRAME_COMMENTS,
+        ]
+    ) + _comment_lines(comments)
+    f = io.StringIO(newline="")
+    for line in header:
+        f.write(line + "\n")
+    w = csv.writer(f, lineterminator="\n")
+    w.writerow(_KEYFRAME_COLUMNS)
+    for r in range(n):
+        x, y, yaw = p[r]
+        w.writerow(
+            [int(vid[r]), str(sessions[r]), int(sq[r]), _r(t[r]), int(fl[r]), _r(x), _r(y),
+             _r(wrap_angle(yaw))]
+        )  # fmt: skip
     return f.getvalue()
 
 
