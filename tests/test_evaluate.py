@@ -20,6 +20,23 @@ DEG = math.pi / 180.0
 # ----------------------------------------------------------------------------- geometry
 
 
+def test_geometry_refuses_what_is_not_real_numbers_by_name():
+    # None read as nan, "1" and True as 1.0; complex or huge ints gave numpy's words
+    for bad in (None, "1", True, [1j], 10**400):
+        with pytest.raises(TypeError, match=r"^angle: expected real numbers"):
+            geo.wrap_angle(bad)
+    with pytest.raises(TypeError, match=r"^b: expected real numbers \(\.\.\., 3\)"):
+        geo.compose([0.0, 0.0, 0.0], [1j, 0, 0])
+    with pytest.raises(ValueError, match=r"^a, b: poses of shapes \(2, 3\) and \(3, 3\) do not"):
+        geo.compose(np.zeros((2, 3)), np.zeros((3, 3)))
+    with pytest.raises(ValueError, match=r"^pose: expected a rectangular array"):
+        geo.inverse([[0.0, 0.0, 0.0], [1.0, 2.0]])
+    torch = pytest.importorskip("torch")
+    t = torch.tensor([0.0, 0.0, 1.0], requires_grad=True)  # was torch's "Can't call numpy()"
+    np.testing.assert_allclose(geo.compose(t, [1.0, 0.0, 0.0]), [math.cos(1), math.sin(1), 1.0])
+    assert np.isnan(geo.compose([0.0, 0.0, np.nan], [1.0, 0.0, 0.0])).all()  # NaN passes
+
+
 def test_wrap_angle_half_open_interval():
     got = geo.wrap_angle([0.0, math.pi, -math.pi, 1.5 * math.pi, -1.5 * math.pi, 7 * math.pi])
     np.testing.assert_allclose(got, [0.0, math.pi, math.pi, -0.5 * math.pi, 0.5 * math.pi, math.pi])

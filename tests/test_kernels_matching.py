@@ -262,6 +262,18 @@ def test_search_rejects_bad_configuration(kwargs, name, backend):
         K.TranslationSearch(**{**cfg, **kwargs}, backend=backend)
 
 
+@pytest.mark.parametrize("backend", ["rust", "reference"])
+def test_search_keeps_to_its_square_and_wraps_reported_yaws(backend):
+    s = K.TranslationSearch(0.3, 0.1, fine_samples=4, stages=2, backend=backend)
+    grid = s.proposals()
+    assert len(grid) == 49 and np.abs(grid).max() == 0.3  # 3 × 0.1 rounded one ulp past it
+    n = len(grid)
+    s.report(np.arange(n, dtype=float), np.full(n, 100.0))  # a yaw far outside (−π, π]
+    best = s.best()
+    assert best is not None and best.yaw == pytest.approx(100.0 - 32 * np.pi)
+    assert np.all(np.abs(s.history().yaw) <= np.pi)
+
+
 def test_search_rejects_bad_reports():
     s = K.TranslationSearch(1.0, 0.5, fine_samples=3, stages=2)
     n = len(s.proposals())

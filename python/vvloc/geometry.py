@@ -4,7 +4,9 @@ A 3-DoF pose is an array ``(..., 3)`` of ``(x, y, yaw)``: metres and radians, ya
 positive about z. A pose ``T_a_b`` maps coordinates in frame ``b`` to frame ``a``:
 ``p_a = R(yaw) · p_b + (x, y)``. World frame: x east, y north; vehicle frame: x forward, y left.
 
-All functions broadcast over leading dimensions, return float64 and wrap yaw to (−π, π].
+All functions broadcast over leading dimensions, return float64 and wrap yaw to (−π, π]. They
+take real numbers (numpy arrays, sequences, torch tensors; ``TypeError`` naming the argument for
+anything else) and pass NaN through as NaN (a pose that is not known stays unknown).
 """
 
 from __future__ import annotations
@@ -15,13 +17,28 @@ import numpy.typing as npt
 F64Array = npt.NDArray[np.float64]
 
 
+def _real(x: object, name: str, shape_doc: str) -> F64Array:
+    """``x`` as float64, ``TypeError`` naming ``name`` unless it holds real numbers."""
+    if hasattr(x, "detach") and hasattr(x, "cpu"):  # a torch tensor, without importing torch
+        x = x.detach().cpu().numpy()  # type: ignore[attr-defined]
+    if x is None or isinstance(x, (str, bytes)):
+        raise TypeError(f"{name}: expected real numbers{shape_doc}, got {type(x).__name__}")
+    try:
+        arr = np.asarray(x)
+    except ValueError:  # nested sequences of unequal lengths
+        raise ValueError(f"{name}: expected a rectangular array{shape_doc}") from None
+    if arr.dtype == object or arr.dtype.kind not in "fiu":
+        raise TypeError(f"{name}: expected real numbers{shape_doc}, got dtype {arr.dtype}")
+    return arr.astype(np.float64, copy=False)
+
+
 def wrap_angle(angle: npt.ArrayLike) -> F64Array:
     """Wrap angles (radians) to the half-open interval (−π, π], elementwise.
 
     ``wrap_angle(π) == π`` and ``wrap_angle(−π) == π``; ``wrap_angle(3π/2) == −π/2``.
     Angles already in (−π, π] are returned bit-exactly (no round trip through a modulo).
     """
-    a = np.asarray(angle, dtype=np.float64)
+    a = _real(angle, "angle", "")
     w = a - 2.0 * np.pi * np.ceil((a - np.pi) / (2.0 * np.pi))
     # the rounding of a − π can put w one ulp outside (−π, π]: fold it back
     w = np.where(w > np.pi, w - 2.0 * np.pi, w)
@@ -31,7 +48,7 @@ def wrap_angle(angle: npt.ArrayLike) -> F64Array:
 
 
 def _as_pose(pose: npt.ArrayLike, name: str) -> F64Array:
-    arr = np.asarray(pose, dtype=np.float64)
+    arr = _real(pose, name, " (..., 3) = (x, y, yaw)")
     if arr.ndim == 0 or arr.shape[-1] != 3:
         raise ValueError(f"{name}: expected poses of shape (..., 3) = (x, y, yaw), got {arr.shape}")
     return arr
@@ -50,6 +67,12 @@ def compose(a: npt.ArrayLike, b: npt.ArrayLike) -> F64Array:
     """
     a = _as_pose(a, "a")
     b = _as_pose(b, "b")
+    try:
+        np.broadcast_shapes(a.shape, b.shape)
+    except ValueError:
+        raise ValueError(
+            f"a, b: poses of shapes {a.shape} and {b.shape} do not broadcast against each other"
+        ) from None
     c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
     x = a[..., 0] + c * b[..., 0] - s * b[..., 1]
     y = a[..., 1] + s * b[..., 0] + c * b[..., 1]

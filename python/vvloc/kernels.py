@@ -22,6 +22,7 @@ import numpy as np
 import numpy.typing as npt
 
 from vvloc import _core
+from vvloc.geometry import wrap_angle
 
 Backend = Literal["rust", "reference"]
 F32Array = npt.NDArray[np.float32]
@@ -599,13 +600,14 @@ class TranslationSearch:
         return np.asarray(self._impl.proposals(), dtype=np.float64)
 
     def report(self, costs: Any, yaws: Any) -> None:
-        """Report (N,) costs and (N,) yaws (radians) of the current proposals; next stage."""
+        """Report (N,) costs and (N,) yaws (radians, wrapped to (−π, π] here) of the current
+        proposals; next stage."""
         if self.done:
             raise ValueError("report: the search is already done")
         n = len(self._impl.proposals())
         c = _f64_vector(costs, "costs", n)
         y = _f64_vector(yaws, "yaws", n)
-        self._impl.report(c, y)
+        self._impl.report(c, wrap_angle(y))  # a yaw of 100 rad came back as best().yaw
 
     def best(self) -> SearchHypothesis | None:
         """The best hypothesis so far, or None before the first report."""

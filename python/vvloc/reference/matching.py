@@ -180,7 +180,8 @@ class TranslationSearch:
     def _make_proposals(self) -> list[tuple[float, float]]:
         if self.stage == 0:
             m = math.floor(self.half_range / self.step + 1e-9)
-            ticks = [(i - m) * self.step for i in range(2 * m + 1)]
+            hr = self.half_range  # i·step can round one ulp past it (3 × 0.1 > 0.3)
+            ticks = [min(max((i - m) * self.step, -hr), hr) for i in range(2 * m + 1)]
             return [(x, y) for x in ticks for y in ticks]
         cx, cy = (0.0, 0.0) if self._best is None else self._best[:2]
         half = self.step

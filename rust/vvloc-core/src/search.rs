@@ -231,10 +231,14 @@ impl TranslationSearch {
         if self.stage == 0 {
             let n = cfg.grid_side();
             let m = (n / 2) as f64;
+            // i·step can round one ulp past half_range (3 × 0.1 > 0.3): clamped, the grid
+            // keeps to its square as the fine stages do
+            let tick =
+                |i: usize| ((i as f64 - m) * cfg.step).clamp(-cfg.half_range, cfg.half_range);
             let mut out = Vec::with_capacity(n * n);
             for ix in 0..n {
                 for iy in 0..n {
-                    out.push([(ix as f64 - m) * cfg.step, (iy as f64 - m) * cfg.step]);
+                    out.push([tick(ix), tick(iy)]);
                 }
             }
             return out;
@@ -289,6 +293,21 @@ mod tests {
         let mut r = SplitMix64::new(0);
         assert_eq!(r.next_u64(), 0xE220_A839_7B1D_CDAF);
         assert_eq!(r.next_u64(), 0x6E78_9E6A_A1B9_65F4);
+    }
+
+    #[test]
+    fn the_coarse_grid_keeps_to_its_square_when_its_ticks_round_past_it() {
+        // 3 × 0.1 = 0.30000000000000004 > 0.3
+        let cfg = SearchConfig {
+            half_range: 0.3,
+            step: 0.1,
+            ..cfg()
+        };
+        let s = TranslationSearch::new(cfg).unwrap();
+        let p = s.proposals();
+        assert_eq!(p.len(), 49);
+        let top = p.iter().flatten().fold(0.0_f64, |a, &v| a.max(v.abs()));
+        assert_eq!(top, 0.3);
     }
 
     #[test]
