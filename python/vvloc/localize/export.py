@@ -295,14 +295,10 @@ def loop_csv_text(loops: LoopClosures, *, comments: Iterable[str] = ()) -> str:
             "accepted: 1 if the closure passed the cost threshold, else 0",
         ]
     ) + _comment_lines(comments)
-    f = io.StringIO(newline="")
-    for line in header:
-        f.write(line + "\n")
-    w = csv.writer(f, lineterminator="\n")
-    w.writerow(_LOOP_COLUMNS)
+    rows = []
     for r in range(len(loops)):
         x, y, yaw = loops.relative_poses[r]
-        w.writerow(
+        rows.append(
             [
                 int(loops.i[r]),
                 int(loops.j[r]),
@@ -314,6 +310,17 @@ def loop_csv_text(loops: LoopClosures, *, comments: Iterable[str] = ()) -> str:
                 int(bool(loops.accepted[r])),
             ]
         )
+    return _csv_text(header, _LOOP_COLUMNS, rows)
+
+
+def _csv_text(header: Iterable[str], columns: Sequence[str], rows: Iterable[Sequence[Any]]) -> str:
+    """``#`` header lines, then a CSV table (``\n`` line ends; fields quoted as RFC 4180 needs)."""
+    f = io.StringIO(newline="")
+    for line in header:
+        f.write(line + "\n")
+    w = csv.writer(f, lineterminator="\n")
+    w.writerow(columns)
+    w.writerows(rows)
     return f.getvalue()
 
 
@@ -355,18 +362,12 @@ def keyframe_csv_text(
             *_FRAME_COMMENTS,
         ]
     ) + _comment_lines(comments)
-    f = io.StringIO(newline="")
-    for line in header:
-        f.write(line + "\n")
-    w = csv.writer(f, lineterminator="\n")
-    w.writerow(_KEYFRAME_COLUMNS)
-    for r in range(n):
-        x, y, yaw = p[r]
-        w.writerow(
-            [int(vid[r]), str(sessions[r]), int(sq[r]), _r(t[r]), int(fl[r]), _r(x), _r(y),
-             _r(wrap_angle(yaw))]
-        )  # fmt: skip
-    return f.getvalue()
+    rows = (
+        [int(vid[r]), str(sessions[r]), int(sq[r]), _r(t[r]), int(fl[r]), _r(p[r, 0]),
+         _r(p[r, 1]), _r(wrap_angle(p[r, 2]))]
+        for r in range(n)
+    )  # fmt: skip
+    return _csv_text(header, _KEYFRAME_COLUMNS, rows)
 
 
 def read_loop_csv(path: PathLike) -> LoopClosures:
