@@ -83,6 +83,7 @@ from vvloc.data.augment import PhotometricAugment
 from vvloc.data.frame import Session
 from vvloc.data.sampling import (
     check_query_sessions,
+    check_session_names,
     inside_folder,
     rendered_world,
     same_folder,
@@ -1070,17 +1071,7 @@ def _load_trainer_state(path: Path) -> dict[str, Any]:
 def _check_sessions(key: str, dataset: str, ds: Any, names: Sequence[str], note: str = "") -> None:
     """``ValueError`` naming the config's ``key`` when ``names`` repeat a session, name one that
     ``ds`` (opened from ``dataset``) lacks (``note`` follows the dataset), or one with no frame."""
-    names = list(names)
-    repeated = sorted({n for n in names if names.count(n) > 1})
-    if repeated:
-        raise ValueError(f"{key}: {repeated} named more than once")
-    known = set(ds.sessions)
-    missing = [n for n in names if n not in known]
-    if missing:
-        raise ValueError(
-            f"{key}: {missing} not in {dataset}{note}; its sessions: "
-            f"{list_entries(sorted(known), 12)}"
-        )
+    check_session_names(key, ds, names, dataset, note)
     empty = [n for n in names if len(ds.session(n)) == 0]
     if empty:
         raise ValueError(f"{key}: sessions {empty} of {dataset} hold no frames")

@@ -402,6 +402,26 @@ class EvalSplit:
     revisit_radius: float
 
 
+def check_session_names(
+    argument: str, ds: Dataset, names: Sequence[str], where: str, note: str = ""
+) -> None:
+    """``ValueError`` naming ``argument`` when ``names`` repeat a session or name one that the
+    dataset ``ds`` (called ``where`` in the message, ``note`` after it) lacks."""
+    from vvloc._io import list_entries
+
+    names = list(names)
+    repeated = sorted({n for n in names if names.count(n) > 1})
+    if repeated:
+        raise ValueError(f"{argument}: {repeated} named more than once")
+    known = set(ds.sessions)
+    missing = [n for n in names if n not in known]
+    if missing:
+        raise ValueError(
+            f"{argument}: {missing} not in {where}{note}; its sessions: "
+            f"{list_entries(sorted(known), 12)}"
+        )
+
+
 def check_query_sessions(database: str, queries: Sequence[str], argument: str = "queries") -> None:
     """``ValueError`` naming ``argument`` (the query sessions) when the query sessions repeat a
     name or include the map session ``database``: its frames would find themselves (100 %

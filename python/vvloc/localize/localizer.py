@@ -50,6 +50,7 @@ from vvloc.checkpoints import checkpoint_folder
 from vvloc.data import Camera, Dataset, Frame
 from vvloc.data.frame import PINHOLE, RIGID, is_pinhole, is_rigid, stack_calibration
 from vvloc.data.rig import SAME_MAP, SAME_MODEL, describe_rig, rig_difference
+from vvloc.data.sampling import check_session_names
 from vvloc.localize.mapdb import MapDatabase, MapError, MapWriter, check_unit_rows, check_weights
 from vvloc.localize.metric import (
     METRIC_CANDIDATES,
@@ -964,13 +965,7 @@ def build_map(
         raise TypeError(f"store_bev: expected a bool, got {type(store_bev).__name__}")
     if not sessions:
         raise ValueError("sessions: expected at least one session name")
-    repeated = sorted({s for s in sessions if sessions.count(s) > 1})
-    if repeated:
-        raise ValueError(f"sessions: {repeated} named more than once (each keyframe once)")
-    known = set(dataset.sessions)
-    missing = [s for s in sessions if s not in known]
-    if missing:
-        raise ValueError(f"sessions: {missing} not in the dataset (sessions: {sorted(known)})")
+    check_session_names("sessions", dataset, sessions, "the dataset")  # each keyframe once
     total = sum(len(dataset.session(s)) for s in sessions)
     if total == 0:
         raise ValueError(f"sessions: {list(sessions)} hold no frames: a map needs keyframes")
