@@ -22,7 +22,6 @@ import numpy as np
 import numpy.typing as npt
 
 from vvloc import _core
-from vvloc.geometry import wrap_angle
 
 Backend = Literal["rust", "reference"]
 F32Array = npt.NDArray[np.float32]
@@ -607,7 +606,7 @@ class TranslationSearch:
         n = len(self._impl.proposals())
         c = _f64_vector(costs, "costs", n)
         y = _f64_vector(yaws, "yaws", n)
-        self._impl.report(c, wrap_angle(y))  # a yaw of 100 rad came back as best().yaw
+        self._impl.report(c, y)  # both backends store the yaws wrapped to (−π, π]
 
     def best(self) -> SearchHypothesis | None:
         """The best hypothesis so far, or None before the first report."""

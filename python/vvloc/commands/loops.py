@@ -92,13 +92,11 @@ def check_loops_folder(out: Path, trajectory_files: Iterable[str]) -> None:
             )
     if not out.is_dir():
         return
-    try:
-        with open(out / "loops.csv", encoding="utf-8") as f:
-            ours = f.readline().startswith("# vvloc loop closures")
-    except (OSError, UnicodeDecodeError):
-        ours = False
+    ours = _starts_with(out / "loops.csv", "# vvloc loop closures")
     clash = [name for name in ("loops.csv", "graph.g2o") if (out / name).exists() and not ours]
-    if (out / "keyframes.csv").exists() and not _starts_with(out / "keyframes.csv", "# vvloc keyf"):
+    if (out / "keyframes.csv").exists() and not _starts_with(
+        out / "keyframes.csv", "# vvloc keyframes"
+    ):
         clash.append("keyframes.csv")
     clash += [
         name
@@ -242,18 +240,13 @@ def loops(
             cost_threshold=threshold,
             max_pairs=max_pairs or None,
         )
+        sessions = [db.session_of(i) for i in range(len(db))]
         files = {
             "loops.csv": loop_csv_text(found),
-            "graph.g2o": g2o_text(
-                db.poses,
-                found,
-                ids=db.ids,
-                sessions=[db.session_of(i) for i in range(len(db))],
-                seq=db.seq,
-            ),
+            "graph.g2o": g2o_text(db.poses, found, ids=db.ids, sessions=sessions, seq=db.seq),
             "keyframes.csv": keyframe_csv_text(
                 db.ids,
-                [db.session_of(i) for i in range(len(db))],
+                sessions,
                 db.seq,
                 db.timestamps,
                 db.floors,

@@ -15,6 +15,8 @@ import numpy as np
 import numpy.typing as npt
 from scipy.optimize import minimize_scalar
 
+from vvloc.geometry import wrap_angle
+
 F64 = npt.NDArray[np.float64]
 
 #: Spacing of the dense sub-bin scan of :func:`estimate_yaw`, in bins.
@@ -151,7 +153,7 @@ class TranslationSearch:
 
     def report(self, costs: npt.ArrayLike, yaws: npt.ArrayLike) -> None:
         costs = np.asarray(costs, dtype=np.float64)
-        yaws = np.asarray(yaws, dtype=np.float64)
+        yaws = wrap_angle(np.asarray(yaws, dtype=np.float64))  # stored in (−π, π]
         if self.done:
             raise ValueError("report: the search is already done")
         n = len(self._pending)

@@ -13,6 +13,8 @@
 //! and any thread count.
 
 use crate::error::{Error, Result};
+use crate::pose::wrap_angle;
+use std::f64::consts::PI;
 
 /// SplitMix64 pseudo-random generator.
 #[derive(Debug, Clone)]
@@ -195,6 +197,12 @@ impl TranslationSearch {
             return Err(Error::value("yaws", "contains non-finite values"));
         }
         for (p, (&cost, &yaw)) in self.pending.iter().zip(costs.iter().zip(yaws)) {
+            // kept bit for bit inside (−π, π], as the reference keeps it; wrapped outside
+            let yaw = if yaw > -PI && yaw <= PI {
+                yaw
+            } else {
+                wrap_angle(yaw)
+            };
             let h = Hypothesis {
                 x: p[0],
                 y: p[1],
@@ -308,6 +316,19 @@ mod tests {
         assert_eq!(p.len(), 49);
         let top = p.iter().flatten().fold(0.0_f64, |a, &v| a.max(v.abs()));
         assert_eq!(top, 0.3);
+    }
+
+    #[test]
+    fn reported_yaws_are_kept_inside_and_wrapped_outside_the_half_open_turn() {
+        let mut s = TranslationSearch::new(SearchConfig { stages: 1, ..cfg() }).unwrap();
+        let n = s.proposals().len();
+        let mut yaws = vec![-0.1; n];
+        yaws[1] = 100.0;
+        let costs: Vec<f64> = (0..n).map(|i| if i == 1 { 0.0 } else { 1.0 }).collect();
+        s.report(&costs, &yaws).unwrap();
+        assert_eq!(s.best().unwrap().yaw, wrap_angle(100.0));
+        assert!(s.history().iter().all(|h| h.yaw > -PI && h.yaw <= PI));
+        assert_eq!(s.history()[0].yaw, -0.1); // bit for bit
     }
 
     #[test]
