@@ -228,6 +228,23 @@ def test_exclusion_rule(whole_group):
     assert 10 not in got[1][got[0][0] : got[0][1]]
 
 
+def test_exclusion_at_the_ends_of_int64_matches_the_reference():
+    # the reference once took |map_seq - query_seq| in int64, which wrapped past 2**63
+    lo, hi = np.iinfo(np.int64).min, np.iinfo(np.int64).max
+    seqs = np.array([lo, lo + 1, -1, 0, 1, hi - 1, hi], np.int64)
+    x = clustered(len(seqs), 8, 11)
+    index = DescriptorIndex(x, groups=np.zeros(len(seqs), np.int64), seqs=seqs)
+    for window in (0, 1, 2**62, 2**63 - 1):
+        ex = Exclusion(groups=np.zeros(len(seqs), np.int64), seqs=seqs, window=window)
+        mask = ref.excluded(np.zeros(len(seqs)), seqs, np.zeros(len(seqs)), seqs, window)
+        want = np.abs(seqs.astype(object)[None, :] - seqs.astype(object)[:, None]) <= window
+        np.testing.assert_array_equal(mask, want.astype(bool))
+        idx, dist = index.topk(x, len(seqs), exclude=ex)
+        ref_idx, ref_dist = ref.topk(x, x, len(seqs), mask)
+        assert_topk_equal(idx, dist, ref_idx, ref_dist, ref.distances(x, x))
+    assert not mask.all()  # lo and hi stay 2**64 - 1 apart, past any window
+
+
 def test_default_groups_and_seqs_and_add():
     x = clustered(100, 12, 6)
     index = DescriptorIndex(x[:40], dtype="bfloat16")

@@ -26,11 +26,19 @@ def excluded(
     window: int,
     whole_group: bool = False,
 ) -> npt.NDArray[np.bool_]:
-    """Exclusion mask (nq, N): same group and (whole group or |seq difference| <= window)."""
-    mg, ms = np.asarray(map_groups)[None, :], np.asarray(map_seqs)[None, :]
-    qg, qs = np.asarray(query_groups)[:, None], np.asarray(query_seqs)[:, None]
+    """Exclusion mask (nq, N): same group and (whole group or |seq difference| <= window).
+
+    Sequence numbers are int64; their difference is taken exactly in uint64 (``ms - qs`` in
+    int64 overflows when the two lie near opposite ends of the range)."""
+    mg, qg = np.asarray(map_groups)[None, :], np.asarray(query_groups)[:, None]
+    ms = np.asarray(map_seqs, dtype=np.int64)[None, :]
+    qs = np.asarray(query_seqs, dtype=np.int64)[:, None]
     same = mg == qg
-    return same if whole_group else same & (np.abs(ms - qs) <= window)
+    if whole_group:
+        return same
+    um, uq = ms.astype(np.uint64), qs.astype(np.uint64)  # two's complement: wraps exactly
+    gap = np.where(ms >= qs, um - uq, uq - um)  # |ms - qs| in [0, 2^64), exact
+    return same & (gap <= np.uint64(window))
 
 
 def topk(
