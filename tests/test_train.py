@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+import yaml
 
 import vvloc.train
 from vvloc.checkpoints import resolve_checkpoint
@@ -1774,3 +1775,77 @@ def test_a_bad_sim_section_is_named_as_the_configs_key(tmp_path):
     with pytest.raises(ValueError, match=r"^extra_datasets\[1\]\.sim: frames: expected"):
         _ensure_dataset(str(world), {"frames": -5}, "extra_datasets[1].")
     assert not world.exists()
+
+
+@pytest.mark.parametrize(
+    "error",
+    [
+        RuntimeError("DefaultCPUAllocator: can't allocate memory: you tried to allocate 9 GB."),
+        torch.OutOfMemoryError("CUDA out of memory. Tried to allocate 2.00 GiB"),
+        MemoryError(),
+    ],
+)
+def test_running_out_of_memory_names_the_batch_size_and_what_the_run_keeps(
+    tiny_world, tmp_path, monkeypatch, error
+):
+    import vvloc.train as train_module
+
+    cfg = _config(tiny_world, stage1_epochs=2, stage2_epochs=0, steps_per_epoch=2, batch_size=3)
+    out = tmp_path / "run"
+    real = train_module.training_losses
+    calls = {"n": 0}
+
+    def second_epoch_oom(*args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] > 2:  # epoch 2's first step
+            raise error
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(train_module, "training_losses", second_epoch_oom)
+    with pytest.raises(MemoryError) as info:
+        train(cfg, out, progress=False)
+    text = str(info.value)
+    assert "out of memory in epoch 2 (stage 1, batch_size 3 on cpu)" in text
+    assert "A smaller batch_size needs less" in text
+    assert f"The checkpoint in {out / 'checkpoint'} keeps epoch 1, which --resume" in text
+    assert info.value.__cause__ is error
+    state = torch.load(out / "trainer_state.pt", weights_only=False)
+    assert state["epoch"] == 1
+    if isinstance(error, RuntimeError):  # the command says it in one line, exit 1
+        from typer.testing import CliRunner
+
+        from vvloc.cli import app
+
+        calls["n"] = 0
+        (tmp_path / "cfg.yaml").write_text(yaml.safe_dump(cfg.to_dict()))
+        args = ["train", "--config", str(tmp_path / "cfg.yaml"), "--out", str(tmp_path / "cli")]
+        result = CliRunner().invoke(app, args)
+        assert result.exit_code == 1, result.output
+        assert "vvloc train: failed: out of memory in epoch 2" in result.output
+        assert "Traceback" not in result.output
+    monkeypatch.setattr(train_module, "training_losses", real)
+    again = Trainer(cfg, out)
+    assert again.resume() and again.epoch == 1
+
+
+def test_out_of_memory_names_each_stages_batch_key(tiny_world):
+    cfg = _config(tiny_world, head_epochs=1, local_epochs=1, head_batch_size=4)
+    tr = Trainer(cfg, "unused")
+    keys = [tr.batch_option(e) for e in range(tr.total_epochs)]
+    assert keys == [
+        ("batch_size", 2),
+        ("batch_size", 2),
+        ("head_batch_size", 4),
+        ("local_batch_size", 8),
+    ]
+
+
+def test_other_runtime_errors_pass_through_unchanged(tiny_world, tmp_path, monkeypatch):
+    import vvloc.train as train_module
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("mat1 and mat2 shapes cannot be multiplied")
+
+    monkeypatch.setattr(train_module, "training_losses", broken)
+    with pytest.raises(RuntimeError, match=r"^mat1 and mat2"):
+        train(_config(tiny_world), tmp_path / "run", progress=False)

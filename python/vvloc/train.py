@@ -2097,6 +2097,43 @@ class Trainer:
         recall = (val["r1_reranked"], val["r1_retrieval"])
         return (float(cross), *(recall if by == "reranked" else recall[::-1]))
 
+    def batch_option(self, epoch: int) -> tuple[str, int]:
+        """The config key that sets epoch ``epoch``'s (0-based) batch, and its value:
+        ``batch_size`` (stages 1-2), ``head_batch_size`` or ``local_batch_size``."""
+        key = {3: "head_batch_size", 4: "local_batch_size"}.get(self.stage_of(epoch), "batch_size")
+        return key, int(getattr(self.cfg, key))
+
+    @contextlib.contextmanager
+    def _out_of_memory_named(self) -> Iterator[None]:
+        """Turn running out of memory in an epoch (torch's CUDA ``OutOfMemoryError``, its CPU
+        allocator's ``RuntimeError``, a ``MemoryError``, a data worker killed by the kernel)
+        into a ``MemoryError`` naming the config key of the epoch's batch size and what the run
+        folder keeps. Nothing of the epoch has been saved then: ``--resume`` continues after the
+        last finished epoch (with the same batch sizes: a smaller one is a new run)."""
+        try:
+            yield
+        except (MemoryError, RuntimeError) as e:
+            text = str(e)
+            memory = isinstance(e, MemoryError | torch.OutOfMemoryError) or any(
+                m in text for m in ("can't allocate memory", "out of memory", "killed by signal")
+            )
+            if not memory:
+                raise
+            key, value = self.batch_option(self.epoch)
+            kept = (
+                f"The checkpoint in {self.checkpoint_dir} keeps epoch {self.epoch}, which "
+                "--resume continues"
+                if self.epoch > 0
+                else "No epoch had finished: nothing was saved"
+            )
+            first = text.splitlines()[0] if text.strip() else type(e).__name__
+            raise MemoryError(
+                f"out of memory in epoch {self.epoch + 1} (stage {self.stage_of(self.epoch)}, "
+                f"{key} {value} on {self.device}): {first}. A smaller {key} needs less: train "
+                f"it into a new --out (a run resumes only with its own batch sizes); fewer "
+                f"num_workers may be given on --resume. {kept}."
+            ) from e
+
     def fit(self, progress: bool = True) -> list[dict[str, Any]]:
         """Train until ``cfg.epochs`` (fewer when ``patience`` stops the joint stage); checkpoint
         and log after every epoch (and keep the best epoch by validation in ``best/`` when
@@ -2112,7 +2149,8 @@ class Trainer:
         while self.epoch < self.total_epochs:
             t0 = time.perf_counter()
             validating = self.validates(self.epoch)
-            rec = self.run_epoch(progress=progress)
+            with self._out_of_memory_named():
+                rec = self.run_epoch(progress=progress)
             if not all(math.isfinite(v) for k, v in rec.items() if k.startswith("loss_")):
                 # before any save: checkpoint/, best/ and the state keep the last good epoch
                 raise FloatingPointError(

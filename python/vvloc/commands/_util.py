@@ -170,7 +170,7 @@ def cli_errors(command: str) -> Iterator[None]:
     ) as e:
         typer.echo(f"vvloc {command}: error: {error_text(e)}", err=True)
         raise typer.Exit(code=EXIT_USAGE) from e
-    except (RuntimeError, OSError, ArithmeticError) as e:  # e.g. a non-finite training loss
+    except (RuntimeError, OSError, ArithmeticError, MemoryError) as e:  # e.g. a non-finite loss
         typer.echo(f"vvloc {command}: failed: {error_text(e)}", err=True)
         raise typer.Exit(code=EXIT_FAILURE) from e
 
