@@ -2106,16 +2106,17 @@ class Trainer:
     @contextlib.contextmanager
     def _out_of_memory_named(self) -> Iterator[None]:
         """Turn running out of memory in an epoch (torch's CUDA ``OutOfMemoryError``, its CPU
-        allocator's ``RuntimeError``, a ``MemoryError``, a data worker killed by the kernel)
-        into a ``MemoryError`` naming the config key of the epoch's batch size and what the run
-        folder keeps. Nothing of the epoch has been saved then: ``--resume`` continues after the
+        allocator's ``RuntimeError``, a ``MemoryError``, a data worker killed by SIGKILL as the
+        kernel's out-of-memory killer does) into a ``MemoryError`` naming the config key of the
+        epoch's batch size and what the run folder keeps. Nothing of the epoch has been saved then: ``--resume`` continues after the
         last finished epoch (with the same batch sizes: a smaller one is a new run)."""
         try:
             yield
         except (MemoryError, RuntimeError) as e:
             text = str(e)
             memory = isinstance(e, MemoryError | torch.OutOfMemoryError) or any(
-                m in text for m in ("can't allocate memory", "out of memory", "killed by signal")
+                m in text
+                for m in ("can't allocate memory", "out of memory", "killed by signal: Killed")
             )
             if not memory:
                 raise
