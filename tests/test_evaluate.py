@@ -912,3 +912,128 @@ def test_recall_top_n_must_be_int_ranks():
         with pytest.raises(TypeError, match=r"^top_n: expected a sequence of int ranks"):
             ev.recall_at_n(q, db, [[0, 1, 2]], top_n=bad)
     assert (ev.recall_at_n(q, db, [[0, 1, 2]], top_n=[np.int64(2)]).recall == 1.0).all()
+
+
+# ----------------------------------------------------------------------------- audit of 2026-12-06
+
+
+def test_error_percentiles_is_the_exact_inverted_cdf_for_every_percentile():
+    # numpy's inverted_cdf rounds p / 100 first: p = 7 of 100 samples gave the 8th smallest
+    from fractions import Fraction
+
+    for n in (1, 3, 25, 100, 1000):
+        e = np.arange(n, dtype=np.float64)[::-1].copy()  # any order
+        for p in (0, 7, 14, 25, 28, 50, 56, 75, 95, 99.9, 100):
+            # smallest e with at least p % of the samples <= e, p read as the decimal written
+            k = max(math.ceil(Fraction(n) * Fraction(str(p)) / 100), 1)
+            assert ev.error_percentiles(e, (p,))[0] == k - 1, (n, p)
+    assert ev.error_percentiles(np.arange(100.0), (7,))[0] == 6.0
+    assert ev.error_percentiles(np.arange(1000.0), (99.9,))[0] == 998.0
+
+
+def test_error_percentiles_refuse_a_scalar_or_nan_percentile_by_name():
+    with pytest.raises(TypeError, match="percentiles: expected a sequence"):
+        ev.error_percentiles([1.0, 2.0], 50)
+    with pytest.raises(TypeError, match="percentiles: expected a sequence"):
+        ev.error_percentiles([1.0, 2.0], "50")
+    with pytest.raises(ValueError, match="percentiles: expected a finite value"):
+        ev.error_percentiles([1.0, 2.0], [float("nan")])
+    with pytest.raises(ValueError, match=r"percentiles: expected values in \[0, 100\]"):
+        ev.error_percentiles([1.0, 2.0], [101])
+
+
+def _two_revisits_one_found() -> ev.LoopClosureCurve:
+    q = np.array([[0.0, 0.0], [10.0, 0.0]])
+    d = np.array([[0.5, 0.0], [10.5, 0.0]])
+    return ev.loop_closure_curve([[0, 0]], [0.3], q, d)  # query 1's revisit never proposed
+
+
+def test_a_query_whose_revisit_was_never_proposed_is_not_found_at_an_infinite_threshold():
+    c = _two_revisits_one_found()
+    for strict in (False, True):
+        assert c.at(1e9, strict=strict)["recall"] == 0.5
+        assert c.at(np.inf, strict=strict)["recall"] == 0.5
+        assert c.at(np.inf, strict=strict)["accepted"] == 1
+    assert c.sweep()["recall"].max() == 0.5
+
+
+def test_thresholds_must_be_numbers():
+    c = _two_revisits_one_found()
+    with pytest.raises(ValueError, match="threshold: expected a number, got nan"):
+        c.at(np.nan)
+    with pytest.raises(ValueError, match="threshold: expected a number"):
+        c.summary(float("nan"))
+    for bad in (None, "0.5", True):
+        with pytest.raises(TypeError, match="threshold: expected a real number"):
+            c.at(bad)
+    with pytest.raises(ValueError, match="recall: expected a finite value"):
+        c.at_recall(float("nan"))
+    with pytest.raises(ValueError, match=r"recall: expected a value in \(0, 1\]"):
+        c.at_recall(0.0)
+    est = np.zeros((2, 3))
+    for bad, err in ((np.nan, ValueError), (None, TypeError), ("0.75", TypeError)):
+        with pytest.raises(err, match="cost_threshold"):
+            ev.loop_pose_metrics(est, est, [0.1, 0.2], cost_threshold=bad)
+    assert (
+        ev.loop_pose_metrics(est, est, [0.1, 0.2], cost_threshold=np.inf)["confident"]["count"] == 2
+    )
+    pos = np.zeros((2, 2))
+    for bad, err in (
+        (np.nan, ValueError),
+        (None, TypeError),
+        ("0.9", TypeError),
+        (1.0, ValueError),
+    ):
+        with pytest.raises(err, match="confidence"):
+            ev.cross_floor_events([[0, 1]], pos, [0, 0], [0, 1], confidence=bad)
+    for bad, err in ((None, TypeError), ("1", TypeError), (np.inf, ValueError), (-1, ValueError)):
+        with pytest.raises(err, match="time_window"):
+            ev.loop_closure_curve(
+                [[0, 0]], [0.3], pos, pos, query_times=[0, 1], db_times=[0, 1], time_window=bad
+            )
+    for bad, err in ((None, TypeError), ("0.9", TypeError), (np.nan, ValueError)):
+        with pytest.raises(err, match="target_precision"):
+            ev.calibrate_acceptance([0.1, 0.2], np.array([True, False]), target_precision=bad)
+
+
+def test_recall_ranks_and_radii_are_checked_where_they_are_read():
+    r = ev.recall_at_n(
+        np.zeros((1, 2)), np.array([[50.0, 0], [1, 0], [60, 0]]), [[0, 1, 2]], top_n=(1,)
+    )
+    assert r.at(1, 2.0) == 0.0 and r.at(2, 2.0) == 1.0
+    with pytest.raises(TypeError, match="n: expected an int rank"):
+        r.at(1.5, 2.0)  # was Recall@2
+    with pytest.raises(TypeError, match="radius"):
+        r.correct(1, "2")
+    with pytest.raises(ValueError, match=r"radius: 3\.0 m is not one of"):
+        r.at(1, 3.0)
+    with pytest.raises(TypeError, match="radii: expected a sequence"):
+        ev.recall_at_n(np.zeros((1, 2)), np.zeros((1, 2)), [[0]], top_n=(1,), radii=2.0)
+    with pytest.raises(TypeError, match="top_n: expected a sequence"):
+        ev.recall_at_n(np.zeros((1, 2)), np.zeros((1, 2)), [[0]], top_n=1)
+    with pytest.raises(ValueError, match=r"retrieved: expected an array of shape .* ragged"):
+        ev.recall_at_n(np.zeros((2, 2)), np.zeros((3, 2)), [[0, 1], [2]])
+
+
+def test_self_loop_closure_curve_checks_its_frame_arrays_by_name():
+    pos = np.zeros((3, 2))
+    good = dict(floors=[0, 0, 0], sessions=[0, 0, 1], seqs=[0, 1, 0])
+    curve = ev.self_loop_closure_curve([[0, 2]], [0.1], pos, window=0, **good)
+    assert curve.at(1.0)["true_accepted"] == 1
+    for key, bad, err in (
+        ("sessions", [0, 0], ValueError),
+        ("sessions", ["a", "b", "c"], TypeError),
+        ("sessions", [0.5, 0.0, 1.0], TypeError),
+        ("seqs", [0.0, np.nan, 1.0], TypeError),
+        ("floors", [[0, 0, 0]], ValueError),
+    ):
+        with pytest.raises(err, match=f"^{key}: expected"):
+            ev.self_loop_closure_curve([[0, 2]], [0.1], pos, window=0, **{**good, key: bad})
+    for window, err in ((np.nan, TypeError), (-1, ValueError), (1.5, TypeError)):
+        with pytest.raises(err, match="window"):
+            ev.self_loop_closure_curve([[0, 2]], [0.1], pos, window=window, **good)
+
+
+def test_latency_summary_wants_a_mapping():
+    with pytest.raises(TypeError, match="samples_ms: expected a mapping"):
+        ev.latency_summary([1.0, 2.0])

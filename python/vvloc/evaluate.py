@@ -34,7 +34,7 @@ from scipy.spatial import cKDTree
 
 from vvloc._io import atomic_write
 from vvloc.geometry import wrap_angle
-from vvloc.kernels import _positive_float
+from vvloc.kernels import _finite_float, _positive_float, _positive_int
 
 F64Array = npt.NDArray[np.float64]
 I64Array = npt.NDArray[np.int64]
@@ -53,11 +53,53 @@ DEFAULT_COST_THRESHOLD = 0.75
 # ----------------------------------------------------------------------------- validation
 
 
+def _asarray(x: Any, name: str, shape_doc: str) -> npt.NDArray[Any]:
+    """``np.asarray(x)``, a ragged nested sequence refused naming ``name``."""
+    try:
+        return np.asarray(x)
+    except ValueError as e:  # numpy's "inhomogeneous shape after 1 dimensions"
+        raise ValueError(f"{name}: expected an array of shape {shape_doc}, got a ragged one") from e
+
+
+def _real(x: Any, name: str) -> float:
+    """A real number, ±inf allowed, NaN refused (a threshold: ``inf`` accepts everything)."""
+    if isinstance(x, bool) or not isinstance(x, (int, float, np.integer, np.floating)):
+        raise TypeError(f"{name}: expected a real number, got {type(x).__name__}")
+    v = float(x)
+    if np.isnan(v):
+        raise ValueError(f"{name}: expected a number, got nan")
+    return v
+
+
+def _share(x: Any, name: str, closed_above: bool) -> float:
+    """A finite share in (0, 1] (``closed_above``) or (0, 1), named in the error."""
+    v = _finite_float(x, name)
+    if not (0.0 < v <= 1.0 if closed_above else 0.0 < v < 1.0):
+        raise ValueError(
+            f"{name}: expected a value in (0, {'1]' if closed_above else '1)'}, got {v}"
+        )
+    return v
+
+
+def _sequence(x: Any, name: str, what: str) -> list[Any]:
+    """The items of a non-string sequence (``radii=2.0`` refused naming ``name``)."""
+    if isinstance(x, (str, bytes)) or not isinstance(x, (Sequence, np.ndarray)):
+        raise TypeError(f"{name}: expected a sequence of {what}, got {x!r}")
+    return list(np.asarray(x).reshape(-1)) if isinstance(x, np.ndarray) else list(x)
+
+
+def _rank(n: Any, name: str) -> int:
+    """An int rank (1.5 is not Recall@1 or Recall@2)."""
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)):
+        raise TypeError(f"{name}: expected an int rank, got {n!r}")
+    return int(n)
+
+
 def _real_array(x: Any, name: str, shape_doc: str, ndim: int, last: int | None = None) -> F64Array:
     """Return ``x`` as a finite float64 array of ``ndim`` dimensions (last axis ``last``)."""
     if x is None or isinstance(x, (str, bytes)):
         raise TypeError(f"{name}: expected a real array of shape {shape_doc}, got {x!r}")
-    arr = np.asarray(x)
+    arr = _asarray(x, name, shape_doc)
     if arr.dtype == np.bool_ or not (
         np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)
     ):
@@ -74,7 +116,7 @@ def _real_array(x: Any, name: str, shape_doc: str, ndim: int, last: int | None =
 
 def _int_array(x: Any, name: str, shape_doc: str, ndim: int, last: int | None = None) -> I64Array:
     """Return ``x`` as an int64 array of ``ndim`` dimensions (last axis ``last``)."""
-    arr = np.asarray(x)
+    arr = _asarray(x, name, shape_doc)
     if arr.dtype == np.bool_ or not np.issubdtype(arr.dtype, np.integer):
         if not (arr.size == 0 and arr.dtype == np.float64):  # np.asarray([]) is float64
             raise TypeError(f"{name}: expected an integer array {shape_doc}, got dtype {arr.dtype}")
@@ -197,6 +239,7 @@ class RecallResult:
         return int(self.kept.sum())
 
     def _radius_index(self, radius: float) -> int:
+        radius = _positive_float(radius, "radius")
         for i, r in enumerate(self.radii):
             if np.isclose(r, radius):
                 return i
@@ -208,6 +251,7 @@ class RecallResult:
         Excluded queries are False. ``correct(1, 2.0)`` marks the queries whose top-1 is a true
         revisit (the AOE/APE subset).
         """
+        n = _rank(n, "n")
         if not 1 <= n <= self.num_retrieved:
             raise ValueError(f"n: expected 1 <= n <= K = {self.num_retrieved}, got {n}")
         hit = self.first_hit[:, self._radius_index(radius)]
@@ -286,14 +330,13 @@ def recall_at_n(
     if idx.size and (idx.min() < -1 or idx.max() >= num_db):
         raise ValueError(f"retrieved: indices must lie in [-1, {num_db}) (N = {num_db} map frames)")
     floors = _floors(query_floors, db_floors, num_q, num_db)
-    if isinstance(top_n, (str, bytes)) or not all(
-        isinstance(n, (int, np.integer)) and not isinstance(n, bool) for n in top_n
-    ):  # 1.5 read as 1, "15" as (1, 5)
-        raise TypeError(f"top_n: expected a sequence of int ranks, got {top_n!r}")
-    ns = tuple(int(n) for n in top_n)
+    ranks = _sequence(top_n, "top_n", "int ranks")
+    if not all(isinstance(n, (int, np.integer)) and not isinstance(n, bool) for n in ranks):
+        raise TypeError(f"top_n: expected a sequence of int ranks, got {top_n!r}")  # 1.5 as 1
+    ns = tuple(int(n) for n in ranks)
     if not ns or any(not 1 <= n <= k for n in ns):
-        raise ValueError(f"top_n: expected ranks in 1..K = {k}, got {tuple(top_n)}")
-    rs = tuple(_positive_float(r, "radii") for r in radii)
+        raise ValueError(f"top_n: expected ranks in 1..K = {k}, got {ns}")
+    rs = tuple(_positive_float(r, "radii") for r in _sequence(radii, "radii", "radii (m)"))
     if not rs:
         raise ValueError("radii: expected at least one radius")
     elig = _positive_float(eligibility_radius, "eligibility_radius")
@@ -387,12 +430,17 @@ def error_percentiles(
     float64, ``nan`` for an empty sample.
     """
     e = _real_array(errors, "errors", "(n,)", 1)
-    p = np.asarray(percentiles, dtype=np.float64)
-    if p.ndim != 1 or ((p < 0) | (p > 100)).any():
-        raise ValueError(f"percentiles: expected values in [0, 100], got {percentiles}")
+    items = _sequence(percentiles, "percentiles", "percentages in [0, 100]")
+    p = np.array([_finite_float(v, "percentiles") for v in items], dtype=np.float64)
+    if ((p < 0) | (p > 100)).any():
+        raise ValueError(f"percentiles: expected values in [0, 100], got {p.tolist()}")
     if e.size == 0:
         return np.full(p.shape, np.nan)
-    return np.asarray(np.percentile(e, p, method="inverted_cdf"), dtype=np.float64)
+    # the k-th smallest, k = ceil(n p / 100): taken in n p / 100 order and rounded to 1e-9, so
+    # that float noise never moves k up one sample (numpy's inverted_cdf rounds p / 100 first:
+    # p = 7 of 100 samples took the 8th); k >= 1 (p = 0: the smallest)
+    k = np.maximum(np.ceil(np.round(e.size * p / 100.0, 9)).astype(np.int64), 1)
+    return np.sort(e)[k - 1]
 
 
 def _aoe_ape(yaw_deg: F64Array, pos_m: F64Array, percentiles: Sequence[float]) -> dict[str, Any]:
@@ -509,12 +557,12 @@ class LoopClosureCurve:
         accepted true pair / :attr:`num_positive_queries`; F1 = 2PR/(P+R) (0 when P = R = 0);
         CFER = accepted pairs joining different floors / accepted pairs. Undefined → ``nan``.
         """
-        t = float(threshold)
+        t = _real(threshold, "threshold")
         k = int(np.searchsorted(self.distances, t, side="left" if strict else "right"))
         tp = int(self.is_true[:k].sum())
         precision = _ratio(tp, k)
-        first = self.query_first_true
-        found = (first < t) if strict else (first <= t)
+        first = self.query_first_true  # inf: no true candidate, found at no threshold
+        found = np.isfinite(first) & ((first < t) if strict else (first <= t))
         recall = _ratio(found.sum(), self.num_positive_queries)
         cfer = _ratio(self.is_cross_floor[:k].sum(), k) if self.has_floors else float("nan")
         return {
@@ -579,9 +627,7 @@ class LoopClosureCurve:
         compares detectors whose descriptor distances have different scales (a fixed radius
         does not). When no threshold reaches it among the evaluated pairs, every figure is
         ``nan`` (counts 0). ``sweep``: this curve's :meth:`sweep`, when the caller has it."""
-        r = float(recall)
-        if not 0.0 < r <= 1.0:
-            raise ValueError(f"recall: expected a share in (0, 1], got {recall}")
+        r = _share(recall, "recall", closed_above=True)
         s = self.sweep() if sweep is None else sweep
         reached = np.flatnonzero(s["recall"] >= r)
         point = self.at(float(s["threshold"][reached[0]])) if reached.size else _undefined_point()
@@ -718,8 +764,8 @@ def loop_closure_curve(
         if qt.shape[0] != num_q or dt.shape[0] != num_db:
             raise ValueError("query_times, db_times: expected shapes (Q,) and (N,)")
         times = (qt, dt)
-    window = float(time_window)
-    if not np.isfinite(window) or window < 0:
+    window = _finite_float(time_window, "time_window")
+    if window < 0:
         raise ValueError(f"time_window: expected a finite value >= 0, got {time_window}")
     rad = _positive_float(radius, "radius")
     if symmetric and (causal or num_q != num_db):
@@ -801,9 +847,17 @@ def self_loop_closure_curve(
     and ``seqs`` (N,) integers. Pairs of one session within ``window`` sequence numbers are
     temporal neighbours (not admissible); pairs of two sessions always are admissible. Each
     pair is listed once; a true pair detects both of its frames (``symmetric``)."""
-    seq = np.asarray(seqs, dtype=np.float64)
-    span = float(np.abs(seq).max(initial=0.0)) + float(window) + 1.0
-    times = seq + 2.0 * span * np.asarray(sessions, dtype=np.float64)  # sessions never overlap
+    n = _real_array(positions, "positions", "(N, 2)", 2, 2).shape[0]
+    arrays = {}
+    for name, x in (("floors", floors), ("sessions", sessions), ("seqs", seqs)):
+        arrays[name] = _int_array(x, name, f"({n},)", 1)
+        if arrays[name].shape != (n,):
+            raise ValueError(f"{name}: expected shape ({n},), got {arrays[name].shape}")
+    w = _positive_int(window, "window", minimum=0)
+    # sessions never overlap; exact in float64 while the spans stay below 2**53
+    seq, ses = arrays["seqs"].astype(np.float64), arrays["sessions"].astype(np.float64)
+    span = float(np.abs(seq).max(initial=0.0)) + float(w) + 1.0
+    times = seq + 2.0 * span * ses
     return loop_closure_curve(
         pairs,
         distances,
@@ -813,7 +867,7 @@ def self_loop_closure_curve(
         db_floors=floors,
         query_times=times,
         db_times=times,
-        time_window=window,
+        time_window=w,
         symmetric=True,
         radius=radius,
     )
@@ -857,8 +911,7 @@ def cross_floor_events(
     if pr.size and (pr.min() < 0 or pr.max() >= n):
         raise ValueError(f"pairs: expected indices in [0, {n}), got values outside it")
     cell = _positive_float(cell, "cell")
-    if not 0.0 < confidence < 1.0:
-        raise ValueError(f"confidence: expected a value in (0, 1), got {confidence}")
+    confidence = _share(confidence, "confidence", closed_above=False)
     a, b = pr[:, 0], pr[:, 1]
     grid = np.floor(pos[a] / cell).astype(np.int64)
     keys = np.stack(
@@ -949,9 +1002,10 @@ def loop_pose_metrics(
         c = _real_array(costs, "costs", f"({n},)", 1)
         if c.shape[0] != n:
             raise ValueError(f"costs: expected shape ({n},), got {c.shape}")
-        keep = c < float(cost_threshold)
+        threshold = _real(cost_threshold, "cost_threshold")
+        keep = c < threshold
         row = _loop_pose_row(rre[keep], rte[keep], floor_ok[keep], n, rot_t, trans_t)
-        out["confident"] = row | {"cost_threshold": float(cost_threshold)}
+        out["confident"] = row | {"cost_threshold": threshold}
     return out
 
 
@@ -1056,9 +1110,7 @@ def calibrate_acceptance(
     """
     sc = _real_array(score, "score", "(Q,)", 1)
     ok = _bool_array(correct, "correct", sc.shape[0])
-    tp = float(target_precision)
-    if not 0.0 < tp <= 1.0:
-        raise ValueError(f"target_precision: expected a value in (0, 1], got {target_precision!r}")
+    tp = _share(target_precision, "target_precision", closed_above=True)
     if isinstance(min_accepted, bool) or not isinstance(min_accepted, (int, np.integer)):
         raise TypeError(f"min_accepted: expected an int, got {type(min_accepted).__name__}")
     if min_accepted < 1:
@@ -1101,6 +1153,11 @@ def latency_summary(samples_ms: Mapping[str, npt.ArrayLike]) -> dict[str, dict[s
     ``"metric"``) to its ``(n,)`` samples. Returns ``{stage: {"count", "mean_ms", "median_ms",
     "p95_ms"}}`` in the given order (p95 by the inverted CDF, see :func:`error_percentiles`).
     """
+    if not isinstance(samples_ms, Mapping):
+        raise TypeError(
+            f"samples_ms: expected a mapping of stage name to samples, got "
+            f"{type(samples_ms).__name__}"
+        )
     out: dict[str, dict[str, Any]] = {}
     for stage, samples in samples_ms.items():
         s = _real_array(samples, f"samples_ms[{stage!r}]", "(n,)", 1)
