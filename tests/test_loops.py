@@ -204,6 +204,21 @@ def test_bad_arguments_name_the_argument():
     assert (none.i.tolist(), none.j.tolist()) == ([0], [len(g)])
     with pytest.raises(TypeError, match="window: expected an int >= 0, got float"):
         sweep_radius(g, sessions, seqs, 10, window=1.7)  # type: ignore[arg-type]
+    # session and sequence ids are ints, one per row (0.2 and 0.7 were cut into one session)
+    for find in (
+        lambda s, q: descriptor_loop_candidates(g, s, q),
+        lambda s, q: sweep_radius(g, s, q, 10),
+    ):
+        with pytest.raises(TypeError, match="sessions: expected an integer array"):
+            find(sessions + 0.2, seqs)
+        with pytest.raises(TypeError, match="sessions: expected an integer array"):
+            find(np.array(["a"] * len(g)), seqs)
+        with pytest.raises(TypeError, match="seqs: expected an integer array"):
+            find(sessions, seqs * 1.0)
+        with pytest.raises(ValueError, match=rf"sessions: expected shape \({len(g)},\), one per"):
+            find(sessions[:-1], seqs[:-1])
+        with pytest.raises(ValueError, match=rf"seqs: expected shape \({len(g)},\)"):
+            find(sessions, seqs[:-1])
 
 
 def random_drives(n: int, sessions: int = 3, d: int = 16, seed: int = 0):

@@ -311,6 +311,24 @@ def test_from_arrays_validates(change: dict[str, Any], exc: type, match: str) ->
         MapDatabase.from_arrays(**args)
 
 
+def test_from_arrays_keeps_copies_of_its_own() -> None:
+    # it once froze the caller's arrays (writeable=False) and saw their later edits, past the
+    # finite and unit-norm checks
+    kf = keyframes()
+    kept = {k: np.array(v, copy=True) for k, v in kf.items() if isinstance(v, np.ndarray)}
+    db = MapDatabase.from_arrays(**kf, model_config=CONFIG, grid_size=0.3)
+    for key, arr in kf.items():
+        if isinstance(arr, np.ndarray):
+            assert arr.flags.writeable, key
+            arr[...] = 0 if arr.dtype.kind in "iu" else np.nan
+    np.testing.assert_array_equal(db.poses, kept["poses"])
+    np.testing.assert_array_equal(db.global_descriptors, kept["global_descriptors"])
+    np.testing.assert_array_equal(db.local_descriptors(0), kept["local_descriptors"][0])
+    np.testing.assert_array_equal(db.bev(0), as_stored(kept["bevs"][0], "float16"))
+    np.testing.assert_array_equal(db.ids, kept["ids"])
+    np.testing.assert_array_equal(db.floors, kept["floors"])
+
+
 def test_float16_overflow_and_bad_dtype_are_refused(tmp_path: Path) -> None:
     kf = keyframes(bev=False)
     kf["local_descriptors"] = kf["local_descriptors"] * 1e6

@@ -428,6 +428,18 @@ def test_frames_of_other_shapes_localize_in_one_call_as_alone(tiny_world, map_fi
         np.testing.assert_allclose(single.relative_pose, r.relative_pose, atol=1e-5)
     with pytest.raises(ValueError, match=r"frames\[1\]: images \(3, 3, .*frames\[0\] \(4, 3"):
         frames_to_tensors([f, three], torch.device("cpu"))
+    # uint8 (0-255) and float ([0, 1]) frames: each in a batch of its own kind (stacked, the
+    # uint8 one read 255 times too bright)
+    scaled = dataclasses.replace(f, images=f.images.astype(np.float32) / 255.0)
+    for frames in ([f, scaled], [scaled, f, f]):
+        for frame, r in zip(frames, loc.localize_batch(frames), strict=True):
+            single = loc.localize(frame)
+            assert single.map_row == r.map_row and abs(single.cost - r.cost) < 1e-6
+            np.testing.assert_allclose(single.relative_pose, r.relative_pose, atol=1e-5)
+    with pytest.raises(
+        ValueError, match=r"frames\[1\]: images of dtype float32, frames\[0\] uint8"
+    ):
+        frames_to_tensors([f, scaled], torch.device("cpu"))
 
 
 def test_loop_candidates_exclude_temporal_neighbours(map_file):
@@ -1063,6 +1075,15 @@ def test_calibration_of_results_scores_the_reported_keyframe_under_the_cost_rule
         calibration_of_results(res, q[:3], **kw)
     with pytest.raises(ValueError, match="no query has a map keyframe within 2 m"):
         calibration_of_results(res, q + np.array([50.0, 0, 0]), **kw)  # another world
+    # poses of the wrong width are refused by name (a (N, 2) array was regrouped into threes)
+    from vvloc.localize.calibrate import check_revisits
+
+    with pytest.raises(ValueError, match=r"db_poses: expected shape \(N, 3\), got \(3, 2\)"):
+        check_revisits(db[:3], None, np.array([[50.0, 0], [0, 60], [0, 0]]), None)
+    with pytest.raises(ValueError, match=r"db_poses: expected shape \(N, 3\), got \(4, 2\)"):
+        calibration_of_results(res, q, **{**kw, "db_poses": db[:, :2]})
+    with pytest.raises(ValueError, match=r"query_poses: expected shape \(5, 3\), got \(5, 2\)"):
+        calibration_of_results(res, q[:, :2], **kw)
 
 
 def test_calibrate_localizer_refuses_queries_far_from_the_map_before_localizing_them():

@@ -2108,8 +2108,9 @@ class Trainer:
         """Turn running out of memory in an epoch (torch's CUDA ``OutOfMemoryError``, its CPU
         allocator's ``RuntimeError``, a ``MemoryError``, a data worker killed by SIGKILL as the
         kernel's out-of-memory killer does) into a ``MemoryError`` naming the config key of the
-        epoch's batch size and what the run folder keeps. Nothing of the epoch has been saved then: ``--resume`` continues after the
-        last finished epoch (with the same batch sizes: a smaller one is a new run)."""
+        epoch's batch size and what the run folder keeps. Nothing of the epoch has been saved
+        then: ``--resume`` continues after the last finished epoch (with the same batch sizes:
+        a smaller one is a new run)."""
         try:
             yield
         except (MemoryError, RuntimeError) as e:

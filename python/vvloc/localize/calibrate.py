@@ -178,8 +178,8 @@ def check_revisits(
         query_poses: ``(Q, 3)`` world poses (x, y m; yaw rad); ``query_floors`` ``(Q,)``.
         db_poses: ``(N, 3)`` the map keyframes' world poses; ``db_floors`` ``(N,)``.
     """
-    q = np.asarray(query_poses, dtype=np.float64).reshape(-1, 3)
-    d = np.asarray(db_poses, dtype=np.float64).reshape(-1, 3)
+    q = evaluate._real_array(query_poses, "query_poses", "(Q, 3)", 2, 3)
+    d = evaluate._real_array(db_poses, "db_poses", "(N, 3)", 2, 3)
     nearest = evaluate.nearest_map_distance(q[:, :2], d[:, :2], query_floors, db_floors)
     if not (nearest <= 2.0).any():
         raise ValueError(
@@ -220,15 +220,16 @@ def calibration_of_results(
     """
     if not results:
         raise ValueError("results: expected at least one localization result")
-    q_pose = np.asarray(query_poses, dtype=np.float64)
+    q_pose = evaluate._real_array(query_poses, "query_poses", f"({len(results)}, 3)", 2, 3)
     if q_pose.shape != (len(results), 3):
         raise ValueError(f"query_poses: expected shape ({len(results)}, 3), got {q_pose.shape}")
+    m_pose = evaluate._real_array(db_poses, "db_poses", "(N, 3)", 2, 3)
     top1 = np.array([[r.reranked[0] if len(r.reranked) else -1] for r in results], np.int64)
     if np.any(top1 < 0):
         raise ValueError("results: a result without candidates (an empty map?)")
     rec = evaluate.recall_at_n(
         q_pose[:, :2],
-        np.asarray(db_poses, dtype=np.float64)[:, :2],
+        m_pose[:, :2],
         top1,
         query_floors=query_floors,
         db_floors=db_floors,

@@ -94,8 +94,9 @@ def frames_to_tensors(
     frames: Sequence[Frame], device: torch.device
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Stack frames into model inputs: images (B, M, 3, H, W) uint8, K (B, M, 3, 3) float32,
-    cam_to_ego (B, M, 4, 4) float32, on ``device``. The frames must share one image shape
-    (``ValueError`` naming the first that does not)."""
+    cam_to_ego (B, M, 4, 4) float32, on ``device``. The frames must share one image shape and
+    dtype (``ValueError`` naming the first that does not: stacked with a float frame, a uint8
+    one would keep its 0-255 values on the [0, 1] scale)."""
     if not frames:
         raise ValueError("frames: expected at least one frame")
     for i, f in enumerate(frames):
@@ -103,6 +104,11 @@ def frames_to_tensors(
             raise ValueError(
                 f"frames[{i}]: images {f.images.shape}, frames[0] {frames[0].images.shape}: "
                 "frames stacked into one batch must share camera count and image size"
+            )
+        if f.images.dtype != frames[0].images.dtype:
+            raise ValueError(
+                f"frames[{i}]: images of dtype {f.images.dtype}, frames[0] "
+                f"{frames[0].images.dtype}: frames stacked into one batch must share the dtype"
             )
     images = torch.from_numpy(np.stack([f.images for f in frames])).to(device)
     k = torch.from_numpy(np.stack([f.K for f in frames]).astype(np.float32)).to(device)
@@ -176,8 +182,8 @@ def encode_frames(
     total: int | None = None,
 ) -> Encoded:
     """Encode frames in batches of up to ``batch_size`` (eval mode, no gradients); see
-    :class:`Encoded`. A frame whose images differ in shape (camera count, image size) from the
-    batch's begins a new batch."""
+    :class:`Encoded`. A frame whose images differ in shape (camera count, image size) or dtype
+    (uint8 0-255 or float [0, 1]) from the batch's begins a new batch."""
     model.eval()
     device = model_device(model)
     g_all: list[F32] = []
@@ -194,8 +200,10 @@ def encode_frames(
         batch.clear()
 
     for f in tqdm(frames, desc="encode", total=total, disable=not progress, leave=False):
-        if batch and f.images.shape != batch[0].images.shape:
-            flush()  # frames of another rig or image size stack only with their own kind
+        if batch and (
+            f.images.shape != batch[0].images.shape or f.images.dtype != batch[0].images.dtype
+        ):
+            flush()  # frames of another rig, image size or scale stack only with their own kind
         batch.append(f)
         if len(batch) == batch_size:
             flush()

@@ -158,6 +158,24 @@ def _radius_and_window(radius: Any, window: Any) -> tuple[float, int]:
     return _positive_float(radius, "radius"), _positive_int(window, "window", minimum=0)
 
 
+def _sessions_and_seqs(
+    descriptors: Any, sessions: Any, seqs: Any
+) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]:
+    """``sessions`` and ``seqs`` as (N,) int64, one per row of ``descriptors`` (N, D): a
+    ``TypeError``/``ValueError`` naming the argument otherwise (float session ids were cut to
+    ints, 0.2 and 0.7 into one session)."""
+    sess = _int_array(sessions, "sessions", "(N,)", 1)
+    seq = _int_array(seqs, "seqs", "(N,)", 1)
+    shape = np.shape(descriptors)
+    n = int(shape[0]) if len(shape) == 2 else len(sess)
+    for name, arr in (("sessions", sess), ("seqs", seq)):
+        if arr.shape != (n,):
+            raise ValueError(
+                f"{name}: expected shape ({n},), one per descriptor row, got {arr.shape}"
+            )
+    return sess, seq
+
+
 def descriptor_loop_candidates(
     descriptors: np.ndarray,
     sessions: np.ndarray,
@@ -173,8 +191,7 @@ def descriptor_loop_candidates(
     ``radius``."""
     radius, window = _radius_and_window(radius, window)
     sequence = _positive_int(sequence, "sequence", minimum=0)
-    groups = np.asarray(sessions, dtype=np.int64)
-    seq = np.asarray(seqs, dtype=np.int64)
+    groups, seq = _sessions_and_seqs(descriptors, sessions, seqs)
     index = DescriptorIndex(descriptors, groups=groups, seqs=seq)
     offsets, idx, dist = index.radius(
         descriptors, _index_radius(radius), exclude=Exclusion(groups, seq, window=window)
@@ -474,8 +491,7 @@ def sweep_radius(
     sample = _positive_int(sample, "sample")
     r_max = _positive_float(r_max, "r_max")
     window = _positive_int(window, "window", minimum=0)
-    groups = np.asarray(sessions, dtype=np.int64)
-    seq = np.asarray(seqs, dtype=np.int64)
+    groups, seq = _sessions_and_seqs(descriptors, sessions, seqs)
     n = len(groups)
     if n == 0:
         return r_max

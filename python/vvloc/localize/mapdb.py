@@ -258,7 +258,8 @@ def _float_array(
     if not np.isfinite(arr).all():
         raise ValueError(f"{name}: contains non-finite values (NaN or inf)")
     with np.errstate(over="ignore"):  # overflow is detected just below
-        out = np.ascontiguousarray(arr, dtype=dtype)
+        # a copy of its own: the map neither freezes the caller's array nor sees later edits
+        out = np.array(arr, dtype=dtype, order="C", copy=True)
     if not np.isfinite(out).all():
         raise ValueError(f"{name}: values overflow {np.dtype(dtype).name} (|x| too large)")
     return out
@@ -274,7 +275,7 @@ def _int_array(x: Any, name: str, rows: int) -> np.ndarray:
         raise ValueError(f"{name}: expected shape ({rows},), got shape {arr.shape}")
     if arr.dtype.kind == "u" and arr.size and arr.max() > np.iinfo(np.int64).max:
         raise ValueError(f"{name}: values exceed the int64 range")
-    return np.ascontiguousarray(arr, dtype=np.int64)
+    return np.array(arr, dtype=np.int64, order="C", copy=True)  # the map's own copy
 
 
 def _check_dtype(dtype: Any) -> DescriptorDType:
