@@ -587,6 +587,28 @@ def write_version_1(src: Path, dst: Path) -> None:
         g.attrs["format_version"] = 1
 
 
+def test_foreign_attribute_values_are_a_corrupted_map(tmp_path: Path) -> None:
+    # an inf version (int() overflows) and a v1 map's scalar session_names (no .tolist()) once
+    # escaped as OverflowError / AttributeError
+    path = saved(tmp_path)
+    edit(path, lambda f: f.attrs.__setitem__("format_version", np.float64(np.inf)))
+    with pytest.raises(MapError, match=r"map\.h5: "):
+        MapDatabase.open(path)
+    old = tmp_path / "old.h5"
+    (tmp_path / "v1").mkdir()
+    write_version_1(saved(tmp_path / "v1"), old)
+
+    def scalar_names(f: h5py.File) -> None:
+        digest = f["session_names"].attrs["sha256"]
+        del f["session_names"]
+        f.create_dataset("session_names", data="s0", dtype=h5py.string_dtype("utf-8"))
+        f["session_names"].attrs["sha256"] = digest
+
+    edit(old, scalar_names)
+    with pytest.raises(MapError, match=r"old\.h5: "):
+        MapDatabase.open(old)
+
+
 def test_format_1_maps_are_still_read(tmp_path: Path) -> None:
     path = full_map(tmp_path)
     old = tmp_path / "old.h5"

@@ -1056,7 +1056,16 @@ class MapDatabase:
         except MapError:
             h5.close()
             raise
-        except (OSError, KeyError, ValueError, TypeError, RuntimeError) as e:
+        except (
+            OSError,
+            KeyError,
+            ValueError,
+            TypeError,
+            RuntimeError,
+            ArithmeticError,  # e.g. int() of an inf attribute
+            AttributeError,  # e.g. a scalar dataset where an array belongs
+            IndexError,
+        ) as e:
             h5.close()
             raise MapError(f"{p}: corrupted map: {type(e).__name__}: {e}") from e
         except BaseException:
