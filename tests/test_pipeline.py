@@ -416,6 +416,47 @@ def test_localize_poses_are_consistent_and_batch_equals_single(tiny_world, map_f
         assert r.accepted == (r.cost < 0.75)
 
 
+def test_the_stage_methods_check_their_arguments_as_localize_encoded_does(
+    tiny_world, map_file, model_dir
+):
+    loc = Localizer.open(map_file, model_dir, top_k=3, search=SMALL_SEARCH)
+    frame = open_dataset(tiny_world).session("s1")[2]
+    enc = encode_frames(loc.model, [frame], keep_bev=True)
+    assert enc.bev is not None
+    g, local, bev = enc.global_desc[0], enc.local_desc[0], enc.bev[0]
+    rows, _ = loc.retrieve(g)
+    r = loc.localize_encoded(g, local, bev)
+    # the stages give what localize_encoded gives, float64 inputs as float32
+    assert np.array_equal(loc.retrieve(g.astype(np.float64))[0], rows)
+    rr = loc.rerank(local.astype(np.float64), rows)
+    assert np.array_equal(rr.cost, loc.rerank(local, list(rows)).cost)
+    xi, cost, _ = loc.metric(bev, int(r.metric_row))
+    assert np.isfinite(cost) and xi.shape == (3,)
+    assert loc.snap_row(r.global_pose, r.reranked, int(loc.map.floors[r.metric_row])) >= 0
+    n = len(loc.map)
+    for call, err, match in (
+        (lambda: loc.retrieve(g[:-1]), ValueError, r"global_desc: expected shape"),
+        (lambda: loc.retrieve(g * 2), ValueError, r"global_desc: .*unit"),
+        (lambda: loc.rerank(local[:, :-1], rows), ValueError, r"local_desc: expected shape"),
+        (lambda: loc.rerank(local, [-1]), ValueError, rf"rows: expected map rows in \[0, {n}\)"),
+        (lambda: loc.rerank(local, [0.5]), TypeError, r"rows: expected an integer array"),
+        (lambda: loc.rerank(local, []), ValueError, r"rows: expected at least one map row"),
+        (lambda: loc.metric(bev, 1.7), TypeError, r"row: expected an int"),
+        (lambda: loc.metric(bev, True), TypeError, r"row: expected an int"),
+        (lambda: loc.metric(bev, n), ValueError, rf"row: expected an int <= {n - 1}"),
+        (lambda: loc.metric(bev[:5], 0), ValueError, r"bev: expected shape"),
+        (lambda: loc.metric(bev * 1e30, 0), ValueError, r"bev: values up to"),
+        (lambda: loc.metric_best(bev, [0, 1], bias=["a"]), TypeError, r"bias: expected a real"),
+        (lambda: loc.metric_best(bev, [0, 1], bias=[0.0]), ValueError, r"bias: expected shape"),
+        (lambda: loc.snap_row(r.global_pose[:1], rows, 0), ValueError, r"global_pose: expected"),
+        (lambda: loc.snap_row([np.nan, 0, 0], rows, 0), ValueError, r"global_pose: .*non-finite"),
+        (lambda: loc.snap_row(r.global_pose, [-1], 0), ValueError, r"rows: expected map rows"),
+        (lambda: loc.snap_row(r.global_pose, rows, 0.5), TypeError, r"floor: expected an int"),
+    ):
+        with pytest.raises(err, match=match):
+            call()
+
+
 def test_frames_of_other_shapes_localize_in_one_call_as_alone(tiny_world, map_file, model_dir):
     loc = Localizer.open(map_file, model_dir, top_k=3, search=SMALL_SEARCH)
     f = open_dataset(tiny_world).session("s1")[2]

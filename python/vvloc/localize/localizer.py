@@ -45,7 +45,7 @@ import numpy.typing as npt
 import torch
 from tqdm import tqdm
 
-from vvloc import geometry, kernels
+from vvloc import evaluate, geometry, kernels
 from vvloc.checkpoints import checkpoint_folder
 from vvloc.data import Camera, Dataset, Frame
 from vvloc.data.frame import PINHOLE, RIGID, is_pinhole, is_rigid, stack_calibration
@@ -687,17 +687,70 @@ class Localizer:
 
     # --- stages --------------------------------------------------------------------------
 
+    # --- stages -------------------------------------------------------------------------
+    # Each public stage checks its arguments as localize_encoded does (ValueError/TypeError
+    # naming them); localize_encoded checks once and calls the private ones.
+
+    def _encoded_shape(self, name: str) -> tuple[int, ...]:
+        """The shape of an encoded query's ``g``/``global_desc``, ``loc``/``local_desc`` or
+        ``bev``, from the map and the model."""
+        cfg = self.model.config
+        if name in ("g", "global_desc"):
+            return (int(self.map.global_descriptors.shape[1]),)
+        if name in ("loc", "local_desc"):
+            return tuple(int(v) for v in self.map.local_shape)
+        return (int(cfg.bev_height), int(cfg.bev_width), int(cfg.channels))
+
+    def _encoded(self, name: str, arr: Any) -> F32:
+        """An encoded query's ``g`` (Dg,), ``loc`` (T, C) or ``bev`` (H, W, C) as float32 of
+        the map's sizes, finite, within ±:data:`MAX_ENCODED` (``g``: unit length), named in the
+        error otherwise."""
+        want = self._encoded_shape(name)
+        shape = tuple(np.shape(arr))
+        if shape != want:
+            raise ValueError(f"{name}: expected shape {want}, got {shape}")
+        # float32 for the networks and kernels (a float64 loc reached the interactor as double)
+        out = kernels._as_f32(arr, name)  # finite
+        top = max(float(out.max(initial=0.0)), -float(out.min(initial=0.0)))  # no copy
+        if top > MAX_ENCODED:
+            raise ValueError(
+                f"{name}: values up to {top:.3g}, beyond ±{MAX_ENCODED:g}: not the outputs of "
+                "the encoder (its global descriptors are L2-normalised, its local-view "
+                "descriptors and BEVs of order 1), and float32 sums of their products overflow"
+            )
+        if name in ("g", "global_desc"):
+            check_unit_rows(out, name)
+        return out
+
+    def _rows(self, rows: Any, name: str = "rows") -> npt.NDArray[np.int64]:
+        """Map rows (K,), K >= 1, each in [0, len(map)), named in the error otherwise (-1 is
+        not the last row)."""
+        arr = evaluate._int_array(rows, name, "(K,)", 1)
+        n = len(self.map)
+        if arr.size == 0:
+            raise ValueError(f"{name}: expected at least one map row")
+        if arr.min() < 0 or arr.max() >= n:
+            raise ValueError(f"{name}: expected map rows in [0, {n}), got {arr.tolist()!r:.80}")
+        return arr
+
     def retrieve(self, global_desc: F32) -> tuple[npt.NDArray[np.int64], F32]:
-        """Top-K map rows (K,) and distances (K,) of one global descriptor (Dg,)."""
+        """Top-K map rows (K,) and distances (K,) of one global descriptor (Dg,) (float32,
+        unit length, as the encoder gives)."""
+        return self._retrieve(self._encoded("global_desc", global_desc))
+
+    def _retrieve(self, global_desc: F32) -> tuple[npt.NDArray[np.int64], F32]:
         idx, dist = self.index.topk(global_desc[None], min(self.top_k, max(len(self.map), 1)))
         keep = idx[0] >= 0
         return idx[0][keep], dist[0][keep]
 
-    @torch.no_grad()
     def rerank(self, local_desc: F32, rows: npt.NDArray[np.int64]) -> kernels.Rerank:
-        """Re-rank candidate rows by the yaw matching cost between the query's local-view
-        descriptor (T, C) and each candidate's, without padding (interactor batched over the
-        candidates, exact yaw minimum in Rust)."""
+        """Re-rank candidate map ``rows`` (K,) by the yaw matching cost between the query's
+        local-view descriptor (T, C) and each candidate's, without padding (interactor batched
+        over the candidates, exact yaw minimum in Rust)."""
+        return self._rerank(self._encoded("local_desc", local_desc), self._rows(rows))
+
+    @torch.no_grad()
+    def _rerank(self, local_desc: F32, rows: npt.NDArray[np.int64]) -> kernels.Rerank:
         if self.decoder == "radial_mean":
             src = np.broadcast_to(local_desc, (len(rows), *local_desc.shape))
             return kernels.rerank(src, self.map.local_descriptors(rows))
@@ -706,9 +759,11 @@ class Localizer:
         return rerank_learned(self.model, torch.from_numpy(local_desc).to(device), tgt)
 
     def metric(self, bev: F32, row: int) -> tuple[npt.NDArray[np.float64], float, Any]:
-        """Metric localization of a query BEV (H, W, C) against map row ``row``: returns
-        (ξ_{m→q} (3,), cost, search history)."""
-        _, xi_mq, cost, history, _ = self.metric_best(bev, np.array([row], dtype=np.int64))
+        """Metric localization of a query BEV (H, W, C) against map row ``row`` (an int):
+        returns (ξ_{m→q} (3,), cost, search history)."""
+        row = kernels._positive_int(row, "row", minimum=0, maximum=max(len(self.map) - 1, 0))
+        rows = self._rows(np.array([row], dtype=np.int64), "row")
+        _, xi_mq, cost, history, _ = self._metric_best(self._encoded("bev", bev), rows)
         return xi_mq, cost, history
 
     def metric_best(
@@ -719,6 +774,16 @@ class Localizer:
         row's coarse cost offset by ``bias`` (M,) (None: zeros): returns (index into ``rows``,
         ξ_{m→q} (3,), cost, search history, each row's score (M,): coarse-stage cost + bias,
         the chosen row the first of the lowest)."""
+        rows = self._rows(rows)
+        if bias is not None:
+            bias = evaluate._real_array(bias, "bias", f"({len(rows)},)", 1)
+            if bias.shape != rows.shape:
+                raise ValueError(f"bias: expected shape {rows.shape}, got {bias.shape}")
+        return self._metric_best(self._encoded("bev", bev), rows, bias)
+
+    def _metric_best(
+        self, bev: F32, rows: npt.NDArray[np.int64], bias: npt.ArrayLike | None = None
+    ) -> tuple[int, npt.NDArray[np.float64], float, Any, npt.NDArray[np.float64]]:
         tgts = self.map.local_descriptors(np.asarray(rows, dtype=np.int64))
         decode: Callable[[F32], Any]
         interact: Callable[[Any, int], tuple[Any, Any]] | None
@@ -749,7 +814,12 @@ class Localizer:
     def snap_row(self, global_pose: npt.ArrayLike, rows: npt.NDArray[np.int64], floor: int) -> int:
         """The row among ``rows`` (K,) nearest in x-y (metres, world frame) to ``global_pose``
         (x, y, yaw) on ``floor`` (the first on ties; -1 when none is on that floor)."""
-        rows = np.asarray(rows, dtype=np.int64)
+        pose = evaluate._real_array(global_pose, "global_pose", "(3,)", 1, 3)
+        if isinstance(floor, bool) or not isinstance(floor, (int, np.integer)):
+            raise TypeError(f"floor: expected an int, got {type(floor).__name__}")
+        return self._snap_row(pose, self._rows(rows), int(floor))
+
+    def _snap_row(self, global_pose: npt.ArrayLike, rows: npt.NDArray[np.int64], floor: int) -> int:
         on_floor = rows[self.map.floors[rows] == floor]
         if len(on_floor) == 0:
             return -1
@@ -828,27 +898,11 @@ class Localizer:
         loc (T, C), BEV (H, W, C) (e.g. encoded in a batch on a GPU elsewhere), float32, of
         the map's sizes, finite and within ±:data:`MAX_ENCODED` (``ValueError`` naming the
         argument otherwise)."""
-        cfg = self.model.config
-        want = {
-            "g": (int(self.map.global_descriptors.shape[1]),),
-            "loc": tuple(int(v) for v in self.map.local_shape),
-            "bev": (int(cfg.bev_height), int(cfg.bev_width), int(cfg.channels)),
-        }
-        for name, arr in (("g", g), ("loc", loc), ("bev", bev)):
-            shape = tuple(np.shape(arr))
-            if shape != want[name]:
-                raise ValueError(f"{name}: expected shape {want[name]}, got {shape}")
-        # float32 for the networks and kernels (a float64 loc reached the interactor as double)
-        g, loc, bev = (kernels._as_f32(a, n) for a, n in ((g, "g"), (loc, "loc"), (bev, "bev")))
-        for name, arr in (("g", g), ("loc", loc), ("bev", bev)):  # finite: _as_f32 checks
-            top = max(float(arr.max(initial=0.0)), -float(arr.min(initial=0.0)))  # no copy
-            if top > MAX_ENCODED:
-                raise ValueError(
-                    f"{name}: values up to {top:.3g}, beyond ±{MAX_ENCODED:g}: not the outputs of "
-                    "the encoder (its global descriptors are L2-normalised, its local-view "
-                    "descriptors and BEVs of order 1), and float32 sums of their products overflow"
-                )
-        check_unit_rows(g, "g")
+        for name, arr in (("g", g), ("loc", loc), ("bev", bev)):  # shapes first, all three
+            want = self._encoded_shape(name)
+            if tuple(np.shape(arr)) != want:
+                raise ValueError(f"{name}: expected shape {want}, got {tuple(np.shape(arr))}")
+        g, loc, bev = self._encoded("g", g), self._encoded("loc", loc), self._encoded("bev", bev)
         if (
             isinstance(t_encode_ms, (bool, np.bool_))
             or not isinstance(t_encode_ms, (int, float, np.number))
@@ -857,7 +911,7 @@ class Localizer:
             raise ValueError(f"t_encode_ms: expected a finite time >= 0 (ms), got {t_encode_ms!r}")
         timings = {"encode": float(t_encode_ms)}
         t0 = time.perf_counter()
-        rows, dist = self.retrieve(g)
+        rows, dist = self._retrieve(g)
         timings["retrieve"] = (time.perf_counter() - t0) * 1e3
         if len(rows) == 0:
             nan3 = np.full(3, np.nan)
@@ -878,7 +932,7 @@ class Localizer:
             )
         t0 = time.perf_counter()
         if self.rerank_enabled:
-            rr = self.rerank(loc, rows)
+            rr = self._rerank(loc, rows)
             perm = rr.order  # reranked = rows[perm]
             rerank_cost = rr.cost[perm]
         else:
@@ -893,7 +947,7 @@ class Localizer:
         else:  # where rows[:m] went: the inverse permutation
             pool = np.argsort(perm, kind="stable")[:m]
         bias = self.retrieval_weight * dist[perm[pool]].astype(np.float64)
-        k, xi_mq, cost, history, score = self.metric_best(bev, reranked[pool], bias)
+        k, xi_mq, cost, history, score = self._metric_best(bev, reranked[pool], bias)
         # the M candidates by score (coarse cost + λ·distance, finite) first, the stable sort
         # putting the refined one, the first of the lowest, first; the others after them in
         # re-ranked order
@@ -906,7 +960,7 @@ class Localizer:
         global_pose = geometry.compose(self.map.poses[matched], xi_mq)
         best = matched
         if self.snap:
-            best = self.snap_row(global_pose, reranked, int(self.map.floors[matched]))
+            best = self._snap_row(global_pose, reranked, int(self.map.floors[matched]))
             if best != matched:
                 xi_mq = geometry.relative(self.map.poses[best], global_pose)
                 front = np.flatnonzero(reranked == best)[0]
