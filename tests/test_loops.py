@@ -560,6 +560,8 @@ def test_verify_pairs_shares_each_sources_coarse_stage_and_equals_one_search_per
         verify_pairs(model, db, rows_i, rows_j[:-1])
     with pytest.raises(TypeError, match="rows_i"):
         verify_pairs(model, db, rows_i.astype(float), rows_j)
+    with pytest.raises(TypeError, match="search: expected a SearchConfig or None, got str"):
+        verify_pairs(model, db, rows_i, rows_j, search="x")  # type: ignore[arg-type]
 
 
 def test_trajectory_file_names_are_safe_and_distinct():

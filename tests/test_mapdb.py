@@ -337,6 +337,8 @@ def test_float16_overflow_and_bad_dtype_are_refused(tmp_path: Path) -> None:
         db.save(tmp_path / "map.h5", dtype="float16")
     with pytest.raises(ValueError, match="dtype"):
         db.save(tmp_path / "map.h5", dtype="int8")  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match="dtype: expected 'float32' or 'float16', got 5"):
+        db.save(tmp_path / "map.h5", dtype=5)  # type: ignore[arg-type]
     assert os.listdir(tmp_path) == []
 
 

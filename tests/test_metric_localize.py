@@ -133,6 +133,13 @@ def test_metric_localize_best_of_one_equals_metric_localize():
     for a, b in zip(best.result.history, one.history, strict=True):
         np.testing.assert_array_equal(a, b)
     assert best.coarse_cost[0] == one.history.cost[one.history.stage == 0].min()
+    # a config that is not one, and a bias that is not numbers, are named
+    with pytest.raises(TypeError, match="config: expected a SearchConfig or None, got str"):
+        metric_localize(bev_s, tgts[0], decode, "x", G, T, R)  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match="config: expected a SearchConfig"):
+        metric_localize_best(bev_s, tgts, decode, None, {}, G, T, R)  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match=r"bias: expected \(1,\) real numbers"):
+        metric_localize_best(bev_s, tgts, decode, None, cfg, G, T, R, bias=["a"])
 
 
 @pytest.mark.parametrize("seed", range(3))

@@ -34,7 +34,7 @@ from vvloc.kernels import _positive_float, _positive_int
 from vvloc.localize.export import LoopClosures
 from vvloc.localize.localizer import _cost_threshold, check_map_model, learned_matcher
 from vvloc.localize.mapdb import MapDatabase
-from vvloc.localize.metric import SearchConfig, metric_localize_each
+from vvloc.localize.metric import SearchConfig, metric_localize_each, search_config
 from vvloc.nets import VVLocNet
 from vvloc.retrieval import DescriptorIndex, Exclusion
 
@@ -561,6 +561,7 @@ def verify_pairs(
     rows_j = _int_array(rows_j, "rows_j", f"({len(rows_i)},), as rows_i", 1, len(rows_i))
     poses = np.zeros((len(rows_i), 3))
     costs = np.zeros(len(rows_i))
+    search = search_config(search, "search")
     # the pairs of each source, the sources in the order of their first pair
     order = np.argsort(rows_i, kind="stable")
     groups = np.split(order, np.flatnonzero(np.diff(rows_i[order]) != 0) + 1) if len(order) else []
@@ -574,7 +575,7 @@ def verify_pairs(
             tgts,
             decode,
             interact,
-            search or SearchConfig(),
+            search,
             float(cfg.grid_size),
             int(cfg.num_angles),
             int(cfg.num_radii),

@@ -279,7 +279,10 @@ def _int_array(x: Any, name: str, rows: int) -> np.ndarray:
 
 
 def _check_dtype(dtype: Any) -> DescriptorDType:
-    name = np.dtype(dtype).name if not isinstance(dtype, str) else dtype
+    try:
+        name = np.dtype(dtype).name if not isinstance(dtype, str) else dtype
+    except TypeError as e:  # np.dtype(5): "Cannot interpret '5' as a data type"
+        raise TypeError(f"dtype: expected 'float32' or 'float16', got {dtype!r}") from e
     if name not in ("float32", "float16"):
         raise ValueError(f"dtype: expected 'float32' or 'float16', got {dtype!r}")
     return name  # type: ignore[return-value]

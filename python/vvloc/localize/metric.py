@@ -91,6 +91,16 @@ def _numpy(x: Any) -> npt.NDArray[np.float32]:
     return np.asarray(x, dtype=np.float32)
 
 
+def search_config(config: Any, name: str = "config") -> SearchConfig:
+    """``config`` as a :class:`SearchConfig` (None: the defaults); ``TypeError`` naming
+    ``name`` for anything else."""
+    if config is None:
+        return SearchConfig()
+    if not isinstance(config, SearchConfig):
+        raise TypeError(f"{name}: expected a SearchConfig or None, got {type(config).__name__}")
+    return config
+
+
 def _search(cfg: SearchConfig, backend: kernels.Backend) -> kernels.TranslationSearch:
     return kernels.TranslationSearch(
         cfg.half_range,
@@ -166,7 +176,7 @@ def metric_localize(
     Returns:
         :class:`MetricResult` with the best (x, y, yaw) in the source frame (metres, radians).
     """
-    cfg = config or SearchConfig()
+    cfg = search_config(config)
     t = kernels._as_f32(desc_tgt, "desc_tgt", 2, "(T, C)")
     if t.shape[0] != num_angles:
         raise ValueError(f"desc_tgt: expected (T={num_angles}, C), got shape {t.shape}")
@@ -230,12 +240,15 @@ def metric_localize_best(
         :class:`BestMatch`: the chosen target, its pose ξ_{s→t} (metres, radians, source frame)
         and cost, and each target's coarse-stage cost.
     """
-    cfg = config or SearchConfig()
+    cfg = search_config(config)
     tgts = _targets(desc_tgts, num_angles)
     if bias is None:
         offsets = np.zeros(len(tgts))
     else:
-        offsets = np.asarray(bias, dtype=np.float64)
+        try:
+            offsets = np.asarray(bias, dtype=np.float64)
+        except (TypeError, ValueError) as e:
+            raise TypeError(f"bias: expected ({len(tgts)},) real numbers, got {bias!r:.80}") from e
         if offsets.shape != (len(tgts),):
             raise ValueError(
                 f"bias: expected shape ({len(tgts)},), one per target, got {offsets.shape}"
@@ -274,7 +287,7 @@ def metric_localize_each(
     Returns:
         M :class:`MetricResult`: pose ξ_{s→t_k} (metres, radians, source frame), cost, history.
     """
-    cfg = config or SearchConfig()
+    cfg = search_config(config)
     tgts = _targets(desc_tgts, num_angles)
     shared = _SharedCoarse(bev_src, tgts, decode, interact, cfg, grid_size, num_radii, backend)
     return [shared.finish(k) for k in range(len(tgts))]
