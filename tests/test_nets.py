@@ -188,6 +188,31 @@ def test_encode_rejects_bad_inputs():
         model.encode(random_images(1, 7, cfg.image_height, cfg.image_width), i7, e7)
     with pytest.raises(ValueError, match="local_src"):
         model.interact(torch.zeros(2, 5, 16), torch.zeros(2, 12, 16))
+    # no frame or no camera: named, not torch's max() of an empty tensor deep in the encoder
+    with pytest.raises(ValueError, match=r"images: expected at least one frame \(B >= 1\)"):
+        model.encode(imgs[:0], intr[:0], ext[:0])
+    with pytest.raises(ValueError, match=r"of at least one camera \(M >= 1\)"):
+        model.encode(imgs[:, :0], intr[:, :0], ext[:, :0])
+    # float images on the 0-255 scale, or NaN: refused (the first read 255 times too bright)
+    with pytest.raises(ValueError, match=r"images: float images must lie in \[0, 1\]"):
+        model.encode(imgs.float(), intr, ext)
+    nan = imgs.float() / 255
+    nan[0, 0, 0, 0, 0] = float("nan")
+    with pytest.raises(ValueError, match="images: holds non-finite"):
+        model.encode(nan, intr, ext)
+    # calibration that lets no camera see a cell encoded every frame as the same "no image"
+    for k, edit in (
+        ("intrinsics", lambda t: t[0, 0, 0, 0].fill_(float("nan"))),
+        ("intrinsics", lambda t: t.zero_()),
+        ("intrinsics", lambda t: t[0, 1, 2, 2].fill_(2.0)),
+        ("cam_to_ego", lambda t: t[0, 0, 0, 3].fill_(float("nan"))),
+        ("cam_to_ego", lambda t: t.mul_(2.0)),
+        ("cam_to_ego", lambda t: t[0, 1, :3, :3].zero_()),
+    ):
+        bad = {"intrinsics": intr.clone(), "cam_to_ego": ext.clone()}
+        edit(bad[k])
+        with pytest.raises(ValueError, match=f"^{k}: expected a "):
+            model.encode(imgs, bad["intrinsics"], bad["cam_to_ego"])
 
 
 # --- geometry of the spatial cross-attention ----------------------------------------------
@@ -535,10 +560,11 @@ def test_load_rejects_mismatched_checkpoints(tmp_path):
     write_consistent(meta)
     with pytest.raises(ValueError, match=r"missing .*unexpected"):
         VVLocNet.load(tmp_path)
-    meta["version"] = 99
-    meta_path.write_text(json.dumps(meta))
-    with pytest.raises(ValueError, match="version 99"):
-        VVLocNet.load(tmp_path)
+    for version in (99, True, 1.0, "1"):  # True == 1 and 1.0 == 1 once passed
+        meta["version"] = version
+        meta_path.write_text(json.dumps(meta))
+        with pytest.raises(ValueError, match=f"version {version!r} is not supported"):
+            VVLocNet.load(tmp_path)
     with pytest.raises(FileNotFoundError, match=r"directory: \S*nothing does not exist \(expected"):
         VVLocNet.load(tmp_path / "nothing")
     (tmp_path / "empty").mkdir()
@@ -556,6 +582,43 @@ def test_load_rejects_mismatched_checkpoints(tmp_path):
     assert checkpoint_folder(run) == run / "checkpoint"
     with pytest.raises(FileNotFoundError, match=r"^--checkpoint: .*empty.*config.json not found"):
         checkpoint_folder(tmp_path / "empty", "--checkpoint")
+
+
+def test_non_finite_weights_are_never_saved_or_loaded(tmp_path):
+    from safetensors.torch import load_file, save_file
+
+    model = _model(tiny_config(), seed=1)
+    model.save(tmp_path / "good")
+    broken = _model(tiny_config(), seed=1)
+    with torch.no_grad():
+        next(broken.decoder.parameters()).fill_(float("nan"))
+    with pytest.raises(ValueError, match=r"non-finite weights \(decoder\..*Not saved"):
+        broken.save(tmp_path / "bad")
+    assert not (tmp_path / "bad").exists()
+    # a file whose weights turned NaN: refused by name, whether config.json records a
+    # fingerprint, records null, or (saved before 2026-12-05) records none
+    w_path, meta_path = tmp_path / "good" / "model.safetensors", tmp_path / "good" / "config.json"
+    state = load_file(str(w_path))
+    key = next(k for k in state if k.startswith("decoder."))
+    state[key] = torch.full_like(state[key], float("inf"))
+    save_file(state, str(w_path))
+    meta = json.loads(meta_path.read_text())
+    for recorded in (meta["weights_hash"], None, "absent"):
+        meta["weights_hash"] = recorded
+        if recorded == "absent":
+            del meta["weights_hash"]
+        meta_path.write_text(json.dumps(meta))
+        with pytest.raises(
+            ValueError, match=rf"model.safetensors: holds non-finite weights \({key}"
+        ):
+            VVLocNet.load(tmp_path / "good")
+    # a null fingerprint (not an old checkpoint's absent one) is checked like any other
+    model.save(tmp_path / "null")
+    meta = json.loads((tmp_path / "null" / "config.json").read_text())
+    meta["weights_hash"] = None
+    (tmp_path / "null" / "config.json").write_text(json.dumps(meta))
+    with pytest.raises(ValueError, match="fingerprint"):
+        VVLocNet.load(tmp_path / "null")
 
 
 def test_load_refuses_edited_truncated_or_malformed_checkpoints(tmp_path):

@@ -19,7 +19,7 @@ from torch import Tensor, nn
 
 from vvloc._io import write_together
 from vvloc.checkpoints import CONFIG_FILE, WEIGHTS_FILE, check_checkpoint_files
-from vvloc.data.frame import Camera
+from vvloc.data.frame import PINHOLE, RIGID, Camera, is_pinhole, is_rigid
 from vvloc.nets.backbone import FPN, ResNetBackbone, normalise_images
 from vvloc.nets.config import CONFIG_VERSION, ModelConfig
 from vvloc.nets.decoder import Interactor, LocalViewDecoder
@@ -236,9 +236,10 @@ class VVLocNet(nn.Module):
     def encode(self, images: Tensor, intrinsics: Tensor, cam_to_ego: Tensor) -> EncoderOutput:
         """Encode one frame per batch item.
 
-        images (B, M, 3, Hi, Wi) uint8 [0, 255] or float [0, 1]; intrinsics (B, M, 3, 3) in pixels
-        of these images; cam_to_ego (B, M, 4, 4) OpenCV camera → ego (x forward, y left, z up),
-        metres. Calibration may differ per batch item.
+        images (B, M, 3, Hi, Wi) uint8 [0, 255] or float [0, 1], B, M >= 1; intrinsics
+        (B, M, 3, 3) pinhole matrices in pixels of these images; cam_to_ego (B, M, 4, 4) rigid
+        OpenCV camera → ego (x forward, y left, z up), metres. Calibration may differ per batch
+        item. ``ValueError``/``TypeError`` naming the argument otherwise.
         """
         images, intrinsics, cam_to_ego = self._check_inputs(images, intrinsics, cam_to_ego)
         feats = self.image_features(images)
@@ -279,7 +280,26 @@ class VVLocNet(nn.Module):
             raise ValueError(
                 f"cam_to_ego: expected shape ({b}, {m}, 4, 4), got {tuple(cam_to_ego.shape)}"
             )
+        if b == 0 or m == 0:
+            raise ValueError(
+                f"images: expected at least one frame (B >= 1) of at least one camera (M >= 1), "
+                f"got shape {tuple(images.shape)}"
+            )
         self.config.check_num_cameras(m)
+        if images.is_floating_point():  # one reduction each; a sync on a GPU
+            if not bool(torch.isfinite(images).all()):
+                raise ValueError("images: holds non-finite values (NaN or inf)")
+            lo, hi = float(images.min()), float(images.max())
+            if lo < 0.0 or hi > 1.0:
+                raise ValueError(
+                    f"images: float images must lie in [0, 1], got values in [{lo:g}, {hi:g}] "
+                    "(pass uint8 for the 0-255 scale)"
+                )
+        # a camera with bad calibration sees no BEV cell: its frame would encode as "no image"
+        if not is_pinhole(intrinsics.detach().cpu().double().numpy()):
+            raise ValueError(f"intrinsics: expected a {PINHOLE} for every camera")
+        if not is_rigid(cam_to_ego.detach().cpu().double().numpy()):
+            raise ValueError(f"cam_to_ego: expected a {RIGID} for every camera")
         dev, dtype = self.encoder.queries.device, self.encoder.queries.dtype
         return (
             images.to(dev),
@@ -314,6 +334,11 @@ class VVLocNet(nn.Module):
             raise TypeError(
                 f"the model holds {not_f32} tensors: save a float32 model (model.float()); "
                 "load gives float32, and the weights fingerprint would differ"
+            )
+        bad = _non_finite(self.state_dict())
+        if bad:
+            raise ValueError(
+                f"the model holds non-finite weights ({bad}): a diverged training? Not saved"
             )
         out = Path(directory)
         weights = self.weights_hash()
@@ -370,10 +395,11 @@ class VVLocNet(nn.Module):
             raise ValueError(
                 f"{cfg_path}: format {meta.get('format')!r} is not {CHECKPOINT_FORMAT}"
             )
-        if meta.get("version") != CONFIG_VERSION:
+        version = meta.get("version")
+        if type(version) is not int or version != CONFIG_VERSION:  # not True, 1.0 or "1"
             raise ValueError(
-                f"{cfg_path}: checkpoint version {meta.get('version')} is not supported "
-                f"(expected {CONFIG_VERSION})"
+                f"{cfg_path}: checkpoint version {version!r} is not supported "
+                f"(expected {CONFIG_VERSION!r})"
             )
         config = meta.get("config")
         if not isinstance(config, dict):
@@ -402,6 +428,9 @@ class VVLocNet(nn.Module):
                 f"{cfg_path}: config_hash {meta.get('config_hash')!r} is not the config's "
                 f"({cfg.config_hash()}): the file was edited after the weights were saved"
             )
+        # builds a randomly initialised model (overwritten below), drawing from torch's global
+        # random stream as a fresh model does: trainers that load an init_checkpoint and then
+        # draw from that stream (make model's steps 2-5) depend on it, so it stays so
         model = cls(cfg)
         try:
             state = load_file(str(w_path), device=str(device))
@@ -426,10 +455,13 @@ class VVLocNet(nn.Module):
                 f"unexpected {unexpected[:5]}{'…' if len(unexpected) > 5 else ''}, "
                 f"shape or dtype mismatches {wrong[:5]}"
             )
+        bad = _non_finite(state)
+        if bad:  # never stands in for trained weights, with or without a recorded fingerprint
+            raise ValueError(f"{w_path}: holds non-finite weights ({bad})")
         model.load_state_dict(state)
         mine = model.weights_hash()
-        recorded = meta.get("weights_hash")  # absent from checkpoints saved before 2026-12-05
-        if recorded is not None and recorded != mine:
+        recorded = meta.get("weights_hash", _ABSENT)  # none before 2026-12-05
+        if recorded is not _ABSENT and recorded != mine:
             raise ValueError(
                 f"{w_path}: its weights' fingerprint {mine[:16]} is not the one "
                 f"{cfg_path} records ({str(recorded)[:16]}): a damaged weights file, or one "
@@ -454,3 +486,19 @@ class VVLocNet(nn.Module):
             except ValueError as e:
                 warnings.warn(f"{e}; the training record is ignored", UserWarning, stacklevel=2)
         return model.to(device).eval()
+
+
+#: ``config.json`` without a ``weights_hash`` (saved before 2026-12-05), unlike one whose value
+#: is ``null``, which is a damaged file.
+_ABSENT = object()
+
+
+def _non_finite(state: dict[str, Tensor]) -> str:
+    """The first few floating tensors of ``state`` holding NaN or inf, with how many values
+    each ("" when none)."""
+    bad = [
+        f"{k}: {int((~torch.isfinite(v)).sum())} of {v.numel()}"
+        for k, v in state.items()
+        if v.is_floating_point() and not bool(torch.isfinite(v).all())
+    ]
+    return "; ".join(bad[:3]) + (f"; and {len(bad) - 3} more tensors" if len(bad) > 3 else "")
