@@ -114,6 +114,13 @@ def test_config_rejects_bad_values():
         tiny_config(pillar_heights=(0.0, math.inf))
     with pytest.raises(ValueError, match="backbone_widths"):
         tiny_config(backbone_widths=(8, 0, 8, 8))
+    # a stage of 0 blocks built the network of 1 under another config hash
+    with pytest.raises(ValueError, match=r"backbone_blocks: expected widths >= 1 and blocks >= 1"):
+        tiny_config(backbone_blocks=(0, 1, 1, 1))
+    # a GeM exponent past float32's reach gave NaN global descriptors
+    with pytest.raises(ValueError, match="ModelConfig.gem_p: expected at most 16"):
+        tiny_config(global_head="gem", gem_p=1000.0)
+    assert tiny_config(global_head="gem", gem_p=16.0).gem_p == 16.0
 
 
 # --- shapes -------------------------------------------------------------------------------

@@ -13,6 +13,8 @@ import numpy as np
 
 CONFIG_VERSION = 1
 GLOBAL_HEADS = ("gem", "netvlad", "disco")
+#: The largest GeM exponent a config may start from (:class:`vvloc.nets.heads.GeM`).
+MAX_GEM_P = 16.0
 
 
 #: The fields that are real numbers (stored as float whatever number was given).
@@ -139,10 +141,16 @@ class ModelConfig:
             raise ValueError(
                 f"ModelConfig.pillar_heights: expected finite metres, got {self.pillar_heights}"
             )
-        if min(self.backbone_widths) < 1 or min(self.backbone_blocks) < 0:
-            raise ValueError(
+        if min(self.backbone_widths) < 1 or min(self.backbone_blocks) < 1:
+            raise ValueError(  # a stage always has its first block: 0 built the same net as 1
                 "ModelConfig.backbone_widths/backbone_blocks: expected widths >= 1 and blocks "
-                f">= 0, got {self.backbone_widths} / {self.backbone_blocks}"
+                f">= 1, got {self.backbone_widths} / {self.backbone_blocks}"
+            )
+        if self.gem_p > MAX_GEM_P:
+            raise ValueError(
+                f"ModelConfig.gem_p: expected at most {MAX_GEM_P:g}, got {self.gem_p!r} (the "
+                "mean of x**p overflows float32 for features of a few units; a large p is max "
+                "pooling)"
             )
         for heads_name in ("encoder_heads", "decoder_heads", "interactor_heads"):
             if self.channels % getattr(self, heads_name):
