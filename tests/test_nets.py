@@ -118,7 +118,7 @@ def test_config_rejects_bad_values():
     with pytest.raises(ValueError, match=r"backbone_blocks: expected widths >= 1 and blocks >= 1"):
         tiny_config(backbone_blocks=(0, 1, 1, 1))
     # a GeM exponent past float32's reach gave NaN global descriptors
-    with pytest.raises(ValueError, match="ModelConfig.gem_p: expected at most 16"):
+    with pytest.raises(ValueError, match=r"ModelConfig\.gem_p: expected at most 16"):
         tiny_config(global_head="gem", gem_p=1000.0)
     assert tiny_config(global_head="gem", gem_p=16.0).gem_p == 16.0
 
