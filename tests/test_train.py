@@ -1535,6 +1535,11 @@ def test_a_torn_last_log_line_is_cut_off_and_written_whole_on_resume(tiny_world,
         ("train_sessions", [], "train_sessions: expected a non-empty list"),
         ("model_overrides", {"grid_sise": 64}, r"model, model_overrides: .*grid_sise"),
         ("model", "tiny", "model, model_overrides: model: expected 'small'"),
+        # beyond float's or int64's range: named, not math.isfinite's OverflowError
+        ("seed", 10**400, r"seed: expected an int, got 1000.* \(out of range\)"),
+        ("lr", 10**400, r"lr: expected a number, got 1000.* \(out of range\)"),
+        # checked up front, not by Trainer() or after a trained epoch
+        ("extra_datasets", [{"dataset": 5}], r"extra_datasets\[0\]\.dataset: expected a folder"),
     ],
 )
 def test_config_values_that_would_train_something_else_are_refused(key, value, match):
@@ -1553,6 +1558,42 @@ def test_config_yaml_with_a_key_twice_or_a_key_that_is_no_name_is_refused(tmp_pa
     (tmp_path / "int.yaml").write_text("dataset: x\n1: 2\n")
     with pytest.raises(ValueError, match=r"keys must be names, got \[1\]"):
         TrainConfig.from_yaml(tmp_path / "int.yaml")
+
+
+def test_val_loops_entries_are_checked_before_training(tmp_path):
+    base = {"dataset": "x", "train_sessions": ["s0"], "val_sessions": ["s1"], "val_database": "s0"}
+    for entry, match in (
+        ({"radius": float("nan")}, r"val_loops\[0\]\.radius: expected a finite number > 0"),
+        ({"radius": float("inf")}, r"val_loops\[0\]\.radius: expected a finite number > 0"),
+        ({"radius": 10**400}, r"val_loops\[0\]\.radius: expected a finite number > 0"),
+        ({"dataset": 7}, r"val_loops\[0\]\.dataset: expected a folder path"),
+    ):
+        loops = [{"dataset": "x2", "sessions": ["s2"], **entry}]
+        with pytest.raises(ValueError, match=match):
+            TrainConfig.from_dict({**base, "val_loops": loops})
+
+
+def test_yaml_merge_keys_work_as_in_the_safe_loader(tmp_path):
+    (tmp_path / "c.yaml").write_text(
+        "dataset: x\nextra_datasets:\n"
+        "  - <<: {dataset: y, train_sessions: [s1]}\n    train_sessions: [s0]\n"
+    )
+    cfg = TrainConfig.from_yaml(tmp_path / "c.yaml")
+    assert cfg.extra_datasets == [{"dataset": "y", "train_sessions": ["s0"]}]  # own key wins
+    (tmp_path / "c.yaml").write_text(
+        "dataset: x\nextra_datasets:\n  - <<: {dataset: y}\n"
+        "    train_sessions: [s0]\n    train_sessions: [s1]\n"
+    )
+    with pytest.raises(ValueError, match="found the key 'train_sessions' twice"):
+        TrainConfig.from_yaml(tmp_path / "c.yaml")
+
+
+def test_a_rig_of_more_cameras_than_the_model_holds_is_refused_by_trainer(tiny_world):
+    cfg = _config(tiny_world, model_overrides={"max_cameras": 2})
+    with pytest.raises(
+        ValueError, match=r"model_overrides.max_cameras: .* for 2 cameras, .* has 4"
+    ):
+        Trainer(cfg, "unused")
 
 
 def test_an_empty_or_undecodable_config_file_is_refused(tmp_path):

@@ -127,11 +127,14 @@ SELECT_BY = ("reranked", "retrieval", "last")
 
 class _UniqueKeyLoader(yaml.SafeLoader):
     """YAML's safe loader, refusing a mapping that names a key twice (the safe loader keeps
-    the last silently: ``lr`` written twice trained at the second)."""
+    the last silently: ``lr`` written twice trained at the second). Merge keys (``<<: *base``)
+    work as in the safe loader: the mapping's own keys override the merged ones."""
 
     def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
         seen: set[Any] = set()
         for key_node, _ in node.value:
+            if key_node.tag == "tag:yaml.org,2002:merge":  # <<: a merge key, which the safe
+                continue  # loader expands (and the mapping's own keys override) below
             key = self.construct_object(key_node, deep=deep)
             with contextlib.suppress(TypeError):  # unhashable keys fail below as YAML's own
                 if key in seen:
@@ -309,11 +312,13 @@ class TrainConfig:
         """Every field of the type its annotation says (YAML reads ``1e-5`` as a string and
         ``2.5`` where an int belongs would fail deep inside a step): ``ValueError`` naming it."""
 
-        def number(v: Any) -> bool:
-            return isinstance(v, (int, float)) and not isinstance(v, bool)
+        def number(v: Any) -> bool:  # an int beyond float's range is not one (10**400)
+            if isinstance(v, bool) or not isinstance(v, (int, float)):
+                return False
+            return isinstance(v, float) or abs(v) <= sys.float_info.max
 
-        def integer(v: Any) -> bool:
-            return isinstance(v, int) and not isinstance(v, bool)
+        def integer(v: Any) -> bool:  # int64, as every count and the seed are used
+            return isinstance(v, int) and not isinstance(v, bool) and -(2**63) <= v < 2**63
 
         checks: dict[str, tuple[Any, str]] = {
             "int": (integer, "an int"),
@@ -353,11 +358,13 @@ class TrainConfig:
             if check is None or check[0](value):
                 continue
             hint = ""
+            if isinstance(value, int) and not isinstance(value, bool):
+                hint = " (out of range)"
             if isinstance(value, str):
                 with contextlib.suppress(ValueError):
                     float(value)
                     hint = " (YAML reads 1e-5 as a string: write 1.0e-5)"
-            raise ValueError(f"{f.name}: expected {check[1]}, got {value!r}{hint}")
+            raise ValueError(f"{f.name}: expected {check[1]}, got {value!r:.80}{hint}")
 
     @classmethod
     def from_dict(cls, raw: dict[str, Any], source: str = "config") -> TrainConfig:
@@ -525,9 +532,20 @@ class TrainConfig:
                 )
             if not isinstance(entry["sessions"], list) or not entry["sessions"]:
                 raise ValueError(f"val_loops[{k}].sessions: expected a non-empty list")
+            if not isinstance(entry["dataset"], str):
+                raise ValueError(
+                    f"val_loops[{k}].dataset: expected a folder path (str), got "
+                    f"{entry['dataset']!r}"
+                )
             radius = entry.get("radius", 0.1)
-            if isinstance(radius, bool) or not isinstance(radius, (int, float)) or radius <= 0:
-                raise ValueError(f"val_loops[{k}].radius: expected a number > 0, got {radius!r}")
+            if (
+                isinstance(radius, bool)
+                or not isinstance(radius, (int, float))
+                or not 0 < radius <= sys.float_info.max  # NaN, inf and 10**400 fail
+            ):
+                raise ValueError(
+                    f"val_loops[{k}].radius: expected a finite number > 0, got {radius!r:.80}"
+                )
             window = entry.get("window", 10)
             if isinstance(window, bool) or not isinstance(window, int) or window < 0:
                 raise ValueError(f"val_loops[{k}].window: expected an int >= 0, got {window!r}")
@@ -585,6 +603,11 @@ class TrainConfig:
         for k, extra in enumerate(self.extra_datasets):
             if not isinstance(extra, dict) or "dataset" not in extra:
                 raise ValueError(f"extra_datasets[{k}]: expected a mapping with a 'dataset' path")
+            if not isinstance(extra["dataset"], str):
+                raise ValueError(
+                    f"extra_datasets[{k}].dataset: expected a folder path (str), got "
+                    f"{extra['dataset']!r}"
+                )
             unknown = sorted(set(extra) - {"dataset", "sim", "train_sessions", "anchor_share"})
             if unknown:
                 raise ValueError(
@@ -1120,6 +1143,12 @@ class Trainer:
         seed_everything(cfg.seed)
         _ensure_dataset(cfg.dataset, cfg.sim)
         self.ds = open_dataset(cfg.dataset)
+        cameras, most = len(self.ds.cameras), cfg.model_config().max_cameras
+        if cameras > most:  # found here, not at the first step of stage 1
+            raise ValueError(
+                f"model_overrides.max_cameras: the model holds camera embeddings for {most} "
+                f"cameras, {cfg.dataset} has {cameras}"
+            )
         extra = []
         for i, e in enumerate(cfg.extra_datasets):
             _ensure_dataset(e["dataset"], e.get("sim"), f"extra_datasets[{i}].")
