@@ -195,6 +195,15 @@ def test_encode_rejects_bad_inputs():
         model.encode(random_images(1, 7, cfg.image_height, cfg.image_width), i7, e7)
     with pytest.raises(ValueError, match="local_src"):
         model.interact(torch.zeros(2, 5, 16), torch.zeros(2, 12, 16))
+    # a BEV of another grid, or of another dtype, is named (it sampled the wrong radii)
+    bev = torch.zeros(1, cfg.bev_height, cfg.bev_width, cfg.channels)
+    assert model.polar(bev).shape == (1, cfg.num_angles, cfg.num_radii, cfg.channels)
+    with pytest.raises(ValueError, match=r"bev: expected shape \(B, "):
+        model.polar(bev[:, :-1])
+    with pytest.raises(TypeError, match=r"bev: expected torch.float32 \(the model's dtype\)"):
+        model.polar(bev.double())
+    with pytest.raises(TypeError, match=r"polar: expected torch.float32"):
+        model.decode_polar(model.polar(bev).double())
     # no frame or no camera: named, not torch's max() of an empty tensor deep in the encoder
     with pytest.raises(ValueError, match=r"images: expected at least one frame \(B >= 1\)"):
         model.encode(imgs[:0], intr[:0], ext[:0])

@@ -107,3 +107,15 @@ def test_json_safe_replaces_non_finite_floats_only():
 def test_a_malformed_record_is_refused_naming_its_source(record, match):
     with pytest.raises(ValueError, match=f"src.json: .*{match}"):
         validate_record(record, "src.json")
+
+
+def test_a_record_file_that_is_not_utf8_or_not_json_is_refused_naming_it(tmp_path):
+    from vvloc.provenance import read_record
+
+    path = tmp_path / "training.json"
+    path.write_bytes(b'{"format": "caf\xe9"}')
+    with pytest.raises(ValueError, match=r"training\.json: not a UTF-8 text file"):
+        read_record(path)
+    path.write_text("{not json")
+    with pytest.raises(ValueError, match=r"training\.json: not JSON"):
+        read_record(path)

@@ -215,7 +215,9 @@ def read_record(path: Path) -> dict[str, Any]:
     """The training record in the file ``path``, validated (:func:`validate_record`);
     ``ValueError`` naming the file when it is not JSON or not a record of this format."""
     try:
-        raw = json.loads(Path(path).read_text())
+        raw = json.loads(Path(path).read_bytes().decode("utf-8"))
+    except UnicodeDecodeError as e:
+        raise ValueError(f"{path}: not a UTF-8 text file ({e})") from e
     except json.JSONDecodeError as e:
         raise ValueError(f"{path}: not JSON ({e})") from e
     return validate_record(raw, str(path))

@@ -229,9 +229,26 @@ class VVLocNet(nn.Module):
         return self.encoder(feats, intrinsics, cam_to_ego, image_size)
 
     def polar(self, bev: Tensor) -> Tensor:
-        """BEV (B, H, W, C) → polar BEV (B, T, R, C) (differentiable, DESIGN.md §3)."""
+        """BEV (B, H, W, C) of the config's sizes and the model's dtype → polar BEV
+        (B, T, R, C) (differentiable, DESIGN.md §3). ``ValueError``/``TypeError`` naming
+        ``bev`` otherwise (another grid would be sampled at the wrong radii)."""
         cfg = self.config
+        want = (cfg.bev_height, cfg.bev_width, cfg.channels)
+        self._check_dtype(bev, "bev")
+        if bev.ndim != 4 or tuple(bev.shape[1:]) != want:
+            raise ValueError(
+                f"bev: expected shape (B, {', '.join(map(str, want))}), got {tuple(bev.shape)}"
+            )
         return polar_sample(bev, cfg.num_angles, cfg.num_radii, cfg.grid_size)
+
+    def _check_dtype(self, x: Any, name: str) -> None:
+        """``TypeError`` naming ``name`` unless ``x`` is a tensor of the model's dtype."""
+        if not isinstance(x, Tensor):
+            raise TypeError(f"{name}: expected a torch.Tensor, got {type(x).__name__}")
+        if x.dtype != self.encoder.queries.dtype:
+            raise TypeError(
+                f"{name}: expected {self.encoder.queries.dtype} (the model's dtype), got {x.dtype}"
+            )
 
     def encode(self, images: Tensor, intrinsics: Tensor, cam_to_ego: Tensor) -> EncoderOutput:
         """Encode one frame per batch item.
@@ -254,7 +271,9 @@ class VVLocNet(nn.Module):
         )
 
     def decode_polar(self, polar: Tensor) -> Tensor:
-        """Polar BEVs (N, T, R, C) (e.g. of padded hypotheses) → local descriptors (N, T, C)."""
+        """Polar BEVs (N, T, R, C) of the model's dtype (e.g. of padded hypotheses) → local
+        descriptors (N, T, C)."""
+        self._check_dtype(polar, "polar")
         return self.decoder(polar)
 
     def interact(self, local_src: Tensor, local_tgt: Tensor) -> tuple[Tensor, Tensor]:
