@@ -686,8 +686,6 @@ class Localizer:
         self.close()
 
     # --- stages --------------------------------------------------------------------------
-
-    # --- stages -------------------------------------------------------------------------
     # Each public stage checks its arguments as localize_encoded does (ValueError/TypeError
     # naming them); localize_encoded checks once and calls the private ones.
 
