@@ -103,3 +103,10 @@ def test_bad_images_are_refused(bad):
 def test_the_rng_must_be_a_generator():
     with pytest.raises(TypeError, match="rng: expected a numpy Generator, got int"):
         PhotometricAugment()(np.zeros((1, 3, 8, 8), np.uint8), 0)  # type: ignore[arg-type]
+
+
+def test_numpy_scalars_are_numbers_and_kept_as_floats():
+    aug = PhotometricAugment(prob=np.float32(0.5), noise=np.int64(3))
+    assert (aug.prob, aug.noise) == (0.5, 3.0) and type(aug.prob) is float
+    with pytest.raises(ValueError, match=r"augment\.prob: expected a finite number"):
+        PhotometricAugment(prob=np.bool_(True))

@@ -138,6 +138,9 @@ def _edit_rig(root, edit):
         (lambda c: c["K"][0].__setitem__(0, -40.0), r"focal lengths fx, fy > 0"),
         (lambda c: c["K"][1].__setitem__(1, 0.0), r"focal lengths fx, fy > 0"),
         (lambda c: c["K"].__setitem__(2, [0.0, 0.1, 1.0]), r"pinhole matrix"),
+        (lambda c: c["K"][1].__setitem__(0, 5.0), r"pinhole matrix"),  # K[1, 0] once passed
+        (lambda c: c.__setitem__("name", ".."), r"camera name: expected a non-empty plain"),
+        (lambda c: c.__setitem__("name", "poses.csv"), r"camera name: expected a non-empty"),
         (  # the rotation scaled by 1.5
             lambda c: c.__setitem__(
                 "cam_to_ego", (np.array(c["cam_to_ego"]) @ np.diag([1.5, 1.5, 1.5, 1.0])).tolist()
@@ -161,6 +164,41 @@ def test_a_rig_of_ones_own_is_checked_camera_by_camera(tmp_path, edit, match):
         open_dataset(root)
 
 
+def test_rig_entries_and_versions_other_than_the_formats_are_refused(tmp_path):
+    root = tmp_path / "ds"
+    _write(root, {"s0": _line(2)})
+    good = json.loads((root / "rig.json").read_text())
+    _edit_rig(root, lambda doc: doc["cameras"].__setitem__(0, "front"))
+    with pytest.raises(DatasetFormatError, match=r"camera 0: camera entry: expected an object"):
+        open_dataset(root)
+    for version in (2, "banana", True, 1.0):
+        (root / "rig.json").write_text(json.dumps({**good, "version": version}))
+        with pytest.raises(DatasetFormatError, match=f"version {version!r} is not supported"):
+            open_dataset(root)
+    (root / "rig.json").write_text(json.dumps({k: v for k, v in good.items() if k != "version"}))
+    assert len(open_dataset(root).session("s0")) == 2  # a hand-written rig.json may omit it
+
+
+def test_timestamps_and_floors_beyond_int64_are_named_by_line(tmp_path):
+    root = tmp_path / "ds"
+    _write(root, {"s0": _line(2)})
+    p = root / "sessions" / "s0" / "poses.csv"
+    lines = p.read_text().splitlines()
+    big = "9" * 20
+    for row, name in ((f"{big},0,0,0,0,0", "timestamp"), (f"{10**15},0,0,0,0,{big}", "floor")):
+        p.write_text("\n".join([lines[0], row]) + "\n")
+        with pytest.raises(DatasetFormatError, match=rf"poses\.csv, line 2: {name} 9+ is outside"):
+            open_dataset(root)
+
+
+def test_a_huge_but_finite_path_does_not_hang_the_heading_check():
+    from vvloc.data.heading import heading_offset
+
+    # past ~1e16 m adding the 2 m stretch no longer changes the path length: the loop stood
+    offset, count = heading_offset(np.array([[0, 0, 0], [1e20, 0, 0], [1e20, 0, 0.0]]))
+    assert count <= 1 and (count == 0 or np.isfinite(offset))
+
+
 def test_rows_out_of_time_order_are_refused_by_line(tmp_path):
     root = tmp_path / "ds"
     _write(root, {"s0": _line(3)})
@@ -173,6 +211,30 @@ def test_rows_out_of_time_order_are_refused_by_line(tmp_path):
         p.write_text("\n".join(rows) + "\n")
         with pytest.raises(DatasetFormatError, match=rf"poses\.csv, line {line}: timestamp"):
             open_dataset(root)
+
+
+def _png16(rgb: np.ndarray, size: tuple[int, int] | None = None, bits: int = 16) -> bytes:
+    """A PNG of ``rgb`` (H, W, 3) with ``bits`` per sample, written by hand (``size``: the
+    header's width and height, the pixel data left as it is)."""
+    import struct
+    import zlib
+
+    h, w = rgb.shape[:2]
+    width, height = size or (w, h)
+    dtype = ">u2" if bits == 16 else "u1"
+    raw = b"".join(b"\x00" + rgb[y].astype(dtype).tobytes() for y in range(h))
+
+    def chunk(tag: bytes, data: bytes) -> bytes:
+        body = tag + data
+        return struct.pack(">I", len(data)) + body + struct.pack(">I", zlib.crc32(body))
+
+    head = struct.pack(">IIBBBBB", width, height, bits, 2, 0, 0, 0)
+    return (
+        b"\x89PNG\r\n\x1a\n"
+        + chunk(b"IHDR", head)
+        + chunk(b"IDAT", zlib.compress(raw))
+        + chunk(b"IEND", b"")
+    )
 
 
 def test_images_other_than_8_bit_are_refused_and_grey_or_alpha_converted(tmp_path):
@@ -193,6 +255,16 @@ def test_images_other_than_8_bit_are_refused_and_grey_or_alpha_converted(tmp_pat
     with Image.open(png) as im:
         assert im.mode.startswith("I")
     with pytest.raises(DatasetFormatError, match=r"front/1000\.png: image mode .* not 8 bits"):
+        open_dataset(root).session("s0")[0]
+    # 16-bit RGB: Pillow opens it as mode RGB and keeps the high bytes (12-bit data: black)
+    png.write_bytes(_png16(rgb.astype(np.uint16) * 16))
+    with Image.open(png) as im:
+        assert im.mode == "RGB"
+    with pytest.raises(DatasetFormatError, match=r"front/1000\.png: RGB image of 16 bits"):
+        open_dataset(root).session("s0")[0]
+    # a header claiming a decompression bomb: named, not PIL's DecompressionBombError
+    png.write_bytes(_png16(np.zeros((1, 1, 3), np.uint16), size=(40_000, 40_000), bits=8))
+    with pytest.raises(DatasetFormatError, match=r"front/1000\.png: not a readable image"):
         open_dataset(root).session("s0")[0]
     # a copy cut short: PIL reads the header and fails only when decoding, naming no file
     Image.fromarray(rgb).save(png)
@@ -283,6 +355,8 @@ def test_the_writer_refuses_what_the_reader_would_refuse_naming_the_argument(tmp
             kw = {k: change[k] for k in ("floor", "z") if k in change}
             with pytest.raises(error, match=match):
                 s.add(args["timestamp"], args["pose"], img, **kw)
+        with pytest.raises(TypeError, match=r"images: expected a uint8 numpy array"):
+            s.add(1000, (0.0, 0.0, 0.0), img.tolist())
         s.add(2000.0, np.array([1.0, 2.0, 0.5]), img, floor=np.int64(1), z=np.float32(-3.0))
     (frame,) = open_dataset(tmp_path / "ds").session("s0")
     assert (frame.t, frame.floor) == (0.002, 1)  # seconds

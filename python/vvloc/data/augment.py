@@ -15,6 +15,7 @@ training did not manufacture.
 from __future__ import annotations
 
 import dataclasses
+import numbers
 from dataclasses import dataclass
 from typing import Any
 
@@ -57,9 +58,11 @@ class PhotometricAugment:
     def __post_init__(self) -> None:
         for f in dataclasses.fields(self):
             v = getattr(self, f.name)
-            ok = isinstance(v, int | float) and not isinstance(v, bool)
+            ok = isinstance(v, numbers.Real) and not isinstance(v, bool | np.bool_)
             if not (ok and np.isfinite(v) and v >= 0):
                 raise ValueError(f"augment.{f.name}: expected a finite number >= 0, got {v!r}")
+            if isinstance(v, np.generic):  # np.float32(0.5): kept as the plain float
+                object.__setattr__(self, f.name, float(v))
         for name in ("prob", "haze_prob", "haze", "tint"):
             if getattr(self, name) > 1:
                 raise ValueError(f"augment.{name}: expected a value in [0, 1]")

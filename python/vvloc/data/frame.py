@@ -32,8 +32,18 @@ class Camera:
     cam_to_ego: np.ndarray
 
     def __post_init__(self) -> None:
-        if not self.name or "/" in self.name or self.name.strip() != self.name:
-            raise ValueError(f"camera name: expected a non-empty plain name, got {self.name!r}")
+        if (
+            not isinstance(self.name, str)
+            or not self.name
+            or any(c in self.name for c in "/\\\0")
+            or self.name.strip() != self.name
+            or self.name.startswith(".")  # ".", "..": not a folder of its own
+            or self.name in RESERVED_NAMES
+        ):
+            raise ValueError(
+                f"camera name: expected a non-empty plain folder name (no '/', '\\', leading "
+                f"'.', or {sorted(RESERVED_NAMES)}), got {self.name!r}"
+            )
         for key in ("width", "height"):
             v = getattr(self, key)
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
@@ -70,6 +80,10 @@ class Camera:
     @classmethod
     def from_json(cls, d: dict[str, Any]) -> Camera:
         """Build a camera from a ``rig.json`` entry (raises ``ValueError`` on missing keys)."""
+        if not isinstance(d, dict):
+            raise ValueError(
+                f"camera entry: expected an object with name, width, ..., got {d!r:.60}"
+            )
         missing = [k for k in ("name", "width", "height", "K", "cam_to_ego") if k not in d]
         if missing:
             raise ValueError(f"camera entry {d.get('name', '?')!r} lacks keys {missing}")
@@ -343,24 +357,36 @@ def _load_8bit(path: Path, keep_grey: bool) -> np.ndarray:
 
     try:
         with Image.open(path) as im:
-            if im.mode not in EIGHT_BIT_MODES:
+            # Pillow opens a 16-bit RGB(A) PNG as mode RGB(A), its rawmode ';16B' keeping
+            # only the high byte of each sample: a 12-bit image read nearly black
+            sixteen = any(";16" in str(getattr(t, "args", "")) for t in (im.tile or []))
+            if im.mode not in EIGHT_BIT_MODES or sixteen:
+                what = (
+                    f"image mode {im.mode!r}, not 8 bits per channel"
+                    if im.mode not in EIGHT_BIT_MODES
+                    else f"{im.mode} image of 16 bits per channel"
+                )
                 raise ValueError(
-                    f"{path}: image mode {im.mode!r} is not 8 bits per channel; vvloc reads "
-                    "8-bit RGB (or grey) images: scale it to 8 bits first"
+                    f"{path}: {what}; vvloc reads 8-bit RGB (or grey) images: scale it to 8 "
+                    "bits first"
                 )
             if keep_grey and im.mode == "L":
                 return np.asarray(im, dtype=np.uint8)
             return np.asarray(im.convert("RGB"), dtype=np.uint8)
     except FileNotFoundError:
         raise
-    except (UnidentifiedImageError, OSError, SyntaxError) as e:  # PIL's decoder errors
-        raise ValueError(f"{path}: not a readable image ({e})") from None
+    except (UnidentifiedImageError, OSError, SyntaxError, Image.DecompressionBombError) as e:
+        raise ValueError(f"{path}: not a readable image ({e})") from None  # PIL's errors
 
 
 #: What :func:`is_rigid` accepts, for error messages.
 RIGID = (
     "finite rigid transform (rotation orthonormal to 1e-6 with determinant +1, bottom row 0 0 0 1)"
 )
+
+
+#: File names of a session folder (vvloc_format) that a camera's image folder cannot take.
+RESERVED_NAMES = frozenset({"poses.csv", "session.json", "cam_to_ego.csv"})
 
 
 #: What :func:`is_pinhole` accepts, for messages.
@@ -377,6 +403,7 @@ def is_pinhole(K: np.ndarray) -> bool:
         and (K[..., 0, 0] > 0).all()
         and (K[..., 1, 1] > 0).all()
         and np.allclose(K[..., 2, :], (0.0, 0.0, 1.0), atol=1e-9)
+        and np.allclose(K[..., 1, 0], 0.0, atol=1e-9)  # the form PINHOLE gives
     )
 
 

@@ -55,9 +55,11 @@ def heading_offset(
     nxt = np.searchsorted(along, along + step, side="left")
     starts = []
     k = 0
-    while len(p) and nxt[k] < len(p):  # nxt[k] > k: `along` is finite and non-decreasing
+    while k < len(p) and nxt[k] < len(p):
         starts.append(k)
-        k = int(nxt[k])
+        # nxt[k] > k unless `along` is so large that adding `step` no longer changes it (past
+        # ~1e16 m): that stretch then ends where it starts and does not count
+        k = max(int(nxt[k]), k + 1)
     i = np.array(starts, dtype=np.int64)
     j = nxt[i]
     d = p[j, :2] - p[i, :2]

@@ -103,6 +103,12 @@ def read_rig(path: Path) -> tuple[list[Camera], dict[str, Any]]:
         raise DatasetFormatError(f"{path}: expected an object with a non-empty 'cameras' list")
     if doc.get("format", FORMAT_NAME) != FORMAT_NAME:
         raise DatasetFormatError(f"{path}: format {doc.get('format')!r} is not {FORMAT_NAME!r}")
+    version = doc.get("version", FORMAT_VERSION)  # optional in a hand-written rig.json
+    if type(version) is not int or version != FORMAT_VERSION:
+        raise DatasetFormatError(
+            f"{path}: version {version!r} is not supported (expected {FORMAT_VERSION}: a dataset "
+            "written by a newer vvloc?)"
+        )
     cameras = []
     for i, entry in enumerate(doc["cameras"]):
         try:
@@ -139,6 +145,12 @@ def read_poses(path: Path) -> np.ndarray:
             floor = int(row[5])
         except ValueError as e:
             raise DatasetFormatError(f"{path}, line {line}: malformed row {row}: {e}") from e
+        for name, v in (("timestamp", ts), ("floor", floor)):
+            if not -(2**63) <= v < 2**63:
+                raise DatasetFormatError(
+                    f"{path}, line {line}: {name} {row[0] if name == 'timestamp' else row[5]} "
+                    "is outside the int64 range"
+                )
         if not all(math.isfinite(v) for v in (x, y, z, yaw)):
             raise DatasetFormatError(f"{path}, line {line}: non-finite value in {row}")
         if last is not None and ts <= last:
@@ -370,6 +382,11 @@ class SessionWriter:
         z = _finite_float(z, "z")  # metres
         m = len(self.cameras)
         h, w = self.cameras[0].height, self.cameras[0].width
+        if not isinstance(images, np.ndarray):
+            raise TypeError(
+                f"images: expected a uint8 numpy array ({m}, 3, {h}, {w}), got "
+                f"{type(images).__name__}"
+            )
         if images.dtype != np.uint8 or images.shape != (m, 3, h, w):
             raise ValueError(
                 f"images: expected uint8 ({m}, 3, {h}, {w}), got {images.dtype} {images.shape}"
