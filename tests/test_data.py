@@ -540,6 +540,9 @@ def test_floors_are_different_places(tmp_path):
     assert evaluation_split(ds, database="s0").revisit_radius == 2.0  # vvloc eval's keep radius
     with pytest.raises(ValueError, match="more than once"):
         evaluation_split(ds, database="s0", queries=["s2", "s2"])
+    for bad in ("2", np.nan, np.inf, True):
+        with pytest.raises(ValueError, match="revisit_radius: expected a finite distance"):
+            evaluation_split(ds, database="s0", revisit_radius=bad)
     for bad in (0.0, -5.0, 1.5):  # floors apart by less than a radius would pair
         with pytest.raises(ValueError, match="floor_separation"):
             evaluation_split(ds, database="s0", floor_separation=bad)

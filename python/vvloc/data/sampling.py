@@ -519,11 +519,19 @@ def evaluation_split(
     Defaults: the first session (sorted) is the database, all others are queries.
     """
     names = ds.sessions
+    if database is None and not names:
+        raise ValueError("ds: the dataset has no sessions (no database session to default to)")
     database = database if database is not None else names[0]
     queries = list(queries) if queries is not None else [n for n in names if n != database]
     check_query_sessions(database, queries)
-    if not revisit_radius > 0:
-        raise ValueError(f"revisit_radius: expected > 0 m, got {revisit_radius}")
+    if (
+        isinstance(revisit_radius, bool)
+        or not isinstance(revisit_radius, (int, float, np.number))
+        or not 0 < revisit_radius < np.inf
+    ):
+        raise ValueError(
+            f"revisit_radius: expected a finite distance > 0 m, got {revisit_radius!r}"
+        )
     _check_floor_separation(floor_separation, revisit_radius, "revisit_radius")
     db = ds.session(database)
     tree = cKDTree(_positions(db.poses, db.floors, floor_separation))
