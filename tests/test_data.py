@@ -138,7 +138,6 @@ def _edit_rig(root, edit):
         (lambda c: c["K"][0].__setitem__(0, -40.0), r"focal lengths fx, fy > 0"),
         (lambda c: c["K"][1].__setitem__(1, 0.0), r"focal lengths fx, fy > 0"),
         (lambda c: c["K"].__setitem__(2, [0.0, 0.1, 1.0]), r"pinhole matrix"),
-        (lambda c: c["K"][1].__setitem__(0, 5.0), r"pinhole matrix"),  # K[1, 0] once passed
         (lambda c: c.__setitem__("name", ".."), r"camera name: expected a non-empty plain"),
         (lambda c: c.__setitem__("name", "poses.csv"), r"camera name: expected a non-empty"),
         (  # the rotation scaled by 1.5

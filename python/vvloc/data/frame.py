@@ -362,7 +362,7 @@ def _load_8bit(path: Path, keep_grey: bool) -> np.ndarray:
             sixteen = any(";16" in str(getattr(t, "args", "")) for t in (im.tile or []))
             if im.mode not in EIGHT_BIT_MODES or sixteen:
                 what = (
-                    f"image mode {im.mode!r}, not 8 bits per channel"
+                    f"image mode {im.mode!r} is not 8 bits per channel"
                     if im.mode not in EIGHT_BIT_MODES
                     else f"{im.mode} image of 16 bits per channel"
                 )
@@ -391,7 +391,8 @@ RESERVED_NAMES = frozenset({"poses.csv", "session.json", "cam_to_ego.csv"})
 
 #: What :func:`is_pinhole` accepts, for messages.
 PINHOLE = (
-    "pinhole matrix [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with focal lengths fx, fy > 0 (pixels)"
+    "pinhole matrix [[fx, s, cx], [s', fy, cy], [0, 0, 1]] with focal lengths fx, fy > 0 "
+    "(pixels; the skew s' below the diagonal only for a skewed camera turned by 90 degrees)"
 )
 
 
@@ -403,7 +404,6 @@ def is_pinhole(K: np.ndarray) -> bool:
         and (K[..., 0, 0] > 0).all()
         and (K[..., 1, 1] > 0).all()
         and np.allclose(K[..., 2, :], (0.0, 0.0, 1.0), atol=1e-9)
-        and np.allclose(K[..., 1, 0], 0.0, atol=1e-9)  # the form PINHOLE gives
     )
 
 
