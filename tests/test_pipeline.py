@@ -1460,3 +1460,58 @@ def test_trained_on_knows_a_trained_session_rendered_again_elsewhere(tmp_path, m
     (tmp_path / "mine" / "sessions" / "s1" / "session.json").unlink()
     assert trained_on(record, "mine", ["s1", "s5"]) == ["s5"]
     assert trained_on(record, tmp_path / "nowhere", ["s1"]) == []
+
+
+def test_a_failed_evaluation_leaves_no_folder_it_made(tiny_world, model_dir, tmp_path, monkeypatch):
+    import vvloc.localize.evaluation as evaluation
+
+    def broken(*args: object, **kwargs: object) -> None:
+        raise ValueError("a frame could not be read")
+
+    monkeypatch.setattr(evaluation.Localizer, "localize_batch", broken)
+    out = tmp_path / "new" / "eval"
+    with pytest.raises(ValueError, match="could not be read"):
+        evaluation.run_evaluation(model_dir, tiny_world, "s0", ["s1"], out, progress=False)
+    assert not (tmp_path / "new").exists()  # both folders it made, left empty, are gone
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    with pytest.raises(ValueError, match="could not be read"):
+        evaluation.run_evaluation(model_dir, tiny_world, "s0", ["s1"], mine, progress=False)
+    assert mine.is_dir() and not any(mine.iterdir())  # the user's folder stays
+
+
+def test_cli_names_more_options_before_any_work(tiny_world, model_dir, tmp_path):
+    exe = [sys.executable, "-m", "vvloc.cli"]
+    run = lambda *a: subprocess.run([*exe, *a], capture_output=True, text=True)  # noqa: E731
+    world = tmp_path / "world"
+    shutil.copytree(tiny_world, world)
+    empty = world / "sessions" / "sE"
+    shutil.copytree(world / "sessions" / "s0", empty)
+    poses = empty / "poses.csv"
+    poses.write_text(poses.read_text().splitlines()[0] + "\n")  # the header alone: no frames
+    build = ["map", "build", "--checkpoint", str(model_dir), "--out", str(tmp_path / "m.h5")]
+    # an empty session was left out of the map without a word
+    r = run(*build, "--dataset", str(world), "--sessions", "s0,sE")
+    assert r.returncode == 2 and "--sessions: session 'sE'" in r.stderr and "no frames" in r.stderr
+    r = run(*build, "--dataset", str(world), "--sessions", "")
+    assert r.returncode == 2 and "--sessions: expected at least one" in r.stderr, r.stderr
+    r = run(*build, "--dataset", str(tmp_path / "nope"), "--sessions", "s0")
+    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "--dataset: " in r.stderr, r.stderr
+    assert not (tmp_path / "m.h5").exists()
+    # a dangling symbolic link as --out was found after localizing every frame
+    dangling = tmp_path / "dangling"
+    dangling.symlink_to(tmp_path / "nowhere")
+    r = run("localize", "--map", str(tmp_path / "m.h5"), "--checkpoint", str(model_dir),
+            "--dataset", str(world), "--session", "s1", "--out", str(dangling))  # fmt: skip
+    assert r.returncode == 2 and "--out: " in r.stderr and "symbolic link" in r.stderr, r.stderr
+    # 100 000 pixels square: killed for memory without a word
+    r = run("convert", "--src", str(world), "--out", str(tmp_path / "c"), "--width", "100000",
+            "--height", "100000")  # fmt: skip
+    assert r.returncode == 2 and "--width/--height: expected sides of at most 16384" in r.stderr
+    assert not (tmp_path / "c").exists()
+    r = run("demo", "--out", str(tmp_path / "d"), "--seed", "-1")
+    assert r.returncode == 2 and "rendering" not in r.stdout and "--seed" in r.stderr
+    r = run("localize", "--map", str(tmp_path / "m.h5"), "--checkpoint", str(model_dir),
+            "--dataset", str(world), "--session", "s1", "--out", str(tmp_path / "l"),
+            "--threads", "3000000000")  # fmt: skip
+    assert r.returncode == 2 and "--threads" in r.stderr and "Overflow" not in r.stderr

@@ -43,6 +43,7 @@ Threads = Annotated[
     typer.Option(
         "--threads",
         min=1,
+        max=4096,
         help="PyTorch CPU threads for the networks (default: torch's, all cores). On a machine "
         "that other work keeps busy, 1 can be many times faster (README, 'Threads'). The Rust "
         "kernels' pool is set apart: VVLOC_NUM_THREADS.",
@@ -193,7 +194,8 @@ def check_sessions(dataset: Path, sessions: Iterable[tuple[str, str]]) -> Datase
     opened dataset."""
     from vvloc.data import open_dataset
 
-    ds = open_dataset(dataset)
+    with named("--dataset", FileNotFoundError, NotADirectoryError):
+        ds = open_dataset(dataset)
     for option, name in sessions:
         with named(option, KeyError):
             sess = ds.session(name)
@@ -246,6 +248,11 @@ def check_out_folder(out: Path, option: str = "--out", *, outside: Path | None =
     folder, or the nearest one above it that exists, cannot be written (a read-only file
     system: found after every frame was localized before); ``ValueError`` when ``out`` is or
     lies inside ``outside`` (the dataset, whose folders the outputs would corrupt)."""
+    if out.is_symlink() and not out.exists():  # found only when the outputs were written
+        raise FileExistsError(
+            f"{option}: {out} is a symbolic link to {os.readlink(out)}, which does not exist "
+            "(or loops); expected a folder"
+        )
     for p in (out, *out.parents):
         if p.exists():
             if not p.is_dir():

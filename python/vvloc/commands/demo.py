@@ -86,7 +86,7 @@ def demo(
     ] = None,
     frames: Annotated[int, typer.Option("--frames", min=10, help="Keyframes per session.")] = 120,
     every: Annotated[int, typer.Option("--every", min=1, help="Localize every n-th query.")] = 3,
-    seed: Annotated[int, typer.Option("--seed", help="World seed.")] = 0,
+    seed: Annotated[int, typer.Option("--seed", min=0, help="World seed.")] = 0,
 ) -> None:
     """Map session s0 (day); held-out query sessions s3 (rain, reversed) and s4 (fog, +1.5 m)."""
     from vvloc.checkpoints import checkpoint_folder

@@ -10,7 +10,14 @@ from typing import Annotated
 import typer
 
 from vvloc.checkpoints import checkpoint_folder
-from vvloc.commands._util import Threads, cli_errors, parse_device, set_torch_threads, split_names
+from vvloc.commands._util import (
+    Threads,
+    check_sessions,
+    cli_errors,
+    parse_device,
+    set_torch_threads,
+    split_names,
+)
 
 map_app = typer.Typer(help="Build and inspect map databases.", no_args_is_help=True)
 
@@ -80,21 +87,26 @@ def build(
     stays whole until the new one is complete); any other file there, and an --out inside the
     dataset, are refused."""
 
-    from vvloc.data import open_dataset
     from vvloc.localize.localizer import build_map
     from vvloc.nets import VVLocNet
 
     with cli_errors("map build"):
         set_torch_threads(threads)
         check_map_out(out, overwrite=overwrite, dataset=dataset)
+        names = split_names(sessions, "--sessions")
+        if not names:
+            raise ValueError("--sessions: expected at least one session name")
+        if len(set(names)) != len(names):
+            raise ValueError(f"--sessions: names repeated: {names}")
+        # each exists and holds frames (an empty one was left out of the map without a word)
+        ds = check_sessions(dataset, [("--sessions", name) for name in names])
         model = VVLocNet.load(checkpoint_folder(checkpoint, "--checkpoint")).to(
             parse_device(device)
         )
-        ds = open_dataset(dataset)
         path = build_map(
             model,
             ds,
-            split_names(sessions, "--sessions"),
+            names,
             out,
             dtype="float16" if float16 else "float32",
             store_bev=not no_bev,

@@ -510,9 +510,14 @@ def ego_frames(
     return poses, z, frame_cam_to_ego
 
 
+#: The longest image side (pixels) a conversion may resize to: 100 000 pixels square was
+#: accepted, and the process was killed for memory without a word.
+MAX_IMAGE_SIDE = 16384
+
+
 def check_image_size(image_size: Any) -> tuple[int, int] | None:
     """``image_size`` as (width, height) plain ints, or None; ``ValueError`` naming it unless
-    it is None or two positive ints."""
+    it is None or two positive ints of at most :data:`MAX_IMAGE_SIDE`."""
     if image_size is None:
         return None
     if (
@@ -524,6 +529,11 @@ def check_image_size(image_size: Any) -> tuple[int, int] | None:
         )
     ):
         raise ValueError(f"image_size: expected (width, height) positive ints, got {image_size!r}")
+    if max(image_size) > MAX_IMAGE_SIDE:
+        raise ValueError(
+            f"image_size: expected sides of at most {MAX_IMAGE_SIDE} pixels, got "
+            f"{tuple(int(v) for v in image_size)}"
+        )
     return (int(image_size[0]), int(image_size[1]))
 
 

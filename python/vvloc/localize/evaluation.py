@@ -8,6 +8,7 @@ metric-localization global poses (DESIGN.md §3 frames).
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -461,6 +462,7 @@ def run_evaluation(
             seen,
             dataset,
         )
+    made = [p for p in (out_dir, *out_dir.parents) if not p.exists()]  # removed if left empty
     out_dir.mkdir(parents=True, exist_ok=True)  # after the inputs are checked: none left on error
     # Everything is written into a hidden folder inside ``out`` and moved into place at the
     # end: a run that fails or is stopped leaves an earlier report in ``out`` as it was (its
@@ -775,4 +777,7 @@ def run_evaluation(
         if mapdb is not None:
             mapdb.close()
         shutil.rmtree(work, ignore_errors=True)
+        for folder in made:  # the folders this run made, left empty by a failure or Ctrl-C
+            with contextlib.suppress(OSError):  # not empty: a report is in it
+                folder.rmdir()
     return metrics

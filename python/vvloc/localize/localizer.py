@@ -30,6 +30,7 @@ distinctiveness >= ``min_distinctiveness`` (the model's calibration; 0 without o
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
@@ -1032,17 +1033,21 @@ def build_map(
     cameras = list(dataset.cameras)
     check_training_rig(model, cameras, "the dataset's rig")  # named at build_map's caller
     cfg = model.config
-    with MapWriter(
-        out,
-        model_config=cfg.to_dict(),
-        grid_size=float(cfg.grid_size),
-        config_hash=model.config_hash(),
-        weights_hash=model.weights_hash(),
-        dtype=dtype,  # type: ignore[arg-type]
-        expected_keyframes=total,
-        rig=cameras or None,
-    ) as writer:
+    with (
+        contextlib.ExitStack() as stack,
+        MapWriter(
+            out,
+            model_config=cfg.to_dict(),
+            grid_size=float(cfg.grid_size),
+            config_hash=model.config_hash(),
+            weights_hash=model.weights_hash(),
+            dtype=dtype,  # type: ignore[arg-type]
+            expected_keyframes=total,
+            rig=cameras or None,
+        ) as writer,
+    ):
         bar = tqdm(total=total, desc="map", disable=not progress)
+        stack.callback(bar.close)  # closed before an error is printed, not under it
         for name in sessions:
             sess = dataset.session(name)
             for start in range(0, len(sess), batch_size):
@@ -1059,5 +1064,4 @@ def build_map(
                     bevs=enc.bev,
                 )
                 bar.update(len(frames))
-        bar.close()
     return Path(out)
