@@ -87,6 +87,7 @@ def build(
     stays whole until the new one is complete); any other file there, and an --out inside the
     dataset, are refused."""
 
+    from vvloc.data.sampling import check_session_names
     from vvloc.localize.localizer import build_map
     from vvloc.nets import VVLocNet
 
@@ -96,10 +97,9 @@ def build(
         names = split_names(sessions, "--sessions")
         if not names:
             raise ValueError("--sessions: expected at least one session name")
-        if len(set(names)) != len(names):
-            raise ValueError(f"--sessions: names repeated: {names}")
         # each exists and holds frames (an empty one was left out of the map without a word)
         ds = check_sessions(dataset, [("--sessions", name) for name in names])
+        check_session_names("--sessions", ds, names, str(dataset))  # named once each
         model = VVLocNet.load(checkpoint_folder(checkpoint, "--checkpoint")).to(
             parse_device(device)
         )
