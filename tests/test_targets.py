@@ -276,6 +276,11 @@ def test_cli_prints_the_table_writes_json_and_fails_when_strict_and_missed(tmp_p
         assert r.returncode == 2 and "is not a figures file that vvloc targets wrote" in r.stderr
         assert target.read_bytes() == kept
     assert (report / "report.json").read_bytes() == before
+    # an --out below a file is said before the reports are read, naming --out
+    from vvloc.commands.targets import check_targets_out
+
+    with pytest.raises(NotADirectoryError, match=r"^--out: .*notes\.txt/t\.json lies below"):
+        check_targets_out(notes / "t.json")
 
 
 def test_make_model_test_runs_the_committed_models_test():

@@ -1596,6 +1596,20 @@ def test_a_rig_of_more_cameras_than_the_model_holds_is_refused_by_trainer(tiny_w
         Trainer(cfg, "unused")
 
 
+def test_a_config_that_is_a_folder_or_missing_is_named_by_the_cli(tmp_path):
+    from typer.testing import CliRunner
+
+    from vvloc.cli import app
+
+    for config, words in ((tmp_path, "is a folder; expected a YAML config file"),
+                          (tmp_path / "nope.yaml", "config file not found")):  # fmt: skip
+        result = CliRunner().invoke(
+            app, ["train", "--config", str(config), "--out", str(tmp_path / "run")]
+        )
+        assert result.exit_code == 2 and "vvloc train: error: --config: " in result.output
+        assert words in result.output and not (tmp_path / "run").exists()
+
+
 def test_an_empty_or_undecodable_config_file_is_refused(tmp_path):
     # an empty file (or comments alone) started a full run of every default
     for text in ("", "# just a comment\n"):

@@ -291,7 +291,9 @@ class TrainConfig:
     def from_yaml(cls, path: str | os.PathLike[str]) -> TrainConfig:
         """Read a YAML config; unknown keys raise ``ValueError`` naming them and the file."""
         path = Path(path)
-        if not path.is_file():
+        if path.is_dir():
+            raise IsADirectoryError(f"{path} is a folder; expected a YAML config file")
+        if not path.exists():  # a stream such as /dev/null reads as an empty config
             raise FileNotFoundError(f"config file not found: {path}")
         try:
             raw = yaml.load(path.read_text(encoding="utf-8"), Loader=_UniqueKeyLoader)

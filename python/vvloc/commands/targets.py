@@ -21,6 +21,11 @@ def check_targets_out(out: Path) -> None:
     included)."""
     from vvloc._io import _is_stream
 
+    for p in out.parents:  # found before the reports are read, not when writing
+        if p.exists():
+            if not p.is_dir():
+                raise NotADirectoryError(f"--out: {out} lies below {p}, which is a file")
+            break
     if not out.exists() or _is_stream(out):
         return
     if out.is_dir():

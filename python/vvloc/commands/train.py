@@ -8,7 +8,7 @@ from typing import Annotated
 import typer
 
 from vvloc.checkpoints import resolve_checkpoint
-from vvloc.commands._util import check_out_folder, cli_errors
+from vvloc.commands._util import check_out_folder, cli_errors, named
 from vvloc.provenance import summarize
 
 
@@ -36,7 +36,8 @@ def train(
 
     with cli_errors("train"):
         check_out_folder(out)
-        cfg = TrainConfig.from_yaml(config)
+        with named("--config", FileNotFoundError, IsADirectoryError):
+            cfg = TrainConfig.from_yaml(config)
         if device is not None:
             resolve_device(device, argument="--device")  # refused by name before any work
             cfg = dataclasses.replace(cfg, device=device)
