@@ -178,7 +178,7 @@ def test_bad_arguments_name_the_argument():
         sequence_distance(g, sessions + 0.5, seqs, one, one, 1)
     with pytest.raises(TypeError, match="sequence"):
         descriptor_loop_candidates(g, sessions, seqs, sequence=True)
-    with pytest.raises(ValueError, match="sessions, seqs"):
+    with pytest.raises(ValueError, match=r"sessions: expected shape \(8,\), one per descriptor"):
         sequence_distance(g, sessions[:3], seqs, one, one, 1)
     with pytest.raises(ValueError, match="i, j"):
         sequence_distance(g, sessions, seqs, one, np.array([0, 1]), 1)

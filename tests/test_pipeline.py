@@ -443,7 +443,7 @@ def test_the_stage_methods_check_their_arguments_as_localize_encoded_does(
         (lambda: loc.rerank(local, []), ValueError, r"rows: expected at least one map row"),
         (lambda: loc.metric(bev, 1.7), TypeError, r"row: expected an int"),
         (lambda: loc.metric(bev, True), TypeError, r"row: expected an int"),
-        (lambda: loc.metric(bev, n), ValueError, rf"row: expected an int <= {n - 1}"),
+        (lambda: loc.metric(bev, n), ValueError, rf"row: expected map rows in \[0, {n}\)"),
         (lambda: loc.metric(bev[:5], 0), ValueError, r"bev: expected shape"),
         (lambda: loc.metric(bev * 1e30, 0), ValueError, r"bev: values up to"),
         (lambda: loc.metric_best(bev, [0, 1], bias=["a"]), TypeError, r"bias: expected a real"),
@@ -689,7 +689,11 @@ def test_detect_loops_api_returns_ids_and_costs(map_file, model_dir):
             ({"radius": float("inf")}, ValueError, "radius: expected a finite value > 0"),
             ({"window": None}, TypeError, "window: expected an int >= 0, got NoneType"),
             ({"window": 1.7}, TypeError, "window: expected an int >= 0, got float"),
-            ({"search": {"step": 0.6}}, TypeError, "search: expected a SearchConfig, got dict"),
+            (
+                {"search": {"step": 0.6}},
+                TypeError,
+                "search: expected a SearchConfig or None, got dict",
+            ),
             ({"search": SearchConfig(step=-1.0)}, ValueError, "step: expected a finite value"),
         ]:
             with pytest.raises(error, match=match):

@@ -760,8 +760,8 @@ class Localizer:
     def metric(self, bev: F32, row: int) -> tuple[npt.NDArray[np.float64], float, Any]:
         """Metric localization of a query BEV (H, W, C) against map row ``row`` (an int):
         returns (ξ_{m→q} (3,), cost, search history)."""
-        row = kernels._positive_int(row, "row", minimum=0, maximum=max(len(self.map) - 1, 0))
-        rows = self._rows(np.array([row], dtype=np.int64), "row")
+        row = kernels._positive_int(row, "row", minimum=0)  # an int: 1.7 is not row 1
+        rows = self._rows(np.array([row], dtype=np.int64), "row")  # and a row of the map
         _, xi_mq, cost, history, _ = self._metric_best(self._encoded("bev", bev), rows)
         return xi_mq, cost, history
 

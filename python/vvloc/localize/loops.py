@@ -99,10 +99,7 @@ def sequence_distance(
     if g.ndim != 2 or not np.issubdtype(g.dtype, np.number):
         raise ValueError(f"descriptors: expected a numeric (N, D) array, got shape {g.shape}")
     n = len(g)
-    sess = _int_array(sessions, "sessions", "(N,)", 1)
-    seq = _int_array(seqs, "seqs", "(N,)", 1)
-    if sess.shape != (n,) or seq.shape != (n,):
-        raise ValueError(f"sessions, seqs: expected ({n},) each, got {sess.shape} and {seq.shape}")
+    sess, seq = _sessions_and_seqs(g, sessions, seqs)
     i = _int_array(i, "i", "(P,)", 1)
     j = _int_array(j, "j", "(P,)", 1)
     if i.shape != j.shape or i.ndim != 1:
@@ -617,9 +614,8 @@ def detect_loops(
     check_map_model(mapdb, model)
     cost_threshold = _cost_threshold(cost_threshold, "cost_threshold")
     radius, window = _radius_and_window(radius, window)
-    if search is not None and not isinstance(search, SearchConfig):
-        raise TypeError(f"search: expected a SearchConfig, got {type(search).__name__}")
-    (search or SearchConfig()).validate()  # a bad one fails here, not at the first pair
+    search = search_config(search, "search")
+    search.validate()  # a bad one fails here, not at the first pair
     if max_pairs is not None:
         max_pairs = _positive_int(max_pairs, "max_pairs", minimum=0)
     if not mapdb.has_bev:
