@@ -114,6 +114,15 @@ def test_a_window_leaving_the_session_gives_inf():
     assert np.isinf(d[0]) and np.isfinite(d[1])
 
 
+def test_a_sequence_window_no_session_holds_is_said_not_silent():
+    g, sessions, seqs = two_drives(n=6)
+    # half-window 2: 5 keyframes per session, enough; 3 needs 7 and confirms nothing
+    descriptor_loop_candidates(g, sessions, seqs, radius=0.1, window=2, sequence=2)
+    with pytest.warns(UserWarning, match=r"half-window 3 needs 7 keyframes .* holds 6: no loop"):
+        none = descriptor_loop_candidates(g, sessions, seqs, radius=0.1, window=2, sequence=3)
+    assert len(none.i) == 0
+
+
 def test_an_isolated_look_alike_is_rejected_by_the_sequence_check():
     g, sessions, seqs = two_drives(n=12)
     # session 1's frame at place 7 looks like place 3 (the other floor's copy of it)

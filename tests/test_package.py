@@ -170,3 +170,15 @@ def test_option_names_are_read_as_a_csv_line():
     assert split_names("", "--sessions") == []
     with pytest.raises(ValueError, match=r"^--sessions: cannot read .* in double quotes"):
         split_names('"day,1', "--sessions")
+
+
+def test_an_error_naming_a_library_argument_names_the_option_it_came_from():
+    from vvloc.commands._util import with_option_name
+
+    text = "window: expected an int <= 9223372036854775807, got 100000000000000000000"
+    assert with_option_name(text, ["loops", "--window", "1e20"]).startswith("--window: expected")
+    assert with_option_name(text, ["loops", "--window=1e20"]).startswith("--window: expected")
+    # not given on the command line: the value came from elsewhere, said as the library says it
+    assert with_option_name(text, ["loops", "--radius", "0.2"]) == text
+    assert with_option_name("no colon here", ["--window"]) == "no colon here"
+    assert with_option_name("two words: x", ["--two words"]) == "two words: x"

@@ -1484,7 +1484,7 @@ def test_a_failed_evaluation_leaves_no_folder_it_made(tiny_world, model_dir, tmp
     assert mine.is_dir() and not any(mine.iterdir())  # the user's folder stays
 
 
-def test_cli_names_more_options_before_any_work(tiny_world, model_dir, tmp_path):
+def test_cli_names_more_options_before_any_work(tiny_world, model_dir, map_file, tmp_path):
     exe = [sys.executable, "-m", "vvloc.cli"]
     run = lambda *a: subprocess.run([*exe, *a], capture_output=True, text=True)  # noqa: E731
     world = tmp_path / "world"
@@ -1519,3 +1519,24 @@ def test_cli_names_more_options_before_any_work(tiny_world, model_dir, tmp_path)
             "--dataset", str(world), "--session", "s1", "--out", str(tmp_path / "l"),
             "--threads", "3000000000")  # fmt: skip
     assert r.returncode == 2 and "--threads" in r.stderr and "Overflow" not in r.stderr
+    # ints past int64 are named by the option they came from, not the library's argument
+    huge = "100000000000000000000"
+    r = run("sim", "--out", str(tmp_path / "s"), "--seed", huge)
+    assert r.returncode == 2 and "error: --seed: expected an int <=" in r.stderr, r.stderr
+    assert not (tmp_path / "s").exists()
+    r = run("loops", "--map", str(map_file), "--checkpoint", str(model_dir), "--out",
+            str(tmp_path / "l"), "--window", huge)  # fmt: skip
+    assert r.returncode == 2 and "error: --window: expected an int <=" in r.stderr, r.stderr
+    # a sequence window longer than any session confirms nothing: said, not a silent 0
+    r = run("loops", "--map", str(map_file), "--checkpoint", str(model_dir), "--out",
+            str(tmp_path / "l"), "--sequence", "1000")  # fmt: skip
+    assert r.returncode == 0 and "half-window 1000 needs 2001 keyframes" in r.stderr, r.stderr
+    # "," names no session: every session was converted
+    r = run("convert", "--src", str(world), "--out", str(tmp_path / "c"), "--sessions", ",")
+    assert r.returncode == 2 and "--sessions: expected at least one session name" in r.stderr
+    assert not (tmp_path / "c").exists()
+    # --threshold 0 accepts nothing: said before the map is built, not after every query
+    r = run("calibrate", "--checkpoint", str(model_dir), "--dataset", str(world), "--database",
+            "s0", "--queries", "s1", "--threshold", "0")  # fmt: skip
+    assert r.returncode == 2 and "--threshold: 0 accepts no answer" in r.stderr, r.stderr
+    assert not (model_dir / "calibration.json").exists()

@@ -5,7 +5,8 @@ from __future__ import annotations
 import contextlib
 import math
 import os
-from collections.abc import Iterable, Iterator
+import sys
+from collections.abc import Iterable, Iterator, Sequence
 from enum import Enum
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
@@ -152,9 +153,23 @@ def error_text(e: BaseException) -> str:
     return f"{message} ({head.removeprefix('Caught ').split(' ', 1)[-1].rstrip('.')})"
 
 
+def with_option_name(text: str, argv: Sequence[str] | None = None) -> str:
+    """``text`` with a leading library argument's name (``window: ...``, :func:`named`'s
+    convention) said as the command-line option of that name (``--window: ...``) when that
+    option was given in ``argv`` (default: ``sys.argv``), so that its value came from there;
+    other text as it is."""
+    arg, sep, rest = text.partition(": ")
+    if not (sep and arg.isidentifier()):
+        return text
+    given = {a.partition("=")[0] for a in (sys.argv[1:] if argv is None else argv)}
+    return f"--{arg}: {rest}" if f"--{arg}" in given else text
+
+
 @contextlib.contextmanager
 def cli_errors(command: str) -> Iterator[None]:
-    """Turn library exceptions into one-line messages and exit code 2 (bad input) or 1."""
+    """Turn library exceptions into one-line messages and exit code 2 (bad input) or 1. A bad
+    input's message that starts with a library argument's name says the option of that name
+    instead when it was given (:func:`with_option_name`)."""
     try:
         yield
     except typer.Exit:  # a command's own exit (a RuntimeError subclass): already reported
@@ -169,7 +184,7 @@ def cli_errors(command: str) -> Iterator[None]:
         KeyError,
         TypeError,
     ) as e:
-        typer.echo(f"vvloc {command}: error: {error_text(e)}", err=True)
+        typer.echo(f"vvloc {command}: error: {with_option_name(error_text(e))}", err=True)
         raise typer.Exit(code=EXIT_USAGE) from e
     except (RuntimeError, OSError, ArithmeticError, MemoryError) as e:  # e.g. a non-finite loss
         typer.echo(f"vvloc {command}: failed: {error_text(e)}", err=True)

@@ -81,6 +81,11 @@ def calibrate(
             raise ValueError("--queries: expected at least one session name")
         if not 0.0 < precision <= 1.0:
             raise ValueError(f"--precision: expected a value in (0, 1], got {precision}")
+        if threshold == 0:  # found after the map was built and every query localized
+            raise ValueError(
+                "--threshold: 0 accepts no answer (matching costs are >= 0), so there is nothing "
+                "to calibrate; the paper's is 0.75"
+            )
         ckpt = checkpoint_folder(checkpoint, "--checkpoint")
         target = ckpt / CALIBRATION_FILE
         if target.exists() and not overwrite:
@@ -138,11 +143,15 @@ def calibrate(
                 f"{cal['passing_cost']} queries that pass the cost rule (all {cal['queries']} "
                 f"accepted: {cal['base_precision']:.1%} right)"
             )
+            hint = (
+                "a higher --threshold"
+                if not cal["passing_cost"]
+                else "a lower --precision or --min_accepted, more --queries"
+            )
             typer.echo(
                 f"vvloc calibrate: failed: {why}; "
                 + (f"{target} is left as it was" if target.exists() else "nothing was written")
-                + ". Try a lower "
-                "--precision or --min_accepted, more --queries or a better-trained checkpoint.",
+                + f". Try {hint} or a better-trained checkpoint.",
                 err=True,
             )
             raise typer.Exit(code=EXIT_FAILURE)

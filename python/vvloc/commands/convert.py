@@ -46,8 +46,9 @@ def convert(
         SourceFormat, typer.Option("--format", help="Format of --src (auto: detected).")
     ] = SourceFormat.auto,
     sessions: Annotated[
-        str, typer.Option("--sessions", help="Comma-separated sessions to convert (default all).")
-    ] = "",
+        str | None,
+        typer.Option("--sessions", help="Comma-separated sessions to convert (default all)."),
+    ] = None,
     every: Annotated[
         int, typer.Option("--every", min=1, help="Keep every n-th frame of a session first.")
     ] = 1,
@@ -78,13 +79,13 @@ def convert(
         ),
     ] = None,
     cameras: Annotated[
-        str,
+        str | None,
         typer.Option(
             "--cameras",
             help="Comma-separated cameras in image order (NCLT: 1-5, e.g. 1,2,3,4,5; RobotCar: "
             "stereo_centre,mono_left,mono_rear,mono_right). Default: the reader's.",
         ),
-    ] = "",
+    ] = None,
     ego_height: Annotated[
         float | None,
         typer.Option(
@@ -123,8 +124,12 @@ def convert(
     with cli_errors("convert"):
         fmt = detect_format(src, format.value)
         options: dict[str, Any] = {}
-        if cameras:
+        if sessions is not None and not split_names(sessions, "--sessions"):
+            raise ValueError(f"--sessions: expected at least one session name, got {sessions!r}")
+        if cameras is not None:
             names = split_names(cameras, "--cameras")
+            if not names:
+                raise ValueError(f"--cameras: expected at least one camera, got {cameras!r}")
             if fmt == "nclt":
                 if not all(n.isdigit() for n in names):
                     _fail(f"--cameras: NCLT cameras are numbers 1-5, got {cameras!r}")
@@ -150,7 +155,7 @@ def convert(
                 src,
                 out,
                 format=fmt,
-                sessions=split_names(sessions, "--sessions") or None,
+                sessions=None if sessions is None else split_names(sessions, "--sessions"),
                 every=every,
                 min_distance=min_distance,
                 min_angle_deg=min_angle,

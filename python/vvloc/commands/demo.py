@@ -88,7 +88,11 @@ def demo(
     every: Annotated[int, typer.Option("--every", min=1, help="Localize every n-th query.")] = 3,
     seed: Annotated[int, typer.Option("--seed", min=0, help="World seed.")] = 0,
 ) -> None:
-    """Map session s0 (day); held-out query sessions s3 (rain, reversed) and s4 (fog, +1.5 m)."""
+    """Render a small synthetic parking lot (5 sessions) into --out/data, or reuse the one an
+    earlier demo rendered there; map its session s0 (day) with the committed model (or
+    --checkpoint), localize the held-out query sessions s3 (rain, reversed drive) and s4 (fog,
+    +1.5 m lateral offset) against it, print the metrics, and write the report and plots into
+    --out."""
     from vvloc.checkpoints import checkpoint_folder
     from vvloc.localize.evaluation import check_report_folder, run_evaluation
     from vvloc.nets import ModelConfig, VVLocNet

@@ -22,6 +22,7 @@ loop is accepted when its matching cost is below ``cost_threshold`` (0.75).
 from __future__ import annotations
 
 import logging
+import warnings
 from dataclasses import dataclass
 from typing import Any
 
@@ -215,6 +216,15 @@ def confirm_sequence(
     scored by the larger of the two distances: what :func:`descriptor_loop_candidates` returns
     with ``sequence = half_window``, without a second radius query."""
     seq_dist = sequence_distance(descriptors, sessions, seqs, cand.i, cand.j, half_window, window)
+    longest = np.unique(np.asarray(sessions), return_counts=True)[1].max(initial=0)
+    if 2 * half_window + 1 > longest:  # every candidate is refused: said, not silent
+        warnings.warn(
+            f"the sequence check's half-window {half_window} needs {2 * half_window + 1} "
+            f"keyframes of a session around each keyframe of a pair, and the longest session "
+            f"holds {longest}: no loop candidate can be confirmed (a smaller sequence "
+            "half-window, or 0 for no sequence check)",
+            stacklevel=2,
+        )
     score = np.maximum(cand.distance, seq_dist)
     return LoopCandidates(cand.i, cand.j, score).within(radius)
 
