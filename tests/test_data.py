@@ -329,6 +329,63 @@ def test_writer_leaves_nothing_behind_on_error(tmp_path):
         DatasetWriter(tmp_path / "ds", cams)
 
 
+def _dead_pid() -> int:
+    """The process id of a process that has ended (reused by another only after wrapping)."""
+    import subprocess
+    import sys
+
+    child = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
+                           capture_output=True, text=True, check=True)  # fmt: skip
+    return int(child.stdout)
+
+
+def test_what_a_writer_killed_outright_left_is_cleaned_up_by_the_next(tmp_path, caplog):
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    from vvloc._io import temp_tag
+
+    root = tmp_path / "ds"
+    # a writer killed outright (no handler runs) leaves its hidden partial folder behind
+    script = (
+        "import os, signal, sys, numpy as np\n"
+        "from vvloc.data import DatasetWriter\n"
+        "from vvloc.sim.rig import make_rig\n"
+        f"w = DatasetWriter(sys.argv[1], make_rig(2, {W}, {H}))\n"
+        f"w.add_session('s0').add(1, (0, 0, 0), np.zeros((2, 3, {H}, {W}), np.uint8))\n"
+        "os.kill(os.getpid(), signal.SIGKILL)\n"
+    )
+    r = subprocess.run([sys.executable, "-c", script, str(root)], capture_output=True)
+    assert r.returncode == -signal.SIGKILL, r.stderr
+    (left,) = tmp_path.iterdir()
+    assert left.name.startswith(".ds.partial-")
+    # ... beside one a running writer is writing (this process), another machine's, and a
+    # name of another form: only the dead process's goes
+    mine = tmp_path / f".ds.partial-{temp_tag()}"
+    other_host = tmp_path / f".ds.partial-00000000-{_dead_pid()}-{'a' * 12}"
+    other_form = tmp_path / ".ds.partial-0123456789ab"
+    for d in (mine, other_host, other_form):
+        d.mkdir()
+    with caplog.at_level("WARNING"):
+        _write(root, {"s0": _line(3)})
+    assert "which a stopped vvloc process left" in caplog.text
+    assert not left.exists() and mine.is_dir() and other_host.is_dir() and other_form.is_dir()
+    assert len(open_dataset(root).session("s0")) == 3
+    # killed between its two renames: the dataset it had moved aside goes back, whole
+    dead = _dead_pid()
+    aside = tmp_path / f".ds.replaced-{temp_tag().replace(f'-{os.getpid()}-', f'-{dead}-')}"
+    os.replace(root, aside)
+    with pytest.raises(FileExistsError, match="exists and is not empty"):
+        DatasetWriter(root, make_rig(4, W, H))
+    assert not aside.exists() and len(open_dataset(root).session("s0")) == 3
+    # ... and is removed when the new one took its place
+    aside.mkdir()
+    DatasetWriter(root, make_rig(4, W, H), overwrite=True).abort()
+    assert not aside.exists() and len(open_dataset(root).session("s0")) == 3
+
+
 def test_the_writer_refuses_what_the_reader_would_refuse_naming_the_argument(tmp_path):
     cams = make_rig(2, W, H)
     img = np.zeros((2, 3, H, W), np.uint8)

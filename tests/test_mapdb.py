@@ -862,6 +862,34 @@ def test_atomic_write_keeps_old_content_on_error(tmp_path: Path) -> None:
     assert path.read_text() == "new\n" and os.listdir(tmp_path) == ["out.txt"]
 
 
+def test_a_temporary_file_a_killed_writer_left_goes_with_the_next_write(tmp_path: Path) -> None:
+    import signal
+
+    from vvloc._io import stale_temps, temp_tag
+
+    path = tmp_path / "map.h5"
+    script = (
+        "import os, signal, sys\n"
+        "from vvloc._io import AtomicPath\n"
+        "a = AtomicPath(sys.argv[1])\n"
+        "a.tmp.write_bytes(b'half a map')\n"
+        "os.kill(os.getpid(), signal.SIGKILL)\n"
+    )
+    r = subprocess.run([sys.executable, "-c", script, str(path)], capture_output=True)
+    assert r.returncode == -signal.SIGKILL, r.stderr
+    (left,) = tmp_path.iterdir()
+    assert left.name.startswith(".map.h5.") and left.name.endswith(".tmp")
+    assert stale_temps(tmp_path, ".map.h5.", ".tmp") == [left]
+    live = tmp_path / f".map.h5.{temp_tag()}.tmp"  # this process's: a write in progress
+    other = tmp_path / ".other.h5.00000000-1-aaaaaaaaaaaa.tmp"  # another file's, another host
+    live.write_bytes(b"")
+    other.write_bytes(b"")
+    with atomic_write(path, "wb") as f:
+        f.write(b"new")
+    assert path.read_bytes() == b"new"
+    assert not left.exists() and live.exists() and other.exists()
+
+
 def test_atomic_write_into_missing_directory_fails_cleanly(tmp_path: Path) -> None:
     with (
         pytest.raises(FileNotFoundError, match=r"its folder .* does not exist"),

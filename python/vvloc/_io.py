@@ -12,10 +12,14 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import hashlib
 import io
+import logging
 import os
 import re
 import secrets
+import shutil
+import socket
 import stat
 import sys
 from collections.abc import Iterator
@@ -29,8 +33,13 @@ __all__ = [
     "atomic_write",
     "csv_row",
     "list_entries",
+    "remove_stale_temps",
+    "stale_temps",
+    "temp_tag",
     "write_together",
 ]
+
+_log = logging.getLogger(__name__)
 
 
 def csv_row(*fields: object) -> str:
@@ -46,6 +55,70 @@ def list_entries(names: list[str], limit: int = 5) -> str:
     """The first ``limit`` of a folder's entry ``names`` for a message: ``"a, b and 3 more"``."""
     more = f" and {len(names) - limit} more" if len(names) > limit else ""
     return ", ".join(names[:limit]) + more
+
+
+#: This machine in temporary names (a hash of its host name): a sweep judges the processes of
+#: this machine alone (another machine writing into a shared folder has its own process ids).
+_HOST = hashlib.sha1(socket.gethostname().encode("utf-8", "replace")).hexdigest()[:8]
+#: What a temporary name holds between its prefix and its suffix (:func:`temp_tag`).
+_TAG = re.compile(r"(?P<host>[0-9a-f]{8})-(?P<pid>[0-9]{1,10})-[0-9a-f]{12}")
+
+
+def temp_tag() -> str:
+    """The middle of a temporary name, ``<host>-<pid>-<random>``: this machine (a hash of its
+    host name), this process and 12 random hex digits, so that :func:`remove_stale_temps` can
+    tell a temporary a killed process left from one a running process is writing
+    (:func:`stale_temps`)."""
+    return f"{_HOST}-{os.getpid()}-{secrets.token_hex(6)}"
+
+
+def _running(pid: int) -> bool:
+    """Whether process ``pid`` of this machine runs (or may: when it cannot be asked)."""
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)  # signal 0: the existence check, nothing is sent
+    except ProcessLookupError:
+        return False
+    except (OSError, OverflowError):  # another user's process, or a pid the OS cannot take
+        return True
+    return True
+
+
+def stale_temps(directory: Path, prefix: str, suffix: str = "") -> list[Path]:
+    """What processes killed outright (SIGKILL, the out-of-memory killer: no handler runs) left
+    in ``directory``: the files and folders named ``prefix + temp_tag() + suffix`` whose process
+    was of this machine and runs no more, sorted by name. A running process's temporaries,
+    other machines' and names of any other form are not among them."""
+    try:
+        names = sorted(e.name for e in os.scandir(directory))
+    except OSError:
+        return []
+    stale = []
+    for name in names:
+        if not (name.startswith(prefix) and name.endswith(suffix)):
+            continue
+        tag = _TAG.fullmatch(name[len(prefix) : len(name) - len(suffix)])
+        if tag is not None and tag["host"] == _HOST and not _running(int(tag["pid"])):
+            stale.append(directory / name)
+    return stale
+
+
+def remove_stale_temps(directory: Path, prefix: str, suffix: str = "") -> list[Path]:
+    """Remove the :func:`stale_temps` of ``directory`` (files, or folders with their contents),
+    each with a logged warning; one that cannot be removed is skipped. Returns the removed."""
+    removed = []
+    for path in stale_temps(directory, prefix, suffix):
+        try:
+            if path.is_dir() and not path.is_symlink():
+                shutil.rmtree(path)
+            else:
+                os.unlink(path)
+        except OSError:
+            continue
+        _log.warning("removed %s, which a stopped vvloc process left", path)
+        removed.append(path)
+    return removed
 
 
 def _fsync_file(path: Path) -> None:
@@ -123,10 +196,12 @@ class AtomicPath:
     keeps that file's mode, as writing into it would: its group and other bits from the start,
     so that a private file's new contents are never readable by others, and its owner bits at
     the commit, so that a read-only file can be replaced) with a hidden random name
-    ``.<name>.<hex>.tmp`` in the destination's directory, so the final rename never crosses file
-    systems. A destination that is a symbolic link is followed: its target is replaced and the
-    link kept, as writing into it would. A process killed outright (SIGKILL, power loss) may
-    leave the hidden temporary file behind; the destination is intact either way. :meth:`commit`
+    ``.<name>.<host>-<pid>-<hex>.tmp`` in the destination's directory, so the final rename never
+    crosses file systems. A destination that is a symbolic link is followed: its target is
+    replaced and the link kept, as writing into it would. A process killed outright (SIGKILL,
+    power loss) may leave the hidden temporary file behind, the destination intact either way;
+    the next write of that destination on this machine removes it (:func:`remove_stale_temps`).
+    :meth:`commit`
     and :meth:`abort` may also be called explicitly (once).
 
     A destination that exists and is not a regular file (``/dev/null``, a named pipe), or that
@@ -171,8 +246,9 @@ class AtomicPath:
             mode = (stat.S_IMODE(os.stat(self.path).st_mode) & 0o077) | 0o600
         except FileNotFoundError:
             mode = 0o666
+        remove_stale_temps(directory, f".{self.path.name}.", ".tmp")
         for _ in range(100):
-            tmp = directory / f".{self.path.name}.{secrets.token_hex(6)}.tmp"
+            tmp = directory / f".{self.path.name}.{temp_tag()}.tmp"
             try:
                 fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, mode)
             except FileExistsError:

@@ -18,9 +18,9 @@ from __future__ import annotations
 
 import csv
 import json
+import logging
 import math
 import os
-import secrets
 import shutil
 import stat
 import warnings
@@ -31,10 +31,12 @@ from typing import Any
 
 import numpy as np
 
-from vvloc._io import list_entries
+from vvloc._io import list_entries, remove_stale_temps, stale_temps, temp_tag
 from vvloc.data.frame import RIGID, Camera, Dataset, Session, is_rigid, load_rgb
 from vvloc.data.heading import heading_warning
 from vvloc.kernels import _finite_float
+
+_log = logging.getLogger(__name__)
 
 FORMAT_NAME = "vvloc"
 FORMAT_VERSION = 1
@@ -484,6 +486,22 @@ def check_dataset_target(root: str | os.PathLike[str], overwrite: bool) -> None:
         _check_replaceable(root)
 
 
+def recover_dataset_target(target: Path) -> None:
+    """Undo what a :class:`DatasetWriter` of ``target`` (a real path) that was killed outright
+    left beside it (SIGKILL, the out-of-memory killer: no handler runs;
+    :func:`vvloc._io.stale_temps`): its half-written hidden ``.partial-`` folder is removed, and
+    the dataset it had renamed aside to replace it (a hidden ``.replaced-`` folder) is put back
+    when the new one never took its place, and removed when it did. Each is a logged warning."""
+    remove_stale_temps(target.parent, f".{target.name}.partial-")
+    for old in stale_temps(target.parent, f".{target.name}.replaced-"):
+        if os.path.lexists(target):  # the new dataset took its place: the old one's leftovers
+            shutil.rmtree(old, ignore_errors=True)
+            _log.warning("removed %s, which a stopped vvloc process left", old)
+        else:  # stopped between the two renames: the old dataset goes back
+            os.replace(old, target)
+            _log.warning("put back %s, which a stopped vvloc process had moved to %s", target, old)
+
+
 class DatasetWriter:
     """Writes a vvloc-format dataset atomically: into a hidden temporary folder beside ``root``,
     renamed to ``root`` by :meth:`close`; on an exception inside ``with`` nothing is left behind.
@@ -517,6 +535,7 @@ class DatasetWriter:
         repeated = sorted({n for n in names if names.count(n) > 1})
         if repeated:
             raise ValueError(f"cameras: names {repeated} repeated (each camera has its own folder)")
+        recover_dataset_target(self._target)
         check_dataset_target(self.root, overwrite)
         self.cameras = tuple(cameras)
         self.overwrite = overwrite
@@ -549,7 +568,7 @@ class DatasetWriter:
         """The hidden temporary folder beside the target, with the mode a plain ``mkdir``
         gives (0o777 minus the umask), or the replaced dataset's mode."""
         for _ in range(100):
-            tmp = self._target.parent / f".{self._target.name}.partial-{secrets.token_hex(6)}"
+            tmp = self._target.parent / f".{self._target.name}.partial-{temp_tag()}"
             try:
                 tmp.mkdir(0o777)
             except FileExistsError:
@@ -577,9 +596,7 @@ class DatasetWriter:
                 # the old dataset is renamed aside, not deleted, until the new one is in
                 # place: an interrupt in between puts it back (deleting it took seconds,
                 # and an interrupt then left it half gone and the new one discarded)
-                replaced = self._target.parent / (
-                    f".{self._target.name}.replaced-{secrets.token_hex(6)}"
-                )
+                replaced = self._target.parent / (f".{self._target.name}.replaced-{temp_tag()}")
                 os.replace(self._target, replaced)
             else:
                 self._target.rmdir()  # empty by the constructor's check
