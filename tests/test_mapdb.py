@@ -890,6 +890,21 @@ def test_a_temporary_file_a_killed_writer_left_goes_with_the_next_write(tmp_path
     assert not left.exists() and live.exists() and other.exists()
 
 
+def test_a_symbolic_link_that_loops_is_refused_before_anything_is_written(tmp_path: Path) -> None:
+    from vvloc._io import symlink_loop
+
+    loop = tmp_path / "a"
+    loop.symlink_to(tmp_path / "b")
+    (tmp_path / "b").symlink_to(loop)
+    assert symlink_loop(loop) == f"{loop} is a symbolic link that loops (or lies below one)"
+    assert symlink_loop(loop / "x.h5") is not None
+    assert symlink_loop(tmp_path) is None and symlink_loop(tmp_path / "missing") is None
+    for path in (loop, loop / "x.h5"):
+        with pytest.raises(FileNotFoundError, match="symbolic link that loops"):
+            AtomicPath(path)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a", "b"]
+
+
 def test_atomic_write_into_missing_directory_fails_cleanly(tmp_path: Path) -> None:
     with (
         pytest.raises(FileNotFoundError, match=r"its folder .* does not exist"),

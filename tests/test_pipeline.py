@@ -1540,3 +1540,16 @@ def test_cli_names_more_options_before_any_work(tiny_world, model_dir, map_file,
             "s0", "--queries", "s1", "--threshold", "0")  # fmt: skip
     assert r.returncode == 2 and "--threshold: 0 accepts no answer" in r.stderr, r.stderr
     assert not (model_dir / "calibration.json").exists()
+    # a symbolic link that loops: Path.resolve's RuntimeError exited 1, and sim rendered first
+    loop = tmp_path / "loop"
+    loop.symlink_to(tmp_path / "loop2")
+    (tmp_path / "loop2").symlink_to(loop)
+    said = "loop is a symbolic link that loops"
+    r = run("eval", "--checkpoint", str(model_dir), "--dataset", str(loop), "--database", "s0",
+            "--queries", "s1", "--out", str(tmp_path / "e"))  # fmt: skip
+    assert r.returncode == 2 and f"--dataset: {tmp_path}/{said}" in r.stderr, r.stderr
+    r = run("sim", "--out", str(loop), "--sessions", "1", "--frames", "2")
+    assert r.returncode == 2 and said in r.stderr and "frame/s" not in r.stderr, r.stderr
+    r = run("map", "build", "--checkpoint", str(model_dir), "--dataset", str(world),
+            "--sessions", "s0", "--out", str(loop))  # fmt: skip
+    assert r.returncode == 2 and f"--out: {tmp_path}/{said}" in r.stderr, r.stderr

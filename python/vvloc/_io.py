@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import errno
 import hashlib
 import io
 import logging
@@ -35,6 +36,7 @@ __all__ = [
     "list_entries",
     "remove_stale_temps",
     "stale_temps",
+    "symlink_loop",
     "temp_tag",
     "write_together",
 ]
@@ -119,6 +121,18 @@ def remove_stale_temps(directory: Path, prefix: str, suffix: str = "") -> list[P
         _log.warning("removed %s, which a stopped vvloc process left", path)
         removed.append(path)
     return removed
+
+
+def symlink_loop(path: str | os.PathLike[str]) -> str | None:
+    """``"<path> is a symbolic link that loops"`` (for a message) when following ``path``, or a
+    folder above it, meets a loop of symbolic links (``ELOOP``: it can be neither read nor
+    written, and ``Path.exists`` calls it missing); None otherwise."""
+    try:
+        os.stat(path)
+    except OSError as e:
+        if e.errno == errno.ELOOP:
+            return f"{os.fspath(path)} is a symbolic link that loops (or lies below one)"
+    return None
 
 
 def _fsync_file(path: Path) -> None:
@@ -229,6 +243,9 @@ class AtomicPath:
                 )
             self.tmp = self.path  # a stream: written in place, never renamed over or removed
             return
+        loop = symlink_loop(self.path)
+        if loop:  # found only when the finished file was renamed into place
+            raise FileNotFoundError(f"path: {loop}; expected the path of a file")
         if self.path.is_symlink():
             self.path = Path(os.path.realpath(self.path))  # replace the target, keep the link
         if self.path.is_dir():

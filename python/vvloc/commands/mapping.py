@@ -31,12 +31,15 @@ def check_map_out(out: Path, *, overwrite: bool, dataset: Path) -> None:
     """``vvloc map build --out``, said before the model loads: a file path in an existing,
     writable folder, outside the dataset; an existing file only with ``overwrite``, and then
     only a vvloc map (the README: outputs never replace what vvloc did not write)."""
-    from vvloc._io import _is_stream
+    from vvloc._io import _is_stream, symlink_loop
     from vvloc.data.sampling import inside_folder
     from vvloc.localize.mapdb import is_map_file
 
     if out.name in ("", ".", ".."):
         raise ValueError(f"--out: expected the path of a map file (.h5), got {str(out)!r}")
+    loop = symlink_loop(out)
+    if loop:
+        raise FileNotFoundError(f"--out: {loop}; expected the path of a map file")
     if out.is_dir():
         raise IsADirectoryError(f"--out: {out} is a folder; expected the path of a map file")
     if _is_stream(out):
@@ -48,7 +51,7 @@ def check_map_out(out: Path, *, overwrite: bool, dataset: Path) -> None:
         raise ValueError(
             f"--out: {out} lies inside the dataset {dataset}; write the map outside it"
         )
-    parent = out.resolve().parent
+    parent = Path(os.path.realpath(out)).parent
     if not parent.is_dir():
         raise FileNotFoundError(f"--out: the folder {parent} does not exist (create it first)")
     if not os.access(parent, os.W_OK | os.X_OK):

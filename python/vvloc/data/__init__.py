@@ -12,6 +12,7 @@ import os
 from pathlib import Path
 from typing import Any
 
+from vvloc._io import symlink_loop
 from vvloc.data import perturb
 from vvloc.data.augment import PhotometricAugment
 from vvloc.data.convert import convert_dataset, select_keyframes
@@ -37,7 +38,7 @@ def detect_format(path: str | os.PathLike[str], format: str = "auto") -> str:
     if root.exists() and not root.is_dir():
         raise NotADirectoryError(f"{root}: is a file, not a dataset folder")
     if not root.is_dir():
-        raise FileNotFoundError(f"{root}: no such dataset folder")
+        raise FileNotFoundError(f"{symlink_loop(root) or root}: no such dataset folder")
     if format != "auto":
         return format
     if (root / "rig.json").is_file():

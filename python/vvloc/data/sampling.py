@@ -442,7 +442,7 @@ def same_folder(a: Any, b: Any) -> bool:
     relative to the working directory); False when either is not a path."""
     if not isinstance(a, (str, os.PathLike)) or not isinstance(b, (str, os.PathLike)):
         return False
-    return Path(a).resolve() == Path(b).resolve()
+    return os.path.realpath(a) == os.path.realpath(b)  # Path.resolve raises on a symlink loop
 
 
 def sim_world(sim: dict[str, Any]) -> dict[str, Any]:
@@ -480,7 +480,7 @@ def rendered_world(root: str | os.PathLike[str]) -> dict[str, Any] | None:
 def inside_folder(path: str | os.PathLike[str], folder: str | os.PathLike[str]) -> bool:
     """Whether ``path`` is ``folder`` or lies inside it, however spelt (resolved like
     :func:`same_folder`): an output written there would land in the folder's contents."""
-    p, f = Path(path).resolve(), Path(folder).resolve()
+    p, f = Path(os.path.realpath(path)), Path(os.path.realpath(folder))  # a loop: no error
     return p == f or f in p.parents
 
 

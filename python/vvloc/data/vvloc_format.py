@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from vvloc._io import list_entries, remove_stale_temps, stale_temps, temp_tag
+from vvloc._io import list_entries, remove_stale_temps, stale_temps, symlink_loop, temp_tag
 from vvloc.data.frame import RIGID, Camera, Dataset, Session, is_rigid, load_rgb
 from vvloc.data.heading import heading_warning
 from vvloc.kernels import _finite_float
@@ -468,6 +468,9 @@ def check_dataset_target(root: str | os.PathLike[str], overwrite: bool) -> None:
     ``overwrite`` (``FileExistsError``), or one with ``overwrite`` that is not a vvloc dataset
     (:func:`_check_replaceable`)."""
     root = Path(root)
+    loop = symlink_loop(root)
+    if loop:  # found only when the finished dataset was renamed into place
+        raise FileExistsError(f"{loop}; expected a folder for the dataset")
     target = Path(os.path.realpath(root))
     cwd = Path.cwd().resolve()
     if target == cwd or target in cwd.parents:
