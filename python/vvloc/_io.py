@@ -215,8 +215,7 @@ class AtomicPath:
     replaced and the link kept, as writing into it would. A process killed outright (SIGKILL,
     power loss) may leave the hidden temporary file behind, the destination intact either way;
     the next write of that destination on this machine removes it (:func:`remove_stale_temps`).
-    :meth:`commit`
-    and :meth:`abort` may also be called explicitly (once).
+    :meth:`commit` and :meth:`abort` may also be called explicitly (once).
 
     A destination that exists and is not a regular file (``/dev/null``, a named pipe), or that
     names an open file of a process (``/dev/stdout``, ``/dev/fd/N``: a terminal, a pipe or a

@@ -599,7 +599,7 @@ class DatasetWriter:
                 # the old dataset is renamed aside, not deleted, until the new one is in
                 # place: an interrupt in between puts it back (deleting it took seconds,
                 # and an interrupt then left it half gone and the new one discarded)
-                replaced = self._target.parent / (f".{self._target.name}.replaced-{temp_tag()}")
+                replaced = self._target.parent / f".{self._target.name}.replaced-{temp_tag()}"
                 os.replace(self._target, replaced)
             else:
                 self._target.rmdir()  # empty by the constructor's check

@@ -217,7 +217,7 @@ def confirm_sequence(
     with ``sequence = half_window``, without a second radius query."""
     seq_dist = sequence_distance(descriptors, sessions, seqs, cand.i, cand.j, half_window, window)
     longest = np.unique(np.asarray(sessions), return_counts=True)[1].max(initial=0)
-    if 2 * half_window + 1 > longest:  # every candidate is refused: said, not silent
+    if half_window and 2 * half_window + 1 > longest > 0:  # all refused: said, not silent
         warnings.warn(
             f"the sequence check's half-window {half_window} needs {2 * half_window + 1} "
             f"keyframes of a session around each keyframe of a pair, and the longest session "
