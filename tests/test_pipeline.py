@@ -807,8 +807,9 @@ def test_calibrate_cli_scores_the_localizers_answers_and_never_loses_a_calibrati
     r = run("--precision", "0.5", "--min_accepted", "2")
     assert r.returncode == 2 and "--overwrite" in r.stderr  # an existing calibration is kept
     assert (ckpt / "calibration.json").read_bytes() == before
-    r = run("--threshold", "0", "--min_accepted", "2", "--overwrite")
-    assert r.returncode == 1 and "passes the cost rule (cost < 0.0)" in r.stderr, r.stderr
+    r = run("--threshold", "1e-9", "--min_accepted", "2", "--overwrite")
+    assert r.returncode == 1 and "passes the cost rule (cost < 1e-09)" in r.stderr, r.stderr
+    assert "Try a higher --threshold" in r.stderr, r.stderr  # not a lower --precision
     assert r.stderr.count("vvloc calibrate:") == 1, r.stderr  # one message, no empty second one
     assert (ckpt / "calibration.json").read_bytes() == before  # nothing written on failure
     # what could only fail after the map is built fails before it (exit 2, no map encoded)

@@ -71,8 +71,9 @@ app.command("targets")(targets)
 
 
 def _quiet_broken_connections(args: threading.ExceptHookArgs) -> None:
-    """A thread's exception hook for a worker whose parent is stopping: a broken connection
-    (``ConnectionError``, ``EOFError``) is expected and not printed; anything else is."""
+    """The thread exception hook of the command's forked children (data-loading workers): a
+    broken connection (``ConnectionError``, ``EOFError``), what a stopping parent leaves them,
+    is not printed (the parent reports its own end); anything else is."""
     if args.exc_type is not None and issubclass(args.exc_type, (ConnectionError, EOFError)):
         return
     threading.__excepthook__(args)
@@ -88,7 +89,10 @@ def _exit_on_sigterm() -> None:
     reaches the parent too, which then shuts its workers down; a worker that died first made
     the parent fail with "DataLoader worker ... is killed by signal" (exit 1, or 143 with a
     traceback). A second ``SIGTERM`` (torch terminates a worker that does not stop), or one
-    once the parent is gone, ends the worker."""
+    once the parent is gone, ends the worker. A stopping parent leaves a batch a worker sends
+    untaken, which breaks torch's fd-sharing connection in a thread of that worker: forked
+    children print no traceback for a broken connection (:func:`_quiet_broken_connections`),
+    from their start, since the parent may stop before the worker's own handler runs."""
     pid = os.getpid()
 
     def handler(signum: int, frame: FrameType | None) -> None:
@@ -96,13 +100,15 @@ def _exit_on_sigterm() -> None:
             signal.signal(signum, signal.SIG_DFL)
             if os.getppid() != pid:
                 os.kill(os.getpid(), signum)
-            # the parent stops: a batch it no longer takes breaks torch's fd-sharing
-            # connection in a thread of this worker, which would print a traceback
-            threading.excepthook = _quiet_broken_connections
             return
         raise SystemExit(128 + signum)
 
     signal.signal(signal.SIGTERM, handler)
+
+    def quiet_child() -> None:
+        threading.excepthook = _quiet_broken_connections
+
+    os.register_at_fork(after_in_child=quiet_child)
 
 
 def _quiet_when_logged() -> None:
