@@ -748,3 +748,63 @@ def test_training_path_spatial_ops_check_their_arguments_like_the_kernels():
     with pytest.raises(ValueError, match="translations: contains non-finite"):
         bev_pad(bev[0], torch.tensor([[math.nan, 0.0]]), 0.5)
     torch.testing.assert_close(bev_pad(bev[0], torch.zeros(1, 2), 0.5)[0], bev[0])
+
+
+def test_the_training_paths_ops_name_inputs_they_cannot_use():
+    from vvloc.nets.encoder import bev_cell_centres
+
+    b = torch.rand(2, 6, 6, 3)
+    with pytest.raises(ValueError, match=r"^shift: contains non-finite"):
+        roll_interp(torch.arange(4.0)[None], float("nan"))  # all NaN came back
+    with pytest.raises(ValueError, match=r"^dim: expected an axis of x after its first"):
+        roll_interp(torch.arange(4.0)[None], 1.0, dim=5)  # IndexError
+    with pytest.raises(ValueError, match=r"^dim: "):
+        roll_interp(torch.rand(2, 4), torch.ones(2), dim=0)  # the per-item axis itself
+    with pytest.raises(TypeError, match=r"^x: expected a torch.Tensor"):
+        roll_interp(np.ones((2, 3)), 1.0)  # type: ignore[arg-type]
+    x = torch.rand(3, 5, 4)
+    shift = torch.tensor([0.5, 1.0, 2.0])
+    assert torch.equal(roll_interp(x, shift, dim=-2), roll_interp(x, shift, dim=1))
+    with pytest.raises(TypeError, match=r"^bev: expected a floating-point tensor, got torch.int64"):
+        polar_sample(b.long(), 8, 3, 0.5)
+    with pytest.raises(TypeError, match=r"^bev: expected a floating-point tensor"):
+        bev_pad(b[0].long(), torch.zeros(2, 2), 0.5)  # NotImplementedError
+    with pytest.raises(TypeError, match=r"^bev: expected a torch.Tensor \(H, W, C\) or"):
+        bev_pad(np.ones((6, 6, 3)), torch.zeros(1, 2), 0.5)  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match=r"^bev: expected H, W, C >= 1"):
+        polar_sample(torch.rand(1, 0, 4, 3), 8, 3, 0.5)  # grid_sampler's RuntimeError
+    with pytest.raises(TypeError, match=r"^translations: expected real numbers"):
+        bev_pad(b[0], torch.zeros(2, 2, dtype=torch.complex64), 0.5)  # cast with a warning
+    with pytest.raises(ValueError, match=r"^height: expected an int >= 1, got -1"):
+        bev_cell_centres(-1, 2, 0.5)
+    with pytest.raises(ValueError, match=r"^grid_size: expected a finite value > 0"):
+        bev_cell_centres(2, 2, float("nan"))  # garbage came back
+    assert bev_cell_centres(2, 3, 0.5).dtype == torch.float32
+    k = torch.eye(3)[None, None].repeat(1, 2, 1, 1)
+    e = torch.eye(4)[None, None].repeat(1, 2, 1, 1)
+    with pytest.raises(ValueError, match=r"^points: expected shape \(N, 3\), got \(5, 2\)"):
+        project_points(torch.rand(5, 2), k, e, (10, 12))
+    with pytest.raises(TypeError, match=r"^points: expected a torch.Tensor, got ndarray"):
+        project_points(np.ones((5, 3)), k, e, (10, 12))  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match=r"^cam_to_ego: a transform cannot be inverted"):
+        project_points(torch.rand(5, 3), k, torch.zeros(1, 2, 4, 4), (10, 12))
+    with pytest.raises(ValueError, match=r"^image_size: expected an int >= 1, got 0"):
+        project_points(torch.rand(5, 3), k, e, (10, 0))
+
+
+def test_heads_and_the_interactor_name_inputs_they_cannot_use():
+    cfg = tiny_config()
+    c = cfg.channels
+    for head in (GeMHead(cfg), NetVLADHead(cfg), DiscoHead(cfg)):
+        # another channel count, or a missing batch axis, gave a descriptor of another size
+        with pytest.raises(ValueError, match=rf"^polar: expected shape \(B, T, R, {c}\)"):
+            head(torch.ones(1, cfg.num_angles, cfg.num_radii, c + 1))
+        with pytest.raises(ValueError, match=r"^polar: expected shape"):
+            head(torch.ones(cfg.num_angles, cfg.num_radii, c))
+    model = _model(cfg)
+    d = torch.rand(2, cfg.num_angles, c)
+    with pytest.raises(TypeError, match=r"^local_src: expected a torch.Tensor, got ndarray"):
+        model.interact(d.numpy(), d)  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match=r"^local_tgt: expected torch.float32 \(the model's"):
+        model.interact(d, d.double())
+    assert model.interact(d, d)[0].shape == d.shape

@@ -15,6 +15,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
+from vvloc.kernels import _positive_float, _positive_int
 from vvloc.nets.config import ModelConfig
 from vvloc.nets.deformable import DeformableAttention, ms_deform_sample
 
@@ -22,7 +23,10 @@ _MIN_DEPTH = 1e-3  # metres: a point must be at least this far in front of the c
 
 
 def bev_cell_centres(height: int, width: int, grid_size: float) -> Tensor:
-    """Ego-frame (x, y) metres of every BEV cell, (H·W, 2) row-major over (i, j) (DESIGN §3)."""
+    """Ego-frame (x, y) metres of every BEV cell, (H·W, 2) float32, row-major over (i, j)
+    (DESIGN §3); ``height``, ``width`` ints >= 1 and ``grid_size`` (m, finite, > 0) checked."""
+    height, width = _positive_int(height, "height"), _positive_int(width, "width")
+    grid_size = _positive_float(grid_size, "grid_size")
     i = torch.arange(height, dtype=torch.float32)
     j = torch.arange(width, dtype=torch.float32)
     x = (i - (height - 1) / 2.0) * grid_size
@@ -41,9 +45,30 @@ def project_points(
     image_size (Hi, Wi). Returns ``ref`` (B, M, N, 2): (u + 0.5)/Wi, (v + 0.5)/Hi, i.e. the
     pixel position normalised to [0, 1] with pixel centres at integer (u, v) (OpenCV), and
     ``visible`` (B, M, N) bool: depth > 1 mm and inside the image. Invisible points get finite
-    placeholder coordinates (−1).
+    placeholder coordinates (−1). ``TypeError``/``ValueError`` naming the argument for other
+    types or shapes, and for a ``cam_to_ego`` that cannot be inverted.
     """
-    ego_to_cam = torch.linalg.inv(cam_to_ego.to(torch.float64))
+    for name, x in (("points", points), ("intrinsics", intrinsics), ("cam_to_ego", cam_to_ego)):
+        if not isinstance(x, Tensor):
+            raise TypeError(f"{name}: expected a torch.Tensor, got {type(x).__name__}")
+        if not x.is_floating_point():
+            raise TypeError(f"{name}: expected a floating-point tensor, got {x.dtype}")
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"points: expected shape (N, 3), got {tuple(points.shape)}")
+    if intrinsics.ndim != 4 or intrinsics.shape[2:] != (3, 3):
+        raise ValueError(f"intrinsics: expected shape (B, M, 3, 3), got {tuple(intrinsics.shape)}")
+    if cam_to_ego.shape != (*intrinsics.shape[:2], 4, 4):
+        raise ValueError(
+            f"cam_to_ego: expected shape ({intrinsics.shape[0]}, {intrinsics.shape[1]}, 4, 4) "
+            f"like intrinsics, got {tuple(cam_to_ego.shape)}"
+        )
+    if not isinstance(image_size, (tuple, list)) or len(image_size) != 2:
+        raise TypeError(f"image_size: expected a pair (Hi, Wi) of ints, got {image_size!r}")
+    hi, wi = (_positive_int(v, "image_size") for v in image_size)
+    try:
+        ego_to_cam = torch.linalg.inv(cam_to_ego.to(torch.float64))
+    except torch.linalg.LinAlgError as e:
+        raise ValueError(f"cam_to_ego: a transform cannot be inverted ({e})") from None
     rot, trans = ego_to_cam[..., :3, :3], ego_to_cam[..., :3, 3]
     p = points.to(torch.float64)
     p_cam = torch.einsum("bmij,nj->bmni", rot, p) + trans[:, :, None, :]
@@ -51,7 +76,6 @@ def project_points(
     depth = p_cam[..., 2]
     in_front = depth > _MIN_DEPTH
     safe = torch.where(in_front, uvw[..., 2], torch.ones_like(depth))
-    hi, wi = image_size
     ref = torch.stack([(uvw[..., 0] / safe + 0.5) / wi, (uvw[..., 1] / safe + 0.5) / hi], dim=-1)
     inside = (ref >= 0).all(-1) & (ref <= 1).all(-1)
     visible = in_front & inside

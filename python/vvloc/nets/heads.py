@@ -14,6 +14,19 @@ from torch import Tensor, nn
 from vvloc.nets.config import ModelConfig
 
 
+def _check_polar(polar: Tensor, channels: int) -> None:
+    """``TypeError``/``ValueError`` naming ``polar`` unless it is a floating-point tensor
+    (B, T, R, C) with C = ``channels`` (the model's) and T, R >= 1."""
+    if not isinstance(polar, Tensor):
+        raise TypeError(f"polar: expected a torch.Tensor (B, T, R, C), got {type(polar).__name__}")
+    if not polar.is_floating_point():
+        raise TypeError(f"polar: expected a floating-point tensor, got {polar.dtype}")
+    if polar.ndim != 4 or polar.shape[-1] != channels or min(polar.shape[1:3]) < 1:
+        raise ValueError(
+            f"polar: expected shape (B, T, R, {channels}), T, R >= 1, got {tuple(polar.shape)}"
+        )
+
+
 class GeMHead(nn.Module):
     """Generalised-mean pooling with a learnable exponent p (init ``cfg.gem_p`` = 3): Dg = C."""
 
@@ -24,6 +37,8 @@ class GeMHead(nn.Module):
         self.out_dim = cfg.channels
 
     def forward(self, polar: Tensor) -> Tensor:
+        """Polar BEV (B, T, R, C) → global descriptors (B, C), unit L2 norm."""
+        _check_polar(polar, self.out_dim)
         x = polar.clamp(min=self.eps).pow(self.p).mean(dim=(1, 2)).pow(1.0 / self.p)
         return F.normalize(x, dim=-1)
 
@@ -72,6 +87,8 @@ class NetVLADHead(nn.Module):
         self.assign.bias.zero_()
 
     def forward(self, polar: Tensor) -> Tensor:
+        """Polar BEV (B, T, R, C) → global descriptors (B, Dg), unit L2 norm."""
+        _check_polar(polar, self.centroids.shape[1])
         x = F.normalize(polar.flatten(1, 2), dim=-1)  # (B, N, C)
         a = self.assign(x).softmax(dim=-1)  # (B, N, K)
         vlad = a.transpose(1, 2) @ x - a.sum(dim=1)[..., None] * self.centroids  # (B, K, C)
@@ -92,10 +109,18 @@ class DiscoHead(nn.Module):
         self.out_dim = cfg.disco_crop[0] * cfg.disco_crop[1]
 
     def forward(self, polar: Tensor) -> Tensor:
+        """Polar BEV (B, T, R, C) → global descriptors (B, ct·cr), unit L2 norm; T >= ct and
+        R >= cr (the crop)."""
+        _check_polar(polar, self.proj.in_features)
+        ct, cr = self.crop
+        if polar.shape[1] < ct or polar.shape[2] < cr:
+            raise ValueError(
+                f"polar: expected T >= {ct} and R >= {cr} (the DiSCO crop), got "
+                f"{tuple(polar.shape)}"
+            )
         x = self.proj(polar).squeeze(-1)  # (B, T, R)
         spec = torch.fft.fftshift(torch.fft.fft2(x, norm="ortho").abs(), dim=(1, 2))
         t, r = x.shape[1:]
-        ct, cr = self.crop
         t0, r0 = t // 2 - ct // 2, r // 2 - cr // 2
         return F.normalize(spec[:, t0 : t0 + ct, r0 : r0 + cr].flatten(1), dim=-1)
 

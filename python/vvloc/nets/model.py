@@ -277,7 +277,10 @@ class VVLocNet(nn.Module):
         return self.decoder(polar)
 
     def interact(self, local_src: Tensor, local_tgt: Tensor) -> tuple[Tensor, Tensor]:
-        """(P, T, C) pairs → (Ds', Dt') (P, T, C), rows L2-normalised."""
+        """Local-view descriptor pairs (P, T, C) of the model's dtype and channels → (Ds', Dt')
+        (P, T, C), rows L2-normalised."""
+        self._check_dtype(local_src, "local_src")
+        self._check_dtype(local_tgt, "local_tgt")  # the interactor checks their shapes
         return self.interactor(local_src, local_tgt)
 
     def _check_inputs(

@@ -16,11 +16,18 @@ from vvloc.kernels import _positive_float, _positive_int
 from vvloc.reference.torch_spatial import torch_bev_pad, torch_polar_sample
 
 
-def _check_bev(bev: Tensor, name: str = "bev") -> None:
+def _check_bev(bev: Tensor, name: str = "bev", *, single: bool = False) -> None:
+    """``TypeError``/``ValueError`` naming ``name`` unless ``bev`` is a floating-point tensor
+    (B, H, W, C), or with ``single`` also (H, W, C), with H, W, C >= 1."""
+    shapes = "(H, W, C) or (N, H, W, C)" if single else "(B, H, W, C)"
     if not isinstance(bev, Tensor):
-        raise TypeError(f"{name}: expected a torch.Tensor (B, H, W, C), got {type(bev).__name__}")
-    if bev.ndim != 4:
-        raise ValueError(f"{name}: expected shape (B, H, W, C), got {tuple(bev.shape)}")
+        raise TypeError(f"{name}: expected a torch.Tensor {shapes}, got {type(bev).__name__}")
+    if bev.ndim != 4 and not (single and bev.ndim == 3):
+        raise ValueError(f"{name}: expected shape {shapes}, got {tuple(bev.shape)}")
+    if min(bev.shape[-3:]) < 1:
+        raise ValueError(f"{name}: expected H, W, C >= 1, got shape {tuple(bev.shape)}")
+    if not bev.is_floating_point():
+        raise TypeError(f"{name}: expected a floating-point tensor, got {bev.dtype}")
 
 
 def polar_sample(bev: Tensor, num_angles: int, num_radii: int, grid_size: float) -> Tensor:
@@ -47,10 +54,12 @@ def bev_pad(bev: Tensor, translations: Tensor, grid_size: float) -> Tensor:
     :func:`vvloc.reference.torch_spatial.torch_bev_pad`. ``grid_size`` (m, finite, > 0) and
     the translations (finite) are checked as the kernels check them.
     """
-    if not isinstance(bev, Tensor) or bev.ndim not in (3, 4):
-        raise ValueError("bev: expected a tensor of shape (H, W, C) or (N, H, W, C)")
+    _check_bev(bev, single=True)
     grid_size = _positive_float(grid_size, "grid_size")
-    t = torch.as_tensor(translations, dtype=torch.float64, device=bev.device)
+    t = torch.as_tensor(translations, device=bev.device)
+    if t.is_complex() or t.dtype == torch.bool:
+        raise TypeError(f"translations: expected real numbers (metres), got {t.dtype}")
+    t = t.to(torch.float64)
     if t.ndim != 2 or t.shape[1] != 2:
         raise ValueError(f"translations: expected shape (N, 2), got {tuple(t.shape)}")
     if not bool(torch.isfinite(t).all()):
@@ -70,10 +79,32 @@ def roll_interp(x: Tensor, shift: Tensor | float, dim: int = 1) -> Tensor:
 
     ``x`` (P, ..., n, ...) with ``shift`` (P,) or a scalar: out[p] = (1 − w)·roll(x[p], k) +
     w·roll(x[p], k + 1), k = ⌊s_p⌋, w = s_p − k, roll(D, k)[i] = D[(i − k) mod n] (torch.roll
-    semantics, DESIGN.md §3). Differentiable w.r.t. ``x`` (not the shift).
+    semantics, DESIGN.md §3). Differentiable w.r.t. ``x`` (not the shift). ``x`` a
+    floating-point tensor with ``dim`` one of its axes after the first; shifts finite, in bins.
     """
+    if not isinstance(x, Tensor):
+        raise TypeError(f"x: expected a torch.Tensor (P, ..., n, ...), got {type(x).__name__}")
+    if not x.is_floating_point():
+        raise TypeError(f"x: expected a floating-point tensor, got {x.dtype}")
+    if x.ndim < 2:
+        raise ValueError(f"x: expected shape (P, ..., n, ...), 2 axes or more, got {x.ndim}")
+    if (
+        isinstance(dim, bool)
+        or not isinstance(dim, int)
+        or not -x.ndim <= dim < x.ndim
+        or dim % x.ndim == 0
+    ):
+        raise ValueError(
+            f"dim: expected an axis of x after its first (1..{x.ndim - 1} or negative), got {dim!r}"
+        )
+    dim %= x.ndim
     n = x.shape[dim]
-    s = torch.as_tensor(shift, dtype=torch.float64, device=x.device).reshape(-1)
+    s = torch.as_tensor(shift, device=x.device)
+    if s.is_complex() or s.dtype == torch.bool:
+        raise TypeError(f"shift: expected real numbers (bins), got {s.dtype}")
+    s = s.to(torch.float64).reshape(-1)
+    if not bool(torch.isfinite(s).all()):
+        raise ValueError("shift: contains non-finite values (NaN or inf)")
     if s.numel() == 1:
         s = s.expand(x.shape[0])
     if s.shape[0] != x.shape[0]:
