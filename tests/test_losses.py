@@ -353,3 +353,34 @@ def test_losses_refuse_shapes_that_would_broadcast():
                 torch.zeros(3, 2),
                 yaw,
             )
+
+
+def test_losses_name_inputs_they_cannot_use():
+    import numpy as np
+
+    a = torch.randn(3, 5, 4)
+    # a (T, C) target was broadcast against (P, T, C) without a word
+    with pytest.raises(ValueError, match=r"^a, b: expected two \(\.\.\., T, C\) tensors"):
+        losses.matching_cost(a, a[0])
+    with pytest.raises(ValueError, match=r"^a, b: "):
+        losses.matching_cost(torch.randn(4), torch.randn(4))  # a scalar came back
+    with pytest.raises(TypeError, match=r"^a: expected a torch.Tensor, got ndarray"):
+        losses.matching_cost(np.ones((2, 3)), np.ones((2, 3)))
+    with pytest.raises(ValueError, match=r"^src, tgt: expected two \(P, T, C\)"):
+        losses.roll_min_cost(a[0], a[0])  # a 0-d tensor came back
+    with pytest.raises(TypeError, match=r"^src: expected a torch.Tensor"):
+        losses.yaw_circle_loss(np.ones((2, 6, 4)), np.ones((2, 6, 4)))
+    with pytest.raises(TypeError, match=r"^pos_dist: expected a torch.Tensor"):
+        losses.hinge_loss(np.ones(3), np.ones(3))
+    with pytest.raises(TypeError, match=r"^anchor: expected a torch.Tensor"):
+        losses.triplet_loss(np.ones((2, 3)), torch.ones(2, 3), torch.ones(2, 3))
+    with pytest.raises(ValueError, match=r"^n: expected an int >= 0, got -1"):
+        losses.random_translation_bias(-1)
+    with pytest.raises(TypeError, match=r"^n: "):
+        losses.random_translation_bias(2.5)  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match=r"^bias_range: expected 0 <= low <= high"):
+        losses.random_translation_bias(2, (3.0, 1.0))
+    # what they take still works, and the unchecked broadcast inside roll_min_cost too
+    assert losses.matching_cost(a, a).shape == (3,)
+    assert losses.roll_min_cost(a, a).shape == (3,)
+    assert losses.random_translation_bias(0).shape == (0, 2)

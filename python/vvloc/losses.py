@@ -27,10 +27,51 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from vvloc.kernels import _finite_float, _positive_int
 from vvloc.nets.polar import bev_pad, polar_sample, roll_interp
+
+__all__ = [
+    "aligned_descriptors",
+    "hinge_loss",
+    "matching_cost",
+    "near_translation_loss",
+    "random_translation_bias",
+    "rerank_loss",
+    "roll_min_cost",
+    "translation_bias_loss",
+    "triplet_loss",
+    "yaw_circle_loss",
+    "yaw_matching_loss",
+]
 
 if TYPE_CHECKING:
     from vvloc.nets.model import VVLocNet
+
+
+def _tensors(**named: object) -> None:
+    """``TypeError`` naming the first argument of ``named`` that is not a floating-point
+    tensor."""
+    for name, x in named.items():
+        if not isinstance(x, Tensor):
+            raise TypeError(f"{name}: expected a torch.Tensor, got {type(x).__name__}")
+        if not x.is_floating_point():
+            raise TypeError(f"{name}: expected a floating-point tensor, got {x.dtype}")
+
+
+def _pairs(a: Tensor, b: Tensor, names: str, shape: str, ndim: int | None = None) -> None:
+    """``TypeError``/``ValueError`` naming ``names`` unless ``a`` and ``b`` are floating-point
+    tensors of one ``shape`` (``ndim`` axes, or at least 2), T, C >= 1."""
+    first, second = names.split(", ")
+    _tensors(**{first: a, second: b})
+    if (
+        a.shape != b.shape
+        or (a.ndim != ndim if ndim is not None else a.ndim < 2)
+        or min(a.shape[-2:], default=0) < 1
+    ):
+        raise ValueError(
+            f"{names}: expected two {shape} tensors of one shape, T, C >= 1, got "
+            f"{tuple(a.shape)} and {tuple(b.shape)}"
+        )
 
 
 def _pairwise_distance(a: Tensor, b: Tensor) -> Tensor:
@@ -45,7 +86,14 @@ def _pairwise_distance(a: Tensor, b: Tensor) -> Tensor:
 
 
 def matching_cost(a: Tensor, b: Tensor) -> Tensor:
-    """δ(A, B) = (1/T)·Σᵢ ‖Aᵢ − Bᵢ‖₂ (not squared), DESIGN.md §3: (..., T, C) × 2 → (...)."""
+    """δ(A, B) = (1/T)·Σᵢ ‖Aᵢ − Bᵢ‖₂ (not squared), DESIGN.md §3: (..., T, C) × 2 → (...),
+    both of one shape (no broadcasting)."""
+    _pairs(a, b, "a, b", "(..., T, C)")
+    return _cost(a, b)
+
+
+def _cost(a: Tensor, b: Tensor) -> Tensor:
+    """:func:`matching_cost` unchecked, broadcasting ``a`` and ``b`` (the losses' own use)."""
     return (a - b).pow(2).sum(-1).clamp(min=1e-12).sqrt().mean(-1)
 
 
@@ -55,6 +103,7 @@ def triplet_loss(anchor: Tensor, positive: Tensor, negative: Tensor, margin: flo
     anchor, positive (B, Dg); negative (B, Dg) or (B, K, Dg) (K negatives per anchor).
     L = mean over (b, k) of max(0, ‖a − p‖₂ − ‖a − n_k‖₂ + margin).
     """
+    _tensors(anchor=anchor, positive=positive, negative=negative)
     if anchor.ndim != 2 or positive.shape != anchor.shape:
         raise ValueError(
             f"anchor, positive: expected two (B, Dg) tensors of one shape, got "
@@ -85,6 +134,7 @@ def hinge_loss(
     ``pos_dist`` and ``neg_dist`` are any-shape tensors of distances (e.g. yaw-matching costs
     :func:`matching_cost` of positive and negative pairs); an empty tensor contributes 0.
     """
+    _tensors(pos_dist=pos_dist, neg_dist=neg_dist)
     pos = F.relu(pos_dist - pos_margin)
     neg = F.relu(neg_margin - neg_dist)
     zero = pos_dist.new_zeros(())
@@ -106,11 +156,7 @@ def yaw_circle_loss(
     Subtracting the floor log T (all logits 0 ⇒ log(1 + (T − 1))) makes a row whose margins are all
     met contribute exactly 0 without changing any gradient. Returns the mean over (P, T).
     """
-    if src.ndim != 3 or tgt.shape != src.shape:
-        raise ValueError(
-            f"src, tgt: expected two (P, T, C) tensors of one shape, got {tuple(src.shape)} "
-            f"and {tuple(tgt.shape)}"
-        )
+    _pairs(src, tgt, "src, tgt", "(P, T, C)", 3)
     _p, t, _ = src.shape
     dist = _pairwise_distance(src, tgt)  # (P, T, T)
     eye = torch.eye(t, dtype=torch.bool, device=src.device)
@@ -170,10 +216,13 @@ def random_translation_bias(
     n: int, bias_range: tuple[float, float] = (1.0, 3.0), seed: int = 0
 ) -> Tensor:
     """n random 2-D offsets (n, 2) float32 metres: uniform direction, length uniform in
-    ``bias_range``, drawn from a generator seeded with ``seed``."""
+    ``bias_range`` (0 <= low <= high, finite), drawn from a generator seeded with ``seed``."""
+    n = _positive_int(n, "n", minimum=0)
+    lo, hi = (_finite_float(v, "bias_range") for v in bias_range)
+    if not 0.0 <= lo <= hi:
+        raise ValueError(f"bias_range: expected 0 <= low <= high metres, got {bias_range}")
     gen = torch.Generator().manual_seed(int(seed))
     ang = torch.rand(n, generator=gen, dtype=torch.float64) * (2.0 * math.pi)
-    lo, hi = bias_range
     mag = lo + (hi - lo) * torch.rand(n, generator=gen, dtype=torch.float64)
     return torch.stack([mag * ang.cos(), mag * ang.sin()], -1).to(torch.float32)
 
@@ -209,8 +258,8 @@ def _offset_hinge(
 ) -> Tensor:
     """mean(max(0, c(t) − c(t + Δ) + margin)): translations t and offsets Δ (B, 2) metres,
     ``margin`` a float or (B,); c = :func:`matching_cost` of :func:`aligned_descriptors`."""
-    cost_true = matching_cost(*aligned_descriptors(model, bev_src, local_tgt, t, yaw))
-    cost_bias = matching_cost(*aligned_descriptors(model, bev_src, local_tgt, t + delta, yaw))
+    cost_true = _cost(*aligned_descriptors(model, bev_src, local_tgt, t, yaw))
+    cost_bias = _cost(*aligned_descriptors(model, bev_src, local_tgt, t + delta, yaw))
     return F.relu(cost_true - cost_bias + margin).mean()
 
 
@@ -259,10 +308,11 @@ def roll_min_cost(src: Tensor, tgt: Tensor) -> Tensor:
     This is the re-ranking cost (:func:`vvloc.kernels.rerank`) without its sub-bin refinement:
     the kernel minimises over real shifts, a superset of these, so its cost is at most this one.
     The gradient flows through the best roll only."""
+    _pairs(src, tgt, "src, tgt", "(P, T, C)", 3)
     t = src.shape[1]
     k = torch.arange(t, device=src.device)
     rolled = src[:, (k[None, :] - k[:, None]) % t]  # (P, K, T, C): row k is ρ(src, k)
-    return matching_cost(rolled, tgt[:, None]).min(dim=-1).values
+    return _cost(rolled, tgt[:, None]).min(dim=-1).values
 
 
 def rerank_loss(
