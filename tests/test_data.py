@@ -556,6 +556,61 @@ def test_hard_triplets_are_redrawn_until_resolved(tmp_path):
     assert len(sampler.hard) == 0
 
 
+def test_triplets_and_frame_ids_of_other_forms_are_refused_not_reshaped(tmp_path):
+    ds = _drive_dataset(tmp_path / "ds")
+    sampler = TripletSampler(ds, seed=1)
+    n = len(sampler)
+    with pytest.raises(TypeError, match=r"^triplets: expected an integer array \(T, 3\)"):
+        sampler.mark_hard(np.array([[0.5, 6.7, 2.2]]))  # was stored as (0, 6, 2)
+    with pytest.raises(ValueError, match=r"^triplets: expected shape \(T, 3\), got \(3, 2\)"):
+        sampler.mark_hard(np.array([[1, 2], [3, 4], [5, 6]]))  # was (1, 2, 3), (4, 5, 6)
+    with pytest.raises(ValueError, match=r"^triplets: expected shape"):
+        sampler.resolve(np.arange(6))
+    assert len(sampler.hard) == 0
+    with pytest.raises(ValueError, match=r"^gid: expected an int >= 0, got -1"):
+        sampler.locate(-1)  # was the last frame
+    with pytest.raises(ValueError, match=rf"^gid: expected an int <= {n - 1}, got {n}"):
+        sampler.frame(n)
+    with pytest.raises(TypeError, match=r"^gid: "):
+        sampler.locate(1.0)  # type: ignore[arg-type]
+    assert sampler.locate(np.int64(n - 1)) == sampler.locate(n - 1)
+
+
+def test_a_camera_projects_points_of_shape_n_3_only():
+    cam = make_rig(1, W, H)[0]
+    pts = np.array([[5.0, 0.0, 0.0], [0.0, 5.0, 1.0]])
+    uv, depth = cam.project_ego(pts)
+    assert uv.shape == (2, 2) and depth.shape == (2,)
+    uv1, depth1 = cam.project_ego(pts[0])  # one point as (3,)
+    assert depth1.shape == (1,)
+    np.testing.assert_array_equal(uv1, uv[:1])
+    # (3, 2) was read as two points of 3 coordinates each, silently
+    with pytest.raises(ValueError, match=r"^points: expected shape \(N, 3\), got \(3, 2\)"):
+        cam.project_ego(np.array([[5.0, 0], [0, 5], [1, 0]]))
+    with pytest.raises(ValueError, match=r"^points: contains non-finite"):
+        cam.project_ego([[np.nan, 0, 0]])
+
+
+def test_keyframe_selection_and_blur_kernels_name_bad_arguments():
+    from vvloc.data import select_keyframes
+    from vvloc.data.perturb import line_kernel
+
+    with pytest.raises(TypeError, match=r"^poses: expected a real array .* dtype complex128"):
+        select_keyframes(np.ones((2, 3), complex))  # the imaginary part was dropped
+    with pytest.raises(TypeError, match=r"^poses: .* dtype <U1"):
+        select_keyframes([["a", "b", "c"]])
+    with pytest.raises(
+        ValueError, match=r"^poses: expected an array of shape \(N, 3\), got a ragged"
+    ):
+        select_keyframes([[0, 0, 0], [1, 0]])
+    with pytest.raises(ValueError, match=r"^poses: contains non-finite"):
+        select_keyframes([[0, 0, np.nan]])
+    with pytest.raises(ValueError, match=r"^length: expected an int >= 1, got 0"):
+        line_kernel(0, 0.0)  # ZeroDivisionError
+    with pytest.raises(ValueError, match=r"^angle_deg: expected a finite value, got nan"):
+        line_kernel(3, float("nan"))
+
+
 def test_a_sampler_given_another_ones_state_draws_what_that_one_would(tmp_path):
     ds = _drive_dataset(tmp_path / "ds")
     live = TripletSampler(ds, seed=1, hard_fraction=0.5)

@@ -455,6 +455,7 @@ def test_convert_nclt_writes_what_the_reader_reads(tmp_path):
     np.testing.assert_array_equal(s[1].images, r[1].images)  # PNG is lossless
     src_meta = conv.meta["converted_from"]
     assert src_meta["format"] == "nclt" and src_meta["options"]["ego_height"] == 0.4
+    assert src_meta["image_size"] == [3, 4]  # (width, height), whatever the source's format
     # keyframes: every 2nd frame of the two
     again = convert_dataset(src, tmp_path / "every2", every=2, cameras=(1,))
     assert len(open_dataset(again).session(DATE)) == 1
@@ -589,9 +590,10 @@ def test_a_converted_dataset_converted_again_records_both_conversions(tmp_path):
     src = tmp_path / "nclt"
     _nclt(src)
     once = convert_dataset(src, tmp_path / "once", cameras=(1,), min_distance=0.5)
-    twice = convert_dataset(once, tmp_path / "twice", every=2)
+    twice = convert_dataset(once, tmp_path / "twice", every=2, image_size=(2, 3))
     meta = open_dataset(twice).meta["converted_from"]
     assert meta["path"] == str(once.resolve()) and meta["every"] == 2
+    assert meta["image_size"] == [2, 3] and meta["source_converted_from"]["image_size"] is None
     assert meta["format"] == "vvloc" and meta["min_distance"] == 0.0
     first = meta["source_converted_from"]
     assert first["path"] == str(src.resolve()) and first["min_distance"] == 0.5

@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from vvloc.data._remap import resize_rgb
+from vvloc.evaluate import _real_array
 
 __all__ = ["convert_dataset", "select_keyframes"]
 
@@ -40,11 +41,7 @@ def select_keyframes(
     Returns:
         (K,) int64 increasing indices, K ≥ 1 when N ≥ 1.
     """
-    p = np.asarray(poses, dtype=np.float64)
-    if p.ndim != 2 or p.shape[1] != 3:
-        raise ValueError(f"poses: expected shape (N, 3), got {p.shape}")
-    if not np.isfinite(p).all():
-        raise ValueError("poses: contains non-finite values")
+    p = _real_array(poses, "poses", "(N, 3)", 2, 3)  # real, finite: named otherwise
     min_distance, min_angle_deg = _spacing(min_distance, min_angle_deg)
     if len(p) == 0:
         return np.zeros(0, np.int64)
@@ -182,6 +179,7 @@ def convert_dataset(
         "path": str(Path(src).resolve()),
         "format": fmt,
         "options": {k: _jsonable(v) for k, v in reader_options.items()},
+        "image_size": None if size is None else list(size),  # (width, height); None: kept
         "every": every,
         "min_distance": min_distance,
         "min_angle_deg": min_angle_deg,

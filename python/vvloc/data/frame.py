@@ -92,8 +92,15 @@ class Camera:
         )
 
     def project_ego(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Project ego-frame points (N, 3) m to pixels (N, 2) (u, v); also returns depth (N,) m."""
-        p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        """Project ego-frame points (N, 3) metres (x forward, y left, z up) to pixels (N, 2)
+        (u, v) float64 (OpenCV: pixel centres at integers); also returns their depth (N,) m
+        along the camera's optical axis. A point behind the camera (depth <= 0) still gets a
+        (u, v), through the projective division: keep only depth > 0 for points it sees. A
+        single point may be given as (3,)."""
+        from vvloc.evaluate import _asarray, _real_array
+
+        p = _asarray(points, "points", "(N, 3)")
+        p = _real_array(p[None] if p.ndim == 1 else p, "points", "(N, 3)", 2, 3)
         ego_to_cam = np.linalg.inv(self.cam_to_ego)
         pc = p @ ego_to_cam[:3, :3].T + ego_to_cam[:3, 3]
         uvw = pc @ self.K.T
@@ -203,7 +210,8 @@ class Session(Sequence[Frame], abc.ABC):
         name: session name.
         cameras: the rig, in image order.
         timestamps: (N,) int64 microseconds.
-        poses: (N, 3) float64 (x, y, yaw) world poses.
+        poses: (N, 3) float64 (x, y, yaw) world poses of the ego frame: metres, yaw in radians
+            counter-clockwise from the world x axis (DESIGN.md §3).
         z: (N,) float64 heights of the ego origin, metres.
         floors: (N,) int64 storey indices.
         frame_cam_to_ego: (N, M, 4, 4) float64 camera → ego transforms of each frame, or None

@@ -112,7 +112,10 @@ def line_kernel(length: int, angle_deg: float) -> np.ndarray:
     ``angle_deg`` (0° = image x axis, 90° = image y axis), drawn with bilinear weights from
     4·length points evenly spaced along it (the midpoints of equal parts, so that the segment
     spans ``length`` pixels: at 0° and an odd length, a flat row of ``length`` equal weights).
-    k = the odd number ≥ ``length``, plus 2 for the bilinear spill at the ends."""
+    k = the odd number ≥ ``length``, plus 2 for the bilinear spill at the ends. ``length`` an
+    int >= 1, ``angle_deg`` finite."""
+    length = _positive_int(length, "length", 1)
+    angle_deg = _finite_float(angle_deg, "angle_deg")
     k = (length if length % 2 == 1 else length + 1) + 2
     kern = np.zeros((k, k))
     c = (k - 1) / 2

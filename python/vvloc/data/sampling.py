@@ -20,10 +20,18 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from vvloc.data.frame import Dataset, Frame
+from vvloc.evaluate import _int_array
+from vvloc.kernels import _positive_int
 
 FLOOR_SEPARATION = 1000.0
 #: Levels reserved per world (dataset) when a sampler spans several: floors must stay below it.
 WORLD_LEVELS = 1000
+
+
+def _triplets(triplets: Any) -> np.ndarray:
+    """(T, 3) int64 frame-id triplets, named ``triplets`` otherwise (rows neither truncated from
+    floats nor refolded from another shape)."""
+    return _int_array(triplets, "triplets", "(T, 3)", 2, 3)
 
 
 def _positions(poses: np.ndarray, floors: np.ndarray, floor_separation: float) -> np.ndarray:
@@ -266,11 +274,18 @@ class TripletSampler:
         return len(self.positions)
 
     def locate(self, gid: int) -> tuple[str, int]:
-        """(session label, frame index) of global frame id ``gid``."""
+        """(session label, frame index) of global frame id ``gid`` (an int in [0, len))."""
+        gid = self._gid(gid)
         return self.sessions[int(self.session_of[gid])], int(self.index_of[gid])
 
+    def _gid(self, gid: int) -> int:
+        """``gid`` checked: an int in [0, len(self)), named otherwise (not read from the end)."""
+        return _positive_int(gid, "gid", minimum=0, maximum=len(self) - 1)
+
     def frame(self, gid: int) -> Frame:
-        """The :class:`Frame` of global frame id ``gid`` (loads its images)."""
+        """The :class:`Frame` of global frame id ``gid`` (an int in [0, len); loads its
+        images)."""
+        gid = self._gid(gid)
         src, name, _ = self._slots[int(self.session_of[gid])]
         return src.session(name)[int(self.index_of[gid])]
 
@@ -327,20 +342,21 @@ class TripletSampler:
     def mark_hard(self, triplets: np.ndarray) -> None:
         """Add (T, 3) triplets (frame ids in ``[0, len(self))``) the model got wrong to the
         hard pool."""
-        t = np.asarray(triplets, dtype=np.int64).reshape(-1, 3)
+        t = _triplets(triplets)
         if t.size and (t.min() < 0 or t.max() >= len(self)):
             raise ValueError(f"triplets: frame ids must lie in [0, {len(self)})")
         for row in t:
             self._hard[(int(row[0]), int(row[1]), int(row[2]))] = None
 
     def resolve(self, triplets: np.ndarray) -> None:
-        """Remove (T, 3) triplets the model now gets right from the hard pool."""
-        for t in np.asarray(triplets, dtype=np.int64).reshape(-1, 3):
+        """Remove (T, 3) int triplets the model now gets right from the hard pool."""
+        for t in _triplets(triplets):
             self._hard.pop((int(t[0]), int(t[1]), int(t[2])), None)
 
     def update(self, triplets: np.ndarray, correct: np.ndarray) -> None:
-        """Mark the wrong triplets hard and resolve the right ones (``correct``: (T,) bool)."""
-        t = np.asarray(triplets, dtype=np.int64).reshape(-1, 3)
+        """Mark the wrong triplets hard and resolve the right ones (``triplets`` (T, 3) int
+        frame ids, ``correct`` (T,) bool)."""
+        t = _triplets(triplets)
         ok = np.asarray(correct)
         if ok.dtype != bool:
             raise TypeError(f"correct: expected (T,) bool flags, got dtype {ok.dtype}")
