@@ -1037,3 +1037,19 @@ def test_self_loop_closure_curve_checks_its_frame_arrays_by_name():
 def test_latency_summary_wants_a_mapping():
     with pytest.raises(TypeError, match="samples_ms: expected a mapping"):
         ev.latency_summary([1.0, 2.0])
+
+
+def test_thin_sweep_refuses_arrays_that_do_not_line_up():
+    from vvloc.evaluate import thin_sweep
+
+    with pytest.raises(ValueError, match=r"^sweep: expected arrays of one length, got"):
+        thin_sweep({"recall": np.linspace(0, 1, 100), "f1": np.zeros(10)}, 5)  # IndexError
+    with pytest.raises(ValueError, match=r"^sweep\['recall'\]: expected a 1-D real array"):
+        thin_sweep({"recall": np.ones((3, 2))}, 1)
+    with pytest.raises(ValueError, match=r"^sweep\['f1'\]: expected a 1-D real array"):
+        thin_sweep({"f1": np.ones(3, complex)}, 1)
+    with pytest.raises(ValueError, match=r"^points: expected an int >= 1"):
+        thin_sweep({"recall": np.ones(3)}, 0)
+    # no recall: thinned by rank (and the best F1) alone
+    thin = thin_sweep({"f1": np.r_[np.zeros(99), 1.0], "t": np.arange(100.0)}, 10)
+    assert 1.0 in thin["f1"] and len(thin["t"]) <= 12

@@ -467,3 +467,24 @@ def test_keyframe_csv_maps_vertex_ids_to_sessions_and_times() -> None:
         keyframe_csv_text([7, 9], ["s1"], [0, 1], [0.0, 1.0], [0, 0], poses)
     with pytest.raises(TypeError, match="ids: expected an integer array"):
         keyframe_csv_text([7.0, 9.0], ["a", "b"], [0, 1], [0.0, 1.0], [0, 0], poses)
+
+
+def test_a_selection_of_loop_closures_or_candidates_is_checked_and_named():
+    from vvloc.localize.loops import LoopCandidates
+
+    lc = LoopClosures(np.array([0, 2]), np.array([1, 3]), np.zeros((2, 3)), np.array([0.3, 0.9]),
+                      np.array([True, False]))  # fmt: skip
+    assert lc.select(np.array([False, True])).i.tolist() == [2]
+    assert lc.select([1, 1, 0]).i.tolist() == [2, 2, 0] and len(lc.select([])) == 0
+    with pytest.raises(ValueError, match=r"^mask: expected a bool mask \(2,\), got shape \(3,\)"):
+        lc.select([True, False, True])
+    with pytest.raises(ValueError, match=r"^mask: expected indices in \[0, 2\), got 0\.\.5"):
+        lc.select([0, 5])
+    with pytest.raises(TypeError, match=r"^mask: expected a bool mask \(2,\) or int indices"):
+        lc.select([0.0])
+    cand = LoopCandidates(np.array([0, 1]), np.array([2, 3]), np.array([0.05, 0.2]))
+    assert cand.within(0.1).i.tolist() == [0] and len(cand.within(np.inf).i) == 2
+    with pytest.raises(ValueError, match=r"^radius: expected a number, got NaN"):
+        cand.within(np.nan)  # kept nothing
+    with pytest.raises(ValueError, match=r"^keep: expected a bool mask \(2,\)"):
+        cand.subset(np.array([True]))

@@ -248,3 +248,16 @@ def test_metric_localize_each_equals_one_search_per_target(seed):
         assert abs(wrap(res.pose[2] - xi[2])) < np.deg2rad(3)
     with pytest.raises(ValueError, match="desc_tgts"):
         metric_localize_each(bev_s, tgts[:, :7], decode, None, cfg, G, T, R)
+
+
+def test_a_decoder_whose_output_does_not_fit_is_named():
+    _xi, bev_s, desc_t, decode = case(0)
+    cfg = SearchConfig(half_range=1.2, step=0.6, fine_samples=4, stages=1, shrink=0.5, seed=0)
+    # channels other than the target's: the kernel's 'tgt: expected shape ...' named neither
+    with pytest.raises(ValueError, match=rf"^decode: returned shape \(\d+, {T}, 4\); expected"):
+        metric_localize(bev_s, desc_t, lambda p: decode(p)[..., :4], cfg, G, T, R)
+    # one descriptor set short: the search's 'costs: expected shape (N,)'
+    with pytest.raises(ValueError, match=r"^decode: returned \d+ descriptor sets for \d+ hypo"):
+        metric_localize(bev_s, desc_t, lambda p: decode(p)[1:], cfg, G, T, R)
+    with pytest.raises(ValueError, match=r"^decode/interact: expected a pair"):
+        metric_localize(bev_s, desc_t, lambda p: (decode(p), decode(p)[:, :2]), cfg, G, T, R)

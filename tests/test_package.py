@@ -182,3 +182,41 @@ def test_an_error_naming_a_library_argument_names_the_option_it_came_from():
     assert with_option_name(text, ["loops", "--radius", "0.2"]) == text
     assert with_option_name("no colon here", ["--window"]) == "no colon here"
     assert with_option_name("two words: x", ["--two words"]) == "two words: x"
+
+
+@pytest.mark.parametrize(
+    "module",
+    [
+        "vvloc",
+        "vvloc.kernels",
+        "vvloc.retrieval",
+        "vvloc.geometry",
+        "vvloc.evaluate",
+        "vvloc.losses",
+        "vvloc.data",
+        "vvloc.nets",
+        "vvloc.localize",
+        "vvloc.localize.metric",
+        "vvloc.localize.loops",
+        "vvloc.localize.localizer",
+        "vvloc.localize.calibrate",
+        "vvloc.localize.mapdb",
+        "vvloc.localize.export",
+    ],
+)
+def test_each_public_module_says_what_it_exports_and_holds_it(module):
+    import importlib
+
+    mod = importlib.import_module(module)
+    names = mod.__all__
+    assert names == sorted(set(names), key=names.index)  # listed once each
+    missing = [n for n in names if not hasattr(mod, n)]
+    assert not missing, missing
+    assert not {"np", "torch", "math", "os"} & set(names)  # a star-import brings no modules
+
+
+def test_the_localizers_search_config_is_importable_where_the_localizer_is():
+    import vvloc.localize as loc
+    from vvloc.localize.metric import SearchConfig
+
+    assert loc.SearchConfig is SearchConfig  # Localizer(search=SearchConfig(...))

@@ -36,6 +36,36 @@ from vvloc._io import atomic_write
 from vvloc.geometry import wrap_angle
 from vvloc.kernels import _finite_float, _positive_float, _positive_int
 
+__all__ = [
+    "DEFAULT_COST_THRESHOLD",
+    "DEFAULT_PERCENTILES",
+    "DEFAULT_RADII",
+    "DEFAULT_TOP_N",
+    "SUMMARY_RECALLS",
+    "SUMMARY_SWEEP_POINTS",
+    "LoopClosureCurve",
+    "RecallResult",
+    "calibrate_acceptance",
+    "confidence_curve",
+    "cross_floor_events",
+    "distinctiveness",
+    "error_percentiles",
+    "evaluate_robustness",
+    "latency_summary",
+    "loop_closure_curve",
+    "loop_pose_metrics",
+    "nearest_map_distance",
+    "pose_accuracy",
+    "pose_errors",
+    "recall_at_n",
+    "relative_pose_errors",
+    "render_markdown",
+    "self_loop_closure_curve",
+    "thin_sweep",
+    "to_jsonable",
+    "write_report",
+]
+
 F64Array = npt.NDArray[np.float64]
 I64Array = npt.NDArray[np.int64]
 BoolArray = npt.NDArray[np.bool_]
@@ -659,12 +689,24 @@ class LoopClosureCurve:
 
 
 def thin_sweep(sweep: Mapping[str, npt.ArrayLike], points: int) -> dict[str, F64Array]:
-    """At most about ``points`` entries of a sweep (equal-length arrays keyed by name, one of
-    them ``recall``): half evenly spaced by rank, half the first entry to reach each of evenly
-    spaced recall levels, plus the first and last entries and the best F1 (when ``f1`` is
-    there). A sweep over millions of pairs keeps its shape along both axes in a few kilobytes
-    of JSON (by rank alone, the low-recall end would be one segment)."""
-    arrays = {k: np.asarray(v, dtype=np.float64) for k, v in sweep.items()}
+    """At most about ``points`` (an int >= 1) entries of a sweep (1-D real arrays of one length
+    keyed by name, NaN allowed): half evenly spaced by rank, half (when ``recall`` is there) the
+    first entry to reach each of evenly spaced recall levels, plus the first and last entries
+    and the best F1 (when ``f1`` is there). A sweep over millions of pairs keeps its shape along
+    both axes in a few kilobytes of JSON (by rank alone, the low-recall end would be one
+    segment). Returns float64 arrays under the same names."""
+    points = _positive_int(points, "points")
+    arrays = {}
+    for k, v in sweep.items():
+        arr = _asarray(v, f"sweep[{k!r}]", "(n,)")
+        if arr.dtype.kind not in "fiu" or arr.ndim != 1:  # no bool, complex or object
+            raise ValueError(
+                f"sweep[{k!r}]: expected a 1-D real array (n,), got {arr.dtype} {arr.shape}"
+            )
+        arrays[k] = arr.astype(np.float64)
+    lengths = {k: len(v) for k, v in arrays.items()}
+    if len(set(lengths.values())) > 1:
+        raise ValueError(f"sweep: expected arrays of one length, got {lengths}")
     n = len(next(iter(arrays.values()))) if arrays else 0
     if n <= points:
         return arrays

@@ -14,6 +14,13 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
+__all__ = [
+    "compose",
+    "inverse",
+    "relative",
+    "wrap_angle",
+]
+
 F64Array = npt.NDArray[np.float64]
 
 

@@ -23,6 +23,26 @@ import numpy.typing as npt
 
 from vvloc import _core
 
+__all__ = [
+    "MAX_ROLL_NDIM",
+    "MAX_ROW_SQNORM",
+    "MAX_STAGE_POINTS",
+    "Backend",
+    "Rerank",
+    "SearchHistory",
+    "SearchHypothesis",
+    "TranslationSearch",
+    "YawEstimate",
+    "bev_pad",
+    "estimate_yaw",
+    "matching_cost",
+    "pad_polar",
+    "polar_sample",
+    "rerank",
+    "roll_interp",
+    "yaw_costs",
+]
+
 Backend = Literal["rust", "reference"]
 F32Array = npt.NDArray[np.float32]
 

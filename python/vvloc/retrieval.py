@@ -43,6 +43,14 @@ from vvloc import _core
 from vvloc._io import atomic_write
 from vvloc.kernels import _as_f32, _asarray, _c_array, _positive_float, _positive_int
 
+__all__ = [
+    "CONDITIONING",
+    "DTYPES",
+    "TINY_NORM",
+    "DescriptorIndex",
+    "Exclusion",
+]
+
 DTYPES = ("float32", "float16", "bfloat16", "int8")
 
 #: Rows whose mean squared spread about their mean is below this share of their largest

@@ -25,6 +25,7 @@ from vvloc.localize.mapdb import (
     MapWriter,
     model_config_hash,
 )
+from vvloc.localize.metric import MetricResult, SearchConfig, metric_localize
 
 __all__ = [
     "FORMAT_VERSION",
@@ -34,7 +35,10 @@ __all__ = [
     "MapError",
     "MapMetadata",
     "MapWriter",
+    "MetricResult",
+    "SearchConfig",
     "information_from_sigmas",
+    "metric_localize",
     "model_config_hash",
     "read_g2o",
     "read_loop_csv",

@@ -36,6 +36,16 @@ from vvloc.localize.localizer import (
 )
 from vvloc.nets import VVLocNet
 
+__all__ = [
+    "RerankedSplit",
+    "calibrate",
+    "calibrate_localizer",
+    "calibration_of",
+    "calibration_of_results",
+    "check_revisits",
+    "rerank_split",
+]
+
 
 @dataclass(frozen=True)
 class RerankedSplit:

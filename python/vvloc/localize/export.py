@@ -253,7 +253,9 @@ class LoopClosures:
         return int(self.i.shape[0])
 
     def select(self, mask: Any) -> LoopClosures:
-        """The subset given by a boolean mask or integer indices."""
+        """The subset given by a boolean mask (K,) or integer indices in [0, K) (in their
+        order); ``TypeError``/``ValueError`` naming ``mask`` otherwise."""
+        mask = _selection(mask, len(self), "mask")
         return LoopClosures(
             self.i[mask],
             self.j[mask],
@@ -261,6 +263,26 @@ class LoopClosures:
             self.costs[mask],
             self.accepted[mask],
         )
+
+
+def _selection(sel: Any, n: int, name: str) -> np.ndarray:
+    """``sel`` checked as a selection of ``n`` rows: a bool mask (n,) or integer indices in
+    [0, n) (any order, repeats allowed), as an array numpy indexing takes; ``TypeError`` /
+    ``ValueError`` naming ``name`` for anything else (numpy's ``IndexError`` named neither)."""
+    arr = np.asarray(sel)
+    if arr.dtype == np.bool_:
+        if arr.shape != (n,):
+            raise ValueError(f"{name}: expected a bool mask ({n},), got shape {arr.shape}")
+        return arr
+    if arr.size == 0:
+        return np.zeros(0, np.int64)
+    if not np.issubdtype(arr.dtype, np.integer):
+        raise TypeError(f"{name}: expected a bool mask ({n},) or int indices, got {arr.dtype}")
+    if arr.ndim != 1:
+        raise ValueError(f"{name}: expected indices of shape (k,), got shape {arr.shape}")
+    if arr.min() < 0 or arr.max() >= n:
+        raise ValueError(f"{name}: expected indices in [0, {n}), got {arr.min()}..{arr.max()}")
+    return arr
 
 
 _LOOP_COLUMNS = ("i", "j", "x", "y", "yaw", "yaw_deg", "cost", "accepted")
@@ -437,9 +459,11 @@ class G2OGraph:
 
     Attributes:
         vertex_ids: (N,) int64, in file order.
-        vertex_poses: (N, 3) float64 world poses (x, y, theta).
+        vertex_poses: (N, 3) float64 world poses (x, y, theta): metres, radians
+            counter-clockwise, as the file holds them.
         edges: (E, 2) int64 (i, j) vertex ids, in file order.
-        measurements: (E, 3) float64 ξ_{i→j} (vertex j in vertex i's frame).
+        measurements: (E, 3) float64 ξ_{i→j} (vertex j in vertex i's frame): metres,
+            radians.
         information: (E, 3, 3) float64 symmetric information matrices.
     """
 
@@ -492,7 +516,8 @@ def write_g2o(
 
     Args:
         path: output file.
-        poses: (N, 3) world poses (x, y, yaw) of the keyframes: one ``VERTEX_SE2`` each.
+        poses: (N, 3) world poses (x, y, yaw) of the keyframes, metres and radians
+            counter-clockwise (the map's world frame): one ``VERTEX_SE2`` each.
         loops: loop closures; ``loops.i``/``loops.j`` are vertex ids (entries of ``ids``).
             Each becomes ``EDGE_SE2 i j x y yaw`` + information (only the accepted ones unless
             ``only_accepted`` is false).

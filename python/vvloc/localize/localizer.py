@@ -64,6 +64,26 @@ from vvloc.nets import VVLocNet
 from vvloc.nets.model import resolve_device
 from vvloc.retrieval import DescriptorIndex
 
+__all__ = [
+    "DECODE_CHUNK_ELEMENTS",
+    "MAX_ENCODED",
+    "METRIC_FROM",
+    "TARGET_COPIES",
+    "Encoded",
+    "LocalizationResult",
+    "Localizer",
+    "build_map",
+    "check_map_model",
+    "check_training_rig",
+    "decode_in_chunks",
+    "encode_frames",
+    "first_tasa_repeated",
+    "frames_to_tensors",
+    "learned_matcher",
+    "model_device",
+    "rerank_learned",
+]
+
 F32 = npt.NDArray[np.float32]
 
 #: Where :class:`Localizer`'s M metric candidates come from (``metric_from``): the first M of
@@ -733,8 +753,8 @@ class Localizer:
         return arr
 
     def retrieve(self, global_desc: F32) -> tuple[npt.NDArray[np.int64], F32]:
-        """Top-K map rows (K,) and distances (K,) of one global descriptor (Dg,) (float32,
-        unit length, as the encoder gives)."""
+        """Top-K map rows (K,) int64 and their L2 descriptor distances (K,) float32, nearest
+        first, of one global descriptor (Dg,) (float32, unit length, as the encoder gives)."""
         return self._retrieve(self._encoded("global_desc", global_desc))
 
     def _retrieve(self, global_desc: F32) -> tuple[npt.NDArray[np.int64], F32]:

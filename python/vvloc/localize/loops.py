@@ -22,6 +22,7 @@ loop is accepted when its matching cost is below ``cost_threshold`` (0.75).
 from __future__ import annotations
 
 import logging
+import math
 import warnings
 from dataclasses import dataclass
 from typing import Any
@@ -32,12 +33,31 @@ from tqdm import tqdm
 
 from vvloc.evaluate import _int_array
 from vvloc.kernels import _positive_float, _positive_int
-from vvloc.localize.export import LoopClosures
+from vvloc.localize.export import LoopClosures, _selection
 from vvloc.localize.localizer import _cost_threshold, check_map_model, learned_matcher
 from vvloc.localize.mapdb import MapDatabase
 from vvloc.localize.metric import SearchConfig, metric_localize_each, search_config
 from vvloc.nets import VVLocNet
 from vvloc.retrieval import DescriptorIndex, Exclusion
+
+__all__ = [
+    "BLOCK",
+    "FLOOR_MARGIN",
+    "FLOOR_MIN_VOTES",
+    "FLOOR_VOTE_FACTOR",
+    "FloorOffsets",
+    "LoopCandidates",
+    "confirm_sequence",
+    "descriptor_loop_candidates",
+    "detect_loops",
+    "floor_consensus",
+    "floor_consistent",
+    "floor_offsets",
+    "loop_candidates",
+    "sequence_distance",
+    "sweep_radius",
+    "verify_pairs",
+]
 
 log = logging.getLogger("vvloc.localize")
 
@@ -54,13 +74,20 @@ class LoopCandidates:
     distance: np.ndarray
 
     def subset(self, keep: np.ndarray) -> LoopCandidates:
-        """The candidates where ``keep`` (P,) bool is true."""
+        """The candidates where ``keep`` (P,) bool is true (or at int indices ``keep``)."""
+        keep = _selection(keep, len(self.i), "keep")
         return LoopCandidates(self.i[keep], self.j[keep], self.distance[keep])
 
     def within(self, radius: float) -> LoopCandidates:
         """The candidates with ``distance < radius`` (the pairs a radius query at ``radius``
         returns; this compares float64 distances, the Rust query float32 ones, so a pair at
-        exactly the radius may fall either way)."""
+        exactly the radius may fall either way). ``radius`` a number, not NaN (inf: all)."""
+        if isinstance(radius, (bool, np.bool_)) or not isinstance(
+            radius, (int, float, np.integer, np.floating)
+        ):
+            raise TypeError(f"radius: expected a number, got {type(radius).__name__}")
+        if math.isnan(radius):
+            raise ValueError("radius: expected a number, got NaN (it would keep nothing)")
         return self.subset(self.distance < radius)
 
 

@@ -19,6 +19,20 @@ import numpy.typing as npt
 
 from vvloc import kernels
 
+__all__ = [
+    "METRIC_CANDIDATES",
+    "RETRIEVAL_WEIGHT",
+    "BestMatch",
+    "Decoder",
+    "MetricResult",
+    "RadialMeanDecoder",
+    "SearchConfig",
+    "metric_localize",
+    "metric_localize_best",
+    "metric_localize_each",
+    "search_config",
+]
+
 Decoder = Callable[[npt.NDArray[np.float32]], Any]
 
 #: The localizer's defaults (``Localizer``, ``vvloc eval`` / ``vvloc localize``): M, the
@@ -117,12 +131,36 @@ def _score(
     desc: Any, tgt: npt.NDArray[np.float32], backend: kernels.Backend
 ) -> kernels.YawEstimate:
     """Exact yaw minimum of decoded hypotheses: ``desc`` is (N, T, C), or the pair (Ds', Dt')
-    of a learned interactor; ``tgt`` (T, C) is used only for a plain (N, T, C)."""
+    of a learned interactor; ``tgt`` (T, C) is used only for a plain (N, T, C). A decoder whose
+    output does not fit is named (not the kernel's arguments)."""
     if isinstance(desc, tuple):  # a learned decoder + interactor refines both sides
+        if len(desc) != 2:
+            raise ValueError(f"decode/interact: expected a pair (Ds', Dt'), got {len(desc)} items")
         src, t = (_numpy(d) for d in desc)
+        if np.ndim(src) != 3 or np.shape(t) not in (np.shape(src), (1, *np.shape(src)[1:])):
+            raise ValueError(
+                "decode/interact: expected a pair (Ds', Dt') of shapes (N, T, C) and (N, T, C) "
+                f"or (1, T, C), got {np.shape(src)} and {np.shape(t)}"
+            )
     else:
         src, t = _numpy(desc), tgt
+        if np.ndim(src) != 3 or np.shape(src)[1:] != tgt.shape:
+            raise ValueError(
+                f"decode: returned shape {np.shape(src)}; expected (N, {tgt.shape[0]}, "
+                f"{tgt.shape[1]}), descriptors of the target's T and C"
+            )
     return kernels.estimate_yaw(src, t, backend=backend)
+
+
+def _report(search: kernels.TranslationSearch, est: kernels.YawEstimate, n: int) -> None:
+    """Report the scores of a stage's ``n`` hypotheses to ``search``, a decoder that returned
+    another number of them named (not the search's ``costs``)."""
+    if len(est.cost) != n:
+        raise ValueError(
+            f"decode: returned {len(est.cost)} descriptor sets for {n} hypotheses (one per "
+            "polar BEV it is given)"
+        )
+    search.report(est.cost, est.yaw)
 
 
 def _finish(
@@ -141,8 +179,7 @@ def _finish(
         polar = kernels.pad_polar(  # type: ignore[attr-defined]  # spatial section of kernels
             bev_src, xy, num_angles, num_radii, grid_size, backend=backend
         )
-        est = score(polar)
-        search.report(est.cost, est.yaw)
+        _report(search, score(polar), len(xy))
     best = search.best()
     assert best is not None  # at least one stage was reported
     return MetricResult((best.x, best.y, best.yaw), best.cost, search.history())
@@ -328,8 +365,7 @@ class _SharedCoarse:
         ds = decode(polar)
         self.coarse = np.empty(len(tgts))
         for k, search in enumerate(self.searches):
-            est = self._score(ds, k)
-            search.report(est.cost, est.yaw)
+            _report(search, self._score(ds, k), len(xy))
             best = search.best()
             assert best is not None
             self.coarse[k] = best.cost
