@@ -582,6 +582,28 @@ def test_a_dataset_rendered_by_another_config_or_missing_val_sessions_are_clear_
     for other in others:
         with pytest.raises(ValueError, match=r"was rendered as .*'scene': 'parking'"):
             Trainer(_config(tiny_world, sim={**sim, "sessions": 3, **other}), tmp_path / "run")
+    # ... and another rig, image size or session length than the sim section renders: training
+    # used the other data without a word
+    for other, said in (
+        ({"width": 320}, "'width': 160"),
+        ({"cameras": 6}, "'cameras': 4"),
+        ({"frames": 999}, "'frames': [40]"),
+    ):
+        with pytest.raises(
+            ValueError, match=rf"^sim: dataset .* rendered with .*{re.escape(said)}"
+        ):
+            Trainer(_config(tiny_world, sim={**sim, "sessions": 3, **other}), tmp_path / "run")
+    with pytest.raises(ValueError, match=r"^sim: unknown keys \['seeed'\]"):  # data there
+        Trainer(_config(tiny_world, sim={**sim, "sessions": 3, "seeed": 9}), tmp_path / "run")
+    # a TrainConfig built directly is checked as from_dict checks one (val_sessions overlapped
+    # the training sessions, and best/ was chosen on them)
+    direct = dataclasses.replace(
+        _config(tiny_world), train_sessions=["s0", "s1"], val_sessions=["s1"]
+    )
+    with pytest.raises(ValueError, match=r"val_sessions"):
+        Trainer(direct, tmp_path / "run")
+    with pytest.raises(TypeError, match=r"^cfg: expected a TrainConfig"):
+        Trainer({"dataset": str(tiny_world)}, tmp_path / "run")  # type: ignore[arg-type]
     # a session name that is wrong, repeated or empty is refused naming its key
     bad = [
         ({"train_sessions": ["s0", "s9"]}, r"train_sessions: \['s9'\] not in .*its sessions: s0"),

@@ -1014,15 +1014,47 @@ def _check_rendered_like(root: Path, sim: dict[str, Any]) -> None:
         )
 
 
+def _check_rendered_rig(root: Path, sim: dict[str, Any], key: str) -> None:
+    """Refuse a dataset ``vvloc sim`` rendered whose rig (camera count, image size) or session
+    length differs from what the ``sim`` section (defaults filled in) renders: training would
+    use the other data without a word."""
+    if rendered_world(root) is None:
+        return
+    ds = open_dataset(root)
+    cams = ds.cameras
+    have: dict[str, Any] = {"cameras": len(cams), "width": cams[0].width, "height": cams[0].height}
+    sessions = sim.get("sessions")
+    if isinstance(sessions, int):
+        lengths = {len(ds.session(f"s{i}")) for i in range(sessions) if f"s{i}" in ds.sessions}
+        if lengths and lengths != {sim.get("frames")}:
+            have["frames"] = sorted(lengths)
+    want = {k: sim.get(k) for k in have}
+    if have != want:
+        raise ValueError(
+            f"{key}: dataset {root} was rendered with {have}, but the config's sim section "
+            f"renders {want}: move it away to re-render it, or point the config elsewhere"
+        )
+
+
 def _ensure_dataset(dataset: str, sim: dict[str, Any] | None, prefix: str = "") -> None:
     """Render ``dataset`` from ``sim`` (arguments of :func:`vvloc.sim.simulate_dataset`) when it
     does not exist yet; errors name the config's keys, ``{prefix}dataset`` and ``{prefix}sim``
     (``prefix`` is ``extra_datasets[i].`` for an extra dataset)."""
+    import inspect
+
+    from vvloc.sim import simulate_dataset
+
     key = f"{prefix}sim"
     root = Path(dataset)
+    params = inspect.signature(simulate_dataset).parameters
+    known = [p for p in params if p != "out"]
+    unknown = sorted(set(sim or {}) - set(known))
+    if unknown:  # said as the config's key, not as simulate_dataset()'s keyword argument
+        raise ValueError(f"{key}: unknown keys {unknown} (known: {known})")
     if root.exists():
         if sim:
             _check_rendered_like(root, sim)
+            _check_rendered_rig(root, {p: params[p].default for p in known} | sim, key)
         if sim and isinstance(sim.get("sessions"), int):
             have = set(open_dataset(root).sessions)
             missing = [f"s{i}" for i in range(sim["sessions"]) if f"s{i}" not in have]
@@ -1045,14 +1077,6 @@ def _ensure_dataset(dataset: str, sim: dict[str, Any] | None, prefix: str = "") 
         raise FileNotFoundError(
             f"{prefix}dataset: {root} does not exist and {where} no 'sim' section to render it"
         )
-    import inspect
-
-    from vvloc.sim import simulate_dataset
-
-    known = [p for p in inspect.signature(simulate_dataset).parameters if p != "out"]
-    unknown = sorted(set(sim) - set(known))
-    if unknown:  # said as the config's key, not as simulate_dataset()'s keyword argument
-        raise ValueError(f"{key}: unknown keys {unknown} (known: {known})")
     log.info("rendering the training dataset into %s", root)
     try:
         simulate_dataset(root, **sim)
@@ -1136,6 +1160,12 @@ class Trainer:
 
     def __init__(self, cfg: TrainConfig, out_dir: str | os.PathLike[str]) -> None:
         t_setup = time.perf_counter()
+        if not isinstance(cfg, TrainConfig):
+            raise TypeError(
+                f"cfg: expected a TrainConfig (TrainConfig.from_dict for a dict), got "
+                f"{type(cfg).__name__}"
+            )
+        cfg.validate()  # a TrainConfig built directly was never checked (from_dict checks)
         self.cfg = cfg
         self.out = Path(out_dir)
         self.cwd = os.getcwd()  # the config's relative paths are read from here
@@ -2325,6 +2355,8 @@ def train(
     a run there. It must lie outside every dataset the config reads. Both are checked before
     any dataset is rendered or opened."""
     cfg = config if isinstance(config, TrainConfig) else TrainConfig.from_yaml(config)
+    if isinstance(config, TrainConfig):
+        cfg.validate()  # built directly, it was never checked (from_yaml checks)
     out = Path(out_dir)
     check_run_folder(cfg, out, resume)
     if resume and not out.is_dir():

@@ -467,6 +467,8 @@ def check_dataset_target(root: str | os.PathLike[str], overwrite: bool) -> None:
     directory or a folder above it (``ValueError``), a file, or a non-empty folder without
     ``overwrite`` (``FileExistsError``), or one with ``overwrite`` that is not a vvloc dataset
     (:func:`_check_replaceable`)."""
+    if not isinstance(overwrite, (bool, np.bool_)):  # "no" is truthy: it replaced a dataset
+        raise TypeError(f"overwrite: expected a bool, got {type(overwrite).__name__}")
     root = Path(root)
     loop = symlink_loop(root)
     if loop:  # found only when the finished dataset was renamed into place
