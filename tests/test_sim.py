@@ -607,10 +607,19 @@ def test_world_and_dataset_options_are_checked_by_name(tmp_path):
         (lambda: session_plan("parking", 2, lighting="day"), "lighting: expected a list"),
         (lambda: simulate_dataset(tmp_path / "x", texture_strength=True), "texture_strength"),
         (lambda: simulate_dataset(tmp_path / "x", texture_strength=-1.0), "texture_strength"),
+        # a truthy "no" replaced an existing dataset
+        (lambda: simulate_dataset(tmp_path / "x", overwrite="no"), "^overwrite: expected a bool"),
+        # ignored without a word (the parking lot has one level), or garage lighting taken
+        (lambda: simulate_dataset(tmp_path / "x", floors=5), "^floors: only the garage scene"),
+        (lambda: session_plan("parkin", 3), "^scene: expected one of"),
+        (lambda: make_rig(4, 160, 96, mount_height="1.6"), "^mount_height: expected"),
+        (lambda: make_rig(4, 160, 96, mount_height=-1.0), "^mount_height: expected"),
+        (lambda: make_rig(4, 160, 96, hfov_deg="90"), "^hfov_deg: expected"),
     ):
         with pytest.raises((TypeError, ValueError), match=match):
             call()
     assert garage_world(np.int64(0), floors=np.int64(2)).floor_z.shape == (2,)
+    assert len(make_rig(np.int64(4), np.int64(160), 96)) == 4  # was "expected an int"
     assert not list(tmp_path.iterdir())
     # a meta the dataset's rig.json cannot hold is refused before any folder is made
     from vvloc.data import DatasetWriter
@@ -634,3 +643,24 @@ def test_simulate_takes_numpy_numbers(egl, tmp_path):
     meta = json.loads((out / "rig.json").read_text())["meta"]
     assert meta["seed"] == 3 and meta["texture_strength"] == 0.5
     assert len(open_dataset(out).session("s0")) == 2
+
+
+def test_loops_and_keyframe_drives_refuse_arguments_they_cannot_use():
+    square = np.array([[0, 0], [20, 0], [20, 10], [0, 10]], float)
+    loop = sample_loop(square)
+    poses, times = drive_keyframes(loop, Drive(), 5, speed=5.0)
+    assert poses.shape == (5, 3) and np.all(np.diff(times) > 0)
+    for call, error, match in (
+        # 2.5 never equalled the count taken: the whole lap came back
+        (lambda: drive_keyframes(loop, Drive(), 2.5), TypeError, r"^count: expected an int"),
+        (lambda: drive_keyframes(loop, Drive(), 3, speed=0.0), ValueError, r"^speed: "),
+        (lambda: drive_keyframes(loop, Drive(), 3, speed=-5.0), ValueError, r"^speed: "),
+        (lambda: drive_keyframes(loop, Drive(), 3, key_distance=-1), ValueError, "^key_distance"),
+        (lambda: drive_keyframes(loop[:, :3], Drive(), 3), ValueError, r"^loop: expected shape"),
+        (lambda: sample_loop(square, step=0.0), ValueError, r"^step: "),
+        (lambda: sample_loop(square, radius=-1.0), ValueError, r"^radius: expected metres"),
+        (lambda: sample_loop(square[[0, 0, 1, 2]]), ValueError, r"^waypoints: a waypoint repeats"),
+        (lambda: sample_loop([[0, 0], [1, 0]]), ValueError, r"^waypoints: expected \(K>=3, 2\)"),
+    ):
+        with pytest.raises(error, match=match):
+            call()

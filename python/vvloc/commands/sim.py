@@ -106,7 +106,7 @@ def sim(
             scene=scene.value,
             sessions=sessions,
             frames=frames,
-            floors=2 if floors is None else floors,
+            floors=floors,
             floor_marking=(floor_marking or FloorMarking.walls).value,
             seed=seed,
             cameras=cameras,

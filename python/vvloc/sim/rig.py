@@ -7,6 +7,7 @@ import math
 import numpy as np
 
 from vvloc.data.frame import Camera
+from vvloc.kernels import _finite_float, _positive_float, _positive_int
 
 RIG_NAMES = {
     4: ("front", "left", "rear", "right"),
@@ -45,13 +46,15 @@ def make_rig(
     rear one at x = 0.3 m) at ``mount_height``. Default horizontal field of view: 360°/M + 10°
     of overlap, at most 120° (so rigs of 1-3 cameras leave gaps between their views; pass
     ``hfov_deg`` up to 150° for wider lenses). Square pixels, principal point at the image
-    centre ((W−1)/2, (H−1)/2).
+    centre ((W−1)/2, (H−1)/2). ``width``, ``height``: ints >= 8 pixels; ``hfov_deg``,
+    ``pitch_deg`` (downward tilt) degrees; ``mount_height`` metres > 0 above the ground.
     """
-    if isinstance(num_cameras, bool) or not isinstance(num_cameras, int) or num_cameras < 1:
-        raise ValueError(f"num_cameras: expected an int >= 1, got {num_cameras!r}")
-    for key, v in (("width", width), ("height", height)):
-        if isinstance(v, bool) or not isinstance(v, int) or v < 8:
-            raise ValueError(f"{key}: expected an int >= 8 pixels, got {v!r}")
+    num_cameras = _positive_int(num_cameras, "num_cameras")  # numpy ints too
+    width, height = (_positive_int(v, key, 8) for key, v in (("width", width), ("height", height)))
+    pitch_deg = _finite_float(pitch_deg, "pitch_deg")
+    mount_height = _positive_float(mount_height, "mount_height")  # "1.6" was cast silently
+    if hfov_deg is not None:
+        hfov_deg = _finite_float(hfov_deg, "hfov_deg")
     fov = hfov_deg if hfov_deg is not None else min(360.0 / num_cameras + 10.0, 120.0)
     if not 10.0 <= fov <= 150.0:
         raise ValueError(f"hfov_deg: expected 10..150 degrees, got {fov}")

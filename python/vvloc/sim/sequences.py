@@ -12,18 +12,28 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from vvloc.evaluate import _real_array
+from vvloc.kernels import _finite_float, _positive_float, _positive_int
+
 
 def _wrap(a: np.ndarray | float) -> np.ndarray | float:
     return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
 
 
 def sample_loop(waypoints: np.ndarray, radius: float = 4.0, step: float = 0.05) -> np.ndarray:
-    """Dense samples (S, 4) of x, y, yaw, arclength along a closed loop of ``waypoints`` (K, 2)
-    with corners rounded by circular arcs of ``radius`` m (shrunk where segments are short)."""
-    P = np.asarray(waypoints, dtype=np.float64)
+    """Dense samples (S, 4) of x, y (m), yaw (rad, in [−π, π): a sample heading the −x way
+    reads −π), arclength (m) along a closed loop of ``waypoints`` (K, 2) m, K >= 3, each
+    distinct from the next, with corners rounded by circular arcs of ``radius`` m (>= 0;
+    shrunk where segments are short), sampled every ``step`` m (> 0)."""
+    P = _real_array(waypoints, "waypoints", "(K, 2)", 2, 2)
     k = len(P)
-    if P.ndim != 2 or P.shape[1] != 2 or k < 3:
+    if k < 3:
         raise ValueError(f"waypoints: expected (K>=3, 2), got {P.shape}")
+    if (np.linalg.norm(P - np.roll(P, 1, axis=0), axis=1) == 0).any():
+        raise ValueError("waypoints: a waypoint repeats the one before it (a segment of length 0)")
+    radius, step = _finite_float(radius, "radius"), _positive_float(step, "step")
+    if radius < 0:
+        raise ValueError(f"radius: expected metres >= 0, got {radius}")
     corners = []
     for i in range(k):
         prev, cur, nxt = P[i - 1], P[i], P[(i + 1) % k]
@@ -82,13 +92,20 @@ def drive_keyframes(
     key_yaw_deg: float = 5.0,
     speed: float = 5.0,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Keyframe poses (count, 3) x, y, yaw and times (count,) s of laps around ``loop``.
+    """Keyframe poses (count, 3) x, y (m), yaw (rad, (−π, π]) and times (count,) s of laps
+    around ``loop``, in the loop's world frame.
 
-    ``loop`` are dense samples from :func:`sample_loop`. Laps repeat until ``count`` keyframes
-    are taken; each lap has its own wobble phase so laps do not coincide exactly.
+    ``loop`` are dense samples (S, 4) from :func:`sample_loop`. A keyframe is taken once the
+    vehicle has moved ``key_distance`` m (>= 0) or turned ``key_yaw_deg`` degrees (>= 0) from
+    the last, driving at ``speed`` m/s (> 0). Laps repeat until ``count`` (an int >= 1)
+    keyframes are taken; each lap has its own wobble phase so laps do not coincide exactly.
     """
-    if count < 1:
-        raise ValueError(f"count: expected >= 1 keyframes, got {count}")
+    count = _positive_int(count, "count")  # 2.5 never equalled len: the whole lap was taken
+    loop = _real_array(loop, "loop", "(S, 4) from sample_loop", 2, 4)
+    speed = _positive_float(speed, "speed")
+    for name, value in (("key_distance", key_distance), ("key_yaw_deg", key_yaw_deg)):
+        if _finite_float(value, name) < 0:
+            raise ValueError(f"{name}: expected a value >= 0, got {value}")
     rng = np.random.default_rng([drive.seed, 3])
     phase = rng.uniform(0, 2 * np.pi, size=2)
     xy, yaw, arc = loop[:, :2], loop[:, 2], loop[:, 3]

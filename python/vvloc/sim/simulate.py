@@ -48,6 +48,8 @@ def session_plan(
     """The sessions' specs: ``s0`` maps (first lighting, centred, forward, base cars); query
     session i cycles lateral offsets (0, +1.5, −1.5 m), direction (reversed when i mod 4 ∈ {2, 3})
     and lighting, and moves 15 % of the parked cars."""
+    if scene not in SCENES:  # another name took the garage's lighting without a word
+        raise ValueError(f"scene: expected one of {SCENES}, got {scene!r}")
     if sessions < 1:
         raise ValueError(f"sessions: expected >= 1, got {sessions}")
     if isinstance(lighting, str):  # one preset would cycle through its letters
@@ -107,7 +109,7 @@ def simulate_dataset(
     scene: str = "parking",
     sessions: int = 3,
     frames: int = 600,
-    floors: int = 2,
+    floors: int | None = None,
     floor_marking: str = "walls",
     seed: int = 0,
     cameras: int = 4,
@@ -125,6 +127,9 @@ def simulate_dataset(
     Each session drives the world's loop(s) for ``frames`` keyframes (garage: split across the
     floors, each floor driving its own copy of the loop), see :func:`session_plan`. Everything is
     a function of ``seed``. The dataset appears atomically: on error nothing is left behind.
+    ``width``, ``height``: each camera's image size, pixels; ``cameras``: how many (a ring).
+    ``floors`` (garage only; default 2, at most 16): storeys; the parking lot has one level,
+    and a number given for it is refused rather than ignored.
     ``floor_marking`` (garage only): ``"walls"`` or ``"pillars"``, see
     :func:`vvloc.sim.world.garage_world`; recorded in ``rig.json``'s ``meta``.
     ``max_roll``, ``max_pitch`` (degrees, 0 to 30; default 0: level): tilt the vehicle of every
@@ -134,6 +139,10 @@ def simulate_dataset(
     tilt puts them and written as that frame's own extrinsics (``cam_to_ego.csv``, the level
     ego frame's, as the NCLT and RobotCar readers give them); the pose stays (x, y, yaw).
     """
+    if scene == "parking" and floors is not None:
+        raise ValueError("floors: only the garage scene has floors (the parking lot has one level)")
+    if floors is None:
+        floors = 2
     sessions, frames, floors = (
         _positive_int(v, key)
         for key, v in (("sessions", sessions), ("frames", frames), ("floors", floors))
