@@ -98,3 +98,24 @@ def test_another_mounting_is_another_rig():
     )
     # the same cameras in another order: slots 0 and 2 hold each other's camera, turned 180°
     assert "turned by up to 180.0°" in _difference([RIG[2], RIG[1], RIG[0], RIG[3]])
+
+
+def test_calibration_that_cannot_be_compared_is_refused_not_called_the_same_rig():
+    K, cam_to_ego = stack_calibration(RIG)
+    size = (160, 96)
+    k_nan = K.copy()
+    k_nan[0, 0, 0] = np.nan
+    t_nan = cam_to_ego.copy()
+    t_nan[1, 0, 3] = np.nan
+    for args, error, match in (
+        ((k_nan, cam_to_ego, size), ValueError, r"^K: contains non-finite"),  # was ""
+        ((K, t_nan, size), ValueError, r"^cam_to_ego: contains non-finite"),  # was ""
+        ((K, cam_to_ego, (float("nan"), 96)), ValueError, r"^size: expected a number"),  # was ""
+        ((K, cam_to_ego[:1], size), ValueError, r"^cam_to_ego: expected shape \(4, 4, 4\)"),
+        ((K[0], cam_to_ego, size), ValueError, r"^K: expected shape \(M, 3, 3\)"),
+        ((K, cam_to_ego, (160,)), TypeError, r"^size: expected \(width, height\)"),
+    ):
+        with pytest.raises(error, match=match):
+            rig_difference(RIG, *args, SAME_MODEL)
+    with pytest.raises(ValueError, match=r"^reference: expected at least one camera"):
+        rig_difference([], K, cam_to_ego, size, SAME_MODEL)

@@ -88,12 +88,24 @@ def rig_difference(
         size: (width, height) of the compared rig's images, pixels.
         tolerance: how far counts as the same rig (:data:`SAME_MAP`, :data:`SAME_MODEL`).
     """
-    k = np.asarray(K, dtype=np.float64)
-    t = np.asarray(cam_to_ego, dtype=np.float64)
+    from vvloc.evaluate import _real, _real_array
+
+    if not reference:
+        raise ValueError("reference: expected at least one camera")
+    k = _real_array(K, "K", "(M, 3, 3)", 3)  # finite: NaN compared as 'the same rig'
+    t = _real_array(cam_to_ego, "cam_to_ego", "(M, 4, 4)", 3)
+    if k.shape[1:] != (3, 3):
+        raise ValueError(f"K: expected shape (M, 3, 3), got {k.shape}")
+    if t.shape != (len(k), 4, 4):  # (1, 4, 4) was broadcast over every camera
+        raise ValueError(f"cam_to_ego: expected shape ({len(k)}, 4, 4) like K, got {t.shape}")
+    if not isinstance(size, (tuple, list)) or len(size) != 2:
+        raise TypeError(f"size: expected (width, height) pixels, got {size!r}")
+    width, height = (_real(v, "size") for v in size)
+    if width <= 0 or height <= 0:
+        raise ValueError(f"size: expected (width, height) > 0 pixels, got {size!r}")
     m = len(reference)
     if k.shape[0] != m:
         return f"{k.shape[0]} cameras, against {m}"
-    width, height = size
     ref_w, ref_h = reference[0].width, reference[0].height
     if abs(width - ref_w) > tolerance.size * ref_w or abs(height - ref_h) > tolerance.size * ref_h:
         return f"images of {width}x{height} px, against {ref_w}x{ref_h}"
