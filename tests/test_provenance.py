@@ -119,3 +119,30 @@ def test_a_record_file_that_is_not_utf8_or_not_json_is_refused_naming_it(tmp_pat
     path.write_text("{not json")
     with pytest.raises(ValueError, match=r"training\.json: not JSON"):
         read_record(path)
+
+
+def test_a_record_is_checked_before_it_is_written_and_numpy_numbers_are_plain(tmp_path):
+    import numpy as np
+
+    from vvloc.provenance import TRAINING_FORMAT, read_record, write_record
+
+    path = tmp_path / "training.json"
+    # each wrote a file that read_record then refused
+    for args, error, match in (
+        ((None, []), TypeError, r"^weights_hash: expected a str"),
+        (("h", {"x": 1}), TypeError, r"^runs: expected a list"),
+        (("h", [{"seconds": "5"}]), ValueError, r"'seconds' must be a number >= 0 or null"),
+        (("h", [{"seconds": -1.0}]), ValueError, r"'seconds' must be a number >= 0 or null"),
+    ):
+        with pytest.raises(error, match=match):
+            write_record(path, *args)
+    assert not list(tmp_path.iterdir())
+    write_record(
+        path, "h", [{"seconds": np.float32(12.0), "steps": np.int64(3)}, {"seconds": math.nan}]
+    )
+    assert read_record(path)["runs"] == [{"seconds": 12.0, "steps": 3}, {"seconds": None}]
+    assert json_safe({"a": np.float64("nan"), "b": [np.bool_(True)]}) == {"a": None, "b": [True]}
+    for version in (True, 1.0):  # both equal 1
+        with pytest.raises(ValueError, match=r"version"):
+            validate_record({"format": TRAINING_FORMAT, "version": version, "runs": []}, "r")
+    assert summarize({"format": "x"}) == "unknown hardware; 0 runs"  # was KeyError 'runs'

@@ -71,6 +71,8 @@ import platform
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from vvloc._io import atomic_write
 
 __all__ = [
@@ -158,7 +160,9 @@ def libraries() -> dict[str, str | None]:
 
 def json_safe(value: Any) -> Any:
     """``value`` (JSON-like: dicts, lists, str, numbers, None) with every non-finite float
-    replaced by None, so that it writes as standard JSON."""
+    replaced by None and numpy scalars made Python ones, so that it writes as standard JSON."""
+    if isinstance(value, np.generic) and isinstance(value.item(), bool | int | float | str):
+        value = value.item()
     if isinstance(value, float) and not math.isfinite(value):
         return None
     if isinstance(value, dict):
@@ -169,7 +173,13 @@ def json_safe(value: Any) -> Any:
 
 
 def _seconds_ok(value: Any) -> bool:
-    return value is None or (isinstance(value, int | float) and not isinstance(value, bool))
+    """A run's or process's ``seconds``: null, or a finite number >= 0."""
+    return value is None or (
+        isinstance(value, int | float)
+        and not isinstance(value, bool)
+        and math.isfinite(value)
+        and value >= 0
+    )
 
 
 def validate_record(record: Any, source: str) -> dict[str, Any]:
@@ -177,7 +187,12 @@ def validate_record(record: Any, source: str) -> dict[str, Any]:
     docstring), else ``ValueError`` naming ``source`` (a path, for the message)."""
     if not isinstance(record, dict):
         raise ValueError(f"{source}: expected a JSON object, got {type(record).__name__}")
-    if record.get("format") != TRAINING_FORMAT or record.get("version") != TRAINING_VERSION:
+    version = record.get("version")
+    if (
+        record.get("format") != TRAINING_FORMAT
+        or type(version) is not int  # True and 1.0 equal 1
+        or version != TRAINING_VERSION
+    ):
         raise ValueError(
             f"{source}: expected format {TRAINING_FORMAT!r} version {TRAINING_VERSION}, got "
             f"{record.get('format')!r} version {record.get('version')!r}"
@@ -190,7 +205,7 @@ def validate_record(record: Any, source: str) -> dict[str, Any]:
         if not isinstance(procs, list) or not all(isinstance(p, dict) for p in procs):
             raise ValueError(f"{source}: runs[{k}].processes must be a list of objects")
         if not all(_seconds_ok(x.get("seconds")) for x in [run, *procs]):
-            raise ValueError(f"{source}: runs[{k}]: 'seconds' must be a number or null")
+            raise ValueError(f"{source}: runs[{k}]: 'seconds' must be a number >= 0 or null")
         if "rigs" in run:
             from vvloc.data.frame import Camera  # here: vvloc.data loads scipy, the CLI must not
 
@@ -226,13 +241,19 @@ def read_record(path: Path) -> dict[str, Any]:
 def record_json(weights_hash: str, runs: list[dict[str, Any]]) -> str:
     """The text of the training record of the weights with fingerprint ``weights_hash`` (see
     the module docstring) and ``runs``: standard JSON (non-finite floats become null:
-    :func:`json_safe`)."""
+    :func:`json_safe`). ``ValueError`` for ``runs`` that :func:`read_record` would refuse
+    (nothing is written then), ``TypeError`` for a ``weights_hash`` that is not a str."""
+    if not isinstance(weights_hash, str):
+        raise TypeError(f"weights_hash: expected a str, got {type(weights_hash).__name__}")
+    if not isinstance(runs, list):
+        raise TypeError(f"runs: expected a list of run objects, got {type(runs).__name__}")
     record = {
         "format": TRAINING_FORMAT,
         "version": TRAINING_VERSION,
         "weights_hash": weights_hash,
         "runs": json_safe(runs),
     }
+    validate_record(record, "runs")
     return json.dumps(record, indent=2, allow_nan=False)
 
 
@@ -256,7 +277,7 @@ def summarize(record: dict[str, Any] | None) -> str:
     ``None`` or ``{}`` gives ``"no training record for these weights"``."""
     if not record:
         return "no training record for these weights"
-    runs = record["runs"]
+    runs = record.get("runs") or []
     recorded = [r for r in runs if r.get("recorded", True)]
     procs = [p for r in recorded for p in r.get("processes", [])]
     where = sorted({f"{_where(p)} on {p['hardware']}" for p in procs if "hardware" in p})
