@@ -1053,3 +1053,30 @@ def test_thin_sweep_refuses_arrays_that_do_not_line_up():
     # no recall: thinned by rank (and the best F1) alone
     thin = thin_sweep({"f1": np.r_[np.zeros(99), 1.0], "t": np.arange(100.0)}, 10)
     assert 1.0 in thin["f1"] and len(thin["t"]) <= 12
+
+
+def test_wrap_angle_gives_nan_for_infinity_without_a_warning():
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # numpy's 'invalid value' RuntimeWarning was raised
+        got = geo.wrap_angle(np.array([np.inf, -np.inf, np.nan, 4.0]))
+    assert np.isnan(got[:3]).all() and got[3] == pytest.approx(4.0 - 2 * math.pi)
+
+
+def test_plots_refuse_percentages_and_signed_errors_naming_them(tmp_path):
+    # a recall of 80 (percent) was drawn off the axes: an empty plot with a legend
+    with pytest.raises(ValueError, match=r"^curves\['A'\] recall: expected fractions in \[0, 1\]"):
+        viz.plot_recall_curves(tmp_path / "r.png", {"A": ([1, 5, 10], [80, 90, 95])})
+    with pytest.raises(ValueError, match=r"^errors\['A'\]: expected absolute errors >= 0"):
+        viz.plot_error_cdfs(tmp_path / "e.png", {"A": [-10, -5, 5]}, {"A": [1.0]})
+    sweep = {"precision": [0.5, 90.0], "recall": [0.1, 0.2], "f1": [0.2, 0.3]}
+    with pytest.raises(ValueError, match=r"^curves\['B'\]\['precision'\]: expected fractions"):
+        viz.plot_precision_recall(tmp_path / "p.png", {"B": sweep})
+    curve = {"kept_share": [0.5, 1.0], "mRRE_deg": [1.0, -2.0], "mRTE_m": [0.1, 0.2]}
+    with pytest.raises(ValueError, match=r"^curve\['mRRE_deg'\]: expected absolute errors"):
+        viz.plot_confidence_curve(tmp_path / "c.png", curve)
+    assert not list(tmp_path.iterdir())
+    # NaN (undefined) and fractions draw
+    viz.plot_recall_curves(tmp_path / "r.png", {"A": ([1, 5], [float("nan"), 0.9])})
+    assert (tmp_path / "r.png").is_file()

@@ -344,3 +344,35 @@ def test_reports_of_trained_on_query_sessions_are_refused():
     garage["meta"]["trained_on_queries"] = ["s49"]
     with pytest.raises(ValueError, match="--garage: the report's query sessions"):
         check_targets(_committed("report-test96"), garage=garage)
+
+
+def test_impossible_figures_are_refused_not_met():
+    def edited(report: str, change) -> dict:
+        doc = copy.deepcopy(_committed(report))
+        change(doc)
+        return doc
+
+    ml = lambda d: d["global_localization"]["VVLoc-ML"]  # noqa: E731
+    first_loop = lambda d: next(iter(d["loop_closure"].values()))["at_threshold"]  # noqa: E731
+    parking_cases = (
+        # a recall of 90.0 (percent) read as 9000 % and met its target
+        (lambda d: ml(d)["recall"]["1"].update({"2": 90.0}), r"Recall@1 \(2 m\): expected .*1\]"),
+        (lambda d: d["pose_accuracy"]["VVLoc-ML"]["true_revisit"].update({"AOE@50": -1}), "AOE@50"),
+        (lambda d: ml(d).update(num_kept=-1), "num_kept"),  # an UnboundLocalError
+        (lambda d: d["training"]["runs"][0].update(seconds=-6000), "training seconds"),
+        (lambda d: d["training"]["runs"][0].update(seconds="60"), "training seconds"),
+    )  # fmt: skip
+    for change, match in parking_cases:
+        with pytest.raises(ValueError, match=match):
+            check_targets(edited("report-test96", change))
+    garage_cases = (
+        (lambda d: first_loop(d).update(cfer=-0.5), r"cfer: expected a value in \[0, 1\]"),
+        (lambda d: first_loop(d).pop("accepted"), r"^malformed report: no 'accepted'"),  # KeyError
+    )
+    for change, match in garage_cases:
+        with pytest.raises(ValueError, match=match):
+            check_targets(_committed("report-test96"), None, edited("report-test96-garage", change))
+    # an undefined CFER (NaN) reads as n/a, not "cannot convert float NaN to integer"
+    nan = edited("report-test96-garage", lambda d: first_loop(d).update(cfer=float("nan")))
+    figs = [f for f in check_targets(_committed("report-test96"), None, nan) if "garage" in f.name]
+    assert any(f.value == "n/a" for f in figs)

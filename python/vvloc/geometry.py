@@ -43,10 +43,12 @@ def wrap_angle(angle: npt.ArrayLike) -> F64Array:
     """Wrap angles (radians) to the half-open interval (−π, π], elementwise.
 
     ``wrap_angle(π) == π`` and ``wrap_angle(−π) == π``; ``wrap_angle(3π/2) == −π/2``.
-    Angles already in (−π, π] are returned bit-exactly (no round trip through a modulo).
+    Angles already in (−π, π] are returned bit-exactly (no round trip through a modulo). NaN
+    passes through, and ±inf (no angle) gives NaN, without a warning.
     """
     a = _real(angle, "angle", "")
-    w = a - 2.0 * np.pi * np.ceil((a - np.pi) / (2.0 * np.pi))
+    with np.errstate(invalid="ignore"):  # inf − inf: NaN, the documented answer
+        w = a - 2.0 * np.pi * np.ceil((a - np.pi) / (2.0 * np.pi))
     # the rounding of a − π can put w one ulp outside (−π, π]: fold it back
     w = np.where(w > np.pi, w - 2.0 * np.pi, w)
     w = np.where(w <= -np.pi, w + 2.0 * np.pi, w)

@@ -75,6 +75,17 @@ def _shown(value: float, fmt: str, met: bool, passes: Callable[[float], bool]) -
     return text
 
 
+def _number(value: Any, where: str, high: float = math.inf) -> float:
+    """``value`` as a float in [0, ``high``] (NaN kept: undefined), ``ValueError`` naming
+    ``where`` otherwise: a share of 90.0 (a percentage) read as 9000 % and met the target."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ValueError(f"{where}: expected a number, got {value!r:.40}")
+    v = float(value)
+    if not (math.isnan(v) or 0.0 <= v <= high):
+        raise ValueError(f"{where}: expected a value in [0, {high:g}], got {value!r}")
+    return v
+
+
 def _at_most(name: str, value: float | None, limit: float, unit: str, fmt: str) -> Figure:
     if value is None or not math.isfinite(value):
         return Figure(name, f"<= {limit:{fmt}}{unit}", "n/a", None)
@@ -86,10 +97,10 @@ def _at_most(name: str, value: float | None, limit: float, unit: str, fmt: str) 
 def _parking(report: Mapping[str, Any]) -> list[Figure]:
     gl = report.get("global_localization", {})
     try:
-        kept = int(gl["VVLoc-ML"]["num_kept"])
+        kept = int(_number(gl["VVLoc-ML"]["num_kept"], "VVLoc-ML num_kept"))
         if kept > 0:  # without a kept query (none within 2 m of the map) recall is undefined
-            reranked = float(gl["VVLoc-ML"]["recall"]["1"]["2"])
-            retrieval = float(gl["VVLoc-G"]["recall"]["1"]["2"])
+            reranked = _number(gl["VVLoc-ML"]["recall"]["1"]["2"], "VVLoc-ML Recall@1 (2 m)", 1)
+            retrieval = _number(gl["VVLoc-G"]["recall"]["1"]["2"], "VVLoc-G Recall@1 (2 m)", 1)
     except (KeyError, TypeError) as e:
         raise ValueError(
             f"parking report: no Recall@1 at 2 m for VVLoc-ML and VVLoc-G ({e})"
@@ -128,9 +139,10 @@ def _parking(report: Mapping[str, Any]) -> list[Figure]:
     count = pose.get("count")
     for pct, aoe, ape in ((50, 1.6, 0.7), (25, 0.7, 0.3)):
         for kind, limit, unit in (("AOE", aoe, "°"), ("APE", ape, " m")):
+            value = pose.get(f"{kind}@{pct}") if kept else None
             fig = _at_most(
                 f"parking: {kind}@{pct} % (true revisits)",
-                pose.get(f"{kind}@{pct}") if kept else None,
+                None if value is None else _number(value, f"pose_accuracy {kind}@{pct}"),
                 limit,
                 unit,
                 ".2f",
@@ -156,9 +168,13 @@ def _cfer(report: Mapping[str, Any], world: str) -> list[Figure]:
             figures.append(Figure(f"{world}: CFER, {label}", "<= 0.26 %", "n/a", None, missing))
             continue
         at = entry["at_threshold"]
-        accepted, cfer = int(at["accepted"]), at["cfer"]
+        where = f"{world} report: loop_closure[{label}]"
+        accepted = int(_number(at["accepted"], f"{where} accepted"))
+        cfer = None if at["cfer"] is None else _number(at["cfer"], f"{where} cfer", 1)
+        if cfer is not None and math.isnan(cfer):
+            cfer = None  # undefined: nothing accepted
         cross = round(cfer * accepted) if accepted and cfer is not None else 0
-        value = None if cfer is None else 100.0 * float(cfer)
+        value = None if cfer is None else 100.0 * cfer
         fig = _at_most(f"{world}: CFER, {label}", value, 0.26, " %", ".2f")
         precision = at.get("precision")  # None (JSON null) when nothing is accepted
         shown = "n/a" if precision is None else f"{100 * float(precision):.1f} %"
@@ -177,7 +193,7 @@ def _training_time(report: Mapping[str, Any]) -> Figure:
     name = "training time"
     if not runs or None in seconds or not all(r.get("recorded", True) for r in runs):
         return Figure(name, "<= 90 min", "n/a", None, "the weights carry no complete record")
-    minutes = sum(float(s) for s in seconds) / 60.0
+    minutes = sum(_number(s, "training seconds") for s in seconds) / 60.0
     return Figure(
         name,
         "<= 90 min",
@@ -244,6 +260,8 @@ def check_targets(
         return _check_targets(parking, pillars, garage)
     except (AttributeError, TypeError) as e:  # a section that is not an object, e.g. a list
         raise ValueError(f"malformed report: a section is not what vvloc eval writes ({e})") from e
+    except KeyError as e:  # e.g. a loop-closure entry without its at_threshold
+        raise ValueError(f"malformed report: no {e} where vvloc eval writes one") from e
 
 
 def _check_targets(

@@ -75,6 +75,26 @@ def _vector(x: npt.ArrayLike, name: str, length: int | None = None) -> np.ndarra
     return arr
 
 
+def _share(x: npt.ArrayLike, name: str, length: int | None = None) -> np.ndarray:
+    """:func:`_vector` of fractions in [0, 1] (NaN: undefined): a percentage, plotted ×100 off
+    the axes, drew an empty plot without a word."""
+    arr = _vector(x, name, length)
+    if ((arr < 0) | (arr > 1)).any():
+        raise ValueError(
+            f"{name}: expected fractions in [0, 1], got values in [{np.nanmin(arr):g}, "
+            f"{np.nanmax(arr):g}] (percentages?)"
+        )
+    return arr
+
+
+def _magnitudes(x: npt.ArrayLike, name: str, length: int | None = None) -> np.ndarray:
+    """:func:`_vector` of absolute errors >= 0 (NaN and inf allowed: left out)."""
+    arr = _vector(x, name, length)
+    if (arr < 0).any():
+        raise ValueError(f"{name}: expected absolute errors >= 0, got {np.nanmin(arr):g}")
+    return arr
+
+
 def _mask(x: npt.ArrayLike, name: str, length: int) -> np.ndarray:
     """A ``(length,)`` bool array from bools or 0/1 integers (a float, NaN included, is no
     answer to "correct?")."""
@@ -114,7 +134,7 @@ def plot_recall_curves(
     drawn = False
     for name, (ns, recall) in curves.items():
         n = _vector(ns, f"curves[{name!r}] ns")
-        r = _vector(recall, f"curves[{name!r}] recall", n.shape[0])
+        r = _share(recall, f"curves[{name!r}] recall", n.shape[0])
         if np.isfinite(r).any():
             ax.plot(n, 100.0 * r, marker="o", markersize=3, label=str(name))
             drawn = True
@@ -133,7 +153,7 @@ def plot_recall_curves(
 
 def _cdf_panel(ax: Axes, errors: Mapping[str, npt.ArrayLike], xlabel: str) -> None:
     for name, e in errors.items():
-        v = _vector(e, f"errors[{name!r}]")
+        v = _magnitudes(e, f"errors[{name!r}]")
         v = np.sort(v[np.isfinite(v)])
         if v.size == 0:
             continue
@@ -187,9 +207,9 @@ def plot_precision_recall(
     fig = _new_figure()
     ax = fig.add_subplot()
     for name, sweep in curves.items():
-        p = _vector(sweep["precision"], f"curves[{name!r}]['precision']")
-        r = _vector(sweep["recall"], f"curves[{name!r}]['recall']", p.shape[0])
-        f1 = _vector(sweep["f1"], f"curves[{name!r}]['f1']", p.shape[0])
+        p = _share(sweep["precision"], f"curves[{name!r}]['precision']")
+        r = _share(sweep["recall"], f"curves[{name!r}]['recall']", p.shape[0])
+        f1 = _share(sweep["f1"], f"curves[{name!r}]['f1']", p.shape[0])
         if p.size == 0 or not (np.isfinite(p) & np.isfinite(r)).any():
             continue  # e.g. no true revisit: recall is undefined everywhere
         best = None if np.isnan(f1).all() else int(np.nanargmax(f1))
@@ -370,9 +390,9 @@ def plot_confidence_curve(path: str | os.PathLike[str], curve: Mapping[str, npt.
             ``mRTE_m`` arrays of equal length; the means are nan where every kept pair joins
             two floors, which the means leave out).
     """
-    kept = _vector(curve["kept_share"], "curve['kept_share']")
-    rre = _vector(curve["mRRE_deg"], "curve['mRRE_deg']", kept.shape[0])
-    rte = _vector(curve["mRTE_m"], "curve['mRTE_m']", kept.shape[0])
+    kept = _share(curve["kept_share"], "curve['kept_share']")
+    rre = _magnitudes(curve["mRRE_deg"], "curve['mRRE_deg']", kept.shape[0])
+    rte = _magnitudes(curve["mRTE_m"], "curve['mRTE_m']", kept.shape[0])
     fig = _new_figure()
     ax = fig.add_subplot()
     # markers: a curve of one point (one verified pair) is otherwise not drawn
