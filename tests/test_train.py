@@ -1562,12 +1562,21 @@ def test_a_torn_last_log_line_is_cut_off_and_written_whole_on_resume(tiny_world,
         ("lr", 10**400, r"lr: expected a number, got 1000.* \(out of range\)"),
         # checked up front, not by Trainer() or after a trained epoch
         ("extra_datasets", [{"dataset": 5}], r"extra_datasets\[0\]\.dataset: expected a folder"),
+        ("neg_radius", float("inf"), r"pos_radius, neg_radius: expected 0 < .* < inf metres"),
+        # an int where no int goes is not "out of range"
+        ("val_database", 0, r"val_database: expected a str .*got 0$"),
     ],
 )
 def test_config_values_that_would_train_something_else_are_refused(key, value, match):
     with pytest.raises(ValueError, match=match):
         TrainConfig.from_dict({"dataset": "x", key: value})
     TrainConfig.from_dict({"dataset": "x", "grad_clip": 0.0})  # no clipping: allowed
+
+
+@pytest.mark.parametrize("raw", [None, "lr", ["dataset", "x"]])
+def test_a_config_that_is_no_mapping_is_said_to_be_one(raw):
+    with pytest.raises(TypeError, match=r"^config: expected a mapping of keys"):
+        TrainConfig.from_dict(raw)  # type: ignore[arg-type]
 
 
 def test_config_yaml_with_a_key_twice_or_a_key_that_is_no_name_is_refused(tmp_path):

@@ -360,8 +360,9 @@ class TrainConfig:
             if check is None or check[0](value):
                 continue
             hint = ""
-            if isinstance(value, int) and not isinstance(value, bool):
-                hint = " (out of range)"
+            int_field = "int" in str(f.type) or f.type in ("float", "float | None")
+            if isinstance(value, int) and not isinstance(value, bool) and int_field:
+                hint = " (out of range)"  # an int where one goes: too large
             if isinstance(value, str):
                 with contextlib.suppress(ValueError):
                     float(value)
@@ -371,6 +372,8 @@ class TrainConfig:
     @classmethod
     def from_dict(cls, raw: dict[str, Any], source: str = "config") -> TrainConfig:
         """Build from a plain dict, rejecting unknown keys."""
+        if not isinstance(raw, dict):
+            raise TypeError(f"{source}: expected a mapping of keys, got {type(raw).__name__}")
         names = {f.name for f in dataclasses.fields(cls)}
         not_str = [k for k in raw if not isinstance(k, str)]
         if not_str:
@@ -410,9 +413,9 @@ class TrainConfig:
             isinstance(self.threads, bool) or not isinstance(self.threads, int) or self.threads < 1
         ):
             raise ValueError(f"threads: expected an int >= 1 or null, got {self.threads!r}")
-        if not 0 < self.pos_radius < self.neg_radius:
+        if not (0 < self.pos_radius < self.neg_radius and math.isfinite(self.neg_radius)):
             raise ValueError(
-                f"pos_radius, neg_radius: expected 0 < pos_radius < neg_radius, got "
+                f"pos_radius, neg_radius: expected 0 < pos_radius < neg_radius < inf metres, got "
                 f"{self.pos_radius} and {self.neg_radius}"
             )
         stages = ("stage1_epochs", "stage2_epochs", "head_epochs", "local_epochs")
