@@ -962,3 +962,21 @@ def test_a_single_drive_that_returns_gives_positives_with_a_revisit_gap(tmp_path
     assert sorted(sampler.anchors.tolist()) == [0, 1, 2, 3, 6, 7, 8, 9]
     with pytest.raises(ValueError, match="revisit_gap"):
         TripletSampler(ds, revisit_gap=-1)
+
+
+def test_perturbation_helpers_name_arguments_they_cannot_use(tmp_path):
+    from vvloc.checkpoints import check_checkpoint_files
+    from vvloc.data.perturb import frame_seed, mask_regions, perturb_frame, region_boxes
+
+    with pytest.raises(ValueError, match=r"^images: expected H, W >= 1"):
+        mask_regions(np.zeros((1, 3, 0, 4), np.uint8))  # numpy's "high <= 0"
+    with pytest.raises(ValueError, match=r"^shape: expected the images' shape \(M, 3, H, W\)"):
+        region_boxes((2, 8, 10), 1, 0.5, 0, None)  # "not enough values to unpack"
+    with pytest.raises(TypeError, match=r"^name: expected one of"):
+        perturb_frame(None, ["noise"])  # type: ignore[arg-type]  # "unhashable type"
+    with pytest.raises(TypeError, match=r"^frame: expected a vvloc.data.Frame"):
+        frame_seed(None)  # type: ignore[arg-type]
+    with pytest.raises(FileNotFoundError, match=r"^directory: .* does not exist"):
+        check_checkpoint_files(str(tmp_path / "none"))  # type: ignore[arg-type]  # AttributeError
+    boxes = region_boxes((1, 3, 8, 8), 1, 0.5, 0, None)
+    assert boxes == region_boxes([1, 3, 8, 8], 1, 0.5, 0, None) and len(boxes) == 1

@@ -43,6 +43,7 @@ def check_checkpoint_files(src: Path, argument: str = "directory") -> None:
     folder is not a checkpoint) lacks ``config.json`` or ``model.safetensors``, the message
     naming the checkpoints of a run; whether the files hold a valid checkpoint is for
     :meth:`vvloc.nets.model.VVLocNet.load` to say."""
+    src = Path(src)  # a str too
     if not src.is_dir():
         what = "is a file, not a folder" if src.exists() else "does not exist"
         raise FileNotFoundError(

@@ -28,6 +28,8 @@ def _check(images: np.ndarray) -> np.ndarray:
         raise ValueError(f"images: expected a uint8 (M, 3, H, W) array, got {got}")
     if images.shape[1] != 3:
         raise ValueError(f"images: expected 3 channels on axis 1, got shape {images.shape}")
+    if min(images.shape[2:]) < 1:
+        raise ValueError(f"images: expected H, W >= 1, got shape {images.shape}")
     return images
 
 
@@ -135,8 +137,13 @@ def line_kernel(length: int, angle_deg: float) -> np.ndarray:
 def region_boxes(
     shape: tuple[int, ...], count: int, size: float, seed: int, cameras: Sequence[int] | None
 ) -> list[tuple[int, int, int, int, int]]:
-    """The (camera, row0, row1, col0, col1) boxes :func:`mask_regions` blanks for these args."""
-    m, _, h, w = shape
+    """The (camera, row0, row1, col0, col1) boxes :func:`mask_regions` blanks for these args:
+    ``shape`` is the images' (M, 3, H, W), H, W >= 1 pixels."""
+    if not isinstance(shape, (tuple, list)) or len(shape) != 4:
+        raise ValueError(f"shape: expected the images' shape (M, 3, H, W), got {shape!r}")
+    m, _, h, w = (_positive_int(v, "shape", 0) for v in shape)
+    if min(h, w) < 1:
+        raise ValueError(f"shape: expected H, W >= 1 pixels, got {tuple(shape)}")
     count = _positive_int(count, "count", 0)
     if not 0 < _finite_float(size, "size") <= 1:
         raise ValueError(f"size: expected a fraction of the image side in (0, 1], got {size}")
@@ -228,6 +235,8 @@ SEEDED = frozenset(
 def perturb_frame(frame: Frame, name: str, **kwargs: Any) -> Frame:
     """A copy of ``frame`` whose images went through perturbation ``name`` (see PERTURBATIONS)
     with ``kwargs``; the calibration and pose are the original's."""
+    if not isinstance(name, str):
+        raise TypeError(f"name: expected one of {sorted(PERTURBATIONS)}, got {name!r}")
     try:
         fn = PERTURBATIONS[name]
     except KeyError:
@@ -243,5 +252,7 @@ def frame_seed(frame: Frame, base: int = 0) -> int:
     """A seed of its own for ``frame``, from its session name and index (and ``base``): the
     same frame gets the same perturbation in every run, process and order of evaluation, and
     different frames get different ones."""
+    if not isinstance(frame, Frame):
+        raise TypeError(f"frame: expected a vvloc.data.Frame, got {type(frame).__name__}")
     key = f"{base}/{frame.session}/{frame.index}".encode()
     return zlib.crc32(key)
