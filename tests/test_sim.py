@@ -594,7 +594,17 @@ def test_renderer_refuses_bad_scenes_and_poses_by_name(egl):
         with pytest.raises(ValueError, match=match):
             r.render(**kwargs)
     assert r.render((0.0, 0.0, 0.0)).shape == (2, 3, 12, 16)
+    # a storey the scene has no lamps on rendered a night scene without any
+    r.set_mesh(v, i, w.lights, w.light_colors, w.light_floors)
+    with pytest.raises(ValueError, match=r"^floor: expected a storey of the scene, one of \[0\]"):
+        r.render((0.0, 0.0, 0.0), floor=7)
+    with pytest.raises(TypeError, match=r"^floor: expected an int storey"):
+        r.render((0.0, 0.0, 0.0), floor=0.5)  # type: ignore[arg-type]
     r.release()
+    with pytest.raises(TypeError, match=r"^cameras: expected a sequence of Camera"):
+        Renderer(make_rig(1, 16, 12)[0])  # type: ignore[arg-type]  # "not iterable"
+    with pytest.raises(TypeError, match=r"^texture_strength: "):
+        Renderer(make_rig(1, 16, 12), texture_strength="1")  # type: ignore[arg-type]
 
 
 def test_world_and_dataset_options_are_checked_by_name(tmp_path):

@@ -226,6 +226,12 @@ class TrainConfig:
     with the stage-2 weights ``yaw_weight``, ``tbias_weight`` and ``tbias_near_weight``. Its
     cache holds every training frame's BEV in float16 on the training device: N · H · W · C · 2
     bytes (the small model: 205 kB a frame). Without stages 1-2 it needs ``init_checkpoint``.
+    Units: ``pos_radius``, ``neg_radius`` metres (positives within ``pos_radius`` of the
+    anchor, negatives beyond ``neg_radius``; the translation-bias offsets are 1-3 m, see
+    :func:`vvloc.losses.translation_bias_loss`); ``triplet_margin``,
+    ``hinge_pos``, ``hinge_neg`` global-descriptor L2 distances; ``tbias_margin`` and the yaw
+    loss's ``yaw_theta_p``, ``yaw_theta_n`` local-descriptor distances (matching costs);
+    ``lr``, ``head_lr``, ``local_lr`` Adam learning rates, ``lr_decay`` a factor per epoch.
     """
 
     dataset: str = "data/synth"

@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from vvloc.data.frame import Camera
+from vvloc.kernels import _finite_float
 from vvloc.sim import world as W
 
 MAX_LIGHTS = 8
@@ -319,12 +320,15 @@ class Renderer:
     def __init__(self, cameras: Sequence[Camera], *, texture_strength: float = 1.0) -> None:
         import moderngl
 
+        if isinstance(cameras, Camera) or not all(isinstance(c, Camera) for c in cameras):
+            raise TypeError("cameras: expected a sequence of Camera (a rig), e.g. [camera]")
         if not cameras:
             raise ValueError("cameras: expected at least one camera")
         sizes = {(c.width, c.height) for c in cameras}
         if len(sizes) != 1:
             raise ValueError(f"cameras: all cameras must share one image size, got {sizes}")
-        if not (texture_strength >= 0 and math.isfinite(texture_strength)):
+        texture_strength = _finite_float(texture_strength, "texture_strength")
+        if not texture_strength >= 0:
             raise ValueError(
                 f"texture_strength: expected a finite value >= 0, got {texture_strength}"
             )
@@ -453,12 +457,22 @@ class Renderer:
         floor: int = 0,
         cam_to_ego: np.ndarray | None = None,
     ) -> np.ndarray:
-        """Render the rig at ego pose (x, y, yaw) and height ``z`` on storey ``floor``:
-        (M, 3, H, W) uint8. ``frame_index`` seeds the rain streaks. ``cam_to_ego`` (M, 4, 4)
+        """Render the rig at ego pose (x, y, yaw) (world frame: metres, yaw in radians
+        counter-clockwise) and height ``z`` (m) on storey ``floor`` (an int, a storey of the
+        scene's lamps): (M, 3, H, W) uint8. ``frame_index`` seeds the rain streaks. ``cam_to_ego``
+        (M, 4, 4)
         places the cameras for this frame alone (a tilting vehicle: its roll and pitch in the
         level ego frame, as ``Frame.cam_to_ego``); None uses the rig's."""
         if self.vao is None:
             raise RuntimeError("no scene: call set_mesh first")
+        if isinstance(floor, (bool, np.bool_)) or not isinstance(floor, (int, np.integer)):
+            raise TypeError(f"floor: expected an int storey, got {floor!r}")
+        if self.light_floors is not None and floor not in set(self.light_floors.tolist()):
+            # a storey the scene has no lamps on rendered a night scene without any
+            raise ValueError(
+                f"floor: expected a storey of the scene, one of "
+                f"{sorted(set(self.light_floors.tolist()))}, got {floor}"
+            )
         placements = self.cam_to_ego
         if cam_to_ego is not None:
             T = np.asarray(cam_to_ego, dtype=np.float64)

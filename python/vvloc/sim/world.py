@@ -227,7 +227,8 @@ class World:
         lights: (L, 4) float32 light positions (x, y, z) and range (m); ``light_colors`` (L, 3);
             ``light_floors`` (L,) the storey each light is on.
         routes: per floor, a closed loop of waypoints (K, 2) along the aisle centres.
-        floor_z: (F,) height of each floor's driving surface.
+        floor_z: (F,) float height of each floor's driving surface, metres (world z, up; 0 and
+            below: the lower storeys).
         level_signs: (S, 4) float64 centres (x, y, z) and storey of the garage's wall level-sign
             panels (1.4 × 1.3 m, the storey's digit 0.9 m tall on it); (0, 4) elsewhere.
     """
