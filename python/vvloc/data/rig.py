@@ -100,9 +100,9 @@ def rig_difference(
         raise ValueError(f"cam_to_ego: expected shape ({len(k)}, 4, 4) like K, got {t.shape}")
     if not isinstance(size, (tuple, list)) or len(size) != 2:
         raise TypeError(f"size: expected (width, height) pixels, got {size!r}")
-    width, height = (_real(v, "size") for v in size)
-    if width <= 0 or height <= 0:
+    if min(_real(v, "size") for v in size) <= 0:
         raise ValueError(f"size: expected (width, height) > 0 pixels, got {size!r}")
+    width, height = size  # as given: 80x48, not 80.0x48.0, in the message
     m = len(reference)
     if k.shape[0] != m:
         return f"{k.shape[0]} cameras, against {m}"
