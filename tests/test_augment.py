@@ -110,3 +110,12 @@ def test_numpy_scalars_are_numbers_and_kept_as_floats():
     assert (aug.prob, aug.noise) == (0.5, 3.0) and type(aug.prob) is float
     with pytest.raises(ValueError, match=r"augment\.prob: expected a finite number"):
         PhotometricAugment(prob=np.bool_(True))
+
+
+def test_an_augment_section_that_is_no_mapping_is_said_to_be_one():
+    from vvloc.data.augment import PhotometricAugment
+
+    for raw in ([("prob", 1)], "prob"):
+        with pytest.raises(TypeError, match=r"^augment: expected a mapping of fields"):
+            PhotometricAugment.from_dict(raw)  # type: ignore[arg-type]
+    assert PhotometricAugment.from_dict(None) == PhotometricAugment.from_dict({})

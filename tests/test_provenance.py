@@ -146,3 +146,8 @@ def test_a_record_is_checked_before_it_is_written_and_numpy_numbers_are_plain(tm
         with pytest.raises(ValueError, match=r"version"):
             validate_record({"format": TRAINING_FORMAT, "version": version, "runs": []}, "r")
     assert summarize({"format": "x"}) == "unknown hardware; 0 runs"  # was KeyError 'runs'
+
+
+def test_describe_cpuinfo_names_text_that_is_no_str():
+    with pytest.raises(TypeError, match=r"^text: expected the text of /proc/cpuinfo"):
+        describe_cpuinfo(None)  # type: ignore[arg-type]

@@ -132,6 +132,8 @@ def describe_cpuinfo(text: str) -> str:
     model numbers when given, and the widest x86 vector extension it has (``avx512`` or
     ``avx2``; none named otherwise), comma-separated. Without a model name the platform's word
     for the processor stands first (as in :func:`hardware`)."""
+    if not isinstance(text, str):
+        raise TypeError(f"text: expected the text of /proc/cpuinfo, got {type(text).__name__}")
     fields: dict[str, str] = {}
     for line in text.strip().split("\n\n")[0].splitlines():
         key, sep, value = line.partition(":")

@@ -78,7 +78,10 @@ class PhotometricAugment:
 
     @classmethod
     def from_dict(cls, raw: dict[str, Any] | None) -> PhotometricAugment:
-        """Build from a config mapping (``{}`` = defaults); unknown keys raise ``ValueError``."""
+        """Build from a config mapping (``{}`` or None = defaults); unknown keys raise
+        ``ValueError``, anything but a mapping ``TypeError``."""
+        if raw is not None and not isinstance(raw, dict):  # [("prob", 1)] passed dict()
+            raise TypeError(f"augment: expected a mapping of fields, got {type(raw).__name__}")
         raw = dict(raw or {})
         names = {f.name for f in dataclasses.fields(cls)}
         unknown = sorted(set(raw) - names)
