@@ -110,6 +110,21 @@ def test_estimate_yaw_recovers_an_exact_fractional_roll(s_true):
     assert np.angle(np.exp(1j * (est.yaw[0] - yaw))) == pytest.approx(0.0, abs=1e-5)
 
 
+@pytest.mark.parametrize("eps", [3e-5, 1e-4, 2.5e-4])
+def test_estimate_yaw_finds_a_close_match_just_below_a_whole_bin(eps):
+    # the Rust kernel picked the next interval's local minimum (~2e-4 bins off, its cost ~1e-4
+    # above) for a minimum this close below a whole bin; the reference did not
+    rng = np.random.default_rng(7)
+    t, c = 40, 16
+    src = _unit_rows(rng, (4, t, c))
+    s_true = np.array([2.0, 11.0, 25.0, 39.0]) - eps
+    tgt = np.stack([_fractional_roll(src[q], s_true[q]) for q in range(4)])
+    for backend in ("rust", "reference"):
+        est = K.estimate_yaw(src, tgt, backend=backend)
+        d = np.abs(est.shift - s_true)
+        assert np.all(np.minimum(d, t - d) < 1e-6), (backend, est.shift - s_true)
+
+
 def test_estimate_yaw_paper_size_matches_reference_on_two_pairs():
     rng = np.random.default_rng(2)
     src = _smooth_rows(rng, 2, 120, 64)

@@ -1050,9 +1050,17 @@ fn estimate_impl<G: Gram>(ds: &[f32], dt: &[f32], t: usize, c: usize, g: &G) -> 
             continue; // the end tangents' lower bound cannot beat the best
         }
         // value and slope at wx, in one pass (zero rows give 0: r = 0 takes the else arm)
-        let (w, v, q) = (wx as f32, 2.0 * wx as f32, (wx * (1.0 - wx)) as f32);
+        // 1 − wx is rounded to f32 itself, not formed from wx as f32: near wx = 1 the latter
+        // keeps a few bits of it, and a minimum just below a whole bin (a close match) then
+        // read ~1e-4 too high, its interval was pruned and the neighbouring one won.
+        let (w, u, v, q) = (
+            wx as f32,
+            (1.0 - wx) as f32,
+            2.0 * wx as f32,
+            (wx * (1.0 - wx)) as f32,
+        );
         let [gx, sx] = lane_sums([da, db, er], |[a, b, e]| {
-            let r = ((1.0 - w) * a + w * b - q * e).max(0.0).sqrt();
+            let r = (u * a + w * b - q * e).max(0.0).sqrt();
             [
                 r,
                 if r > 0.0 {
@@ -1336,6 +1344,35 @@ mod tests {
             let e = estimate_yaw(s.view(), dt.view()).unwrap()[0];
             assert!((e.shift - s_true).abs() < 1e-4, "{s_true}: {e:?}");
             assert!(e.cost < 1e-5, "{e:?}");
+        }
+    }
+
+    #[test]
+    fn finds_a_close_match_just_below_a_whole_bin() {
+        // the minimum at k + 1 − ε, ε ~ 1e-4: its interval's value at the end tangents' meeting
+        // point was read in f32 from 1 − (wx as f32), ~1e-4 too high, and the interval [k+1, k+2]
+        // (a local minimum ~1e-4 above) won
+        let (t, c) = (40, 16);
+        for seed in 0..8 {
+            let s = data(1, t, c, 100 + seed);
+            let ds = s.index_axis(Axis(0), 0);
+            for eps in [2e-5, 8e-5, 1.5e-4, 4e-4] {
+                let s_true = 7.0 - eps;
+                let (k, w) = (6i64, 1.0 - eps);
+                let dt = Array3::from_shape_fn((1, t, c), |(_, i, ch)| {
+                    let u = ((i as i64 - k).rem_euclid(t as i64)) as usize;
+                    let v = ((i as i64 - k - 1).rem_euclid(t as i64)) as usize;
+                    ((1.0 - w) * ds[[u, ch]] as f64 + w * ds[[v, ch]] as f64) as f32
+                });
+                for isa in [Isa::detect(), Isa::Generic] {
+                    let (src, tgt) = (s.as_slice().unwrap(), dt.as_slice().unwrap());
+                    let e = isa.estimate(src, tgt, t, c);
+                    assert!(
+                        (e.shift - s_true).abs() < 1e-6,
+                        "{seed} {eps} {isa:?}: {e:?}"
+                    );
+                }
+            }
         }
     }
 
