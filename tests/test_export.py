@@ -484,7 +484,7 @@ def test_a_selection_of_loop_closures_or_candidates_is_checked_and_named():
         lc.select([0.0])
     cand = LoopCandidates(np.array([0, 1]), np.array([2, 3]), np.array([0.05, 0.2]))
     assert cand.within(0.1).i.tolist() == [0] and len(cand.within(np.inf).i) == 2
-    with pytest.raises(ValueError, match=r"^radius: expected a number, got NaN"):
+    with pytest.raises(ValueError, match=r"^radius: expected a number, got nan"):
         cand.within(np.nan)  # kept nothing
     with pytest.raises(ValueError, match=r"^keep: expected a bool mask \(2,\)"):
         cand.subset(np.array([True]))

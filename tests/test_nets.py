@@ -765,7 +765,9 @@ def test_the_training_paths_ops_name_inputs_they_cannot_use():
     x = torch.rand(3, 5, 4)
     shift = torch.tensor([0.5, 1.0, 2.0])
     assert torch.equal(roll_interp(x, shift, dim=-2), roll_interp(x, shift, dim=1))
-    with pytest.raises(TypeError, match=r"^bev: expected a floating-point tensor, got torch.int64"):
+    with pytest.raises(
+        TypeError, match=r"^bev: expected a floating-point tensor .*got torch.int64"
+    ):
         polar_sample(b.long(), 8, 3, 0.5)
     with pytest.raises(TypeError, match=r"^bev: expected a floating-point tensor"):
         bev_pad(b[0].long(), torch.zeros(2, 2), 0.5)  # NotImplementedError
@@ -784,7 +786,7 @@ def test_the_training_paths_ops_name_inputs_they_cannot_use():
     e = torch.eye(4)[None, None].repeat(1, 2, 1, 1)
     with pytest.raises(ValueError, match=r"^points: expected shape \(N, 3\), got \(5, 2\)"):
         project_points(torch.rand(5, 2), k, e, (10, 12))
-    with pytest.raises(TypeError, match=r"^points: expected a torch.Tensor, got ndarray"):
+    with pytest.raises(TypeError, match=r"^points: expected a torch.Tensor \(N, 3\), got ndarray"):
         project_points(np.ones((5, 3)), k, e, (10, 12))  # type: ignore[arg-type]
     with pytest.raises(ValueError, match=r"^cam_to_ego: a transform cannot be inverted"):
         project_points(torch.rand(5, 3), k, torch.zeros(1, 2, 4, 4), (10, 12))
@@ -808,3 +810,14 @@ def test_heads_and_the_interactor_name_inputs_they_cannot_use():
     with pytest.raises(TypeError, match=r"^local_tgt: expected torch.float32 \(the model's"):
         model.interact(d, d.double())
     assert model.interact(d, d)[0].shape == d.shape
+
+
+def test_shifts_and_translations_given_as_numbers_keep_float64_precision():
+    # they went through float32 first: roll_interp(float64 x, 2.1) weighted by 0.10000000149
+    x = torch.arange(4.0, dtype=torch.float64)[None]
+    assert roll_interp(x, 2.1)[0, 3].item() == pytest.approx(0.9, abs=1e-15)
+    bev = torch.rand(6, 6, 3, dtype=torch.float64)
+    assert torch.equal(
+        bev_pad(bev, [[0.1, 0.2]], 0.5),
+        bev_pad(bev, torch.tensor([[0.1, 0.2]], dtype=torch.float64), 0.5),
+    )

@@ -110,7 +110,8 @@ def test_calibration_that_cannot_be_compared_is_refused_not_called_the_same_rig(
     for args, error, match in (
         ((k_nan, cam_to_ego, size), ValueError, r"^K: contains non-finite"),  # was ""
         ((K, t_nan, size), ValueError, r"^cam_to_ego: contains non-finite"),  # was ""
-        ((K, cam_to_ego, (float("nan"), 96)), ValueError, r"^size: expected a number"),  # was ""
+        ((K, cam_to_ego, (float("nan"), 96)), ValueError, r"^size: expected a finite"),  # was ""
+        ((K, cam_to_ego, (float("inf"), 96)), ValueError, r"^size: expected a finite"),
         ((K, cam_to_ego[:1], size), ValueError, r"^cam_to_ego: expected shape \(4, 4, 4\)"),
         ((K[0], cam_to_ego, size), ValueError, r"^K: expected shape \(M, 3, 3\)"),
         ((K, cam_to_ego, (160,)), TypeError, r"^size: expected \(width, height\)"),

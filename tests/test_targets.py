@@ -376,3 +376,11 @@ def test_impossible_figures_are_refused_not_met():
     nan = edited("report-test96-garage", lambda d: first_loop(d).update(cfer=float("nan")))
     figs = [f for f in check_targets(_committed("report-test96"), None, nan) if "garage" in f.name]
     assert any(f.value == "n/a" for f in figs)
+
+
+@pytest.mark.parametrize("count", [2.5, float("nan"), float("inf"), -1, True])
+def test_counts_that_are_no_counts_are_refused_by_name(count):
+    garage = copy.deepcopy(_committed("report-test96-garage"))
+    next(iter(garage["loop_closure"].values()))["at_threshold"]["accepted"] = count
+    with pytest.raises(ValueError, match=r"accepted: expected a count \(an int >= 0\)"):
+        check_targets(_committed("report-test96"), None, garage)

@@ -59,9 +59,21 @@ def list_entries(names: list[str], limit: int = 5) -> str:
     return ", ".join(names[:limit]) + more
 
 
-#: This machine in temporary names (a hash of its host name): a sweep judges the processes of
-#: this machine alone (another machine writing into a shared folder has its own process ids).
-_HOST = hashlib.sha1(socket.gethostname().encode("utf-8", "replace")).hexdigest()[:8]
+def _process_space() -> str:
+    """The host name and, on Linux, the PID namespace of this process: where its process ids
+    mean something (containers sharing the host's name, e.g. Docker's ``--network host``,
+    each number their own processes)."""
+    try:
+        namespace = str(os.stat("/proc/self/ns/pid").st_ino)
+    except OSError:  # not Linux
+        namespace = ""
+    return f"{socket.gethostname()}/{namespace}"
+
+
+#: This process space in temporary names (a hash of :func:`_process_space`): a sweep judges
+#: the processes whose ids it can ask about alone (another machine or container writing into a
+#: shared folder has process ids of its own).
+_HOST = hashlib.sha1(_process_space().encode("utf-8", "replace")).hexdigest()[:8]
 #: What a temporary name holds between its prefix and its suffix (:func:`temp_tag`).
 _TAG = re.compile(r"(?P<host>[0-9a-f]{8})-(?P<pid>[0-9]{1,10})-[0-9a-f]{12}")
 
@@ -126,7 +138,9 @@ def remove_stale_temps(directory: Path, prefix: str, suffix: str = "") -> list[P
 def symlink_loop(path: str | os.PathLike[str]) -> str | None:
     """``"<path> is a symbolic link that loops"`` (for a message) when following ``path``, or a
     folder above it, meets a loop of symbolic links (``ELOOP``: it can be neither read nor
-    written, and ``Path.exists`` calls it missing); None otherwise."""
+    written, and ``Path.exists`` calls it missing); None otherwise. Writers refuse such an
+    output path with ``FileExistsError`` (as a dangling link is refused), readers say it in
+    their ``FileNotFoundError``."""
     try:
         os.stat(path)
     except OSError as e:
@@ -244,7 +258,7 @@ class AtomicPath:
             return
         loop = symlink_loop(self.path)
         if loop:  # found only when the finished file was renamed into place
-            raise FileNotFoundError(f"path: {loop}; expected the path of a file")
+            raise FileExistsError(f"path: {loop}; expected the path of a file")
         if self.path.is_symlink():
             self.path = Path(os.path.realpath(self.path))  # replace the target, keep the link
         if self.path.is_dir():

@@ -28,7 +28,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from vvloc.kernels import _finite_float, _positive_int
-from vvloc.nets.polar import bev_pad, polar_sample, roll_interp
+from vvloc.nets.polar import bev_pad, float_tensor, polar_sample, roll_interp
 
 __all__ = [
     "aligned_descriptors",
@@ -52,10 +52,7 @@ def _tensors(**named: object) -> None:
     """``TypeError`` naming the first argument of ``named`` that is not a floating-point
     tensor."""
     for name, x in named.items():
-        if not isinstance(x, Tensor):
-            raise TypeError(f"{name}: expected a torch.Tensor, got {type(x).__name__}")
-        if not x.is_floating_point():
-            raise TypeError(f"{name}: expected a floating-point tensor, got {x.dtype}")
+        float_tensor(x, name, "")
 
 
 def _pairs(a: Tensor, b: Tensor, names: str, shape: str, ndim: int | None = None) -> None:

@@ -86,6 +86,13 @@ def _number(value: Any, where: str, high: float = math.inf) -> float:
     return v
 
 
+def _count(value: Any, where: str) -> int:
+    """``value`` as an int >= 0, ``ValueError`` naming ``where`` otherwise (2.5, NaN, inf)."""
+    if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+        raise ValueError(f"{where}: expected a count (an int >= 0), got {value!r:.40}")
+    return value
+
+
 def _at_most(name: str, value: float | None, limit: float, unit: str, fmt: str) -> Figure:
     if value is None or not math.isfinite(value):
         return Figure(name, f"<= {limit:{fmt}}{unit}", "n/a", None)
@@ -97,7 +104,7 @@ def _at_most(name: str, value: float | None, limit: float, unit: str, fmt: str) 
 def _parking(report: Mapping[str, Any]) -> list[Figure]:
     gl = report.get("global_localization", {})
     try:
-        kept = int(_number(gl["VVLoc-ML"]["num_kept"], "VVLoc-ML num_kept"))
+        kept = _count(gl["VVLoc-ML"]["num_kept"], "VVLoc-ML num_kept")
         if kept > 0:  # without a kept query (none within 2 m of the map) recall is undefined
             reranked = _number(gl["VVLoc-ML"]["recall"]["1"]["2"], "VVLoc-ML Recall@1 (2 m)", 1)
             retrieval = _number(gl["VVLoc-G"]["recall"]["1"]["2"], "VVLoc-G Recall@1 (2 m)", 1)
@@ -169,7 +176,7 @@ def _cfer(report: Mapping[str, Any], world: str) -> list[Figure]:
             continue
         at = entry["at_threshold"]
         where = f"{world} report: loop_closure[{label}]"
-        accepted = int(_number(at["accepted"], f"{where} accepted"))
+        accepted = _count(at["accepted"], f"{where} accepted")
         cfer = None if at["cfer"] is None else _number(at["cfer"], f"{where} cfer", 1)
         if cfer is not None and math.isnan(cfer):
             cfer = None  # undefined: nothing accepted

@@ -229,8 +229,9 @@ class TrainConfig:
     Units: ``pos_radius``, ``neg_radius`` metres (positives within ``pos_radius`` of the
     anchor, negatives beyond ``neg_radius``; the translation-bias offsets are 1-3 m, see
     :func:`vvloc.losses.translation_bias_loss`); ``triplet_margin``,
-    ``hinge_pos``, ``hinge_neg`` global-descriptor L2 distances; ``tbias_margin`` and the yaw
-    loss's ``yaw_theta_p``, ``yaw_theta_n`` local-descriptor distances (matching costs);
+    ``hinge_pos``, ``hinge_neg`` global-descriptor L2 distances; ``tbias_margin`` a matching
+    cost; the yaw loss's ``yaw_theta_p``, ``yaw_theta_n`` L2 distances between aligned rows of
+    the local-view descriptors (:func:`vvloc.losses.yaw_circle_loss`);
     ``lr``, ``head_lr``, ``local_lr`` Adam learning rates, ``lr_decay`` a factor per epoch.
     """
 
@@ -366,7 +367,7 @@ class TrainConfig:
             if check is None or check[0](value):
                 continue
             hint = ""
-            int_field = "int" in str(f.type) or f.type in ("float", "float | None")
+            int_field = str(f.type) in ("int", "int | None", "float", "float | None")
             if isinstance(value, int) and not isinstance(value, bool) and int_field:
                 hint = " (out of range)"  # an int where one goes: too large
             if isinstance(value, str):

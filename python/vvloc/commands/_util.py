@@ -227,10 +227,11 @@ def parse_device(device: str) -> torch.device:
     return resolve_device(device, argument="--device")
 
 
-def split_names(text: str, option: str) -> list[str]:
+def split_names(text: str, option: str, *, what: str | None = None) -> list[str]:
     """A comma-separated option's names: ``'s1, s2'`` → ``['s1', 's2']``. Read as a CSV line,
     so a name holding a comma is given in double quotes: ``'"day,1",s2'`` → ``['day,1', 's2']``
-    (``vvloc convert`` keeps a source's session names, commas included)."""
+    (``vvloc convert`` keeps a source's session names, commas included). With ``what`` (e.g.
+    ``"session name"``), text naming nothing (``""``, ``","``) is a ``ValueError`` saying so."""
     import csv
 
     try:
@@ -240,7 +241,10 @@ def split_names(text: str, option: str) -> list[str]:
             f"{option}: cannot read {text!r} as comma-separated names ({e}); a name holding a "
             'comma goes in double quotes: "day,1",s2'
         ) from None
-    return [s.strip() for s in fields if s.strip()]
+    names = [s.strip() for s in fields if s.strip()]
+    if what is not None and not names:
+        raise ValueError(f"{option}: expected at least one {what}, got {text!r}")
+    return names
 
 
 @contextlib.contextmanager

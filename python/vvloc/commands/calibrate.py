@@ -76,9 +76,7 @@ def calibrate(
 
     with cli_errors("calibrate"):
         set_torch_threads(threads)
-        names = split_names(queries, "--queries")
-        if not names:
-            raise ValueError("--queries: expected at least one session name")
+        names = split_names(queries, "--queries", what="session name")
         if not 0.0 < precision <= 1.0:
             raise ValueError(f"--precision: expected a value in (0, 1], got {precision}")
         if threshold == 0:  # found after the map was built and every query localized

@@ -124,12 +124,11 @@ def convert(
     with cli_errors("convert"):
         fmt = detect_format(src, format.value)
         options: dict[str, Any] = {}
-        if sessions is not None and not split_names(sessions, "--sessions"):
-            raise ValueError(f"--sessions: expected at least one session name, got {sessions!r}")
+        chosen = (
+            None if sessions is None else split_names(sessions, "--sessions", what="session name")
+        )
         if cameras is not None:
-            names = split_names(cameras, "--cameras")
-            if not names:
-                raise ValueError(f"--cameras: expected at least one camera, got {cameras!r}")
+            names = split_names(cameras, "--cameras", what="camera")
             if fmt == "nclt":
                 if not all(n.isdigit() for n in names):
                     _fail(f"--cameras: NCLT cameras are numbers 1-5, got {cameras!r}")
@@ -155,7 +154,7 @@ def convert(
                 src,
                 out,
                 format=fmt,
-                sessions=None if sessions is None else split_names(sessions, "--sessions"),
+                sessions=chosen,
                 every=every,
                 min_distance=min_distance,
                 min_angle_deg=min_angle,

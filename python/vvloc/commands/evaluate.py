@@ -98,9 +98,7 @@ def eval_command(
         set_torch_threads(threads)
         check_out_folder(out, outside=dataset)
         check_report_folder(out, "--out")
-        names = split_names(queries, "--queries")
-        if not names:
-            raise ValueError("--queries: expected at least one session name")
+        names = split_names(queries, "--queries", what="session name")
         check_query_sessions(database, names, "--queries")
         check_sessions(dataset, [("--database", database), *(("--queries", n) for n in names)])
         run_evaluation(

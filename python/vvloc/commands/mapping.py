@@ -39,7 +39,7 @@ def check_map_out(out: Path, *, overwrite: bool, dataset: Path) -> None:
         raise ValueError(f"--out: expected the path of a map file (.h5), got {str(out)!r}")
     loop = symlink_loop(out)
     if loop:
-        raise FileNotFoundError(f"--out: {loop}; expected the path of a map file")
+        raise FileExistsError(f"--out: {loop}; expected the path of a map file")
     if out.is_dir():
         raise IsADirectoryError(f"--out: {out} is a folder; expected the path of a map file")
     if _is_stream(out):
@@ -97,9 +97,7 @@ def build(
     with cli_errors("map build"):
         set_torch_threads(threads)
         check_map_out(out, overwrite=overwrite, dataset=dataset)
-        names = split_names(sessions, "--sessions")
-        if not names:
-            raise ValueError("--sessions: expected at least one session name")
+        names = split_names(sessions, "--sessions", what="session name")
         # each exists and holds frames (an empty one was left out of the map without a word)
         ds = check_sessions(dataset, [("--sessions", name) for name in names])
         check_session_names("--sessions", ds, names, str(dataset))  # named once each

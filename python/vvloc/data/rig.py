@@ -88,7 +88,8 @@ def rig_difference(
         size: (width, height) of the compared rig's images, pixels.
         tolerance: how far counts as the same rig (:data:`SAME_MAP`, :data:`SAME_MODEL`).
     """
-    from vvloc.evaluate import _real, _real_array
+    from vvloc.evaluate import _real_array
+    from vvloc.kernels import _positive_float
 
     if not reference:
         raise ValueError("reference: expected at least one camera")
@@ -100,8 +101,8 @@ def rig_difference(
         raise ValueError(f"cam_to_ego: expected shape ({len(k)}, 4, 4) like K, got {t.shape}")
     if not isinstance(size, (tuple, list)) or len(size) != 2:
         raise TypeError(f"size: expected (width, height) pixels, got {size!r}")
-    if min(_real(v, "size") for v in size) <= 0:
-        raise ValueError(f"size: expected (width, height) > 0 pixels, got {size!r}")
+    for v in size:  # finite, > 0: inf compared as "another size" in words of inf
+        _positive_float(v, "size")
     width, height = size  # as given: 80x48, not 80.0x48.0, in the message
     m = len(reference)
     if k.shape[0] != m:

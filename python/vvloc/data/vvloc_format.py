@@ -466,7 +466,8 @@ def check_dataset_target(root: str | os.PathLike[str], overwrite: bool) -> None:
     """Refuse ``root`` as the folder of a dataset to write, before any work: the working
     directory or a folder above it (``ValueError``), a file, or a non-empty folder without
     ``overwrite`` (``FileExistsError``), or one with ``overwrite`` that is not a vvloc dataset
-    (:func:`_check_replaceable`)."""
+    (:func:`_check_replaceable`). What a writer of ``root`` killed outright left is recovered
+    first (:func:`recover_dataset_target`)."""
     if not isinstance(overwrite, (bool, np.bool_)):  # "no" is truthy: it replaced a dataset
         raise TypeError(f"overwrite: expected a bool, got {type(overwrite).__name__}")
     root = Path(root)
@@ -480,6 +481,7 @@ def check_dataset_target(root: str | os.PathLike[str], overwrite: bool) -> None:
             f"{root}: is the working directory or a folder above it; write the "
             "dataset to a folder of its own (e.g. data/synth)"
         )
+    recover_dataset_target(target)  # before judging it: a dataset may go back into place
     if root.exists() and not root.is_dir():
         raise FileExistsError(f"{root} exists and is a file, not a dataset folder")
     if root.is_dir() and any(root.iterdir()):
@@ -498,13 +500,12 @@ def recover_dataset_target(target: Path) -> None:
     the dataset it had renamed aside to replace it (a hidden ``.replaced-`` folder) is put back
     when the new one never took its place, and removed when it did. Each is a logged warning."""
     remove_stale_temps(target.parent, f".{target.name}.partial-")
-    for old in stale_temps(target.parent, f".{target.name}.replaced-"):
-        if os.path.lexists(target):  # the new dataset took its place: the old one's leftovers
-            shutil.rmtree(old, ignore_errors=True)
-            _log.warning("removed %s, which a stopped vvloc process left", old)
-        else:  # stopped between the two renames: the old dataset goes back
+    if not os.path.lexists(target):  # stopped between the two renames: the old dataset goes back
+        for old in stale_temps(target.parent, f".{target.name}.replaced-")[:1]:
             os.replace(old, target)
             _log.warning("put back %s, which a stopped vvloc process had moved to %s", target, old)
+    # the new dataset took its place: the old one's leftovers
+    remove_stale_temps(target.parent, f".{target.name}.replaced-")
 
 
 class DatasetWriter:
@@ -540,8 +541,7 @@ class DatasetWriter:
         repeated = sorted({n for n in names if names.count(n) > 1})
         if repeated:
             raise ValueError(f"cameras: names {repeated} repeated (each camera has its own folder)")
-        recover_dataset_target(self._target)
-        check_dataset_target(self.root, overwrite)
+        check_dataset_target(self.root, overwrite)  # recovers what a killed writer left
         self.cameras = tuple(cameras)
         self.overwrite = overwrite
         doc = {

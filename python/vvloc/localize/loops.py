@@ -22,7 +22,6 @@ loop is accepted when its matching cost is below ``cost_threshold`` (0.75).
 from __future__ import annotations
 
 import logging
-import math
 import warnings
 from dataclasses import dataclass
 from typing import Any
@@ -31,7 +30,7 @@ import numpy as np
 import numpy.typing as npt
 from tqdm import tqdm
 
-from vvloc.evaluate import _int_array
+from vvloc.evaluate import _int_array, _real
 from vvloc.kernels import _positive_float, _positive_int
 from vvloc.localize.export import LoopClosures, _selection
 from vvloc.localize.localizer import _cost_threshold, check_map_model, learned_matcher
@@ -82,13 +81,7 @@ class LoopCandidates:
         """The candidates with ``distance < radius`` (the pairs a radius query at ``radius``
         returns; this compares float64 distances, the Rust query float32 ones, so a pair at
         exactly the radius may fall either way). ``radius`` a number, not NaN (inf: all)."""
-        if isinstance(radius, (bool, np.bool_)) or not isinstance(
-            radius, (int, float, np.integer, np.floating)
-        ):
-            raise TypeError(f"radius: expected a number, got {type(radius).__name__}")
-        if math.isnan(radius):
-            raise ValueError("radius: expected a number, got NaN (it would keep nothing)")
-        return self.subset(self.distance < radius)
+        return self.subset(self.distance < _real(radius, "radius"))  # NaN kept nothing
 
 
 #: Pairs per block in :func:`sequence_distance` (bounds its temporaries to BLOCK · D floats).

@@ -18,6 +18,7 @@ from torch import Tensor, nn
 from vvloc.kernels import _positive_float, _positive_int
 from vvloc.nets.config import ModelConfig
 from vvloc.nets.deformable import DeformableAttention, ms_deform_sample
+from vvloc.nets.polar import float_tensor
 
 _MIN_DEPTH = 1e-3  # metres: a point must be at least this far in front of the camera
 
@@ -48,11 +49,9 @@ def project_points(
     placeholder coordinates (−1). ``TypeError``/``ValueError`` naming the argument for other
     types or shapes, and for a ``cam_to_ego`` that cannot be inverted.
     """
-    for name, x in (("points", points), ("intrinsics", intrinsics), ("cam_to_ego", cam_to_ego)):
-        if not isinstance(x, Tensor):
-            raise TypeError(f"{name}: expected a torch.Tensor, got {type(x).__name__}")
-        if not x.is_floating_point():
-            raise TypeError(f"{name}: expected a floating-point tensor, got {x.dtype}")
+    float_tensor(points, "points", "(N, 3)")
+    float_tensor(intrinsics, "intrinsics", "(B, M, 3, 3)")
+    float_tensor(cam_to_ego, "cam_to_ego", "(B, M, 4, 4)")
     if points.ndim != 2 or points.shape[1] != 3:
         raise ValueError(f"points: expected shape (N, 3), got {tuple(points.shape)}")
     if intrinsics.ndim != 4 or intrinsics.shape[2:] != (3, 3):

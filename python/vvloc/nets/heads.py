@@ -12,15 +12,13 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from vvloc.nets.config import ModelConfig
+from vvloc.nets.polar import float_tensor
 
 
 def _check_polar(polar: Tensor, channels: int) -> None:
     """``TypeError``/``ValueError`` naming ``polar`` unless it is a floating-point tensor
     (B, T, R, C) with C = ``channels`` (the model's) and T, R >= 1."""
-    if not isinstance(polar, Tensor):
-        raise TypeError(f"polar: expected a torch.Tensor (B, T, R, C), got {type(polar).__name__}")
-    if not polar.is_floating_point():
-        raise TypeError(f"polar: expected a floating-point tensor, got {polar.dtype}")
+    float_tensor(polar, "polar", "(B, T, R, C)")
     if polar.ndim != 4 or polar.shape[-1] != channels or min(polar.shape[1:3]) < 1:
         raise ValueError(
             f"polar: expected shape (B, T, R, {channels}), T, R >= 1, got {tuple(polar.shape)}"

@@ -9,6 +9,9 @@ shift per leading item (per pair), differentiable w.r.t. the descriptors.
 
 from __future__ import annotations
 
+from typing import Any
+
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -16,18 +19,47 @@ from vvloc.kernels import _positive_float, _positive_int
 from vvloc.reference.torch_spatial import torch_bev_pad, torch_polar_sample
 
 
+def float_tensor(x: Any, name: str, shape: str) -> None:
+    """``TypeError`` naming ``name`` unless ``x`` is a floating-point torch tensor (``shape``
+    says what the caller expects, for the message)."""
+    shape = f" {shape}" if shape else ""
+    if not isinstance(x, Tensor):
+        raise TypeError(f"{name}: expected a torch.Tensor{shape}, got {type(x).__name__}")
+    if not x.is_floating_point():
+        raise TypeError(f"{name}: expected a floating-point tensor{shape}, got {x.dtype}")
+
+
+def _real64(values: Any, name: str, unit: str, device: torch.device) -> Tensor:
+    """``values`` (a tensor, array, list or number) as float64 on ``device``, never through
+    float32 (a Python float keeps its last bits), ``TypeError`` naming ``name`` for complex or
+    bool values and ``ValueError`` for NaN or inf. Values on a GPU are not checked for
+    finiteness: the check would make the GPU wait on every call of the training step."""
+    raw = values if isinstance(values, Tensor) else np.asarray(values)
+    if isinstance(raw, Tensor):
+        bad = raw.is_complex() or raw.dtype == torch.bool
+    else:
+        bad = raw.dtype.kind not in "fiu"
+    if bad:
+        raise TypeError(f"{name}: expected real numbers ({unit}), got {raw.dtype}")
+    finite: Any
+    if isinstance(raw, Tensor):
+        finite = None if raw.device.type != "cpu" else raw.detach().double().isfinite().all()
+    else:
+        finite = np.isfinite(raw.astype(np.float64)).all()
+    if finite is not None and not bool(finite):
+        raise ValueError(f"{name}: contains non-finite values (NaN or inf)")
+    return torch.as_tensor(raw, dtype=torch.float64, device=device)
+
+
 def _check_bev(bev: Tensor, name: str = "bev", *, single: bool = False) -> None:
     """``TypeError``/``ValueError`` naming ``name`` unless ``bev`` is a floating-point tensor
     (B, H, W, C), or with ``single`` also (H, W, C), with H, W, C >= 1."""
     shapes = "(H, W, C) or (N, H, W, C)" if single else "(B, H, W, C)"
-    if not isinstance(bev, Tensor):
-        raise TypeError(f"{name}: expected a torch.Tensor {shapes}, got {type(bev).__name__}")
+    float_tensor(bev, name, shapes)
     if bev.ndim != 4 and not (single and bev.ndim == 3):
         raise ValueError(f"{name}: expected shape {shapes}, got {tuple(bev.shape)}")
     if min(bev.shape[-3:]) < 1:
         raise ValueError(f"{name}: expected H, W, C >= 1, got shape {tuple(bev.shape)}")
-    if not bev.is_floating_point():
-        raise TypeError(f"{name}: expected a floating-point tensor, got {bev.dtype}")
 
 
 def polar_sample(bev: Tensor, num_angles: int, num_radii: int, grid_size: float) -> Tensor:
@@ -56,14 +88,9 @@ def bev_pad(bev: Tensor, translations: Tensor, grid_size: float) -> Tensor:
     """
     _check_bev(bev, single=True)
     grid_size = _positive_float(grid_size, "grid_size")
-    t = torch.as_tensor(translations, device=bev.device)
-    if t.is_complex() or t.dtype == torch.bool:
-        raise TypeError(f"translations: expected real numbers (metres), got {t.dtype}")
-    t = t.to(torch.float64)
+    t = _real64(translations, "translations", "metres", bev.device)
     if t.ndim != 2 or t.shape[1] != 2:
         raise ValueError(f"translations: expected shape (N, 2), got {tuple(t.shape)}")
-    if not bool(torch.isfinite(t).all()):
-        raise ValueError("translations: contains non-finite values (NaN or inf)")
     if bev.ndim == 3:
         return torch_bev_pad(bev[None], t, grid_size)[0].contiguous()
     if bev.shape[0] != t.shape[0]:
@@ -82,10 +109,7 @@ def roll_interp(x: Tensor, shift: Tensor | float, dim: int = 1) -> Tensor:
     semantics, DESIGN.md §3). Differentiable w.r.t. ``x`` (not the shift). ``x`` a
     floating-point tensor with ``dim`` one of its axes after the first; shifts finite, in bins.
     """
-    if not isinstance(x, Tensor):
-        raise TypeError(f"x: expected a torch.Tensor (P, ..., n, ...), got {type(x).__name__}")
-    if not x.is_floating_point():
-        raise TypeError(f"x: expected a floating-point tensor, got {x.dtype}")
+    float_tensor(x, "x", "(P, ..., n, ...)")
     if x.ndim < 2:
         raise ValueError(f"x: expected shape (P, ..., n, ...), 2 axes or more, got {x.ndim}")
     if (
@@ -99,12 +123,7 @@ def roll_interp(x: Tensor, shift: Tensor | float, dim: int = 1) -> Tensor:
         )
     dim %= x.ndim
     n = x.shape[dim]
-    s = torch.as_tensor(shift, device=x.device)
-    if s.is_complex() or s.dtype == torch.bool:
-        raise TypeError(f"shift: expected real numbers (bins), got {s.dtype}")
-    s = s.to(torch.float64).reshape(-1)
-    if not bool(torch.isfinite(s).all()):
-        raise ValueError("shift: contains non-finite values (NaN or inf)")
+    s = _real64(shift, "shift", "bins", x.device).reshape(-1)
     if s.numel() == 1:
         s = s.expand(x.shape[0])
     if s.shape[0] != x.shape[0]:
