@@ -84,7 +84,8 @@ def bev_pad(bev: Tensor, translations: Tensor, grid_size: float) -> Tensor:
     bilinear sample of the BEV at (i + x/g, j + y/g), or 1 wherever a tap with non-zero weight
     falls outside the grid: Qᵗ(p) = Q(p + t). Delegates to
     :func:`vvloc.reference.torch_spatial.torch_bev_pad`. ``grid_size`` (m, finite, > 0) and
-    the translations (finite) are checked as the kernels check them.
+    the translations (finite; not checked when they are a GPU tensor, see :func:`_real64`) are
+    checked as the kernels check them.
     """
     _check_bev(bev, single=True)
     grid_size = _positive_float(grid_size, "grid_size")
@@ -107,7 +108,8 @@ def roll_interp(x: Tensor, shift: Tensor | float, dim: int = 1) -> Tensor:
     ``x`` (P, ..., n, ...) with ``shift`` (P,) or a scalar: out[p] = (1 − w)·roll(x[p], k) +
     w·roll(x[p], k + 1), k = ⌊s_p⌋, w = s_p − k, roll(D, k)[i] = D[(i − k) mod n] (torch.roll
     semantics, DESIGN.md §3). Differentiable w.r.t. ``x`` (not the shift). ``x`` a
-    floating-point tensor with ``dim`` one of its axes after the first; shifts finite, in bins.
+    floating-point tensor with ``dim`` one of its axes after the first; shifts finite, in bins
+    (not checked when they are a GPU tensor, see :func:`_real64`).
     """
     float_tensor(x, "x", "(P, ..., n, ...)")
     if x.ndim < 2:
