@@ -980,3 +980,19 @@ def test_perturbation_helpers_name_arguments_they_cannot_use(tmp_path):
         check_checkpoint_files(str(tmp_path / "none"))  # type: ignore[arg-type]  # AttributeError
     boxes = region_boxes((1, 3, 8, 8), 1, 0.5, 0, None)
     assert boxes == region_boxes([1, 3, 8, 8], 1, 0.5, 0, None) and len(boxes) == 1
+
+
+def test_poses_and_extrinsics_take_numbers_as_c_writes_them(tmp_path):
+    root = tmp_path / "ds"
+    _write(root, {"s0": _line(2)})
+    p = root / "sessions" / "s0" / "poses.csv"
+    header, first, _second = p.read_text().splitlines()
+    # Python's int() and float() read these; no writer means them
+    for row, said in (
+        ("2000000,-9_0.5,0,0,0,0", "-9_0.5"),  # read as -90.5
+        ("1_000_000_000,0,0,0,0,0", "1_000_000_000"),
+        ("2000000,0,0,0,0,\u0661", "\u0661"),  # an Arabic-Indic one, read as floor 1
+    ):
+        p.write_text("\n".join([header, first, row]) + "\n")
+        with pytest.raises(DatasetFormatError, match=rf"line 3: malformed row .*{said}"):
+            open_dataset(root)

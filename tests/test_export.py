@@ -488,3 +488,35 @@ def test_a_selection_of_loop_closures_or_candidates_is_checked_and_named():
         cand.within(np.nan)  # kept nothing
     with pytest.raises(ValueError, match=r"^keep: expected a bool mask \(2,\)"):
         cand.subset(np.array([True]))
+
+
+def test_text_readers_name_files_they_cannot_read(tmp_path):
+    import csv as csv_module
+
+    path = tmp_path / "t.tum"
+    path.write_bytes(b"# caf\xe9\n0 1 2 0 0 0 0 1\n")  # Latin-1 in a comment
+    for reader in (read_tum, read_g2o, read_loop_csv):
+        with pytest.raises(ValueError, match=r"t\.tum: not UTF-8 text"):  # UnicodeDecodeError
+            reader(path)
+    fifo = tmp_path / "pipe.g2o"
+    os.mkfifo(fifo)
+    for reader in (read_tum, read_g2o, read_loop_csv):
+        with pytest.raises(ValueError, match=r"pipe\.g2o: not a regular file"):  # blocked
+            reader(fifo)
+    loops = tmp_path / "loops.csv"
+    big = "x" * (csv_module.field_size_limit() + 10)
+    loops.write_text(f"i,j,x,y,yaw,yaw_deg,cost,accepted\n0,1,0,0,0,0,0.5,{big}\n")
+    with pytest.raises(ValueError, match=r"loops\.csv:2: malformed loop-closure row: not a CSV"):
+        read_loop_csv(loops)  # _csv.Error, no file or line
+
+
+def test_tum_quaternions_at_the_ends_of_float_range_give_their_yaw(tmp_path):
+    path = tmp_path / "q.tum"
+    # (0, 0, s, s) is a 90° yaw at any scale: at 1e308 its norm overflowed (read as 0°), at
+    # 1e-170 it underflowed ("zero quaternion")
+    path.write_text("0 1 2 0 0 0 1e308 1e308\n1 1 2 0 0 0 1e-170 1e-170\n")
+    _, poses = read_tum(path)
+    np.testing.assert_allclose(poses[:, 2], [np.pi / 2, np.pi / 2], atol=1e-12)
+    path.write_text("0 1 2 0 0 0 0 0\n")
+    with pytest.raises(ValueError, match=r"zero quaternion at data row 1"):
+        read_tum(path)

@@ -1135,3 +1135,52 @@ def test_map_info_reports_the_map_and_verify_reads_every_byte(tmp_path: Path) ->
     assert r.returncode == 0 and "format version 1" in r.stdout and "rewrites it" in r.stdout
     r = subprocess.run([*cli, str(tmp_path / "none.h5")], capture_output=True, text=True)
     assert r.returncode == 2 and "map file not found" in r.stderr
+
+
+def test_a_model_config_that_is_no_json_object_is_refused(tmp_path: Path) -> None:
+    from vvloc.localize.mapdb import _set_text
+
+    path = saved(tmp_path)
+    for text in ("[1]", "[" * 3000 + "]" * 3000):  # a list; nesting past Python's recursion
+        edit(path, lambda f, t=text: _set_text(f.attrs, "model_config_json", t))
+        with pytest.raises(MapError, match=r"map\.h5: corrupted map: model_config_json"):
+            MapDatabase.open(path)
+
+
+def test_a_descriptor_index_path_that_is_a_named_pipe_is_refused_not_waited_on(
+    tmp_path: Path,
+) -> None:
+    from vvloc.retrieval import DescriptorIndex
+
+    fifo = tmp_path / "index.bin"
+    os.mkfifo(fifo)
+    with pytest.raises(ValueError, match=r"index\.bin: not a regular file"):
+        DescriptorIndex.load(fifo)  # blocked forever
+
+
+def test_non_finite_timestamps_or_descriptors_and_a_fractional_count_are_refused(
+    tmp_path: Path,
+) -> None:
+    from vvloc.localize.mapdb import _le, _set_text
+
+    def nan_in(name: str) -> Any:
+        def fn(f: h5py.File) -> None:
+            arr = f[name][()]
+            arr.flat[0] = np.nan
+            f[name][...] = arr
+            digest = hashlib.sha256(_le(arr, arr.dtype).data).hexdigest()
+            _set_text(f[name].attrs, "sha256", digest)  # a faulty writer's: the checksum agrees
+
+        return fn
+
+    for name, said in (("timestamps", "timestamps"), ("global_descriptors", "global descriptors")):
+        (tmp_path / name).mkdir()
+        path = saved(tmp_path / name)
+        edit(path, nan_in(name))
+        with pytest.raises(MapError, match=rf"map\.h5: corrupted map: non-finite {said}"):
+            MapDatabase.open(path)  # opened silently (only poses were checked)
+    (tmp_path / "count").mkdir()
+    path = saved(tmp_path / "count")
+    edit(path, lambda f: f.attrs.__setitem__("num_keyframes", 12.7))
+    with pytest.raises(MapError, match=r"num_keyframes 12\.7 is not an integer"):
+        MapDatabase.open(path)  # read as 12

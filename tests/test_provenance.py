@@ -151,3 +151,28 @@ def test_a_record_is_checked_before_it_is_written_and_numpy_numbers_are_plain(tm
 def test_describe_cpuinfo_names_text_that_is_no_str():
     with pytest.raises(TypeError, match=r"^text: expected the text of /proc/cpuinfo"):
         describe_cpuinfo(None)  # type: ignore[arg-type]
+
+
+def test_json_nested_past_the_recursion_limit_is_named_as_a_bad_file(tmp_path):
+    from vvloc.provenance import read_record
+    from vvloc.targets import read_report
+
+    deep = tmp_path / "deep.json"
+    deep.write_text("[" * 100_000 + "]" * 100_000)
+    with pytest.raises(ValueError, match=r"deep\.json: not JSON"):
+        read_record(deep)  # RecursionError
+    with pytest.raises(ValueError, match=r"deep\.json: not a vvloc eval report"):
+        read_report(deep)
+
+
+def test_config_and_rig_json_nested_past_the_recursion_limit_are_named(tmp_path):
+    from vvloc.data import DatasetFormatError
+    from vvloc.data.vvloc_format import read_rig
+    from vvloc.nets.model import _json_object
+
+    deep = tmp_path / "rig.json"
+    deep.write_text("[" * 100_000 + "]" * 100_000)
+    with pytest.raises(ValueError, match=r"rig\.json: not a JSON file"):
+        _json_object(deep)  # config.json, calibration.json: RecursionError
+    with pytest.raises(DatasetFormatError, match=r"rig\.json: cannot read rig"):
+        read_rig(deep)

@@ -43,6 +43,15 @@ __all__ = [
 
 _log = logging.getLogger(__name__)
 
+#: A number field of the files vvloc reads, as C and most tools write it: Python's own
+#: ``int``/``float`` also take ``1_000``, Unicode digits and surrounding blanks, which no
+#: writer means.
+INT_TEXT = re.compile(r"[+-]?[0-9]+")
+FLOAT_TEXT = re.compile(
+    r"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?|[+-]?(?:inf|infinity|nan)",
+    re.IGNORECASE,
+)
+
 
 def csv_row(*fields: object) -> str:
     """One CSV line (no line end) of ``fields`` as ``str()`` gives them; a field holding a

@@ -235,7 +235,7 @@ def read_record(path: Path) -> dict[str, Any]:
         raw = json.loads(Path(path).read_bytes().decode("utf-8"))
     except UnicodeDecodeError as e:
         raise ValueError(f"{path}: not a UTF-8 text file ({e})") from e
-    except json.JSONDecodeError as e:
+    except (json.JSONDecodeError, RecursionError) as e:  # RecursionError: too deep nesting
         raise ValueError(f"{path}: not JSON ({e})") from e
     return validate_record(raw, str(path))
 

@@ -322,10 +322,14 @@ class DescriptorIndex:
     def load(path: str | os.PathLike[str]) -> DescriptorIndex:
         """Read an index written by :meth:`save`.
 
-        Raises ``ValueError`` for a truncated, corrupted or foreign file, ``OSError`` when it
-        cannot be read.
+        Raises ``ValueError`` for a truncated, corrupted or foreign file, or one that is not a
+        regular file (a named pipe blocked the reader forever), ``OSError`` when it cannot be
+        read.
         """
-        return DescriptorIndex(None, _inner=_core.DescriptorIndex.load(os.fspath(path)))
+        p = os.fspath(path)
+        if os.path.exists(p) and not os.path.isfile(p):
+            raise ValueError(f"{p}: not a regular file (a folder, device or pipe)")
+        return DescriptorIndex(None, _inner=_core.DescriptorIndex.load(p))
 
     @property
     def descriptors(self) -> npt.NDArray[np.float32]:

@@ -57,7 +57,7 @@ def read_report(path: str | Path) -> dict[str, Any]:
         raise FileNotFoundError(f"no vvloc eval report at {path}: run vvloc eval --out first")
     try:
         report = json.loads(path.read_text(encoding="utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as e:
+    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as e:  # too deep nesting
         raise ValueError(f"{path}: not a vvloc eval report (not JSON: {e})") from None
     if not isinstance(report, dict) or not isinstance(report.get("meta"), dict):
         raise ValueError(f"{path}: not a vvloc eval report (no 'meta' object)")

@@ -31,7 +31,15 @@ from typing import Any
 
 import numpy as np
 
-from vvloc._io import list_entries, remove_stale_temps, stale_temps, symlink_loop, temp_tag
+from vvloc._io import (
+    FLOAT_TEXT,
+    INT_TEXT,
+    list_entries,
+    remove_stale_temps,
+    stale_temps,
+    symlink_loop,
+    temp_tag,
+)
 from vvloc.data.frame import RIGID, Camera, Dataset, Session, is_rigid, load_rgb
 from vvloc.data.heading import heading_warning
 from vvloc.kernels import _finite_float
@@ -99,7 +107,7 @@ def read_rig(path: Path) -> tuple[list[Camera], dict[str, Any]]:
     """Read ``rig.json``: the cameras and the whole document."""
     try:
         doc = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError) as e:  # JSONDecodeError and UnicodeDecodeError among them
+    except (OSError, ValueError, RecursionError) as e:  # JSON, UTF-8 errors; too deep nesting
         raise DatasetFormatError(f"{path}: cannot read rig: {e}") from e
     if not isinstance(doc, dict) or not isinstance(doc.get("cameras"), list) or not doc["cameras"]:
         raise DatasetFormatError(f"{path}: expected an object with a non-empty 'cameras' list")
@@ -134,6 +142,15 @@ _ROW_DTYPE = np.dtype(
 )
 
 
+def _number_texts(fields: Sequence[str], kinds: str) -> None:
+    """``ValueError`` for a field that is not an integer (kind ``i``) or a number (``f``) as
+    C writes them (:data:`vvloc._io.INT_TEXT`, :data:`vvloc._io.FLOAT_TEXT`)."""
+    for text, kind in zip(fields, kinds, strict=False):
+        pattern, what = (INT_TEXT, "an integer") if kind == "i" else (FLOAT_TEXT, "a number")
+        if not pattern.fullmatch(text.strip()):
+            raise ValueError(f"expected {what}, got {text!r}")
+
+
 def read_poses(path: Path) -> np.ndarray:
     """Parse ``poses.csv`` into a structured array; errors name the file and the line."""
     if not path.is_file():
@@ -142,6 +159,7 @@ def read_poses(path: Path) -> np.ndarray:
     last: int | None = None
     for line, row in _csv_rows(path, POSES_HEADER):
         try:
+            _number_texts(row[:6], "iffffi")  # what int() and float() take beyond C: 9_0, ١
             ts = int(row[0])
             x, y, z, yaw = (float(v) for v in row[1:5])
             floor = int(row[5])
@@ -208,6 +226,7 @@ def read_extrinsics(path: Path, timestamps: np.ndarray, cameras: Sequence[Camera
     seen = np.zeros((len(timestamps), len(names)), dtype=bool)
     for line, row in _csv_rows(path, EXTRINSICS_HEADER):
         try:
+            _number_texts([row[0], *row[2:]], "i" + "f" * len(row[2:]))
             ts = int(row[0])
             vals = np.array([float(v) for v in row[2:]], dtype=np.float64).reshape(3, 4)
         except ValueError as e:

@@ -20,7 +20,6 @@ import csv
 import io
 import math
 import os
-import re
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,7 +27,7 @@ from typing import Any, SupportsFloat
 
 import numpy as np
 
-from vvloc._io import atomic_write
+from vvloc._io import FLOAT_TEXT, INT_TEXT, atomic_write
 from vvloc.geometry import relative as relative_pose
 from vvloc.geometry import wrap_angle
 
@@ -94,16 +93,11 @@ def _r(x: SupportsFloat) -> str:
 
 
 # Numbers as C's strtol/strtod (g2o, spreadsheets) read them: Python alone reads '1_000'.
-_INT_TEXT = re.compile(r"[+-]?[0-9]+")
-_FLOAT_TEXT = re.compile(
-    r"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?|[+-]?(?:inf|infinity|nan)",
-    re.IGNORECASE,
-)
 
 
 def _int_field(text: str, what: str) -> int:
     """A field of a file read as a 64-bit integer; ``ValueError`` naming ``what`` otherwise."""
-    if not _INT_TEXT.fullmatch(text):
+    if not INT_TEXT.fullmatch(text):
         raise ValueError(f"{what}: expected an integer, got {text!r}")
     v = int(text)
     if not -(2**63) <= v < 2**63:
@@ -113,7 +107,7 @@ def _int_field(text: str, what: str) -> int:
 
 def _float_field(text: str, what: str) -> float:
     """A field of a file read as a finite float; ``ValueError`` naming ``what`` otherwise."""
-    if not _FLOAT_TEXT.fullmatch(text):
+    if not FLOAT_TEXT.fullmatch(text):
         raise ValueError(f"{what}: expected a number, got {text!r}")
     v = float(text)
     if not math.isfinite(v):
@@ -392,6 +386,27 @@ def keyframe_csv_text(
     return _csv_text(header, _KEYFRAME_COLUMNS, rows)
 
 
+def _text_lines(p: Path, newline: str | None = None) -> list[str]:
+    """The lines of the UTF-8 text file ``p`` (a BOM dropped), ``ValueError`` naming it when it
+    is no regular file (a named pipe would block the reader forever) or not UTF-8 text."""
+    if p.exists() and not p.is_file():
+        raise ValueError(f"{p}: not a regular file (a folder, device or pipe); expected text")
+    try:
+        with open(p, encoding="utf-8-sig", newline=newline) as f:
+            return f.readlines()
+    except UnicodeDecodeError as e:
+        raise ValueError(f"{p}: not UTF-8 text ({e})") from None
+
+
+def _csv_fields(line: str) -> list[str]:
+    """One CSV line's fields; ``ValueError`` for what the csv module refuses (a field beyond
+    its size limit, an unclosed quote)."""
+    try:
+        return next(csv.reader([line]), [])
+    except csv.Error as e:
+        raise ValueError(f"not a CSV line ({e})") from None
+
+
 def read_loop_csv(path: PathLike) -> LoopClosures:
     """Read a loop-closure CSV written by :func:`write_loop_csv`.
 
@@ -402,12 +417,11 @@ def read_loop_csv(path: PathLike) -> LoopClosures:
     ``ValueError`` naming the file, the line and the column.
     """
     p = Path(os.fspath(path))
-    with open(p, encoding="utf-8-sig", newline="") as f:  # a BOM would rename column i
-        lines = [
-            (n, line)
-            for n, line in enumerate(f, start=1)
-            if line.strip() and not line.lstrip().startswith("#")
-        ]
+    lines = [
+        (n, line)
+        for n, line in enumerate(_text_lines(p, newline=""), start=1)
+        if line.strip() and not line.lstrip().startswith("#")
+    ]
     need = ("i", "j", "x", "y", "yaw", "cost", "accepted")
     if not lines:
         raise ValueError(
@@ -415,7 +429,10 @@ def read_loop_csv(path: PathLike) -> LoopClosures:
             "loop-closure CSV"
         )
     head_line, head = lines[0]
-    header = [h.strip() for h in next(csv.reader([head]))]
+    try:
+        header = [h.strip() for h in _csv_fields(head)]
+    except ValueError as e:
+        raise ValueError(f"{p}:{head_line}: {e}") from None
     missing = [c for c in need if c not in header]
     if missing:
         raise ValueError(f"{p}:{head_line}: the header lacks columns {missing}, got {header}")
@@ -426,8 +443,8 @@ def read_loop_csv(path: PathLike) -> LoopClosures:
     flags = {"1": True, "0": False, "true": True, "false": False}
     cols: dict[str, list[Any]] = {c: [] for c in need}
     for lineno, line in lines[1:]:
-        fields = [v.strip() for v in next(csv.reader([line]))]
         try:
+            fields = [v.strip() for v in _csv_fields(line)]
             if len(fields) != len(header):
                 raise ValueError(f"expected the header's {len(header)} fields, got {len(fields)}")
             for c in ("i", "j"):
@@ -646,40 +663,37 @@ def read_g2o(path: PathLike) -> G2OGraph:
     upper: list[list[float]] = []
     seen: set[int] = set()
     edge_fields = ("dx", "dy", "dtheta", "I11", "I12", "I13", "I22", "I23", "I33")
-    with open(p, encoding="utf-8-sig") as f:  # a BOM would hide the first line's tag
-        for lineno, line in enumerate(f, start=1):
-            tok = line.split()
-            if not tok or tok[0].startswith("#"):
-                continue
-            try:
-                if tok[0] == "VERTEX_SE2":
-                    if len(tok) != 5:
-                        raise ValueError(
-                            f"expected 'VERTEX_SE2 id x y theta', got {len(tok)} fields"
-                        )
-                    v = _vertex_id(tok[1], "id")
-                    if v in seen:
-                        raise ValueError(f"vertex id {v} repeated")
-                    seen.add(v)
-                    vids.append(v)
-                    xyt = zip(tok[2:], ("x", "y", "theta"), strict=True)
-                    vposes.append([_float_field(t, n) for t, n in xyt])
-                elif tok[0] == "EDGE_SE2":
-                    if len(tok) != 12:
-                        raise ValueError(
-                            "expected 'EDGE_SE2 i j dx dy dtheta I11 I12 I13 I22 I23 I33', "
-                            f"got {len(tok)} fields"
-                        )
-                    a, b = _vertex_id(tok[1], "i"), _vertex_id(tok[2], "j")
-                    if a == b:
-                        raise ValueError(f"an edge from vertex {a} to itself")
-                    values = [_float_field(t, n) for t, n in zip(tok[3:], edge_fields, strict=True)]
-                    edges.append((a, b))
-                    edge_lines.append(lineno)
-                    meas.append(values[:3])
-                    upper.append(values[3:])
-            except ValueError as err:
-                raise ValueError(f"{p}:{lineno}: malformed g2o line: {err}") from None
+    for lineno, line in enumerate(_text_lines(p), start=1):
+        tok = line.split()
+        if not tok or tok[0].startswith("#"):
+            continue
+        try:
+            if tok[0] == "VERTEX_SE2":
+                if len(tok) != 5:
+                    raise ValueError(f"expected 'VERTEX_SE2 id x y theta', got {len(tok)} fields")
+                v = _vertex_id(tok[1], "id")
+                if v in seen:
+                    raise ValueError(f"vertex id {v} repeated")
+                seen.add(v)
+                vids.append(v)
+                xyt = zip(tok[2:], ("x", "y", "theta"), strict=True)
+                vposes.append([_float_field(t, n) for t, n in xyt])
+            elif tok[0] == "EDGE_SE2":
+                if len(tok) != 12:
+                    raise ValueError(
+                        "expected 'EDGE_SE2 i j dx dy dtheta I11 I12 I13 I22 I23 I33', "
+                        f"got {len(tok)} fields"
+                    )
+                a, b = _vertex_id(tok[1], "i"), _vertex_id(tok[2], "j")
+                if a == b:
+                    raise ValueError(f"an edge from vertex {a} to itself")
+                values = [_float_field(t, n) for t, n in zip(tok[3:], edge_fields, strict=True)]
+                edges.append((a, b))
+                edge_lines.append(lineno)
+                meas.append(values[:3])
+                upper.append(values[3:])
+        except ValueError as err:
+            raise ValueError(f"{p}:{lineno}: malformed g2o line: {err}") from None
     u = np.array(upper, np.float64).reshape(-1, 6)
     info = u[:, [0, 1, 2, 1, 3, 4, 2, 4, 5]].reshape(-1, 3, 3)
     if len(info):
@@ -781,26 +795,28 @@ def read_tum(path: PathLike) -> tuple[np.ndarray, np.ndarray]:
     p = Path(os.fspath(path))
     rows: list[list[float]] = []
     names = ("timestamp", "tx", "ty", "tz", "qx", "qy", "qz", "qw")
-    with open(p, encoding="utf-8-sig") as f:  # a BOM would make the first line malformed
-        for lineno, line in enumerate(f, start=1):
-            tok = line.split()
-            if not tok or tok[0].startswith("#"):
-                continue
-            if len(tok) != 8:
-                raise ValueError(
-                    f"{p}:{lineno}: expected 8 fields 'timestamp tx ty tz qx qy qz qw', "
-                    f"got {len(tok)}"
-                )
-            try:
-                row = [_float_field(v, n) for v, n in zip(tok, names, strict=True)]
-            except ValueError as e:
-                raise ValueError(f"{p}:{lineno}: malformed TUM line: {e}") from None
-            rows.append(row)
+    for lineno, line in enumerate(_text_lines(p), start=1):
+        tok = line.split()
+        if not tok or tok[0].startswith("#"):
+            continue
+        if len(tok) != 8:
+            raise ValueError(
+                f"{p}:{lineno}: expected 8 fields 'timestamp tx ty tz qx qy qz qw', got {len(tok)}"
+            )
+        try:
+            row = [_float_field(v, n) for v, n in zip(tok, names, strict=True)]
+        except ValueError as e:
+            raise ValueError(f"{p}:{lineno}: malformed TUM line: {e}") from None
+        rows.append(row)
     a = np.array(rows, np.float64).reshape(-1, 8)
     q = a[:, 4:8]
+    # scaled by its largest entry first: (0, 0, 1e308, 1e308), a 90° yaw, overflowed the norm
+    # to inf and read as 0°, and (0, 0, 1e-170, 1e-170) underflowed to a "zero quaternion"
+    big = np.abs(q).max(axis=1, initial=0.0)
+    if (big == 0).any():
+        raise ValueError(f"{p}: zero quaternion at data row {int(np.argmin(big)) + 1}")
+    q = q / big[:, None]
     norm = np.linalg.norm(q, axis=1)
-    if (norm == 0).any():
-        raise ValueError(f"{p}: zero quaternion at data row {int(np.argmin(norm)) + 1}")
     qx, qy, qz, qw = (q / norm[:, None]).T
     yaw = np.arctan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
     poses = np.stack([a[:, 1], a[:, 2], wrap_angle(yaw)], axis=1)

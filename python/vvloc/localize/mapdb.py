@@ -144,7 +144,7 @@ def _canonical_json(config: Mapping[str, Any] | str) -> str:
     if isinstance(config, str):
         try:
             config = json.loads(config)
-        except json.JSONDecodeError as e:
+        except (json.JSONDecodeError, RecursionError) as e:  # RecursionError: too deep nesting
             raise ValueError(f"model_config: not valid JSON text: {e}") from e
     if not isinstance(config, Mapping):
         raise TypeError(
@@ -1130,7 +1130,10 @@ class MapDatabase:
         if has_bev and not isinstance(h5["bev"], h5py.Dataset):
             raise MapError(f"{p}: corrupted map: 'bev' is not a dataset")
 
-        n = int(attrs["num_keyframes"])
+        n = attrs["num_keyframes"]
+        if isinstance(n, (bool, np.bool_)) or not isinstance(n, (int, np.integer)):
+            raise MapError(f"{p}: corrupted map: num_keyframes {n} is not an integer")
+        n = int(n)
         ndims = {"poses": 2, "global_descriptors": 2, "local_descriptors": 3, "bev": 4}
         per_keyframe = (*_SMALL, "local_descriptors", *(("bev",) if has_bev else ()))
         lengths = {}
@@ -1171,8 +1174,10 @@ class MapDatabase:
             raise MapError(f"{p}: corrupted map: session_index out of range [0, {len(names)})")
         if np.unique(small["ids"]).size != n:
             raise MapError(f"{p}: corrupted map: keyframe ids are not unique")
-        if not np.isfinite(small["poses"]).all():
-            raise MapError(f"{p}: corrupted map: non-finite poses")
+        for name, arr in small.items():  # poses, timestamps, global descriptors
+            if arr.dtype.kind == "f" and not np.isfinite(arr).all():
+                what = name.replace("_", " ")
+                raise MapError(f"{p}: corrupted map: non-finite {what}")
 
         grid_size = float(attrs["grid_size"])
         if not (np.isfinite(grid_size) and grid_size > 0):
@@ -1181,11 +1186,17 @@ class MapDatabase:
         if "rig_json" in attrs:
             try:
                 rig = _check_rig(json.loads(_text(attrs, "rig_json")))
-            except (TypeError, ValueError) as e:
+            except (TypeError, ValueError, RecursionError) as e:
                 raise MapError(f"{p}: corrupted map: rig_json: {e}") from e
+        try:
+            model_config = json.loads(_text(attrs, "model_config_json"))
+            if not isinstance(model_config, dict):
+                raise TypeError(f"expected a JSON object, got {type(model_config).__name__}")
+        except (TypeError, ValueError, RecursionError) as e:
+            raise MapError(f"{p}: corrupted map: model_config_json: {e}") from e
         metadata = MapMetadata(
             model_config_hash=config_hash,
-            model_config=json.loads(_text(attrs, "model_config_json")),
+            model_config=model_config,
             grid_size=grid_size,
             vvloc_version=_text(attrs, "vvloc_version"),
             format_version=version,
@@ -1268,6 +1279,7 @@ class MapDatabase:
             if name not in self._h5:
                 continue
             ds = self._h5[name]
+            _stored_digest(self._path, ds)  # before reading what may be gigabytes
             row_bytes = max(1, int(np.prod(ds.shape[1:])) * ds.dtype.itemsize)
             block = max(1, _COPY_BLOCK_BYTES // row_bytes)
             digest = hashlib.sha256()
@@ -1464,7 +1476,9 @@ class MapDatabase:
         return out[0] if scalar else out
 
 
-def _check_digest(p: Path, ds: h5py.Dataset, actual: str) -> None:
+def _stored_digest(p: Path, ds: h5py.Dataset) -> str:
+    """The ``sha256`` attribute of dataset ``ds``; :class:`MapError` when it is missing or
+    cannot be read."""
     try:
         stored = ds.attrs.get("sha256")
         stored = None if stored is None else _decode(stored, "sha256")
@@ -1472,6 +1486,11 @@ def _check_digest(p: Path, ds: h5py.Dataset, actual: str) -> None:
         raise MapError(f"{p}: corrupted map: cannot read the checksum of {ds.name!r}: {e}") from e
     if stored is None:
         raise MapError(f"{p}: corrupted map: dataset {ds.name!r} has no sha256 checksum")
+    return stored
+
+
+def _check_digest(p: Path, ds: h5py.Dataset, actual: str) -> None:
+    stored = _stored_digest(p, ds)
     if stored != actual:
         raise MapError(
             f"{p}: corrupted map: checksum mismatch in dataset {ds.name!r} "

@@ -131,7 +131,7 @@ def _json_object(path: Path) -> dict[str, Any]:
     """The JSON object in ``path``; ``ValueError`` naming the file when it is not one."""
     try:
         value = json.loads(path.read_text())
-    except (UnicodeDecodeError, json.JSONDecodeError) as e:
+    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as e:  # too deep nesting
         raise ValueError(f"{path}: not a JSON file ({e})") from None
     if not isinstance(value, dict):
         raise ValueError(f"{path}: expected a JSON object, got {type(value).__name__}")
