@@ -770,7 +770,7 @@ def test_the_training_paths_ops_name_inputs_they_cannot_use():
     ):
         polar_sample(b.long(), 8, 3, 0.5)
     with pytest.raises(TypeError, match=r"^bev: expected a floating-point tensor"):
-        bev_pad(b[0].long(), torch.zeros(2, 2), 0.5)  # NotImplementedError
+        bev_pad(b[0].long(), torch.zeros(2, 2), 0.5)  # torch said "not implemented for Long"
     with pytest.raises(TypeError, match=r"^bev: expected a torch.Tensor \(H, W, C\) or"):
         bev_pad(np.ones((6, 6, 3)), torch.zeros(1, 2), 0.5)  # type: ignore[arg-type]
     with pytest.raises(ValueError, match=r"^bev: expected H, W, C >= 1"):
