@@ -32,6 +32,7 @@ __all__ = [
     "AtomicPath",
     "atomic_path",
     "atomic_write",
+    "check_readable_file",
     "csv_row",
     "list_entries",
     "remove_stale_temps",
@@ -51,6 +52,14 @@ FLOAT_TEXT = re.compile(
     r"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?|[+-]?(?:inf|infinity|nan)",
     re.IGNORECASE,
 )
+
+
+def check_readable_file(path: str | os.PathLike[str]) -> None:
+    """``ValueError`` naming ``path`` when it exists and is no regular file (a folder, device or
+    named pipe: a reader would block on a pipe without a writer forever); a missing path is
+    left to the reader's own ``FileNotFoundError``."""
+    if os.path.exists(path) and not os.path.isfile(path):
+        raise ValueError(f"{os.fspath(path)}: not a regular file (a folder, device or pipe)")
 
 
 def csv_row(*fields: object) -> str:

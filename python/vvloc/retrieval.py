@@ -40,7 +40,7 @@ import numpy as np
 import numpy.typing as npt
 
 from vvloc import _core
-from vvloc._io import atomic_write
+from vvloc._io import atomic_write, check_readable_file
 from vvloc.kernels import _as_f32, _asarray, _c_array, _positive_float, _positive_int
 
 __all__ = [
@@ -326,10 +326,8 @@ class DescriptorIndex:
         regular file (a named pipe blocked the reader forever), ``OSError`` when it cannot be
         read.
         """
-        p = os.fspath(path)
-        if os.path.exists(p) and not os.path.isfile(p):
-            raise ValueError(f"{p}: not a regular file (a folder, device or pipe)")
-        return DescriptorIndex(None, _inner=_core.DescriptorIndex.load(p))
+        check_readable_file(path)
+        return DescriptorIndex(None, _inner=_core.DescriptorIndex.load(os.fspath(path)))
 
     @property
     def descriptors(self) -> npt.NDArray[np.float32]:

@@ -27,7 +27,7 @@ from typing import Any, SupportsFloat
 
 import numpy as np
 
-from vvloc._io import FLOAT_TEXT, INT_TEXT, atomic_write
+from vvloc._io import FLOAT_TEXT, INT_TEXT, atomic_write, check_readable_file
 from vvloc.geometry import relative as relative_pose
 from vvloc.geometry import wrap_angle
 
@@ -92,11 +92,9 @@ def _r(x: SupportsFloat) -> str:
     return repr(float(x))
 
 
-# Numbers as C's strtol/strtod (g2o, spreadsheets) read them: Python alone reads '1_000'.
-
-
 def _int_field(text: str, what: str) -> int:
-    """A field of a file read as a 64-bit integer; ``ValueError`` naming ``what`` otherwise."""
+    """A field of a file read as a 64-bit integer, as C's strtol reads it (Python alone reads
+    ``1_000``: :data:`vvloc._io.INT_TEXT`); ``ValueError`` naming ``what`` otherwise."""
     if not INT_TEXT.fullmatch(text):
         raise ValueError(f"{what}: expected an integer, got {text!r}")
     v = int(text)
@@ -106,7 +104,8 @@ def _int_field(text: str, what: str) -> int:
 
 
 def _float_field(text: str, what: str) -> float:
-    """A field of a file read as a finite float; ``ValueError`` naming ``what`` otherwise."""
+    """A field of a file read as a finite float, as C's strtod reads it
+    (:data:`vvloc._io.FLOAT_TEXT`); ``ValueError`` naming ``what`` otherwise."""
     if not FLOAT_TEXT.fullmatch(text):
         raise ValueError(f"{what}: expected a number, got {text!r}")
     v = float(text)
@@ -389,8 +388,7 @@ def keyframe_csv_text(
 def _text_lines(p: Path, newline: str | None = None) -> list[str]:
     """The lines of the UTF-8 text file ``p`` (a BOM dropped), ``ValueError`` naming it when it
     is no regular file (a named pipe would block the reader forever) or not UTF-8 text."""
-    if p.exists() and not p.is_file():
-        raise ValueError(f"{p}: not a regular file (a folder, device or pipe); expected text")
+    check_readable_file(p)
     try:
         with open(p, encoding="utf-8-sig", newline=newline) as f:
             return f.readlines()
