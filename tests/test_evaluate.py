@@ -446,7 +446,7 @@ def test_a_perfect_self_loop_detector_scores_recall_one():
 def test_the_summary_keeps_a_thinned_sweep():
     rng = np.random.default_rng(5)
     pos = rng.uniform(0, 50, (400, 2))
-    pairs = rng.integers(0, 400, (3000, 2))
+    pairs = np.unique(rng.integers(0, 400, (3200, 2)), axis=0)[:3000]  # each pair once
     curve = ev.loop_closure_curve(pairs, rng.random(3000), pos, pos)
     full = curve.sweep()
     summary = curve.summary(0.5)
@@ -475,6 +475,12 @@ def test_loop_closure_rejects_bad_input():
         ev.loop_closure_curve(pairs + 10, dist, q, db)
     with pytest.raises(ValueError, match="times"):
         ev.loop_closure_curve(pairs, dist, q, db, query_times=np.arange(4.0))
+    # a pair listed twice would count twice (precision 3/4 for one true and one false pair)
+    listed = np.concatenate([pairs, pairs[:1], pairs[:1]])
+    with pytest.raises(
+        ValueError, match=r"pairs: each pair is listed once; \(\d+, \d+\) .* 3 times"
+    ):
+        ev.loop_closure_curve(listed, np.concatenate([dist, dist[:2]]), q, db)
 
 
 def test_loop_closure_truth_and_positives_agree_at_the_radius():
@@ -829,7 +835,7 @@ def test_loop_sweep_matches_pointwise_definition(seed):
     q = rng.uniform(0, 20, size=(15, 2))
     db = rng.uniform(0, 20, size=(20, 2))
     qf, df = rng.integers(0, 2, 15), rng.integers(0, 2, 20)
-    pairs = np.column_stack([rng.integers(0, 15, 40), rng.integers(0, 20, 40)])
+    pairs = np.column_stack(np.divmod(rng.choice(15 * 20, 40, replace=False), 20))  # each once
     dist = rng.integers(0, 10, 40) / 10.0  # ties on purpose
     curve = ev.loop_closure_curve(pairs, dist, q, db, query_floors=qf, db_floors=df)
     sweep = curve.sweep()

@@ -770,7 +770,8 @@ def loop_closure_curve(
     pair's first frame would count, and a perfect detector would score a recall of about 1/2).
 
     Args:
-        pairs: ``(P, 2)`` integer (query index, map index) candidate pairs.
+        pairs: ``(P, 2)`` integer (query index, map index) candidate pairs, each listed once (a
+            pair listed twice would count twice).
         distances: ``(P,)`` score of each pair, lower is better (descriptor distance, or the
             matching cost after metric verification).
         query_positions, db_positions: ``(Q, 2)`` / ``(N, 2)`` world x, y (m).
@@ -814,11 +815,18 @@ def loop_closure_curve(
         raise ValueError(
             "symmetric: needs the same frames as query and map (Q == N) and causal=False"
         )
-    if symmetric and pr.size:  # a pair listed in both orders would count twice
-        ordered = np.sort(pr, axis=1)
-        ordered = ordered[ordered[:, 0] != ordered[:, 1]]
-        if len(np.unique(ordered, axis=0)) != len(ordered):
-            raise ValueError("pairs: with symmetric=True each pair is listed once (e.g. i < j)")
+    if pr.size:  # a pair listed twice (symmetric: also in both orders) would count twice
+        keyed = np.sort(pr, axis=1) if symmetric else pr
+        if symmetric:
+            keyed = keyed[keyed[:, 0] != keyed[:, 1]]
+        rows, counts = np.unique(keyed, axis=0, return_counts=True)
+        if (counts > 1).any():
+            first = int(np.argmax(counts > 1))
+            listed = "once (e.g. i < j)" if symmetric else "once"
+            raise ValueError(
+                f"pairs: each pair is listed {listed}; ({rows[first, 0]}, {rows[first, 1]}) is "
+                f"listed {counts[first]} times"
+            )
 
     def admissible(qi: I64Array, dj: I64Array) -> BoolArray:
         # a frame is not its own loop (symmetric: the same frames as query and map)
@@ -1193,7 +1201,8 @@ def latency_summary(samples_ms: Mapping[str, npt.ArrayLike]) -> dict[str, dict[s
 
     ``samples_ms`` maps a stage name (e.g. ``"encoder"``, ``"retrieval"``, ``"re-ranking"``,
     ``"metric"``) to its ``(n,)`` samples. Returns ``{stage: {"count", "mean_ms", "median_ms",
-    "p95_ms"}}`` in the given order (p95 by the inverted CDF, see :func:`error_percentiles`).
+    "p95_ms"}}`` in the given order. The median and p95 are taken by the inverted CDF, as
+    :func:`error_percentiles` does: a sample, the lower middle one for an even count.
     """
     if not isinstance(samples_ms, Mapping):
         raise TypeError(
