@@ -290,6 +290,12 @@ def test_extension_rejects_bad_values_without_panicking():
         _core.roll_interp(BEV, 1.0, -1)
     with pytest.raises(ValueError, match=r"^grid_size"):
         _core.bev_pad(BEV, TR, float("inf"))
+    # more dimensions than rust-numpy's views hold (the gateway refuses them first)
+    deep = np.zeros((1,) * 33, np.float32)
+    with pytest.raises(ValueError, match=r"^x: expected at most 32 dimensions, got 33"):
+        _core.roll_interp(deep, 0.5, 0)
+    with pytest.raises(ValueError, match=r"^bev: expected at most 32 dimensions, got 33"):
+        _core.polar_sample(deep, 2, 2, 0.3)
 
 
 def test_outputs_larger_than_memory_raise_memory_error():

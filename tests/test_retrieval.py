@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import os
+import signal
+import threading
+import time
 import warnings
 from concurrent.futures import ThreadPoolExecutor
 
@@ -545,6 +548,75 @@ def test_concurrent_queries_from_python_threads():
     for (gi, gd), (wi, wd) in zip(got, want, strict=True):
         np.testing.assert_array_equal(gi, wi)
         np.testing.assert_array_equal(gd, wd)
+
+
+def test_queries_and_adds_from_threads_finish():
+    """Two threads query while a third adds. A pool worker waiting inside one query's join may
+    run the other query's job; that job used to take its read lock there, queued behind the
+    waiting add, which waited for the first query's read lock held lower on the same worker's
+    stack: every thread (and, through a lock taken with the GIL held, the interpreter) hung."""
+    x, q, extra = clustered(20_000, 256, 21), clustered(8, 256, 22), clustered(1, 256, 23)
+    before = vvloc.get_num_threads()
+    vvloc.set_num_threads(2)
+    try:
+        index = DescriptorIndex(x)
+        stop = time.monotonic() + 3.0
+        calls = {"query": 0, "add": 0}
+
+        def query() -> None:
+            while time.monotonic() < stop:
+                index.topk(q, 5)
+                calls["query"] += 1
+
+        def add() -> None:
+            while time.monotonic() < stop:
+                index.add(extra)
+                calls["add"] += 1
+                time.sleep(0.001)
+
+        threads = [threading.Thread(target=f, daemon=True) for f in (query, query, add)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join(timeout=60)
+        assert not any(t.is_alive() for t in threads), f"deadlocked after {calls}"
+        assert len(index) == len(x) + calls["add"]
+    finally:
+        vvloc.set_num_threads(before)
+
+
+def test_a_fork_waits_for_the_index_calls_under_way():
+    """A forked child inherits each lock as it was: an index that another thread was adding to
+    (or querying) at the fork used to stay locked in the child for ever. The fork now waits for
+    the calls under way, so the child gets the index whole (before or after the add) and free."""
+    index = DescriptorIndex(clustered(2_000, 64, 31))
+    big = clustered(100_000, 64, 32)
+    for delay in (0.0, 0.005, 0.02, 0.05):
+        before = len(index)
+        adder = threading.Thread(target=index.add, args=(big,))
+        adder.start()
+        time.sleep(delay)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", DeprecationWarning)  # fork with threads (3.12+)
+            pid = os.fork()
+        if pid == 0:  # the child: query, add, and report whether it saw the index whole
+            code = 1
+            try:
+                whole = len(index) in (before, before + len(big))
+                index.topk(big[:4], 3)
+                index.add(big[:1])
+                code = 0 if whole else 3
+            finally:
+                os._exit(code)
+        deadline = time.monotonic() + 60
+        while (done := os.waitpid(pid, os.WNOHANG))[0] == 0 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        if done[0] == 0:
+            os.kill(pid, signal.SIGKILL)
+            os.waitpid(pid, 0)
+            pytest.fail(f"the child hung (fork {delay} s after the add began)")
+        adder.join()
+        assert os.waitstatus_to_exitcode(done[1]) == 0, f"fork {delay} s after the add began"
 
 
 def test_one_and_two_threads_identical():

@@ -65,9 +65,15 @@ def _check_threads_variable() -> None:
 
 _check_threads_variable()
 
-# A forked child (e.g. a DataLoader worker) has no pool threads: let it build its own.
+# A forked child (e.g. a DataLoader worker) has no pool threads: let it build its own. A fork
+# waits until no thread is inside a DescriptorIndex call, so no child inherits a locked index.
 if hasattr(os, "register_at_fork"):
     os.register_at_fork(after_in_child=_core._reset_pool_after_fork)
+    os.register_at_fork(
+        before=_core._before_fork,
+        after_in_parent=_core._after_fork_in_parent,
+        after_in_child=_core._after_fork_in_child,
+    )
 
 from vvloc import kernels  # noqa: E402
 from vvloc.retrieval import DescriptorIndex, Exclusion  # noqa: E402

@@ -214,7 +214,10 @@ class DescriptorIndex:
         groups: group id per entry, int (N,); default 0.
         seqs: sequence number per entry, int (N,); default the entry index.
 
-    Thread-safe: queries from several Python threads run concurrently with the GIL released.
+    Thread-safe: queries from several Python threads run concurrently with the GIL released;
+    ``add`` waits for the queries under way, and queries wait for it. Fork-safe: ``os.fork()``
+    waits until no thread is inside a call of any index, so a child (e.g. a DataLoader worker)
+    gets each index whole and unlocked.
     """
 
     def __init__(

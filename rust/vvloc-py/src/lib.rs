@@ -6,6 +6,7 @@
 //! result. No algorithm lives here. Each area registers its functions from its own file.
 
 mod errors;
+mod fork;
 mod pool;
 
 mod matching;
@@ -18,6 +19,8 @@ use pyo3::prelude::*;
 mod _core {
     use super::*;
 
+    #[pymodule_export]
+    use super::fork::{_after_fork_in_child, _after_fork_in_parent, _before_fork};
     #[pymodule_export]
     use super::pool::{_reset_pool_after_fork, get_num_threads, set_num_threads};
 

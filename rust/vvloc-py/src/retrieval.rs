@@ -4,8 +4,22 @@
 //! `vvloc.retrieval.DescriptorIndex` converts and validates); the core re-checks shapes and
 //! values. The index sits behind a `RwLock`: queries from several Python threads run
 //! concurrently (GIL released), `add` waits for them.
+//!
+//! Locking rules, which keep every wait free of cycles:
+//! - A lock is taken only with the GIL released, and let go before the GIL is taken back: a
+//!   thread holding the GIL never waits for the lock, so a writer waiting for a reader never
+//!   waits, through the GIL, for itself.
+//! - A lock is taken on the calling thread, never inside vvloc's pool: a pool worker waiting
+//!   in one query's join may run another query's job, and had that job waited there for a
+//!   read lock queued behind a writer (std's lock lets no new reader pass a waiting writer),
+//!   the writer would have waited for the first query's read lock, held lower on the same
+//!   worker's stack, for ever.
+//! - `dim` and `dtype` never change, so they are kept beside the lock.
+//! - Every lock is taken inside the fork gate ([`fork::enter`]): `os.fork()` waits until no
+//!   index is locked, so a child never inherits one locked for ever or half changed.
 
 use crate::errors::to_py;
+use crate::fork;
 use crate::pool;
 use ndarray::{Array1, Array2};
 use numpy::{
@@ -63,12 +77,50 @@ type Exclude<'py> = (
 #[pyclass(module = "vvloc._core", frozen)]
 pub struct DescriptorIndex {
     inner: RwLock<CoreIndex>,
+    dim: usize,
+    dtype: Dtype,
 }
 
 impl DescriptorIndex {
+    fn wrap(index: CoreIndex) -> Self {
+        DescriptorIndex {
+            dim: index.dim(),
+            dtype: index.dtype(),
+            inner: RwLock::new(index),
+        }
+    }
+
     fn read(&self) -> RwLockReadGuard<'_, CoreIndex> {
         // A poisoned lock means a panic in a kernel (a bug); the index itself is still valid.
         self.inner.read().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// Runs `f` on the index with the GIL released: the read lock is taken on this thread,
+    /// then `f` runs inside vvloc's pool (the module's locking rules).
+    fn query<T, F>(&self, py: Python<'_>, f: F) -> PyResult<T>
+    where
+        T: Send,
+        F: FnOnce(&CoreIndex) -> T + Send,
+    {
+        let pool = pool::get()?;
+        Ok(py.detach(|| {
+            let _inside = fork::enter();
+            let guard = self.read();
+            let index: &CoreIndex = &guard;
+            pool.install(|| f(index))
+        }))
+    }
+
+    /// Runs `f` on the index with the GIL released, on this thread.
+    fn inspect<T, F>(&self, py: Python<'_>, f: F) -> T
+    where
+        T: Send,
+        F: FnOnce(&CoreIndex) -> T + Send,
+    {
+        py.detach(|| {
+            let _inside = fork::enter();
+            f(&self.read())
+        })
     }
 }
 
@@ -89,9 +141,7 @@ impl DescriptorIndex {
         let groups = groups.as_ref().map(|g| slice(g, "groups")).transpose()?;
         let seqs = seqs.as_ref().map(|s| slice(s, "seqs")).transpose()?;
         let index = pool::run(py, || CoreIndex::from_rows(rows, dim, dtype, groups, seqs))?;
-        Ok(DescriptorIndex {
-            inner: RwLock::new(to_py(index)?),
-        })
+        Ok(Self::wrap(to_py(index)?))
     }
 
     #[pyo3(signature = (descriptors, groups = None, seqs = None))]
@@ -102,11 +152,11 @@ impl DescriptorIndex {
         groups: Option<PyReadonlyArray1<'_, i64>>,
         seqs: Option<PyReadonlyArray1<'_, i64>>,
     ) -> PyResult<()> {
-        let dim = self.read().dim();
-        let rows = matrix(&descriptors, "descriptors", dim)?;
+        let rows = matrix(&descriptors, "descriptors", self.dim)?;
         let groups = groups.as_ref().map(|g| slice(g, "groups")).transpose()?;
         let seqs = seqs.as_ref().map(|s| slice(s, "seqs")).transpose()?;
         to_py(py.detach(|| {
+            let _inside = fork::enter();
             let mut w = self.inner.write().unwrap_or_else(|p| p.into_inner());
             w.add(rows, groups, seqs)
         }))
@@ -120,11 +170,10 @@ impl DescriptorIndex {
         k: usize,
         exclude: Option<Exclude<'py>>,
     ) -> PyResult<TopK<'py>> {
-        let dim = self.read().dim();
-        let q = matrix(&queries, "queries", dim)?;
+        let q = matrix(&queries, "queries", self.dim)?;
         let nq = queries.shape()[0];
         let ex = exclusion(&exclude)?;
-        let res = to_py(pool::run(py, || self.read().topk(q, k, ex))?)?;
+        let res = to_py(self.query(py, |index| index.topk(q, k, ex))?)?;
         let shape = (nq, res.k);
         // the core has checked that an (nq, k) array can exist (vvloc_core::error::checked_len)
         let bad = |e: ndarray::ShapeError| PyValueError::new_err(format!("k: {e}"));
@@ -141,10 +190,9 @@ impl DescriptorIndex {
         r: f32,
         exclude: Option<Exclude<'py>>,
     ) -> PyResult<Csr<'py>> {
-        let dim = self.read().dim();
-        let q = matrix(&queries, "queries", dim)?;
+        let q = matrix(&queries, "queries", self.dim)?;
         let ex = exclusion(&exclude)?;
-        let res = to_py(pool::run(py, || self.read().radius(q, r, ex))?)?;
+        let res = to_py(self.query(py, |index| index.radius(q, r, ex))?)?;
         Ok((
             Array1::from(res.offsets).into_pyarray(py),
             Array1::from(res.indices).into_pyarray(py),
@@ -155,47 +203,45 @@ impl DescriptorIndex {
     /// The index in the file format of `vvloc_core::retrieval::format` (the Python wrapper
     /// writes it with vvloc's atomic writer, which keeps a file's mode and follows links).
     fn to_bytes<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyBytes>> {
-        let bytes = to_py(py.detach(|| vvloc_core::retrieval::format::to_bytes(&self.read())))?;
+        let bytes = to_py(self.inspect(py, vvloc_core::retrieval::format::to_bytes))?;
         Ok(PyBytes::new(py, &bytes))
     }
 
     #[staticmethod]
     fn load(py: Python<'_>, path: std::path::PathBuf) -> PyResult<Self> {
         let index = to_py(pool::run(py, || CoreIndex::load(&path))?)?;
-        Ok(DescriptorIndex {
-            inner: RwLock::new(index),
-        })
+        Ok(Self::wrap(index))
     }
 
     /// All descriptors, float32 (N, d).
     fn descriptors<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray2<f32>> {
-        let g = self.read();
-        let a = Array2::from_shape_vec((g.len(), g.dim()), g.rows()).expect("rows are N*d");
+        let (n, rows) = self.inspect(py, |index| (index.len(), index.rows()));
+        let a = Array2::from_shape_vec((n, self.dim), rows).expect("rows are N*d");
         a.into_pyarray(py)
     }
 
     /// Group id of every entry, int64 (N,).
     fn groups<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<i64>> {
-        Array1::from(self.read().groups().to_vec()).into_pyarray(py)
+        Array1::from(self.inspect(py, |index| index.groups().to_vec())).into_pyarray(py)
     }
 
     /// Sequence number of every entry, int64 (N,).
     fn seqs<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<i64>> {
-        Array1::from(self.read().seqs().to_vec()).into_pyarray(py)
+        Array1::from(self.inspect(py, |index| index.seqs().to_vec())).into_pyarray(py)
     }
 
-    fn __len__(&self) -> usize {
-        self.read().len()
+    fn __len__(&self, py: Python<'_>) -> usize {
+        self.inspect(py, CoreIndex::len)
     }
 
     #[getter]
     fn dim(&self) -> usize {
-        self.read().dim()
+        self.dim
     }
 
     #[getter]
     fn dtype(&self) -> &'static str {
-        self.read().dtype().name()
+        self.dtype.name()
     }
 }
 

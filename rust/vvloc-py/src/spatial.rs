@@ -6,8 +6,10 @@
 
 use crate::errors::to_py;
 use crate::pool;
+use numpy::ndarray::ArrayViewD;
 use numpy::{
     IntoPyArray, PyArray4, PyArrayDyn, PyReadonlyArray2, PyReadonlyArray3, PyReadonlyArrayDyn,
+    PyUntypedArrayMethods,
 };
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
@@ -15,6 +17,20 @@ use pyo3::prelude::*;
 fn non_negative(v: i64, name: &str) -> PyResult<usize> {
     usize::try_from(v)
         .map_err(|_| PyValueError::new_err(format!("{name}: expected an int >= 1, got {v}")))
+}
+
+/// The most dimensions rust-numpy takes into a view (more would panic in `as_array`).
+const MAX_DIMS: usize = 32;
+
+/// A view of `x`, or a `ValueError` naming `name` for more than [`MAX_DIMS`] dimensions.
+fn view_dyn<'a>(x: &'a PyReadonlyArrayDyn<'_, f32>, name: &str) -> PyResult<ArrayViewD<'a, f32>> {
+    let ndim = x.ndim();
+    if ndim > MAX_DIMS {
+        return Err(PyValueError::new_err(format!(
+            "{name}: expected at most {MAX_DIMS} dimensions, got {ndim}"
+        )));
+    }
+    Ok(x.as_array())
 }
 
 /// Interpolated roll of `x` by `shift` elements along `axis` (0 <= axis < x.ndim).
@@ -26,7 +42,7 @@ fn roll_interp<'py>(
     shift: f64,
     axis: i64,
 ) -> PyResult<Bound<'py, PyArrayDyn<f32>>> {
-    let view = x.as_array();
+    let view = view_dyn(&x, "x")?;
     let ndim = view.ndim();
     let axis = usize::try_from(axis).map_err(|_| {
         PyValueError::new_err(format!("axis: expected 0 <= axis < {ndim}, got {axis}"))
@@ -64,7 +80,7 @@ fn polar_sample<'py>(
 ) -> PyResult<Bound<'py, PyArrayDyn<f32>>> {
     let t = non_negative(num_angles, "num_angles")?;
     let r = non_negative(num_radii, "num_radii")?;
-    let b = bev.as_array();
+    let b = view_dyn(&bev, "bev")?;
     let out = to_py(pool::run(py, || {
         vvloc_core::polar::polar_sample(b, t, r, grid_size)
     })?)?;

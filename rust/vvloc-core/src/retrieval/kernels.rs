@@ -91,24 +91,43 @@ pub fn available_levels() -> Vec<Level> {
 }
 
 // ---------------------------------------------------------------------------------------------
+// The kernels below dispatch on a `Level` to `unsafe` `#[target_feature]` code. They are
+// `pub(crate)`: inside this crate every `Level` is `detect()`'s or one of `available_levels()`
+// (`DescriptorIndex::with_level` checks), so a level names only instructions this CPU has. Their
+// length checks multiply with `fits`, whose products cannot wrap: a wrapped product would have
+// passed a check and let the vector code read past a slice.
+
+/// Whether `len >= factors[0] * factors[1] * …`, without overflow (a product past `usize::MAX`
+/// exceeds every slice).
+fn fits(len: usize, factors: &[usize]) -> bool {
+    factors
+        .iter()
+        .try_fold(1usize, |p, &f| p.checked_mul(f))
+        .is_some_and(|n| len >= n)
+}
+
 // float32 tiles: QT queries × G blocks.
 
 /// Dot products of `QT` queries (rows of `q`, each of length `d`) with the `G` consecutive blocks
 /// starting at `blocks[0]`; `out[t * G * 16 + g * 16 + l]` = query t · row l of block g.
 ///
 /// Panics (a bug, never user input) if a slice is too short.
-pub fn tile_f32<const QT: usize, const G: usize>(
+pub(crate) fn tile_f32<const QT: usize, const G: usize>(
     level: Level,
     q: &[f32],
     d: usize,
     blocks: &[f32],
     out: &mut [f32],
 ) {
-    assert!(q.len() >= QT * d && blocks.len() >= G * d * BLOCK && out.len() >= QT * G * BLOCK);
+    assert!(
+        fits(q.len(), &[QT, d])
+            && fits(blocks.len(), &[G, d, BLOCK])
+            && fits(out.len(), &[QT, G, BLOCK])
+    );
     match level {
         #[cfg(target_arch = "x86_64")]
         // SAFETY: `level` is Avx512 only when `detect`/`available_levels` found avx512f on this
-        // CPU; the slice lengths were checked above.
+        // CPU (the function is crate-private, see above); the slice lengths were checked above.
         Level::Avx512 { .. } => unsafe { tile_f32_avx512::<QT, G>(q, d, blocks, out) },
         #[cfg(target_arch = "x86_64")]
         // SAFETY: Avx2 is only produced after detecting avx2 and fma.
@@ -188,8 +207,8 @@ unsafe fn tile_f32_avx512<const QT: usize, const G: usize>(
 }
 
 /// Squared norms of the 16 rows of one block (same accumulation order as the dot products).
-pub fn block_norms(level: Level, block: &[f32], d: usize) -> [f32; BLOCK] {
-    assert!(block.len() >= d * BLOCK);
+pub(crate) fn block_norms(level: Level, block: &[f32], d: usize) -> [f32; BLOCK] {
+    assert!(fits(block.len(), &[d, BLOCK]));
     #[inline(always)]
     fn generic(block: &[f32], d: usize) -> [f32; BLOCK] {
         let mut acc = [0f32; BLOCK];
@@ -216,7 +235,7 @@ pub fn block_norms(level: Level, block: &[f32], d: usize) -> [f32; BLOCK] {
 }
 
 /// `Σ_j v[j]²` accumulated sequentially with fma (the query-norm convention).
-pub fn norm_sq(level: Level, v: &[f32]) -> f32 {
+pub(crate) fn norm_sq(level: Level, v: &[f32]) -> f32 {
     #[inline(always)]
     fn generic(v: &[f32]) -> f32 {
         v.iter().fold(0.0f32, |acc, &x| x.mul_add(x, acc))
@@ -238,7 +257,7 @@ pub fn norm_sq(level: Level, v: &[f32]) -> f32 {
 /// `j0..j1`: `acc[l] = fma(q[j], x[j][l], acc[l])` for j = j0, …, j1-1. Starting from zeros at
 /// j0 = 0 and continuing to d gives bitwise the [`tile_f32`] result (same fma sequence), so a
 /// scan may test a leading block of dimensions first and finish only the rows it keeps.
-pub fn dot_range(
+pub(crate) fn dot_range(
     level: Level,
     q: &[f32],
     block: &[f32],
@@ -246,7 +265,7 @@ pub fn dot_range(
     j1: usize,
     acc: &mut [f32; BLOCK],
 ) {
-    assert!(j0 <= j1 && q.len() >= j1 && block.len() >= j1 * BLOCK);
+    assert!(j0 <= j1 && q.len() >= j1 && fits(block.len(), &[j1, BLOCK]));
     #[inline(always)]
     fn generic(q: &[f32], block: &[f32], j0: usize, j1: usize, acc: &mut [f32; BLOCK]) {
         for j in j0..j1 {
@@ -289,14 +308,14 @@ pub fn dot_range(
 // Compressed scans (one query × G blocks). Approximate: callers bound the error and re-score.
 
 /// float16 map × float32 query: `out[g * 16 + l]` ≈ q · row l of block g.
-pub fn scan_f16<const G: usize>(
+pub(crate) fn scan_f16<const G: usize>(
     level: Level,
     q: &[f32],
     d: usize,
     blocks: &[u16],
     out: &mut [f32],
 ) {
-    assert!(q.len() >= d && blocks.len() >= G * d * BLOCK && out.len() >= G * BLOCK);
+    assert!(q.len() >= d && fits(blocks.len(), &[G, d, BLOCK]) && fits(out.len(), &[G, BLOCK]));
     match level {
         #[cfg(target_arch = "x86_64")]
         // SAFETY: avx512f detected; lengths checked above.
@@ -349,14 +368,16 @@ pub fn pack_query_bf16(q: &[f32]) -> Vec<u32> {
 }
 
 /// bfloat16 map × bfloat16 query (pairs from [`pack_query_bf16`]), `dp = ceil(d/2)`.
-pub fn scan_bf16<const G: usize>(
+pub(crate) fn scan_bf16<const G: usize>(
     level: Level,
     qp: &[u32],
     dp: usize,
     blocks: &[u16],
     out: &mut [f32],
 ) {
-    assert!(qp.len() >= dp && blocks.len() >= G * dp * BLOCK * 2 && out.len() >= G * BLOCK);
+    assert!(
+        qp.len() >= dp && fits(blocks.len(), &[G, dp, BLOCK, 2]) && fits(out.len(), &[G, BLOCK])
+    );
     match level {
         #[cfg(target_arch = "x86_64")]
         // SAFETY: avx512f and avx512bf16 detected; lengths checked above.
@@ -463,7 +484,7 @@ impl QueryI8 {
 /// int8 map × quantised query: `out[g * 16 + l] = f32(t · (128·I_h + I_l))` computed in f64,
 /// `I_h = Σ_j x̃_j h_j`, `I_l = Σ_j x̃_j l_j` exact integers (d ≤ 65536), so every level returns
 /// bitwise the same values.
-pub fn scan_i8<const G: usize>(
+pub(crate) fn scan_i8<const G: usize>(
     level: Level,
     q: &QueryI8,
     d4: usize,
@@ -473,8 +494,8 @@ pub fn scan_i8<const G: usize>(
     assert!(
         q.hi.len() >= d4
             && q.lo.len() >= d4
-            && blocks.len() >= G * d4 * BLOCK * 4
-            && out.len() >= G * BLOCK
+            && fits(blocks.len(), &[G, d4, BLOCK, 4])
+            && fits(out.len(), &[G, BLOCK])
     );
     match level {
         #[cfg(target_arch = "x86_64")]

@@ -540,3 +540,22 @@ fn a_header_with_d_zero_says_so() {
     let e = format::from_bytes(&bytes).unwrap_err();
     assert!(e.to_string().contains("header says d=0"), "{e}");
 }
+
+#[test]
+fn kernel_length_checks_do_not_wrap() {
+    // d * 16 * 8 wraps to 0 in usize: the check must refuse it, not pass it on to the vector
+    // loads (which read past the empty slices)
+    let d = 1usize << 61;
+    for level in kernels::available_levels() {
+        let wrapped = std::panic::catch_unwind(|| {
+            let mut out = [0f32; 8 * BLOCK];
+            kernels::tile_f32::<8, 1>(level, &[], d, &[], &mut out);
+        });
+        assert!(
+            wrapped.is_err(),
+            "{level:?}: a wrapped length passed the check"
+        );
+        let norms = std::panic::catch_unwind(|| kernels::block_norms(level, &[], d));
+        assert!(norms.is_err(), "{level:?}");
+    }
+}
