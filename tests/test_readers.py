@@ -436,6 +436,39 @@ def test_select_keyframes_by_distance_or_heading():
         select_keyframes(poses[:, :2])
 
 
+def test_select_keyframes_keeps_the_first_view_of_a_floor():
+    # a car lift: floor 1 begins 3.2 m above floor 0's last frame; the plane saw no movement
+    x = [10.0, 8, 6, 4, 2, 0, 0, 2, 4]
+    poses = np.column_stack([x, np.zeros(9), np.zeros(9)])
+    floors, z = [0] * 6 + [1] * 3, [0.0] * 6 + [3.2] * 3
+    assert select_keyframes(poses, min_distance=2.0).tolist() == [0, 1, 2, 3, 4, 5, 7, 8]
+    every = list(range(9))
+    assert select_keyframes(poses, min_distance=2.0, floors=floors).tolist() == every
+    assert select_keyframes(poses, min_distance=2.0, z=z).tolist() == every  # moved 3.2 m
+    # a ramp: 1.2 m along and 1.6 m up is 2 m moved
+    ramp = select_keyframes(poses[:2] * [0.6, 0, 0], min_distance=2.0, z=[0.0, 1.6])
+    assert ramp.tolist() == [0, 1]
+    with pytest.raises(ValueError, match=r"floors: expected shape \(9,\)"):
+        select_keyframes(poses, min_distance=2.0, floors=[0, 1])
+    with pytest.raises(TypeError, match="floors"):
+        select_keyframes(poses, min_distance=2.0, floors=np.zeros(9))
+    with pytest.raises(ValueError, match="z"):
+        select_keyframes(poses, min_distance=2.0, z=[np.nan] * 9)
+
+
+def test_convert_keeps_the_first_keyframe_of_a_floor(tmp_path):
+    from vvloc.data import DatasetWriter
+
+    cam = Camera("front", 8, 6, np.array([[4.0, 0, 3.5], [0, 4, 2.5], [0, 0, 1]]), np.eye(4))
+    src = tmp_path / "lift"
+    with DatasetWriter(src, [cam]) as w:
+        s = w.add_session("s0")
+        for k, (x, floor) in enumerate(zip([4.0, 2, 0, 0, 2], [0, 0, 0, 1, 1], strict=True)):
+            s.add(k, (x, 0.0, 0.0), np.zeros((1, 3, 6, 8), np.uint8), z=3.2 * floor, floor=floor)
+    out = open_dataset(convert_dataset(src, tmp_path / "every-2m", min_distance=2.0))
+    assert out.session("s0").floors.tolist() == [0, 0, 0, 1, 1]
+
+
 def test_convert_nclt_writes_what_the_reader_reads(tmp_path):
     src = tmp_path / "nclt"
     _nclt(src)

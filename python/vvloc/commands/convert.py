@@ -57,7 +57,10 @@ def convert(
         typer.Option(
             "--min_distance",
             min=0.0,
-            help="Then keep a keyframe once the vehicle has moved this far (m) from the last.",
+            help=(
+                "Then keep a keyframe once the vehicle has moved this far (m, in space) from "
+                "the last, and the first on another floor."
+            ),
         ),
     ] = 0.0,
     min_angle: Annotated[

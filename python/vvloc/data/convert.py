@@ -21,39 +21,58 @@ from typing import Any
 import numpy as np
 
 from vvloc.data._remap import resize_rgb
-from vvloc.evaluate import _real_array
+from vvloc.evaluate import _int_array, _real_array
 
 __all__ = ["convert_dataset", "select_keyframes"]
 
 
 def select_keyframes(
-    poses: Any, *, min_distance: float = 0.0, min_angle_deg: float = 0.0
+    poses: Any,
+    *,
+    min_distance: float = 0.0,
+    min_angle_deg: float = 0.0,
+    z: Any = None,
+    floors: Any = None,
 ) -> np.ndarray:
     """Indices of keyframes along a trajectory: the first pose, then each pose that has moved
     at least ``min_distance`` metres or turned at least ``min_angle_deg`` degrees from the last
-    keyframe kept.
+    keyframe kept, or that lies on another floor than it.
 
     Args:
         poses: (N, 3) float (x, y, yaw) in metres and radians, in time order.
-        min_distance: metres (0: no distance criterion).
+        min_distance: metres (0: no distance criterion), in space when ``z`` is given (a climb
+            up a ramp or in a car lift counts), in the plane otherwise.
         min_angle_deg: degrees (0: no heading criterion). With both 0 every pose is kept.
+        z: optional (N,) float heights of the poses, metres.
+        floors: optional (N,) int storey of each pose: a pose on another floor than the last
+            keyframe is kept whatever it moved (the first view of a floor is a place of its own).
 
     Returns:
         (K,) int64 increasing indices, K ≥ 1 when N ≥ 1.
     """
     p = _real_array(poses, "poses", "(N, 3)", 2, 3)  # real, finite: named otherwise
     min_distance, min_angle_deg = _spacing(min_distance, min_angle_deg)
-    if len(p) == 0:
+    n = len(p)
+    height = np.zeros(n) if z is None else _real_array(z, "z", f"({n},)", 1)
+    storey = np.zeros(n, np.int64) if floors is None else _int_array(floors, "floors", f"({n},)", 1)
+    for name, values in (("z", height), ("floors", storey)):
+        if values.shape != (n,):
+            raise ValueError(f"{name}: expected shape ({n},), got {values.shape}")
+    if n == 0:
         return np.zeros(0, np.int64)
     if min_distance == 0 and min_angle_deg == 0:
-        return np.arange(len(p), dtype=np.int64)
+        return np.arange(n, dtype=np.int64)
     keep = [0]
     angle = math.radians(min_angle_deg)
-    for i in range(1, len(p)):
-        last = p[keep[-1]]
-        moved = math.hypot(p[i, 0] - last[0], p[i, 1] - last[1])
-        turned = abs(math.remainder(p[i, 2] - last[2], 2 * math.pi))
-        if (min_distance > 0 and moved >= min_distance) or (min_angle_deg > 0 and turned >= angle):
+    for i in range(1, n):
+        k = keep[-1]
+        moved = math.hypot(p[i, 0] - p[k, 0], p[i, 1] - p[k, 1], height[i] - height[k])
+        turned = abs(math.remainder(p[i, 2] - p[k, 2], 2 * math.pi))
+        if (
+            storey[i] != storey[k]
+            or (min_distance > 0 and moved >= min_distance)
+            or (min_angle_deg > 0 and turned >= angle)
+        ):
             keep.append(i)
     return np.array(keep, dtype=np.int64)
 
@@ -160,7 +179,11 @@ def convert_dataset(
         s = ds.session(name)
         strided = np.arange(0, len(s), every, dtype=np.int64)
         chosen = select_keyframes(
-            s.poses[strided], min_distance=min_distance, min_angle_deg=min_angle_deg
+            s.poses[strided],
+            min_distance=min_distance,
+            min_angle_deg=min_angle_deg,
+            z=s.z[strided],
+            floors=s.floors[strided],
         )
         picks[name] = strided[chosen]
     empty = [name for name in names if len(ds.session(name)) == 0]
