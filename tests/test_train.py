@@ -1404,6 +1404,42 @@ def test_resume_refuses_other_data_and_names_a_differing_key(tiny_world, tmp_pat
         Trainer(cfg, out).resume()
 
 
+def test_resume_takes_the_run_s_dataset_moved_or_named_otherwise(tiny_world, tmp_path, caplog):
+    """A dataset folder written as another path, or moved or copied, is the run's when its
+    sessions and rig are (it used to be refused as 'another config (differing: dataset)')."""
+    world = tmp_path / "world"
+    shutil.copytree(tiny_world, world)
+    kw = dict(stage1_epochs=2, stage2_epochs=0, steps_per_epoch=2)
+    out = tmp_path / "run"
+    tr = Trainer(_config(world, **kw), out)
+    tr.run_epoch(progress=False)
+    tr.save()
+    link = tmp_path / "link"
+    link.symlink_to(world)
+    with caplog.at_level("WARNING", logger="vvloc.train"):
+        resumed = Trainer(_config(link, **kw), out)  # the same folder: nothing to say
+        assert resumed.resume() and resumed.epoch == 1
+    assert "other dataset folders" not in caplog.text
+    copy = tmp_path / "copy"
+    shutil.copytree(world, copy)
+    with caplog.at_level("WARNING", logger="vvloc.train"):
+        assert Trainer(_config(copy, **kw), out).resume()
+    assert f"other dataset folders (dataset: {str(world)!r} -> {str(copy)!r})" in caplog.text
+    # a copy whose rig differs is not the run's data, nor one whose poses differ
+    rig = json.loads((copy / "rig.json").read_text())
+    rig["cameras"][0]["K"][0][0] *= 1.01
+    (copy / "rig.json").write_text(json.dumps(rig))
+    with pytest.raises(ValueError, match=r"other dataset folders \(dataset: .*the rig"):
+        Trainer(_config(copy, **kw), out).resume()
+    poses = copy / "sessions" / "s0" / "poses.csv"
+    rows = poses.read_text().splitlines()
+    first = rows[1].split(",")
+    first[1] = str(float(first[1]) + 5.0)
+    poses.write_text("\n".join([rows[0], ",".join(first), *rows[2:]]) + "\n")
+    with pytest.raises(ValueError, match=r"data changed .*names other dataset folders, dataset"):
+        Trainer(_config(copy, **kw), out).resume()
+
+
 def test_resume_fingerprints_only_the_sessions_the_run_reads(tiny_world, tmp_path):
     world = tmp_path / "world"
     shutil.copytree(tiny_world, world)

@@ -1144,6 +1144,34 @@ def _open_named(key: str, dataset: str) -> Any:
         raise type(e)(f"{key}: {e}") from e
 
 
+def _dataset_paths(cfg: dict[str, Any]) -> dict[str, Any]:
+    """The dataset folders a config (``TrainConfig.to_dict()``) names, by key: ``dataset``,
+    ``extra_datasets[k].dataset`` and ``val_loops[k].dataset``."""
+    paths = {"dataset": cfg.get("dataset")}
+    for key in ("extra_datasets", "val_loops"):
+        for k, entry in enumerate(cfg.get(key) or []):
+            if isinstance(entry, dict):
+                paths[f"{key}[{k}].dataset"] = entry.get("dataset")
+    return paths
+
+
+def _named_paths(moved: dict[str, tuple[str, str]]) -> str:
+    """``"dataset: 'a' -> 'b'; …"`` for the dataset folders a resumed config names otherwise."""
+    return "; ".join(f"{key}: {a!r} -> {b!r}" for key, (a, b) in moved.items())
+
+
+def _without_dataset_paths(cfg: dict[str, Any]) -> dict[str, Any]:
+    """``cfg`` with its dataset folders (:func:`_dataset_paths`) left out."""
+    out = {k: v for k, v in cfg.items() if k != "dataset"}
+    for key in ("extra_datasets", "val_loops"):
+        if isinstance(out.get(key), list):
+            out[key] = [
+                {k: v for k, v in e.items() if k != "dataset"} if isinstance(e, dict) else e
+                for e in out[key]
+            ]
+    return out
+
+
 def _hash_session(h: Any, label: str, sess: Session) -> None:
     """Feed ``label``, the length, the poses (float64) and the floors (int64) of ``sess`` to
     the hash ``h`` (a ``hashlib`` object)."""
@@ -1552,6 +1580,35 @@ class Trainer:
             ]
         return read
 
+    def _check_moved_datasets(self, moved: dict[str, tuple[str, str]], data: str | None) -> None:
+        """On resuming with dataset folders named otherwise than the run's (``moved``: the
+        config key, the run's path and this config's), whose sessions passed the data
+        fingerprint: ``ValueError`` unless the state has that fingerprint and the run's
+        recorded rigs are the training datasets' now; a warning when a folder is another one,
+        not the same one written as another path (as seen from the working directory)."""
+        named = _named_paths(moved)
+        saved = self._saved_record(self.checkpoint_dir)
+        rigs = None if saved is None else saved["runs"][-1].get("rigs")
+        why = None
+        if data is None or not data.startswith("v2:"):
+            why = "its state, written before vvloc 2026-12-06, cannot tell the data is the same"
+        elif rigs is None:
+            why = f"{self.checkpoint_dir} records no rig to compare"
+        elif rigs != self._rigs():
+            why = "the rig (cameras, calibration or image size) differs from the run's"
+        if why is not None:
+            raise ValueError(
+                f"{self._state_path()}: the run in {self.out} was started with other dataset "
+                f"folders ({named}); {why}: name the run's folders or use a new --out directory"
+            )
+        if any(os.path.realpath(a) != os.path.realpath(b) for a, b in moved.values()):
+            log.warning(
+                "resuming the run in %s with other dataset folders (%s): their sessions have "
+                "the run's frames, poses and floors, and the training datasets its rig",
+                self.out,
+                named,
+            )
+
     def data_fingerprint(self) -> str:
         """``"v2:"`` and a SHA-256 over the sessions the run reads (labels, lengths, poses,
         floors; :meth:`_read_sessions`): what the sampler's frame ids and the validation point
@@ -1575,7 +1632,11 @@ class Trainer:
         """Load the last checkpoint and trainer state from ``out_dir``; False if there is none.
 
         The config must equal the run's, except ``stage2_epochs``, which may grow (to extend a
-        run with more joint epochs) while the run has not passed into its head stage."""
+        run with more joint epochs) while the run has not passed into its head stage, how the
+        run is executed (``RESUMABLE_CHANGES``), and where its datasets lie: a dataset folder
+        named otherwise (moved, copied, or written as another path) is taken when the sessions
+        the run reads have the same frames, poses and floors (the data fingerprint) and the
+        training datasets the same rig as the run's."""
         if not self._state_path().is_file():
             return False
         t0 = time.perf_counter()
@@ -1588,6 +1649,9 @@ class Trainer:
         saved_cfg = {**TrainConfig().to_dict(), **state["config"]}
         saved_cfg = {k: v for k, v in saved_cfg.items() if k not in free}
         current = {k: v for k, v in self.cfg.to_dict().items() if k not in free}
+        # where the datasets lie is checked by their contents below
+        saved_paths, current_paths = _dataset_paths(saved_cfg), _dataset_paths(current)
+        saved_cfg, current = _without_dataset_paths(saved_cfg), _without_dataset_paths(current)
         if saved_cfg != current:
             differ = sorted(
                 k for k in set(saved_cfg) | set(current) if saved_cfg.get(k) != current.get(k)
@@ -1638,12 +1702,21 @@ class Trainer:
                 f"init_checkpoint: {self.out}"
             )
         data = state.get("data")
+        moved = {
+            key: (saved_paths[key], current_paths[key])
+            for key in saved_paths
+            if saved_paths[key] != current_paths[key]
+        }
+        named = _named_paths(moved)
         if data is not None and data.startswith("v2:") and data != self.data_fingerprint():
             raise ValueError(
                 f"{self._state_path()}: the training data changed since the run started (the "
-                "frames, poses or floors of a training or validation session differ); the "
-                "sampler's pools would pair other frames: use a new --out directory"
+                "frames, poses or floors of a training or validation session differ"
+                + (f"; this config names other dataset folders, {named}" if moved else "")
+                + "); the sampler's pools would pair other frames: use a new --out directory"
             )
+        if moved:
+            self._check_moved_datasets(moved, data)
         if data is not None and not data.startswith("v2:"):  # a state of before 2026-12-06
             if data != self._legacy_data_fingerprint():
                 raise ValueError(
