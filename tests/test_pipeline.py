@@ -1416,6 +1416,36 @@ def test_trained_on_reads_the_training_record(tmp_path, monkeypatch):
     assert trained_on(ran, tmp_path / "other", ["s1"]) == []
 
 
+def test_trained_on_knows_a_copy_or_a_conversion_of_a_trained_session(tmp_path):
+    """A trained session in another folder: a copy (found by its frames, the run's
+    session_digests) or a `vvloc convert` output that kept fewer frames (found by the folder it
+    was converted from). Both escaped the check, which compared folders alone."""
+    from vvloc.data import Camera, DatasetWriter, convert_dataset
+    from vvloc.localize.evaluation import trained_on
+    from vvloc.provenance import session_digest
+
+    cam = Camera("front", 8, 6, np.array([[4.0, 0, 3.5], [0, 4, 2.5], [0, 0, 1]]), np.eye(4))
+    lot = tmp_path / "lot"
+    with DatasetWriter(lot, [cam]) as w:
+        for name in ("s0", "s1"):
+            s = w.add_session(name)
+            for k in range(4):
+                s.add(k, (float(k), float(name[1:]), 0.0), np.zeros((1, 3, 6, 8), np.uint8))
+    s1 = open_dataset(lot).session("s1")
+    run = {"config": {"dataset": str(lot), "train_sessions": ["s1"]}}
+    recorded = {**run, "session_digests": [session_digest(s1.timestamps, s1.poses, s1.floors)]}
+    copy = tmp_path / "copy"
+    shutil.copytree(lot, copy)
+    assert trained_on({"runs": [run]}, copy, ["s0", "s1"]) == []  # a record of before 2026-12-06
+    assert trained_on({"runs": [recorded]}, copy, ["s0", "s1"]) == ["s1"]
+    thinned = convert_dataset(copy, tmp_path / "thinned", every=2, progress=False)
+    assert trained_on({"runs": [run]}, thinned, ["s0", "s1"]) == []  # converted from the copy
+    again = convert_dataset(lot, tmp_path / "once", every=2, progress=False)
+    twice = convert_dataset(again, tmp_path / "twice", image_size=(4, 3), progress=False)
+    assert trained_on({"runs": [run]}, again, ["s0", "s1"]) == ["s1"]
+    assert trained_on({"runs": [run]}, twice, ["s0", "s1"]) == ["s1"]
+
+
 def _fake_render(root, sessions, lighting=None, **world):
     """rig.json meta and session.json files as ``vvloc sim`` writes them, without images."""
     from dataclasses import asdict

@@ -102,6 +102,14 @@ def test_json_safe_replaces_non_finite_floats_only():
             {"format": "vvloc.training", "version": 1, "runs": [{"rigs": [[_cam(), _cam(w=80)]]}]},
             r"rigs\[0\]: cameras of more than one image size",
         ),
+        (
+            {"format": "vvloc.training", "version": 1, "runs": [{"session_digests": ["0" * 15]}]},
+            r"runs\[0\].session_digests must be a list of 16 hex digits",
+        ),
+        (
+            {"format": "vvloc.training", "version": 1, "runs": [{"session_digests": "ab"}]},
+            r"runs\[0\].session_digests",
+        ),
     ],
 )
 def test_a_malformed_record_is_refused_naming_its_source(record, match):

@@ -1103,7 +1103,7 @@ def _record(path: Path) -> dict:
 
 def test_every_checkpoint_records_the_runs_that_produced_it(tiny_world, tmp_path, monkeypatch):
     from vvloc.data import open_dataset
-    from vvloc.provenance import cpu_model, hardware, libraries, summarize
+    from vvloc.provenance import cpu_model, hardware, libraries, session_digest, summarize
 
     cfg_a = _config(tiny_world, stage1_epochs=1, stage2_epochs=0, device="cpu")
     first = train(cfg_a, tmp_path / "a", progress=False)
@@ -1116,8 +1116,13 @@ def test_every_checkpoint_records_the_runs_that_produced_it(tiny_world, tmp_path
     assert run["config"] == first.cfg.to_dict() and run["out"] == str(tmp_path / "a")
     assert run["cwd"] == os.getcwd()  # what its relative paths are relative to
     # the cameras it trained on, which maps from another rig are checked against
-    cameras = open_dataset(tiny_world).cameras
-    assert run["rigs"] == [[c.to_json() for c in cameras]]
+    ds = open_dataset(tiny_world)
+    assert run["rigs"] == [[c.to_json() for c in ds.cameras]]
+    # the frames of each session it trained on (all three), which eval knows in a copy
+    want = sorted(
+        session_digest(s.timestamps, s.poses, s.floors) for s in map(ds.session, ds.sessions)
+    )
+    assert run["session_digests"] == want and len(set(want)) == 3
     (proc,) = run["processes"]
     assert proc["hardware"] == hardware() and proc["device"] == "cpu"
     assert proc["device_name"] is None and proc["torch_threads"] == torch.get_num_threads()

@@ -23,11 +23,14 @@ A *run* is one ``vvloc train --out DIR`` run, resumed or not::
      "seconds": 4021.3,                   # wall time of the run, s (null: not all measured)
      "processes": [<process>, ...],       # one per process that trained it (resume: several)
      "init_weights_hash": "<hash of the init_checkpoint's weights>" | null,
-     "rigs": [[<camera>, ...], ...]}      # the rigs it trained on: each the cameras in
+     "rigs": [[<camera>, ...], ...],      # the rigs it trained on: each the cameras in
                                           # image order as a rig.json has them
                                           # (Camera.to_json), the dataset's first, then those
                                           # of extra_datasets that differ; absent in records
                                           # written before 2026-12-05
+     "session_digests": ["<16 hex>", ...]}  # session_digest of each session it trained on,
+                                          # in any folder: eval knows them in a copy (absent
+                                          # in records written before 2026-12-06)
 
     <process> = {"hardware": "x86_64, 2 cores", "device": "cpu" | "cuda" (torch's type),
                  "device_name": null | "NVIDIA H200", "torch_threads": 2,
@@ -86,6 +89,7 @@ __all__ = [
     "libraries",
     "read_record",
     "record_json",
+    "session_digest",
     "summarize",
     "validate_record",
     "write_record",
@@ -184,6 +188,29 @@ def _seconds_ok(value: Any) -> bool:
     )
 
 
+def session_digest(timestamps: Any, poses: Any, floors: Any) -> str:
+    """The fingerprint of a session's frames, whatever folder holds them: the first 16 hex
+    digits of a SHA-256 over the frame count, the ``(N,)`` int64 timestamps (µs), the
+    ``(N, 3)`` float64 poses (x, y in m, yaw in rad) and the ``(N,)`` int64 floors. A copy of
+    the session, or a conversion that keeps every frame (resized images), has the same."""
+    import hashlib
+
+    import numpy as np
+
+    ts = np.ascontiguousarray(timestamps, dtype="<i8")
+    h = hashlib.sha256(f"{len(ts)};".encode())
+    h.update(ts.tobytes())
+    h.update(np.ascontiguousarray(poses, dtype="<f8").tobytes())
+    h.update(np.ascontiguousarray(floors, dtype="<i8").tobytes())
+    return h.hexdigest()[:16]
+
+
+def _is_digest(value: Any) -> bool:
+    return (
+        isinstance(value, str) and len(value) == 16 and all(c in "0123456789abcdef" for c in value)
+    )
+
+
 def validate_record(record: Any, source: str) -> dict[str, Any]:
     """``record`` if it is a training record of this format and version (see the module
     docstring), else ``ValueError`` naming ``source`` (a path, for the message)."""
@@ -208,6 +235,11 @@ def validate_record(record: Any, source: str) -> dict[str, Any]:
             raise ValueError(f"{source}: runs[{k}].processes must be a list of objects")
         if not all(_seconds_ok(x.get("seconds")) for x in [run, *procs]):
             raise ValueError(f"{source}: runs[{k}]: 'seconds' must be a number >= 0 or null")
+        digests = run.get("session_digests", [])
+        if not isinstance(digests, list) or not all(_is_digest(d) for d in digests):
+            raise ValueError(
+                f"{source}: runs[{k}].session_digests must be a list of 16 hex digits each"
+            )
         if "rigs" in run:
             from vvloc.data.frame import Camera  # here: vvloc.data loads scipy, the CLI must not
 

@@ -108,6 +108,7 @@ from vvloc.provenance import (
     hardware,
     libraries,
     read_record,
+    session_digest,
     write_record,
 )
 
@@ -1412,6 +1413,8 @@ class Trainer:
             # the rigs the networks met (the dataset's, then other ones of extra datasets): a
             # map from another is warned about (vvloc.localize.localizer.check_training_rig)
             "rigs": self._rigs(),
+            # each trained session's frames: eval knows a copy of one in another folder
+            "session_digests": self._session_digests(),
         }
         if self.joint_stopped is not None:
             run["joint_stopped_early"] = self.joint_stopped
@@ -1426,6 +1429,15 @@ class Trainer:
             if rig not in rigs:
                 rigs.append(rig)
         return rigs
+
+    def _session_digests(self) -> list[str]:
+        """:func:`vvloc.provenance.session_digest` of each session the sampler trains on
+        (sorted, each once)."""
+        digests = {
+            session_digest(s.timestamps, s.poses, s.floors)
+            for s in (src.session(name) for src, name, _ in self.sampler.slots)
+        }
+        return sorted(digests)
 
     def _saved_record(self, folder: Path) -> dict[str, Any] | None:
         """``folder``'s ``training.json`` as this trainer wrote it, or None (with a warning when

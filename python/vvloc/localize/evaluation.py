@@ -14,6 +14,7 @@ import logging
 import os
 import secrets
 import shutil
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -53,7 +54,7 @@ from vvloc.localize.mapdb import MapDatabase
 from vvloc.localize.metric import METRIC_CANDIDATES, RETRIEVAL_WEIGHT, SearchConfig
 from vvloc.nets import VVLocNet
 from vvloc.nets.model import resolve_device
-from vvloc.provenance import cpu_model, hardware, summarize
+from vvloc.provenance import cpu_model, hardware, session_digest, summarize
 
 #: The loop-closure variants with the floor check (vvloc.localize.loops.floor_consensus).
 FLOORS = "floor consensus"
@@ -326,17 +327,24 @@ def trained_on(
     (:mod:`vvloc.provenance`: the checkpoint's ``training.json``) trained on, as their configs'
     ``dataset`` / ``train_sessions`` and ``extra_datasets`` say (a source without
     ``train_sessions`` trained all its sessions). A session counts when the source is this
-    folder (a relative path compared from the working directory, and from the run's own
-    ``cwd`` where the record has it: evaluating from elsewhere finds it too), or when
-    ``vvloc sim`` rendered both:
+    folder or one it was converted from (``vvloc convert``'s ``converted_from`` chain in
+    ``rig.json``, whose session names it keeps; a relative path compared from the working
+    directory, and from the run's own ``cwd`` where the record has it: evaluating from
+    elsewhere finds it too), when its frames are those of a trained session in any folder (a
+    copy: the run's ``session_digests``, recorded since 2026-12-06), or when ``vvloc sim``
+    rendered both:
     the source's ``sim`` section renders this dataset's world (:func:`rendered_world`) and the
     session, by name, is a trained one whose plan (lighting, seed: ``session.json``) it shares.
     Such a session is the same drive through the same world under the same light and cars,
     whatever folder holds it or how many keyframes it has. A record without configs (weights
     of an earlier vvloc) gives none."""
     world = rendered_world(dataset)
+    folders = [os.fspath(dataset), *_converted_from(dataset)]
     trained: set[str] = set()
+    digests: set[str] = set()
     for run in record.get("runs", []) if isinstance(record, dict) else []:
+        if isinstance(run, dict) and isinstance(run.get("session_digests"), list):
+            digests.update(run["session_digests"])
         cfg = run.get("config") if isinstance(run, dict) else None
         if not isinstance(cfg, dict):
             continue
@@ -348,15 +356,54 @@ def trained_on(
         ]
         cwd = run.get("cwd")  # where the run resolved its relative paths (since 2026-12-05)
         for path, names, sim in sources:
-            here = same_folder(path, dataset)
+            here = any(same_folder(path, folder) for folder in folders)
             if not here and isinstance(cwd, str) and isinstance(path, str):
-                here = same_folder(os.path.join(cwd, path), dataset)  # joins only a relative one
+                joined = os.path.join(cwd, path)  # joins only a relative one
+                here = any(same_folder(joined, folder) for folder in folders)
             if here:
                 trained.update(sessions if names is None else names)
             elif world is not None and isinstance(sim, dict) and sim_world(sim) == world:
                 candidates = sessions if names is None else [s for s in sessions if s in names]
                 trained.update(s for s in candidates if _planned_alike(dataset, s, sim))
+    rest = [s for s in sessions if s not in trained]
+    if digests and rest:
+        trained.update(_sessions_with_digests(dataset, rest, digests))
     return [s for s in sessions if s in trained]
+
+
+def _converted_from(dataset: str | os.PathLike[str]) -> list[str]:
+    """The folders ``dataset`` was converted from, nearest first (``rig.json``'s
+    ``meta.converted_from`` and its ``source_converted_from``; none where it has none)."""
+    try:
+        meta = json.loads((Path(dataset) / "rig.json").read_text(encoding="utf-8")).get("meta")
+    except (OSError, ValueError, AttributeError):  # no rig.json, or not a vvloc one
+        return []
+    out: list[str] = []
+    step = meta.get("converted_from") if isinstance(meta, dict) else None
+    while isinstance(step, dict) and isinstance(step.get("path"), str):
+        out.append(step["path"])
+        step = step.get("source_converted_from")
+    return out
+
+
+def _sessions_with_digests(
+    dataset: str | os.PathLike[str], sessions: Sequence[str], digests: set[str]
+) -> list[str]:
+    """Those of ``sessions`` of ``dataset`` whose frames' :func:`session_digest` is among
+    ``digests`` (none where the dataset or a session cannot be read: the caller's own reading
+    says why)."""
+    try:
+        with warnings.catch_warnings():  # the evaluation's own opening warns where due
+            warnings.simplefilter("ignore")
+            ds = open_dataset(dataset)
+            found = []
+            for name in sessions:
+                sess = ds.session(name)
+                if session_digest(sess.timestamps, sess.poses, sess.floors) in digests:
+                    found.append(name)
+        return found
+    except (OSError, ValueError, KeyError, TypeError):
+        return []
 
 
 def _planned_alike(dataset: str | os.PathLike[str], session: str, sim: dict[str, Any]) -> bool:
