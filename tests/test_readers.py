@@ -671,6 +671,51 @@ def test_cli_convert(tmp_path):
     assert not (tmp_path / "f" / "sessions" / DATE / "cam_to_ego.csv").exists()
 
 
+def test_convert_keeps_the_named_cameras_of_a_vvloc_dataset(tmp_path):
+    import subprocess
+    import sys
+
+    from vvloc.data import DatasetWriter
+
+    K = np.array([[4.0, 0, 3.5], [0, 4, 2.5], [0, 0, 1]])
+    rig = [Camera(n, 8, 6, K, np.eye(4)) for n in ("front", "left", "broken")]
+    src = tmp_path / "rig3"
+    with DatasetWriter(src, rig) as w:
+        s = w.add_session("s0")
+        for k in range(3):
+            own = np.stack([np.eye(4)] * 3)
+            own[:, 0, 3] = [0.0, 1.0, 2.0]  # each camera's own extrinsics, told apart by x
+            images = np.stack([np.full((3, 6, 8), 10 * c + k, np.uint8) for c in range(3)])
+            s.add(k, (float(k), 0.0, 0.0), images, cam_to_ego=own)
+    out = convert_dataset(src, tmp_path / "two", cameras=["left", "front"])
+    two = open_dataset(out)
+    assert [c.name for c in two.cameras] == ["left", "front"]
+    frame = two.session("s0")[2]
+    assert frame.images[:, 0, 0, 0].tolist() == [12, 2]  # left's pixels, then front's
+    assert frame.cam_to_ego[:, 0, 3].tolist() == [1.0, 0.0]
+    assert two.meta["converted_from"]["options"] == {"cameras": ["left", "front"]}
+    for cameras, match in (
+        (["back"], r"cameras: \['back'\] not in the source's rig \['front', 'left', 'broken'\]"),
+        (["left", "left"], r"cameras: \['left'\] listed more than once"),
+        ([], "cameras: expected a non-empty list"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            convert_dataset(src, tmp_path / "bad", cameras=cameras)
+    with pytest.raises(TypeError, match="cameras: expected a list"):
+        convert_dataset(src, tmp_path / "bad", cameras="left")
+    assert not (tmp_path / "bad").exists()
+    exe = [sys.executable, "-m", "vvloc.cli", "convert", "--src", str(src)]
+    r = subprocess.run(
+        [*exe, "--out", str(tmp_path / "cli"), "--cameras", "front"], text=True, capture_output=True
+    )
+    assert r.returncode == 0, r.stderr
+    assert [c.name for c in open_dataset(tmp_path / "cli").cameras] == ["front"]
+    r = subprocess.run(
+        [*exe, "--out", str(tmp_path / "cli2"), "--cameras", "rear"], text=True, capture_output=True
+    )
+    assert r.returncode == 2 and "--cameras: ['rear'] not in the source's rig" in r.stderr
+
+
 def test_a_rendered_session_round_trips_through_nclts_raw_layout(tiny_world, tmp_path):
     """Write a rendered session the way NCLT stores its data (sideways TIFFs, Ladybug-frame
     extrinsics as ssc six-vectors in degrees, NED ground truth in radians), read it back with

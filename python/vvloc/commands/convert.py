@@ -86,7 +86,8 @@ def convert(
         typer.Option(
             "--cameras",
             help="Comma-separated cameras in image order (NCLT: 1-5, e.g. 1,2,3,4,5; RobotCar: "
-            "stereo_centre,mono_left,mono_rear,mono_right). Default: the reader's.",
+            "stereo_centre,mono_left,mono_rear,mono_right; a vvloc dataset: names of its "
+            "rig.json cameras, to keep some). Default: the reader's, or all.",
         ),
     ] = None,
     ego_height: Annotated[
@@ -136,10 +137,8 @@ def convert(
                 if not all(n.isdigit() for n in names):
                     _fail(f"--cameras: NCLT cameras are numbers 1-5, got {cameras!r}")
                 options["cameras"] = [int(n) for n in names]
-            elif fmt == "oxford":
+            else:  # RobotCar's names, or a vvloc rig's
                 options["cameras"] = names
-            else:
-                _fail("--cameras applies to NCLT and RobotCar sources only")
         if ego_height is not None:
             if fmt == "vvloc":
                 _fail("--ego_height applies to NCLT and RobotCar sources only")

@@ -119,6 +119,8 @@ def convert_dataset(
         progress: a tqdm progress bar over the written frames.
         **reader_options: passed to the source's reader (e.g. ``ego_height``, ``cameras``,
             ``upright`` for NCLT; ``ego_height``, ``cameras``, ``tolerance_us`` for RobotCar).
+            A vvloc source takes ``cameras`` alone: the names of the rig's cameras to keep,
+            in the written image order (e.g. to leave out a broken camera).
 
     Raises:
         FileExistsError: ``out`` exists and is not empty (without ``overwrite``), before the
@@ -160,8 +162,10 @@ def convert_dataset(
         if "image_size" in options:
             raise TypeError("image_size: give it once, not also as a reader option")
         options["image_size"] = size  # the raw readers resize as they read: one interpolation
+    keep = options.pop("cameras", None) if fmt == "vvloc" else None
     check_dataset_target(out, overwrite)  # before the source is read (slow for raw folders)
     ds = open_dataset(src, format=fmt, **options)
+    picked = None if keep is None else _camera_indices(keep, [c.name for c in ds.cameras])
     names = list(ds.sessions) if sessions is None else list(sessions)
     repeated = sorted({n for n in names if names.count(n) > 1})
     if repeated:
@@ -171,7 +175,7 @@ def convert_dataset(
             ds.session(name)
         except KeyError as e:
             raise KeyError(f"sessions: {e.args[0] if e.args else name}") from None
-    cameras = list(ds.cameras)
+    cameras = list(ds.cameras) if picked is None else [ds.cameras[i] for i in picked]
     if size is not None and (cameras[0].width, cameras[0].height) != size:
         cameras = [c.resized(*size) for c in cameras]
     picks = {}
@@ -222,7 +226,7 @@ def convert_dataset(
                 w = writer.add_session(name, meta=_session_meta(src, fmt, name))
                 for i in picks[name]:
                     f = s[int(i)]
-                    images = f.images
+                    images = f.images if picked is None else f.images[picked]
                     if images.shape[2:] != (cameras[0].height, cameras[0].width):
                         images = np.stack(
                             [
@@ -239,7 +243,9 @@ def convert_dataset(
                         images,
                         z=f.z,
                         floor=f.floor,
-                        cam_to_ego=f.cam_to_ego if own else None,
+                        cam_to_ego=(f.cam_to_ego if picked is None else f.cam_to_ego[picked])
+                        if own
+                        else None,
                     )
                     if bar is not None:
                         bar.update(1)
@@ -247,6 +253,24 @@ def convert_dataset(
         if bar is not None:
             bar.close()
     return Path(out)
+
+
+def _camera_indices(keep: Any, rig: list[str]) -> list[int]:
+    """The indices in ``rig`` (the source's camera names, in image order) of the cameras
+    ``keep`` names, in its order; ``TypeError``/``ValueError`` naming ``cameras`` unless it
+    is a non-empty sequence of the rig's names, each once."""
+    if isinstance(keep, str) or not isinstance(keep, Sequence):
+        raise TypeError(f"cameras: expected a list of camera names of the rig, got {keep!r}")
+    names = list(keep)
+    if not names or not all(isinstance(n, str) for n in names):
+        raise ValueError(f"cameras: expected a non-empty list of camera names, got {keep!r}")
+    unknown = [n for n in names if n not in rig]
+    if unknown:
+        raise ValueError(f"cameras: {unknown} not in the source's rig {rig}")
+    repeated = sorted({n for n in names if names.count(n) > 1})
+    if repeated:
+        raise ValueError(f"cameras: {repeated} listed more than once")
+    return [rig.index(n) for n in names]
 
 
 def _session_meta(src: str | os.PathLike[str], fmt: str, name: str) -> dict[str, Any]:
