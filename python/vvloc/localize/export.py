@@ -359,7 +359,9 @@ def keyframe_csv_text(
     Args:
         ids: (N,) int vertex ids (the map's keyframe ids).
         sessions: N session names; seq: (N,) int sequence numbers within a session.
-        timestamps: (N,) seconds (written with microseconds kept: ``repr`` of the float).
+        timestamps: (N,) seconds (written with microseconds kept: ``repr`` of the float;
+            ``round(t * 1e6)``, not ``int``, gives back the microseconds, as the float is the
+            nearest to them).
         floors: (N,) int storeys; poses: (N, 3) world (x, y, yaw), metres and radians CCW,
             the graph's initial vertex poses.
     """
@@ -372,7 +374,8 @@ def keyframe_csv_text(
     header = _comment_lines(
         [
             "vvloc keyframes: the g2o vertex ids of graph.g2o and loops.csv (i, j), with their "
-            "session, sequence number within it, timestamp (s) and floor",
+            "session, sequence number within it, timestamp (s; round(timestamp * 1e6) is the "
+            "dataset's microseconds) and floor",
             "x, y, yaw: the keyframe's world pose, the graph's initial vertex pose",
             *_FRAME_COMMENTS,
         ]
