@@ -295,6 +295,7 @@ def test_localizer_options_are_checked_up_front(map_file, model_dir, tiny_world,
     frame = open_dataset(tiny_world).session("s1")[2]
     r = loc.localize(frame)
     assert r.accepted == (r.cost < 0.75)
+    assert r.map_floor == int(db.floors[r.map_row])  # the storey the answer puts the query on
     # printing a result gives one line with its answer, not every search hypothesis
     text = repr(r)
     assert "\n" not in text and len(text) < 600, text
@@ -541,7 +542,7 @@ def test_cli_map_localize_loops_end_to_end(tiny_world, model_dir, tmp_path):
     assert len(ts_all) == len(open_dataset(tiny_world).session("s2"))
     text = (tmp_path / "loc" / "queries.csv").read_text()
     assert text.startswith("# vvloc localize")
-    assert text.splitlines()[1].split(",")[-1] == "metric_row"
+    assert text.splitlines()[1].split(",")[-2:] == ["metric_row", "map_floor"]
     # poses.tum holds the accepted localizations only (a trajectory evaluator's input)
     header = text.splitlines()[1].split(",")
     rows = [dict(zip(header, line.split(","), strict=True)) for line in text.splitlines()[2:]]
@@ -571,6 +572,7 @@ def test_cli_map_localize_loops_end_to_end(tiny_world, model_dir, tmp_path):
         header = lines[1].split(",")
         rows = [dict(zip(header, line.split(","), strict=True)) for line in lines[2:]]
         assert rows and all(row["map_row"] == row["metric_row"] for row in rows)
+        assert all(row["map_floor"] == "0" for row in rows)  # the parking lot's one floor
     loops_cli = lambda out, *a: run(  # noqa: E731
         "loops", "--map", str(map_path), "--checkpoint", str(model_dir), "--out", str(out), *a
     )

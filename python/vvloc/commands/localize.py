@@ -155,7 +155,7 @@ def localize(
             HEADER,
             "index,timestamp,map_row,map_id,map_session,relative_x,relative_y,"
             "relative_yaw_deg,global_x,global_y,global_yaw_deg,cost,distinctiveness,accepted,"
-            "metric_row",
+            "metric_row,map_floor",
         ]
         for f, r in zip(frames, results, strict=True):
             rel, g = r.relative_pose, r.global_pose
@@ -176,6 +176,7 @@ def localize(
                     f"{r.distinctiveness:.5f}",
                     int(r.accepted),
                     r.metric_row,
+                    r.map_floor,
                 )
             )
         stages = ("encode", "retrieve", "rerank", "metric")

@@ -445,6 +445,9 @@ class LocalizationResult:
             on the reported keyframes (:func:`vvloc.localize.calibrate.calibrate_localizer`).
         metric_row: the map row the metric pose was estimated against (equals ``map_row``
             unless snapping chose a nearer keyframe; -1 when the map is empty).
+        map_floor: the chosen keyframe's floor, as its session numbers them (the storey the
+            query is on when the answer is right; ``global_pose`` has no height; -1 when the
+            map is empty).
     """
 
     map_row: int
@@ -462,6 +465,7 @@ class LocalizationResult:
     search: kernels.SearchHistory | None = None
     distinctiveness: float = float("nan")
     metric_row: int = -1
+    map_floor: int = -1
 
     def __repr__(self) -> str:
         """One line: the answer, its confidence and the sizes of the arrays (the default
@@ -477,7 +481,8 @@ class LocalizationResult:
         timings = ", ".join(f"{k}={v:.1f}" for k, v in self.timings_ms.items())
         return (
             f"LocalizationResult(map_row={self.map_row}, map_id={self.map_id}, "
-            f"map_session={self.map_session!r}, accepted={self.accepted}, cost={self.cost:.4f}, "
+            f"map_session={self.map_session!r}, map_floor={self.map_floor}, "
+            f"accepted={self.accepted}, cost={self.cost:.4f}, "
             f"distinctiveness={self.distinctiveness:.4f}, "
             f"relative_pose={pose(self.relative_pose)}, global_pose={pose(self.global_pose)}, "
             f"metric_row={self.metric_row}, reranked=[{top}{more}] of {len(self.reranked)}, "
@@ -1004,6 +1009,7 @@ class Localizer:
             search=history,
             distinctiveness=distinct,
             metric_row=matched,
+            map_floor=int(self.map.floors[best]),
         )
 
 
