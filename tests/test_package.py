@@ -106,6 +106,40 @@ def test_the_rust_pool_works_in_forked_children_as_in_the_parent():
         np.testing.assert_array_equal(g, want)
 
 
+def test_a_child_forked_after_the_networks_ran_runs_torch():
+    """A Localizer served from forked workers: torch's OpenMP threads do not survive a fork, and
+    a child's next parallel torch kernel waited for them for ever (GNU OpenMP)."""
+    import signal
+    import time
+
+    import torch
+
+    import vvloc.nets  # noqa: F401 (registers the fork handler, as every network user does)
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        float((torch.rand(4_000_000) * 2).sum())  # a parallel kernel: OpenMP's threads start
+        pid = os.fork()
+        if pid == 0:  # the child: another parallel-sized kernel
+            code = 1
+            try:
+                float((torch.rand(4_000_000) * 2).sum())
+                code = 0 if torch.get_num_threads() == 1 else 3
+            finally:
+                os._exit(code)
+        deadline = time.monotonic() + 60
+        while (done := os.waitpid(pid, os.WNOHANG))[0] == 0 and time.monotonic() < deadline:
+            time.sleep(0.02)
+        if done[0] == 0:
+            os.kill(pid, signal.SIGKILL)
+            os.waitpid(pid, 0)
+            pytest.fail("the forked child hung in torch's OpenMP")
+        assert os.waitstatus_to_exitcode(done[1]) == 0
+    finally:
+        torch.set_num_threads(before)
+
+
 @pytest.mark.parametrize(
     "command",
     [

@@ -207,7 +207,21 @@ def test_the_map_records_its_rig_and_the_localizer_compares_queries_with_it(
     for bad, norm in ((g * 0, "0"), (g * 2, "2"), (g * 1.05, "1.05")):
         with pytest.raises(ValueError, match=rf"^g: expected L2-normalised .* norm {norm}"):
             loc.localize_encoded(bad, lv, bev)
-    loc.map.close()
+    loc.close()
+    # every stage of a closed localizer says so, those answering from memory too (retrieve
+    # did) and before a query is encoded
+    closed = r"^map \S+ is closed"
+    for stage in (
+        lambda: loc.retrieve(g),
+        lambda: loc.rerank(lv, np.array([0])),
+        lambda: loc.metric(bev, 0),
+        lambda: loc.metric_best(bev, np.array([0])),
+        lambda: loc.snap_row(np.zeros(3), np.array([0]), 0),
+        lambda: loc.localize_encoded(g, lv, bev),
+        lambda: loc.localize_batch([]),
+    ):
+        with pytest.raises(ValueError, match=closed):
+            stage()
     with pytest.raises(FileNotFoundError, match=r"^checkpoint: \S*nothing does not exist"):
         Localizer.open(map_file, tmp_path / "nothing")
 

@@ -702,8 +702,12 @@ class Localizer:
             raise
 
     def close(self) -> None:
-        """Close the map (its file, for an opened one). Idempotent."""
+        """Close the map (its file, for an opened one). Idempotent; every stage then raises
+        ``ValueError`` (the descriptors kept in memory included)."""
         self.map.close()
+
+    def _check_open(self) -> None:
+        self.map._check_open()  # the map's own check
 
     def __enter__(self) -> Localizer:
         return self
@@ -760,6 +764,7 @@ class Localizer:
     def retrieve(self, global_desc: F32) -> tuple[npt.NDArray[np.int64], F32]:
         """Top-K map rows (K,) int64 and their L2 descriptor distances (K,) float32, nearest
         first, of one global descriptor (Dg,) (float32, unit length, as the encoder gives)."""
+        self._check_open()
         return self._retrieve(self._encoded("global_desc", global_desc))
 
     def _retrieve(self, global_desc: F32) -> tuple[npt.NDArray[np.int64], F32]:
@@ -771,6 +776,7 @@ class Localizer:
         """Re-rank candidate map ``rows`` (K,) by the yaw matching cost between the query's
         local-view descriptor (T, C) and each candidate's, without padding (interactor batched
         over the candidates, exact yaw minimum in Rust)."""
+        self._check_open()
         return self._rerank(self._encoded("local_desc", local_desc), self._rows(rows))
 
     @torch.no_grad()
@@ -785,6 +791,7 @@ class Localizer:
     def metric(self, bev: F32, row: int) -> tuple[npt.NDArray[np.float64], float, Any]:
         """Metric localization of a query BEV (H, W, C) against map row ``row`` (an int):
         returns (ξ_{m→q} (3,), cost, search history)."""
+        self._check_open()
         row = kernels._positive_int(row, "row", minimum=0)  # an int: 1.7 is not row 1
         rows = self._rows(np.array([row], dtype=np.int64), "row")  # and a row of the map
         _, xi_mq, cost, history, _ = self._metric_best(self._encoded("bev", bev), rows)
@@ -798,6 +805,7 @@ class Localizer:
         row's coarse cost offset by ``bias`` (M,) (None: zeros): returns (index into ``rows``,
         ξ_{m→q} (3,), cost, search history, each row's score (M,): coarse-stage cost + bias,
         the chosen row the first of the lowest)."""
+        self._check_open()
         rows = self._rows(rows)
         if bias is not None:
             bias = evaluate._real_array(bias, "bias", f"({len(rows)},)", 1)
@@ -838,6 +846,7 @@ class Localizer:
     def snap_row(self, global_pose: npt.ArrayLike, rows: npt.NDArray[np.int64], floor: int) -> int:
         """The row among ``rows`` (K,) nearest in x-y (metres, world frame) to ``global_pose``
         (x, y, yaw) on ``floor`` (the first on ties; -1 when none is on that floor)."""
+        self._check_open()
         pose = evaluate._real_array(global_pose, "global_pose", "(3,)", 1, 3)
         if isinstance(floor, bool) or not isinstance(floor, (int, np.integer)):
             raise TypeError(f"floor: expected an int, got {type(floor).__name__}")
@@ -888,6 +897,7 @@ class Localizer:
         are localized with a warning, once per localizer: the model met only its training rig,
         and its poses may be far off. A tilting vehicle's levelled frames and motion-compensated
         cameras (``Session.frame_cam_to_ego``) stay within those bounds."""
+        self._check_open()  # before the frames are encoded
         batch_size = kernels._positive_int(batch_size, "batch_size")
         if isinstance(frames, Frame) or not isinstance(frames, Iterable):
             raise TypeError(
@@ -922,6 +932,7 @@ class Localizer:
         loc (T, C), BEV (H, W, C) (e.g. encoded in a batch on a GPU elsewhere), float32, of
         the map's sizes, finite and within ±:data:`MAX_ENCODED` (``ValueError`` naming the
         argument otherwise)."""
+        self._check_open()
         for name, arr in (("g", g), ("loc", loc), ("bev", bev)):  # shapes first, all three
             want = self._encoded_shape(name)
             if tuple(np.shape(arr)) != want:

@@ -5,6 +5,10 @@ Conventions (BEV (B, H, W, C) channels-last, row i ↔ x forward, column j ↔ y
 from +y towards +x, roll, padding) are those of DESIGN.md §3.
 """
 
+import os
+
+import torch
+
 from vvloc.nets.config import ModelConfig
 from vvloc.nets.decoder import Interactor, LocalViewDecoder
 from vvloc.nets.encoder import BevEncoder, bev_cell_centres, project_points
@@ -29,3 +33,14 @@ __all__ = [
     "project_points",
     "roll_interp",
 ]
+
+
+def _one_torch_thread_after_fork() -> None:
+    """A child forked after torch ran a parallel CPU kernel inherits none of its OpenMP threads,
+    and GNU OpenMP (torch's Linux wheels) waits for them for ever at the child's next parallel
+    kernel: the child runs torch on one thread, as torch's DataLoader workers do."""
+    torch.set_num_threads(1)
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_one_torch_thread_after_fork)
