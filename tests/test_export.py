@@ -469,6 +469,33 @@ def test_keyframe_csv_maps_vertex_ids_to_sessions_and_times() -> None:
         keyframe_csv_text([7.0, 9.0], ["a", "b"], [0, 1], [0.0, 1.0], [0, 0], poses)
 
 
+def test_keyframe_csv_reads_back_what_it_wrote(tmp_path) -> None:
+    from vvloc.localize import read_keyframe_csv
+    from vvloc.localize.export import keyframe_csv_text
+
+    # a timestamp whose float is a hair below its microsecond: int() lost one, round() not
+    us = np.array([1_700_000_001_602_780, 2_500_000])
+    assert int(us[0] * 1e-6 * 1e6) != us[0]  # 1700000001.6027799 s
+    poses = np.array([[1.0, 2.0, -math.pi / 2], [0.5, 0.0, 0.1]])
+    path = tmp_path / "keyframes.csv"
+    path.write_text(keyframe_csv_text([7, 9], ["day,1", "s2"], [0, 4], us * 1e-6, [0, -1], poses))
+    table = read_keyframe_csv(path)
+    assert table.ids.tolist() == [7, 9] and table.sessions == ("day,1", "s2")
+    assert table.seq.tolist() == [0, 4] and table.floors.tolist() == [0, -1]
+    assert table.timestamps_us.tolist() == us.tolist()
+    np.testing.assert_allclose(table.poses, poses, atol=1e-9)
+    rows = path.read_text().splitlines()
+    for bad, match in (
+        ([*rows[:-1], "9,s2,4,2.5,one,0.5,0.0,0.1"], r":\d+: malformed keyframe row: floor"),
+        ([*rows[:-1], "9,s2,4"], r"malformed keyframe row: expected the header's 8 fields"),
+        ([r for r in rows if not r.startswith("id,")], r"the header lacks columns"),
+        (["# nothing"], r"no header line \(columns id, session, seq"),
+    ):
+        path.write_text("\n".join(bad) + "\n")
+        with pytest.raises(ValueError, match=match):
+            read_keyframe_csv(path)
+
+
 def test_a_selection_of_loop_closures_or_candidates_is_checked_and_named():
     from vvloc.localize.loops import LoopCandidates
 

@@ -226,6 +226,27 @@ def test_the_map_records_its_rig_and_the_localizer_compares_queries_with_it(
         Localizer.open(map_file, tmp_path / "nothing")
 
 
+def test_one_localizer_serves_several_threads(tiny_world, map_file, model_dir):
+    """A service shares one Localizer between threads: each answer is the one a call on its
+    own gives (no state of one call leaks into another)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    session = open_dataset(tiny_world).session("s1")
+    frames = [session[i] for i in (2, 9, 17, 30)]
+    with Localizer.open(map_file, model_dir, top_k=3, search=SMALL_SEARCH) as loc:
+        alone = [loc.localize(f) for f in frames]
+        with ThreadPoolExecutor(4) as pool:
+            together = list(pool.map(loc.localize, frames * 2))
+    for got, want in zip(together, alone * 2, strict=True):
+        assert (got.map_row, got.metric_row, got.accepted) == (
+            want.map_row,
+            want.metric_row,
+            want.accepted,
+        )
+        np.testing.assert_array_equal(got.global_pose, want.global_pose)
+        assert got.cost == want.cost
+
+
 def test_a_rig_other_than_the_models_training_rig_is_warned_about_once(
     tiny_world, map_file, model_dir, tmp_path, monkeypatch
 ):

@@ -8,9 +8,11 @@
 
 from vvloc.localize.export import (
     G2OGraph,
+    KeyframeTable,
     LoopClosures,
     information_from_sigmas,
     read_g2o,
+    read_keyframe_csv,
     read_loop_csv,
     read_tum,
     write_g2o,
@@ -30,6 +32,7 @@ from vvloc.localize.metric import MetricResult, SearchConfig, metric_localize
 __all__ = [
     "FORMAT_VERSION",
     "G2OGraph",
+    "KeyframeTable",
     "LoopClosures",
     "MapDatabase",
     "MapError",
@@ -41,6 +44,7 @@ __all__ = [
     "metric_localize",
     "model_config_hash",
     "read_g2o",
+    "read_keyframe_csv",
     "read_loop_csv",
     "read_tum",
     "write_g2o",

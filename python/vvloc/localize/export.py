@@ -36,12 +36,14 @@ __all__ = [
     "DEFAULT_ODOMETRY_SIGMAS",
     "G2O_CONVENTIONS",
     "G2OGraph",
+    "KeyframeTable",
     "LoopClosures",
     "g2o_text",
     "information_from_sigmas",
     "keyframe_csv_text",
     "loop_csv_text",
     "read_g2o",
+    "read_keyframe_csv",
     "read_loop_csv",
     "read_tum",
     "relative_pose",
@@ -418,36 +420,11 @@ def read_loop_csv(path: PathLike) -> LoopClosures:
     ``ValueError`` naming the file, the line and the column.
     """
     p = Path(os.fspath(path))
-    lines = [
-        (n, line)
-        for n, line in enumerate(_text_lines(p, newline=""), start=1)
-        if line.strip() and not line.lstrip().startswith("#")
-    ]
     need = ("i", "j", "x", "y", "yaw", "cost", "accepted")
-    if not lines:
-        raise ValueError(
-            f"{p}: no header line (columns {', '.join(_LOOP_COLUMNS)}): not a vvloc "
-            "loop-closure CSV"
-        )
-    head_line, head = lines[0]
-    try:
-        header = [h.strip() for h in _csv_fields(head)]
-    except ValueError as e:
-        raise ValueError(f"{p}:{head_line}: {e}") from None
-    missing = [c for c in need if c not in header]
-    if missing:
-        raise ValueError(f"{p}:{head_line}: the header lacks columns {missing}, got {header}")
-    repeated = sorted({c for c in need if header.count(c) > 1})
-    if repeated:
-        raise ValueError(f"{p}:{head_line}: the header names columns {repeated} more than once")
-    at = {c: header.index(c) for c in need}
     flags = {"1": True, "0": False, "true": True, "false": False}
     cols: dict[str, list[Any]] = {c: [] for c in need}
-    for lineno, line in lines[1:]:
+    for lineno, fields, at in _csv_table(p, need, _LOOP_COLUMNS, "loop-closure"):
         try:
-            fields = [v.strip() for v in _csv_fields(line)]
-            if len(fields) != len(header):
-                raise ValueError(f"expected the header's {len(header)} fields, got {len(fields)}")
             for c in ("i", "j"):
                 cols[c].append(_int_field(fields[at[c]], c))
             for c in ("x", "y", "yaw", "cost"):
@@ -464,6 +441,104 @@ def read_loop_csv(path: PathLike) -> LoopClosures:
         relative_poses=np.array([cols["x"], cols["y"], cols["yaw"]], np.float64).T.reshape(-1, 3),
         costs=np.array(cols["cost"], np.float64),
         accepted=np.array(cols["accepted"], bool),
+    )
+
+
+def _csv_table(
+    p: Path, need: Sequence[str], columns: Sequence[str], what: str
+) -> Iterable[tuple[int, list[str], dict[str, int]]]:
+    """The rows of the CSV file ``p`` written by one of this module's writers: ``#`` and blank
+    lines skipped, the first other line the header, which must name each of ``need`` once
+    (``columns``: the writer's, for the message); yields ``(line number, fields, column
+    index by name)`` for each row, which has the header's number of fields. ``ValueError``
+    naming the file and line otherwise (``what``: the table, for the message)."""
+    lines = [
+        (n, line)
+        for n, line in enumerate(_text_lines(p, newline=""), start=1)
+        if line.strip() and not line.lstrip().startswith("#")
+    ]
+    if not lines:
+        raise ValueError(
+            f"{p}: no header line (columns {', '.join(columns)}): not a vvloc {what} CSV"
+        )
+    head_line, head = lines[0]
+    try:
+        header = [h.strip() for h in _csv_fields(head)]
+    except ValueError as e:
+        raise ValueError(f"{p}:{head_line}: {e}") from None
+    missing = [c for c in need if c not in header]
+    if missing:
+        raise ValueError(f"{p}:{head_line}: the header lacks columns {missing}, got {header}")
+    repeated = sorted({c for c in need if header.count(c) > 1})
+    if repeated:
+        raise ValueError(f"{p}:{head_line}: the header names columns {repeated} more than once")
+    at = {c: header.index(c) for c in need}
+    for lineno, line in lines[1:]:
+        try:
+            fields = [v.strip() for v in _csv_fields(line)]
+            if len(fields) != len(header):
+                raise ValueError(f"expected the header's {len(header)} fields, got {len(fields)}")
+        except ValueError as e:
+            raise ValueError(f"{p}:{lineno}: malformed {what} row: {e}") from None
+        yield lineno, fields, at
+
+
+@dataclass(frozen=True, eq=False)
+class KeyframeTable:
+    """The keyframes of a pose graph, as ``keyframes.csv`` (:func:`keyframe_csv_text`) lists
+    them: row k describes g2o vertex ``ids[k]``.
+
+    Attributes:
+        ids: (N,) int64 vertex ids (the map's keyframe ids).
+        sessions: N session names.
+        seq: (N,) int64 sequence numbers within their sessions.
+        timestamps: (N,) float64 seconds; :attr:`timestamps_us` the dataset's microseconds.
+        floors: (N,) int64 storeys, as each session numbers them.
+        poses: (N, 3) float64 world poses (x, y in metres, yaw in radians CCW), the graph's
+            initial vertex poses.
+    """
+
+    ids: np.ndarray
+    sessions: tuple[str, ...]
+    seq: np.ndarray
+    timestamps: np.ndarray
+    floors: np.ndarray
+    poses: np.ndarray
+
+    @property
+    def timestamps_us(self) -> np.ndarray:
+        """(N,) int64 microseconds: the timestamps rounded back to the dataset's."""
+        return np.round(self.timestamps * 1e6).astype(np.int64)
+
+
+def read_keyframe_csv(path: PathLike) -> KeyframeTable:
+    """Read a ``keyframes.csv`` written by ``vvloc loops`` (:func:`keyframe_csv_text`).
+
+    ``#`` and blank lines are skipped; the first other line is the header, which must name the
+    columns ``id, session, seq, timestamp, floor, x, y, yaw`` once each (others are ignored);
+    every row has the header's number of fields (a session name holding a comma is quoted).
+    Ids, sequence numbers and floors are integers and the rest finite numbers, as C reads them;
+    anything else raises ``ValueError`` naming the file, the line and the column.
+    """
+    p = Path(os.fspath(path))
+    ints, floats = ("id", "seq", "floor"), ("timestamp", "x", "y", "yaw")
+    cols: dict[str, list[Any]] = {c: [] for c in _KEYFRAME_COLUMNS}
+    for lineno, fields, at in _csv_table(p, _KEYFRAME_COLUMNS, _KEYFRAME_COLUMNS, "keyframe"):
+        try:
+            for c in ints:
+                cols[c].append(_int_field(fields[at[c]], c))
+            for c in floats:
+                cols[c].append(_float_field(fields[at[c]], c))
+            cols["session"].append(fields[at["session"]])
+        except ValueError as e:
+            raise ValueError(f"{p}:{lineno}: malformed keyframe row: {e}") from None
+    return KeyframeTable(
+        ids=np.array(cols["id"], np.int64),
+        sessions=tuple(cols["session"]),
+        seq=np.array(cols["seq"], np.int64),
+        timestamps=np.array(cols["timestamp"], np.float64),
+        floors=np.array(cols["floor"], np.int64),
+        poses=np.array([cols["x"], cols["y"], cols["yaw"]], np.float64).T.reshape(-1, 3),
     )
 
 
