@@ -109,12 +109,10 @@ def test_the_rust_pool_works_in_forked_children_as_in_the_parent():
 def test_a_child_forked_after_the_networks_ran_runs_torch():
     """A Localizer served from forked workers: torch's OpenMP threads do not survive a fork, and
     a child's next parallel torch kernel waited for them for ever (GNU OpenMP)."""
-    import signal
-    import time
-
     import torch
 
     import vvloc.nets  # noqa: F401 (registers the fork handler, as every network user does)
+    from fork_helpers import exit_code_or_hang
 
     before = torch.get_num_threads()
     torch.set_num_threads(2)
@@ -128,14 +126,9 @@ def test_a_child_forked_after_the_networks_ran_runs_torch():
                 code = 0 if torch.get_num_threads() == 1 else 3
             finally:
                 os._exit(code)
-        deadline = time.monotonic() + 60
-        while (done := os.waitpid(pid, os.WNOHANG))[0] == 0 and time.monotonic() < deadline:
-            time.sleep(0.02)
-        if done[0] == 0:
-            os.kill(pid, signal.SIGKILL)
-            os.waitpid(pid, 0)
-            pytest.fail("the forked child hung in torch's OpenMP")
-        assert os.waitstatus_to_exitcode(done[1]) == 0
+        code = exit_code_or_hang(pid)
+        assert code is not None, "the forked child hung in torch's OpenMP"
+        assert code == 0
     finally:
         torch.set_num_threads(before)
 

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import os
-import signal
 import threading
 import time
 import warnings
@@ -16,6 +15,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import vvloc
+from fork_helpers import exit_code_or_hang
 from vvloc import DescriptorIndex, Exclusion
 from vvloc.reference import retrieval as ref
 
@@ -608,15 +608,10 @@ def test_a_fork_waits_for_the_index_calls_under_way():
                 code = 0 if whole else 3
             finally:
                 os._exit(code)
-        deadline = time.monotonic() + 60
-        while (done := os.waitpid(pid, os.WNOHANG))[0] == 0 and time.monotonic() < deadline:
-            time.sleep(0.01)
-        if done[0] == 0:
-            os.kill(pid, signal.SIGKILL)
-            os.waitpid(pid, 0)
-            pytest.fail(f"the child hung (fork {delay} s after the add began)")
+        code = exit_code_or_hang(pid)
         adder.join()
-        assert os.waitstatus_to_exitcode(done[1]) == 0, f"fork {delay} s after the add began"
+        assert code is not None, f"the child hung (fork {delay} s after the add began)"
+        assert code == 0, f"fork {delay} s after the add began"
 
 
 def test_one_and_two_threads_identical():
