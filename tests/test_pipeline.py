@@ -1477,10 +1477,17 @@ def test_trained_on_knows_a_copy_or_a_conversion_of_a_trained_session(tmp_path):
     assert trained_on({"runs": [recorded]}, copy, ["s0", "s1"]) == ["s1"]
     thinned = convert_dataset(copy, tmp_path / "thinned", every=2, progress=False)
     assert trained_on({"runs": [run]}, thinned, ["s0", "s1"]) == []  # converted from the copy
+    assert trained_on({"runs": [recorded]}, thinned, ["s0", "s1"]) == ["s1"]  # the copy's frames
     again = convert_dataset(lot, tmp_path / "once", every=2, progress=False)
     twice = convert_dataset(again, tmp_path / "twice", image_size=(4, 3), progress=False)
     assert trained_on({"runs": [run]}, again, ["s0", "s1"]) == ["s1"]
     assert trained_on({"runs": [run]}, twice, ["s0", "s1"]) == ["s1"]
+    # trained on a conversion: its source and a sibling conversion hold the same drives
+    on_conversion = {"config": {"dataset": str(again), "train_sessions": ["s1"]}}
+    sibling = convert_dataset(lot, tmp_path / "sibling", every=3, progress=False)
+    assert trained_on({"runs": [on_conversion]}, lot, ["s0", "s1"]) == ["s1"]
+    assert trained_on({"runs": [on_conversion]}, sibling, ["s0", "s1"]) == ["s1"]
+    assert trained_on({"runs": [on_conversion]}, copy, ["s0", "s1"]) == []  # no lineage shared
 
 
 def _fake_render(root, sessions, lighting=None, **world):
@@ -1525,6 +1532,15 @@ def test_trained_on_knows_a_trained_session_rendered_again_elsewhere(tmp_path, m
     _fake_render(tmp_path / "day", 3, lighting=["day"])
     for other in ("seed1", "pillars", "tilted", "day"):
         assert trained_on(record, other, ["s1", "s2"]) == [], other
+    # a drive rendered again under other light has the trained drive's frames (its digest):
+    # still held out, the digests are for data vvloc sim did not render
+    import vvloc.localize.evaluation as evaluation
+
+    monkeypatch.setattr(evaluation, "_sessions_with_digests", lambda *a: list(a[1]))
+    digested = {"runs": [{**record["runs"][0], "session_digests": ["0" * 16]}]}
+    assert trained_on(digested, "day", ["s1", "s2"]) == []
+    monkeypatch.undo()
+    monkeypatch.chdir(tmp_path)
     # the garage source trained every session of its world (no train_sessions)
     _fake_render(tmp_path / "walls", 3, scene="garage", floors=2)
     assert trained_on(record, "walls", ["s1", "s2"]) == ["s1", "s2"]

@@ -771,7 +771,7 @@ def loop_closure_curve(
 
     Args:
         pairs: ``(P, 2)`` integer (query index, map index) candidate pairs, each listed once (a
-            pair listed twice would count twice).
+            pair listed twice is refused: it would count twice).
         distances: ``(P,)`` score of each pair, lower is better (descriptor distance, or the
             matching cost after metric verification).
         query_positions, db_positions: ``(Q, 2)`` / ``(N, 2)`` world x, y (m).

@@ -93,7 +93,7 @@ def calibrate(
         check_query_sessions(database, names, "--queries")
         ds = check_sessions(dataset, [("--database", database), *(("--queries", n) for n in names)])
         model = VVLocNet.load(ckpt).to(parse_device(device))
-        seen = trained_on(model.training_record, dataset, names)
+        seen = trained_on(model.training_record, dataset, names, opened=ds)
         if seen:  # as vvloc eval says: a threshold measured on them accepts too much elsewhere
             warnings.warn(
                 f"--queries {seen} of {dataset} were trained on (the checkpoint's training "

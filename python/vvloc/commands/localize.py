@@ -36,7 +36,8 @@ HEADER = (
     "minimum of the re-ranking costs, higher is more confident; accepted = cost < threshold and "
     "distinctiveness >= min_distinctiveness (the model's calibration, or --min_distinctiveness). "
     "map_row = the reported keyframe (snapped: the retrieved one nearest the metric pose); "
-    "metric_row = the keyframe the pose was estimated against."
+    "metric_row = the keyframe the pose was estimated against; map_floor = map_row's floor, as "
+    "its session numbers them (the query's storey when the answer is right)."
 )
 
 

@@ -321,25 +321,34 @@ def _ranked(results: Sequence[LocalizationResult], attr: str, k: int) -> np.ndar
 
 
 def trained_on(
-    record: dict[str, Any], dataset: str | os.PathLike[str], sessions: Sequence[str]
+    record: dict[str, Any],
+    dataset: str | os.PathLike[str],
+    sessions: Sequence[str],
+    *,
+    opened: Any = None,
 ) -> list[str]:
     """Those of ``sessions`` of ``dataset`` that the runs of a training ``record``
     (:mod:`vvloc.provenance`: the checkpoint's ``training.json``) trained on, as their configs'
     ``dataset`` / ``train_sessions`` and ``extra_datasets`` say (a source without
-    ``train_sessions`` trained all its sessions). A session counts when the source is this
-    folder or one it was converted from (``vvloc convert``'s ``converted_from`` chain in
-    ``rig.json``, whose session names it keeps; a relative path compared from the working
-    directory, and from the run's own ``cwd`` where the record has it: evaluating from
-    elsewhere finds it too), when its frames are those of a trained session in any folder (a
-    copy: the run's ``session_digests``, recorded since 2026-12-06), or when ``vvloc sim``
-    rendered both:
-    the source's ``sim`` section renders this dataset's world (:func:`rendered_world`) and the
-    session, by name, is a trained one whose plan (lighting, seed: ``session.json``) it shares.
-    Such a session is the same drive through the same world under the same light and cars,
-    whatever folder holds it or how many keyframes it has. A record without configs (weights
-    of an earlier vvloc) gives none."""
+    ``train_sessions`` trained all its sessions). ``opened``: ``dataset`` as the caller opened
+    it (:func:`vvloc.data.open_dataset`; read again when None, only if needed).
+
+    A session counts, by name, when the source and this dataset are one folder or share one in
+    their lineages: each folder with the folders it was converted from (``vvloc convert``'s
+    ``converted_from`` chain in ``rig.json``; a conversion keeps the session names), so a
+    conversion of a trained folder, its source and a sibling conversion all count (a relative
+    path compared from the working directory, and from the run's own ``cwd`` where the record
+    has it: evaluating from elsewhere finds it too). For data that ``vvloc sim`` rendered, a
+    session counts when the source's ``sim`` section renders this dataset's world
+    (:func:`rendered_world`) and the session, by name, is a trained one whose plan (lighting,
+    seed: ``session.json``) it shares: the same drive through the same world under the same
+    light and cars, whatever folder holds it or how many keyframes it has (the same drive under
+    another light is held out). For other data a session also counts when its frames, in this
+    dataset or a folder of its lineage, are those of a trained session anywhere (a copy: the
+    runs' ``session_digests``, recorded since 2026-12-06). A record without configs (weights of
+    an earlier vvloc) gives none."""
     world = rendered_world(dataset)
-    folders = [os.fspath(dataset), *_converted_from(dataset)]
+    mine = _lineage(dataset)
     trained: set[str] = set()
     digests: set[str] = set()
     for run in record.get("runs", []) if isinstance(record, dict) else []:
@@ -356,29 +365,34 @@ def trained_on(
         ]
         cwd = run.get("cwd")  # where the run resolved its relative paths (since 2026-12-05)
         for path, names, sim in sources:
-            here = any(same_folder(path, folder) for folder in folders)
-            if not here and isinstance(cwd, str) and isinstance(path, str):
-                joined = os.path.join(cwd, path)  # joins only a relative one
-                here = any(same_folder(joined, folder) for folder in folders)
-            if here:
+            if not isinstance(path, str):
+                continue
+            spelt = [path]
+            if isinstance(cwd, str):
+                spelt.append(os.path.join(cwd, path))  # joins only a relative one
+            theirs = [folder for p in spelt for folder in _lineage(p)]
+            if any(same_folder(a, b) for a in theirs for b in mine):
                 trained.update(sessions if names is None else names)
             elif world is not None and isinstance(sim, dict) and sim_world(sim) == world:
                 candidates = sessions if names is None else [s for s in sessions if s in names]
                 trained.update(s for s in candidates if _planned_alike(dataset, s, sim))
     rest = [s for s in sessions if s not in trained]
-    if digests and rest:
-        trained.update(_sessions_with_digests(dataset, rest, digests))
+    if digests and rest and world is None:  # a rendered world's drives repeat under other light
+        for k, folder in enumerate(mine):
+            found = _sessions_with_digests(folder, rest, digests, opened if k == 0 else None)
+            trained.update(found)
+            rest = [s for s in rest if s not in found]
     return [s for s in sessions if s in trained]
 
 
-def _converted_from(dataset: str | os.PathLike[str]) -> list[str]:
-    """The folders ``dataset`` was converted from, nearest first (``rig.json``'s
+def _lineage(dataset: str | os.PathLike[str]) -> list[str]:
+    """``dataset`` and the folders it was converted from, nearest first (``rig.json``'s
     ``meta.converted_from`` and its ``source_converted_from``; none where it has none)."""
+    out = [os.fspath(dataset)]
     try:
         meta = json.loads((Path(dataset) / "rig.json").read_text(encoding="utf-8")).get("meta")
     except (OSError, ValueError, AttributeError):  # no rig.json, or not a vvloc one
-        return []
-    out: list[str] = []
+        return out
     step = meta.get("converted_from") if isinstance(meta, dict) else None
     while isinstance(step, dict) and isinstance(step.get("path"), str):
         out.append(step["path"])
@@ -387,17 +401,20 @@ def _converted_from(dataset: str | os.PathLike[str]) -> list[str]:
 
 
 def _sessions_with_digests(
-    dataset: str | os.PathLike[str], sessions: Sequence[str], digests: set[str]
+    dataset: str | os.PathLike[str], sessions: Sequence[str], digests: set[str], opened: Any
 ) -> list[str]:
-    """Those of ``sessions`` of ``dataset`` whose frames' :func:`session_digest` is among
-    ``digests`` (none where the dataset or a session cannot be read: the caller's own reading
-    says why)."""
+    """Those of ``sessions`` of ``dataset`` (``opened``: the caller's opening of it, or None)
+    whose frames' :func:`session_digest` is among ``digests`` (none where the dataset or a
+    session cannot be read: a source folder may be gone, and the caller's own reading of the
+    evaluated one says why)."""
     try:
         with warnings.catch_warnings():  # the evaluation's own opening warns where due
             warnings.simplefilter("ignore")
-            ds = open_dataset(dataset)
+            ds = opened if opened is not None else open_dataset(dataset)
             found = []
             for name in sessions:
+                if name not in ds.sessions:
+                    continue
                 sess = ds.session(name)
                 if session_digest(sess.timestamps, sess.poses, sess.floors) in digests:
                     found.append(name)
@@ -501,7 +518,7 @@ def run_evaluation(
             raise KeyError(f"{argument}: no session {name!r} in {dataset}; sessions: {ds.sessions}")
         if len(ds.session(name)) == 0:
             raise ValueError(f"{argument}: session {name!r} of {dataset} has no frames")
-    seen = trained_on(model.training_record, dataset, queries)
+    seen = trained_on(model.training_record, dataset, queries, opened=ds)
     if seen:
         log.warning(
             "queries %s of %s were trained on (the checkpoint's training record): their "

@@ -446,8 +446,9 @@ class LocalizationResult:
         metric_row: the map row the metric pose was estimated against (equals ``map_row``
             unless snapping chose a nearer keyframe; -1 when the map is empty).
         map_floor: the chosen keyframe's floor, as its session numbers them (the storey the
-            query is on when the answer is right; ``global_pose`` has no height; -1 when the
-            map is empty).
+            query is on when the answer is right; ``global_pose`` has no height). Meaningless
+            when ``map_row`` is -1 (an empty map; floors may be negative, so -1 there is only
+            a filler).
     """
 
     map_row: int

@@ -119,7 +119,10 @@ impl DescriptorIndex {
     {
         py.detach(|| {
             let _inside = fork::enter();
-            f(&self.read())
+            // a local, dropped before `_inside` (a temporary of the tail expression would be
+            // dropped after it, leaving the gate with the lock still held)
+            let guard = self.read();
+            f(&guard)
         })
     }
 }
