@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 import torch
 import yaml
+from PIL import Image
 
 import vvloc.train
 from vvloc.checkpoints import resolve_checkpoint
@@ -1430,6 +1431,21 @@ def test_resume_takes_the_run_s_dataset_moved_or_named_otherwise(tiny_world, tmp
     with caplog.at_level("WARNING", logger="vvloc.train"):
         assert Trainer(_config(copy, **kw), out).resume()
     assert f"other dataset folders (dataset: {str(world)!r} -> {str(copy)!r})" in caplog.text
+    # the same drives with other images (another light, another recording) are not the run's
+    relit = tmp_path / "relit"
+    shutil.copytree(world, relit)
+    first = sorted((relit / "sessions" / "s0" / "front").iterdir())[0]
+    with Image.open(first) as img:
+        Image.new(img.mode, img.size).save(first)
+    with pytest.raises(ValueError, match=r"other dataset folders .*their images differ"):
+        Trainer(_config(relit, **kw), out).resume()
+    # a state saved before the images were sampled cannot tell
+    state = torch.load(out / "trainer_state.pt", weights_only=False)
+    torch.save({k: v for k, v in state.items() if k != "images"}, out / "trainer_state.pt")
+    with pytest.raises(ValueError, match=r"holds no sample of its images"):
+        Trainer(_config(copy, **kw), out).resume()
+    assert Trainer(_config(world, **kw), out).resume()  # its own folder still resumes
+    torch.save(state, out / "trainer_state.pt")
     # a copy whose rig differs is not the run's data, nor one whose poses differ
     rig = json.loads((copy / "rig.json").read_text())
     rig["cameras"][0]["K"][0][0] *= 1.01
@@ -1443,6 +1459,25 @@ def test_resume_takes_the_run_s_dataset_moved_or_named_otherwise(tiny_world, tmp
     poses.write_text("\n".join([rows[0], ",".join(first), *rows[2:]]) + "\n")
     with pytest.raises(ValueError, match=r"data changed .*names other dataset folders, dataset"):
         Trainer(_config(copy, **kw), out).resume()
+
+
+def test_resume_takes_a_renamed_extra_dataset(tiny_world, tmp_path, caplog):
+    """An extra dataset's sessions are labelled by its folder's name in the data fingerprint:
+    a renamed folder is the run's under its former labels (it read as 'data changed')."""
+    world, twin = tmp_path / "world", tmp_path / "twin"
+    shutil.copytree(tiny_world, world)
+    shutil.copytree(tiny_world, twin)
+    kw = dict(stage1_epochs=2, stage2_epochs=0, steps_per_epoch=2)
+    out = tmp_path / "run"
+    tr = Trainer(_config(world, extra_datasets=[{"dataset": str(twin)}], **kw), out)
+    tr.run_epoch(progress=False)
+    tr.save()
+    renamed = tmp_path / "twin-moved"
+    twin.rename(renamed)
+    with caplog.at_level("WARNING", logger="vvloc.train"):
+        resumed = Trainer(_config(world, extra_datasets=[{"dataset": str(renamed)}], **kw), out)
+        assert resumed.resume() and resumed.epoch == 1
+    assert f"extra_datasets[0].dataset: {str(twin)!r} -> {str(renamed)!r}" in caplog.text
 
 
 def test_resume_fingerprints_only_the_sessions_the_run_reads(tiny_world, tmp_path):

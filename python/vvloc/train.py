@@ -62,7 +62,7 @@ import shutil
 import signal
 import sys
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, NoReturn
@@ -1303,6 +1303,7 @@ class Trainer:
         self.best: dict[str, Any] | None = None  # the validation record of best/, if any
         # the (1-based) last joint epoch when `patience` stopped the joint stage early, else None
         self.joint_stopped: int | None = None
+        self._image_fingerprint: str | None = None  # image_fingerprint(), once computed
         self._unlogged: dict[str, Any] | None = None  # a saved epoch's missing log line
         # the training record's processes (vvloc.provenance): earlier ones (from the trainer
         # state on resume), then this one, whose seconds grow with its set-up and epochs
@@ -1570,6 +1571,8 @@ class Trainer:
             # epoch's weights with this state
             "model": {k: v.detach().cpu().clone() for k, v in self.model.state_dict().items()},
             "data": self.data_fingerprint(),
+            # a sample of the images the run reads: a moved dataset must show the same ones
+            "images": self.image_fingerprint(),
             "best": self.best,
             "joint_stopped": self.joint_stopped,
             "config": self.cfg.to_dict(),
@@ -1578,11 +1581,17 @@ class Trainer:
         with atomic_write(self._state_path(), "wb") as fb:
             torch.save(state, fb)
 
-    def _read_sessions(self) -> list[tuple[str, Session]]:
+    def _read_sessions(self, relabel: Mapping[str, str] | None = None) -> list[tuple[str, Session]]:
         """``(label, session)`` of every session the run reads: the sampler's training
-        sessions (in its order, extra datasets' labelled by their folder), then the validation
-        database and queries, then each ``val_loops`` entry's sessions."""
-        read = [(label, src.session(name)) for src, name, label in self.sampler.slots]
+        sessions (in its order, extra datasets' labelled by their folder: ``relabel`` maps a
+        folder's label prefix now to the one to use, a renamed folder's former), then the
+        validation database and queries, then each ``val_loops`` entry's sessions."""
+        read = []
+        for src, name, label in self.sampler.slots:
+            prefix, _, rest = label.rpartition("/")
+            if prefix and relabel and f"{prefix}/" in relabel:
+                label = relabel[f"{prefix}/"] + rest
+            read.append((label, src.session(name)))
         if self.cfg.val_sessions:
             for name in [self.cfg.val_database, *self.cfg.val_sessions]:
                 read.append((f"val:{name}", self.ds.session(name)))
@@ -1592,18 +1601,27 @@ class Trainer:
             ]
         return read
 
-    def _check_moved_datasets(self, moved: dict[str, tuple[str, str]], data: str | None) -> None:
+    def _check_moved_datasets(
+        self,
+        moved: dict[str, tuple[str, str]],
+        images: str | None,
+        relabel: Mapping[str, str] | None,
+    ) -> None:
         """On resuming with dataset folders named otherwise than the run's (``moved``: the
         config key, the run's path and this config's), whose sessions passed the data
-        fingerprint: ``ValueError`` unless the state has that fingerprint and the run's
-        recorded rigs are the training datasets' now; a warning when a folder is another one,
-        not the same one written as another path (as seen from the working directory)."""
+        fingerprint: ``ValueError`` unless the state's sample of the images (``images``,
+        :meth:`image_fingerprint`) is this data's and the run's recorded rigs are the training
+        datasets' now; a warning when a folder is another one, not the same one written as
+        another path (the run's relative paths taken from where it ran)."""
         named = _named_paths(moved)
         saved = self._saved_record(self.checkpoint_dir)
-        rigs = None if saved is None else saved["runs"][-1].get("rigs")
+        last = {} if saved is None else saved["runs"][-1]
+        rigs = last.get("rigs")
         why = None
-        if data is None or not data.startswith("v2:"):
-            why = "its state, written before vvloc 2026-12-06, cannot tell the data is the same"
+        if images is None:
+            why = "its state, written before vvloc 2026-12-06, holds no sample of its images"
+        elif images != self.image_fingerprint(relabel):
+            why = "their images differ from the run's (first, middle and last frames)"
         elif rigs is None:
             why = f"{self.checkpoint_dir} records no rig to compare"
         elif rigs != self._rigs():
@@ -1613,23 +1631,47 @@ class Trainer:
                 f"{self._state_path()}: the run in {self.out} was started with other dataset "
                 f"folders ({named}); {why}: name the run's folders or use a new --out directory"
             )
-        if any(os.path.realpath(a) != os.path.realpath(b) for a, b in moved.values()):
+        cwd = last.get("cwd")
+        ran = cwd if isinstance(cwd, str) else ""  # where the run resolved its relative paths
+        if any(
+            os.path.realpath(os.path.join(ran, a)) != os.path.realpath(b) for a, b in moved.values()
+        ):
             log.warning(
                 "resuming the run in %s with other dataset folders (%s): their sessions have "
-                "the run's frames, poses and floors, and the training datasets its rig",
+                "the run's poses, floors and (sampled) images, and the training datasets its rig",
                 self.out,
                 named,
             )
 
-    def data_fingerprint(self) -> str:
+    def data_fingerprint(self, relabel: Mapping[str, str] | None = None) -> str:
         """``"v2:"`` and a SHA-256 over the sessions the run reads (labels, lengths, poses,
         floors; :meth:`_read_sessions`): what the sampler's frame ids and the validation point
         into, compared on ``--resume``. A session the run does not read (one added to the
-        dataset folder for another run) leaves it as it was."""
+        dataset folder for another run) leaves it as it was. (The format of saved states,
+        unchanged since 2026-12-06: :func:`vvloc.provenance.session_digest`, which the training
+        record lists, also covers the timestamps, and no folder label.)"""
         h = hashlib.sha256()
-        for label, sess in self._read_sessions():
+        for label, sess in self._read_sessions(relabel):
             _hash_session(h, label, sess)
         return f"v2:{h.hexdigest()}"
+
+    def image_fingerprint(self, relabel: Mapping[str, str] | None = None) -> str:
+        """A SHA-256 over the images of the first, middle and last frame of every session the
+        run reads (with their labels, :meth:`_read_sessions`): on ``--resume`` from dataset
+        folders named otherwise, the same drives with other images (rendered under another
+        light, another camera's recording) are not the run's data. Computed once a trainer."""
+        if relabel is None and self._image_fingerprint is not None:
+            return self._image_fingerprint
+        h = hashlib.sha256()
+        for label, sess in self._read_sessions(relabel):
+            n = len(sess)
+            for i in sorted({0, n // 2, n - 1} if n else set()):
+                h.update(f"{label}:{i};".encode())
+                h.update(np.ascontiguousarray(sess[i].images).tobytes())
+        digest = h.hexdigest()
+        if relabel is None:
+            self._image_fingerprint = digest
+        return digest
 
     def _legacy_data_fingerprint(self) -> str:
         """The fingerprint of trainer states written before 2026-12-06: a SHA-256 over every
@@ -1720,7 +1762,17 @@ class Trainer:
             if saved_paths[key] != current_paths[key]
         }
         named = _named_paths(moved)
-        if data is not None and data.startswith("v2:") and data != self.data_fingerprint():
+        # a renamed extra dataset labels its sessions by its new folder name: the run's labels
+        relabel = {
+            f"{Path(current_paths[key]).name}/": f"{Path(saved_paths[key]).name}/"
+            for key in moved
+            if key.startswith("extra_datasets[")
+        }
+        if (
+            data is not None
+            and data.startswith("v2:")
+            and data != self.data_fingerprint(relabel or None)
+        ):
             raise ValueError(
                 f"{self._state_path()}: the training data changed since the run started (the "
                 "frames, poses or floors of a training or validation session differ"
@@ -1728,7 +1780,7 @@ class Trainer:
                 + "); the sampler's pools would pair other frames: use a new --out directory"
             )
         if moved:
-            self._check_moved_datasets(moved, data)
+            self._check_moved_datasets(moved, state.get("images"), relabel or None)
         if data is not None and not data.startswith("v2:"):  # a state of before 2026-12-06
             if data != self._legacy_data_fingerprint():
                 raise ValueError(

@@ -38,7 +38,9 @@ __all__ = [
 def _one_torch_thread_after_fork() -> None:
     """A child forked after torch ran a parallel CPU kernel inherits none of its OpenMP threads,
     and GNU OpenMP (torch's Linux wheels) waits for them for ever at the child's next parallel
-    kernel: the child runs torch on one thread, as torch's DataLoader workers do."""
+    kernel: every child forked once this module is imported starts with torch on one thread,
+    as torch's DataLoader workers do (whether the parent ran such a kernel cannot be told; a
+    child whose parent ran none may raise it again with ``torch.set_num_threads``)."""
     torch.set_num_threads(1)
 
 
