@@ -577,10 +577,11 @@ class Localizer:
 
     In a service: one localizer may serve several threads at once (its answers are those of
     calls one after the other); a process forked from it starts with torch on one thread
-    (:mod:`vvloc.nets`, README "Threads"); it reads the map file it opened until :meth:`close`, so a map
-    rebuilt with ``vvloc map build --overwrite`` (a new file renamed over the old) is seen by
-    a localizer opened after it; never copy a map over one a process has open. The first call
-    is slower (torch's first allocations): warm up with one query before timing.
+    (:mod:`vvloc.nets`, README "Threads"); it reads the map file it opened until
+    :meth:`close`, so a map rebuilt with ``vvloc map build --overwrite`` (a new file renamed
+    over the old) is seen by a localizer opened after it; never copy a map over one a process
+    has open. The first call is slower (torch's first allocations): warm up with one query
+    before timing.
     """
 
     def __init__(
