@@ -1459,7 +1459,7 @@ def test_trained_on_knows_a_copy_or_a_conversion_of_a_trained_session(tmp_path):
     was converted from). Both escaped the check, which compared folders alone."""
     from vvloc.data import Camera, DatasetWriter, convert_dataset
     from vvloc.localize.evaluation import trained_on
-    from vvloc.provenance import session_digest
+    from vvloc.provenance import rendered_plan, session_digest
 
     cam = Camera("front", 8, 6, np.array([[4.0, 0, 3.5], [0, 4, 2.5], [0, 0, 1]]), np.eye(4))
     lot = tmp_path / "lot"
@@ -1488,6 +1488,28 @@ def test_trained_on_knows_a_copy_or_a_conversion_of_a_trained_session(tmp_path):
     assert trained_on({"runs": [on_conversion]}, lot, ["s0", "s1"]) == ["s1"]
     assert trained_on({"runs": [on_conversion]}, sibling, ["s0", "s1"]) == ["s1"]
     assert trained_on({"runs": [on_conversion]}, copy, ["s0", "s1"]) == []  # no lineage shared
+    # a run on a conversion of some sessions, without train_sessions, trained those alone:
+    # another conversion of the same source (the test dates of one raw folder) is held out
+    train_part = convert_dataset(lot, tmp_path / "train-part", sessions=["s1"], progress=False)
+    test_part = convert_dataset(lot, tmp_path / "test-part", sessions=["s0"], progress=False)
+    on_part = {"config": {"dataset": str(train_part)}}
+    assert trained_on({"runs": [on_part]}, test_part, ["s0"]) == []
+    assert trained_on({"runs": [on_part]}, lot, ["s0", "s1"]) == ["s1"]
+    # a rendered session's digest holds its plan: the same drive under another light differs
+    for folder, lighting in ((lot, "day"), (copy, "day"), (tmp_path / "relit", "night")):
+        if not folder.exists():
+            shutil.copytree(lot, folder)
+        plan = json.dumps({"lighting": lighting, "seed": 7})
+        (folder / "sessions" / "s1" / "session.json").write_text(plan)
+    planned = {
+        **run,
+        "session_digests": [
+            session_digest(s1.timestamps, s1.poses, s1.floors, {"lighting": "day", "seed": 7})
+        ],
+    }
+    assert rendered_plan(lot, "s1") == {"lighting": "day", "seed": 7}
+    assert trained_on({"runs": [planned]}, copy, ["s1"]) == ["s1"]
+    assert trained_on({"runs": [planned]}, tmp_path / "relit", ["s1"]) == []
 
 
 def _fake_render(root, sessions, lighting=None, **world):
@@ -1532,15 +1554,6 @@ def test_trained_on_knows_a_trained_session_rendered_again_elsewhere(tmp_path, m
     _fake_render(tmp_path / "day", 3, lighting=["day"])
     for other in ("seed1", "pillars", "tilted", "day"):
         assert trained_on(record, other, ["s1", "s2"]) == [], other
-    # a drive rendered again under other light has the trained drive's frames (its digest):
-    # still held out, the digests are for data vvloc sim did not render
-    import vvloc.localize.evaluation as evaluation
-
-    monkeypatch.setattr(evaluation, "_sessions_with_digests", lambda *a: list(a[1]))
-    digested = {"runs": [{**record["runs"][0], "session_digests": ["0" * 16]}]}
-    assert trained_on(digested, "day", ["s1", "s2"]) == []
-    monkeypatch.undo()
-    monkeypatch.chdir(tmp_path)
     # the garage source trained every session of its world (no train_sessions)
     _fake_render(tmp_path / "walls", 3, scene="garage", floors=2)
     assert trained_on(record, "walls", ["s1", "s2"]) == ["s1", "s2"]

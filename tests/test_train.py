@@ -1104,7 +1104,14 @@ def _record(path: Path) -> dict:
 
 def test_every_checkpoint_records_the_runs_that_produced_it(tiny_world, tmp_path, monkeypatch):
     from vvloc.data import open_dataset
-    from vvloc.provenance import cpu_model, hardware, libraries, session_digest, summarize
+    from vvloc.provenance import (
+        cpu_model,
+        hardware,
+        libraries,
+        rendered_plan,
+        session_digest,
+        summarize,
+    )
 
     cfg_a = _config(tiny_world, stage1_epochs=1, stage2_epochs=0, device="cpu")
     first = train(cfg_a, tmp_path / "a", progress=False)
@@ -1121,7 +1128,8 @@ def test_every_checkpoint_records_the_runs_that_produced_it(tiny_world, tmp_path
     assert run["rigs"] == [[c.to_json() for c in ds.cameras]]
     # the frames of each session it trained on (all three), which eval knows in a copy
     want = sorted(
-        session_digest(s.timestamps, s.poses, s.floors) for s in map(ds.session, ds.sessions)
+        session_digest(s.timestamps, s.poses, s.floors, rendered_plan(tiny_world, name))
+        for name, s in zip(ds.sessions, map(ds.session, ds.sessions), strict=True)
     )
     assert run["session_digests"] == want and len(set(want)) == 3
     (proc,) = run["processes"]
@@ -1442,7 +1450,7 @@ def test_resume_takes_the_run_s_dataset_moved_or_named_otherwise(tiny_world, tmp
     # a state saved before the images were sampled cannot tell
     state = torch.load(out / "trainer_state.pt", weights_only=False)
     torch.save({k: v for k, v in state.items() if k != "images"}, out / "trainer_state.pt")
-    with pytest.raises(ValueError, match=r"holds no sample of its images"):
+    with pytest.raises(ValueError, match=r"before the trainer sampled the images it reads"):
         Trainer(_config(copy, **kw), out).resume()
     assert Trainer(_config(world, **kw), out).resume()  # its own folder still resumes
     torch.save(state, out / "trainer_state.pt")

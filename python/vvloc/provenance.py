@@ -89,6 +89,7 @@ __all__ = [
     "libraries",
     "read_record",
     "record_json",
+    "rendered_plan",
     "session_digest",
     "summarize",
     "validate_record",
@@ -188,11 +189,13 @@ def _seconds_ok(value: Any) -> bool:
     )
 
 
-def session_digest(timestamps: Any, poses: Any, floors: Any) -> str:
+def session_digest(timestamps: Any, poses: Any, floors: Any, plan: Any = None) -> str:
     """The fingerprint of a session's frames, whatever folder holds them: the first 16 hex
     digits of a SHA-256 over the frame count, the ``(N,)`` int64 timestamps (µs), the
-    ``(N, 3)`` float64 poses (x, y in m, yaw in rad) and the ``(N,)`` int64 floors. A copy of
-    the session, or a conversion that keeps every frame (resized images), has the same."""
+    ``(N, 3)`` float64 poses (x, y in m, yaw in rad), the ``(N,)`` int64 floors and, for a
+    session ``vvloc sim`` rendered, its ``plan`` (:func:`rendered_plan`: the same drive under
+    another light is another session). A copy of the session, or a conversion that keeps every
+    frame (resized images), has the same."""
     import hashlib
 
     import numpy as np
@@ -202,7 +205,22 @@ def session_digest(timestamps: Any, poses: Any, floors: Any) -> str:
     h.update(ts.tobytes())
     h.update(np.ascontiguousarray(poses, dtype="<f8").tobytes())
     h.update(np.ascontiguousarray(floors, dtype="<i8").tobytes())
+    if plan is not None:
+        h.update(json.dumps(plan, sort_keys=True).encode())
     return h.hexdigest()[:16]
+
+
+def rendered_plan(root: str | os.PathLike[str], session: str) -> dict[str, Any] | None:
+    """The lighting and seed ``vvloc sim`` rendered ``session`` of the dataset ``root`` with
+    (its ``session.json``, which ``vvloc convert`` keeps), or None for a session without them
+    (data of one's own)."""
+    try:
+        meta = json.loads((Path(root) / "sessions" / session / "session.json").read_text())
+    except (OSError, ValueError):
+        return None
+    if not isinstance(meta, dict) or "lighting" not in meta or "seed" not in meta:
+        return None
+    return {"lighting": meta["lighting"], "seed": meta["seed"]}
 
 
 def _is_digest(value: Any) -> bool:

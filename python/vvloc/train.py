@@ -108,6 +108,7 @@ from vvloc.provenance import (
     hardware,
     libraries,
     read_record,
+    rendered_plan,
     session_digest,
     write_record,
 )
@@ -1434,10 +1435,11 @@ class Trainer:
     def _session_digests(self) -> list[str]:
         """:func:`vvloc.provenance.session_digest` of each session the sampler trains on
         (sorted, each once)."""
-        digests = {
-            session_digest(s.timestamps, s.poses, s.floors)
-            for s in (src.session(name) for src, name, _ in self.sampler.slots)
-        }
+        digests = set()
+        for src, name, _ in self.sampler.slots:
+            s = src.session(name)
+            plan = rendered_plan(src.root, name)
+            digests.add(session_digest(s.timestamps, s.poses, s.floors, plan))
         return sorted(digests)
 
     def _saved_record(self, folder: Path) -> dict[str, Any] | None:
@@ -1581,16 +1583,16 @@ class Trainer:
         with atomic_write(self._state_path(), "wb") as fb:
             torch.save(state, fb)
 
-    def _read_sessions(self, relabel: Mapping[str, str] | None = None) -> list[tuple[str, Session]]:
+    def _read_sessions(self, relabel: Mapping[int, str] | None = None) -> list[tuple[str, Session]]:
         """``(label, session)`` of every session the run reads: the sampler's training
-        sessions (in its order, extra datasets' labelled by their folder: ``relabel`` maps a
-        folder's label prefix now to the one to use, a renamed folder's former), then the
+        sessions (in its order, extra datasets' labelled by their folder's name: ``relabel``
+        maps an extra dataset's index to the name to use, a renamed folder's former), then the
         validation database and queries, then each ``val_loops`` entry's sessions."""
         read = []
         for src, name, label in self.sampler.slots:
-            prefix, _, rest = label.rpartition("/")
-            if prefix and relabel and f"{prefix}/" in relabel:
-                label = relabel[f"{prefix}/"] + rest
+            k = next(i for i, ds in enumerate(self._datasets) if ds is src) - 1  # -1: primary
+            if relabel and k in relabel:
+                label = f"{relabel[k]}/{name}"
             read.append((label, src.session(name)))
         if self.cfg.val_sessions:
             for name in [self.cfg.val_database, *self.cfg.val_sessions]:
@@ -1605,7 +1607,7 @@ class Trainer:
         self,
         moved: dict[str, tuple[str, str]],
         images: str | None,
-        relabel: Mapping[str, str] | None,
+        relabel: Mapping[int, str] | None,
     ) -> None:
         """On resuming with dataset folders named otherwise than the run's (``moved``: the
         config key, the run's path and this config's), whose sessions passed the data
@@ -1619,7 +1621,10 @@ class Trainer:
         rigs = last.get("rigs")
         why = None
         if images is None:
-            why = "its state, written before vvloc 2026-12-06, holds no sample of its images"
+            why = (
+                "its state, written before the trainer sampled the images it reads (2026-12-06), "
+                "holds none to compare"
+            )
         elif images != self.image_fingerprint(relabel):
             why = "their images differ from the run's (first, middle and last frames)"
         elif rigs is None:
@@ -1643,7 +1648,7 @@ class Trainer:
                 named,
             )
 
-    def data_fingerprint(self, relabel: Mapping[str, str] | None = None) -> str:
+    def data_fingerprint(self, relabel: Mapping[int, str] | None = None) -> str:
         """``"v2:"`` and a SHA-256 over the sessions the run reads (labels, lengths, poses,
         floors; :meth:`_read_sessions`): what the sampler's frame ids and the validation point
         into, compared on ``--resume``. A session the run does not read (one added to the
@@ -1655,7 +1660,7 @@ class Trainer:
             _hash_session(h, label, sess)
         return f"v2:{h.hexdigest()}"
 
-    def image_fingerprint(self, relabel: Mapping[str, str] | None = None) -> str:
+    def image_fingerprint(self, relabel: Mapping[int, str] | None = None) -> str:
         """A SHA-256 over the images of the first, middle and last frame of every session the
         run reads (with their labels, :meth:`_read_sessions`): on ``--resume`` from dataset
         folders named otherwise, the same drives with other images (rendered under another
@@ -1689,8 +1694,9 @@ class Trainer:
         run with more joint epochs) while the run has not passed into its head stage, how the
         run is executed (``RESUMABLE_CHANGES``), and where its datasets lie: a dataset folder
         named otherwise (moved, copied, or written as another path) is taken when the sessions
-        the run reads have the same frames, poses and floors (the data fingerprint) and the
-        training datasets the same rig as the run's."""
+        the run reads have the same frames, poses and floors (the data fingerprint), the same
+        images at the sampled frames (:meth:`image_fingerprint`) and the training datasets the
+        same rig as the run's."""
         if not self._state_path().is_file():
             return False
         t0 = time.perf_counter()
@@ -1764,9 +1770,9 @@ class Trainer:
         named = _named_paths(moved)
         # a renamed extra dataset labels its sessions by its new folder name: the run's labels
         relabel = {
-            f"{Path(current_paths[key]).name}/": f"{Path(saved_paths[key]).name}/"
-            for key in moved
-            if key.startswith("extra_datasets[")
+            k: Path(saved_paths[key]).name
+            for k in range(len(self.cfg.extra_datasets))
+            if (key := f"extra_datasets[{k}].dataset") in moved
         }
         if (
             data is not None

@@ -54,7 +54,7 @@ from vvloc.localize.mapdb import MapDatabase
 from vvloc.localize.metric import METRIC_CANDIDATES, RETRIEVAL_WEIGHT, SearchConfig
 from vvloc.nets import VVLocNet
 from vvloc.nets.model import resolve_device
-from vvloc.provenance import cpu_model, hardware, session_digest, summarize
+from vvloc.provenance import cpu_model, hardware, rendered_plan, session_digest, summarize
 
 #: The loop-closure variants with the floor check (vvloc.localize.loops.floor_consensus).
 FLOORS = "floor consensus"
@@ -338,17 +338,20 @@ def trained_on(
     ``converted_from`` chain in ``rig.json``; a conversion keeps the session names), so a
     conversion of a trained folder, its source and a sibling conversion all count (a relative
     path compared from the working directory, and from the run's own ``cwd`` where the record
-    has it: evaluating from elsewhere finds it too). For data that ``vvloc sim`` rendered, a
-    session counts when the source's ``sim`` section renders this dataset's world
+    has it: evaluating from elsewhere finds it too). A source without ``train_sessions`` that
+    is not in this dataset's lineage (its source, or a sibling) trained the sessions its own
+    folder holds, not every session of the shared source. For data that ``vvloc sim``
+    rendered, a session counts when the source's ``sim`` section renders this dataset's world
     (:func:`rendered_world`) and the session, by name, is a trained one whose plan (lighting,
     seed: ``session.json``) it shares: the same drive through the same world under the same
-    light and cars, whatever folder holds it or how many keyframes it has (the same drive under
-    another light is held out). For other data a session also counts when its frames, in this
-    dataset or a folder of its lineage, are those of a trained session anywhere (a copy: the
-    runs' ``session_digests``, recorded since 2026-12-06). A record without configs (weights of
-    an earlier vvloc) gives none."""
+    light and cars, whatever folder holds it or how many keyframes it has. A session also
+    counts when its frames (and a rendered session's plan), in this dataset or a vvloc folder
+    of its lineage, are those of a trained session anywhere (a copy: the runs'
+    ``session_digests``, recorded since 2026-12-06). A record without configs (weights of an
+    earlier vvloc) gives none."""
     world = rendered_world(dataset)
-    mine = _lineage(dataset)
+    lineage = _lineage(dataset)
+    mine = [folder for folder, _ in lineage]
     trained: set[str] = set()
     digests: set[str] = set()
     for run in record.get("runs", []) if isinstance(record, dict) else []:
@@ -370,34 +373,49 @@ def trained_on(
             spelt = [path]
             if isinstance(cwd, str):
                 spelt.append(os.path.join(cwd, path))  # joins only a relative one
-            theirs = [folder for p in spelt for folder in _lineage(p)]
-            if any(same_folder(a, b) for a in theirs for b in mine):
+            theirs = [folder for p in spelt for folder, _ in _lineage(p)]
+            if any(same_folder(a, b) for a in spelt for b in mine):  # this dataset, or its source
                 trained.update(sessions if names is None else names)
+            elif any(same_folder(a, b) for a in theirs for b in mine):  # a shared source
+                trained.update(names if names is not None else _folder_sessions(spelt))
             elif world is not None and isinstance(sim, dict) and sim_world(sim) == world:
                 candidates = sessions if names is None else [s for s in sessions if s in names]
                 trained.update(s for s in candidates if _planned_alike(dataset, s, sim))
     rest = [s for s in sessions if s not in trained]
-    if digests and rest and world is None:  # a rendered world's drives repeat under other light
-        for k, folder in enumerate(mine):
+    if digests and rest:
+        for k, (folder, fmt) in enumerate(lineage):
+            if k and fmt != "vvloc":  # a raw source: slow to open, and read another way
+                continue
             found = _sessions_with_digests(folder, rest, digests, opened if k == 0 else None)
             trained.update(found)
             rest = [s for s in rest if s not in found]
     return [s for s in sessions if s in trained]
 
 
-def _lineage(dataset: str | os.PathLike[str]) -> list[str]:
-    """``dataset`` and the folders it was converted from, nearest first (``rig.json``'s
-    ``meta.converted_from`` and its ``source_converted_from``; none where it has none)."""
-    out = [os.fspath(dataset)]
+def _lineage(dataset: str | os.PathLike[str]) -> list[tuple[str, str | None]]:
+    """``dataset`` and the folders it was converted from, nearest first, each with its format
+    as the conversion recorded it (None for ``dataset`` itself): ``rig.json``'s
+    ``meta.converted_from`` and its ``source_converted_from``."""
+    out: list[tuple[str, str | None]] = [(os.fspath(dataset), None)]
     try:
         meta = json.loads((Path(dataset) / "rig.json").read_text(encoding="utf-8")).get("meta")
     except (OSError, ValueError, AttributeError):  # no rig.json, or not a vvloc one
         return out
     step = meta.get("converted_from") if isinstance(meta, dict) else None
     while isinstance(step, dict) and isinstance(step.get("path"), str):
-        out.append(step["path"])
+        fmt = step.get("format")
+        out.append((step["path"], fmt if isinstance(fmt, str) else None))
         step = step.get("source_converted_from")
     return out
+
+
+def _folder_sessions(spelt: Sequence[str]) -> list[str]:
+    """The sessions of the first of ``spelt`` (one folder's spellings) that holds a vvloc
+    ``sessions/`` folder; none when it is gone."""
+    for path in spelt:
+        with contextlib.suppress(OSError):
+            return sorted(p.name for p in (Path(path) / "sessions").iterdir() if p.is_dir())
+    return []
 
 
 def _sessions_with_digests(
@@ -416,7 +434,8 @@ def _sessions_with_digests(
                 if name not in ds.sessions:
                     continue
                 sess = ds.session(name)
-                if session_digest(sess.timestamps, sess.poses, sess.floors) in digests:
+                plan = rendered_plan(dataset, name)
+                if session_digest(sess.timestamps, sess.poses, sess.floors, plan) in digests:
                     found.append(name)
         return found
     except (OSError, ValueError, KeyError, TypeError):
