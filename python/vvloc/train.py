@@ -1305,6 +1305,7 @@ class Trainer:
         # the (1-based) last joint epoch when `patience` stopped the joint stage early, else None
         self.joint_stopped: int | None = None
         self._image_fingerprint: str | None = None  # image_fingerprint(), once computed
+        self._digests: list[str] | None = None  # _session_digests(), once computed
         self._unlogged: dict[str, Any] | None = None  # a saved epoch's missing log line
         # the training record's processes (vvloc.provenance): earlier ones (from the trainer
         # state on resume), then this one, whose seconds grow with its set-up and epochs
@@ -1434,13 +1435,15 @@ class Trainer:
 
     def _session_digests(self) -> list[str]:
         """:func:`vvloc.provenance.session_digest` of each session the sampler trains on
-        (sorted, each once)."""
-        digests = set()
-        for src, name, _ in self.sampler.slots:
-            s = src.session(name)
-            plan = rendered_plan(src.root, name)
-            digests.add(session_digest(s.timestamps, s.poses, s.floors, plan))
-        return sorted(digests)
+        (sorted, each once). Computed once a trainer: every epoch's record lists them."""
+        if self._digests is None:
+            digests = set()
+            for src, name, _ in self.sampler.slots:
+                s = src.session(name)
+                plan = rendered_plan(src.root, name)
+                digests.add(session_digest(s.timestamps, s.poses, s.floors, plan))
+            self._digests = sorted(digests)
+        return self._digests
 
     def _saved_record(self, folder: Path) -> dict[str, Any] | None:
         """``folder``'s ``training.json`` as this trainer wrote it, or None (with a warning when
@@ -1589,10 +1592,10 @@ class Trainer:
         maps an extra dataset's index to the name to use, a renamed folder's former), then the
         validation database and queries, then each ``val_loops`` entry's sessions."""
         read = []
+        extra_index = {id(ds): i - 1 for i, ds in enumerate(self._datasets)}  # primary: -1
         for src, name, label in self.sampler.slots:
-            k = next(i for i, ds in enumerate(self._datasets) if ds is src) - 1  # -1: primary
-            if relabel and k in relabel:
-                label = f"{relabel[k]}/{name}"
+            if relabel and extra_index[id(src)] in relabel:
+                label = f"{relabel[extra_index[id(src)]]}/{name}"
             read.append((label, src.session(name)))
         if self.cfg.val_sessions:
             for name in [self.cfg.val_database, *self.cfg.val_sessions]:
