@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import re
 import warnings
 
@@ -327,6 +328,21 @@ def test_writer_leaves_nothing_behind_on_error(tmp_path):
             s.add(5, (0, 0, 0), np.zeros((4, 3, H, W), np.uint8))
     with pytest.raises(FileExistsError):
         DatasetWriter(tmp_path / "ds", cams)
+
+
+def test_session_names_with_control_characters_are_refused(tmp_path):
+    # a line break in a session name split the rows of the CSV files that name sessions
+    # (queries.csv, keyframes.csv): refused when writing and when reading a dataset
+    cams = make_rig(4, W, H)
+    with DatasetWriter(tmp_path / "ds", cams) as w:
+        for bad in ("day\n1", "a\tb", "x\x85"):
+            with pytest.raises(ValueError, match=r"^name: expected a new plain session name"):
+                w.add_session(bad)
+        w.add_session("s0").add(1, (0, 0, 0), np.zeros((4, 3, H, W), np.uint8))
+    open_dataset(tmp_path / "ds")
+    os.rename(tmp_path / "ds" / "sessions" / "s0", tmp_path / "ds" / "sessions" / "s\n0")
+    with pytest.raises(DatasetFormatError, match="a session folder name with a control character"):
+        open_dataset(tmp_path / "ds")
 
 
 def _dead_pid() -> int:

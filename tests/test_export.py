@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 import itertools
 import math
 import os
@@ -450,6 +451,11 @@ def test_csv_rows_quote_fields_that_hold_commas() -> None:
     line = csv_row(3, "day,1", 'say "hi"', 0.5)
     assert line == '3,"day,1","say ""hi""",0.5'
     assert next(csv.reader([line])) == ["3", "day,1", 'say "hi"', "0.5"]
+    # a line break in a field is quoted too (it was written bare, splitting the row), and no
+    # line end is added
+    line = csv_row("s0", "day\n1", "a\rb", 3)
+    assert line == 's0,"day\n1","a\rb",3'
+    assert next(csv.reader(io.StringIO(line, newline=""))) == ["s0", "day\n1", "a\rb", "3"]
 
 
 def test_keyframe_csv_maps_vertex_ids_to_sessions_and_times() -> None:

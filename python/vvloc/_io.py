@@ -64,11 +64,13 @@ def check_readable_file(path: str | os.PathLike[str]) -> None:
 
 def csv_row(*fields: object) -> str:
     """One CSV line (no line end) of ``fields`` as ``str()`` gives them; a field holding a
-    comma, a double quote or a line break is quoted (RFC 4180), so that a session named
-    ``day,1`` keeps its column."""
+    comma, a double quote or a line break (``\n`` or ``\r``) is quoted (RFC 4180), so that a
+    session named ``day,1`` keeps its column."""
     buf = io.StringIO()
-    csv.writer(buf, lineterminator="").writerow(fields)
-    return buf.getvalue()
+    # the writer quotes a field holding a character of its line terminator, so the terminator
+    # must hold both line-break characters; it is cut off again below
+    csv.writer(buf, lineterminator="\r\n").writerow(fields)
+    return buf.getvalue().removesuffix("\r\n")
 
 
 def list_entries(names: list[str], limit: int = 5) -> str:

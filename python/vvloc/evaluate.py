@@ -445,7 +445,8 @@ def relative_pose_errors(
 
     Both inputs are ``(P, 3)`` relative poses in the source frame (DESIGN.md §3; build the ground
     truth with :func:`vvloc.geometry.relative`). RRE = ``|wrap(φ_est − φ_gt)|`` in degrees,
-    RTE = ``‖t_est − t_gt‖`` in metres (both translations in source coordinates).
+    RTE = ``‖t_est − t_gt‖`` in metres (both translations in source coordinates). Returns
+    (RRE (P,), RTE (P,)), float64.
     """
     return pose_errors(estimated, ground_truth)
 

@@ -525,9 +525,12 @@ def estimate_yaw(src: Any, tgt: Any, *, backend: Backend = "rust") -> YawEstimat
 def rerank(src: Any, tgt: Any, *, backend: Backend = "rust") -> Rerank:
     """Re-rank K candidates by matching cost (exact yaw minimum, no padding).
 
-    ``src`` (K, T, C) candidate descriptors, ``tgt`` (K, T, C) or (T, C) broadcast query.
-    Returns :class:`Rerank` (order by cost ascending, ties by lower index; cost, yaw, shift in
-    input order).
+    ``src`` (K, T, C) the K pairs' source local-view descriptors, ``tgt`` (K, T, C) their
+    targets, or (T, C) one target shared by all. Returns :class:`Rerank` (order by cost
+    ascending, ties by lower index; cost, yaw, shift in input order), each pair's yaw that of
+    its target relative to its source (:func:`estimate_yaw`, DESIGN.md §3 "Yaw"). The localizer
+    passes the query as the source of every pair and the K candidates as the targets, so its
+    yaw is the candidate keyframe's in the query's frame (ξ_{q→m}'s yaw).
     """
     _check_backend(backend)
     s, t = _pairs(src, tgt)

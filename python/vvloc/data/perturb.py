@@ -113,7 +113,9 @@ def line_kernel(length: int, angle_deg: float) -> np.ndarray:
     """A normalised (k, k) kernel: a segment ``length`` pixels long through the centre at
     ``angle_deg`` (0° = image x axis, 90° = image y axis), drawn with bilinear weights from
     4·length points evenly spaced along it (the midpoints of equal parts, so that the segment
-    spans ``length`` pixels: at 0° and an odd length, a flat row of ``length`` equal weights).
+    spans ``length`` pixels: at 0° and an odd length ≥ 3, one row whose inner ``length − 2``
+    taps weigh ``1/length`` each, the two end pixels a little less, and their bilinear spill
+    onto the next pixel outside the rest).
     k = the odd number ≥ ``length``, plus 2 for the bilinear spill at the ends. ``length`` an
     int >= 1, ``angle_deg`` finite."""
     length = _positive_int(length, "length", 1)

@@ -184,6 +184,11 @@ def read_poses(path: Path) -> np.ndarray:
     return np.array(rows, dtype=_ROW_DTYPE)
 
 
+def _has_control(name: str) -> bool:
+    """Whether ``name`` holds a control character (C0, DEL or C1: line breaks, tabs, ...)."""
+    return any(ord(c) < 32 or 127 <= ord(c) < 160 for c in name)
+
+
 def _csv_rows(path: Path, header: tuple[str, ...]) -> Iterator[tuple[int, list[str]]]:
     """(line number, fields) of every non-blank row of a CSV file whose first line must be
     ``header`` and whose rows must have as many fields; errors name the file and the line (a
@@ -306,6 +311,11 @@ def open_vvloc(root: str | os.PathLike[str]) -> Dataset:
         raise DatasetFormatError(f"{sess_root}: sessions folder missing")
     sessions: dict[str, Session] = {}
     for d in sorted(p for p in sess_root.iterdir() if p.is_dir()):
+        if _has_control(d.name):  # a line break in a name would split the CSV rows vvloc writes
+            raise DatasetFormatError(
+                f"{d.parent / repr(d.name)}: a session folder name with a control character "
+                "(a line break, tab, ...); rename the folder"
+            )
         poses_path = d / "poses.csv"
         rows = read_poses(poses_path)
         for sub in sorted(p for p in d.iterdir() if p.is_dir()):
@@ -603,9 +613,19 @@ class DatasetWriter:
         raise FileExistsError(f"could not create a temporary folder next to {self._target}")
 
     def add_session(self, name: str, meta: dict[str, Any] | None = None) -> SessionWriter:
-        """Start session ``name`` (a plain folder name) and return its writer."""
-        if not name or "/" in name or name.startswith(".") or name in self._sessions:
-            raise ValueError(f"name: expected a new plain session name, got {name!r}")
+        """Start session ``name`` (a plain folder name: no ``/``, no leading ``.``, no control
+        character such as a line break) and return its writer."""
+        if (
+            not name
+            or "/" in name
+            or name.startswith(".")
+            or _has_control(name)
+            or name in self._sessions
+        ):
+            raise ValueError(
+                f"name: expected a new plain session name (no '/', leading '.' or control "
+                f"character), got {name!r}"
+            )
         w = SessionWriter(self._tmp / "sessions" / name, self.cameras, meta)
         self._sessions[name] = w
         return w

@@ -354,7 +354,7 @@ def keyframe_csv_text(
     *,
     comments: Iterable[str] = (),
 ) -> str:
-    """The keyframe table beside a pose graph: one row per g2o vertex id with its session,
+    r"""The keyframe table beside a pose graph: one row per g2o vertex id with its session,
     sequence number, timestamp and floor, so that an optimised graph (keyed by vertex id) maps
     back to sessions and times. ``\n`` line ends, ``#`` header lines.
 

@@ -114,7 +114,8 @@ class Encoded:
 def frames_to_tensors(
     frames: Sequence[Frame], device: torch.device
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Stack frames into model inputs: images (B, M, 3, H, W) uint8, K (B, M, 3, 3) float32,
+    """Stack frames into model inputs: images (B, M, 3, H, W) in the frames' dtype (uint8 0-255,
+    or float32 [0, 1] for float frames), K (B, M, 3, 3) float32,
     cam_to_ego (B, M, 4, 4) float32, on ``device``. The frames must share one image shape and
     dtype (``ValueError`` naming the first that does not: stacked with a float frame, a uint8
     one would keep its 0-255 values on the [0, 1] scale)."""
@@ -783,8 +784,11 @@ class Localizer:
 
     def rerank(self, local_desc: F32, rows: npt.NDArray[np.int64]) -> kernels.Rerank:
         """Re-rank candidate map ``rows`` (K,) by the yaw matching cost between the query's
-        local-view descriptor (T, C) and each candidate's, without padding (interactor batched
-        over the candidates, exact yaw minimum in Rust)."""
+        local-view descriptor (T, C) float32 and each candidate's, without padding (interactor
+        batched over the candidates, exact yaw minimum in Rust). The query is each pair's
+        source: :class:`~vvloc.kernels.Rerank`'s ``yaw`` (K,) radians is the candidate
+        keyframe's yaw in the query's frame (ξ_{q→m}'s; the query's in the keyframe's frame is
+        its negative), ``cost`` (K,) the dimensionless matching cost, lower is better."""
         self._check_open()
         return self._rerank(self._encoded("local_desc", local_desc), self._rows(rows))
 
@@ -798,8 +802,10 @@ class Localizer:
         return rerank_learned(self.model, torch.from_numpy(local_desc).to(device), tgt)
 
     def metric(self, bev: F32, row: int) -> tuple[npt.NDArray[np.float64], float, Any]:
-        """Metric localization of a query BEV (H, W, C) against map row ``row`` (an int):
-        returns (ξ_{m→q} (3,), cost, search history)."""
+        """Metric localization of a query BEV (H, W, C) float32 (the model's ``bev``, ego frame,
+        DESIGN.md §3) against map row ``row`` (an int): returns (ξ_{m→q} (3,) float64: the query
+        in the keyframe's frame, metres and radians CCW; the dimensionless matching cost, lower
+        is better; the search history)."""
         self._check_open()
         row = kernels._positive_int(row, "row", minimum=0)  # an int: 1.7 is not row 1
         rows = self._rows(np.array([row], dtype=np.int64), "row")  # and a row of the map
@@ -809,11 +815,13 @@ class Localizer:
     def metric_best(
         self, bev: F32, rows: npt.NDArray[np.int64], bias: npt.ArrayLike | None = None
     ) -> tuple[int, npt.NDArray[np.float64], float, Any, npt.NDArray[np.float64]]:
-        """Metric localization of a query BEV (H, W, C) against the best of map ``rows`` (M,)
-        (:func:`metric_localize_best`; for one row, :func:`metric_localize`'s search), each
-        row's coarse cost offset by ``bias`` (M,) (None: zeros): returns (index into ``rows``,
-        ξ_{m→q} (3,), cost, search history, each row's score (M,): coarse-stage cost + bias,
-        the chosen row the first of the lowest)."""
+        """Metric localization of a query BEV (H, W, C) float32 (ego frame) against the best of
+        map ``rows`` (M,) int (:func:`metric_localize_best`; for one row,
+        :func:`metric_localize`'s search), each row's coarse cost offset by ``bias`` (M,)
+        (None: zeros): returns (index into ``rows``, ξ_{m→q} (3,) float64 (the query in the
+        chosen keyframe's frame, metres and radians CCW), the dimensionless cost, search
+        history, each row's score (M,) float64: coarse-stage cost + bias, the chosen row the
+        first of the lowest)."""
         self._check_open()
         rows = self._rows(rows)
         if bias is not None:

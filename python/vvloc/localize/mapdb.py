@@ -1330,6 +1330,8 @@ class MapDatabase:
 
     @property
     def metadata(self) -> MapMetadata:
+        """The map's :class:`MapMetadata` (the model's config and fingerprints, grid size,
+        descriptor dtype, rig, versions), as recorded when it was built."""
         return self._metadata
 
     @property
@@ -1443,6 +1445,8 @@ class MapDatabase:
 
     @property
     def has_bev(self) -> bool:
+        """Whether the map stores each keyframe's BEV (needed for loop closure only; ``vvloc
+        map build`` stores them unless ``--no_bev``; DESIGN.md "Localization frames")."""
         return self._bev is not None
 
     def local_descriptors(self, indices: Any) -> np.ndarray:

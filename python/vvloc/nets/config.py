@@ -37,7 +37,9 @@ def _int_tuple(value: Any, name: str) -> tuple[int, ...]:
 
 @dataclass
 class ModelConfig:
-    """Hyper-parameters of :class:`vvloc.nets.VVLocNet` (sizes in cells/pixels, lengths in metres).
+    """Hyper-parameters of :class:`vvloc.nets.VVLocNet` (sizes in cells/pixels, lengths in metres;
+    ``sigma_r`` in metres but ``sigma_a`` in degrees, the widths of the radius- and
+    theta-aware attentions' relative embeddings).
 
     ``image_height``/``image_width`` are the nominal input size (the networks accept any size; the
     intrinsics must describe the pixels actually given). The BEV grid is ``bev_height`` ×

@@ -35,6 +35,8 @@ class LocalViewDecoder(nn.Module):
         self.shape = (cfg.num_angles, r, c)
 
     def forward(self, polar: Tensor) -> Tensor:
+        """Local-view descriptors (N, T, C) of polar BEVs ``polar`` (N, T, R, C), in the
+        module's dtype (float32 unless converted); each angle row is decoded alone."""
         if polar.ndim != 4 or tuple(polar.shape[1:]) != self.shape:
             raise ValueError(
                 f"polar: expected shape (N, {', '.join(map(str, self.shape))}), "
@@ -79,6 +81,8 @@ class Interactor(nn.Module):
             )
 
     def forward(self, src: Tensor, tgt: Tensor) -> tuple[Tensor, Tensor]:
+        """The P pairs' local-view descriptors after interaction: ``src`` and ``tgt``
+        (P, T, C) each → (P, T, C) each, L2-normalised per angle row, in the module's dtype."""
         self._check("local_src", src)
         self._check("local_tgt", tgt)
         if src.shape[0] != tgt.shape[0]:

@@ -140,7 +140,8 @@ def _json_object(path: Path) -> dict[str, Any]:
 
 @dataclass
 class EncoderOutput:
-    """What :meth:`VVLocNet.encode` returns (float32, on the model's device).
+    """What :meth:`VVLocNet.encode` returns (in the model's dtype, float32 unless the model was
+    converted, on the model's device).
 
     bev (B, H, W, C) channels-last; polar (B, T, R, C); global_desc (B, Dg) L2-normalised;
     local_desc (B, T, C) (not normalised; the interactor normalises its outputs).

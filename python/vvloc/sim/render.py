@@ -35,6 +35,7 @@ class Lighting:
     ambient: tuple[float, float, float] = (0.5, 0.52, 0.58)
     sky: tuple[float, float, float] = (0.6, 0.72, 0.9)
     fog_color: tuple[float, float, float] = (0.7, 0.75, 0.8)
+    # per metre: a surface d metres away keeps exp(-fog_density·d) of its colour
     fog_density: float = 0.002
     lamps: float = 0.0  # intensity of lamp posts / ceiling lights
     emissive: float = 0.0  # lit windows and lamp heads
@@ -393,9 +394,11 @@ class Renderer:
         light_colors: np.ndarray | None = None,
         light_floors: np.ndarray | None = None,
     ) -> None:
-        """Upload the scene: (N, 10) float32 vertices, (K,) uint32 indices, (L, 4) lights
-        (x, y, z, range m), (L, 3) light colours and (L,) the storey of each light (only the
-        lights of the rendered floor shine; without floors, lights within 8 m above do)."""
+        """Upload the scene: (N, 10) float32 vertices and (K,) uint32 indices as
+        :meth:`vvloc.sim.world.World.mesh` gives them (world frame, metres), (L, 4) lights
+        (world x, y, z and range, metres), (L, 3) light colours and (L,) the storey of each
+        light (only the lights of the rendered floor shine; without floors, lights within 8 m
+        above do)."""
         verts = np.ascontiguousarray(vertices, dtype=np.float32)
         if verts.ndim != 2 or verts.shape[1] != 10 or not np.isfinite(verts).all():
             raise ValueError(f"vertices: expected finite (N, 10) floats, got shape {verts.shape}")

@@ -32,7 +32,10 @@ MAX_TILT = 30.0  # degrees: the largest roll or pitch bound simulate_dataset tak
 
 @dataclass(frozen=True)
 class SessionSpec:
-    """How one simulated session differs from the mapping session ``s0``."""
+    """How one simulated session differs from the mapping session ``s0``: its ``lighting``
+    preset's name, lateral ``offset`` (metres, + = left of the route's direction), ``reverse``d
+    direction, the share ``change_fraction`` in [0, 1] of bays whose parked car changes, and the
+    ``seed`` of those changes and of the drive's wobble."""
 
     name: str
     lighting: str

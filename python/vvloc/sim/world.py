@@ -222,7 +222,8 @@ class World:
 
     Attributes:
         kind: "parking" or "garage".
-        static: (vertices, indices) of everything that never changes.
+        static: (vertices, indices) of everything that never changes, laid out as
+            :meth:`mesh` returns them.
         bays: parking bays; ``occupancy`` (B,) bool and ``car_colors`` (B, 3) of the base world.
         lights: (L, 4) float32 light positions (x, y, z) and range (m); ``light_colors`` (L, 3);
             ``light_floors`` (L,) the storey each light is on.
@@ -266,7 +267,10 @@ class World:
     def mesh(
         self, change_fraction: float = 0.0, session_seed: int = 0
     ) -> tuple[np.ndarray, np.ndarray]:
-        """The full mesh with the parked cars of :meth:`cars` (same arguments)."""
+        """The full mesh with the parked cars of :meth:`cars` (same arguments): vertices (N, 10)
+        float32 (world position x, y, z in metres, unit normal, linear RGB colour, material id
+        as a float; :class:`MeshBuilder`) and triangle indices (K,) uint32, three per
+        triangle."""
         occ, colors = self.cars(change_fraction, session_seed)
         mb = MeshBuilder()
         rng = np.random.default_rng([self.seed, 11])
