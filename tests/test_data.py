@@ -607,6 +607,35 @@ def test_a_camera_projects_points_of_shape_n_3_only():
         cam.project_ego([[np.nan, 0, 0]])
 
 
+def test_image_content_tells_pictures_from_flat_and_noisy_ones(tiny_world):
+    from vvloc.data import has_image_content
+
+    ds = open_dataset(tiny_world)
+    images = ds.session("s1")[0].images
+    assert has_image_content(images)
+    assert has_image_content(images.astype(np.float32) / 255)
+    flat = np.zeros_like(images)
+    assert not has_image_content(flat)
+    assert not has_image_content(np.full_like(images, 255))
+    rng = np.random.default_rng(0)
+    noisy = np.clip(np.rint(60 + 8 * rng.standard_normal(images.shape)), 0, 255).astype(np.uint8)
+    assert not has_image_content(noisy)  # a covered lens with sensor noise
+    one = flat.copy()
+    one[2] = images[2]  # one camera that sees something is enough
+    assert has_image_content(one)
+    half = flat.copy()
+    half[0, :, :, : images.shape[3] // 2] = 200  # a hard edge in one camera
+    assert has_image_content(half)
+    tiny = np.zeros((1, 3, 4, 5), np.uint8)  # smaller than a block: pixel by pixel
+    assert not has_image_content(tiny)
+    tiny[0, :, 0, 0] = 255
+    assert has_image_content(tiny)
+    with pytest.raises(ValueError, match=r"^images: expected shape \(M, 3, H, W\)"):
+        has_image_content(images[0])
+    with pytest.raises(TypeError, match=r"^images: expected uint8 or float .* int16"):
+        has_image_content(images.astype(np.int16))
+
+
 def test_keyframe_selection_and_blur_kernels_name_bad_arguments():
     from vvloc.data import select_keyframes
     from vvloc.data.perturb import line_kernel

@@ -452,6 +452,65 @@ def test_localize_poses_are_consistent_and_batch_equals_single(tiny_world, map_f
         assert r.accepted == (r.cost < 0.75)
 
 
+def _blank_frames(root, session, indices, value=0):
+    """Overwrite every camera's image of ``session``'s frames ``indices`` with a flat picture."""
+    from PIL import Image
+
+    ds = open_dataset(root)
+    stamps = [
+        line.split(",")[0]
+        for line in (root / "sessions" / session / "poses.csv").read_text().splitlines()[1:]
+    ]
+    for i in indices:
+        for cam in ds.cameras:
+            p = root / "sessions" / session / cam.name / f"{stamps[i]}.png"
+            flat = np.full_like(np.asarray(Image.open(p)), value)
+            Image.fromarray(flat).save(p)
+
+
+def test_frames_without_image_content_are_left_out_of_maps_and_never_accepted(
+    tiny_world, model_dir, tmp_path
+):
+    # two blank keyframes (a covered rig) encode alike wherever they were taken: in a map they
+    # drew every blank query to them at cost ~0, accepted, and made false loop closures
+    root = tmp_path / "world"
+    shutil.copytree(tiny_world, root)
+    _blank_frames(root, "s0", [3, 4, 30])
+    _blank_frames(root, "s1", [5], value=255)  # blown out: no content either
+    model = VVLocNet.load(model_dir)
+    ds = open_dataset(root)
+    with pytest.warns(
+        UserWarning,
+        match=r"session 's0': 3 of 40 frames have no image content "
+        r"\(every camera's picture flat: frames 3, 4, 30\); left out of the map",
+    ):
+        build_map(model, ds, ["s0"], tmp_path / "map.h5", progress=False)
+    with MapDatabase.open(tmp_path / "map.h5") as db:
+        kept = [i for i in range(40) if i not in (3, 4, 30)]
+        assert db.seq.tolist() == kept
+        np.testing.assert_allclose(db.poses, ds.session("s0").poses[kept])
+    # every query accepted by a lenient localizer, but the blank one
+    loc = Localizer.open(
+        tmp_path / "map.h5",
+        model_dir,
+        top_k=3,
+        search=SMALL_SEARCH,
+        accept_threshold=float("inf"),
+        min_distinctiveness=0.0,
+    )
+    frames = [ds.session("s1")[i] for i in (4, 5, 6)]
+    with pytest.warns(UserWarning, match=r"1 of 3 query frames have no image content .*frames 1\)"):
+        results = loc.localize_batch(frames)
+    assert [r.accepted for r in results] == [True, False, True]
+    assert np.isfinite(results[1].cost)  # still localized, for who wants the answer
+    loc.close()
+    # a session of blank frames alone makes no map, and leaves no file
+    _blank_frames(root, "s2", range(40))
+    with pytest.warns(UserWarning), pytest.raises(ValueError, match="none of the 40 frames"):
+        build_map(model, open_dataset(root), ["s2"], tmp_path / "blank.h5", progress=False)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["map.h5", "world"]
+
+
 def test_the_stage_methods_check_their_arguments_as_localize_encoded_does(
     tiny_world, map_file, model_dir
 ):

@@ -16,7 +16,7 @@ from vvloc._io import symlink_loop
 from vvloc.data import perturb
 from vvloc.data.augment import PhotometricAugment
 from vvloc.data.convert import convert_dataset, select_keyframes
-from vvloc.data.frame import Camera, Dataset, Frame, Session
+from vvloc.data.frame import Camera, Dataset, Frame, Session, has_image_content
 from vvloc.data.nclt import is_nclt, open_nclt
 from vvloc.data.oxford import is_oxford, open_oxford
 from vvloc.data.sampling import EvalSplit, TripletSampler, evaluation_split
@@ -82,6 +82,7 @@ __all__ = [
     "convert_dataset",
     "detect_format",
     "evaluation_split",
+    "has_image_content",
     "open_dataset",
     "open_nclt",
     "open_oxford",

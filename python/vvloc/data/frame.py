@@ -195,6 +195,42 @@ class Frame:
         return int(self.images.shape[0])
 
 
+#: :func:`has_image_content`'s block size (pixels) and threshold (grey levels on the 0-255
+#: scale). Rendered frames of every lighting preset, the darkest garage's included, reach ≥ 11
+#: on at least one camera (≥ 2.5 on every camera); independent per-pixel noise of σ grey levels
+#: on a flat picture reaches about σ/14 (a block mean averages 64 pixels × 3 channels), so a
+#: covered lens with sensor noise up to σ ≈ 14 reads as having none.
+CONTENT_BLOCK = 8
+CONTENT_MIN_STD = 1.0
+
+
+def has_image_content(images: Any) -> bool:
+    """Whether a frame's pictures show anything: at least one camera whose coarse brightness
+    varies, i.e. the standard deviation of its grey image's ``CONTENT_BLOCK`` × ``CONTENT_BLOCK``
+    block means reaches :data:`CONTENT_MIN_STD` grey levels (0-255 scale; float images in
+    [0, 1] are scaled by 255; cameras smaller than a block are taken pixel by pixel).
+
+    A frame without content (a covered or failed rig, a black or blown-out stretch, flat
+    sensor noise) encodes to the same descriptors as any other such frame, so two of them match
+    at a cost near 0 wherever they were taken: :func:`vvloc.localize.build_map` leaves such
+    frames out of a map, and the localizer never accepts such a query. ``images`` (M, 3, H, W)
+    uint8 or float."""
+    arr = np.asarray(images)
+    if arr.ndim != 4 or arr.shape[1] != 3 or 0 in arr.shape:
+        raise ValueError(f"images: expected shape (M, 3, H, W), got {arr.shape}")
+    if not (arr.dtype == np.uint8 or np.issubdtype(arr.dtype, np.floating)):
+        raise TypeError(f"images: expected uint8 or float in [0, 1], got dtype {arr.dtype}")
+    scale = 1.0 if arr.dtype == np.uint8 else 255.0
+    _, _, h, w = arr.shape
+    b = CONTENT_BLOCK if min(h, w) >= CONTENT_BLOCK else 1
+    for cam in arr:  # one camera at a time: most frames answer at the first
+        grey = cam.mean(axis=0, dtype=np.float64)[: h // b * b, : w // b * b]
+        blocks = grey.reshape(h // b, b, w // b, b).mean(axis=(1, 3))
+        if float(blocks.std()) * scale >= CONTENT_MIN_STD:
+            return True
+    return False
+
+
 def stack_calibration(cameras: Sequence[Camera]) -> tuple[np.ndarray, np.ndarray]:
     """(M, 3, 3) intrinsics and (M, 4, 4) camera-to-ego transforms of ``cameras``."""
     return (

@@ -25,12 +25,16 @@ Frames: the search estimates ξ_{q→m}, the map keyframe's frame expressed in t
 expressed in the map keyframe's frame: x forward, y left, metres; yaw CCW, radians) and the
 query's global pose T_world_q = T_world_m · ξ_{m→q}. The matching cost is the confidence:
 lower is better; ``accepted`` = cost < ``accept_threshold`` (0.75, the paper's filter) and
-distinctiveness >= ``min_distinctiveness`` (the model's calibration; 0 without one).
+distinctiveness >= ``min_distinctiveness`` (the model's calibration; 0 without one). A query
+frame without image content (:func:`vvloc.data.has_image_content`: every camera flat) is
+localized but never accepted, and :func:`build_map` leaves such frames out of a map: any two of
+them match at a cost near 0 wherever they were taken.
 """
 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import math
 import os
@@ -49,7 +53,14 @@ from tqdm import tqdm
 from vvloc import evaluate, geometry, kernels
 from vvloc.checkpoints import checkpoint_folder
 from vvloc.data import Camera, Dataset, Frame
-from vvloc.data.frame import PINHOLE, RIGID, is_pinhole, is_rigid, stack_calibration
+from vvloc.data.frame import (
+    PINHOLE,
+    RIGID,
+    has_image_content,
+    is_pinhole,
+    is_rigid,
+    stack_calibration,
+)
 from vvloc.data.rig import SAME_MAP, SAME_MODEL, describe_rig, rig_difference
 from vvloc.data.sampling import check_session_names
 from vvloc.localize.mapdb import MapDatabase, MapError, MapWriter, check_unit_rows, check_weights
@@ -429,7 +440,9 @@ class LocalizationResult:
             frame (x forward m, y left m, yaw CCW rad).
         global_pose: the query's world pose (x, y, yaw) = T_world_m · ξ_{m→q}.
         cost: matching cost at the estimate (lower is better), against ``metric_row``.
-        accepted: ``cost < accept_threshold`` and ``distinctiveness >= min_distinctiveness``.
+        accepted: ``cost < accept_threshold`` and ``distinctiveness >= min_distinctiveness``,
+            and the query frame has image content (:func:`vvloc.data.has_image_content`; a
+            frame given to :meth:`Localizer.localize_encoded` is taken to have it).
         retrieved: (K,) map rows in retrieval order; ``retrieval_dist`` their L2 distances.
         reranked: (K,) map rows: the M metric candidates (see ``Localizer(metric_from=)``) by
             coarse metric cost plus ``retrieval_weight`` × descriptor distance, then the others
@@ -913,7 +926,9 @@ class Localizer:
         :data:`vvloc.data.rig.SAME_MAP` allows, when the map records its rig)
         are localized with a warning, once per localizer: the model met only its training rig,
         and its poses may be far off. A tilting vehicle's levelled frames and motion-compensated
-        cameras (``Session.frame_cam_to_ego``) stay within those bounds."""
+        cameras (``Session.frame_cam_to_ego``) stay within those bounds. Frames without image
+        content (:func:`vvloc.data.has_image_content`: a covered rig, a black stretch) are
+        localized but not accepted, with a ``UserWarning``."""
         self._check_open()  # before the frames are encoded
         batch_size = kernels._positive_int(batch_size, "batch_size")
         if isinstance(frames, Frame) or not isinstance(frames, Iterable):
@@ -927,6 +942,14 @@ class Localizer:
             _check_images(f.images, f"frames[{i}].images")
             _check_calibration(f.K, f.cam_to_ego, len(f.images), f"frames[{i}]")
             self._check_rig(f, i)
+        blank = [i for i, f in enumerate(frames) if not has_image_content(f.images)]
+        if blank:
+            warnings.warn(
+                f"{len(blank)} of {len(frames)} query frames have no image content (every "
+                f"camera's picture flat: frames {_some(blank)}); their answers are not accepted",
+                UserWarning,
+                stacklevel=2,
+            )
         results: list[LocalizationResult] = []
         for start in tqdm(
             range(0, len(frames), batch_size), desc="localize", disable=not progress, leave=False
@@ -940,6 +963,8 @@ class Localizer:
                 results.append(
                     self.localize_encoded(enc.global_desc[i], enc.local_desc[i], enc.bev[i], t_enc)
                 )
+        for i in blank:
+            results[i] = dataclasses.replace(results[i], accepted=False)
         return results
 
     def localize_encoded(
@@ -1041,6 +1066,12 @@ class Localizer:
         )
 
 
+def _some(indices: Sequence[int], limit: int = 5) -> str:
+    """The first ``limit`` of ``indices`` for a message: ``"3, 4, 5, 20, 21 and 2 more"``."""
+    more = f" and {len(indices) - limit} more" if len(indices) > limit else ""
+    return ", ".join(map(str, indices[:limit])) + more
+
+
 def build_map(
     model: VVLocNet,
     dataset: Dataset,
@@ -1056,6 +1087,11 @@ def build_map(
     atomically). ``store_bev`` keeps the float16 BEVs that loop-closure detection needs. Keyframe
     ids are the running row numbers, sequence numbers each frame's index in its session; the
     map records the dataset's rig (its cameras), which the localizer compares queries with.
+    Frames without image content (:func:`vvloc.data.has_image_content`: every camera's picture
+    flat, as from a covered or failed rig or a black stretch) are left out, with a
+    ``UserWarning`` naming them: any two such frames match at a cost near 0, so one of them in a
+    map drew every blank query to it and two made false loop closures. ``ValueError`` when no
+    frame has content.
     ``TypeError`` when ``model`` is not a :class:`VVLocNet` or ``dataset`` not a
     :class:`vvloc.data.Dataset` (``open_dataset(path)``), ``ValueError`` naming a bad
     ``sessions`` or ``batch_size``; a ``UserWarning`` when the dataset's rig is not one the
@@ -1102,10 +1138,18 @@ def build_map(
     ):
         bar = tqdm(total=total, desc="map", disable=not progress)
         stack.callback(bar.close)  # closed before an error is printed, not under it
+        written = 0
         for name in sessions:
             sess = dataset.session(name)
+            blank: list[int] = []
             for start in range(0, len(sess), batch_size):
-                frames = [sess[i] for i in range(start, min(start + batch_size, len(sess)))]
+                loaded = [sess[i] for i in range(start, min(start + batch_size, len(sess)))]
+                content = [has_image_content(f.images) for f in loaded]
+                frames = [f for f, c in zip(loaded, content, strict=True) if c]
+                blank += [f.index for f, c in zip(loaded, content, strict=True) if not c]
+                bar.update(len(loaded) - len(frames))
+                if not frames:
+                    continue
                 enc = encode_frames(model, frames, batch_size=batch_size, keep_bev=store_bev)
                 writer.append(
                     poses=np.stack([f.pose for f in frames]),
@@ -1117,5 +1161,19 @@ def build_map(
                     floors=np.array([f.floor for f in frames]),
                     bevs=enc.bev,
                 )
+                written += len(frames)
                 bar.update(len(frames))
+            if blank:
+                warnings.warn(
+                    f"session {name!r}: {len(blank)} of {len(sess)} frames have no image "
+                    f"content (every camera's picture flat: frames {_some(blank)}); left out "
+                    "of the map",
+                    UserWarning,
+                    stacklevel=2,
+                )
+        if written == 0:
+            raise ValueError(
+                f"sessions: none of the {total} frames of {sessions} has image content (every "
+                "camera's picture flat): a map needs keyframes"
+            )
     return Path(out)
