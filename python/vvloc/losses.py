@@ -323,7 +323,7 @@ def rerank_loss(
     against its positive must be lower, by ``margin``, than against its negative.
 
     local_anchor, local_pos, local_neg (B, T, C) local-view descriptors (the anchor is the
-    query, the others map keyframes, as in :meth:`vvloc.localize.Localizer.rerank`: the
+    query, the others map keyframes, as in :meth:`vvloc.Localizer.rerank`: the
     interactor on the unpadded pair, then the lowest cost over yaw rolls,
     :func:`roll_min_cost`). L = mean(max(0, c(a, p) − c(a, n) + margin)).
 

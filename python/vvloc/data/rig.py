@@ -38,7 +38,7 @@ class RigTolerance:
     shift: float
 
 
-#: A query frame against its map's rig (:class:`vvloc.localize.Localizer`): the very rig, its
+#: A query frame against its map's rig (:class:`vvloc.Localizer`): the very rig, its
 #: calibration to rounding, except that a frame's own extrinsics may differ by a tilting
 #: vehicle's levelling (a few degrees) and motion compensation (speed × exposure gap, 0.4 m at
 #: 14 m/s and 30 ms): 14° and 1 m.

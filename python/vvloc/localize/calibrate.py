@@ -7,10 +7,10 @@ on sessions the model never trained on, the *distinctiveness* of the re-ranked t
 its cost lies below the mean cost of the retrieved candidates,
 :func:`vvloc.evaluate.distinctiveness`) and keeps the lowest threshold at which accepted
 results are right (top-1 within 2 m) at a target precision. The result is stored with the
-checkpoint (``calibration.json``) and used by :class:`vvloc.localize.Localizer`.
+checkpoint (``calibration.json``) and used by :class:`vvloc.Localizer`.
 
 Two measurements: :func:`calibrate_localizer` (``vvloc calibrate``) localizes the held-out
-frames with a :class:`~vvloc.localize.Localizer` and scores the answers that acceptance gates
+frames with a :class:`~vvloc.Localizer` and scores the answers that acceptance gates
 (the reported keyframe, after the metric stage and snapping); :func:`calibrate` (the trainer's
 validation, ``best/calibration.json``) scores the yaw re-ranking's top-1 without the metric
 stage, a cheaper stand-in.
@@ -94,7 +94,7 @@ def rerank_split(
 ) -> RerankedSplit:
     """Retrieve the ``top_k`` nearest map keyframes (every frame of session ``database``) for
     every ``every``-th frame of each session in ``queries``, and re-rank them by the learned yaw
-    matching cost, exactly as :meth:`vvloc.localize.Localizer.rerank` does (interactor on each
+    matching cost, exactly as :meth:`vvloc.Localizer.rerank` does (interactor on each
     pair, exact yaw minimum), without the metric translation search."""
     if isinstance(every, bool) or not isinstance(every, int) or every < 1:
         raise ValueError(f"every: expected an int >= 1, got {every!r}")
@@ -209,7 +209,7 @@ def calibration_of_results(
     target_precision: float = 0.9,
     min_accepted: int = 10,
 ) -> dict[str, Any]:
-    """The acceptance calibration of a :class:`~vvloc.localize.Localizer`'s own answers: the
+    """The acceptance calibration of a :class:`~vvloc.Localizer`'s own answers: the
     threshold on ``distinctiveness`` at which the accepted results (``cost < accept_threshold``
     and distinctiveness ≥ the threshold) have their reported keyframe (``reranked[0]``, the one
     ``vvloc eval`` scores) within 2 m of the query on its floor at ``target_precision``
