@@ -220,13 +220,18 @@ def has_image_content(images: Any) -> bool:
         raise ValueError(f"images: expected shape (M, 3, H, W), got {arr.shape}")
     if not (arr.dtype == np.uint8 or np.issubdtype(arr.dtype, np.floating)):
         raise TypeError(f"images: expected uint8 or float in [0, 1], got dtype {arr.dtype}")
-    scale = 1.0 if arr.dtype == np.uint8 else 255.0
+    exact = arr.dtype == np.uint8  # integer sums: exact, and fast (2 ms a 1080p camera)
     _, _, h, w = arr.shape
     b = CONTENT_BLOCK if min(h, w) >= CONTENT_BLOCK else 1
+    hb, wb = h // b, w // b
     for cam in arr:  # one camera at a time: most frames answer at the first
-        grey = cam.mean(axis=0, dtype=np.float64)[: h // b * b, : w // b * b]
-        blocks = grey.reshape(h // b, b, w // b, b).mean(axis=(1, 3))
-        if float(blocks.std()) * scale >= CONTENT_MIN_STD:
+        # the sum of the three channels, then of each block's rows and columns
+        grey = cam.sum(axis=0, dtype=np.uint16 if exact else np.float64)[: hb * b, : wb * b]
+        acc = np.uint32 if exact else np.float64
+        blocks = grey.reshape(hb, b, wb * b).sum(axis=1, dtype=acc)
+        blocks = blocks.reshape(hb, wb, b).sum(axis=2, dtype=acc)
+        std = float(blocks.std()) / (3 * b * b) * (1.0 if exact else 255.0)
+        if std >= CONTENT_MIN_STD:
             return True
     return False
 
