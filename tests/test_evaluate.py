@@ -51,6 +51,22 @@ def test_wrap_angle_half_open_interval():
     assert isinstance(geo.wrap_angle(1.0), np.float64)
 
 
+def test_wrap_angle_keeps_the_remainder_of_large_angles():
+    # a − 2π·ceil((a − π)/2π) lost it beyond ~1e15 rad (1e16 gave 2.0, 1e17 gave 0.0), where
+    # the Rust kernels (f64::rem_euclid) kept it: the two search backends disagreed
+    from fractions import Fraction
+
+    two_pi = Fraction(2.0 * math.pi)
+    for a in [1e16, 1e17, 3.7e15, 1e300, 2.0**1000 + 2.0**948, 123456789.125, 1e9]:
+        for x in (a, -a):
+            r = Fraction(x) - two_pi * math.floor(Fraction(x) / two_pi)  # [0, 2π), exact
+            want = float(r - two_pi if r > Fraction(math.pi) else r)
+            got = geo.wrap_angle(x)
+            assert -math.pi < got <= math.pi
+            assert got == pytest.approx(want, rel=0, abs=1e-15), x
+    assert geo.wrap_angle(1e16) == 2.637242432414304  # vvloc_core::pose::wrap_angle's bits
+
+
 def test_relative_pose_matches_design_convention():
     # Source faces north at (1, 0); target is 1 m north of it, facing north-west.
     source = np.array([1.0, 0.0, math.pi / 2])

@@ -14,6 +14,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import vvloc
+from memory_helpers import run_limited
 from vvloc import kernels as K
 from vvloc.reference import matching as ref
 
@@ -59,6 +60,32 @@ def test_yaw_costs_equal_reference(p, t, c, seed, scale):
     want = K.yaw_costs(src, tgt, backend="reference")
     assert got.shape == (p, t) and got.dtype == np.float64
     np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6 * scale)
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    p=st.integers(1, 3),
+    t=st.integers(2, 16),
+    c=st.integers(1, 20),
+    seed=st.integers(0, 2**32 - 1),
+    scale=st.sampled_from([1e-19, 1e-21, 1e-23, 1e-25, 1e-30, 1e-38, 1e-41]),
+)
+def test_yaw_costs_equal_reference_at_tiny_scales(p, t, c, seed, scale):
+    # squared distances below float32's normal range (1.2e-38) were lost in the f32 tables:
+    # at 1e-23 the curve was 15 % off, at 1e-25 all zeros (estimate_yaw was right: its exact
+    # polish); such pairs are rescaled by a power of two first
+    rng = np.random.default_rng(seed)
+    src = (rng.standard_normal((p, t, c)) * scale).astype(np.float32)
+    tgt = (rng.standard_normal((p, t, c)) * scale).astype(np.float32)
+    src[0, 0, 0] = scale  # not all zeros, even where float32 flushes most of them (1e-41)
+    got = K.yaw_costs(src, tgt)
+    want = K.yaw_costs(src, tgt, backend="reference")
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6 * float(np.abs(src).max()))
+    est = K.estimate_yaw(src, tgt)
+    for q in range(p):
+        lit = ref.shift_cost(src[q], tgt[q], float(est.shift[q]))
+        assert est.cost[q] == pytest.approx(lit, rel=1e-9)
+        assert est.cost[q] <= want[q].min() * (1 + 1e-9)
 
 
 @settings(max_examples=20, deadline=None)
@@ -144,6 +171,18 @@ def test_matching_cost_any_leading_shape():
     assert got.shape == (2, 3)
     np.testing.assert_allclose(got, K.matching_cost(a, b, backend="reference"), rtol=1e-12)
     assert K.matching_cost(a[0, 0], b[0, 0]).shape == ()
+
+
+@pytest.mark.parametrize("backend", ["rust", "reference"])
+def test_matching_cost_of_an_empty_batch_is_empty(backend):
+    # "(0, T, C)" was refused ("a: expected a non-empty array") while the docstring allowed it
+    for lead in [(0,), (2, 0), (0, 3)]:
+        a = np.zeros((*lead, 4, 3), np.float32)
+        got = K.matching_cost(a, a, backend=backend)
+        assert got.shape == lead and got.dtype == np.float64
+    for shape in [(2, 0, 3), (2, 4, 0), (4,)]:  # T, C >= 1 still
+        with pytest.raises(ValueError, match=r"^a: expected shape \(\.\.\., T, C\) with T, C >= 1"):
+            K.matching_cost(np.zeros(shape), np.zeros(shape), backend=backend)
 
 
 def test_non_contiguous_and_float64_inputs():
@@ -287,6 +326,20 @@ def test_search_keeps_to_its_square_and_wraps_reported_yaws(backend):
     best = s.best()
     assert best is not None and best.yaw == pytest.approx(100.0 - 32 * np.pi)
     assert np.all(np.abs(s.history().yaw) <= np.pi)
+
+
+def test_search_wraps_huge_yaws_to_the_same_bits_on_both_backends():
+    # the reference's wrap lost the remainder of large yaws (1e16 rad gave 2.0, 1e17 gave 0.0)
+    yaws = np.array([100.0, -7.5, 1e6, 1e10, 1e16, -1e16, 1e17, 1e300, -np.pi, np.pi])
+    got = {}
+    for backend in ("rust", "reference"):
+        s = K.TranslationSearch(0.5, 0.5, fine_samples=1, stages=1, backend=backend)
+        s.report(np.arange(9.0), np.resize(yaws, 9))
+        h = s.history()
+        assert np.all((h.yaw > -np.pi) & (h.yaw <= np.pi)), backend
+        got[backend] = h.yaw
+    np.testing.assert_array_equal(got["rust"], got["reference"])
+    assert got["rust"][4] == 2.637242432414304 and got["rust"][8] == np.pi
 
 
 def test_search_rejects_bad_reports():
@@ -475,3 +528,58 @@ def test_single_pair_calls_start_no_thread_pool():
         [sys.executable, "-c", code], capture_output=True, text=True, check=True
     ).stdout.split()
     assert out[0] == out[1], out
+
+
+# --- out of memory ---------------------------------------------------------------------------
+
+
+def test_pair_kernels_out_of_memory_is_a_memory_error_not_an_abort():
+    # under an address-space limit, the result buffers of the pair kernels (and the arrays the
+    # bindings made of them) were infallible Rust allocations: the process aborted
+    lines = run_limited("""
+import numpy as np
+from vvloc import kernels as K
+src = np.ones((10_000_000, 2, 1), np.float32)  # 80 MB, allocated before the limit
+K.estimate_yaw(src[:8], src[0]); K.matching_cost(src[:8], src[:8])  # the pool's threads
+limit(150)
+attempt("yaw_costs", lambda: K.yaw_costs(src, src[0]))  # (P, T) f64: 160 MB
+attempt("estimate_yaw", lambda: K.estimate_yaw(src, src[0]))  # P estimates: 240 MB
+limit(None)
+limit(60)
+attempt("matching_cost", lambda: K.matching_cost(src, src))  # 80 MB
+attempt("rerank", lambda: K.rerank(src, src[0]))
+limit(None)
+limit(150)  # 4e6 estimates fit (96 MB), their three columns of 32 MB do not
+attempt("columns", lambda: K.estimate_yaw(src[:4_000_000], src[0]))
+""")
+    assert [" ".join(x.split()[:3]) for x in lines] == [
+        "yaw_costs MemoryError src:",
+        "estimate_yaw MemoryError src:",
+        "matching_cost MemoryError a:",
+        "rerank MemoryError src:",
+        "columns MemoryError src:",
+    ], lines
+    assert "4000000 elements of 8 bytes" in lines[-1], lines[-1]
+
+
+def test_search_out_of_memory_is_a_memory_error_on_both_backends():
+    # a coarse grid within MAX_STAGE_POINTS (1e8 points, 1.6 GB) that the machine cannot hold
+    # aborted the process (the reference raised MemoryError); a fine stage that does not fit
+    # is refused by its report, which leaves the search as it was
+    lines = run_limited("""
+import numpy as np
+from vvloc import kernels as K
+limit(512)
+for backend in ("rust", "reference"):
+    attempt(backend, lambda: K.TranslationSearch(1.0, 1.0 / 4999.5, fine_samples=1, stages=1,
+                                                 backend=backend))  # a 9999 x 9999 grid
+s = K.TranslationSearch(0.5, 0.5, fine_samples=K.MAX_STAGE_POINTS, stages=2)
+attempt("report", lambda: s.report(np.zeros(9), np.zeros(9)))
+print(s.stage, len(s.history().cost), s.proposals().shape, s.best())
+""")
+    assert [" ".join(x.split()[:3]) for x in lines[:3]] == [
+        "rust MemoryError step:",
+        "reference MemoryError step:",
+        "report MemoryError fine_samples:",
+    ], lines
+    assert lines[3] == "0 0 (9, 2) None", lines

@@ -12,6 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import vvloc
+from memory_helpers import run_limited
 from vvloc import kernels as K
 from vvloc.reference import torch_spatial as TS
 
@@ -333,6 +334,52 @@ def test_polar_outputs_larger_than_memory_are_named_by_both_backends(backend):
     ):
         with pytest.raises(MemoryError, match=r"^num_angles: the result needs"):
             call()
+
+
+@pytest.mark.parametrize("backend", ["rust", "reference"])
+def test_bev_pad_outputs_larger_than_memory_are_named_by_both_backends(backend):
+    # the reference let numpy's own errors through ("Unable to allocate 29.1 TiB", "array is
+    # too big") where polar_sample and pad_polar named the argument
+    for bev, n in [
+        (np.zeros((1000, 1000, 8), np.float32), 1_000_000),  # 32 TB
+        (np.zeros((2**30, 2**30, 0), np.float32), 8),  # empty, yet past numpy's bound
+    ]:
+        with pytest.raises(MemoryError, match=r"^translations: the result needs"):
+            K.bev_pad(bev, np.zeros((n, 2)), 0.3, backend=backend)
+
+
+def test_roll_interp_out_of_memory_is_a_memory_error_not_an_abort():
+    # its output was an infallible Rust allocation: under an address-space limit the process
+    # aborted where bev_pad raised MemoryError
+    lines = run_limited("""
+import numpy as np
+from vvloc import kernels as K
+x = np.ones((100_000_000,), np.float32)  # 400 MB, allocated before the limit
+limit(200)
+attempt("roll_interp", lambda: K.roll_interp(x, 0.5))
+""")
+    assert lines == [
+        "roll_interp MemoryError x: the result needs 100000000 elements of 4 bytes, "
+        "more than this machine can allocate"
+    ], lines
+
+
+@pytest.mark.parametrize("value", [np.finfo(np.float32).max, -np.finfo(np.float32).max])
+def test_finite_maps_at_float32s_maximum_give_finite_outputs(value):
+    # the blend's float32 weights can sum to 1 + 1 ulp: at ±float32 max the Rust kernels
+    # returned ±inf where the reference is finite
+    tr = [[0.1, 0.07], [0.33, -0.21], [0.0, 0.0]]
+    for shape in [(2, 2, 1), (6, 5, 3), (7, 9, 40)]:
+        bev = np.full(shape, value, np.float32)
+        for call in (
+            lambda b, q=bev: K.polar_sample(q, 7, 3, 0.3, backend=b),
+            lambda b, q=bev: K.polar_sample(q, 4, 1, 0.3, backend=b),
+            lambda b, q=bev: K.bev_pad(q, tr, 0.3, backend=b),
+            lambda b, q=bev: K.pad_polar(q, tr, 7, 3, 0.3, backend=b),
+        ):
+            got, want = call("rust"), call("reference")
+            assert np.isfinite(got).all() and np.isfinite(want).all()
+            close(got, want)
 
 
 def test_empty_outputs_whose_other_axes_no_array_can_have_are_errors_not_crashes():

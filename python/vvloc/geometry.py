@@ -44,14 +44,19 @@ def wrap_angle(angle: npt.ArrayLike) -> F64Array:
 
     ``wrap_angle(π) == π`` and ``wrap_angle(−π) == π``; ``wrap_angle(3π/2) == −π/2``.
     Angles already in (−π, π] are returned bit-exactly (no round trip through a modulo). NaN
-    passes through, and ±inf (no angle) gives NaN, without a warning.
+    passes through, and ±inf (no angle) gives NaN, without a warning. Any finite angle,
+    however large, is reduced modulo ``2·np.pi`` (the float) without losing its remainder, by
+    the Rust kernels' operations (``f64::rem_euclid``, then a turn off above π): the same bits
+    on both sides.
     """
     a = _real(angle, "angle", "")
-    with np.errstate(invalid="ignore"):  # inf − inf: NaN, the documented answer
-        w = a - 2.0 * np.pi * np.ceil((a - np.pi) / (2.0 * np.pi))
-    # the rounding of a − π can put w one ulp outside (−π, π]: fold it back
-    w = np.where(w > np.pi, w - 2.0 * np.pi, w)
-    w = np.where(w <= -np.pi, w + 2.0 * np.pi, w)
+    two_pi = 2.0 * np.pi
+    with np.errstate(invalid="ignore"):  # fmod(±inf): NaN, the documented answer
+        # fmod is exact: a − n·2π with no rounding, for any finite a (a formula through
+        # a / 2π lost the remainder beyond ~1e15 rad: 1e16 gave 2.0, 1e17 gave 0.0)
+        w = np.fmod(a, two_pi)  # (−2π, 2π), the sign of a
+    w = np.where(w < 0.0, w + two_pi, w)  # [0, 2π]: as f64::rem_euclid
+    w = np.where(w > np.pi, w - two_pi, w)  # (−π, π]: exact (w and 2π within a factor 2)
     inside = (a > -np.pi) & (a <= np.pi)
     return np.where(inside, a, w)[()]  # [()]: a scalar stays a numpy scalar
 

@@ -257,7 +257,7 @@ def bev_pad(bev: Any, translations: Any, grid_size: float, backend: Backend = "r
     if backend == "reference":
         from vvloc.reference import spatial as ref
 
-        return ref.bev_pad(q, t, g)
+        return _reference_output("translations", lambda: ref.bev_pad(q, t, g))
     from vvloc import _core
 
     return _core.bev_pad(q, t, g)
@@ -279,8 +279,9 @@ def _reference_output(arg: str, call: Any) -> Any:
     try:
         return call()
     except MemoryError as e:
+        detail = f" ({e})" if str(e) else ""  # Python's own MemoryError says nothing
         raise MemoryError(
-            f"{arg}: the result needs more than this machine can allocate ({e})"
+            f"{arg}: the result needs more than this machine can allocate{detail}"
         ) from None
     except ValueError as e:
         if "array is too big" not in str(e):
@@ -467,13 +468,14 @@ def _pairs(src: Any, tgt: Any, *, shared_ok: bool = True) -> tuple[F32Array, F32
 
 def matching_cost(a: Any, b: Any, *, backend: Backend = "rust") -> npt.NDArray[np.float64]:
     """Matching cost ``δ(A, B) = (1/T)·Σᵢ ‖Aᵢ − Bᵢ‖₂`` (no shift) of ``a``, ``b`` (..., T, C)
-    float → (...) float64. Leading dimensions must be equal; T, C ≥ 1."""
+    float → (...) float64. Leading dimensions must be equal; T, C ≥ 1. An empty batch (a
+    leading dimension 0) gives an empty result of the leading shape."""
     _check_backend(backend)
     # values are checked after the shapes: by the Rust kernel, or by its copy for the reference
     x = _as_f32(a, "a", None, "(..., T, C)", finite=False)
     y = _as_f32(b, "b", None, "(..., T, C)", finite=False)
-    if x.ndim < 2 or 0 in x.shape:
-        raise ValueError(f"a: expected a non-empty array (..., T, C), got shape {x.shape}")
+    if x.ndim < 2 or x.shape[-2] == 0 or x.shape[-1] == 0:
+        raise ValueError(f"a: expected shape (..., T, C) with T, C >= 1, got shape {x.shape}")
     if y.shape != x.shape:
         raise ValueError(f"b: expected shape {x.shape} like a, got {y.shape}")
     lead, (t, c) = x.shape[:-2], x.shape[-2:]
@@ -600,12 +602,14 @@ class TranslationSearch:
         sd = _positive_int(seed, "seed", 0, maximum=2**64 - 1)
         self.backend = backend
         if backend == "rust":
-            impl: Any = _core.TranslationSearch
+            self._impl: Any = _core.TranslationSearch(hr, st, nfs, nst, sh, sd)
         else:
             from vvloc.reference import matching as ref_matching
 
-            impl = ref_matching.TranslationSearch
-        self._impl = impl(hr, st, nfs, nst, sh, sd)
+            # a coarse grid that does not fit: MemoryError naming `step`, as the Rust backend
+            self._impl = _reference_output(
+                "step", lambda: ref_matching.TranslationSearch(hr, st, nfs, nst, sh, sd)
+            )
 
     @property
     def done(self) -> bool:

@@ -6,7 +6,9 @@
 //! the global continuous minimiser `s* ∈ [0, T)`, the yaw `φ̂ = 2π·s*/T` wrapped to (−π, π].
 //!
 //! # Method (exact, near the matrix-multiply floor)
-//! Per pair:
+//! Per pair (a pair whose values all lie within ±2⁻³² is first multiplied by a power of two, which
+//! is exact, and its costs scaled back: below ~1e-19 the f32 products and tables below would
+//! leave float32's normal range):
 //! 1. one Gram product `G = Ds·Dtᵀ` (f32, AVX-512 or AVX2/FMA when the CPU has them, a portable
 //!    fallback otherwise); squared row distances `d²[j][i] = ‖Ds_j‖² + ‖Dt_i‖² − 2·G[j][i]`
 //!    (f64, row by row) stored in *diagonal layout* `dg[k][i] = d²[(i − k) mod T][i]`, so that
@@ -27,7 +29,7 @@
 // Index loops over fixed lane counts are deliberate: they are what the compiler vectorises.
 #![allow(clippy::needless_range_loop)]
 
-use crate::error::{check_alloc, checked_len, Error, Result};
+use crate::error::{check_alloc, checked_len, try_filled, try_with_capacity, Error, Result};
 use ndarray::{Array2, ArrayView3};
 use rayon::prelude::*;
 use std::borrow::Cow;
@@ -106,10 +108,12 @@ pub(crate) fn check_rows(x: &[f32], c: usize, arg: &'static str) -> Result<()> {
 }
 
 /// Checks a batch of pairs; `tgt` may hold one matrix shared by all pairs. Returns (P, T, C)
-/// and C-contiguous data of both.
+/// and C-contiguous data of both. `tables`: how many (T, S) f32 tables (or their equivalent in
+/// bytes) one pair's computation holds at once, to probe their allocation.
 fn check_pairs<'a>(
     src: &'a ArrayView3<'a, f32>,
     tgt: &'a ArrayView3<'a, f32>,
+    tables: usize,
 ) -> Result<Pairs<'a>> {
     let (p, t, c) = src.dim();
     let (pt, tt, ct) = tgt.dim();
@@ -137,9 +141,8 @@ fn check_pairs<'a>(
     let g = contiguous(tgt, "tgt")?;
     check_rows(&s, c, "src")?;
     check_rows(&g, c, "tgt")?;
-    // each pair's curve holds up to three (T, S) tables at once (the Gram products and the
-    // diagonal distances, then the distances and their roots), and one pair per thread runs
-    // at a time
+    // each pair holds up to `tables` (T, S) tables at once, and a tiny pair its rescaled copy
+    // (2·T·C), and one pair per thread runs at a time
     // (no rayon call when the pairs run sequentially: outside a pool, asking rayon for its
     // thread count would start its global pool)
     let concurrent = if runs_sequentially(p) {
@@ -147,7 +150,13 @@ fn check_pairs<'a>(
     } else {
         p.min(rayon::current_num_threads()).max(1)
     };
-    check_alloc::<f32>("src", checked_len("src", &[3, concurrent, t, stride(t)])?)?;
+    let work = checked_len("src", &[tables, concurrent, t, stride(t)])?
+        .checked_add(checked_len("src", &[2, concurrent, t, c])?)
+        .ok_or_else(|| Error::Memory {
+            arg: "src",
+            what: "work tables larger than the address space".into(),
+        })?;
+    check_alloc::<f32>("src", work)?;
     Ok((p, t, c, s, g, pt == 1 && p > 1))
 }
 
@@ -171,13 +180,22 @@ pub fn runs_sequentially(pairs: usize) -> bool {
 }
 
 /// Runs `f` for every pair index, in parallel when there is more than one pair. Each pair is
-/// computed sequentially, so results do not depend on the thread count.
-fn per_pair<T: Send, F: Fn(usize) -> T + Sync + Send>(p: usize, f: F) -> Vec<T> {
+/// computed sequentially, so results do not depend on the thread count. The results' vector is
+/// allocated first, fallibly ([`Error::Memory`] naming `arg`; `collect` would abort), and
+/// filled in place.
+fn per_pair<T: Send, F: Fn(usize) -> T + Sync + Send>(
+    arg: &'static str,
+    p: usize,
+    f: F,
+) -> Result<Vec<T>> {
+    let mut out = try_with_capacity(arg, p)?;
     if runs_sequentially(p) {
-        (0..p).map(f).collect()
+        out.extend((0..p).map(f));
     } else {
-        (0..p).into_par_iter().with_min_len(1).map(f).collect()
+        // an indexed parallel iterator writes into the reserved capacity (no reallocation)
+        out.par_extend((0..p).into_par_iter().with_min_len(1).map(f));
     }
+    Ok(out)
 }
 
 // --------------------------------------------------------------------------------------------
@@ -185,7 +203,8 @@ fn per_pair<T: Send, F: Fn(usize) -> T + Sync + Send>(p: usize, f: F) -> Vec<T> 
 // --------------------------------------------------------------------------------------------
 
 /// Matching cost `δ(A, B) = (1/T)·Σᵢ ‖Aᵢ − Bᵢ‖₂` of P pairs `a`, `b` (P, T, C), without shifting.
-/// Computed directly (differences in f64). Requires T ≥ 1, C ≥ 1, equal shapes, finite values.
+/// Computed directly (differences in f64). Requires T ≥ 1, C ≥ 1, equal shapes, finite values;
+/// P = 0 gives an empty result.
 pub fn matching_cost(a: ArrayView3<f32>, b: ArrayView3<f32>) -> Result<Vec<f64>> {
     let (p, t, c) = a.dim();
     if b.dim() != (p, t, c) {
@@ -206,7 +225,7 @@ pub fn matching_cost(a: ArrayView3<f32>, b: ArrayView3<f32>) -> Result<Vec<f64>>
     check_rows(&sa, c, "a")?;
     check_rows(&sb, c, "b")?;
     let isa = Isa::detect();
-    Ok(per_pair(p, |q| {
+    per_pair("a", p, |q| {
         let (x, y) = (
             &sa[q * t * c..(q + 1) * t * c],
             &sb[q * t * c..(q + 1) * t * c],
@@ -218,33 +237,43 @@ pub fn matching_cost(a: ArrayView3<f32>, b: ArrayView3<f32>) -> Result<Vec<f64>>
             })
             .sum();
         sum / t as f64
-    }))
+    })
 }
 
 /// Integer-shift yaw cost curves: `out[p][k] = c_p(k)` for k = 0..T−1, from `src`, `tgt`
-/// (P, T, C) (or `tgt` (1, T, C) shared by all pairs). Gram-based; relative accuracy ~1e-6.
+/// (P, T, C) (or `tgt` (1, T, C) shared by all pairs). Gram-based; relative accuracy ~1e-6 at
+/// any scale (tiny pairs are rescaled first, see the module docs).
 pub fn yaw_costs(src: ArrayView3<f32>, tgt: ArrayView3<f32>) -> Result<Array2<f64>> {
-    let (p, t, c, s, g, shared) = check_pairs(&src, &tgt)?;
+    // the Gram products, the diagonal distances and their roots
+    let (p, t, c, s, g, shared) = check_pairs(&src, &tgt, 3)?;
     let isa = Isa::detect();
-    let rows = per_pair(p, |q| {
+    // the (P, T) result, allocated fallibly and written in place, a row per pair
+    let mut out = try_filled("src", checked_len("src", &[p, t])?, 0.0f64)?;
+    let row = |(q, dst): (usize, &mut [f64])| {
         let (ds, dt) = pair_slices(&s, &g, q, t, c, shared);
-        isa.curve(ds, dt, t, c, false).cint
-    });
-    let mut out = Array2::zeros((p, t));
-    for (q, r) in rows.into_iter().enumerate() {
-        out.row_mut(q).assign(&ndarray::ArrayView1::from(&r));
+        dst.copy_from_slice(&isa.curve_costs(ds, dt, t, c));
+    };
+    if runs_sequentially(p) {
+        out.chunks_mut(t).enumerate().for_each(row);
+    } else {
+        out.par_chunks_mut(t)
+            .with_min_len(1)
+            .enumerate()
+            .for_each(row);
     }
-    Ok(out)
+    Array2::from_shape_vec((p, t), out).map_err(|e| Error::value("src", e.to_string()))
 }
 
 /// Exact global continuous yaw minimum of each pair (see the module docs for the method).
 pub fn estimate_yaw(src: ArrayView3<f32>, tgt: ArrayView3<f32>) -> Result<Vec<YawEstimate>> {
-    let (p, t, c, s, g, shared) = check_pairs(&src, &tgt)?;
+    // the curve's three tables, then its distances and inverse roots beside the polish's exact
+    // rows (up to T rows of T f64, two tables' worth, when every shift is a near tie)
+    let (p, t, c, s, g, shared) = check_pairs(&src, &tgt, 4)?;
     let isa = Isa::detect();
-    Ok(per_pair(p, |q| {
+    per_pair("src", p, |q| {
         let (ds, dt) = pair_slices(&s, &g, q, t, c, shared);
-        isa.estimate(ds, dt, t, c)
-    }))
+        isa.estimate_rescaled(ds, dt, t, c)
+    })
 }
 
 /// Re-ranks K candidates `src` (K, T, C) against `tgt` (K, T, C) or one shared target (1, T, C):
@@ -252,7 +281,7 @@ pub fn estimate_yaw(src: ArrayView3<f32>, tgt: ArrayView3<f32>) -> Result<Vec<Ya
 /// ascending, ties broken by lower index.
 pub fn rerank(src: ArrayView3<f32>, tgt: ArrayView3<f32>) -> Result<Reranked> {
     let estimates = estimate_yaw(src, tgt)?;
-    let mut order: Vec<usize> = (0..estimates.len()).collect();
+    let mut order = crate::error::try_collect("src", 0..estimates.len())?;
     order.sort_by(|&x, &y| {
         estimates[x]
             .cost
@@ -353,6 +382,73 @@ impl Isa {
             Isa::Generic => estimate_impl(ds, dt, t, c, &GenericGram),
         }
     }
+
+    /// The integer-shift costs of one pair ([`Isa::curve`]'s `cint`), a tiny pair rescaled
+    /// first ([`tiny_pair_scale`]).
+    fn curve_costs(self, ds: &[f32], dt: &[f32], t: usize, c: usize) -> Vec<f64> {
+        match tiny_pair_scale(self, ds, dt) {
+            None => self.curve(ds, dt, t, c, false).cint,
+            Some(e) => {
+                let (us, ut) = (scaled(ds, e), scaled(dt, e));
+                let back = pow2(-e);
+                let mut cint = self.curve(&us, &ut, t, c, false).cint;
+                for v in cint.iter_mut() {
+                    *v *= back;
+                }
+                cint
+            }
+        }
+    }
+
+    /// [`Isa::estimate`] of one pair, a tiny pair rescaled first ([`tiny_pair_scale`]): the
+    /// shift is that of the rescaled pair, the cost scaled back.
+    fn estimate_rescaled(self, ds: &[f32], dt: &[f32], t: usize, c: usize) -> YawEstimate {
+        match tiny_pair_scale(self, ds, dt) {
+            None => self.estimate(ds, dt, t, c),
+            Some(e) => {
+                let est = self.estimate(&scaled(ds, e), &scaled(dt, e), t, c);
+                YawEstimate {
+                    cost: est.cost * pow2(-e),
+                    ..est
+                }
+            }
+        }
+    }
+}
+
+/// A pair whose values all lie within ±`TINY` is rescaled before its f32 Gram products and
+/// tables: below ~1e-19 the products of its values fall below float32's normal range
+/// (1.2e-38) and lose their digits, and at 1e-25 every entry of the curve was 0.
+const TINY: f32 = 1.0 / (1u64 << 32) as f32;
+
+/// For a pair whose values all lie within ±[`TINY`] and are not all zero: the exponent `e` such
+/// that `2^e` times its largest magnitude lies in [0.5, 1). The costs are homogeneous of degree
+/// one, and scaling by a power of two is exact (every scaled value is a normal float32), so the
+/// rescaled pair's costs times `2^−e` are the pair's to the kernels' accuracy. `None` for any
+/// other pair: the test reads the first value above [`TINY`], at most a chunk of 4096 values,
+/// for ordinary descriptors.
+fn tiny_pair_scale(isa: Isa, ds: &[f32], dt: &[f32]) -> Option<i32> {
+    if !(isa.all_within(ds, TINY) && isa.all_within(dt, TINY)) {
+        return None;
+    }
+    let m = ds.iter().chain(dt).fold(0.0f32, |m, v| m.max(v.abs()));
+    if m == 0.0 {
+        return None; // all zeros: nothing to lose
+    }
+    // m = f·2^x with f in [0.5, 1): x from the exponent field of m as an f64 (normal there)
+    let x = ((f64::from(m).to_bits() >> 52) & 0x7ff) as i32 - 1022;
+    Some(-x)
+}
+
+/// `2^e` as an f64, for |e| ≤ 1022.
+fn pow2(e: i32) -> f64 {
+    f64::from_bits(((1023 + e) as u64) << 52)
+}
+
+/// `x·2^e`, exact for the pairs [`tiny_pair_scale`] scales (the products are normal floats).
+fn scaled(x: &[f32], e: i32) -> Vec<f32> {
+    let f = pow2(e);
+    x.iter().map(|&v| (f64::from(v) * f) as f32).collect()
 }
 
 /// Whether an on/off environment switch with value `v` is on: set, and neither empty nor "0"
@@ -1292,6 +1388,62 @@ mod tests {
             .unwrap()
             .iter()
             .all(|e| e.cost.is_finite() && e.shift.is_finite()));
+    }
+
+    #[test]
+    fn tiny_pairs_are_rescaled_not_lost_below_float32s_normal_range() {
+        // at 1e-25 the squared distances underflowed the f32 tables: every cost came out 0
+        let (t, c) = (12, 7);
+        let (s0, g0) = (data(2, t, c, 21), data(2, t, c, 22));
+        let want = yaw_costs(s0.view(), g0.view()).unwrap();
+        let est0 = estimate_yaw(s0.view(), g0.view()).unwrap();
+        for scale in [1e-12f32, 1e-19, 1e-23, 1e-25, 1e-30, 1e-36] {
+            // a power of two near `scale`, so that the scaled data is exact (no subnormals)
+            let p2 = 2f32.powi(scale.log2().round() as i32);
+            let (s, g) = (s0.mapv(|v| v * p2), g0.mapv(|v| v * p2));
+            let got = yaw_costs(s.view(), g.view()).unwrap();
+            for (a, b) in got.iter().zip(want.iter()) {
+                let a = a / p2 as f64;
+                assert!((a - b).abs() <= 1e-6 * b, "{scale}: {a} vs {b}");
+            }
+            let est = estimate_yaw(s.view(), g.view()).unwrap();
+            for (e, e0) in est.iter().zip(&est0) {
+                assert!(
+                    (e.cost / p2 as f64 - e0.cost).abs() <= 1e-9 * e0.cost,
+                    "{scale}"
+                );
+                assert!((e.shift - e0.shift).abs() <= 1e-6, "{scale}");
+            }
+        }
+        // subnormal values too: each matches the literal curve
+        let s = s0.mapv(|v| v * 1e-40);
+        let g = g0.mapv(|v| v * 1e-40);
+        let got = yaw_costs(s.view(), g.view()).unwrap();
+        for q in 0..2 {
+            for k in 0..t {
+                let lit = literal_cost(
+                    &s.index_axis(Axis(0), q),
+                    &g.index_axis(Axis(0), q),
+                    k as f64,
+                );
+                assert!((got[[q, k]] - lit).abs() <= 1e-6 * lit, "{q} {k}");
+            }
+        }
+        // all zeros stay zeros
+        let z = Array3::<f32>::zeros((1, t, c));
+        assert!(yaw_costs(z.view(), z.view())
+            .unwrap()
+            .iter()
+            .all(|&v| v == 0.0));
+    }
+
+    #[test]
+    fn matching_cost_of_an_empty_batch_is_empty() {
+        let e = Array3::<f32>::zeros((0, 4, 3));
+        assert_eq!(
+            matching_cost(e.view(), e.view()).unwrap(),
+            Vec::<f64>::new()
+        );
     }
 
     #[test]

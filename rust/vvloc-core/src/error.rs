@@ -80,14 +80,29 @@ pub fn checked_len(arg: &'static str, dims: &[usize]) -> Result<usize> {
 /// reserves the memory and frees it at once (address space only: no page is touched), which
 /// keeps the zeroed allocation that follows lazy.
 pub fn check_alloc<T>(arg: &'static str, len: usize) -> Result<()> {
-    let mut probe: Vec<T> = Vec::new();
-    probe.try_reserve_exact(len).map_err(|_| Error::Memory {
+    try_with_capacity::<T>(arg, len).map(drop)
+}
+
+/// An empty vector with room for exactly `len` elements of `T`, or [`Error::Memory`] naming
+/// `arg` when they cannot be allocated (`Vec::with_capacity` would abort the process).
+pub fn try_with_capacity<T>(arg: &'static str, len: usize) -> Result<Vec<T>> {
+    let mut v: Vec<T> = Vec::new();
+    v.try_reserve_exact(len).map_err(|_| Error::Memory {
         arg,
         what: format!(
             "{len} elements of {} bytes",
             std::mem::size_of::<T>().max(1)
         ),
-    })
+    })?;
+    Ok(v)
+}
+
+/// The items of `iter` in a vector allocated fallibly for its exact length ([`Error::Memory`]
+/// naming `arg` instead of the abort of `collect`).
+pub fn try_collect<T>(arg: &'static str, iter: impl ExactSizeIterator<Item = T>) -> Result<Vec<T>> {
+    let mut v = try_with_capacity(arg, iter.len())?;
+    v.extend(iter);
+    Ok(v)
 }
 
 /// A `vec![value; len]` that returns [`Error::Memory`] naming `arg` instead of aborting.
@@ -124,5 +139,18 @@ mod tests {
         ));
         assert!(try_filled("x", usize::MAX / 8, 0.0f64).is_err());
         assert_eq!(try_filled("x", 3, 1u8).unwrap(), vec![1, 1, 1]);
+        assert!(matches!(
+            try_with_capacity::<u64>("y", usize::MAX / 4),
+            Err(Error::Memory { arg: "y", .. })
+        ));
+        assert!(try_with_capacity::<u64>("y", 5).unwrap().capacity() >= 5);
+        assert_eq!(
+            try_collect("x", (0..4).map(|v| v * 2)).unwrap(),
+            vec![0, 2, 4, 6]
+        );
+        assert!(matches!(
+            try_collect("z", (0..usize::MAX / 4).map(|_| 0u64)),
+            Err(Error::Memory { arg: "z", .. })
+        ));
     }
 }

@@ -208,6 +208,13 @@ fn madd<const FMA: bool>(a: f32, b: f32, c: f32) -> f32 {
 const LANES: usize = 32;
 
 /// `out[c] = constant + Σ wₜ·rowₜ[c]`, in chunks of 32 channels accumulated in registers.
+///
+/// The result is clamped to float32's finite range: the blend is a convex combination of
+/// finite values (the map's and the fill 1), so it is finite, but the weights rounded to f32
+/// can sum to 1 + 1 ulp, and at ±`f32::MAX` the f32 sum then overflowed to ±inf (the true value
+/// lies within an ulp or two of ±`f32::MAX`, which the clamp returns). Free: two vector
+/// instructions on registers per chunk (benchmarked, BENCHMARKS.md "Spatial kernels at
+/// float32's maximum").
 #[inline(always)]
 pub(crate) fn blend<const FMA: bool>(out: &mut [f32], taps: &Taps<'_>) {
     let rows = &taps.rows[..taps.len];
@@ -222,7 +229,9 @@ pub(crate) fn blend<const FMA: bool>(out: &mut [f32], taps: &Taps<'_>) {
                 *a = madd::<FMA>(w, s, *a);
             }
         }
-        dst.copy_from_slice(&acc);
+        for (d, &a) in dst.iter_mut().zip(&acc) {
+            *d = finite(a);
+        }
         c0 += LANES;
     }
     for (j, d) in chunks.into_remainder().iter_mut().enumerate() {
@@ -230,7 +239,19 @@ pub(crate) fn blend<const FMA: bool>(out: &mut [f32], taps: &Taps<'_>) {
         for (row, &w) in rows.iter().zip(weights) {
             a = madd::<FMA>(w, row[c0 + j], a);
         }
-        *d = a;
+        *d = finite(a);
+    }
+}
+
+/// `a` clamped to [−`f32::MAX`, `f32::MAX`] (written with comparisons that compile to one
+/// vector min and max; `a` is never NaN here).
+#[inline(always)]
+fn finite(a: f32) -> f32 {
+    let a = if a > f32::MAX { f32::MAX } else { a };
+    if a < -f32::MAX {
+        -f32::MAX
+    } else {
+        a
     }
 }
 
@@ -406,6 +427,30 @@ mod tests {
         let vast = one.broadcast((1 << 20, 1 << 10, 1 << 10, 1)).unwrap();
         let err = polar_sample(vast.into_dyn(), 4, 2, 0.3).unwrap_err();
         assert!(matches!(err, Error::Memory { arg: "bev", .. }), "{err:?}");
+    }
+
+    #[test]
+    fn finite_maps_at_float32s_maximum_stay_finite() {
+        // the f32 weights of a blend can sum to 1 + 1 ulp: at ±f32::MAX the sum overflowed
+        let tr = ndarray::arr2(&[[0.1, 0.07], [0.33, -0.21], [0.0, 0.0]]);
+        for v in [f32::MAX, -f32::MAX] {
+            for (h, w, c) in [(2, 2, 1), (6, 5, 3), (7, 9, 40)] {
+                let map = Array3::<f32>::from_elem((h, w, c), v);
+                let outs = [
+                    polar_sample(map.view().into_dyn(), 4, 1, 0.3).unwrap(),
+                    polar_sample(map.view().into_dyn(), 7, 3, 0.3).unwrap(),
+                    crate::pad::bev_pad(map.view(), tr.view(), 0.3)
+                        .unwrap()
+                        .into_dyn(),
+                    crate::pad::pad_polar(map.view(), tr.view(), 7, 3, 0.3)
+                        .unwrap()
+                        .into_dyn(),
+                ];
+                for out in outs {
+                    assert!(out.iter().all(|x| x.is_finite()), "{v} {h} {w} {c}");
+                }
+            }
+        }
     }
 
     #[test]

@@ -56,7 +56,7 @@ pub fn roll_interp(x: ArrayViewD<'_, f32>, shift: f64, axis: usize) -> Result<Ar
     let src = x
         .as_slice()
         .ok_or_else(|| Error::value("x", "could not view the array as contiguous memory"))?;
-    let mut out = vec![0.0f32; src.len()];
+    let mut out = crate::error::try_filled("x", src.len(), 0.0f32)?;
     if n > 0 && inner > 0 {
         let (k, w) = split_shift(shift, n);
         let (w0, w1) = ((1.0 - w) as f32, w as f32);

@@ -12,7 +12,7 @@
 //! [0, 1) as `(z >> 11)·2⁻⁵³`. The search itself is sequential, so it is deterministic for a seed
 //! and any thread count.
 
-use crate::error::{Error, Result};
+use crate::error::{try_with_capacity, Error, Result};
 use crate::pose::wrap_angle;
 use std::f64::consts::PI;
 
@@ -133,7 +133,24 @@ pub struct Hypothesis {
     pub stage: usize,
 }
 
+/// [`TranslationSearch::history`] as columns, the arrays the bindings hand out.
+#[derive(Debug, Clone, PartialEq)]
+pub struct HistoryColumns {
+    /// (M, 2) row-major translations (x, y), metres.
+    pub xy: Vec<f64>,
+    /// (M,) yaws, radians in (−π, π].
+    pub yaw: Vec<f64>,
+    /// (M,) costs.
+    pub cost: Vec<f64>,
+    /// (M,) stage of each hypothesis.
+    pub stage: Vec<i64>,
+}
+
 /// The coarse-to-fine search state machine: `proposals` → evaluate → `report`, until `done`.
+///
+/// Every buffer (proposals, history, their copies as columns) is allocated fallibly: one that
+/// does not fit is [`Error::Memory`] naming `step` (the coarse grid) or `fine_samples`, and a
+/// failed `report` leaves the search as it was.
 #[derive(Debug, Clone)]
 pub struct TranslationSearch {
     config: SearchConfig,
@@ -154,7 +171,7 @@ impl TranslationSearch {
             history: Vec::new(),
             best: None,
         };
-        s.pending = s.make_proposals();
+        s.pending = s.make_proposals(0, None)?;
         Ok(s)
     }
 
@@ -196,32 +213,94 @@ impl TranslationSearch {
         if yaws.iter().any(|v| !v.is_finite()) {
             return Err(Error::value("yaws", "contains non-finite values"));
         }
-        for (p, (&cost, &yaw)) in self.pending.iter().zip(costs.iter().zip(yaws)) {
-            // kept bit for bit inside (−π, π], as the reference keeps it; wrapped outside
-            let yaw = if yaw > -PI && yaw <= PI {
-                yaw
-            } else {
-                wrap_angle(yaw)
-            };
-            let h = Hypothesis {
+        // Everything that can fail (the history's growth, the next stage's proposals) comes
+        // before any change: a failed report leaves the search as it was.
+        let arg = Self::stage_arg(self.stage);
+        if self.history.try_reserve(n).is_err() {
+            self.history
+                .try_reserve_exact(n)
+                .map_err(|_| Error::Memory {
+                    arg,
+                    what: format!("a history of {} hypotheses", self.history.len() + n),
+                })?;
+        }
+        let hyps = self
+            .pending
+            .iter()
+            .zip(costs.iter().zip(yaws))
+            .map(|(p, (&cost, &yaw))| Hypothesis {
                 x: p[0],
                 y: p[1],
-                yaw,
+                // kept bit for bit inside (−π, π], as the reference keeps it; wrapped outside
+                yaw: if yaw > -PI && yaw <= PI {
+                    yaw
+                } else {
+                    wrap_angle(yaw)
+                },
                 cost,
                 stage: self.stage,
-            };
-            if self.best.is_none_or(|b| cost < b.cost) {
-                self.best = Some(h);
+            });
+        let mut best = self.best;
+        for h in hyps.clone() {
+            if best.is_none_or(|b| h.cost < b.cost) {
+                best = Some(h);
             }
-            self.history.push(h);
         }
-        self.stage += 1;
-        self.pending = if self.done() {
+        let next = self.stage + 1;
+        let pending = if next >= self.config.stages {
             Vec::new()
         } else {
-            self.make_proposals()
+            self.make_proposals(next, best)?
         };
+        self.history.extend(hyps); // within the capacity reserved above
+        self.best = best;
+        self.stage = next;
+        self.pending = pending;
         Ok(())
+    }
+
+    /// The argument that sets the number of hypotheses of stage `stage`.
+    fn stage_arg(stage: usize) -> &'static str {
+        if stage == 0 {
+            "step"
+        } else {
+            "fine_samples"
+        }
+    }
+
+    /// The current proposals as a row-major (N, 2) array of (x, y) metres, allocated fallibly.
+    pub fn proposals_xy(&self) -> Result<Vec<f64>> {
+        let mut out = try_with_capacity(Self::stage_arg(self.stage), 2 * self.pending.len())?;
+        out.extend(self.pending.iter().flatten().copied());
+        Ok(out)
+    }
+
+    /// [`TranslationSearch::history`] as columns, allocated fallibly ([`Error::Memory`] naming
+    /// `step` or `fine_samples`, whichever sets more of the hypotheses).
+    pub fn history_columns(&self) -> Result<HistoryColumns> {
+        let h = &self.history;
+        let grid = h.iter().take_while(|v| v.stage == 0).count();
+        let arg = if h.len() - grid > grid {
+            "fine_samples"
+        } else {
+            "step"
+        };
+        let mut xy = try_with_capacity(arg, 2 * h.len())?;
+        xy.extend(h.iter().flat_map(|v| [v.x, v.y]));
+        let column = |f: fn(&Hypothesis) -> f64| -> Result<Vec<f64>> {
+            let mut out = try_with_capacity(arg, h.len())?;
+            out.extend(h.iter().map(f));
+            Ok(out)
+        };
+        let (yaw, cost) = (column(|v| v.yaw)?, column(|v| v.cost)?);
+        let mut stage = try_with_capacity(arg, h.len())?;
+        stage.extend(h.iter().map(|v| v.stage as i64));
+        Ok(HistoryColumns {
+            xy,
+            yaw,
+            cost,
+            stage,
+        })
     }
 
     /// The best hypothesis so far (None before the first report).
@@ -234,39 +313,41 @@ impl TranslationSearch {
         &self.history
     }
 
-    fn make_proposals(&self) -> Vec<[f64; 2]> {
+    /// The proposals of stage `stage` around `best`, allocated fallibly.
+    fn make_proposals(&self, stage: usize, best: Option<Hypothesis>) -> Result<Vec<[f64; 2]>> {
         let cfg = &self.config;
-        if self.stage == 0 {
+        if stage == 0 {
             let n = cfg.grid_side();
             let m = (n / 2) as f64;
             // i·step can round one ulp past half_range (3 × 0.1 > 0.3): clamped, the grid
             // keeps to its square as the fine stages do
             let tick =
                 |i: usize| ((i as f64 - m) * cfg.step).clamp(-cfg.half_range, cfg.half_range);
-            let mut out = Vec::with_capacity(n * n);
+            // n·n ≤ MAX_STAGE_POINTS (validated): no overflow
+            let mut out = try_with_capacity(Self::stage_arg(0), n * n)?;
             for ix in 0..n {
                 for iy in 0..n {
                     out.push([tick(ix), tick(iy)]);
                 }
             }
-            return out;
+            return Ok(out);
         }
-        let centre = self.best.map_or([0.0, 0.0], |b| [b.x, b.y]);
+        let centre = best.map_or([0.0, 0.0], |b| [b.x, b.y]);
         // Repeated multiplication (not powi) so that the Python reference matches bit for bit.
         let mut half = cfg.step;
-        for _ in 1..self.stage {
+        for _ in 1..stage {
             half *= cfg.shrink;
         }
         let mut rng =
-            SplitMix64::new(cfg.seed ^ (self.stage as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15));
+            SplitMix64::new(cfg.seed ^ (stage as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15));
         let r = cfg.half_range;
-        (0..cfg.fine_samples)
-            .map(|_| {
-                let x = centre[0] + (2.0 * rng.next_f64() - 1.0) * half;
-                let y = centre[1] + (2.0 * rng.next_f64() - 1.0) * half;
-                [x.clamp(-r, r), y.clamp(-r, r)]
-            })
-            .collect()
+        let mut out = try_with_capacity(Self::stage_arg(stage), cfg.fine_samples)?;
+        out.extend((0..cfg.fine_samples).map(|_| {
+            let x = centre[0] + (2.0 * rng.next_f64() - 1.0) * half;
+            let y = centre[1] + (2.0 * rng.next_f64() - 1.0) * half;
+            [x.clamp(-r, r), y.clamp(-r, r)]
+        }));
+        Ok(out)
     }
 }
 
@@ -343,6 +424,26 @@ mod tests {
         // Stage s samples lie within step·shrink^(s−1) of the best before that stage.
         for h in h.iter().filter(|h| h.stage == 3) {
             assert!((h.x - 1.3).abs() <= 1.0 && (h.y + 0.6).abs() <= 1.0);
+        }
+    }
+
+    #[test]
+    fn columns_are_the_proposals_and_the_history() {
+        let mut s = TranslationSearch::new(cfg()).unwrap();
+        let flat: Vec<f64> = s.proposals().iter().flatten().copied().collect();
+        assert_eq!(s.proposals_xy().unwrap(), flat);
+        let n = s.proposals().len();
+        let costs: Vec<f64> = (0..n).map(|i| i as f64).collect();
+        s.report(&costs, &vec![4.0; n]).unwrap();
+        s.report(&[0.5; 16], &[0.1; 16]).unwrap();
+        let h = s.history_columns().unwrap();
+        assert_eq!(h.yaw.len(), n + 16);
+        for (i, v) in s.history().iter().enumerate() {
+            assert_eq!(
+                (h.xy[2 * i], h.xy[2 * i + 1], h.yaw[i], h.cost[i]),
+                (v.x, v.y, v.yaw, v.cost)
+            );
+            assert_eq!(h.stage[i], v.stage as i64);
         }
     }
 

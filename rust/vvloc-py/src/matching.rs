@@ -5,23 +5,42 @@ use crate::errors::to_py;
 use crate::pool;
 use numpy::{IntoPyArray, PyArray1, PyArray2, PyReadonlyArray1, PyReadonlyArray3};
 use pyo3::prelude::*;
+use std::borrow::Cow;
 use vvloc_core::cost;
+use vvloc_core::error::try_collect;
 use vvloc_core::search::{SearchConfig, TranslationSearch as CoreSearch};
 
 type F64Vec<'py> = Bound<'py, PyArray1<f64>>;
 
+/// The estimates' (shift, yaw, cost) columns as arrays, each allocated fallibly (a
+/// `MemoryError` naming `src`, the argument that sets their length, instead of an abort).
 fn estimates_to_py<'py>(
     py: Python<'py>,
     est: &[cost::YawEstimate],
-) -> (F64Vec<'py>, F64Vec<'py>, F64Vec<'py>) {
-    let shift: Vec<f64> = est.iter().map(|e| e.shift).collect();
-    let yaw: Vec<f64> = est.iter().map(|e| e.yaw).collect();
-    let c: Vec<f64> = est.iter().map(|e| e.cost).collect();
-    (
+) -> PyResult<(F64Vec<'py>, F64Vec<'py>, F64Vec<'py>)> {
+    let column = |f: fn(&cost::YawEstimate) -> f64| to_py(try_collect("src", est.iter().map(f)));
+    let (shift, yaw, c) = (
+        column(|e| e.shift)?,
+        column(|e| e.yaw)?,
+        column(|e| e.cost)?,
+    );
+    Ok((
         shift.into_pyarray(py),
         yaw.into_pyarray(py),
         c.into_pyarray(py),
-    )
+    ))
+}
+
+/// The elements of a float64 vector: borrowed when contiguous (the gateway's arrays), else
+/// copied into a fallibly allocated vector (`MemoryError` naming `arg`).
+fn f64_slice<'a>(x: &'a PyReadonlyArray1<'_, f64>, arg: &'static str) -> PyResult<Cow<'a, [f64]>> {
+    match x.as_slice() {
+        Ok(s) => Ok(Cow::Borrowed(s)),
+        Err(_) => Ok(Cow::Owned(to_py(try_collect(
+            arg,
+            x.as_array().iter().copied(),
+        ))?)),
+    }
 }
 
 /// Matching cost of P pairs (P, T, C) float32 → (P,) float64.
@@ -69,7 +88,7 @@ fn estimate_yaw<'py>(
         cost::runs_sequentially(s.shape()[0]),
         || cost::estimate_yaw(s, t),
     )?)?;
-    Ok(estimates_to_py(py, &est))
+    estimates_to_py(py, &est)
 }
 
 /// Re-ranking of K candidates → (order int64, cost, yaw, shift), costs etc. in input order.
@@ -91,8 +110,8 @@ fn rerank<'py>(
         cost::runs_sequentially(s.shape()[0]),
         || cost::rerank(s, t),
     )?)?;
-    let order: Vec<i64> = r.order.iter().map(|&k| k as i64).collect();
-    let (shift, yaw, c) = estimates_to_py(py, &r.estimates);
+    let order = to_py(try_collect("src", r.order.iter().map(|&k| k as i64)))?;
+    let (shift, yaw, c) = estimates_to_py(py, &r.estimates)?;
     Ok((order.into_pyarray(py), c, yaw, shift))
 }
 
@@ -126,10 +145,12 @@ impl TranslationSearch {
     }
 
     /// The current stage's translations (N, 2) float64 in metres ((0, 2) when done).
-    fn proposals<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray2<f64>> {
-        let p = self.inner.proposals();
-        let arr = ndarray::Array2::from_shape_fn((p.len(), 2), |(i, j)| p[i][j]);
-        arr.into_pyarray(py)
+    fn proposals<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray2<f64>>> {
+        let n = self.inner.proposals().len();
+        let xy = to_py(self.inner.proposals_xy())?;
+        let arr = ndarray::Array2::from_shape_vec((n, 2), xy)
+            .map_err(|e| pyo3::exceptions::PyValueError::new_err(e.to_string()))?;
+        Ok(arr.into_pyarray(py))
     }
 
     /// Reports (N,) costs and (N,) yaws of the current proposals and advances a stage.
@@ -138,8 +159,8 @@ impl TranslationSearch {
         costs: PyReadonlyArray1<'_, f64>,
         yaws: PyReadonlyArray1<'_, f64>,
     ) -> PyResult<()> {
-        let c = costs.as_array().to_vec();
-        let y = yaws.as_array().to_vec();
+        let c = f64_slice(&costs, "costs")?;
+        let y = f64_slice(&yaws, "yaws")?;
         to_py(self.inner.report(&c, &y))
     }
 
@@ -165,32 +186,22 @@ impl TranslationSearch {
     fn history<'py>(
         &self,
         py: Python<'py>,
-    ) -> (
+    ) -> PyResult<(
         Bound<'py, PyArray2<f64>>,
         F64Vec<'py>,
         F64Vec<'py>,
         Bound<'py, PyArray1<i64>>,
-    ) {
-        let h = self.inner.history();
-        let xy = ndarray::Array2::from_shape_fn(
-            (h.len(), 2),
-            |(i, j)| {
-                if j == 0 {
-                    h[i].x
-                } else {
-                    h[i].y
-                }
-            },
-        );
-        let yaw: Vec<f64> = h.iter().map(|v| v.yaw).collect();
-        let c: Vec<f64> = h.iter().map(|v| v.cost).collect();
-        let st: Vec<i64> = h.iter().map(|v| v.stage as i64).collect();
-        (
+    )> {
+        let h = to_py(self.inner.history_columns())?;
+        let m = h.yaw.len();
+        let xy = ndarray::Array2::from_shape_vec((m, 2), h.xy)
+            .map_err(|e| pyo3::exceptions::PyValueError::new_err(e.to_string()))?;
+        Ok((
             xy.into_pyarray(py),
-            yaw.into_pyarray(py),
-            c.into_pyarray(py),
-            st.into_pyarray(py),
-        )
+            h.yaw.into_pyarray(py),
+            h.cost.into_pyarray(py),
+            h.stage.into_pyarray(py),
+        ))
     }
 }
 
