@@ -626,6 +626,16 @@ def test_image_content_tells_pictures_from_flat_and_noisy_ones(tiny_world):
     half = flat.copy()
     half[0, :, :, : images.shape[3] // 2] = 200  # a hard edge in one camera
     assert has_image_content(half)
+    shared = 60 + 6 * rng.standard_normal((images.shape[0], 1, *images.shape[2:]))
+    shared = np.clip(np.rint(np.broadcast_to(shared, images.shape)), 0, 255).astype(np.uint8)
+    assert not has_image_content(shared)  # the same noise in the three channels
+    # a side shorter than two blocks is taken pixel by pixel: one 8-pixel block along it hid
+    # its variation (12 × 12 images had no content at all)
+    for h, w in ((12, 12), (15, 40), (9, 200), (40, 15)):
+        small = np.zeros((1, 3, h, w), np.uint8)
+        small[0, :, : h // 2] = 255
+        assert has_image_content(small), (h, w)
+        assert has_image_content(np.ascontiguousarray(np.swapaxes(small, 2, 3))), (h, w)
     tiny = np.zeros((1, 3, 4, 5), np.uint8)  # smaller than a block: pixel by pixel
     assert not has_image_content(tiny)
     tiny[0, :, 0, 0] = 255

@@ -146,7 +146,7 @@ def test_the_map_records_its_rig_and_the_localizer_compares_queries_with_it(
     other = dataclasses.replace(
         frame, images=frame.images[1:], K=frame.K[1:], cam_to_ego=frame.cam_to_ego[1:]
     )
-    with pytest.warns(UserWarning, match=r"frames\[0\]: from another rig .*3 cameras"):
+    with pytest.warns(UserWarning, match=r"^frame: from another rig .*3 cameras"):
         loc.localize(other)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
@@ -176,10 +176,10 @@ def test_the_map_records_its_rig_and_the_localizer_compares_queries_with_it(
     singular = frame.cam_to_ego.copy()
     singular[:, 3, :] = 0
     for change, match in [
-        ({"cam_to_ego": singular}, r"frames\[0\]\.cam_to_ego: expected a finite rigid"),
-        ({"K": np.zeros_like(frame.K)}, r"frames\[0\]\.K: expected a pinhole matrix"),
-        ({"K": np.swapaxes(frame.K, 1, 2)}, r"frames\[0\]\.K: expected a pinhole matrix"),
-        ({"K": frame.K[:3]}, r"frames\[0\]\.K: expected finite \(4, 3, 3\) intrinsics"),
+        ({"cam_to_ego": singular}, r"^frame\.cam_to_ego: expected a finite rigid"),
+        ({"K": np.zeros_like(frame.K)}, r"^frame\.K: expected a pinhole matrix"),
+        ({"K": np.swapaxes(frame.K, 1, 2)}, r"^frame\.K: expected a pinhole matrix"),
+        ({"K": frame.K[:3]}, r"^frame\.K: expected finite \(4, 3, 3\) intrinsics"),
     ]:
         with pytest.raises(ValueError, match=match):
             loc.localize(dataclasses.replace(frame, **change))
@@ -499,9 +499,17 @@ def test_frames_without_image_content_are_left_out_of_maps_and_never_accepted(
         min_distinctiveness=0.0,
     )
     frames = [ds.session("s1")[i] for i in (4, 5, 6)]
-    with pytest.warns(UserWarning, match=r"1 of 3 query frames have no image content .*frames 1\)"):
+    with pytest.warns(
+        UserWarning, match=r"1 of 3 query frames have no image content .*: frames 1\); not accepted"
+    ):
         results = loc.localize_batch(frames)
     assert [r.accepted for r in results] == [True, False, True]
+    assert [r.has_content for r in results] == [True, False, True]
+    assert "accepted=False (no image content)" in repr(results[1])
+    with pytest.warns(UserWarning, match=r"^the query frame has no image content") as caught:
+        alone = loc.localize(frames[1])
+    assert caught[0].filename == __file__  # the caller's line, not the localizer's
+    assert not alone.accepted and not alone.has_content
     assert np.isfinite(results[1].cost)  # still localized, for who wants the answer
     loc.close()
     # a session of blank frames alone makes no map, and leaves no file
@@ -636,7 +644,7 @@ def test_cli_map_localize_loops_end_to_end(tiny_world, model_dir, tmp_path):
     assert len(ts_all) == len(open_dataset(tiny_world).session("s2"))
     text = (tmp_path / "loc" / "queries.csv").read_text()
     assert text.startswith("# vvloc localize")
-    assert text.splitlines()[1].split(",")[-2:] == ["metric_row", "map_floor"]
+    assert text.splitlines()[1].split(",")[-3:] == ["metric_row", "map_floor", "has_content"]
     # poses.tum holds the accepted localizations only (a trajectory evaluator's input)
     header = text.splitlines()[1].split(",")
     rows = [dict(zip(header, line.split(","), strict=True)) for line in text.splitlines()[2:]]
@@ -667,6 +675,7 @@ def test_cli_map_localize_loops_end_to_end(tiny_world, model_dir, tmp_path):
         rows = [dict(zip(header, line.split(","), strict=True)) for line in lines[2:]]
         assert rows and all(row["map_row"] == row["metric_row"] for row in rows)
         assert all(row["map_floor"] == "0" for row in rows)  # the parking lot's one floor
+        assert all(row["has_content"] == "1" for row in rows)
     loops_cli = lambda out, *a: run(  # noqa: E731
         "loops", "--map", str(map_path), "--checkpoint", str(model_dir), "--out", str(out), *a
     )
@@ -1199,7 +1208,7 @@ def test_calibration_of_results_scores_the_reported_keyframe_under_the_cost_rule
     db = np.array([[0.0, 0, 0], [10, 0, 0], [20, 0, 0], [30, 0, 0]])
     q = np.array([[0.5, 0, 0], [10.5, 0, 0], [20.5, 0, 0], [30.5, 0, 0], [100, 0, 0]])
     res = [  # (reported keyframe, cost, distinctiveness)
-        SimpleNamespace(reranked=np.array([r, 1]), cost=c, distinctiveness=d)
+        SimpleNamespace(reranked=np.array([r, 1]), cost=c, distinctiveness=d, has_content=True)
         for r, c, d in [(0, 0.3, 0.9), (2, 0.3, 0.8), (2, 0.3, 0.7), (3, 0.9, 1.0), (0, 0.1, 5.0)]
     ]
     kw = {"query_floors": np.zeros(5, int), "db_poses": db, "db_floors": np.zeros(4, int)}
@@ -1213,6 +1222,10 @@ def test_calibration_of_results_scores_the_reported_keyframe_under_the_cost_rule
     assert strict["min_distinctiveness"] == 0.9 and strict["accepted"] == 1
     loose = calibration_of_results(res, q, accept_threshold=1.0, target_precision=1.0, **kw)
     assert loose["passing_cost"] == 4 and loose["accepted"] == 0  # min_accepted 10 not reached
+    # a query without image content is never accepted: it does not pass the cost rule either
+    blank = [res[0], SimpleNamespace(**{**vars(res[1]), "has_content": False}), *res[2:]]
+    cal = calibration_of_results(blank, q, target_precision=1.0, min_accepted=1, **kw)
+    assert (cal["min_distinctiveness"], cal["accepted"], cal["passing_cost"]) == (0.7, 2, 2)
     with pytest.raises(ValueError, match="query_poses"):
         calibration_of_results(res, q[:3], **kw)
     with pytest.raises(ValueError, match="no query has a map keyframe within 2 m"):

@@ -37,7 +37,9 @@ HEADER = (
     "distinctiveness >= min_distinctiveness (the model's calibration, or --min_distinctiveness). "
     "map_row = the reported keyframe (snapped: the retrieved one nearest the metric pose); "
     "metric_row = the keyframe the pose was estimated against; map_floor = map_row's floor, as "
-    "its session numbers them (the query's storey when the answer is right)."
+    "its session numbers them (the query's storey when the answer is right); has_content = 0 for "
+    "a frame whose every camera's picture is flat (a covered rig, a black stretch: never "
+    "accepted)."
 )
 
 
@@ -156,7 +158,7 @@ def localize(
             HEADER,
             "index,timestamp,map_row,map_id,map_session,relative_x,relative_y,"
             "relative_yaw_deg,global_x,global_y,global_yaw_deg,cost,distinctiveness,accepted,"
-            "metric_row,map_floor",
+            "metric_row,map_floor,has_content",
         ]
         for f, r in zip(frames, results, strict=True):
             rel, g = r.relative_pose, r.global_pose
@@ -178,6 +180,7 @@ def localize(
                     int(r.accepted),
                     r.metric_row,
                     r.map_floor,
+                    int(r.has_content),
                 )
             )
         stages = ("encode", "retrieve", "rerank", "metric")

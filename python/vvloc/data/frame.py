@@ -197,9 +197,10 @@ class Frame:
 
 #: :func:`has_image_content`'s block size (pixels) and threshold (grey levels on the 0-255
 #: scale). Rendered frames of every lighting preset, the darkest garage's included, reach ≥ 11
-#: on at least one camera (≥ 2.5 on every camera); independent per-pixel noise of σ grey levels
-#: on a flat picture reaches about σ/14 (a block mean averages 64 pixels × 3 channels), so a
-#: covered lens with sensor noise up to σ ≈ 14 reads as having none.
+#: on at least one camera (≥ 2.5 on every camera); they keep content down to about 4 stops
+#: darker. Per-pixel noise of σ grey levels on a flat picture reaches about σ/8 when the three
+#: channels share it (a demosaiced sensor; a block mean averages 64 pixels) and σ/14 when they
+#: do not, so a covered lens with sensor noise up to σ ≈ 8 reads as having none.
 CONTENT_BLOCK = 8
 CONTENT_MIN_STD = 1.0
 
@@ -208,7 +209,8 @@ def has_image_content(images: Any) -> bool:
     """Whether a frame's pictures show anything: at least one camera whose coarse brightness
     varies, i.e. the standard deviation of its grey image's ``CONTENT_BLOCK`` × ``CONTENT_BLOCK``
     block means reaches :data:`CONTENT_MIN_STD` grey levels (0-255 scale; float images in
-    [0, 1] are scaled by 255; cameras smaller than a block are taken pixel by pixel).
+    [0, 1] are scaled by 255). Along a side shorter than two blocks (16 pixels) the blocks are
+    single pixels, so that a small image keeps its variation along it.
 
     A frame without content (a covered or failed rig, a black or blown-out stretch, flat
     sensor noise) encodes to the same descriptors as any other such frame, so two of them match
@@ -222,15 +224,16 @@ def has_image_content(images: Any) -> bool:
         raise TypeError(f"images: expected uint8 or float in [0, 1], got dtype {arr.dtype}")
     exact = arr.dtype == np.uint8  # integer sums: exact, and fast (2 ms a 1080p camera)
     _, _, h, w = arr.shape
-    b = CONTENT_BLOCK if min(h, w) >= CONTENT_BLOCK else 1
-    hb, wb = h // b, w // b
+    # one block along a side would hide the variation along it: single pixels there
+    bh, bw = (CONTENT_BLOCK if n >= 2 * CONTENT_BLOCK else 1 for n in (h, w))
+    hb, wb = h // bh, w // bw
     for cam in arr:  # one camera at a time: most frames answer at the first
         # the sum of the three channels, then of each block's rows and columns
-        grey = cam.sum(axis=0, dtype=np.uint16 if exact else np.float64)[: hb * b, : wb * b]
+        grey = cam.sum(axis=0, dtype=np.uint16 if exact else np.float64)[: hb * bh, : wb * bw]
         acc = np.uint32 if exact else np.float64
-        blocks = grey.reshape(hb, b, wb * b).sum(axis=1, dtype=acc)
-        blocks = blocks.reshape(hb, wb, b).sum(axis=2, dtype=acc)
-        std = float(blocks.std()) / (3 * b * b) * (1.0 if exact else 255.0)
+        blocks = grey.reshape(hb, bh, wb * bw).sum(axis=1, dtype=acc)
+        blocks = blocks.reshape(hb, wb, bw).sum(axis=2, dtype=acc)
+        std = float(blocks.std()) / (3 * bh * bw) * (1.0 if exact else 255.0)
         if std >= CONTENT_MIN_STD:
             return True
     return False

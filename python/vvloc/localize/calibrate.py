@@ -27,7 +27,7 @@ import numpy.typing as npt
 import torch
 
 from vvloc import evaluate
-from vvloc.data import Frame
+from vvloc.data import Frame, has_image_content
 from vvloc.localize.localizer import (
     LocalizationResult,
     Localizer,
@@ -100,7 +100,8 @@ def rerank_split(
         raise ValueError(f"every: expected an int >= 1, got {every!r}")
     if isinstance(top_k, bool) or not isinstance(top_k, int) or top_k < 1:
         raise ValueError(f"top_k: expected an int >= 1, got {top_k!r}")
-    db_frames = list(ds.session(database))
+    # the frames a map keeps (build_map leaves those without image content out)
+    db_frames = [f for f in ds.session(database) if has_image_content(f.images)]
     q_frames = [f for name in queries for f in ds.session(name)[::every]]
     if not db_frames or not q_frames:
         raise ValueError(f"database {database!r} and queries {list(queries)}: no frames")
@@ -250,7 +251,10 @@ def calibration_of_results(
     if not kept.any():
         check_revisits(q_pose, query_floors, db_poses, db_floors)  # raises
     right = rec.correct(1, 2.0)
-    passing = kept & np.array([r.cost < accept_threshold for r in results], dtype=bool)
+    # the cost rule, for queries that show something (the localizer accepts no other)
+    passing = kept & np.array(
+        [r.cost < accept_threshold and r.has_content for r in results], dtype=bool
+    )
     score = np.array([r.distinctiveness for r in results], dtype=np.float64)
     cal = evaluate.calibrate_acceptance(
         score[passing], right[passing], target_precision=target_precision, min_accepted=min_accepted

@@ -51,6 +51,7 @@ import torch
 from tqdm import tqdm
 
 from vvloc import evaluate, geometry, kernels
+from vvloc._io import list_entries
 from vvloc.checkpoints import checkpoint_folder
 from vvloc.data import Camera, Dataset, Frame
 from vvloc.data.frame import (
@@ -441,8 +442,7 @@ class LocalizationResult:
         global_pose: the query's world pose (x, y, yaw) = T_world_m · ξ_{m→q}.
         cost: matching cost at the estimate (lower is better), against ``metric_row``.
         accepted: ``cost < accept_threshold`` and ``distinctiveness >= min_distinctiveness``,
-            and the query frame has image content (:func:`vvloc.data.has_image_content`; a
-            frame given to :meth:`Localizer.localize_encoded` is taken to have it).
+            and ``has_content``.
         retrieved: (K,) map rows in retrieval order; ``retrieval_dist`` their L2 distances.
         reranked: (K,) map rows: the M metric candidates (see ``Localizer(metric_from=)``) by
             coarse metric cost plus ``retrieval_weight`` × descriptor distance, then the others
@@ -463,6 +463,9 @@ class LocalizationResult:
             query is on when the answer is right; ``global_pose`` has no height). Meaningless
             when ``map_row`` is -1 (an empty map; floors may be negative, so -1 there is only
             a filler).
+        has_content: whether the query frame has image content
+            (:func:`vvloc.data.has_image_content`); a frame without any is localized but not
+            accepted. True for :meth:`Localizer.localize_encoded`, which sees no images.
     """
 
     map_row: int
@@ -481,6 +484,7 @@ class LocalizationResult:
     distinctiveness: float = float("nan")
     metric_row: int = -1
     map_floor: int = -1
+    has_content: bool = True
 
     def __repr__(self) -> str:
         """One line: the answer, its confidence and the sizes of the arrays (the default
@@ -497,7 +501,8 @@ class LocalizationResult:
         return (
             f"LocalizationResult(map_row={self.map_row}, map_id={self.map_id}, "
             f"map_session={self.map_session!r}, map_floor={self.map_floor}, "
-            f"accepted={self.accepted}, cost={self.cost:.4f}, "
+            f"accepted={self.accepted}{'' if self.has_content else ' (no image content)'}, "
+            f"cost={self.cost:.4f}, "
             f"distinctiveness={self.distinctiveness:.4f}, "
             f"relative_pose={pose(self.relative_pose)}, global_pose={pose(self.global_pose)}, "
             f"metric_row={self.metric_row}, reranked=[{top}{more}] of {len(self.reranked)}, "
@@ -890,9 +895,9 @@ class Localizer:
         d = np.hypot(*(xy - np.asarray(global_pose, dtype=np.float64)[:2]).T)
         return int(on_floor[int(np.argmin(d))])
 
-    def _check_rig(self, frame: Frame, i: int) -> None:
-        """Warn (once) when ``frame`` comes from a rig other than the one the map records
-        (:data:`vvloc.data.rig.SAME_MAP`)."""
+    def _check_rig(self, frame: Frame, at: str) -> None:
+        """Warn (once) when ``frame`` (the caller's argument ``at``) comes from a rig other
+        than the one the map records (:data:`vvloc.data.rig.SAME_MAP`)."""
         if self._map_rig is None or self._rig_warned:
             return
         h, w = frame.images.shape[2:]
@@ -900,16 +905,16 @@ class Localizer:
         if why:
             self._rig_warned = True
             warnings.warn(
-                f"frames[{i}]: from another rig than the map's ({why}); the model met only the "
+                f"{at}: from another rig than the map's ({why}); the model met only the "
                 "rig it was trained on, and poses from another may be far off",
-                stacklevel=3,
+                stacklevel=4,  # _localize_frames, localize(_batch), its caller
             )
 
     # --- public --------------------------------------------------------------------------
 
     def localize(self, frame: Frame) -> LocalizationResult:
         """Localize one query frame (see the module docstring for the stages and frames)."""
-        return self.localize_batch([frame])[0]
+        return self._localize_frames([frame], 1, False, "frame")[0]
 
     def localize_batch(
         self, frames: Iterable[Frame], *, batch_size: int = 8, progress: bool = False
@@ -928,27 +933,39 @@ class Localizer:
         and its poses may be far off. A tilting vehicle's levelled frames and motion-compensated
         cameras (``Session.frame_cam_to_ego``) stay within those bounds. Frames without image
         content (:func:`vvloc.data.has_image_content`: a covered rig, a black stretch) are
-        localized but not accepted, with a ``UserWarning``."""
-        self._check_open()  # before the frames are encoded
+        localized but not accepted (``has_content`` False), with a ``UserWarning``."""
         batch_size = kernels._positive_int(batch_size, "batch_size")
         if isinstance(frames, Frame) or not isinstance(frames, Iterable):
             raise TypeError(
                 f"frames: expected a sequence of vvloc.data.Frame, got {type(frames).__name__}"
             )
-        frames = list(frames)  # a generator is taken too
+        return self._localize_frames(list(frames), batch_size, progress, "frames")
+
+    def _localize_frames(
+        self, frames: list[Frame], batch_size: int, progress: bool, name: str
+    ) -> list[LocalizationResult]:
+        """:meth:`localize_batch` of checked arguments, for :meth:`localize` (``name``: the
+        caller's argument, for messages) too; its warnings name the public caller's line."""
+        self._check_open()  # before the frames are encoded
         for i, f in enumerate(frames):
+            at = name if name == "frame" else f"{name}[{i}]"
             if not isinstance(f, Frame):
-                raise TypeError(f"frames[{i}]: expected a vvloc.data.Frame, got {type(f).__name__}")
-            _check_images(f.images, f"frames[{i}].images")
-            _check_calibration(f.K, f.cam_to_ego, len(f.images), f"frames[{i}]")
-            self._check_rig(f, i)
+                raise TypeError(f"{at}: expected a vvloc.data.Frame, got {type(f).__name__}")
+            _check_images(f.images, f"{at}.images")
+            _check_calibration(f.K, f.cam_to_ego, len(f.images), at)
+            self._check_rig(f, at)
         blank = [i for i, f in enumerate(frames) if not has_image_content(f.images)]
         if blank:
+            which = (
+                "the query frame has"
+                if name == "frame"
+                else f"{len(blank)} of {len(frames)} query frames have"
+            )
+            where = "" if name == "frame" else f": {name} {list_entries([str(i) for i in blank])}"
             warnings.warn(
-                f"{len(blank)} of {len(frames)} query frames have no image content (every "
-                f"camera's picture flat: frames {_some(blank)}); their answers are not accepted",
+                f"{which} no image content (every camera's picture flat{where}); not accepted",
                 UserWarning,
-                stacklevel=2,
+                stacklevel=3,
             )
         results: list[LocalizationResult] = []
         for start in tqdm(
@@ -964,7 +981,7 @@ class Localizer:
                     self.localize_encoded(enc.global_desc[i], enc.local_desc[i], enc.bev[i], t_enc)
                 )
         for i in blank:
-            results[i] = dataclasses.replace(results[i], accepted=False)
+            results[i] = dataclasses.replace(results[i], accepted=False, has_content=False)
         return results
 
     def localize_encoded(
@@ -1066,12 +1083,6 @@ class Localizer:
         )
 
 
-def _some(indices: Sequence[int], limit: int = 5) -> str:
-    """The first ``limit`` of ``indices`` for a message: ``"3, 4, 5, 20, 21 and 2 more"``."""
-    more = f" and {len(indices) - limit} more" if len(indices) > limit else ""
-    return ", ".join(map(str, indices[:limit])) + more
-
-
 def build_map(
     model: VVLocNet,
     dataset: Dataset,
@@ -1141,12 +1152,12 @@ def build_map(
         written = 0
         for name in sessions:
             sess = dataset.session(name)
-            blank: list[int] = []
+            blank: list[str] = []
             for start in range(0, len(sess), batch_size):
                 loaded = [sess[i] for i in range(start, min(start + batch_size, len(sess)))]
                 content = [has_image_content(f.images) for f in loaded]
                 frames = [f for f, c in zip(loaded, content, strict=True) if c]
-                blank += [f.index for f, c in zip(loaded, content, strict=True) if not c]
+                blank += [str(f.index) for f, c in zip(loaded, content, strict=True) if not c]
                 bar.update(len(loaded) - len(frames))
                 if not frames:
                     continue
@@ -1166,8 +1177,8 @@ def build_map(
             if blank:
                 warnings.warn(
                     f"session {name!r}: {len(blank)} of {len(sess)} frames have no image "
-                    f"content (every camera's picture flat: frames {_some(blank)}); left out "
-                    "of the map",
+                    f"content (every camera's picture flat: frames {list_entries(blank)}); "
+                    "left out of the map",
                     UserWarning,
                     stacklevel=2,
                 )
