@@ -25,12 +25,18 @@ BEV = (100, 100, 256)
 K = 20
 
 
+def unit(x: np.ndarray) -> np.ndarray:
+    """``x`` float32 with its last axis divided by its L2 norm (as the encoder gives global
+    descriptors, which a map requires)."""
+    return (x / np.linalg.norm(x, axis=-1, keepdims=True)).astype(np.float32)
+
+
 def build(n: int, n_bev: int, seed: int = 0) -> tuple[MapDatabase, MapDatabase]:
     rng = np.random.default_rng(seed)
     common = {
         "timestamps": np.arange(n) * 0.1,
         "sessions": "s0",
-        "global_descriptors": rng.normal(size=(n, DG)).astype(np.float32),
+        "global_descriptors": unit(rng.normal(size=(n, DG))),
         "model_config": {"bench": True},
         "grid_size": 0.3,
     }
