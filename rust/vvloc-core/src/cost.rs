@@ -1342,19 +1342,26 @@ mod tests {
             (33, 48),
         ] {
             let (s, g) = (data(3, t, c, 1), data(3, t, c, 2));
-            let out = yaw_costs(s.view(), g.view()).unwrap();
-            for q in 0..3 {
-                for k in 0..t {
-                    let want = literal_cost(
-                        &s.index_axis(Axis(0), q),
-                        &g.index_axis(Axis(0), q),
-                        k as f64,
-                    );
-                    assert!(
-                        (out[[q, k]] - want).abs() < 1e-5 * (1.0 + want),
-                        "{t} {c} {k}"
-                    );
-                }
+            assert_literal_curves(&s, &g, |want| 1e-5 * (1.0 + want));
+        }
+    }
+
+    /// `yaw_costs` of the pairs `s`, `g` against [`literal_cost`] at every integer shift,
+    /// within `tol(literal)`.
+    fn assert_literal_curves(s: &Array3<f32>, g: &Array3<f32>, tol: impl Fn(f64) -> f64) {
+        let out = yaw_costs(s.view(), g.view()).unwrap();
+        let (p, t, _) = s.dim();
+        for q in 0..p {
+            for k in 0..t {
+                let want = literal_cost(
+                    &s.index_axis(Axis(0), q),
+                    &g.index_axis(Axis(0), q),
+                    k as f64,
+                );
+                assert!(
+                    (out[[q, k]] - want).abs() <= tol(want),
+                    "pair {q}, shift {k}"
+                );
             }
         }
     }
@@ -1418,17 +1425,7 @@ mod tests {
         // subnormal values too: each matches the literal curve
         let s = s0.mapv(|v| v * 1e-40);
         let g = g0.mapv(|v| v * 1e-40);
-        let got = yaw_costs(s.view(), g.view()).unwrap();
-        for q in 0..2 {
-            for k in 0..t {
-                let lit = literal_cost(
-                    &s.index_axis(Axis(0), q),
-                    &g.index_axis(Axis(0), q),
-                    k as f64,
-                );
-                assert!((got[[q, k]] - lit).abs() <= 1e-6 * lit, "{q} {k}");
-            }
-        }
+        assert_literal_curves(&s, &g, |lit| 1e-6 * lit);
         // all zeros stay zeros
         let z = Array3::<f32>::zeros((1, t, c));
         assert!(yaw_costs(z.view(), z.view())
