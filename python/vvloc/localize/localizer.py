@@ -947,8 +947,9 @@ class Localizer:
         """:meth:`localize_batch` of checked arguments, for :meth:`localize` (``name``: the
         caller's argument, for messages) too; its warnings name the public caller's line."""
         self._check_open()  # before the frames are encoded
+        single = name == "frame"  # localize's one frame, not a list
         for i, f in enumerate(frames):
-            at = name if name == "frame" else f"{name}[{i}]"
+            at = name if single else f"{name}[{i}]"
             if not isinstance(f, Frame):
                 raise TypeError(f"{at}: expected a vvloc.data.Frame, got {type(f).__name__}")
             _check_images(f.images, f"{at}.images")
@@ -958,10 +959,10 @@ class Localizer:
         if blank:
             which = (
                 "the query frame has"
-                if name == "frame"
+                if single
                 else f"{len(blank)} of {len(frames)} query frames have"
             )
-            where = "" if name == "frame" else f": {name} {list_entries([str(i) for i in blank])}"
+            where = "" if single else f": {name} {list_entries([str(i) for i in blank])}"
             warnings.warn(
                 f"{which} no image content (every camera's picture flat{where}); not accepted",
                 UserWarning,
