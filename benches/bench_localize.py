@@ -98,7 +98,10 @@ def compare_matchers(model: VVLocNet, mapdb: MapDatabase, frames: list[Frame]) -
     turn, so that all see the same machine, the first of them in rotation (the one after a
     query's encoding and re-ranking would otherwise always be the same), after one untimed
     localization with each; ``same_answers``: whether all gave the library's pose, cost and
-    keyframe for every frame, bit for bit."""
+    keyframe for every frame, bit for bit; ``same_keyframes`` whether the keyframes were the
+    same, ``max_difference`` the largest difference of a pose component or cost from the
+    library's (bit for bit with torch's MKL on the AMD EPYCs of 2026-12-05; on an Intel Xeon
+    with AVX-512, 2026-12-06, the one-batch decoder's differ from the chunks' by ~1e-8)."""
     library = localizer_module.learned_matcher
     names = list(MATCHERS)
     out = []
@@ -106,6 +109,7 @@ def compare_matchers(model: VVLocNet, mapdb: MapDatabase, frames: list[Frame]) -
         loc = Localizer(model, mapdb, top_k=20, metric_candidates=m)
         times: dict[str, list[float]] = {name: [] for name in MATCHERS}
         same = True  # every matcher's pose and cost equal the library's, bit for bit
+        same_rows, diff = True, 0.0
         try:
             for name in names:  # warm-up
                 localizer_module.learned_matcher = MATCHERS[name]  # type: ignore[assignment]
@@ -117,10 +121,20 @@ def compare_matchers(model: VVLocNet, mapdb: MapDatabase, frames: list[Frame]) -
                     r = loc.localize(f)
                     times[name].append(r.timings_ms["metric"])
                     answers[name] = (tuple(r.relative_pose), r.cost, r.map_row)
-                same &= all(a == answers[names[0]] for a in answers.values())
+                lib = answers[names[0]]
+                same &= all(a == lib for a in answers.values())
+                same_rows &= all(a[2] == lib[2] for a in answers.values())
+                diff = max(
+                    diff,
+                    *(
+                        np.abs(np.r_[a[0], a[1]] - np.r_[lib[0], lib[1]]).max()
+                        for a in answers.values()
+                    ),
+                )
         finally:
             localizer_module.learned_matcher = library
-        out.append(_compared({"metric_candidates": m}, times, same))
+        row = _compared({"metric_candidates": m}, times, same)
+        out.append(row | {"same_keyframes": same_rows, "max_difference": float(diff)})
     return out
 
 
@@ -245,7 +259,17 @@ def main(argv: list[str]) -> int:
         "metric stage (ms) with the library's matcher, with the decoder in chunks alone, and "
         "with the plain matcher (before 2026-12-05), each query in turn:"
     )
-    print_table(matchers, ["metric_candidates", *MATCHERS, "plain_vs_library", "same_answers"])
+    print_table(
+        matchers,
+        [
+            "metric_candidates",
+            *MATCHERS,
+            "plain_vs_library",
+            "same_answers",
+            "same_keyframes",
+            "max_difference",
+        ],
+    )
     print("re-ranking K candidates (ms), the library's and the plain interactor, in turn:")
     print_table(
         reranks, ["candidates", "library_ms", "plain_ms", "plain_vs_library", "same_answers"]

@@ -636,6 +636,11 @@ def test_image_content_tells_pictures_from_flat_and_noisy_ones(tiny_world):
         small[0, :, : h // 2] = 255
         assert has_image_content(small), (h, w)
         assert has_image_content(np.ascontiguousarray(np.swapaxes(small, 2, 3))), (h, w)
+    for h, w in ((23, 40), (31, 8), (40, 23)):  # variation only beyond the last whole block
+        edge = np.zeros((1, 3, h, w), np.uint8)
+        edge[0, :, -(h % 8 or 1) :] = 255
+        assert has_image_content(edge), (h, w)
+        assert has_image_content(np.ascontiguousarray(np.swapaxes(edge, 2, 3))), (h, w)
     tiny = np.zeros((1, 3, 4, 5), np.uint8)  # smaller than a block: pixel by pixel
     assert not has_image_content(tiny)
     tiny[0, :, 0, 0] = 255

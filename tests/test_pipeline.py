@@ -1241,6 +1241,30 @@ def test_calibration_of_results_scores_the_reported_keyframe_under_the_cost_rule
         calibration_of_results(res, q[:, :2], **kw)
 
 
+def test_the_trainers_calibration_leaves_queries_without_image_content_out():
+    from vvloc.localize.calibrate import RerankedSplit, calibration_of
+
+    db = np.array([[0.0, 0], [10, 0], [20, 0]])
+    q = np.array([[0.5, 0], [10.5, 0], [20.5, 0], [0.2, 0]])
+    split = RerankedSplit(  # right, wrong, right, right at distinctiveness 0.45, 0.4, 0.35, 0.3
+        retrieved=np.array([[0, 1], [2, 1], [2, 0], [0, 1]]),
+        reranked=np.array([[0, 1], [2, 1], [2, 0], [0, 1]]),
+        rerank_cost=np.array([[0.1, 1.0], [0.2, 1.0], [0.3, 1.0], [0.4, 1.0]]),
+        query_xy=q,
+        db_xy=db,
+        query_floors=np.zeros(4, np.int64),
+        db_floors=np.zeros(3, np.int64),
+        query_content=np.array([True, True, True, True]),
+    )
+    cal = calibration_of(split, target_precision=1.0, min_accepted=1)
+    assert cal["min_distinctiveness"] == pytest.approx(0.45) and cal["accepted"] == 1
+    # the wrong one is a blank frame, which the localizer never accepts: left out, every other
+    # query is right
+    blank = dataclasses.replace(split, query_content=np.array([True, False, True, True]))
+    cal = calibration_of(blank, target_precision=1.0, min_accepted=1)
+    assert cal["min_distinctiveness"] == pytest.approx(0.3) and cal["accepted"] == 3
+
+
 def test_calibrate_localizer_refuses_queries_far_from_the_map_before_localizing_them():
     from types import SimpleNamespace
 

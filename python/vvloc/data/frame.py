@@ -200,7 +200,8 @@ class Frame:
 #: on at least one camera (≥ 2.5 on every camera); they keep content down to about 4 stops
 #: darker. Per-pixel noise of σ grey levels on a flat picture reaches about σ/8 when the three
 #: channels share it (a demosaiced sensor; a block mean averages 64 pixels) and σ/14 when they
-#: do not, so a covered lens with sensor noise up to σ ≈ 8 reads as having none.
+#: do not, so a covered lens with sensor noise up to σ ≈ 8 reads as having none (on sides of
+#: 16 pixels and more; a shorter side is taken pixel by pixel, which averages no noise away).
 CONTENT_BLOCK = 8
 CONTENT_MIN_STD = 1.0
 
@@ -210,7 +211,9 @@ def has_image_content(images: Any) -> bool:
     varies, i.e. the standard deviation of its grey image's ``CONTENT_BLOCK`` × ``CONTENT_BLOCK``
     block means reaches :data:`CONTENT_MIN_STD` grey levels (0-255 scale; float images in
     [0, 1] are scaled by 255). Along a side shorter than two blocks (16 pixels) the blocks are
-    single pixels, so that a small image keeps its variation along it.
+    single pixels, so that a small image keeps its variation along it; along a side that is no
+    multiple of the block, the blocks are laid from either end in turn, so that no edge row or
+    column is left out.
 
     A frame without content (a covered or failed rig, a black or blown-out stretch, flat
     sensor noise) encodes to the same descriptors as any other such frame, so two of them match
@@ -227,15 +230,18 @@ def has_image_content(images: Any) -> bool:
     # one block along a side would hide the variation along it: single pixels there
     bh, bw = (CONTENT_BLOCK if n >= 2 * CONTENT_BLOCK else 1 for n in (h, w))
     hb, wb = h // bh, w // bw
+    # the blocks from the top-left corner, and from the bottom-right one when pixels are left
+    starts = {(0, 0), (h - hb * bh, w - wb * bw)}
+    acc = np.uint32 if exact else np.float64
     for cam in arr:  # one camera at a time: most frames answer at the first
-        # the sum of the three channels, then of each block's rows and columns
-        grey = cam.sum(axis=0, dtype=np.uint16 if exact else np.float64)[: hb * bh, : wb * bw]
-        acc = np.uint32 if exact else np.float64
-        blocks = grey.reshape(hb, bh, wb * bw).sum(axis=1, dtype=acc)
-        blocks = blocks.reshape(hb, wb, bw).sum(axis=2, dtype=acc)
-        std = float(blocks.std()) / (3 * bh * bw) * (1.0 if exact else 255.0)
-        if std >= CONTENT_MIN_STD:
-            return True
+        grey = cam.sum(axis=0, dtype=np.uint16 if exact else np.float64)  # the three channels
+        for r0, c0 in starts:
+            # each block's rows, then its columns
+            blocks = grey[r0 : r0 + hb * bh, c0 : c0 + wb * bw]
+            blocks = blocks.reshape(hb, bh, wb * bw).sum(axis=1, dtype=acc)
+            blocks = blocks.reshape(hb, wb, bw).sum(axis=2, dtype=acc)
+            if float(blocks.std()) / (3 * bh * bw) * (1.0 if exact else 255.0) >= CONTENT_MIN_STD:
+                return True
     return False
 
 

@@ -57,6 +57,8 @@ class RerankedSplit:
         rerank_cost: ``(Q, K)`` their costs, ascending.
         query_xy, db_xy: ``(Q, 2)`` / ``(N, 2)`` ground-truth world x, y (m).
         query_floors, db_floors: ``(Q,)`` / ``(N,)`` floor labels.
+        query_content: ``(Q,)`` bool, whether each query frame has image content
+            (:func:`vvloc.data.has_image_content`; the localizer accepts no query without).
     """
 
     retrieved: npt.NDArray[np.int64]
@@ -66,6 +68,7 @@ class RerankedSplit:
     db_xy: npt.NDArray[np.float64]
     query_floors: npt.NDArray[np.int64]
     db_floors: npt.NDArray[np.int64]
+    query_content: npt.NDArray[np.bool_]
 
     def recall(self, which: str = "reranked", top_n: Sequence[int] = (1, 5)) -> Any:
         """:func:`vvloc.evaluate.recall_at_n` of ``"retrieved"`` or ``"reranked"`` at 2 m."""
@@ -92,8 +95,9 @@ def rerank_split(
     every: int = 1,
     top_k: int = 20,
 ) -> RerankedSplit:
-    """Retrieve the ``top_k`` nearest map keyframes (every frame of session ``database``) for
-    every ``every``-th frame of each session in ``queries``, and re-rank them by the learned yaw
+    """Retrieve the ``top_k`` nearest map keyframes (every frame of session ``database`` with
+    image content, as :func:`~vvloc.localize.localizer.build_map` keeps them) for every
+    ``every``-th frame of each session in ``queries``, and re-rank them by the learned yaw
     matching cost, exactly as :meth:`vvloc.Localizer.rerank` does (interactor on each
     pair, exact yaw minimum), without the metric translation search."""
     if isinstance(every, bool) or not isinstance(every, int) or every < 1:
@@ -104,7 +108,10 @@ def rerank_split(
     db_frames = [f for f in ds.session(database) if has_image_content(f.images)]
     q_frames = [f for name in queries for f in ds.session(name)[::every]]
     if not db_frames or not q_frames:
-        raise ValueError(f"database {database!r} and queries {list(queries)}: no frames")
+        raise ValueError(
+            f"database {database!r} and queries {list(queries)}: no frames (a database frame "
+            "counts when it has image content)"
+        )
     db = encode_frames(model, db_frames)
     q = encode_frames(model, q_frames)
     k = min(top_k, len(db_frames))
@@ -126,6 +133,7 @@ def rerank_split(
         db_xy=np.stack([f.pose[:2] for f in db_frames]),
         query_floors=np.array([f.floor for f in q_frames], dtype=np.int64),
         db_floors=np.array([f.floor for f in db_frames], dtype=np.int64),
+        query_content=np.array([has_image_content(f.images) for f in q_frames], dtype=bool),
     )
 
 
@@ -135,9 +143,10 @@ def calibration_of(
     """The acceptance calibration of a re-ranked split: ``min_distinctiveness`` (the threshold
     of :func:`vvloc.evaluate.calibrate_acceptance` on the distinctiveness of each kept query's
     re-ranked top-1, correct = within 2 m) with the precision and accepted share it reaches
-    there, over the queries that have a map keyframe within 2 m."""
+    there, over the queries that have a map keyframe within 2 m and image content (the
+    localizer accepts no other)."""
     rec = split.recall("reranked", top_n=(1,))
-    kept = rec.kept
+    kept = rec.kept & split.query_content
     score = evaluate.distinctiveness(split.rerank_cost)[kept]
     correct = rec.correct(1, 2.0)[kept]
     cal = evaluate.calibrate_acceptance(
@@ -214,7 +223,8 @@ def calibration_of_results(
     threshold on ``distinctiveness`` at which the accepted results (``cost < accept_threshold``
     and distinctiveness ≥ the threshold) have their reported keyframe (``reranked[0]``, the one
     ``vvloc eval`` scores) within 2 m of the query on its floor at ``target_precision``
-    (:func:`vvloc.evaluate.calibrate_acceptance` over the results that pass the cost rule).
+    (:func:`vvloc.evaluate.calibrate_acceptance` over the results that pass the cost rule; a
+    result without image content, ``has_content`` False, passes none).
 
     Args:
         results: ``Q`` results of :meth:`Localizer.localize_batch`.
