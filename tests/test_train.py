@@ -1025,6 +1025,24 @@ def test_sessions_and_datasets_of_extra_datasets_and_val_loops_are_refused_by_ke
     assert not (tmp_path / "run").exists()
 
 
+def test_an_extra_dataset_of_the_rig_s_cameras_in_another_order_is_refused(tiny_world, tmp_path):
+    # it trained: a batch stacks images slot by slot, so each slot's camera embedding learnt two
+    # cameras (the README asks for the same rig; another mounting is recorded, not refused)
+    twin = tmp_path / "twin"
+    shutil.copytree(tiny_world, twin)
+    rig = json.loads((twin / "rig.json").read_text())
+    rig["cameras"] = rig["cameras"][::-1]
+    (twin / "rig.json").write_text(json.dumps(rig))
+    said = (
+        r"^extra_datasets\[0\]\.dataset: .*twin holds the cameras of .* in another order "
+        r"\(right,rear,left,front against front,left,rear,right\): .* vvloc convert --cameras "
+        r"front,left,rear,right$"
+    )
+    with pytest.raises(ValueError, match=said):
+        Trainer(_config(tiny_world, extra_datasets=[{"dataset": str(twin)}]), tmp_path / "run")
+    assert not (tmp_path / "run").exists()
+
+
 def test_bad_val_loops_are_refused_by_name():
     base = {"dataset": "x", "train_sessions": ["s0"], "val_sessions": ["s1"]}
     with pytest.raises(ValueError, match=r"val_loops: needs val_sessions"):
@@ -1916,6 +1934,48 @@ def test_a_group_sigterm_stops_a_run_with_workers_as_sigterm_not_a_crash(tiny_wo
             os.killpg(proc.pid, signal.SIGKILL)
     assert proc.returncode == 128 + signal.SIGTERM, err[-2000:]
     assert "Traceback" not in err and "killed by signal" not in err, err[-2000:]
+
+
+@pytest.mark.parametrize("failure", ["unreadable image", "non-finite loss"])
+def test_a_run_with_workers_that_fails_exits_rather_than_hanging(tiny_world, tmp_path, failure):
+    # the error kept the DataLoader's iterator, and so its workers, alive until the interpreter
+    # exited, where multiprocessing signalled each worker once and waited for it forever (the
+    # workers let a first SIGTERM pass while their parent lives): the message came, the exit not
+    import signal
+    import subprocess
+    import sys
+
+    world = tmp_path / "world"
+    shutil.copytree(tiny_world, world)
+    extra = "lr: 1.0e+8\ngrad_clip: 0\n" if failure == "non-finite loss" else ""
+    if failure == "unreadable image":
+        for png in (world / "sessions").glob("*/*/*.png"):
+            png.write_bytes(png.read_bytes()[:200])
+    config = tmp_path / "c.yaml"
+    config.write_text(
+        f"dataset: {world}\nmodel: small\nstage1_epochs: 1\nstage2_epochs: 0\n"
+        f"steps_per_epoch: 3\nbatch_size: 2\nnum_workers: 1\nthreads: 1\n{extra}"
+    )
+    cmd = [sys.executable, "-m", "vvloc.cli", "train", "--config", str(config), "--out"]
+    proc = subprocess.Popen(
+        [*cmd, str(tmp_path / "run")], stderr=subprocess.PIPE, text=True, start_new_session=True
+    )
+    try:
+        _, err = proc.communicate(timeout=180)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        _, err = proc.communicate()
+        pytest.fail(f"vvloc train hung after: {err[-2000:]}")
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    if failure == "unreadable image":
+        assert proc.returncode == 2, err[-2000:]
+        assert "vvloc train: error: " in err and "not a readable image" in err, err[-2000:]
+    else:
+        assert proc.returncode == 1, err[-2000:]
+        assert "vvloc train: failed: epoch 1, step " in err, err[-2000:]
+    assert "Traceback" not in err, err[-2000:]
 
 
 def test_a_non_finite_loss_in_the_first_epoch_is_one_line_saying_nothing_was_saved(

@@ -164,7 +164,9 @@ class TrainConfig:
     :func:`vvloc.losses.rerank_loss` (margin ``rerank_margin``): the anchor's re-ranking cost
     against its positive must beat its cost against the triplet's negative.
     ``extra_datasets`` are further training datasets, each a mapping with ``dataset`` (path) and
-    optionally ``sim``, ``train_sessions`` as above (same rig and image size as ``dataset``)
+    optionally ``sim``, ``train_sessions`` as above (the same camera count and image size as
+    ``dataset``, and its cameras in its order when they have its camera names: refused otherwise;
+    another mounting is recorded among the run's rigs)
     and ``anchor_share`` (the share of anchors drawn from it; default: by its frame count);
     each is its own world (see :class:`vvloc.data.TripletSampler`, which also takes
     ``cross_floor_fraction``: the share of negatives drawn from another floor at the anchor's
@@ -1239,6 +1241,15 @@ class Trainer:
                     f"{rig[0].width}x{rig[0].height}: one training batch stacks frames of both "
                     "(convert them to one rig size with vvloc convert)"
                 )
+            names, others = [c.name for c in rig], [c.name for c in other]
+            if names != others and sorted(names) == sorted(others):
+                # each image slot has a learnt camera embedding: it would learn two cameras
+                raise ValueError(
+                    f"extra_datasets[{i}].dataset: {e['dataset']} holds the cameras of "
+                    f"{cfg.dataset} in another order ({','.join(others)} against "
+                    f"{','.join(names)}): a training batch stacks their images slot by slot; "
+                    f"reorder them with vvloc convert --cameras {','.join(names)}"
+                )
         self._datasets = [self.ds, *(d for d, _ in extra)]
         _check_session_keys(cfg, self.ds)
         self.sampler = TripletSampler(
@@ -1951,45 +1962,48 @@ class Trainer:
             sums["tbias_near"] = 0.0
         violated = 0
         t0 = time.perf_counter()
+        batches = iter(loader)
         bar = tqdm(
-            loader,
+            batches,
             desc=f"epoch {self.epoch + 1}/{self.total_epochs} (stage {stage})",
             disable=not progress,
             leave=_keep_bars(),
         )
         n = 0
-        for batch in bar:
-            loss, parts, correct = training_losses(
-                self.model, batch, cfg, stage, self.step, self.device
-            )
-            if not math.isfinite(parts.total):  # before the step: the weights stay finite
-                kept = (
-                    f"the checkpoint in {self.checkpoint_dir} keeps the last finished epoch"
-                    if self.epoch > 0
-                    else "no epoch had finished: nothing was saved"
+        with _workers_stopped(batches):  # on an error too: see _workers_stopped
+            for batch in bar:
+                loss, parts, correct = training_losses(
+                    self.model, batch, cfg, stage, self.step, self.device
                 )
-                raise FloatingPointError(
-                    f"epoch {self.epoch + 1}, step {self.step}: non-finite loss {parts} ({kept}; "
-                    "a smaller lr, a grad_clip or smaller loss weights and margins may help)"
+                if not math.isfinite(parts.total):  # before the step: the weights stay finite
+                    kept = (
+                        f"the checkpoint in {self.checkpoint_dir} keeps the last finished epoch"
+                        if self.epoch > 0
+                        else "no epoch had finished: nothing was saved"
+                    )
+                    raise FloatingPointError(
+                        f"epoch {self.epoch + 1}, step {self.step}: non-finite loss {parts} "
+                        f"({kept}; a smaller lr, a grad_clip or smaller loss weights and margins "
+                        "may help)"
+                    )
+                self.optimizer.zero_grad(set_to_none=True)
+                loss.backward()
+                if cfg.grad_clip > 0:
+                    torch.nn.utils.clip_grad_norm_(self.model.parameters(), cfg.grad_clip)
+                self.optimizer.step()
+                self.sampler.update(batch["triplet"].numpy(), correct)
+                for k in sums:
+                    sums[k] += getattr(parts, k)
+                violated += parts.violated
+                n += 1
+                self.step += 1
+                bar.set_postfix(
+                    loss=f"{parts.total:.3f}",
+                    tri=f"{parts.triplet:.3f}",
+                    yaw=f"{parts.yaw:.3f}",
+                    hard=len(self.sampler.hard),
+                    refresh=False,
                 )
-            self.optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            if cfg.grad_clip > 0:
-                torch.nn.utils.clip_grad_norm_(self.model.parameters(), cfg.grad_clip)
-            self.optimizer.step()
-            self.sampler.update(batch["triplet"].numpy(), correct)
-            for k in sums:
-                sums[k] += getattr(parts, k)
-            violated += parts.violated
-            n += 1
-            self.step += 1
-            bar.set_postfix(
-                loss=f"{parts.total:.3f}",
-                tri=f"{parts.triplet:.3f}",
-                yaw=f"{parts.yaw:.3f}",
-                hard=len(self.sampler.hard),
-                refresh=False,
-            )
         record: dict[str, Any] = {
             "epoch": self.epoch + 1,
             "stage": stage,
@@ -2453,6 +2467,24 @@ def _keep_sigterm_handler(worker_id: int) -> None:
     handler = signal.getsignal(signal.SIGTERM)
     if callable(handler):
         signal.signal(signal.SIGTERM, handler)
+
+
+@contextlib.contextmanager
+def _workers_stopped(batches: Iterator[Any]) -> Iterator[None]:
+    """Stop the data-loading workers of ``batches`` (a ``DataLoader`` iterator) when the block
+    ends, also by an exception. An error (an unreadable image in a worker, a non-finite loss)
+    keeps the iterator alive in its traceback, and with it the workers, until the interpreter
+    exits; multiprocessing's exit then sends each worker one ``SIGTERM`` and waits for it
+    without a limit, and the workers, which let a first ``SIGTERM`` pass while their parent lives
+    (:func:`_keep_sigterm_handler`), never ended: the command printed its error and hung. The
+    iterator's own shut-down (torch's, which signals a worker that does not stop again) runs
+    here instead; a loader without workers has none."""
+    try:
+        yield
+    finally:
+        shutdown = getattr(batches, "_shutdown_workers", None)
+        if shutdown is not None:
+            shutdown()
 
 
 def check_run_folder(cfg: TrainConfig, out: Path, resume: bool) -> None:
