@@ -42,7 +42,8 @@ class ModelConfig:
     theta-aware attentions' relative embeddings).
 
     ``image_height``/``image_width`` are the nominal input size (the networks accept any size; the
-    intrinsics must describe the pixels actually given). The BEV grid is ``bev_height`` ×
+    intrinsics must describe the pixels actually given); they count in :meth:`config_hash` like
+    every field, so another value makes another model. The BEV grid is ``bev_height`` ×
     ``bev_width`` cells of ``grid_size`` metres (row i ↔ ego x, column j ↔ ego y, DESIGN.md §3);
     the polar grid is ``num_angles`` (T) × ``num_radii`` (R). ``pillar_heights`` are the ego-frame
     z (metres) of the D reference points of each BEV cell's pillar.
@@ -217,11 +218,12 @@ class ModelConfig:
 
     # --- serialisation ---------------------------------------------------------------------
 
-    def check_num_cameras(self, m: int) -> None:
-        """Raise ``ValueError`` (naming ``images``) when ``m`` cameras exceed ``max_cameras``."""
+    def check_num_cameras(self, m: int, name: str = "images") -> None:
+        """Raise ``ValueError`` naming ``name`` (the argument that holds the cameras) when ``m``
+        cameras exceed ``max_cameras``."""
         if m > self.max_cameras:
             raise ValueError(
-                f"images: {m} cameras exceed ModelConfig.max_cameras={self.max_cameras} "
+                f"{name}: {m} cameras exceed ModelConfig.max_cameras={self.max_cameras} "
                 "(the camera embeddings a model holds; a training config raises it with "
                 "model_overrides: {max_cameras: N}, which makes another model)"
             )
