@@ -190,6 +190,25 @@ def test_the_map_records_its_rig_and_the_localizer_compares_queries_with_it(
         loc.localize_batch([frame.images])
     with pytest.raises(ValueError, match="batch_size"):
         loc.localize_batch([frame], batch_size=0)
+    # more cameras than the model holds embeddings for: named before any frame is encoded
+    n = loc.model.config.max_cameras + 1
+    many = np.arange(n) % len(frame.images)
+    big = dataclasses.replace(
+        frame, images=frame.images[many], K=frame.K[many], cam_to_ego=frame.cam_to_ego[many]
+    )
+    with pytest.raises(
+        ValueError, match=rf"^frames\[1\]\.images: {n} cameras exceed ModelConfig\.max_cameras"
+    ):
+        loc.localize_batch([frame, big])
+    # ... and by build_map, naming the dataset, before it writes anything
+    from nets_helpers import tiny_config
+
+    two = VVLocNet(tiny_config(max_cameras=2))
+    with pytest.raises(
+        ValueError, match=r"^dataset: .*tiny: 4 cameras exceed ModelConfig\.max_cameras=2 "
+    ):
+        build_map(two, ds, ["s0"], tmp_path / "two.h5", progress=False)
+    assert not list(tmp_path.glob("*two.h5*"))
     # already-encoded queries of the wrong size are refused by name
     cfg = loc.model.config
     g = np.zeros(loc.map.global_descriptors.shape[1], np.float32)
@@ -505,6 +524,10 @@ def test_frames_without_image_content_are_left_out_of_maps_and_never_accepted(
         results = loc.localize_batch(frames)
     assert [r.accepted for r in results] == [True, False, True]
     assert [r.has_content for r in results] == [True, False, True]
+    # with frames left out, a keyframe's id is no longer its frame: map_seq says which it is
+    with MapDatabase.open(tmp_path / "map.h5") as db:
+        for r in results:
+            assert r.map_seq == kept[r.map_row] == int(db.seq[r.map_row])
     assert "accepted=False (no image content)" in repr(results[1])
     with pytest.warns(UserWarning, match=r"^the query frame has no image content") as caught:
         alone = loc.localize(frames[1])
@@ -644,7 +667,9 @@ def test_cli_map_localize_loops_end_to_end(tiny_world, model_dir, tmp_path):
     assert len(ts_all) == len(open_dataset(tiny_world).session("s2"))
     text = (tmp_path / "loc" / "queries.csv").read_text()
     assert text.startswith("# vvloc localize")
-    assert text.splitlines()[1].split(",")[-3:] == ["metric_row", "map_floor", "has_content"]
+    assert text.splitlines()[1].split(",")[-4:] == [
+        "metric_row", "map_floor", "has_content", "map_seq"
+    ]  # fmt: skip
     # poses.tum holds the accepted localizations only (a trajectory evaluator's input)
     header = text.splitlines()[1].split(",")
     rows = [dict(zip(header, line.split(","), strict=True)) for line in text.splitlines()[2:]]
@@ -676,6 +701,12 @@ def test_cli_map_localize_loops_end_to_end(tiny_world, model_dir, tmp_path):
         assert rows and all(row["map_row"] == row["metric_row"] for row in rows)
         assert all(row["map_floor"] == "0" for row in rows)  # the parking lot's one floor
         assert all(row["has_content"] == "1" for row in rows)
+        # the keyframe's frame in its session: map_id counts the map's rows (s0 then s1)
+        with MapDatabase.open(map_path) as db:
+            for row in rows:
+                map_row = int(row["map_row"])
+                assert row["map_session"] == db.session_of(map_row)
+                assert int(row["map_seq"]) == int(db.seq[map_row])
     loops_cli = lambda out, *a: run(  # noqa: E731
         "loops", "--map", str(map_path), "--checkpoint", str(model_dir), "--out", str(out), *a
     )

@@ -39,7 +39,8 @@ HEADER = (
     "metric_row = the keyframe the pose was estimated against; map_floor = map_row's floor, as "
     "its session numbers them (the query's storey when the answer is right); has_content = 0 for "
     "a frame whose every camera's picture is flat (a covered rig, a black stretch: never "
-    "accepted)."
+    "accepted); map_seq = map_row's frame index in its session map_session (the map's "
+    "sequence number: map_id counts the map's rows)."
 )
 
 
@@ -108,7 +109,8 @@ def localize(
         set_torch_threads(threads)
         check_out_folder(out, outside=dataset)
         _check_localize_folder(out)
-        sess = check_sessions(dataset, [("--session", session)]).session(session)
+        ds = check_sessions(dataset, [("--session", session)])
+        sess = ds.session(session)
         ckpt = checkpoint_folder(checkpoint, "--checkpoint")
         with named("--map", MapError, FileNotFoundError):
             loc = Localizer.open(
@@ -123,6 +125,7 @@ def localize(
                 retrieval_weight=retrieval_weight,
                 snap=snap,
             )
+        loc.model.config.check_num_cameras(len(ds.cameras), f"--dataset: {dataset}")  # up front
         frames = list(sess)
         results = loc.localize_batch(frames, progress=True)
         out.mkdir(parents=True, exist_ok=True)
@@ -158,7 +161,7 @@ def localize(
             HEADER,
             "index,timestamp,map_row,map_id,map_session,relative_x,relative_y,"
             "relative_yaw_deg,global_x,global_y,global_yaw_deg,cost,distinctiveness,accepted,"
-            "metric_row,map_floor,has_content",
+            "metric_row,map_floor,has_content,map_seq",
         ]
         for f, r in zip(frames, results, strict=True):
             rel, g = r.relative_pose, r.global_pose
@@ -181,6 +184,7 @@ def localize(
                     r.metric_row,
                     r.map_floor,
                     int(r.has_content),
+                    r.map_seq,
                 )
             )
         stages = ("encode", "retrieve", "rerank", "metric")

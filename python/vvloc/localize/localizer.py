@@ -436,7 +436,10 @@ class LocalizationResult:
 
     Attributes:
         map_row: row of the chosen keyframe in the map (-1 when the map is empty).
-        map_id: its keyframe id; ``map_session`` its session.
+        map_id: its keyframe id; ``map_session`` its session; ``map_seq`` its sequence number
+            there (:attr:`MapDatabase.seq`: for a map of :func:`build_map`, the keyframe's
+            frame index in that session of the dataset, with which to find its images; -1 when
+            the map is empty).
         relative_pose: ξ_{m→q} (3,) float64: the query frame expressed in the map keyframe's
             frame (x forward m, y left m, yaw CCW rad).
         global_pose: the query's world pose (x, y, yaw) = T_world_m · ξ_{m→q}.
@@ -485,6 +488,7 @@ class LocalizationResult:
     metric_row: int = -1
     map_floor: int = -1
     has_content: bool = True
+    map_seq: int = -1
 
     def __repr__(self) -> str:
         """One line: the answer, its confidence and the sizes of the arrays (the default
@@ -954,6 +958,7 @@ class Localizer:
                 raise TypeError(f"{at}: expected a vvloc.data.Frame, got {type(f).__name__}")
             _check_images(f.images, f"{at}.images")
             _check_calibration(f.K, f.cam_to_ego, len(f.images), at)
+            self.model.config.check_num_cameras(len(f.images), f"{at}.images")  # before encoding
             self._check_rig(f, at)
         blank = [i for i, f in enumerate(frames) if not has_image_content(f.images)]
         if blank:
@@ -1081,6 +1086,7 @@ class Localizer:
             distinctiveness=distinct,
             metric_row=matched,
             map_floor=int(self.map.floors[best]),
+            map_seq=int(self.map.seq[best]),
         )
 
 
@@ -1133,8 +1139,9 @@ def build_map(
     if total == 0:
         raise ValueError(f"sessions: {list(sessions)} hold no frames: a map needs keyframes")
     cameras = list(dataset.cameras)
-    check_training_rig(model, cameras, "the dataset's rig")  # named at build_map's caller
     cfg = model.config
+    cfg.check_num_cameras(len(cameras), f"dataset: {dataset.root}")  # before any frame encodes
+    check_training_rig(model, cameras, "the dataset's rig")  # named at build_map's caller
     with (
         contextlib.ExitStack() as stack,
         MapWriter(
