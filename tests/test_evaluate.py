@@ -249,6 +249,11 @@ def test_pose_accuracy_subsets_true_revisit_and_all():
     assert acc["all"]["count"] == 3
     assert acc["all"]["AOE@100"] == pytest.approx(170.0)
     assert acc["all"]["APE@100"] == pytest.approx(30.0)
+    # a query left out (no map frame within the radius) is in the row over every query only
+    out = ev.pose_accuracy(est, gt, correct, kept=[True, True, False], percentiles=(50, 100))
+    assert out["all"]["count"] == 2 and out["all"]["APE@100"] == pytest.approx(2.0)
+    assert out["every_query"]["count"] == 3
+    assert out["every_query"]["APE@100"] == pytest.approx(30.0)
     with pytest.raises(TypeError, match="correct"):
         ev.pose_accuracy(est, gt, np.ones(3))
     assert acc["all"]["other_floor"] == 0
@@ -270,6 +275,8 @@ def test_an_answer_on_another_floor_is_no_accurate_pose():
     acc = ev.pose_accuracy(est, gt, [True, True, False], same_floor=same, percentiles=(0, 100))
     assert acc["all"]["count"] == 2 and acc["all"]["other_floor"] == 1
     assert acc["all"]["APE@0"] == pytest.approx(1.0)  # the perfect cross-floor 0 is not in it
+    # the row over all queries has it, by its planar error
+    assert acc["every_query"]["count"] == 3 and acc["every_query"]["APE@0"] == 0.0
     assert acc["true_revisit"]["count"] == 2
     with pytest.raises(TypeError, match="same_floor"):
         ev.pose_accuracy(est, gt, same, same_floor=np.ones(3))
@@ -284,13 +291,14 @@ def test_pose_keyframe_row_is_chosen_without_the_poses_error():
     acc = ev.pose_accuracy(
         est, gt, snapped_correct, pose_keyframe_correct=np.ones(4, bool), percentiles=(100,)
     )
-    assert list(acc) == ["true_revisit", "pose_keyframe", "all"]
+    assert list(acc) == ["true_revisit", "pose_keyframe", "all", "every_query"]
     assert acc["true_revisit"]["count"] == 3 and acc["true_revisit"]["APE@100"] < 0.2
     assert acc["pose_keyframe"]["count"] == 4
     assert acc["pose_keyframe"]["APE@100"] == pytest.approx(np.hypot(5.0, 1.0))
     assert "pose_keyframe" not in ev.pose_accuracy(est, gt, snapped_correct)
     text = "\n".join(ev._pose_table({"VVLoc-ML": acc}))
     assert "pose's keyframe a true revisit" in text
+    assert "| every query (kept or not, any floor; x-y error) | 4 |" in text
 
 
 # ----------------------------------------------------------------------------- loop closure
@@ -653,7 +661,8 @@ def test_write_report_markdown_and_json(tmp_path):
         "Global localization",
         "AOE@50% (°)",
         "Precision@2m (%)",
-        "mRRE (°)",
+        "mRRE (°), same floor",
+        "mRRE and mRTE are means over the n pairs less those across floors",
         "Robustness",
         "Latency per stage",
         "![Recall@N](fig/recall.png)",
