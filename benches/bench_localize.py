@@ -18,12 +18,16 @@ interactor's one-sided first TASA shared), with the decoder in chunks alone, and
 matcher before 2026-12-05 (each stage decoded in one batch, the whole interactor per pair),
 and whether all three gave the same answers (``same_answers``). The re-ranking of 20 and 100
 candidates is timed with the library's ``rerank_learned`` and with the plain interactor. The
-compared versions take turns at going first, after a warm-up call of each.
+compared versions take turns at going first, after a warm-up call of each. The run prints a
+fingerprint of the library's answers (``answers``: sha256 of each query's map row, pose, cost,
+search costs and re-ranking), to compare runs under settings that should keep them (e.g.
+``OMP_WAIT_POLICY``).
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import math
 import sys
 import tempfile
@@ -37,7 +41,7 @@ from _common import print_table, random_map, write_json
 from vvloc import kernels
 from vvloc.data import Frame
 from vvloc.localize import localizer as localizer_module
-from vvloc.localize.localizer import Localizer, encode_frames
+from vvloc.localize.localizer import LocalizationResult, Localizer, encode_frames
 from vvloc.localize.mapdb import MapDatabase
 from vvloc.localize.metric import METRIC_CANDIDATES
 from vvloc.nets import ModelConfig, VVLocNet
@@ -179,6 +183,22 @@ def _compared(key: dict, times: dict[str, list[float]], same: bool) -> dict:
     return row
 
 
+def _answer_bytes(r: LocalizationResult) -> bytes:
+    """The bytes of one answer that settings which claim to keep the answers (a thread wait
+    policy, a build) must keep: the chosen map row, the metric pose and cost, every cost of the
+    translation search, and the re-ranking's order and costs."""
+    return b"".join(
+        [
+            np.int64(r.map_row).tobytes(),
+            np.asarray(r.relative_pose, np.float64).tobytes(),
+            np.float64(r.cost).tobytes(),
+            np.asarray(r.search.cost).tobytes(),
+            np.asarray(r.reranked).tobytes(),
+            np.asarray(r.rerank_cost, np.float64).tobytes(),
+        ]
+    )
+
+
 def main(argv: list[str]) -> int:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--json", type=Path, default=None)
@@ -216,9 +236,11 @@ def main(argv: list[str]) -> int:
         loc.localize(frames[0])  # warm-up
         rows, shares = [], []
         per_stage: dict[str, list[float]] = {}
+        answers = hashlib.sha256()
         for f in frames[1:]:
             spent["kernels"] = 0.0
             r = loc.localize(f)
+            answers.update(_answer_bytes(r))
             for k, v in r.timings_ms.items():
                 per_stage.setdefault(k, []).append(v)
             shares.append(1e3 * spent["kernels"] / r.timings_ms["metric"])
@@ -255,6 +277,8 @@ def main(argv: list[str]) -> int:
     print_table(rows, ["stage", "median_ms", "queries"])
     share = float(np.median(shares))
     print(f"Rust kernels' share of the metric stage: {share:.1%} (the rest: decoder + interactor)")
+    fingerprint = answers.hexdigest()[:16]
+    print(f"answers' sha256 (the library's, every query): {fingerprint}")
     print(
         "metric stage (ms) with the library's matcher, with the decoder in chunks alone, and "
         "with the plain matcher (before 2026-12-05), each query in turn:"
@@ -281,7 +305,14 @@ def main(argv: list[str]) -> int:
         write_json(
             args.json,
             "localize",
-            [*rows, {"stage": "metric_kernel_share", "share": share}, *matchers, *reranks, *extra],
+            [
+                *rows,
+                {"stage": "metric_kernel_share", "share": share},
+                {"stage": "answers", "sha256": fingerprint},
+                *matchers,
+                *reranks,
+                *extra,
+            ],
         )
     return 0
 
