@@ -2472,10 +2472,10 @@ def _keep_sigterm_handler(worker_id: int) -> None:
 @contextlib.contextmanager
 def _workers_stopped(batches: Iterator[Any]) -> Iterator[None]:
     """Stop the data-loading workers of ``batches`` (a ``DataLoader`` iterator) when the block
-    ends, also by an exception. An error (an unreadable image in a worker, a non-finite loss)
-    keeps the iterator alive in its traceback, and with it the workers, until the interpreter
-    exits; multiprocessing's exit then sends each worker one ``SIGTERM`` and waits for it
-    without a limit, and the workers, which let a first ``SIGTERM`` pass while their parent lives
+    ends, also by an exception. An error a worker raised (an unreadable image) kept the iterator
+    alive in its traceback, and with it the workers, until the interpreter exited, where
+    multiprocessing sent each worker one ``SIGTERM`` and waited for it without a limit; the
+    workers, which let a first ``SIGTERM`` pass while their parent lives
     (:func:`_keep_sigterm_handler`), never ended: the command printed its error and hung. The
     iterator's own shut-down (torch's, which signals a worker that does not stop again) runs
     here instead; a loader without workers has none."""
