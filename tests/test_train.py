@@ -1938,9 +1938,11 @@ def test_a_group_sigterm_stops_a_run_with_workers_as_sigterm_not_a_crash(tiny_wo
 
 @pytest.mark.parametrize("failure", ["unreadable image", "non-finite loss"])
 def test_a_run_with_workers_that_fails_exits_rather_than_hanging(tiny_world, tmp_path, failure):
-    # the error kept the DataLoader's iterator, and so its workers, alive until the interpreter
-    # exited, where multiprocessing signalled each worker once and waited for it forever (the
-    # workers let a first SIGTERM pass while their parent lives): the message came, the exit not
+    # an error a worker raised (the unreadable image) kept the DataLoader's iterator, and so its
+    # workers, alive until the interpreter exited, where multiprocessing signalled each worker
+    # once and waited for it forever (the workers let a first SIGTERM pass while their parent
+    # lives): the message came, the exit not. The non-finite loss, raised in the main process,
+    # did not hang; it is here to keep the workers' shut-down on the main process's errors too
     import signal
     import subprocess
     import sys

@@ -39,8 +39,8 @@ HEADER = (
     "metric_row = the keyframe the pose was estimated against; map_floor = map_row's floor, as "
     "its session numbers them (the query's storey when the answer is right); has_content = 0 for "
     "a frame whose every camera's picture is flat (a covered rig, a black stretch: never "
-    "accepted); map_seq = map_row's frame index in its session map_session (the map's "
-    "sequence number: map_id counts the map's rows)."
+    "accepted); map_seq = map_row's sequence number in its session map_session (for a map of "
+    "vvloc map build its frame index there; map_id counts the map's rows)."
 )
 
 
