@@ -172,6 +172,11 @@ def test_interpolate_rows_takes_the_shorter_arc_and_keeps_the_ends():
     np.testing.assert_allclose(out[1, 1], 3.0 + 0.25 * arc)
     np.testing.assert_allclose(out[2, 1], -2.5)
     assert out[0, 1] == 3.0 and out[3, 1] == -2.0  # before the first / at the last row
+    # no rows: every query invalid (it was a reshape error); rows that are not one per time
+    none, ok = interpolate_rows(t[:0], v[:0], np.array([5, 6]), 50)
+    assert none.shape == (2, 2) and not ok.any()
+    with pytest.raises(ValueError, match=r"^values: expected 3 rows, one per time, got 2"):
+        interpolate_rows(t, v[:2], np.array([5]), 50)
 
 
 def test_nclt_reader_reports_bad_files(tmp_path):
@@ -378,6 +383,16 @@ def test_oxford_reader_reports_bad_files(tmp_path):
         open_dataset(tmp_path, cameras=("stereo_centre",))
     with pytest.raises(DatasetFormatError, match="no frame has an image of every camera"):
         open_dataset(tmp_path, cameras=("mono_left",), tolerance_us=1)
+    # a truncated download, an INS that never aligned: the file named (a numpy reshape error)
+    lines = (sess / "gps" / "ins.csv").read_text().splitlines()
+    aligning = [line.replace("INS_SOLUTION_GOOD", "INS_ALIGNMENT_COMPLETE") for line in lines]
+    assert aligning != lines
+    for text in (lines[:1], aligning):
+        (sess / "gps" / "ins.csv").write_text("\n".join(text) + "\n")
+        with pytest.raises(
+            DatasetFormatError, match=r"ins\.csv: no INS rows with ins_status INS_SOLUTION_GOOD$"
+        ):
+            open_dataset(tmp_path, cameras=("stereo_centre",))
     (sess / "gps" / "ins.csv").write_text("timestamp,northing\n1,2\n")
     with pytest.raises(DatasetFormatError, match=r"ins\.csv, line 1: header lacks"):
         open_dataset(tmp_path, cameras=("stereo_centre",))
@@ -643,6 +658,10 @@ def test_cli_convert(tmp_path):
     r = run("--out", str(tmp_path / "c"), "--cameras", "1", "--width", "3", "--height", "4")
     assert r.returncode == 0, r.stderr
     assert open_dataset(tmp_path / "c").cameras[0].width == 3
+    # the default keeps the body frame's origin, above the ground where vvloc's BEV plane lies
+    assert "warning: --ego_height not given: the ego origin stays at NCLT's body frame" in r.stderr
+    r = run("--out", str(tmp_path / "g"), "--cameras", "1", "--ego_height", "0.5")
+    assert r.returncode == 0 and "--ego_height" not in r.stderr, r.stderr
     r = run("--out", str(tmp_path / "c"), "--cameras", "1")  # exists
     assert r.returncode == 2 and "exists" in r.stderr
     r = run("--out", str(tmp_path / "d"), "--cameras", "left")

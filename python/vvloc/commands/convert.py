@@ -3,6 +3,7 @@ small vvloc-format dataset of keyframes that every other command reads quickly."
 
 from __future__ import annotations
 
+import warnings
 from enum import Enum
 from pathlib import Path
 from typing import Annotated, Any
@@ -143,6 +144,18 @@ def convert(
             if fmt == "vvloc":
                 _fail("--ego_height applies to NCLT and RobotCar sources only")
             options["ego_height"] = ego_height
+        elif fmt != "vvloc":
+            # the default keeps the dataset's origin, which sits above the ground, where vvloc's
+            # BEV plane lies: the cameras come out too low and Frame.z too high
+            frame = "NCLT's body frame" if fmt == "nclt" else "RobotCar's vehicle frame (roof)"
+            warnings.warn(
+                f"--ego_height not given: the ego origin stays at {frame}, above the ground; "
+                "vvloc's ego origin (the BEV plane) is the ground under the vehicle: give the "
+                "height of that frame above the ground in metres (docs/dataset-format.md, 'The "
+                "ego origin')",
+                UserWarning,
+                stacklevel=2,
+            )
         if level is not None:
             if fmt == "vvloc":
                 _fail("--level/--no_level applies to NCLT and RobotCar sources only")

@@ -662,7 +662,11 @@ def interpolate_rows(
         them; one before the first or after the last row takes that row.
     """
     t = np.asarray(times, dtype=np.int64)
-    v = np.asarray(values, dtype=np.float64).reshape(len(t), -1)
+    v = np.asarray(values, dtype=np.float64)
+    if v.ndim != 2:  # (N,) rows of one value; (0, C) stays (reshape(0, -1) cannot)
+        v = v.reshape(len(t), -1)
+    if v.shape[0] != len(t):
+        raise ValueError(f"values: expected {len(t)} rows, one per time, got {v.shape[0]}")
     q = np.asarray(queries, dtype=np.int64)
     _, ok = nearest_within(t, q, tolerance)
     if len(t) == 0:

@@ -124,7 +124,8 @@ def read_ins(path: Path, *, good_only: bool = True) -> np.ndarray:
     """(N, 7) float64 rows timestamp, northing, easting, down, roll, pitch, yaw, sorted by time.
 
     With ``good_only``, rows whose ``ins_status`` is not ``INS_SOLUTION_GOOD`` are dropped (a
-    file without that column keeps every row).
+    file without that column keeps every row). ``DatasetFormatError`` naming the file when no
+    row is left (an empty or truncated file, an INS that never aligned).
     """
     if not path.is_file():
         raise DatasetFormatError(f"{path}: INS file missing")
@@ -144,6 +145,9 @@ def read_ins(path: Path, *, good_only: bool = True) -> np.ndarray:
                 raise DatasetFormatError(
                     f"{path}, line {reader.line_num}: malformed row: {e}"
                 ) from e
+    if not rows:  # a truncated download, or an INS that never aligned
+        which = f" with ins_status {INS_GOOD}" if good_only and has_status else ""
+        raise DatasetFormatError(f"{path}: no INS rows{which}")
     arr = np.array(rows, dtype=np.float64).reshape(-1, 7)
     return arr[np.argsort(arr[:, 0], kind="stable")]
 
