@@ -177,6 +177,10 @@ def test_interpolate_rows_takes_the_shorter_arc_and_keeps_the_ends():
     assert none.shape == (2, 2) and not ok.any()
     with pytest.raises(ValueError, match=r"^values: expected 3 rows, one per time, got 2"):
         interpolate_rows(t, v[:2], np.array([5]), 50)
+    with pytest.raises(ValueError, match=r"^values: expected 3 rows, one per time, got 6"):
+        interpolate_rows(t, v.ravel(), np.array([5]), 50)  # it was taken as (3, 2)
+    none, ok = interpolate_rows(t[:0], [], np.array([5]), 50)  # one value a row, no rows
+    assert none.shape == (1, 1) and not ok.any()
 
 
 def test_nclt_reader_reports_bad_files(tmp_path):
@@ -663,13 +667,14 @@ def test_cli_convert(tmp_path):
     r = run("--out", str(tmp_path / "g"), "--cameras", "1", "--ego_height", "0.5")
     assert r.returncode == 0 and "--ego_height" not in r.stderr, r.stderr
     r = run("--out", str(tmp_path / "c"), "--cameras", "1")  # exists
-    assert r.returncode == 2 and "exists" in r.stderr
+    assert r.returncode == 2 and "exists" in r.stderr and r.stderr.count("\n") == 1, r.stderr
     r = run("--out", str(tmp_path / "d"), "--cameras", "left")
     assert r.returncode == 2 and "--cameras: NCLT cameras are numbers" in r.stderr
     r = run("--out", str(tmp_path / "d"), "--width", "16")
     assert r.returncode == 2 and "--width and --height go together" in r.stderr
     r = run("--out", str(tmp_path / "d"), "--motion_compensation")
     assert r.returncode == 2 and "--motion_compensation applies to RobotCar" in r.stderr
+    assert r.stderr.count("\n") == 1, r.stderr  # a refused command says one line, no warning
     # the library's errors are said with the options they came from
     for args, said in (
         (("--cameras", "1", "--min_angle", "inf"), "--min_angle: expected a finite number"),

@@ -123,6 +123,7 @@ def convert(
     frames (docs/dataset-format.md). Convert a public dataset once, then train, map and
     evaluate on the result."""
     from vvloc.data import convert_dataset, detect_format
+    from vvloc.data.vvloc_format import check_dataset_target
 
     if (width is None) != (height is None):
         _fail("--width and --height go together")
@@ -144,7 +145,16 @@ def convert(
             if fmt == "vvloc":
                 _fail("--ego_height applies to NCLT and RobotCar sources only")
             options["ego_height"] = ego_height
-        elif fmt != "vvloc":
+        if level is not None:
+            if fmt == "vvloc":
+                _fail("--level/--no_level applies to NCLT and RobotCar sources only")
+            options["level"] = level
+        if motion_compensation is not None:
+            if fmt != "oxford":
+                _fail("--motion_compensation applies to RobotCar sources only")
+            options["motion_compensation"] = motion_compensation
+        if fmt != "vvloc" and "ego_height" not in options:
+            check_dataset_target(out, overwrite)  # a refused command says one line, no warning
             # the default keeps the dataset's origin, which sits above the ground, where vvloc's
             # BEV plane lies: the cameras come out too low and Frame.z too high
             frame = "NCLT's body frame" if fmt == "nclt" else "RobotCar's vehicle frame (roof)"
@@ -156,14 +166,6 @@ def convert(
                 UserWarning,
                 stacklevel=2,
             )
-        if level is not None:
-            if fmt == "vvloc":
-                _fail("--level/--no_level applies to NCLT and RobotCar sources only")
-            options["level"] = level
-        if motion_compensation is not None:
-            if fmt != "oxford":
-                _fail("--motion_compensation applies to RobotCar sources only")
-            options["motion_compensation"] = motion_compensation
         with as_options(_OPTION_OF):
             path = convert_dataset(
                 src,

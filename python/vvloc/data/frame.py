@@ -663,10 +663,11 @@ def interpolate_rows(
     """
     t = np.asarray(times, dtype=np.int64)
     v = np.asarray(values, dtype=np.float64)
-    if v.ndim != 2:  # (N,) rows of one value; (0, C) stays (reshape(0, -1) cannot)
-        v = v.reshape(len(t), -1)
-    if v.shape[0] != len(t):
-        raise ValueError(f"values: expected {len(t)} rows, one per time, got {v.shape[0]}")
+    if v.ndim == 0 or v.shape[0] != len(t):
+        got = "a scalar" if v.ndim == 0 else v.shape[0]
+        raise ValueError(f"values: expected {len(t)} rows, one per time, got {got}")
+    if v.ndim != 2:  # (N,) rows of one value (reshape(0, -1) cannot take no rows)
+        v = v.reshape(len(t), int(np.prod(v.shape[1:], dtype=np.int64)))
     q = np.asarray(queries, dtype=np.int64)
     _, ok = nearest_within(t, q, tolerance)
     if len(t) == 0:
