@@ -73,6 +73,7 @@ def test_nclt_reader_converts_frames_and_matches_poses(tmp_path):
     assert ds.sessions == [DATE]
     s = ds.session(DATE)
     assert len(s) == 2 and list(s.timestamps) == [1_000_000, 1_200_000]
+    assert s.left_out == {"no ground truth within tolerance_us=50000": 1}
     # NED (x north, y east) → ENU (x east, y north); yaw from north-clockwise to east-CCW
     assert np.allclose(s.poses[0], [5.0, 10.0, math.pi / 2 - 0.3])
     assert np.allclose(s.z, [1.0, 1.0])
@@ -333,6 +334,7 @@ def test_oxford_reader_demosaics_and_converts_frames(tmp_path):
     ds = open_dataset(tmp_path, cameras=("stereo_centre", "mono_left"), ego_height=1.5)
     s = ds.session(sess.name)
     assert len(s) == 2  # the 400_000 frame has no INS row within the tolerance
+    assert s.left_out == {"no good INS row within tolerance_us=50000": 1}
     # poses interpolated in time between the good INS rows (the middle row is left out)
     (t0, _, n0, e0, y0), _, (t1, _, n1, e1, y1) = INS_ROWS
     expected = []
@@ -402,6 +404,29 @@ def test_oxford_reader_reports_bad_files(tmp_path):
         open_dataset(tmp_path, cameras=("stereo_centre",))
     with pytest.raises(ValueError, match="cameras"):
         open_dataset(tmp_path, cameras=("roof",))
+
+
+def test_the_readers_count_the_frames_they_leave_out(tmp_path):
+    _nclt(tmp_path / "nclt")
+    (tmp_path / "nclt" / DATE / "lb3" / "Cam2" / "1200000.tiff").unlink()
+    with pytest.warns(UserWarning, match="U2D_Cam2"):
+        s = open_dataset(tmp_path / "nclt", cameras=(1, 2), upright=False).session(DATE)
+    assert list(s.timestamps) == [1_000_000]
+    assert s.left_out == {  # each frame under the first reason it failed, in the checks' order
+        "an image missing for some camera": 1,
+        "no ground truth within tolerance_us=50000": 1,
+    }
+    (tmp_path / "ox").mkdir()
+    sess = _oxford(tmp_path / "ox")
+    (sess / "stereo" / "centre" / "400000.png").unlink()  # listed, but no file
+    (sess / "mono_left" / "200030.png").unlink()  # the 200 ms frame has no mono image near it
+    (sess / "mono_left.timestamps").write_text("120 1\n400010 1\n")
+    s = open_dataset(tmp_path / "ox", cameras=("stereo_centre", "mono_left")).session(sess.name)
+    assert list(s.timestamps) == [100]
+    assert s.left_out == {
+        "listed in stereo.timestamps but no image file": 1,
+        "no image of every camera within tolerance_us=50000": 1,
+    }
 
 
 def test_oxford_reader_refuses_what_it_would_read_wrong(tmp_path):
@@ -508,6 +533,9 @@ def test_convert_nclt_writes_what_the_reader_reads(tmp_path):
     src_meta = conv.meta["converted_from"]
     assert src_meta["format"] == "nclt" and src_meta["options"]["ego_height"] == 0.4
     assert src_meta["image_size"] == [3, 4]  # (width, height), whatever the source's format
+    assert src_meta["source_frames"] == {
+        DATE: {"read": 2, "left_out": {"no ground truth within tolerance_us=50000": 1}}
+    }
     # keyframes: every 2nd frame of the two
     again = convert_dataset(src, tmp_path / "every2", every=2, cameras=(1,))
     assert len(open_dataset(again).session(DATE)) == 1
@@ -664,8 +692,17 @@ def test_cli_convert(tmp_path):
     assert open_dataset(tmp_path / "c").cameras[0].width == 3
     # the default keeps the body frame's origin, above the ground where vvloc's BEV plane lies
     assert "warning: --ego_height not given: the ego origin stays at NCLT's body frame" in r.stderr
+    # the frames the reader left out are counted, by reason
+    said = f"{DATE}: the reader left out 1 of 3 frames (1: no ground truth within tolerance_us"
+    assert f"{said}=50000)" in r.stdout, r.stdout
     r = run("--out", str(tmp_path / "g"), "--cameras", "1", "--ego_height", "0.5")
     assert r.returncode == 0 and "--ego_height" not in r.stderr, r.stderr
+    # the last frame's ground truth is 0.2 s away: kept under a tolerance of 0.2 s
+    r = run("--out", str(tmp_path / "h"), "--cameras", "1", "--tolerance_us", "200000")
+    assert r.returncode == 0 and "left out" not in r.stdout, r.stdout
+    assert len(open_dataset(tmp_path / "h").session(DATE)) == 3
+    r = run("--out", str(tmp_path / "i"), "--cameras", "1", "--tolerance_us", "-1")
+    assert r.returncode == 2 and "--tolerance_us" in r.stderr, r.stderr
     r = run("--out", str(tmp_path / "c"), "--cameras", "1")  # exists
     assert r.returncode == 2 and "exists" in r.stderr and r.stderr.count("\n") == 1, r.stderr
     r = run("--out", str(tmp_path / "d"), "--cameras", "left")

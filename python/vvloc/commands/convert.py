@@ -21,6 +21,7 @@ _OPTION_OF = {
     "image_size": "--width/--height",
     "cameras": "--cameras",
     "ego_height": "--ego_height",
+    "tolerance_us": "--tolerance_us",
 }
 
 
@@ -99,6 +100,15 @@ def convert(
             "ground (m), where vvloc's ego origin goes (default 0: kept).",
         ),
     ] = None,
+    tolerance_us: Annotated[
+        int | None,
+        typer.Option(
+            "--tolerance_us",
+            min=0,
+            help="NCLT / RobotCar: largest time gap (microseconds) joined between an image and "
+            "its ground truth or INS row, and between RobotCar's cameras (default 50000).",
+        ),
+    ] = None,
     level: Annotated[
         bool | None,
         typer.Option(
@@ -145,6 +155,10 @@ def convert(
             if fmt == "vvloc":
                 _fail("--ego_height applies to NCLT and RobotCar sources only")
             options["ego_height"] = ego_height
+        if tolerance_us is not None:
+            if fmt == "vvloc":
+                _fail("--tolerance_us applies to NCLT and RobotCar sources only")
+            options["tolerance_us"] = tolerance_us
         if level is not None:
             if fmt == "vvloc":
                 _fail("--level/--no_level applies to NCLT and RobotCar sources only")
@@ -181,3 +195,20 @@ def convert(
                 **options,
             )
     typer.echo(f"wrote {path}")
+    _say_left_out(path)
+
+
+def _say_left_out(path: Path) -> None:
+    """One line per converted session whose reader left frames out, with the reasons."""
+    from vvloc.data import open_dataset
+
+    frames = open_dataset(path, format="vvloc").meta["converted_from"]["source_frames"]
+    for name, counts in frames.items():
+        left_out = counts["left_out"]
+        if left_out:
+            total = sum(left_out.values())
+            reasons = "; ".join(f"{n}: {why}" for why, n in left_out.items())
+            typer.echo(
+                f"{name}: the reader left out {total} of {counts['read'] + total} frames "
+                f"({reasons})"
+            )

@@ -133,7 +133,9 @@ def convert_dataset(
         and each frame's own ``cam_to_ego`` where the source gives frames their own (NCLT's
         and RobotCar's levelled, motion-compensated frames: ``cam_to_ego.csv``);
         ``rig.json``'s meta records the source, its options and the source's own meta (e.g.
-        RobotCar's ``origin_enu``). Nothing is left at ``out`` if any frame fails.
+        RobotCar's ``origin_enu``) and, per session, the frames the reader gave and those it
+        left out by reason (``converted_from["source_frames"]``; ``Session.left_out``).
+        Nothing is left at ``out`` if any frame fails.
     """
     from vvloc.data import detect_format, open_dataset
     from vvloc.data.frame import check_image_size
@@ -210,6 +212,11 @@ def convert_dataset(
         "every": every,
         "min_distance": min_distance,
         "min_angle_deg": min_angle_deg,
+        # per session: the frames the source's reader gave, and those it left out, by reason
+        "source_frames": {
+            name: {"read": len(ds.session(name)), "left_out": ds.session(name).left_out}
+            for name in names
+        },
     }
     if "converted_from" in ds.meta:  # a converted dataset converted again: its history
         converted_from["source_converted_from"] = ds.meta["converted_from"]

@@ -8,7 +8,7 @@ Calibration arrays are float64 so that projections stay exact; networks cast as 
 from __future__ import annotations
 
 import abc
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, overload
@@ -269,6 +269,10 @@ class Session(Sequence[Frame], abc.ABC):
             their cameras fire at different times: a reader that levels the ego frame or
             compensates the motion between the cameras' exposures gives each frame its own
             (:func:`ego_frames`); ``Frame.cam_to_ego`` is then this row.
+        left_out: the source's frames a raw reader left out, by reason (e.g. ``{"no ground
+            truth within tolerance_us=50000": 12}``), in the order the reader checks them, each
+            frame counted under the first reason it failed; empty when none was, and for
+            sessions of the vvloc format (their frames are what was written).
     """
 
     def __init__(
@@ -280,8 +284,11 @@ class Session(Sequence[Frame], abc.ABC):
         z: np.ndarray,
         floors: np.ndarray,
         frame_cam_to_ego: np.ndarray | None = None,
+        *,
+        left_out: Mapping[str, int] | None = None,
     ) -> None:
         self.name = name
+        self.left_out = {str(k): int(v) for k, v in (left_out or {}).items() if int(v) > 0}
         self.cameras = tuple(cameras)
         self.timestamps = np.asarray(timestamps, dtype=np.int64)
         self.poses = np.asarray(poses, dtype=np.float64).reshape(-1, 3)

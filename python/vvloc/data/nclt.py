@@ -36,7 +36,8 @@ Conventions converted from:
   a columns); each further line ``row col v u`` gives the source pixel (u column, v row) that
   output pixel (row, col) samples — the way NCLT's ``undistort.py`` reads it.
 * Images of one Ladybug capture share a ``utime``; a frame is a utime present for every camera,
-  posed by the ground-truth row nearest in time, kept only within ``tolerance_us``.
+  posed by the ground-truth row nearest in time, kept only within ``tolerance_us``. How many
+  were left out, and why, is each session's ``left_out`` (``vvloc convert`` prints it).
 * Without a ``U2D_Cam{i}_*.txt`` map the images are used distorted, with a warning: the pinhole
   K does not describe the Ladybug's wide-angle lenses.
 """
@@ -169,9 +170,13 @@ class NcltSession(Session):
         poses: np.ndarray,
         z: np.ndarray,
         frame_cam_to_ego: np.ndarray | None = None,
+        *,
+        left_out: dict[str, int] | None = None,
     ) -> None:
         floors = np.zeros(len(timestamps), np.int64)
-        super().__init__(name, cameras, timestamps, poses, z, floors, frame_cam_to_ego)
+        super().__init__(
+            name, cameras, timestamps, poses, z, floors, frame_cam_to_ego, left_out=left_out
+        )
         self._dirs = image_dirs
         self._native = native_size
         self._maps = maps
@@ -260,9 +265,11 @@ def open_nclt(
             if not d.is_dir():
                 raise DatasetFormatError(f"{d}: camera folder missing")
         stamps = None
+        seen: set[int] = set()  # the times any camera has an image of
         for d in dirs:
             s = {int(p.stem) for p in d.glob("*.tiff") if p.stem.isdigit()}
             stamps = s if stamps is None else stamps & s
+            seen |= s
         utimes = np.array(sorted(stamps or ()), dtype=np.int64)
         if len(utimes) == 0:
             raise DatasetFormatError(f"{lb3}: no <utime>.tiff present for every camera")
@@ -318,6 +325,10 @@ def open_nclt(
         gt = read_groundtruth(gt_path)
         pick, ok = nearest_within(gt[:, 0].astype(np.int64), utimes, tolerance_us)
         utimes, pick = utimes[ok], pick[ok]
+        left_out = {
+            "an image missing for some camera": len(seen) - len(stamps or ()),
+            f"no ground truth within tolerance_us={tolerance_us}": int((~ok).sum()),
+        }
         world_body = np.array(
             [NED_TO_ENU @ euler_to_matrix(*row[1:7]) @ FRD_TO_FLU for row in gt[pick]]
         ).reshape(-1, 4, 4)  # (0, 4, 4) when no image has ground truth near it
@@ -336,6 +347,7 @@ def open_nclt(
             poses,
             zs,
             frame_cam_to_ego,
+            left_out=left_out,
         )
         rig = rig or cams
     assert rig is not None

@@ -45,7 +45,9 @@ Conventions converted from:
   nearest image of each other camera (within ``tolerance_us``), posed at the first camera's
   time (an INS row within ``tolerance_us``). With ``motion_compensation`` (default) each camera
   is placed where it was at its own exposure (the INS interpolated at its image's timestamp),
-  in the ego frame of the frame's time: at 14 m/s a 30 ms gap is 0.4 m.
+  in the ego frame of the frame's time: at 14 m/s a 30 ms gap is 0.4 m. How many of the first
+  camera's timestamps were left out, and why, is each session's ``left_out`` (``vvloc
+  convert`` prints it).
 * The ego frame is level by default (``level=True``): its origin is the ground under the
   vehicle frame's origin (along the vehicle's z axis), its heading the vehicle's; the car's
   roll and pitch, and the motion compensation, go into each frame's ``cam_to_ego``
@@ -213,9 +215,13 @@ class OxfordSession(Session):
         poses: np.ndarray,
         z: np.ndarray,
         frame_cam_to_ego: np.ndarray | None = None,
+        *,
+        left_out: dict[str, int] | None = None,
     ) -> None:
         floors = np.zeros(len(timestamps), np.int64)
-        super().__init__(name, cameras, timestamps, poses, z, floors, frame_cam_to_ego)
+        super().__init__(
+            name, cameras, timestamps, poses, z, floors, frame_cam_to_ego, left_out=left_out
+        )
         self._paths = paths
         self._patterns = patterns
         self._luts = luts
@@ -321,6 +327,7 @@ def open_oxford(
     warned: set[str] = set()
     for sdir in dirs:
         stamps = [read_timestamps(sdir / CAMERA_SPECS[c][1]) for c in cameras]
+        listed = len(stamps[0])
         stamps = [
             s[[(sdir / CAMERA_SPECS[c][0] / f"{t}.png").is_file() for t in s]]
             for c, s in zip(cameras, stamps, strict=True)
@@ -334,22 +341,34 @@ def open_oxford(
             p, ok = nearest_within(s, ref, tolerance_us)
             picks.append(p)
             keep &= ok
+        # each frame left out is counted under the first reason it fails
+        left_out = {
+            f"listed in {CAMERA_SPECS[cameras[0]][1]} but no image file": listed - len(ref),
+            f"no image of every camera within tolerance_us={tolerance_us}": int((~keep).sum()),
+        }
         ins = read_ins(sdir / "gps" / "ins.csv", good_only=ins_good_only)
         ins_t = ins[:, 0].astype(np.int64)
         ins_at, ok = interpolate_rows(
             ins_t, ins[:, 1:7], ref, tolerance_us, angle_columns=(3, 4, 5)
         )
+        row_kind = "good INS row" if ins_good_only else "INS row"
+        left_out[f"no {row_kind} within tolerance_us={tolerance_us}"] = int((keep & ~ok).sum())
         keep &= ok
         # the INS at each camera's own exposure (motion compensation); a camera without any
         # image has joined no frame (keep is all False)
         ins_cams = []
         if motion_compensation and keep.any():
+            covered = np.ones(len(ref), dtype=bool)
             for t_cam in (s[p] for s, p in zip(stamps, picks, strict=True)):
                 row, ok = interpolate_rows(
                     ins_t, ins[:, 1:7], t_cam, tolerance_us, angle_columns=(3, 4, 5)
                 )
                 ins_cams.append(row)
-                keep &= ok
+                covered &= ok
+            left_out[f"no {row_kind} near some camera's exposure (motion_compensation)"] = int(
+                (keep & ~covered).sum()
+            )
+            keep &= covered
         if not keep.any():
             raise DatasetFormatError(
                 f"{sdir}: no frame has an image of every camera {list(cameras)} and an INS row "
@@ -418,6 +437,7 @@ def open_oxford(
             poses,
             zs,
             frame_cam_to_ego,
+            left_out=left_out,
         )
         rig = rig or cams
     meta = {"origin_enu": [float(v) for v in (origin if origin is not None else np.zeros(3))]}
