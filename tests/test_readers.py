@@ -732,6 +732,24 @@ def test_cli_convert(tmp_path):
     assert not (tmp_path / "f" / "sessions" / DATE / "cam_to_ego.csv").exists()
 
 
+def test_commands_given_a_raw_folder_warn_that_they_read_it_with_the_readers_defaults(tmp_path):
+    import subprocess
+    import sys
+
+    src = tmp_path / "nclt"
+    _nclt(src)
+    r = subprocess.run(
+        [sys.executable, "-m", "vvloc.cli", "map", "build", "--dataset", str(src), "--sessions",
+         "nope", "--checkpoint", "models/synth-small", "--out", str(tmp_path / "map.h5")],
+        capture_output=True, text=True,
+    )  # fmt: skip
+    assert r.returncode == 2, r.stderr
+    assert f"--dataset: {src} is an NCLT raw folder, read with the reader's defaults" in r.stderr
+    assert "convert it once with vvloc convert" in r.stderr
+    # then what the reader says (its default cameras are NCLT's 1-5; this folder holds 1 and 2)
+    assert r.stderr.splitlines()[-1].endswith("Cam3: camera folder missing"), r.stderr
+
+
 def test_convert_keeps_the_named_cameras_of_a_vvloc_dataset(tmp_path):
     import subprocess
     import sys

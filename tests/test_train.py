@@ -1025,6 +1025,27 @@ def test_sessions_and_datasets_of_extra_datasets_and_val_loops_are_refused_by_ke
     assert not (tmp_path / "run").exists()
 
 
+def test_a_raw_nclt_or_robotcar_folder_is_refused_by_key_naming_vvloc_convert(tiny_world, tmp_path):
+    # read with no reader options, a raw folder trained at its native image size (NCLT's
+    # 1232 x 1616), on every frame, with the ego origin left above the ground
+    nclt, oxford = tmp_path / "nclt", tmp_path / "oxford"
+    (nclt / "2012-01-08" / "lb3").mkdir(parents=True)
+    (nclt / "cam_params").mkdir()
+    (oxford / "2014-05-19-13-20-57" / "gps").mkdir(parents=True)
+    (oxford / "2014-05-19-13-20-57" / "gps" / "ins.csv").write_text("timestamp\n")
+    base = {"train_sessions": ["s0", "s1"], "val_sessions": ["s2"]}
+    for kw, said in (
+        ({"dataset": str(nclt), "sim": None}, r"^dataset: .*nclt is an NCLT raw folder; "),
+        ({"extra_datasets": [{"dataset": str(oxford)}]},
+         r"^extra_datasets\[0\]\.dataset: .*oxford is an Oxford RobotCar raw folder; "),
+        ({"val_loops": [{"dataset": str(nclt), "sessions": ["s2"]}]},
+         r"^val_loops\[0\]\.dataset: .*nclt is an NCLT raw folder; "),
+    ):  # fmt: skip
+        with pytest.raises(ValueError, match=said + r".*vvloc convert --src "):
+            Trainer(_config(tiny_world, **{**base, **kw}), tmp_path / "run")
+    assert not (tmp_path / "run").exists()
+
+
 def test_an_extra_dataset_of_the_rig_s_cameras_in_another_order_is_refused(tiny_world, tmp_path):
     # it trained: a batch stacks images slot by slot, so each slot's camera embedding learnt two
     # cameras (the README asks for the same rig; another mounting is recorded, not refused)

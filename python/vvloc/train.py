@@ -1066,6 +1066,7 @@ def _ensure_dataset(dataset: str, sim: dict[str, Any] | None, prefix: str = "") 
     if unknown:  # said as the config's key, not as simulate_dataset()'s keyword argument
         raise ValueError(f"{key}: unknown keys {unknown} (known: {known})")
     if root.exists():
+        _check_vvloc_format(f"{prefix}dataset", root)
         if sim:
             _check_rendered_like(root, sim)
             _check_rendered_rig(root, {p: params[p].default for p in known} | sim, key)
@@ -1141,11 +1142,39 @@ def _check_sessions(key: str, dataset: str, ds: Any, names: Sequence[str], note:
 
 
 def _open_named(key: str, dataset: str) -> Any:
-    """``open_dataset(dataset)`` with its errors prefixed by the config's ``key``."""
+    """``open_dataset(dataset)`` with its errors prefixed by the config's ``key``; a raw folder
+    is refused (:func:`_check_vvloc_format`)."""
     try:
+        _check_vvloc_format(key, Path(dataset))
         return open_dataset(dataset)
     except (FileNotFoundError, NotADirectoryError, ValueError) as e:
+        if str(e).startswith(f"{key}: "):
+            raise
         raise type(e)(f"{key}: {e}") from e
+
+
+def _check_vvloc_format(key: str, root: Path) -> None:
+    """Refuse an NCLT or RobotCar raw folder as the config's dataset ``key``: the trainer passes
+    no reader options, so it would read every raw frame at the native image size (NCLT's
+    1232 × 1616: the paper model's backbone alone needs about a GB per image), with the ego
+    origin left at the dataset's vehicle frame, above the ground where the BEV plane lies."""
+    from vvloc.data import detect_format
+
+    if not root.is_dir():
+        return  # open_dataset names what is missing
+    try:
+        fmt = detect_format(root)
+    except ValueError as e:  # a folder of no known layout (DatasetFormatError)
+        raise type(e)(f"{key}: {e}") from None
+    if fmt != "vvloc":
+        name = {"nclt": "an NCLT", "oxford": "an Oxford RobotCar"}[fmt]
+        raise ValueError(
+            f"{key}: {root} is {name} raw folder; the trainer reads vvloc datasets only (a raw "
+            "folder would be read at its native image size, every frame, with the ego origin "
+            "above the ground): convert it once with vvloc convert --src "
+            f"{root} --out <folder> --ego_height <metres> --width <px> --height <px> "
+            "--min_distance 1 (docs/dataset-format.md) and train on that"
+        )
 
 
 def _dataset_paths(cfg: dict[str, Any]) -> dict[str, Any]:

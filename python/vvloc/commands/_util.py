@@ -206,11 +206,25 @@ def check_sessions(dataset: Path, sessions: Iterable[tuple[str, str]]) -> Datase
     """Open ``dataset`` and check each ``(option, name)`` of ``sessions`` before any model or
     map loads: ``KeyError`` naming the option (and the dataset's sessions) when there is no
     session ``name``, ``ValueError`` naming it when the session holds no frames. Returns the
-    opened dataset."""
-    from vvloc.data import open_dataset
+    opened dataset; a ``UserWarning`` when it is an NCLT or RobotCar raw folder, which the
+    command reads with the reader's defaults."""
+    import warnings
+
+    from vvloc.data import detect_format, open_dataset
 
     with named("--dataset", FileNotFoundError, NotADirectoryError):
-        ds = open_dataset(dataset)
+        fmt = detect_format(dataset)
+    if fmt != "vvloc":  # said before the reader's own errors (e.g. a camera folder missing)
+        name = {"nclt": "an NCLT", "oxford": "an Oxford RobotCar"}.get(fmt, fmt)
+        warnings.warn(
+            f"--dataset: {dataset} is {name} raw folder, read with the reader's defaults: its "
+            "native image size, every frame, the ego origin left above the ground (no "
+            "--ego_height); convert it once with vvloc convert (docs/dataset-format.md)",
+            UserWarning,
+            stacklevel=2,
+        )
+    with named("--dataset", FileNotFoundError, NotADirectoryError):
+        ds = open_dataset(dataset, format=fmt)
     for option, name in sessions:
         with named(option, KeyError):
             sess = ds.session(name)
