@@ -3,7 +3,7 @@
 #   make bench   kernel benchmarks: table on stdout, JSON in bench-results/
 #   make lint    cargo fmt/clippy, ruff, mypy of the package and stubtest of the extension
 #   make demo    end-to-end demo (see README)
-#   make model   the committed small model from scratch (five steps, 46-80 min on 2 cores; the
+#   make model   the committed small model from scratch (five steps, 46-68 min on 2 cores; the
 #                committed bytes on the two AMD EPYC CPUs checked, other weights may come
 #                elsewhere: models/synth-small/MODEL_CARD.md)
 #   make model-test  the committed model's test on what make model trained (CHECKPOINT=...),
@@ -86,7 +86,7 @@ model-v3:
 
 # the committed model's test (models/synth-small/MODEL_CARD.md, "Against the issue's targets")
 # on CHECKPOINT (default: what `make model` trained): renders the three test datasets when they
-# are missing (≈ 6-11 min each on 2 cores), evaluates (≈ 8 min) into TEST_OUT and prints the
+# are missing (≈ 15-25 min for the three on 2 cores), evaluates (≈ 8 min) into TEST_OUT and prints the
 # issue's figures against their targets (`vvloc targets`; TEST_OUT/targets.json)
 CHECKPOINT ?= runs/synth-small-local
 TEST_OUT ?= runs/model-test
