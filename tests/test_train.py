@@ -1355,6 +1355,10 @@ def test_cli_train_says_what_the_weights_were_trained_on(tiny_world, tmp_path):
     ]
     assert counts and all(done > 0 for done, _ in counts), r.stderr
     assert counts[-1][0] == counts[-1][1], r.stderr
+    # with each loss of its stage (stage 1: the global ones; yaw and tbias join in stage 2)
+    shown = [line for line in r.stderr.replace("\r", "\n").splitlines() if "loss=" in line]
+    assert any("tri=" in line and "hinge=" in line for line in shown), r.stderr
+    assert not any("yaw=" in line for line in shown), r.stderr
     # a finished run of an earlier vvloc (no record), resumed: it says so, and exits cleanly
     (tmp_path / "run" / "checkpoint" / "training.json").unlink()
     r = subprocess.run([*exe, "--resume"], capture_output=True, text=True)

@@ -2026,10 +2026,15 @@ class Trainer:
                 violated += parts.violated
                 n += 1
                 self.step += 1
+                shown = {"loss": parts.total, "tri": parts.triplet, "hinge": parts.hinge}
+                if stage == 2:  # the local-view losses train in the joint stage only
+                    shown |= {"yaw": parts.yaw, "tbias": parts.tbias}
+                    if cfg.rerank_weight > 0:
+                        shown["rerank"] = parts.rerank
+                    if cfg.tbias_near_weight > 0:
+                        shown["near"] = parts.tbias_near
                 bar.set_postfix(
-                    loss=f"{parts.total:.3f}",
-                    tri=f"{parts.triplet:.3f}",
-                    yaw=f"{parts.yaw:.3f}",
+                    {k: f"{v:.3f}" for k, v in shown.items()},
                     hard=len(self.sampler.hard),
                     refresh=False,
                 )
@@ -2174,6 +2179,7 @@ class Trainer:
             bar.set_postfix(
                 loss=f"{float(loss.detach()):.3f}",
                 tri=f"{float(l_tri.detach()):.3f}",
+                hinge=f"{float(l_hinge.detach()):.3f}",
                 refresh=False,
             )
         self.head_untrained = False
@@ -2280,6 +2286,8 @@ class Trainer:
             self.step += 1
             bar.set_postfix(
                 loss=f"{float(loss.detach()):.3f}",
+                yaw=f"{float(l_yaw.detach()):.3f}",
+                tbias=f"{float(l_tb.detach()):.3f}",
                 near=f"{float(l_near.detach()):.4f}",
                 refresh=False,
             )
