@@ -3,7 +3,7 @@
 #   make bench   kernel benchmarks: table on stdout, JSON in bench-results/
 #   make lint    cargo fmt/clippy, ruff, mypy of the package and stubtest of the extension
 #   make demo    end-to-end demo (see README)
-#   make model   the committed small model from scratch (five steps, 46-68 min on 2 cores; the
+#   make model   the committed small model from scratch (five steps, 46-80 min on 2 cores; the
 #                committed bytes on the two AMD EPYC CPUs checked, other weights may come
 #                elsewhere: models/synth-small/MODEL_CARD.md)
 #   make model-test  the committed model's test on what make model trained (CHECKPOINT=...),

@@ -334,7 +334,7 @@ def test_oxford_reader_demosaics_and_converts_frames(tmp_path):
     ds = open_dataset(tmp_path, cameras=("stereo_centre", "mono_left"), ego_height=1.5)
     s = ds.session(sess.name)
     assert len(s) == 2  # the 400_000 frame has no INS row within the tolerance
-    assert s.left_out == {"no good INS row within tolerance_us=50000": 1}
+    assert s.left_out == {"no INS row within tolerance_us=50000": 1}
     # poses interpolated in time between the good INS rows (the middle row is left out)
     (t0, _, n0, e0, y0), _, (t1, _, n1, e1, y1) = INS_ROWS
     expected = []
@@ -427,6 +427,30 @@ def test_the_readers_count_the_frames_they_leave_out(tmp_path):
         "listed in stereo.timestamps but no image file": 1,
         "no image of every camera within tolerance_us=50000": 1,
     }
+    # another camera's image listed near in time but absent is said as such, not as a gap
+    (sess / "mono_left" / "120.png").unlink()
+    (sess / "mono_left.timestamps").write_text("120 1\n200030 1\n400010 1\n")
+    Image.open(sess / "mono_left" / "400010.png").save(sess / "mono_left" / "200030.png")
+    s = open_dataset(tmp_path / "ox", cameras=("stereo_centre", "mono_left")).session(sess.name)
+    assert list(s.timestamps) == [200_000]
+    assert s.left_out == {
+        "listed in stereo.timestamps but no image file": 1,
+        "listed in mono_left.timestamps but no image file": 1,
+    }
+    # the INS at the frame's time, then at each camera's exposure (mono 30 µs after the INS)
+    (tmp_path / "mc").mkdir()
+    sess = _unsynchronised_oxford(tmp_path / "mc", -5)  # the middle mono image 5 µs late
+    cams = ("stereo_centre", "mono_left")
+    s = open_dataset(tmp_path / "mc", cameras=cams, tolerance_us=28).session(sess.name)
+    assert list(s.timestamps) == [200_000]
+    assert s.left_out == {
+        "no INS row within tolerance_us=28": 1,  # 400 ms: the last INS row is at 200 ms
+        "no INS row near some camera's exposure (motion_compensation)": 1,  # 100 µs: mono at 120
+    }
+    s = open_dataset(
+        tmp_path / "mc", cameras=cams, tolerance_us=28, motion_compensation=False
+    ).session(sess.name)
+    assert s.left_out == {"no INS row within tolerance_us=28": 1}
 
 
 def test_oxford_reader_refuses_what_it_would_read_wrong(tmp_path):
@@ -745,7 +769,7 @@ def test_commands_given_a_raw_folder_warn_that_they_read_it_with_the_readers_def
     )  # fmt: skip
     assert r.returncode == 2, r.stderr
     assert f"--dataset: {src} is an NCLT raw folder, read with the reader's defaults" in r.stderr
-    assert "convert it once with vvloc convert" in r.stderr
+    assert "convert it once with vvloc convert --ego_height" in r.stderr
     # then what the reader says (its default cameras are NCLT's 1-5; this folder holds 1 and 2)
     assert r.stderr.splitlines()[-1].endswith("Cam3: camera folder missing"), r.stderr
 

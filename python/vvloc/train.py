@@ -2032,9 +2032,9 @@ class Trainer:
                     if cfg.rerank_weight > 0:
                         shown["rerank"] = parts.rerank
                     if cfg.tbias_near_weight > 0:
-                        shown["near"] = parts.tbias_near
+                        shown["near"] = parts.tbias_near  # about 0.02: shown to 4 places
                 bar.set_postfix(
-                    {k: f"{v:.3f}" for k, v in shown.items()},
+                    {k: f"{v:.4f}" if k == "near" else f"{v:.3f}" for k, v in shown.items()},
                     hard=len(self.sampler.hard),
                     refresh=False,
                 )
@@ -2284,11 +2284,11 @@ class Trainer:
             for key, value in zip(sums, (loss, l_yaw, l_tb, l_near), strict=True):
                 sums[key] += float(value.detach())
             self.step += 1
+            local = {"loss": loss, "yaw": l_yaw, "tbias": l_tb}
+            if cfg.tbias_near_weight > 0:
+                local["near"] = l_near
             bar.set_postfix(
-                loss=f"{float(loss.detach()):.3f}",
-                yaw=f"{float(l_yaw.detach()):.3f}",
-                tbias=f"{float(l_tb.detach()):.3f}",
-                near=f"{float(l_near.detach()):.4f}",
+                {k: f"{float(v.detach()):.{4 if k == 'near' else 3}f}" for k, v in local.items()},
                 refresh=False,
             )
         self.model.eval()

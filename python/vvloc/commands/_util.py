@@ -218,8 +218,8 @@ def check_sessions(dataset: Path, sessions: Iterable[tuple[str, str]]) -> Datase
         name = {"nclt": "an NCLT", "oxford": "an Oxford RobotCar"}.get(fmt, fmt)
         warnings.warn(
             f"--dataset: {dataset} is {name} raw folder, read with the reader's defaults: its "
-            "native image size, every frame, the ego origin left above the ground (no "
-            "--ego_height); convert it once with vvloc convert (docs/dataset-format.md)",
+            "native image size, every frame, the ego origin left above the ground; convert it "
+            "once with vvloc convert --ego_height <metres> (docs/dataset-format.md)",
             UserWarning,
             stacklevel=2,
         )

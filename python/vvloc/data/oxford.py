@@ -326,33 +326,37 @@ def open_oxford(
     lut_cache: dict[tuple[Path, int, int], tuple[np.ndarray, np.ndarray]] = {}
     warned: set[str] = set()
     for sdir in dirs:
-        stamps = [read_timestamps(sdir / CAMERA_SPECS[c][1]) for c in cameras]
-        listed = len(stamps[0])
+        listed = [read_timestamps(sdir / CAMERA_SPECS[c][1]) for c in cameras]
         stamps = [
             s[[(sdir / CAMERA_SPECS[c][0] / f"{t}.png").is_file() for t in s]]
-            for c, s in zip(cameras, stamps, strict=True)
+            for c, s in zip(cameras, listed, strict=True)
         ]
         if len(stamps[0]) == 0:
             raise DatasetFormatError(f"{sdir}: no images of {cameras[0]} listed and present")
         ref = stamps[0]
+        # each frame left out is counted under the first reason it fails, in this order
+        first = f"listed in {CAMERA_SPECS[cameras[0]][1]} but no image file"
+        left_out = {first: len(listed[0]) - len(ref)}
         keep = np.ones(len(ref), dtype=bool)
         picks = []
-        for s in stamps:
+        far = 0  # frames with no image of some camera listed within tolerance_us
+        for c, s, all_listed in zip(cameras, stamps, listed, strict=True):
             p, ok = nearest_within(s, ref, tolerance_us)
             picks.append(p)
+            _, near_listed = nearest_within(all_listed, ref, tolerance_us)
+            absent = keep & ~ok & near_listed  # listed near in time, but its file is missing
+            key = f"listed in {CAMERA_SPECS[c][1]} but no image file"
+            left_out[key] = left_out.get(key, 0) + int(absent.sum())
+            far += int((keep & ~ok & ~near_listed).sum())
             keep &= ok
-        # each frame left out is counted under the first reason it fails
-        left_out = {
-            f"listed in {CAMERA_SPECS[cameras[0]][1]} but no image file": listed - len(ref),
-            f"no image of every camera within tolerance_us={tolerance_us}": int((~keep).sum()),
-        }
+        left_out[f"no image of every camera within tolerance_us={tolerance_us}"] = far
         ins = read_ins(sdir / "gps" / "ins.csv", good_only=ins_good_only)
         ins_t = ins[:, 0].astype(np.int64)
         ins_at, ok = interpolate_rows(
             ins_t, ins[:, 1:7], ref, tolerance_us, angle_columns=(3, 4, 5)
         )
-        row_kind = "good INS row" if ins_good_only else "INS row"
-        left_out[f"no {row_kind} within tolerance_us={tolerance_us}"] = int((keep & ~ok).sum())
+        # the rows read_ins kept: INS_SOLUTION_GOOD ones with ins_good_only
+        left_out[f"no INS row within tolerance_us={tolerance_us}"] = int((keep & ~ok).sum())
         keep &= ok
         # the INS at each camera's own exposure (motion compensation); a camera without any
         # image has joined no frame (keep is all False)
@@ -365,7 +369,7 @@ def open_oxford(
                 )
                 ins_cams.append(row)
                 covered &= ok
-            left_out[f"no {row_kind} near some camera's exposure (motion_compensation)"] = int(
+            left_out["no INS row near some camera's exposure (motion_compensation)"] = int(
                 (keep & ~covered).sum()
             )
             keep &= covered
