@@ -351,7 +351,7 @@ _OK = np.zeros((2, 8, 4), dtype=np.float32)
         (_OK, np.zeros((2, 8, 5)), "tgt"),  # C mismatch
         (_OK, np.zeros((3, 8, 4)), "tgt"),  # P mismatch
         (np.zeros((2, 1, 4)), np.zeros((2, 1, 4)), "src"),  # T < 2
-        (np.zeros((0, 8, 4)), np.zeros((0, 8, 4)), "src"),  # empty batch
+        (np.zeros((0, 8, 4)), np.zeros((2, 8, 4)), "tgt"),  # an empty batch, 2 targets
         (np.zeros((2, 8, 0)), np.zeros((2, 8, 0)), "src"),  # no channels
         (np.zeros((8, 4)), np.zeros((8, 4)), "src"),  # wrong rank
         (np.full((2, 8, 4), np.nan), _OK, "src"),
@@ -362,6 +362,20 @@ _OK = np.zeros((2, 8, 4), dtype=np.float32)
 def test_bad_pairs_raise_value_error(fn, src, tgt, name, backend):
     with pytest.raises(ValueError, match=name):
         fn(src, tgt, backend=backend)
+
+
+@pytest.mark.parametrize("backend", ["rust", "reference"])
+@pytest.mark.parametrize("tgt_shape", [(0, 8, 4), (1, 8, 4), (8, 4)])
+def test_the_yaw_kernels_of_an_empty_batch_are_empty(backend, tgt_shape):
+    # they refused it (matching_cost already gave an empty result): a caller whose filter left
+    # no candidate had to special-case it
+    src, tgt = np.zeros((0, 8, 4), np.float32), np.ones(tgt_shape, np.float32)
+    assert K.yaw_costs(src, tgt, backend=backend).shape == (0, 8)
+    est = K.estimate_yaw(src, tgt, backend=backend)
+    assert all(v.shape == (0,) and v.dtype == np.float64 for v in est)
+    r = K.rerank(src, tgt, backend=backend)
+    assert r.order.shape == (0,) and r.order.dtype == np.int64
+    assert all(v.shape == (0,) for v in (r.cost, r.yaw, r.shift))
 
 
 def test_bad_types_and_backend():
@@ -386,7 +400,9 @@ def test_core_rejects_bad_shapes_without_panicking():
     with pytest.raises(ValueError, match="tgt"):
         _core.estimate_yaw(_OK, np.zeros((2, 8, 3), dtype=np.float32))
     with pytest.raises(ValueError, match="src"):
-        _core.yaw_costs(np.zeros((0, 8, 4), np.float32), np.zeros((0, 8, 4), np.float32))
+        _core.yaw_costs(np.zeros((0, 1, 4), np.float32), np.zeros((0, 1, 4), np.float32))
+    with pytest.raises(ValueError, match="tgt"):  # an empty batch against two targets
+        _core.yaw_costs(np.zeros((0, 8, 4), np.float32), np.zeros((2, 8, 4), np.float32))
 
 
 def test_wide_inputs_beyond_float32_and_bfloat16_tensors():

@@ -450,9 +450,7 @@ def _pairs(src: Any, tgt: Any, *, shared_ok: bool = True) -> tuple[F32Array, F32
     t = _as_f32(tgt, "tgt", (2, 3) if shared_ok else 3, "(P, T, C)", finite=False)
     if t.ndim == 2:
         t = t[None]
-    p, nt, c = s.shape
-    if p == 0:
-        raise ValueError(f"src: expected a non-empty batch (P, T, C) with P >= 1, got {s.shape}")
+    p, nt, c = s.shape  # P = 0, an empty batch, passes: its results are empty
     if nt < 2:
         raise ValueError(f"src: expected (P, T, C) with T >= 2 angle bins, got {s.shape}")
     if c == 0:
@@ -492,7 +490,8 @@ def matching_cost(a: Any, b: Any, *, backend: Backend = "rust") -> npt.NDArray[n
 def yaw_costs(src: Any, tgt: Any, *, backend: Backend = "rust") -> npt.NDArray[np.float64]:
     """Yaw cost curves at every integer shift: ``out[p, k] = c_p(k)`` for k = 0..T−1.
 
-    ``src`` (P, T, C), ``tgt`` (P, T, C) or (T, C) shared; float → (P, T) float64.
+    ``src`` (P, T, C), ``tgt`` (P, T, C) or (T, C) shared; float → (P, T) float64 (P = 0, an
+    empty batch: (0, T)).
     """
     _check_backend(backend)
     s, t = _pairs(src, tgt)
@@ -509,7 +508,8 @@ def estimate_yaw(src: Any, tgt: Any, *, backend: Backend = "rust") -> YawEstimat
 
     ``src`` (P, T, C) source local-view descriptors, ``tgt`` (P, T, C) or (T, C) shared target.
     Returns :class:`YawEstimate` (shift (P,) bins in [0, T), yaw (P,) radians in (−π, π],
-    a half turn exactly π; cost (P,) = c(shift) in f64). Rust: Gram-based exact minimiser;
+    a half turn exactly π; cost (P,) = c(shift) in f64; empty for P = 0). Rust: Gram-based
+    exact minimiser;
     reference: dense 0.01-bin scan + refinement. One known limit of the Rust kernel: at a
     near-perfect match (cost ≲ 1e-3) with a second basin within the float32 error of the
     Gram products (a scene periodic under a half turn), it may return the other basin.
@@ -529,7 +529,8 @@ def rerank(src: Any, tgt: Any, *, backend: Backend = "rust") -> Rerank:
 
     ``src`` (K, T, C) the K pairs' source local-view descriptors, ``tgt`` (K, T, C) their
     targets, or (T, C) one target shared by all. Returns :class:`Rerank` (order by cost
-    ascending, ties by lower index; cost, yaw, shift in input order), each pair's yaw that of
+    ascending, ties by lower index; cost, yaw, shift in input order; all empty for K = 0,
+    e.g. when a floor filter left no candidate), each pair's yaw that of
     its target relative to its source (:func:`estimate_yaw`, DESIGN.md §3 "Yaw"). The localizer
     passes the query as the source of every pair and the K candidates as the targets, so its
     yaw is the candidate keyframe's in the query's frame (ξ_{q→m}'s yaw).

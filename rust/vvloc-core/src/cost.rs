@@ -108,8 +108,9 @@ pub(crate) fn check_rows(x: &[f32], c: usize, arg: &'static str) -> Result<()> {
 }
 
 /// Checks a batch of pairs; `tgt` may hold one matrix shared by all pairs. Returns (P, T, C)
-/// and C-contiguous data of both. `tables`: how many (T, S) f32 tables (or their equivalent in
-/// bytes) one pair's computation holds at once, to probe their allocation.
+/// and C-contiguous data of both (P = 0, an empty batch, passes: its results are empty).
+/// `tables`: how many (T, S) f32 tables (or their equivalent in bytes) one pair's computation
+/// holds at once, to probe their allocation.
 fn check_pairs<'a>(
     src: &'a ArrayView3<'a, f32>,
     tgt: &'a ArrayView3<'a, f32>,
@@ -117,9 +118,6 @@ fn check_pairs<'a>(
 ) -> Result<Pairs<'a>> {
     let (p, t, c) = src.dim();
     let (pt, tt, ct) = tgt.dim();
-    if p == 0 {
-        return Err(Error::shape("src", "(P, T, C) with P >= 1", src.shape()));
-    }
     if t < 2 {
         return Err(Error::shape("src", "(P, T, C) with T >= 2", src.shape()));
     }
@@ -241,8 +239,8 @@ pub fn matching_cost(a: ArrayView3<f32>, b: ArrayView3<f32>) -> Result<Vec<f64>>
 }
 
 /// Integer-shift yaw cost curves: `out[p][k] = c_p(k)` for k = 0..T−1, from `src`, `tgt`
-/// (P, T, C) (or `tgt` (1, T, C) shared by all pairs). Gram-based; relative accuracy ~1e-6 at
-/// any scale (tiny pairs are rescaled first, see the module docs).
+/// (P, T, C) (or `tgt` (1, T, C) shared by all pairs; P = 0 gives a (0, T) result). Gram-based;
+/// relative accuracy ~1e-6 at any scale (tiny pairs are rescaled first, see the module docs).
 pub fn yaw_costs(src: ArrayView3<f32>, tgt: ArrayView3<f32>) -> Result<Array2<f64>> {
     // the Gram products, the diagonal distances and their roots
     let (p, t, c, s, g, shared) = check_pairs(&src, &tgt, 3)?;
@@ -264,7 +262,8 @@ pub fn yaw_costs(src: ArrayView3<f32>, tgt: ArrayView3<f32>) -> Result<Array2<f6
     Array2::from_shape_vec((p, t), out).map_err(|e| Error::value("src", e.to_string()))
 }
 
-/// Exact global continuous yaw minimum of each pair (see the module docs for the method).
+/// Exact global continuous yaw minimum of each pair (see the module docs for the method); an
+/// empty batch (P = 0) gives no estimates.
 pub fn estimate_yaw(src: ArrayView3<f32>, tgt: ArrayView3<f32>) -> Result<Vec<YawEstimate>> {
     // the curve's three tables, then its distances and inverse roots beside the polish's exact
     // rows (up to T rows of T f64, two tables' worth, when every shift is a near tie)
@@ -278,7 +277,7 @@ pub fn estimate_yaw(src: ArrayView3<f32>, tgt: ArrayView3<f32>) -> Result<Vec<Ya
 
 /// Re-ranks K candidates `src` (K, T, C) against `tgt` (K, T, C) or one shared target (1, T, C):
 /// exact yaw estimate per candidate (parallel over candidates), then the order by cost
-/// ascending, ties broken by lower index.
+/// ascending, ties broken by lower index. No candidates (K = 0) give an empty order.
 pub fn rerank(src: ArrayView3<f32>, tgt: ArrayView3<f32>) -> Result<Reranked> {
     let estimates = estimate_yaw(src, tgt)?;
     let mut order = crate::error::try_collect("src", 0..estimates.len())?;
@@ -1432,6 +1431,23 @@ mod tests {
             .unwrap()
             .iter()
             .all(|&v| v == 0.0));
+    }
+
+    #[test]
+    fn the_yaw_kernels_of_an_empty_batch_are_empty() {
+        for (pt, t) in [(0usize, 8usize), (1, 8)] {
+            let src = Array3::<f32>::zeros((0, t, 4));
+            let tgt = Array3::<f32>::ones((pt, t, 4));
+            assert_eq!(yaw_costs(src.view(), tgt.view()).unwrap().dim(), (0, t));
+            assert!(estimate_yaw(src.view(), tgt.view()).unwrap().is_empty());
+            let r = rerank(src.view(), tgt.view()).unwrap();
+            assert!(r.order.is_empty() && r.estimates.is_empty());
+        }
+        // the other checks still apply to an empty batch
+        let src = Array3::<f32>::zeros((0, 1, 4));
+        assert!(estimate_yaw(src.view(), src.view()).is_err());
+        let tgt = Array3::<f32>::zeros((2, 8, 4));
+        assert!(estimate_yaw(Array3::<f32>::zeros((0, 8, 4)).view(), tgt.view()).is_err());
     }
 
     #[test]
