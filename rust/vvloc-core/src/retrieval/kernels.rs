@@ -206,6 +206,56 @@ unsafe fn tile_f32_avx512<const QT: usize, const G: usize>(
     }
 }
 
+/// Squared distances of one block's 16 rows to a query of squared norm `qn`, from the rows'
+/// squared norms `xn` and their dot products `dots` with it: `sq[l] = max((qn + xn[l]) −
+/// 2·dots[l], 0)`, each operation rounded once in float32 (2·dots is exact), so every level gives
+/// the same bits; and the mask of those below `thr` (bit l: row l). A NaN becomes 0 on every
+/// level (none occurs: the index holds finite values).
+///
+/// Panics (a bug, never user input) if a slice is shorter than a block.
+pub(crate) fn block_sq(
+    level: Level,
+    qn: f32,
+    xn: &[f32],
+    dots: &[f32],
+    thr: f32,
+) -> ([f32; BLOCK], u16) {
+    assert!(xn.len() >= BLOCK && dots.len() >= BLOCK);
+    match level {
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: Avx512 only after detecting avx512f (see above); the lengths were checked.
+        Level::Avx512 { .. } => unsafe { block_sq_avx512(qn, xn, dots, thr) },
+        _ => block_sq_generic(qn, xn, dots, thr),
+    }
+}
+
+#[inline(always)]
+fn block_sq_generic(qn: f32, xn: &[f32], dots: &[f32], thr: f32) -> ([f32; BLOCK], u16) {
+    let mut sq = [0f32; BLOCK];
+    let mut below = 0u16;
+    for l in 0..BLOCK {
+        sq[l] = ((qn + xn[l]) - 2.0 * dots[l]).max(0.0);
+        below |= u16::from(sq[l] < thr) << l;
+    }
+    (sq, below)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+unsafe fn block_sq_avx512(qn: f32, xn: &[f32], dots: &[f32], thr: f32) -> ([f32; BLOCK], u16) {
+    // SAFETY: both slices hold at least 16 f32 (checked by the caller).
+    let (x, d) = unsafe { (_mm512_loadu_ps(xn.as_ptr()), _mm512_loadu_ps(dots.as_ptr())) };
+    let s = _mm512_sub_ps(_mm512_add_ps(_mm512_set1_ps(qn), x), _mm512_add_ps(d, d));
+    // vmaxps returns its second operand when the first is NaN or both are zeros: +0 then, as
+    // f32::max gives for NaN (and -0 cannot occur: (qn + xn) >= +0 and a - a = +0)
+    let s = _mm512_max_ps(s, _mm512_setzero_ps());
+    let below = _mm512_cmp_ps_mask::<_CMP_LT_OQ>(s, _mm512_set1_ps(thr));
+    let mut sq = [0f32; BLOCK];
+    // SAFETY: `sq` holds 16 f32, the width of one unaligned 512-bit store.
+    unsafe { _mm512_storeu_ps(sq.as_mut_ptr(), s) };
+    (sq, below)
+}
+
 /// Squared norms of the 16 rows of one block (same accumulation order as the dot products).
 pub(crate) fn block_norms(level: Level, block: &[f32], d: usize) -> [f32; BLOCK] {
     assert!(fits(block.len(), &[d, BLOCK]));

@@ -683,19 +683,15 @@ impl DescriptorIndex {
         for (g, dg) in dots.chunks_exact(BLOCK).enumerate() {
             let blk = b + g;
             let xn = &self.norms[blk * BLOCK..][..BLOCK];
-            let thr = sink.threshold(q);
-            let mut sq = [0f32; BLOCK];
-            let mut any = false;
-            for l in 0..BLOCK {
-                sq[l] = ((qn + xn[l]) - 2.0 * dg[l]).max(0.0);
-                any |= sq[l] < thr;
-            }
-            if any {
-                for (l, &s) in sq.iter().enumerate() {
-                    let row = blk * BLOCK + l;
-                    if row < self.len && s < sink.threshold(q) {
-                        sink.offer(q, row, s);
-                    }
+            let (sq, mut below) = kernels::block_sq(self.level, qn, xn, dg, sink.threshold(q));
+            // the rows below the threshold, in row order; the threshold only falls as rows are
+            // offered, so a row above it before the first offer stays above it
+            while below != 0 {
+                let l = below.trailing_zeros() as usize;
+                below &= below - 1;
+                let row = blk * BLOCK + l;
+                if row < self.len && sq[l] < sink.threshold(q) {
+                    sink.offer(q, row, sq[l]);
                 }
             }
         }

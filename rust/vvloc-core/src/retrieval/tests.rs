@@ -559,3 +559,36 @@ fn kernel_length_checks_do_not_wrap() {
         assert!(norms.is_err(), "{level:?}");
     }
 }
+
+#[test]
+fn block_distances_are_the_same_bits_on_every_level() {
+    let xn = rand_vec(BLOCK * 64, 7);
+    let dots = rand_vec(BLOCK * 64, 8);
+    for (b, (x, g)) in xn
+        .chunks_exact(BLOCK)
+        .zip(dots.chunks_exact(BLOCK))
+        .enumerate()
+    {
+        let x: Vec<f32> = x.iter().map(|v| v.abs()).collect(); // squared norms are >= 0
+        let mut g = g.to_vec();
+        g[0] = 0.5 * (0.25 + x[0]); // a distance of exactly 0
+        g[1] = f32::NAN; // none occurs in an index; 0 on every level all the same
+        let (qn, thr) = (0.25, 0.1 * (b % 8) as f32);
+        let want = kernels::block_sq(kernels::Level::Portable, qn, &x, &g, thr);
+        assert_eq!(want.0[0].to_bits(), 0.0f32.to_bits());
+        assert_eq!(want.0[1].to_bits(), 0.0f32.to_bits());
+        let lanes = (0..BLOCK)
+            .filter(|&l| want.0[l] < thr)
+            .fold(0u16, |m, l| m | 1 << l);
+        assert_eq!(want.1, lanes);
+        for level in kernels::available_levels() {
+            let got = kernels::block_sq(level, qn, &x, &g, thr);
+            let bits = |v: &[f32; BLOCK]| v.map(f32::to_bits);
+            assert_eq!(
+                (bits(&got.0), got.1),
+                (bits(&want.0), want.1),
+                "{level:?}, block {b}"
+            );
+        }
+    }
+}
