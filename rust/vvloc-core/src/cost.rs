@@ -143,7 +143,9 @@ fn check_pairs<'a>(
     // (2·T·C), and one pair per thread runs at a time
     // (no rayon call when the pairs run sequentially: outside a pool, asking rayon for its
     // thread count would start its global pool)
-    let concurrent = if runs_sequentially(p) {
+    let concurrent = if p == 0 {
+        0 // an empty batch computes nothing: no table to probe, whatever T
+    } else if runs_sequentially(p) {
         1
     } else {
         p.min(rayon::current_num_threads()).max(1)
@@ -1443,6 +1445,9 @@ mod tests {
             let r = rerank(src.view(), tgt.view()).unwrap();
             assert!(r.order.is_empty() && r.estimates.is_empty());
         }
+        // nothing is allocated for an empty batch, however long its rows
+        let huge = Array3::<f32>::zeros((0, 1 << 24, 4));
+        assert!(estimate_yaw(huge.view(), huge.view()).unwrap().is_empty());
         // the other checks still apply to an empty batch
         let src = Array3::<f32>::zeros((0, 1, 4));
         assert!(estimate_yaw(src.view(), src.view()).is_err());
@@ -1628,7 +1633,12 @@ mod tests {
         assert!(estimate_yaw(ok.view(), data(2, 4, 2, 1).view()).is_err());
         assert!(estimate_yaw(ok.view(), data(3, 4, 3, 1).view()).is_err());
         assert!(estimate_yaw(data(2, 1, 3, 1).view(), data(2, 1, 3, 1).view()).is_err());
-        assert!(estimate_yaw(data(0, 4, 3, 1).view(), data(0, 4, 3, 1).view()).is_err());
+        // an empty batch is no error: nothing to estimate
+        assert!(
+            estimate_yaw(data(0, 4, 3, 1).view(), data(0, 4, 3, 1).view())
+                .unwrap()
+                .is_empty()
+        );
         let mut nan = ok.clone();
         nan[[1, 2, 0]] = f32::NAN;
         assert!(matches!(
