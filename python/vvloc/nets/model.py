@@ -14,7 +14,8 @@ from typing import Any
 
 import torch
 from safetensors import SafetensorError
-from safetensors.torch import load_file, save
+from safetensors.torch import load as load_safetensors
+from safetensors.torch import save
 from torch import Tensor, nn
 
 from vvloc._io import write_together
@@ -456,7 +457,9 @@ class VVLocNet(nn.Module):
         # draw from that stream (make model's steps 2-5) depend on it, so it stays so
         model = cls(cfg)
         try:
-            state = load_file(str(w_path), device=str(device))
+            # from the file's bytes: safetensors' load_file maps the file and keeps about 8 KB
+            # per call (safetensors 0.8), which a service that opens localizers grows by
+            state = {k: v.to(device) for k, v in load_safetensors(w_path.read_bytes()).items()}
         except SafetensorError as e:
             raise ValueError(f"{w_path}: not a readable safetensors file ({e})") from None
         expected = model.state_dict()
