@@ -1727,6 +1727,21 @@ def test_a_failed_evaluation_leaves_no_folder_it_made(tiny_world, model_dir, tmp
     assert mine.is_dir() and not any(mine.iterdir())  # the user's folder stays
 
 
+def test_cli_localize_names_the_session_of_another_rig(tiny_world, model_dir, map_file, tmp_path):
+    exe = [sys.executable, "-m", "vvloc.cli"]
+    run = lambda *a: subprocess.run([*exe, *a], capture_output=True, text=True)  # noqa: E731
+    three = ",".join(c.name for c in open_dataset(tiny_world).cameras[:3])
+    r = run("convert", "--src", str(tiny_world), "--out", str(tmp_path / "t3"), "--cameras",
+            three, "--sessions", "s1")  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    r = run("localize", "--map", str(map_file), "--checkpoint", str(model_dir), "--dataset",
+            str(tmp_path / "t3"), "--session", "s1", "--out", str(tmp_path / "l"))  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    # it named the library's argument, frames[0]
+    said = f"vvloc: warning: --session s1 of --dataset {tmp_path / 't3'}: from another rig"
+    assert said in r.stderr and r.stderr.count("from another rig") == 1, r.stderr
+
+
 def test_cli_names_more_options_before_any_work(tiny_world, model_dir, map_file, tmp_path):
     exe = [sys.executable, "-m", "vvloc.cli"]
     run = lambda *a: subprocess.run([*exe, *a], capture_output=True, text=True)  # noqa: E731

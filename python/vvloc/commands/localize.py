@@ -127,6 +127,8 @@ def localize(
             )
         loc.model.config.check_num_cameras(len(ds.cameras), f"--dataset: {dataset}")  # up front
         frames = list(sess)
+        if frames:  # a rig other than the map's is said of the session, not of frames[0]
+            loc._check_rig(frames[0], f"--session {session} of --dataset {dataset}")
         results = loc.localize_batch(frames, progress=True)
         out.mkdir(parents=True, exist_ok=True)
         poses = np.stack([r.global_pose for r in results])
