@@ -78,7 +78,7 @@ import vvloc
 from vvloc import geometry
 from vvloc._io import atomic_write, list_entries
 from vvloc.checkpoints import resolve_checkpoint
-from vvloc.data import TripletSampler, open_dataset
+from vvloc.data import RAW_FOLDER, TripletSampler, open_dataset
 from vvloc.data.augment import PhotometricAugment
 from vvloc.data.frame import Session
 from vvloc.data.sampling import (
@@ -1144,12 +1144,10 @@ def _check_sessions(key: str, dataset: str, ds: Any, names: Sequence[str], note:
 def _open_named(key: str, dataset: str) -> Any:
     """``open_dataset(dataset)`` with its errors prefixed by the config's ``key``; a raw folder
     is refused (:func:`_check_vvloc_format`)."""
+    _check_vvloc_format(key, Path(dataset))  # its errors name the key already
     try:
-        _check_vvloc_format(key, Path(dataset))
         return open_dataset(dataset)
     except (FileNotFoundError, NotADirectoryError, ValueError) as e:
-        if str(e).startswith(f"{key}: "):
-            raise
         raise type(e)(f"{key}: {e}") from e
 
 
@@ -1167,9 +1165,8 @@ def _check_vvloc_format(key: str, root: Path) -> None:
     except ValueError as e:  # a folder of no known layout (DatasetFormatError)
         raise type(e)(f"{key}: {e}") from None
     if fmt != "vvloc":
-        name = {"nclt": "an NCLT", "oxford": "an Oxford RobotCar"}[fmt]
         raise ValueError(
-            f"{key}: {root} is {name} raw folder; the trainer reads vvloc datasets only (a raw "
+            f"{key}: {root} is {RAW_FOLDER[fmt]}; the trainer reads vvloc datasets only (a raw "
             "folder would be read at its native image size, every frame, with the ego origin "
             "above the ground): convert it once with vvloc convert --src "
             f"{root} --out <folder> --ego_height <metres> --width <px> --height <px> "
@@ -2171,15 +2168,17 @@ class Trainer:
             if cfg.grad_clip > 0:
                 torch.nn.utils.clip_grad_norm_(head.parameters(), cfg.grad_clip)
             self.head_optimizer.step()
-            sums["total"] += float(loss.detach())
-            sums["triplet"] += float(l_tri.detach())
-            sums["hinge"] += float(l_hinge.detach())
+            values = {
+                k: float(v.detach()) for k, v in zip(sums, (loss, l_tri, l_hinge), strict=True)
+            }
+            for key, value in values.items():  # one read from the device each
+                sums[key] += value
             violated += wrong
             self.step += 1
             bar.set_postfix(
-                loss=f"{float(loss.detach()):.3f}",
-                tri=f"{float(l_tri.detach()):.3f}",
-                hinge=f"{float(l_hinge.detach()):.3f}",
+                loss=f"{values['total']:.3f}",
+                tri=f"{values['triplet']:.3f}",
+                hinge=f"{values['hinge']:.3f}",
                 refresh=False,
             )
         self.head_untrained = False
@@ -2281,14 +2280,15 @@ class Trainer:
             if cfg.grad_clip > 0:
                 torch.nn.utils.clip_grad_norm_(params, cfg.grad_clip)
             self.local_optimizer.step()
-            for key, value in zip(sums, (loss, l_yaw, l_tb, l_near), strict=True):
-                sums[key] += float(value.detach())
+            values = [float(v.detach()) for v in (loss, l_yaw, l_tb, l_near)]  # one read each
+            for key, value in zip(sums, values, strict=True):
+                sums[key] += value
             self.step += 1
-            local = {"loss": loss, "yaw": l_yaw, "tbias": l_tb}
-            if cfg.tbias_near_weight > 0:
-                local["near"] = l_near
+            shown = dict(zip(("loss", "yaw", "tbias", "near"), values, strict=True))
+            if cfg.tbias_near_weight <= 0:
+                del shown["near"]
             bar.set_postfix(
-                {k: f"{float(v.detach()):.{4 if k == 'near' else 3}f}" for k, v in local.items()},
+                {k: f"{v:.4f}" if k == "near" else f"{v:.3f}" for k, v in shown.items()},
                 refresh=False,
             )
         self.model.eval()

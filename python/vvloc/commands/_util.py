@@ -210,14 +210,13 @@ def check_sessions(dataset: Path, sessions: Iterable[tuple[str, str]]) -> Datase
     command reads with the reader's defaults."""
     import warnings
 
-    from vvloc.data import detect_format, open_dataset
+    from vvloc.data import RAW_FOLDER, detect_format, open_dataset
 
     with named("--dataset", FileNotFoundError, NotADirectoryError):
         fmt = detect_format(dataset)
     if fmt != "vvloc":  # said before the reader's own errors (e.g. a camera folder missing)
-        name = {"nclt": "an NCLT", "oxford": "an Oxford RobotCar"}.get(fmt, fmt)
         warnings.warn(
-            f"--dataset: {dataset} is {name} raw folder, read with the reader's defaults: its "
+            f"--dataset: {dataset} is {RAW_FOLDER[fmt]}, read with the reader's defaults: its "
             "native image size, every frame, the ego origin left above the ground; convert it "
             "once with vvloc convert --ego_height <metres> (docs/dataset-format.md)",
             UserWarning,

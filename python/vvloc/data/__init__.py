@@ -23,6 +23,8 @@ from vvloc.data.sampling import EvalSplit, TripletSampler, evaluation_split
 from vvloc.data.vvloc_format import DatasetFormatError, DatasetWriter, SessionWriter, open_vvloc
 
 FORMATS = ("auto", "vvloc", "nclt", "oxford")
+#: The raw formats, as messages name a folder of them ("... is an NCLT raw folder").
+RAW_FOLDER = {"nclt": "an NCLT raw folder", "oxford": "an Oxford RobotCar raw folder"}
 
 
 def detect_format(path: str | os.PathLike[str], format: str = "auto") -> str:
@@ -69,6 +71,7 @@ def open_dataset(path: str | os.PathLike[str], format: str = "auto", **kwargs: A
 
 
 __all__ = [
+    "RAW_FOLDER",
     "Camera",
     "Dataset",
     "DatasetFormatError",
