@@ -2,15 +2,17 @@
 
 d = 256, K = 20, N ∈ {1e4, 1e5, 1e6}, nq ∈ {1, 64, 1024 (N ≤ 1e5)}, plus radius queries at
 r = 0.1 and 0.2, and single top-20 queries in maps of one place seen N times (N = 1e4 to 8e4,
-``--one_place`` runs only these: the compressed scans' hardest case). Realistic descriptors:
+``--one_place`` runs only these: the compressed scans' hardest case), and an index grown one
+row at a time (``--adds`` runs only these: N = 2e3 to 8e3 adds, float32 and int8, the rows in
+random order and in order of rising |x_0|, the int8 ranges' worst case). Realistic descriptors:
 places (cluster centres) seen by ~100 keyframes each (a Gaussian mixture, L2-normalised);
 queries revisit random keyframes with noise of L2 size U(0.05, 0.2). Every cell checks, in the
 same run, that vvloc's results equal exact search (float64 brute force on up to 16 queries;
 indices identical outside float32 near-ties) and that the compressed indices (bfloat16,
 float16, int8) return exactly the float32 index's results (recall@20 = 1.0).
 
-Usage: ``python benches/bench_retrieval.py [--quick] [--one_place] [--json PATH]`` (faiss-cpu
-and torch from the ``bench`` extra; a missing peer is reported and skipped).
+Usage: ``python benches/bench_retrieval.py [--quick] [--one_place] [--adds] [--json PATH]``
+(faiss-cpu and torch from the ``bench`` extra; a missing peer is reported and skipped).
 """
 
 from __future__ import annotations
@@ -232,6 +234,35 @@ def bench_one_place(sizes: list[int], budget: float) -> list[dict[str, Any]]:
     return rows
 
 
+def bench_adds(sizes: list[int]) -> list[dict[str, Any]]:
+    """µs per ``DescriptorIndex.add`` of one row, N rows from empty (float32 and int8), the
+    rows in random order and sorted by rising |x_0| (each row outgrows dimension 0's int8
+    range); ``exact``: the grown index's top-20 equal a one-shot float32 index's."""
+    rows = []
+    for n in sizes:
+        x = descriptors(n, 3)
+        q = revisits(x, 8, 4)
+        want = DescriptorIndex(x).topk(q, K)
+        for order in ("random", "rising |x_0|"):
+            xs = x[np.argsort(np.abs(x[:, 0]), kind="stable")] if order != "random" else x
+            row: dict[str, Any] = {"task": f"add 1 row, {order}", "N": n}
+            exact = True
+            for dtype, key in (("float32", "vvloc_us"), ("int8", "vvloc_i8_us")):
+                index = DescriptorIndex(xs[:1], dtype=dtype)
+                t0 = time.perf_counter()
+                for i in range(1, n):
+                    index.add(xs[i : i + 1])
+                row[key] = 1e6 * (time.perf_counter() - t0) / (n - 1)
+                perm = np.argsort(np.abs(x[:, 0]), kind="stable") if order != "random" else None
+                got = index.topk(q, K)
+                got_idx = got[0] if perm is None else perm[got[0]]
+                exact &= bool(np.array_equal(got_idx, want[0]) and np.array_equal(got[1], want[1]))
+            row["exact"] = exact
+            rows.append(row)
+            print_table([row], list(row))
+    return rows
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="N ≤ 1e5, shorter timing")
@@ -239,6 +270,7 @@ def main() -> None:
     ap.add_argument(
         "--one_place", action="store_true", help="only the maps of one place seen N times"
     )
+    ap.add_argument("--adds", action="store_true", help="only an index grown one row at a time")
     args = ap.parse_args()
     if _core.build_profile != "release":
         raise SystemExit("refusing to benchmark a debug build: run `make develop`")
@@ -249,6 +281,11 @@ def main() -> None:
         faiss.omp_set_num_threads(threads)
     if torch is not None:
         torch.set_num_threads(threads)
+    if args.adds:
+        adds = bench_adds([2_000, 4_000, 8_000])
+        if args.json:
+            write_json(args.json, "retrieval", adds)
+        return
     one = bench_one_place([10_000, 20_000, 40_000, 80_000], budget)
     if args.one_place:
         print_table(one, ["task", "N", "nq", "vvloc_ms", "vvloc_f16_ms", "vvloc_i8_ms", "exact"])
@@ -259,6 +296,7 @@ def main() -> None:
     for n in sizes:
         bench_size(n, budget, bw, rows)
     rows += one
+    rows += bench_adds([1_000] if args.quick else [2_000, 8_000])
     print()
     cols = [
         "task", "N", "nq", "hits/q", "vvloc_ms", "vvloc_bf16_ms", "vvloc_f16_ms", "vvloc_i8_ms",

@@ -831,6 +831,36 @@ def test_a_full_file_system_is_an_oserror_not_a_crash(tmp_path: Path) -> None:
         subprocess.run(["umount", str(mnt)], check=True)
 
 
+@pytest.mark.skipif(sys.platform == "win32", reason="RLIMIT_FSIZE is POSIX")
+def test_a_map_over_the_file_size_limit_is_an_oserror_not_a_crash(tmp_path: Path) -> None:
+    # ulimit -f a few KiB under the map's size: HDF5 failed in its last writes at close and
+    # crashed the interpreter (SIGSEGV), the previous map kept but the process lost
+    path = saved(tmp_path, bev=False)
+    before = file_sha(path)
+    code = (
+        "import errno, resource, signal, sys\n"
+        "import numpy as np\n"
+        "from vvloc.localize import MapDatabase\n"
+        "n = 400\n"
+        "db = MapDatabase.from_arrays(poses=np.zeros((n, 3)), timestamps=np.arange(n) * 1.0,"
+        " sessions='s0', global_descriptors=np.eye(n, 64)[np.arange(n) % 64],"
+        " local_descriptors=np.ones((n, 60, 64)), bevs=np.ones((n, 8, 8, 64)),"
+        " model_config={'a': 1}, grid_size=0.6)\n"
+        "size = len(open(db.save(sys.argv[2]), 'rb').read())\n"
+        "signal.signal(signal.SIGXFSZ, signal.SIG_IGN)\n"
+        "resource.setrlimit(resource.RLIMIT_FSIZE, (size - 20000, resource.RLIM_INFINITY))\n"
+        "try:\n"
+        "    db.save(sys.argv[1])\n"
+        "except OSError as e:\n"
+        "    print('OSError', e.errno == errno.EFBIG, e)\n"
+    )
+    r = subprocess.run([sys.executable, "-c", code, str(path), str(tmp_path / "probe.h5")],
+                       capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert r.returncode == 0, r.stderr[-2000:]  # not -11 (SIGSEGV)
+    assert "OSError True" in r.stdout and "file size limit" in r.stdout and "ulimit -f" in r.stdout
+    assert sorted(os.listdir(tmp_path)) == ["map.h5", "probe.h5"] and file_sha(path) == before
+
+
 def test_interrupted_writer_leaves_nothing(tmp_path: Path) -> None:
     kf = keyframes(bev=False)
     with (
@@ -913,6 +943,31 @@ def test_atomic_write_into_missing_directory_fails_cleanly(tmp_path: Path) -> No
         f.write("x")
     with pytest.raises(IsADirectoryError, match="is a folder"), atomic_write(tmp_path) as f:
         f.write("x")
+    assert os.listdir(tmp_path) == []
+
+
+def test_a_folder_that_takes_no_file_is_named_with_the_destination(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # a read-only mount or a folder of another user (root passes permission bits, so the
+    # error is injected): the error named only the hidden temporary file
+    from vvloc import _io
+
+    real = os.open
+
+    def read_only(path: Any, flags: int, *args: Any) -> int:
+        if flags & os.O_CREAT:
+            raise OSError(errno.EROFS, "Read-only file system", str(path))
+        return real(path, flags, *args)
+
+    monkeypatch.setattr(_io.os, "open", read_only)
+    for write in (
+        lambda: make_map().save(tmp_path / "map.h5"),
+        lambda: write_together(tmp_path, {"a.csv": b"x"}),
+    ):
+        with pytest.raises(OSError, match=r"cannot create a file in .*(map\.h5|a\.csv)'$") as e:
+            write()
+        assert e.value.errno == errno.EROFS and ".tmp" not in str(e.value)
     assert os.listdir(tmp_path) == []
 
 

@@ -303,6 +303,10 @@ class AtomicPath:
                 fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, mode)
             except FileExistsError:
                 continue
+            except OSError as e:  # a read-only or foreign folder: name the destination
+                raise OSError(
+                    e.errno, f"{e.strerror} (cannot create a file in {directory})", str(self.path)
+                ) from e
             os.close(fd)
             return tmp
         raise FileExistsError(f"could not create a temporary file next to {self.path}")

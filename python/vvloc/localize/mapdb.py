@@ -418,6 +418,17 @@ def _mib(n: int) -> str:
     return f"{n / (1 << 20):.1f} MiB"
 
 
+def _file_size_limit() -> int | None:
+    """The largest file this process may write (bytes; ``RLIMIT_FSIZE``, ``ulimit -f``), or
+    None when unlimited or unknown (no ``resource`` module: Windows)."""
+    try:
+        import resource
+    except ImportError:
+        return None
+    soft = resource.getrlimit(resource.RLIMIT_FSIZE)[0]
+    return None if soft == resource.RLIM_INFINITY else int(soft)
+
+
 def _rows_per_chunk(row_bytes: int, target: int) -> int:
     return max(1, min(1 << 16, target // max(row_bytes, 1)))
 
@@ -519,8 +530,10 @@ class MapWriter:
     Before each batch and before the metadata the writer checks that the file system holds the
     map as it will be (whole chunks, their index, the metadata, a few MiB spare) and raises
     ``OSError`` (``ENOSPC``) naming the space needed, before HDF5 writes: with the disk full
-    under it, HDF5 (2.0, h5py 3.16) crashes the interpreter at close. Another process filling
-    the disk between the check and the write can still reach that crash.
+    under it, HDF5 (2.0, h5py 3.16) crashes the interpreter at close. The process's file size
+    limit (``ulimit -f``) is checked the same way (``EFBIG``). Another process filling the disk
+    between the check and the write, or a disk quota (not checked: no portable way to read
+    one), can still reach that crash.
     """
 
     def __init__(
@@ -707,13 +720,22 @@ class MapWriter:
     def _check_space(self, rows: int) -> None:
         """``OSError`` (``ENOSPC``) unless the temporary file's file system can take the map of
         ``rows`` keyframes (whole chunks, their index, the metadata and a margin) beyond what
-        the file holds now."""
+        the file holds now; ``OSError`` (``EFBIG``) when the process may not write a file of
+        that size (``ulimit -f``: HDF5 crashes at close on that as on a full disk)."""
         size = _SPACE_MARGIN_BYTES + 2 * len(self._config_json) + 64 * (len(self._sessions) + 1)
         if self._rig is not None:
             size += 2 * len(json.dumps(self._rig))
         for chunk_rows, row_bytes in self._layout.values():
             chunks = -(-rows // chunk_rows)
             size += chunks * (chunk_rows * row_bytes + _CHUNK_INDEX_BYTES)
+        limit = _file_size_limit()
+        if limit is not None and size > limit:
+            raise OSError(
+                errno.EFBIG,
+                f"{self.path}: the map is too large for this process's file size limit: "
+                f"{rows} keyframes need about {_mib(size)}, files may hold {_mib(limit)} "
+                "(ulimit -f)",
+            )
         try:
             held = os.stat(self._atomic.tmp).st_blocks * 512
             free = shutil.disk_usage(self._atomic.tmp.parent).free

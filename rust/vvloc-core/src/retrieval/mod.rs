@@ -126,6 +126,10 @@ const SUPER_BLOCKS: usize = 4;
 const QT: usize = 8;
 /// Segment boundaries tested by the early-abandoning float32 scan (at d/8, 2d/8, 3d/8).
 const SEGMENTS: usize = 3;
+/// The least factor by which an add widens an int8 range it outgrows (see
+/// `DescriptorIndex::grow_ranges`): at most about 1.25x coarser codes in an index grown by
+/// adds, in exchange for O(log) re-quantisations.
+const RANGE_GROWTH: f32 = 1.25;
 
 /// A query prepared for the compressed scan of its index's dtype.
 enum PackedQuery<'q> {
@@ -153,10 +157,10 @@ pub struct DescriptorIndex {
     packed: Vec<u16>,
     /// int8 scan copy (see [`kernels::scan_i8`]; empty unless int8).
     packed8: Vec<u8>,
-    /// int8: per-dimension scale s_j (x ≈ s_j·x̃), the largest |x_j| over rows, and the largest
-    /// |x_j − s_j·x̃_j| over rows (exact, rounded up).
+    /// int8: per-dimension scale s_j (x ≈ s_j·x̃), the range r_j = 127·s_j its codes span
+    /// (see [`Self::add`]), and the largest |x_j − s_j·x̃_j| over rows (exact, rounded up).
     scales: Vec<f32>,
-    absmax: Vec<f32>,
+    ranges: Vec<f32>,
     resid_dim: Vec<f64>,
     /// Segment length of the early-abandoning float32 scans (0: off): a row is tested after
     /// each of the first [`SEGMENTS`] segments of `head` dimensions. Per block and segment
@@ -199,7 +203,7 @@ impl DescriptorIndex {
             packed: Vec::new(),
             packed8: Vec::new(),
             scales: vec![0.0; dim],
-            absmax: vec![0.0; dim],
+            ranges: vec![0.0; dim],
             resid_dim: vec![0.0; dim],
             head: if dim >= 64 { dim.div_ceil(8) } else { 0 },
             head_norms: Vec::new(),
@@ -370,17 +374,7 @@ impl DescriptorIndex {
                 }
             }
         }
-        let mut rescale = false;
-        if self.dtype == Dtype::I8 {
-            for row in descriptors.chunks_exact(d) {
-                for (m, &v) in self.absmax.iter_mut().zip(row) {
-                    if v.abs() > *m {
-                        *m = v.abs();
-                        rescale = true;
-                    }
-                }
-            }
-        }
+        let rescale = self.dtype == Dtype::I8 && self.grow_ranges(descriptors, old == 0);
         match groups {
             Some(g) => self.groups.extend_from_slice(g),
             None => self.groups.extend(std::iter::repeat_n(0, n)),
@@ -389,12 +383,41 @@ impl DescriptorIndex {
             .extend(seqs.map_or_else(|| (old as i64..self.len as i64).collect(), |s| s.to_vec()));
         if rescale {
             // New per-dimension scales: the whole int8 copy is re-quantised.
-            self.scales = self.absmax.iter().map(|&m| m / 127.0).collect();
+            self.scales = self.ranges.iter().map(|&r| r / 127.0).collect();
             self.repack();
         } else {
             self.pack_blocks(old / BLOCK);
         }
         Ok(())
+    }
+
+    /// Widens the int8 ranges to hold `descriptors` (row-major (n, d)); true when one changed
+    /// (the copy must be re-quantised). The first rows (`first`) set each range to the largest
+    /// |x_j|, as a one-shot build does. A later row that outgrows dimension j's range widens
+    /// it to at least [`RANGE_GROWTH`] times the old one: n adds then re-quantise the copy a
+    /// number of times logarithmic in the growth of the ranges, not up to n times (each is
+    /// O(N·d): rows arriving in order of rising |x_j| made adding quadratic). Results do not
+    /// depend on the ranges (the scans' error bounds hold for any); a wider range only
+    /// re-scores more rows exactly. A saved index loads with the one-shot ranges.
+    fn grow_ranges(&mut self, descriptors: &[f32], first: bool) -> bool {
+        let mut most = vec![0f32; self.dim];
+        for row in descriptors.chunks_exact(self.dim) {
+            for (m, &v) in most.iter_mut().zip(row) {
+                *m = m.max(v.abs());
+            }
+        }
+        let mut grown = false;
+        for (r, m) in self.ranges.iter_mut().zip(most) {
+            if m > *r {
+                *r = if first {
+                    m
+                } else {
+                    m.max((*r * RANGE_GROWTH).min(f32::MAX))
+                };
+                grown = true;
+            }
+        }
+        grown
     }
 
     /// Reserves every buffer [`Self::add`] grows for `len` entries, before anything changes:

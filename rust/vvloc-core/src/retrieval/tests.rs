@@ -364,7 +364,8 @@ fn int8_is_exact_on_clustered_data_with_ties_and_appends() {
             .unwrap()
             .with_level(level)
             .unwrap();
-        // Built in three appends (the scales grow with the outlier): same copy as one shot.
+        // Built in three appends (the ranges grow with the outlier, with headroom): another
+        // copy than one shot's, the same results.
         let mut inc = DescriptorIndex::new(d, Dtype::I8)
             .unwrap()
             .with_level(level)
@@ -372,17 +373,58 @@ fn int8_is_exact_on_clustered_data_with_ties_and_appends() {
         for (a, b) in [(0, 10), (10, 1000), (1000, n)] {
             inc.add(&data[a * d..b * d], None, None).unwrap();
         }
-        assert_eq!(inc.packed8, idx.packed8);
-        for qi in 0..10 {
-            let q = &queries[qi * d..(qi + 1) * d];
-            let got = idx.topk(q, k, None).unwrap();
-            assert_eq!(got.indices, want.indices[qi * k..(qi + 1) * k], "{level:?}");
-            assert_eq!(got.distances, want.distances[qi * k..(qi + 1) * k]);
-            let r = idx.radius(q, 0.45, None).unwrap();
-            let (a, b) = (want_r.offsets[qi] as usize, want_r.offsets[qi + 1] as usize);
-            assert_eq!(r.indices, want_r.indices[a..b]);
-            assert_eq!(r.distances, want_r.distances[a..b]);
+        assert_ne!(inc.packed8, idx.packed8);
+        for index in [&idx, &inc] {
+            for qi in 0..10 {
+                let q = &queries[qi * d..(qi + 1) * d];
+                let got = index.topk(q, k, None).unwrap();
+                assert_eq!(got.indices, want.indices[qi * k..(qi + 1) * k], "{level:?}");
+                assert_eq!(got.distances, want.distances[qi * k..(qi + 1) * k]);
+                let r = index.radius(q, 0.45, None).unwrap();
+                let (a, b) = (want_r.offsets[qi] as usize, want_r.offsets[qi + 1] as usize);
+                assert_eq!(r.indices, want_r.indices[a..b]);
+                assert_eq!(r.distances, want_r.distances[a..b]);
+            }
         }
+    }
+}
+
+#[test]
+fn int8_adds_requantise_logarithmically_often() {
+    // Rows one at a time in order of rising |x_0| (from 1e-3 to 1): every add outgrew the
+    // range and re-quantised the whole copy (quadratic); with headroom the ranges widen
+    // geometrically. Results stay those of the float32 index.
+    let (n, d) = (2000, 8);
+    let mut data = rand_vec(n * d, 51);
+    for i in 0..n {
+        data[i * d] = 1e-3 * 1000f32.powf(i as f32 / (n - 1) as f32);
+    }
+    let mut inc = DescriptorIndex::new(d, Dtype::I8).unwrap();
+    let (mut requantised, mut widened_0) = (0, 0);
+    for i in 0..n {
+        let before = inc.scales.clone();
+        inc.add(&data[i * d..(i + 1) * d], None, None).unwrap();
+        requantised += usize::from(i > 0 && inc.scales != before);
+        widened_0 += usize::from(i > 0 && inc.scales[0] != before[0]);
+    }
+    // log_1.25(1000) = 31 widenings of dimension 0 at most (1 999 without headroom)
+    assert!(widened_0 <= 32, "{widened_0}");
+    assert!(requantised <= 64, "{requantised}");
+    assert!(
+        inc.ranges[0] >= 1.0 && inc.ranges[0] <= 1.25,
+        "{}",
+        inc.ranges[0]
+    );
+    // a one-shot build (as a saved index loads) takes the exact maxima
+    let one = DescriptorIndex::from_rows(&data, d, Dtype::I8, None, None).unwrap();
+    assert_eq!(one.ranges[0], 1.0);
+    let exact = DescriptorIndex::from_rows(&data, d, Dtype::F32, None, None).unwrap();
+    let q = rand_vec(5 * d, 52);
+    let want = exact.topk(&q, 10, None).unwrap();
+    for index in [&inc, &one] {
+        let got = index.topk(&q, 10, None).unwrap();
+        assert_eq!(got.indices, want.indices);
+        assert_eq!(got.distances, want.distances);
     }
 }
 
