@@ -10,9 +10,10 @@ Storage ``dtype``: ``"float32"`` scans the float32 map (when d >= 64, single que
 leading d/8 dimensions of each block of rows first and skip the rest when a rigorous lower
 bound already rules the whole block out); ``"float16"`` and ``"bfloat16"`` scan a compressed
 copy (half the bytes per single query), ``"int8"`` a copy quantised symmetrically per dimension
-(a quarter of the bytes; the query is quantised with the same per-dimension scales; rows added
-later that outgrow a dimension's range widen it at least 1.25-fold, so that adding rows one
-at a time stays linear, up to 1.25× coarser than an index built at once), and
+(a quarter of the bytes; the query is quantised with the same per-dimension scales; a row
+added later that outgrows a range widens every range to 1.25× its dimension's largest |x| so
+far, so that adding rows one at a time stays linear: up to 1.25× coarser than an index built
+at once), and
 re-score a provably sufficient shortlist (every row within the approximate k-th distance + 2ε,
 ε a per-query bound on the quantisation and rounding error) exactly from the float32
 originals, which the index keeps (1.5× resp. 1.25× the float32 memory): their results are
