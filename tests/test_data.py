@@ -613,6 +613,7 @@ def test_image_content_tells_pictures_from_flat_and_noisy_ones(tiny_world):
     ds = open_dataset(tiny_world)
     images = ds.session("s1")[0].images
     assert has_image_content(images)
+    assert has_image_content(ds.session("s1")[0])  # a Frame: its images (it read shape ())
     assert has_image_content(images.astype(np.float32) / 255)
     flat = np.zeros_like(images)
     assert not has_image_content(flat)

@@ -38,6 +38,10 @@ from vvloc.localize.metric import SearchConfig
 from vvloc.nets import ModelConfig, VVLocNet
 from vvloc.provenance import cpu_model
 
+#: A camera 1.5 m above the ground looking forward (OpenCV axes into the ego frame): an
+#: identity cam_to_ego looks straight up, which opening a dataset warns about.
+FORWARD = np.array([[0.0, 0, 1, 0], [-1, 0, 0, 0], [0, -1, 0, 1.5], [0, 0, 0, 1]])
+
 
 def unit_rows(x: np.ndarray) -> np.ndarray:
     """``x`` (N, D) with each row divided by its L2 norm."""
@@ -1607,7 +1611,7 @@ def test_trained_on_knows_a_copy_or_a_conversion_of_a_trained_session(tmp_path):
     from vvloc.localize.evaluation import trained_on
     from vvloc.provenance import rendered_plan, session_digest
 
-    cam = Camera("front", 8, 6, np.array([[4.0, 0, 3.5], [0, 4, 2.5], [0, 0, 1]]), np.eye(4))
+    cam = Camera("front", 8, 6, np.array([[4.0, 0, 3.5], [0, 4, 2.5], [0, 0, 1]]), FORWARD)
     lot = tmp_path / "lot"
     with DatasetWriter(lot, [cam]) as w:
         for name in ("s0", "s1"):

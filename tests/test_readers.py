@@ -29,6 +29,10 @@ SDK_MONO_LEFT = "-0.0905 1.6375 0.2803 0.2079 -0.2339 1.2321"
 
 DATE = "2012-01-08"
 
+#: A camera 1.5 m above the ground looking forward (OpenCV axes into the ego frame): an
+#: identity cam_to_ego looks straight up, which opening a dataset warns about.
+FORWARD = np.array([[0.0, 0, 1, 0], [-1, 0, 0, 0], [0, -1, 0, 1.5], [0, 0, 0, 1]])
+
 
 def test_euler_convention_matches_scipy_zyx():
     T = euler_to_matrix(1, 2, 3, 0.1, -0.2, 0.3)
@@ -45,7 +49,10 @@ def _nclt(root, with_map=True):
         np.savetxt(
             params / f"K_cam{i}.csv", [[5.0, 0, 3.5], [0, 5.0, 2.5], [0, 0, 1]], delimiter=","
         )
-        np.savetxt(params / f"x_lb3_c{i}.csv", [[0.1 * i, 0, 0, 0, 0, 72.0 * i]], delimiter=",")
+        # camera 5's mounting turned by 72° steps about the Ladybug's axis: looking sideways
+        roll, pitch, yaw = X_LB3_C5[3:]
+        x_lb3 = [[0.1 * i, 0, 0, roll, pitch, yaw + 72.0 * i]]
+        np.savetxt(params / f"x_lb3_c{i}.csv", x_lb3, delimiter=",")
         d = root / DATE / "lb3" / f"Cam{i}"
         d.mkdir(parents=True)
         for k, t in enumerate(utimes):
@@ -85,7 +92,7 @@ def test_nclt_reader_converts_frames_and_matches_poses(tmp_path):
     # calibration: cam_to_ego = FRD→FLU · T_body_lb3 · T_lb3_cam, ssc angles in degrees
     r, p, y = np.deg2rad(X_BODY_LB3[3:])
     T_body_lb3 = euler_to_matrix(*X_BODY_LB3[:3], r, p, y)
-    T_lb3_c2 = euler_to_matrix(0.2, 0, 0, 0, 0, np.deg2rad(144.0))
+    T_lb3_c2 = euler_to_matrix(0.2, 0, 0, *np.deg2rad([*X_LB3_C5[3:5], X_LB3_C5[5] + 144.0]))
     assert np.allclose(f.cam_to_ego[1], FRD_TO_FLU @ T_body_lb3 @ T_lb3_c2)
     assert np.allclose(f.K[0], [[5, 0, 3.5], [0, 5, 2.5], [0, 0, 1]])
     with pytest.warns(UserWarning, match="U2D_Cam2"):
@@ -527,7 +534,7 @@ def test_select_keyframes_keeps_the_first_view_of_a_floor():
 def test_convert_keeps_the_first_keyframe_of_a_floor(tmp_path):
     from vvloc.data import DatasetWriter
 
-    cam = Camera("front", 8, 6, np.array([[4.0, 0, 3.5], [0, 4, 2.5], [0, 0, 1]]), np.eye(4))
+    cam = Camera("front", 8, 6, np.array([[4.0, 0, 3.5], [0, 4, 2.5], [0, 0, 1]]), FORWARD)
     src = tmp_path / "lift"
     with DatasetWriter(src, [cam]) as w:
         s = w.add_session("s0")
@@ -570,12 +577,15 @@ def test_convert_oxford_keeps_the_origin_and_resizes_a_vvloc_dataset(tmp_path):
     src.mkdir()
     sess = _oxford(src)
     oxf = convert_dataset(src, tmp_path / "oxf", cameras=("stereo_centre", "mono_left"))
-    conv = open_dataset(oxf)
+    # the vehicle frame's origin kept (no ego_height): mono_left sits below it
+    with pytest.warns(UserWarning, match="'mono_left' sits 0.21 m below the ego origin"):
+        conv = open_dataset(oxf)
     read = open_dataset(src, cameras=("stereo_centre", "mono_left"))
     assert conv.meta["origin_enu"] == read.meta["origin_enu"]
     np.testing.assert_allclose(conv.session(sess.name).poses, read.session(sess.name).poses)
     # vvloc → vvloc: the images are resized here, the intrinsics with them
-    small = open_dataset(convert_dataset(oxf, tmp_path / "small", image_size=(4, 3)))
+    with pytest.warns(UserWarning, match="'mono_left' sits 0.21 m below the ego origin"):
+        small = open_dataset(convert_dataset(oxf, tmp_path / "small", image_size=(4, 3)))
     for c_small, c in zip(small.cameras, conv.cameras, strict=True):
         np.testing.assert_allclose(c_small.K, c.resized(4, 3).K)
     assert small.session(sess.name)[0].images.shape == (2, 3, 3, 4)
@@ -642,7 +652,7 @@ def test_convert_refuses_before_reading_and_leaves_no_folder_it_made(tmp_path, m
 def test_the_writer_refuses_cameras_of_one_name_and_removes_parents_it_made(tmp_path):
     from vvloc.data import DatasetWriter
 
-    cam = Camera("front", 8, 6, np.array([[4.0, 0, 3.5], [0, 4, 2.5], [0, 0, 1]]), np.eye(4))
+    cam = Camera("front", 8, 6, np.array([[4.0, 0, 3.5], [0, 4, 2.5], [0, 0, 1]]), FORWARD)
     with pytest.raises(ValueError, match=r"cameras: names \['front'\] repeated"):
         DatasetWriter(tmp_path / "a", [cam, cam])
     with pytest.raises(RuntimeError, match="stop"):
@@ -661,7 +671,7 @@ def test_a_converted_rendered_session_keeps_its_plan(tmp_path):
     from vvloc.localize.evaluation import trained_on
     from vvloc.sim.simulate import session_plan
 
-    cam = Camera("front", 8, 6, np.array([[4.0, 0, 3.5], [0, 4, 2.5], [0, 0, 1]]), np.eye(4))
+    cam = Camera("front", 8, 6, np.array([[4.0, 0, 3.5], [0, 4, 2.5], [0, 0, 1]]), FORWARD)
     src = tmp_path / "synth"
     meta = {"generator": "vvloc.sim", "scene": "parking", "seed": 0}
     with DatasetWriter(src, [cam], meta=meta) as w:
@@ -781,7 +791,7 @@ def test_convert_keeps_the_named_cameras_of_a_vvloc_dataset(tmp_path):
     from vvloc.data import DatasetWriter
 
     K = np.array([[4.0, 0, 3.5], [0, 4, 2.5], [0, 0, 1]])
-    rig = [Camera(n, 8, 6, K, np.eye(4)) for n in ("front", "left", "broken")]
+    rig = [Camera(n, 8, 6, K, FORWARD) for n in ("front", "left", "broken")]
     src = tmp_path / "rig3"
     with DatasetWriter(src, rig) as w:
         s = w.add_session("s0")
@@ -1024,7 +1034,7 @@ def test_per_frame_extrinsics_survive_conversion_to_the_vvloc_format(tmp_path):
 def test_the_writer_takes_per_frame_extrinsics_from_every_frame_or_none(tmp_path):
     from vvloc.data.vvloc_format import DatasetWriter
 
-    cam = Camera("front", 4, 3, np.eye(3), np.eye(4))
+    cam = Camera("front", 4, 3, np.eye(3), FORWARD)
     img = np.zeros((1, 3, 3, 4), np.uint8)
     with DatasetWriter(tmp_path / "a", [cam]) as w:
         s = w.add_session("s0")

@@ -3,6 +3,8 @@ a model, and what the difference is called."""
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -96,8 +98,12 @@ def test_another_mounting_is_another_rig():
     assert _difference(_with(1, move=1.5)).endswith(
         "moved by up to 1.50 m from where the other rig has them"
     )
-    # the same cameras in another order: slots 0 and 2 hold each other's camera, turned 180°
-    assert "turned by up to 180.0°" in _difference([RIG[2], RIG[1], RIG[0], RIG[3]])
+    # the same cameras in another order: slots 0 and 2 hold each other's camera (180° apart),
+    # said as such (test_the_same_cameras_in_another_order_are_named_so)
+    assert _difference([RIG[2], RIG[1], RIG[0], RIG[3]]).startswith(
+        "the same cameras in another order: this rig's camera 0 is the other's camera 2, this "
+        "rig's camera 2 is the other's camera 0;"
+    )
 
 
 def test_calibration_that_cannot_be_compared_is_refused_not_called_the_same_rig():
@@ -120,3 +126,79 @@ def test_calibration_that_cannot_be_compared_is_refused_not_called_the_same_rig(
             rig_difference(RIG, *args, SAME_MODEL)
     with pytest.raises(ValueError, match=r"^reference: expected at least one camera"):
         rig_difference([], K, cam_to_ego, size, SAME_MODEL)
+
+
+def _mounted(T: np.ndarray) -> list[Camera]:
+    """RIG's front camera with ``cam_to_ego`` T, the other three as they are."""
+    c = RIG[0]
+    return [Camera(c.name, c.width, c.height, c.K, T), *RIG[1:]]
+
+
+def test_rig_warnings_name_extrinsics_no_vehicle_has():
+    from vvloc.data.rig import rig_warnings
+
+    assert rig_warnings(RIG) == []
+    front = RIG[0].cam_to_ego.copy()  # 2 m ahead of the ego origin, looking 20° down
+    front[:3, :3] = Rotation.from_euler("y", 20, degrees=True).as_matrix() @ front[:3, :3]
+    front[0, 3] = 2.0
+    assert rig_warnings(_mounted(front)) == []
+    # a narrow level camera sees the ground only far away, and one at the origin's height (to
+    # rounding) is not below it: no warning either
+    # (a 2.7° vertical field of view 1.5 m up: the ground from 63 m on)
+    tele = np.array([[2000.0, 0.0, 79.5], [0.0, 2000.0, 47.5], [0.0, 0.0, 1.0]])
+    narrow = Camera("front", 160, 96, tele, RIG[0].cam_to_ego)
+    level = RIG[0].cam_to_ego.copy()
+    level[2, 3] = -1e-9
+    assert rig_warnings([narrow]) == [] and rig_warnings(_mounted(level)) == []
+    # one warning per camera: below the ground and seeing no ground is said once
+    upside = np.linalg.inv(front)
+    upside[:3, :3] = np.eye(3)
+    assert len(rig_warnings(_mounted(upside))) == 1
+    mm = front.copy()
+    mm[:3, 3] *= 1000.0  # millimetres
+    inverse = np.linalg.inv(front)  # ego -> camera given for cam_to_ego
+    body = front.copy()
+    body[:3, :3] = np.eye(3)  # the camera's axes as the vehicle's (x forward): it looks up
+    cases = [
+        (mm, r"'front' sits 2500 m from the ego origin: millimetres\?"),
+        (inverse, r"'front' sits 1.37 m below the ego origin .*ego -> camera transform, or"),
+        (body, r"'front' sees no ground: no ray .* along ego \(0.00, 0.00, 1.00\)"),
+    ]
+    for T, match in cases:
+        notes = rig_warnings(_mounted(T))
+        assert len(notes) == 1 and notes[0].startswith("camera 'front'"), notes
+        assert re.search(match, notes[0]), notes[0]
+        assert "OpenCV: x right, y down, z forward" in notes[0]
+
+
+def test_opening_a_dataset_warns_about_its_rigs_extrinsics(tmp_path):
+    from vvloc.data import DatasetWriter, open_dataset
+
+    mm = RIG[0].cam_to_ego.copy()
+    mm[:3, 3] *= 1000.0
+    rig = _mounted(mm)
+    with DatasetWriter(tmp_path / "ds", rig) as w:
+        w.add_session("s0").add(0, (0.0, 0.0, 0.0), np.zeros((4, 3, 96, 160), np.uint8))
+    with pytest.warns(UserWarning, match=r"rig.json: camera 'front' sits 1500 m"):
+        ds = open_dataset(tmp_path / "ds")
+    assert ds.sessions == ["s0"]
+
+
+def test_the_same_cameras_in_another_order_are_named_so():
+    # a rig.json listing the map's cameras in another order: it read as other intrinsics or a
+    # 90° turn of camera 0, which sent users looking for a calibration error
+    swapped = [RIG[1], RIG[0], RIG[2], RIG[3]]
+    assert _difference(swapped, SAME_MAP) == (
+        "the same cameras in another order: this rig's camera 0 is the other's camera 1, this "
+        "rig's camera 1 is the other's camera 0; list them in the other rig's order, e.g. with "
+        "vvloc convert --cameras"
+    )
+    rotated = [RIG[3], RIG[0], RIG[1], RIG[2]]
+    assert _difference(rotated).startswith(
+        "the same cameras in another order: this rig's camera 0 is the other's camera 3, this "
+        "rig's camera 1 is the other's camera 0, this rig's camera 2 is the other's camera 1, "
+        "this rig's camera 3 is the other's camera 2;"
+    )
+    # another camera in the mix: no order makes it the same rig, the first difference is said
+    other = [RIG[1], RIG[0], RIG[2], _camera("up", 45.0)]
+    assert _difference(other).startswith("cameras turned by up to")

@@ -20,7 +20,10 @@ queries = ds.session(query_name).poses
 with open(out / "queries.csv") as f:
     rows = list(csv.DictReader(line for line in f if not line.startswith("#")))
 q = np.array([int(r["index"]) for r in rows])
-m = np.array([int(r["metric_row"]) for r in rows])  # map rows = s0's frames (a one-session map)
+# --no_snap: the reported keyframe is the one the pose was built on; its frame in the session
+assert all(r["map_row"] == r["metric_row"] for r in rows), "run vvloc localize with --no_snap"
+assert {r["map_session"] for r in rows} == {map_name}
+m = np.array([int(r["map_seq"]) for r in rows])
 est = np.array([[float(r["relative_x"]), float(r["relative_y"])] for r in rows])
 truth = relative_pose(keyframes[m], queries[q])[:, :2]
 dist = np.hypot(*truth.T)

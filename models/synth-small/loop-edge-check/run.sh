@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The loop edges and localize answers of models/synth-small on a small parking set, against the
 # ground truth (README, "pinned to (0, 0)"). Run from the repository root after `make develop`:
-#   bash models/synth-small/loop-edge-check/run.sh [WORK_DIR]   (about 4 min on 2 cores)
+#   bash models/synth-small/loop-edge-check/run.sh [WORK_DIR]   (about 5 min on 2 cores)
 set -euo pipefail
 here=$(cd "$(dirname "$0")" && pwd)
 work=${1:-runs/loop-edge-check}

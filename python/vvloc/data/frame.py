@@ -219,8 +219,8 @@ def has_image_content(images: Any) -> bool:
     sensor noise) encodes to the same descriptors as any other such frame, so two of them match
     at a cost near 0 wherever they were taken: :func:`vvloc.localize.build_map` leaves such
     frames out of a map, and the localizer never accepts such a query. ``images`` (M, 3, H, W)
-    uint8 or float."""
-    arr = np.asarray(images)
+    uint8 or float, or a :class:`Frame` (its ``images``)."""
+    arr = np.asarray(images.images if isinstance(images, Frame) else images)
     if arr.ndim != 4 or arr.shape[1] != 3 or 0 in arr.shape:
         raise ValueError(f"images: expected shape (M, 3, H, W), got {arr.shape}")
     if not (arr.dtype == np.uint8 or np.issubdtype(arr.dtype, np.floating)):

@@ -18,7 +18,16 @@ import numpy.typing as npt
 
 from vvloc.data.frame import Camera
 
-__all__ = ["SAME_MAP", "SAME_MODEL", "RigTolerance", "describe_rig", "rig_difference"]
+__all__ = [
+    "BELOW_TOLERANCE_M",
+    "MAX_CAMERA_DISTANCE_M",
+    "SAME_MAP",
+    "SAME_MODEL",
+    "RigTolerance",
+    "describe_rig",
+    "rig_difference",
+    "rig_warnings",
+]
 
 
 @dataclass(frozen=True)
@@ -58,6 +67,107 @@ def describe_rig(cameras: Sequence[Camera]) -> str:
     return f"{n} camera{'' if n == 1 else 's'} of {' / '.join(sizes)} px"
 
 
+#: The farthest a camera may sit from the ego origin (metres) before :func:`rig_warnings` reads
+#: its translation as another unit (a long truck's cameras are within 10 m).
+MAX_CAMERA_DISTANCE_M = 30.0
+#: How far below the ego origin (metres) a camera may sit before :func:`rig_warnings` says so
+#: (a camera at the origin's height, rounded: not below).
+BELOW_TOLERANCE_M = 0.05
+
+
+def rig_warnings(cameras: Sequence[Camera]) -> list[str]:
+    """Warnings about extrinsics that no vehicle has, which a BEV network trains on without a
+    word, one per camera at most: a camera farther than :data:`MAX_CAMERA_DISTANCE_M` from the
+    ego origin (a translation in millimetres), below the ego origin (the ground under the
+    vehicle: an ego → camera transform given for ``cam_to_ego``, or a dataset whose origin is
+    above the ground), or seeing no ground at all: no ray of its image points below the
+    horizon (another camera axis convention than OpenCV's, an inverted transform, or a camera
+    that sees only sky). Each camera's ``cam_to_ego`` (4, 4) maps its OpenCV coordinates
+    (x right, y down, z forward) to the ego frame (x forward, y left, z up, origin on the
+    ground), metres (DESIGN.md §3). Only the rig is checked, not a frame's own extrinsics, and a
+    plausible mounting in the wrong place (a transposed rotation that still looks down) passes."""
+    hint = (
+        "cam_to_ego maps camera coordinates (OpenCV: x right, y down, z forward) to the ego "
+        "frame (x forward, y left, z up, origin on the ground), in metres (docs/dataset-format.md)"
+    )
+    notes = []
+    for cam in cameras:
+        centre = cam.cam_to_ego[:3, 3]
+        far = float(np.linalg.norm(centre))
+        if far > MAX_CAMERA_DISTANCE_M:
+            notes.append(
+                f"camera {cam.name!r} sits {far:.0f} m from the ego origin: millimetres? {hint}"
+            )
+            continue
+        if centre[2] < -BELOW_TOLERANCE_M:
+            notes.append(
+                f"camera {cam.name!r} sits {-centre[2]:.2f} m below the ego origin (the ground "
+                "under the vehicle): an ego -> camera transform, or an origin above the ground "
+                f"(the NCLT and RobotCar readers' ego_height, vvloc convert --ego_height)? {hint}"
+            )
+            continue
+        # the rays through the image's corners, in the ego frame: a ray's z is linear in the
+        # pixel (u, v), so the image's lowest ray is one of them
+        w, h = cam.width - 0.5, cam.height - 0.5
+        corners = np.array([[-0.5, -0.5, 1.0], [w, -0.5, 1.0], [-0.5, h, 1.0], [w, h, 1.0]])
+        rays = corners @ np.linalg.inv(cam.K).T @ cam.cam_to_ego[:3, :3].T
+        if rays[:, 2].min() >= 0.0:
+            look = cam.cam_to_ego[:3, 2]  # the optical axis in the ego frame
+            notes.append(
+                f"camera {cam.name!r} sees no ground: no ray of its image points below the "
+                f"horizon (it looks along ego ({look[0]:.2f}, {look[1]:.2f}, {look[2]:.2f})): "
+                f"another axis convention, or an inverted transform? (A camera that sees only "
+                f"sky adds nothing to a BEV.) {hint}"
+            )
+    return notes
+
+
+def _alike(
+    k: npt.NDArray[np.float64],
+    t: npt.NDArray[np.float64],
+    ref_k: npt.NDArray[np.float64],
+    ref_t: npt.NDArray[np.float64],
+    ref_size: tuple[int, int],
+    tolerance: RigTolerance,
+) -> npt.NDArray[np.bool_]:
+    """(M, M) bool: compared camera i (``k[i]``, ``t[i]``) within ``tolerance`` of reference
+    camera j in intrinsics and mounting."""
+    w, h = ref_size
+    focal = np.abs(k[:, None, [0, 1], [0, 1]] / ref_k[None, :, [0, 1], [0, 1]] - 1.0)
+    offset = np.abs(k[:, None, [0, 1, 0], [2, 2, 1]] - ref_k[None, :, [0, 1, 0], [2, 2, 1]])
+    offset /= np.array([w, h, w])
+    d = np.linalg.inv(ref_t)[None] @ t[:, None]  # camera i in reference camera j's frame
+    return (
+        (focal <= tolerance.focal).all(axis=2)
+        & (offset <= tolerance.principal).all(axis=2)
+        & (_rotation_angle(d[..., :3, :3]) <= tolerance.angle)
+        & (np.linalg.norm(d[..., :3, 3], axis=2) <= tolerance.shift)
+    )
+
+
+def _matching(same: npt.NDArray[np.bool_]) -> list[int] | None:
+    """A one-to-one assignment ``order[i] = j`` with ``same[i, j]`` for every row i of the
+    (M, M) ``same``, or None (augmenting paths: O(M³))."""
+    m = len(same)
+    owner = [-1] * m  # owner[j]: the row assigned to column j
+
+    def augment(i: int, seen: list[bool]) -> bool:
+        for j in np.flatnonzero(same[i]).tolist():
+            if not seen[j]:
+                seen[j] = True
+                if owner[j] < 0 or augment(owner[j], seen):
+                    owner[j] = i
+                    return True
+        return False
+
+    if not all(augment(i, [False] * m) for i in range(m)):
+        return None
+    order = [0] * m
+    for j, i in enumerate(owner):
+        order[i] = j
+    return order
+
+
 def _rotation_angle(r: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
     """Angles (radians) of rotation matrices (..., 3, 3)."""
     cos = (np.trace(r, axis1=-2, axis2=-1) - 1.0) / 2.0
@@ -79,7 +189,8 @@ def rig_difference(
     tolerance: RigTolerance,
 ) -> str:
     """Where a rig leaves ``reference`` by more than ``tolerance``, in words ("" when it does
-    not): the first of camera count, image size, intrinsics, mounting that differs.
+    not): the first of camera count, image size, camera order (the reference's cameras, each
+    within ``tolerance``, listed in another order), intrinsics, mounting that differs.
 
     Args:
         reference: the reference rig's cameras, in image order (one image size: a vvloc rig).
@@ -111,6 +222,17 @@ def rig_difference(
     if abs(width - ref_w) > tolerance.size * ref_w or abs(height - ref_h) > tolerance.size * ref_h:
         return f"images of {width}x{height} px, against {ref_w}x{ref_h}"
     ref_k = np.stack([c.K for c in reference])
+    ref_t = np.stack([c.cam_to_ego for c in reference])
+    same = _alike(k, t, ref_k, ref_t, (ref_w, ref_h), tolerance)  # (M, M): camera i as ref j
+    if not same.diagonal().all():
+        order = _matching(same)
+        if order is not None:
+            pairs = [(i, j) for i, j in enumerate(order) if i != j]
+            moved = ", ".join(f"this rig's camera {i} is the other's camera {j}" for i, j in pairs)
+            return (
+                f"the same cameras in another order: {moved}; list them in the other rig's "
+                "order, e.g. with vvloc convert --cameras"
+            )
     # fx, fy relative to the reference's; cx, cy and the skew as shares of the image size
     focal = np.abs(k[:, [0, 1], [0, 1]] / ref_k[:, [0, 1], [0, 1]] - 1.0)
     offset = np.abs(k[:, [0, 1, 0], [2, 2, 1]] - ref_k[:, [0, 1, 0], [2, 2, 1]])

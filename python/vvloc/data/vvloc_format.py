@@ -42,6 +42,7 @@ from vvloc._io import (
 )
 from vvloc.data.frame import RIGID, Camera, Dataset, Session, is_rigid, load_rgb
 from vvloc.data.heading import heading_warning
+from vvloc.data.rig import rig_warnings
 from vvloc.kernels import _finite_float
 
 _log = logging.getLogger(__name__)
@@ -300,11 +301,14 @@ def open_vvloc(root: str | os.PathLike[str]) -> Dataset:
     Raises :class:`DatasetFormatError` (a ``ValueError``) naming the file and line for a malformed
     row, rows out of time order, a camera that is not a pinhole with a rigid ``cam_to_ego``,
     cameras of different image sizes, a camera folder that is not in the rig, or a missing
-    image. Warns (``UserWarning``) when a session's yaw looks like degrees or another
-    convention (:func:`yaw_warnings`).
+    image. Warns (``UserWarning``) when a camera's extrinsics look wrong (another unit, axis
+    convention or direction: :func:`vvloc.data.rig.rig_warnings`) and when a session's yaw
+    looks like degrees or another convention (:func:`yaw_warnings`).
     """
     root = Path(root)
     cameras, doc = read_rig(root / "rig.json")
+    for note in rig_warnings(cameras):
+        warnings.warn(f"{root / 'rig.json'}: {note}", stacklevel=2)
     names = {c.name for c in cameras}
     sess_root = root / "sessions"
     if not sess_root.is_dir():
