@@ -531,9 +531,9 @@ class MapWriter:
     map as it will be (whole chunks, their index, the metadata, a few MiB spare) and raises
     ``OSError`` (``ENOSPC``) naming the space needed, before HDF5 writes: with the disk full
     under it, HDF5 (2.0, h5py 3.16) crashes the interpreter at close. The process's file size
-    limit (``ulimit -f``) is checked against the same estimate, margin included (``EFBIG``). Another process filling the disk
-    between the check and the write, or a disk quota (not checked: no portable way to read
-    one), can still reach that crash.
+    limit (``ulimit -f``) is checked against the same estimate, margin included (``EFBIG``).
+    Another process filling the disk between the check and the write, or a disk quota (not
+    checked: no portable way to read one), can still reach that crash.
     """
 
     def __init__(
