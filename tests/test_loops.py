@@ -591,3 +591,73 @@ def test_trajectory_file_names_are_safe_and_distinct():
     names = trajectory_file_names([long_a, long_b])
     assert all(len(n) <= 11 + 120 + 4 for n in names.values())
     assert names[long_a] != names[long_b] and names[long_a].startswith("trajectory_xxx")
+
+
+def test_detect_loops_searches_only_the_pairs_a_previous_call_did_not():
+    """A mapping service re-detects after each batch of keyframes: with ``previous`` the pairs
+    found before keep their pose and cost, only the new ones are searched, and the result is
+    the full run's."""
+    from vvloc.localize import LoopClosures
+    from vvloc.localize import loops as loops_module
+    from vvloc.localize.loops import detect_loops
+
+    torch.manual_seed(0)
+    model = VVLocNet(tiny_config()).eval()
+    cfg = model.config
+    rng = np.random.default_rng(1)
+    n = 8
+
+    def db_of(rows: int) -> MapDatabase:  # the first rows of one map: a map grown by adds
+        return MapDatabase.from_arrays(
+            poses=np.zeros((rows, 3)),
+            timestamps=np.arange(rows, dtype=np.float64),
+            sessions=["s0"] * 4 + ["s1"] * (rows - 4),
+            ids=np.arange(100, 100 + rows),
+            global_descriptors=np.tile(np.eye(4, model.global_dim, dtype=np.float32), (2, 1))[
+                :rows
+            ],
+            local_descriptors=local[:rows],
+            bevs=bevs[:rows],
+            model_config=cfg.to_dict(),
+            config_hash=model.config_hash(),
+            weights_hash=model.weights_hash(),
+            grid_size=cfg.grid_size,
+        )
+
+    local = rng.standard_normal((n, cfg.num_angles, cfg.channels)).astype(np.float32)
+    bevs = rng.standard_normal((n, cfg.bev_height, cfg.bev_width, cfg.channels)).astype(np.float32)
+    search = SearchConfig(half_range=2.0, step=1.0, fine_samples=6, stages=3, seed=1)
+    kw = {"radius": 1.5, "window": 0, "sequence": 0, "check_floors": False, "search": search}
+    kw["progress"] = False
+    full = detect_loops(model, db_of(n), **kw)
+    early = detect_loops(model, db_of(6), **kw)  # s1's first two keyframes
+    assert 0 < len(early) < len(full)
+    searched = []
+    real = loops_module.verify_pairs
+
+    def counted(model, mapdb, rows_i, rows_j, **k):
+        searched.extend(zip(rows_i.tolist(), rows_j.tolist(), strict=True))
+        return real(model, mapdb, rows_i, rows_j, **k)
+
+    loops_module.verify_pairs = counted
+    try:
+        again = detect_loops(model, db_of(n), previous=early, **kw)
+        same = detect_loops(model, db_of(n), previous=full, **kw)
+    finally:
+        loops_module.verify_pairs = real
+    assert len(searched) == len(full) - len(early)  # the first call's pairs: none again
+    exact = torch.backends.mkl.is_available()  # bit for bit with MKL (test_verify_pairs...)
+    for got in (again, same):
+        np.testing.assert_array_equal(got.i, full.i)
+        np.testing.assert_array_equal(got.j, full.j)
+        np.testing.assert_allclose(
+            got.relative_poses, full.relative_poses, atol=0 if exact else 1e-6
+        )
+        np.testing.assert_allclose(got.costs, full.costs, rtol=0 if exact else 1e-6)
+        np.testing.assert_array_equal(got.accepted, full.accepted)
+    # acceptance follows this call's threshold, not the one the earlier call used
+    strict = detect_loops(model, db_of(n), previous=full, cost_threshold=1e-9, **kw)
+    assert not strict.accepted.any()
+    with pytest.raises(TypeError, match="previous: expected LoopClosures or None, got dict"):
+        detect_loops(model, db_of(n), previous={}, **kw)  # type: ignore[arg-type]
+    assert isinstance(full, LoopClosures)
