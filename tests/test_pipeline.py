@@ -859,6 +859,42 @@ def test_detect_loops_api_returns_ids_and_costs(map_file, model_dir):
                 detect_loops(model, db, **{**base, **change})
 
 
+def test_loops_cli_reuse_keeps_an_earlier_runs_pairs_by_session_and_time(
+    tiny_world, model_dir, tmp_path
+):
+    # a map built again with its sessions in another order numbers its keyframes anew: the
+    # earlier run's pairs are found by session and timestamp, and the result is a fresh run's
+    model = VVLocNet.load(model_dir)
+    ds = open_dataset(tiny_world)
+    build_map(model, ds, ["s0", "s1"], tmp_path / "a.h5", progress=False)
+    build_map(model, ds, ["s1", "s0"], tmp_path / "b.h5", progress=False)
+    exe = [sys.executable, "-m", "vvloc.cli", "loops", "--checkpoint", str(model_dir)]
+    run = lambda m, out, *a: subprocess.run(  # noqa: E731
+        [*exe, "--map", str(tmp_path / m), "--out", str(tmp_path / out), "--radius", "0.5",
+         "--max_pairs", "4", *a],
+        capture_output=True, text=True,
+    )  # fmt: skip
+    r = run("a.h5", "grown", "--reuse")  # nothing earlier there: every pair searched
+    assert r.returncode == 0 and "no earlier loops.csv and keyframes.csv" in r.stdout, r.stderr
+    first = read_loop_csv(tmp_path / "grown" / "loops.csv")
+    assert len(first) == 4
+    r = run("b.h5", "grown", "--reuse")
+    assert r.returncode == 0 and "--reuse: 4 pairs searched before" in r.stdout, r.stderr
+    assert run("b.h5", "fresh").returncode == 0
+    reused = (tmp_path / "grown" / "loops.csv").read_text()
+    if torch.backends.mkl.is_available():  # bit for bit with MKL (test_verify_pairs...)
+        assert reused == (tmp_path / "fresh" / "loops.csv").read_text()
+    with MapDatabase.open(tmp_path / "b.h5") as b:
+        assert not np.array_equal(read_loop_csv(tmp_path / "grown" / "loops.csv").i, first.i)
+        assert len(b) == 80
+    # another model's (or an older vvloc's) loops.csv is refused, not mixed in
+    text = reused.replace("# model weights ", "# model weights 0")
+    (tmp_path / "grown" / "loops.csv").write_text(text)
+    r = run("b.h5", "grown", "--reuse")
+    assert r.returncode == 2 and "written with other weights or search settings" in r.stderr
+    assert (tmp_path / "grown" / "loops.csv").read_text() == text  # left as it was
+
+
 def test_loops_cli_removes_only_its_own_stale_trajectories(tmp_path):
     from vvloc.commands.loops import remove_stale_trajectories
     from vvloc.localize.export import write_tum

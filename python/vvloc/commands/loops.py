@@ -9,7 +9,7 @@ import os
 import re
 from collections.abc import Iterable, Sequence
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
@@ -23,6 +23,10 @@ from vvloc.commands._util import (
     parse_device,
     set_torch_threads,
 )
+
+if TYPE_CHECKING:  # imported where used: the CLI loads no torch before a command runs
+    from vvloc.localize.export import LoopClosures
+    from vvloc.localize.mapdb import MapDatabase
 
 #: The most characters of a session name that go into its trajectory's file name: longer
 #: ones are cut and end in a hash of the whole name (file names hold 255 bytes, and the
@@ -55,6 +59,69 @@ def trajectory_file_names(sessions: Sequence[str]) -> dict[str, str]:
         taken.add(file_name.lower())
         names[session] = file_name
     return names
+
+
+def provenance_comments(weights_hash: str) -> list[str]:
+    """The comment lines ``vvloc loops`` writes into ``loops.csv`` that say what a pair's pose
+    and cost depend on besides its two keyframes: the weights and the metric search's settings
+    (``--reuse`` takes an earlier run's pairs only when both are the same)."""
+    from vvloc.localize.metric import SearchConfig
+
+    return [f"model weights {weights_hash}", f"search {SearchConfig()!r}"]
+
+
+def reusable_loops(
+    out: Path, weights_hash: str, db: MapDatabase
+) -> tuple[LoopClosures | None, str]:
+    """The loop closures an earlier ``vvloc loops`` run wrote into ``out``, in the ids of map
+    ``db``: its ``loops.csv`` pairs whose two keyframes this map holds too,
+    matched by session and timestamp through its ``keyframes.csv`` (a map built again with
+    more or reordered sessions numbers its keyframes anew). Returns (LoopClosures or None, a
+    line to print). ``ValueError`` when that run used other weights or search settings (or
+    wrote no such comments: before 2026-12-06)."""
+    import numpy as np
+
+    from vvloc.localize.export import LoopClosures, read_keyframe_csv, read_loop_csv
+
+    csv_path, kf_path = out / "loops.csv", out / "keyframes.csv"
+    if not (csv_path.is_file() and kf_path.is_file()):
+        return (
+            None,
+            f"--reuse: no earlier loops.csv and keyframes.csv in {out}: every pair searched",
+        )
+    with open(csv_path, encoding="utf-8") as f:
+        said = {line[2:].rstrip("\n") for line in f if line.startswith("# ")}
+    if not set(provenance_comments(weights_hash)) <= said:
+        raise ValueError(
+            f"--reuse: {csv_path} was written with other weights or search settings than "
+            "these (or by a vvloc before 2026-12-06, which did not record them); run without "
+            "--reuse"
+        )
+    before = read_loop_csv(csv_path)
+    kf = read_keyframe_csv(kf_path)
+    key_of = {
+        int(i): (s, int(t))
+        for i, s, t in zip(kf.ids.tolist(), kf.sessions, kf.timestamps_us.tolist(), strict=True)
+    }
+    ids = np.asarray(db.ids).tolist()
+    times = np.round(np.asarray(db.timestamps) * 1e6).astype(np.int64).tolist()
+    id_of = {(db.session_of(r), t): i for r, (i, t) in enumerate(zip(ids, times, strict=True))}
+    keep, i_new, j_new = [], [], []
+    for k, (i, j) in enumerate(zip(before.i.tolist(), before.j.tolist(), strict=True)):
+        a, b = id_of.get(key_of.get(i, ("", -1))), id_of.get(key_of.get(j, ("", -1)))
+        if a is not None and b is not None:
+            keep.append(k)
+            i_new.append(a)
+            j_new.append(b)
+    rows = np.asarray(keep, dtype=np.int64)
+    loops = LoopClosures(
+        np.asarray(i_new, dtype=np.int64),
+        np.asarray(j_new, dtype=np.int64),
+        before.relative_poses[rows].reshape(-1, 3),
+        before.costs[rows],
+        np.asarray(before.accepted)[rows],
+    )
+    return loops, f"--reuse: {len(keep)} pairs searched before in {out}"
 
 
 def _written_by_loops(path: Path) -> bool:
@@ -201,6 +268,15 @@ def loops(
     ] = 0,
     device: Annotated[str, typer.Option("--device", help="cpu, cuda[:N] or auto.")] = "cpu",
     threads: Threads = None,
+    reuse: Annotated[
+        bool,
+        typer.Option(
+            "--reuse",
+            help="Keep the poses and costs of the pairs an earlier run wrote into --out (its "
+            "loops.csv and keyframes.csv; the same weights, refused otherwise) and search only "
+            "the new pairs: for a map built again with more sessions.",
+        ),
+    ] = False,
 ) -> None:
     """Write loops.csv, graph.g2o, keyframes.csv (each vertex id's session, sequence number,
     timestamp and floor) and one TUM trajectory per session into --out, as one change
@@ -237,6 +313,11 @@ def loops(
                 f"{map_path}: keyframe ids {int(ids.min())}..{int(ids.max())} do not fit g2o's "
                 f"vertex ids [0, {G2O_MAX_ID}] (vvloc map build numbers them 0..N-1)"
             )
+        weights = model.weights_hash()
+        previous = None
+        if reuse:
+            previous, line = reusable_loops(out, weights, db)
+            typer.echo(line)
         found = detect_loops(
             model,
             db,
@@ -246,10 +327,11 @@ def loops(
             check_floors=check_floors,
             cost_threshold=threshold,
             max_pairs=max_pairs or None,
+            previous=previous,
         )
         sessions = [db.session_of(i) for i in range(len(db))]
         files = {
-            "loops.csv": loop_csv_text(found),
+            "loops.csv": loop_csv_text(found, comments=provenance_comments(weights)),
             "graph.g2o": g2o_text(db.poses, found, ids=db.ids, sessions=sessions, seq=db.seq),
             "keyframes.csv": keyframe_csv_text(
                 db.ids,
