@@ -61,58 +61,97 @@ def trajectory_file_names(sessions: Sequence[str]) -> dict[str, str]:
     return names
 
 
-def provenance_comments(weights_hash: str) -> list[str]:
+def provenance_comments(config_hash: str, weights_hash: str) -> list[str]:
     """The comment lines ``vvloc loops`` writes into ``loops.csv`` that say what a pair's pose
-    and cost depend on besides its two keyframes: the weights and the metric search's settings
-    (``--reuse`` takes an earlier run's pairs only when both are the same)."""
+    and cost depend on besides its two keyframes' stored descriptors: the model (architecture
+    and weights) and the metric search's settings (``--reuse`` takes an earlier run's pairs
+    only when all three are the same)."""
     from vvloc.localize.metric import SearchConfig
 
-    return [f"model weights {weights_hash}", f"search {SearchConfig()!r}"]
+    return [
+        f"model config {config_hash}",
+        f"model weights {weights_hash}",
+        f"search {SearchConfig()!r}",
+    ]
+
+
+def keyframe_digests(db: MapDatabase) -> list[str]:
+    """16 hex digits of the SHA-256 of each map keyframe's local-view descriptors (as read
+    back: float32), in map row order: ``--reuse`` matches a keyframe of an earlier run only when
+    its descriptors are the same (a map rebuilt from other images, extrinsics or with
+    ``--float16`` has other ones)."""
+    import hashlib as _hashlib
+
+    import numpy as np
+
+    out = []
+    for start in range(0, len(db), 256):
+        rows = np.arange(start, min(start + 256, len(db)))
+        for block in np.ascontiguousarray(db.local_descriptors(rows), dtype=np.float32):
+            out.append(_hashlib.sha256(block.tobytes()).hexdigest()[:16])
+    return out
 
 
 def reusable_loops(
-    out: Path, weights_hash: str, db: MapDatabase
+    out: Path, config_hash: str, weights_hash: str, db: MapDatabase, digests: Sequence[str]
 ) -> tuple[LoopClosures | None, str]:
     """The loop closures an earlier ``vvloc loops`` run wrote into ``out``, in the ids of map
-    ``db``: its ``loops.csv`` pairs whose two keyframes this map holds too,
-    matched by session and timestamp through its ``keyframes.csv`` (a map built again with
-    more or reordered sessions numbers its keyframes anew). Returns (LoopClosures or None, a
-    line to print). ``ValueError`` when that run used other weights or search settings (or
-    wrote no such comments: before 2026-12-06)."""
+    ``db``: its ``loops.csv`` pairs whose two keyframes this map holds too, matched through its
+    ``keyframes.csv`` by session, sequence number, timestamp and descriptor digest
+    (``digests``, :func:`keyframe_digests` of ``db``; a map built again with more or reordered
+    sessions numbers its keyframes anew). A pair this map orders the other way round (two
+    sessions listed in the other order) is left out: its search pads the other keyframe.
+    Returns (LoopClosures or None, a line to print). ``ValueError`` when that run used another
+    model or search settings, or wrote no record of them (a vvloc before 2026-12-06)."""
+    import csv as _csv
+
     import numpy as np
 
-    from vvloc.localize.export import LoopClosures, read_keyframe_csv, read_loop_csv
+    from vvloc.localize.export import LoopClosures, read_loop_csv
 
     csv_path, kf_path = out / "loops.csv", out / "keyframes.csv"
-    if not (csv_path.is_file() and kf_path.is_file()):
-        return (
-            None,
-            f"--reuse: no earlier loops.csv and keyframes.csv in {out}: every pair searched",
-        )
+    missing = [p.name for p in (csv_path, kf_path) if not p.is_file()]
+    if missing:
+        return None, f"--reuse: no {' or '.join(missing)} in {out}: every pair searched"
     with open(csv_path, encoding="utf-8") as f:
-        said = {line[2:].rstrip("\n") for line in f if line.startswith("# ")}
-    if not set(provenance_comments(weights_hash)) <= said:
+        said = {line[2:].rstrip("\r\n") for line in f if line.startswith("# ")}
+    if not set(provenance_comments(config_hash, weights_hash)) <= said:
         raise ValueError(
-            f"--reuse: {csv_path} was written with other weights or search settings than "
+            f"--reuse: {csv_path} was written with another model or search settings than "
             "these (or by a vvloc before 2026-12-06, which did not record them); run without "
             "--reuse"
         )
     before = read_loop_csv(csv_path)
-    kf = read_keyframe_csv(kf_path)
-    key_of = {
-        int(i): (s, int(t))
-        for i, s, t in zip(kf.ids.tolist(), kf.sessions, kf.timestamps_us.tolist(), strict=True)
-    }
-    ids = np.asarray(db.ids).tolist()
+    with open(kf_path, encoding="utf-8", newline="") as f:
+        table = list(_csv.DictReader(line for line in f if not line.startswith("#")))
+    if not table or "descriptor_sha256" not in table[0]:
+        raise ValueError(
+            f"--reuse: {kf_path} has no descriptor_sha256 column (a vvloc before 2026-12-06); "
+            "run without --reuse"
+        )
+    try:
+        key_of = {
+            int(r["id"]): (r["session"], int(r["seq"]), round(float(r["timestamp"]) * 1e6),
+                           r["descriptor_sha256"])
+            for r in table
+        }  # fmt: skip
+    except (KeyError, TypeError, ValueError) as e:
+        raise ValueError(f"--reuse: {kf_path}: malformed keyframe row ({e})") from e
     times = np.round(np.asarray(db.timestamps) * 1e6).astype(np.int64).tolist()
-    id_of = {(db.session_of(r), t): i for r, (i, t) in enumerate(zip(ids, times, strict=True))}
-    keep, i_new, j_new = [], [], []
+    keys = [(db.session_of(r), int(db.seq[r]), t, digests[r]) for r, t in enumerate(times)]
+    row_of = {key: r for r, key in enumerate(keys)}
+    ids = np.asarray(db.ids).tolist()
+    keep, i_new, j_new, reversed_ = [], [], [], 0
     for k, (i, j) in enumerate(zip(before.i.tolist(), before.j.tolist(), strict=True)):
-        a, b = id_of.get(key_of.get(i, ("", -1))), id_of.get(key_of.get(j, ("", -1)))
-        if a is not None and b is not None:
-            keep.append(k)
-            i_new.append(a)
-            j_new.append(b)
+        a, b = row_of.get(key_of.get(i)), row_of.get(key_of.get(j))  # type: ignore[arg-type]
+        if a is None or b is None:
+            continue
+        if a > b:  # candidates are ordered by map row: this pair is (b, a) here
+            reversed_ += 1
+            continue
+        keep.append(k)
+        i_new.append(ids[a])
+        j_new.append(ids[b])
     rows = np.asarray(keep, dtype=np.int64)
     loops = LoopClosures(
         np.asarray(i_new, dtype=np.int64),
@@ -121,7 +160,10 @@ def reusable_loops(
         before.costs[rows],
         np.asarray(before.accepted)[rows],
     )
-    return loops, f"--reuse: {len(keep)} pairs searched before in {out}"
+    line = f"--reuse: the earlier run in {out} searched {len(keep)} pairs of this map's keyframes"
+    if reversed_:
+        line += f" ({reversed_} more ordered the other way round here: searched again)"
+    return loops, line
 
 
 def _written_by_loops(path: Path) -> bool:
@@ -273,8 +315,9 @@ def loops(
         typer.Option(
             "--reuse",
             help="Keep the poses and costs of the pairs an earlier run wrote into --out (its "
-            "loops.csv and keyframes.csv; the same weights, refused otherwise) and search only "
-            "the new pairs: for a map built again with more sessions.",
+            "loops.csv and keyframes.csv; the same model, refused otherwise; keyframes matched "
+            "by session, sequence number, timestamp and descriptors) and search only the new "
+            "pairs: for a map built again with more sessions.",
         ),
     ] = False,
 ) -> None:
@@ -313,10 +356,13 @@ def loops(
                 f"{map_path}: keyframe ids {int(ids.min())}..{int(ids.max())} do not fit g2o's "
                 f"vertex ids [0, {G2O_MAX_ID}] (vvloc map build numbers them 0..N-1)"
             )
-        weights = model.weights_hash()
+        provenance = provenance_comments(model.config_hash(), model.weights_hash())
+        digests = keyframe_digests(db)
         previous = None
         if reuse:
-            previous, line = reusable_loops(out, weights, db)
+            previous, line = reusable_loops(
+                out, model.config_hash(), model.weights_hash(), db, digests
+            )
             typer.echo(line)
         found = detect_loops(
             model,
@@ -329,9 +375,13 @@ def loops(
             max_pairs=max_pairs or None,
             previous=previous,
         )
+        if previous is not None:
+            known = set(zip(previous.i.tolist(), previous.j.tolist(), strict=True))
+            kept = sum(p in known for p in zip(found.i.tolist(), found.j.tolist(), strict=True))
+            typer.echo(f"--reuse: {kept} of {len(found)} pairs kept, {len(found) - kept} searched")
         sessions = [db.session_of(i) for i in range(len(db))]
         files = {
-            "loops.csv": loop_csv_text(found, comments=provenance_comments(weights)),
+            "loops.csv": loop_csv_text(found, comments=provenance),
             "graph.g2o": g2o_text(db.poses, found, ids=db.ids, sessions=sessions, seq=db.seq),
             "keyframes.csv": keyframe_csv_text(
                 db.ids,
@@ -341,6 +391,7 @@ def loops(
                 db.floors,
                 db.poses,
                 comments=[f"map {map_path}"],
+                digests=digests,
             ),
         }
         for name, file_name in trajectories.items():

@@ -353,6 +353,7 @@ def keyframe_csv_text(
     poses: Any,
     *,
     comments: Iterable[str] = (),
+    digests: Sequence[str] | None = None,
 ) -> str:
     r"""The keyframe table beside a pose graph: one row per g2o vertex id with its session,
     sequence number, timestamp and floor, so that an optimised graph (keyed by vertex id) maps
@@ -366,6 +367,9 @@ def keyframe_csv_text(
             nearest to them).
         floors: (N,) int storeys; poses: (N, 3) world (x, y, yaw), metres and radians CCW,
             the graph's initial vertex poses.
+        digests: N strings for a last column ``descriptor_sha256`` (``vvloc loops``: a digest
+            of each keyframe's stored local-view descriptors, which ``--reuse`` matches), or
+            None for no such column.
     """
     p = _floats(poses, "poses", "(N, 3)", (None, 3))
     n = p.shape[0]
@@ -373,6 +377,8 @@ def keyframe_csv_text(
     t = _floats(timestamps, "timestamps", f"({n},)", (n,))
     if isinstance(sessions, str) or len(sessions) != n:
         raise ValueError(f"sessions: expected {n} session names")
+    if digests is not None and (isinstance(digests, str) or len(digests) != n):
+        raise ValueError(f"digests: expected {n} strings or None")
     header = _comment_lines(
         [
             "vvloc keyframes: the g2o vertex ids of graph.g2o and loops.csv (i, j), with their "
@@ -382,12 +388,16 @@ def keyframe_csv_text(
             *_FRAME_COMMENTS,
         ]
     ) + _comment_lines(comments)
-    rows = (
+    rows = [
         [int(vid[r]), str(sessions[r]), int(sq[r]), _r(t[r]), int(fl[r]), _r(p[r, 0]),
          _r(p[r, 1]), _r(wrap_angle(p[r, 2]))]
         for r in range(n)
-    )  # fmt: skip
-    return _csv_text(header, _KEYFRAME_COLUMNS, rows)
+    ]  # fmt: skip
+    if digests is None:
+        return _csv_text(header, _KEYFRAME_COLUMNS, rows)
+    for row, digest in zip(rows, digests, strict=True):
+        row.append(str(digest))
+    return _csv_text(header, (*_KEYFRAME_COLUMNS, "descriptor_sha256"), rows)
 
 
 def _text_lines(p: Path, newline: str | None = None) -> list[str]:
