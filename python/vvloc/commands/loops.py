@@ -80,15 +80,13 @@ def keyframe_digests(db: MapDatabase) -> list[str]:
     back: float32), in map row order: ``--reuse`` matches a keyframe of an earlier run only when
     its descriptors are the same (a map rebuilt from other images, extrinsics or with
     ``--float16`` has other ones)."""
-    import hashlib as _hashlib
-
     import numpy as np
 
     out = []
     for start in range(0, len(db), 256):
         rows = np.arange(start, min(start + 256, len(db)))
         for block in np.ascontiguousarray(db.local_descriptors(rows), dtype=np.float32):
-            out.append(_hashlib.sha256(block.tobytes()).hexdigest()[:16])
+            out.append(hashlib.sha256(block.tobytes()).hexdigest()[:16])
     return out
 
 
@@ -103,7 +101,7 @@ def reusable_loops(
     sessions listed in the other order) is left out: its search pads the other keyframe.
     Returns (LoopClosures or None, a line to print). ``ValueError`` when that run used another
     model or search settings, or wrote no record of them (a vvloc before 2026-12-06)."""
-    import csv as _csv
+    import csv
 
     import numpy as np
 
@@ -123,7 +121,7 @@ def reusable_loops(
         )
     before = read_loop_csv(csv_path)
     with open(kf_path, encoding="utf-8", newline="") as f:
-        table = list(_csv.DictReader(line for line in f if not line.startswith("#")))
+        table = list(csv.DictReader(line for line in f if not line.startswith("#")))
     if not table or "descriptor_sha256" not in table[0]:
         raise ValueError(
             f"--reuse: {kf_path} has no descriptor_sha256 column (a vvloc before 2026-12-06); "
@@ -356,13 +354,11 @@ def loops(
                 f"{map_path}: keyframe ids {int(ids.min())}..{int(ids.max())} do not fit g2o's "
                 f"vertex ids [0, {G2O_MAX_ID}] (vvloc map build numbers them 0..N-1)"
             )
-        provenance = provenance_comments(model.config_hash(), model.weights_hash())
+        config, weights = model.config_hash(), model.weights_hash()  # the weights: hashed anew
         digests = keyframe_digests(db)
         previous = None
         if reuse:
-            previous, line = reusable_loops(
-                out, model.config_hash(), model.weights_hash(), db, digests
-            )
+            previous, line = reusable_loops(out, config, weights, db, digests)
             typer.echo(line)
         found = detect_loops(
             model,
@@ -381,7 +377,7 @@ def loops(
             typer.echo(f"--reuse: {kept} of {len(found)} pairs kept, {len(found) - kept} searched")
         sessions = [db.session_of(i) for i in range(len(db))]
         files = {
-            "loops.csv": loop_csv_text(found, comments=provenance),
+            "loops.csv": loop_csv_text(found, comments=provenance_comments(config, weights)),
             "graph.g2o": g2o_text(db.poses, found, ids=db.ids, sessions=sessions, seq=db.seq),
             "keyframes.csv": keyframe_csv_text(
                 db.ids,
