@@ -880,6 +880,8 @@ def test_loops_cli_reuse_keeps_an_earlier_runs_pairs(tiny_world, model_dir, tmp_
     assert "no loops.csv or keyframes.csv in" in r.stdout, r.stdout
     first = read_loop_csv(tmp_path / "grown" / "loops.csv")
     assert len(first) == 4
+    kf_text = (tmp_path / "grown" / "keyframes.csv").read_text()
+    assert "# descriptor_sha256: 16 hex digits of the SHA-256" in kf_text
     r = run("same.h5", "grown", "--reuse")
     assert r.returncode == 0 and "--reuse: 4 of 4 pairs kept, 0 searched" in r.stdout, r.stdout
     with MapDatabase.open(tmp_path / "a.h5") as a:

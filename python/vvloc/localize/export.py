@@ -386,6 +386,14 @@ def keyframe_csv_text(
             "dataset's microseconds) and floor",
             "x, y, yaw: the keyframe's world pose, the graph's initial vertex pose",
             *_FRAME_COMMENTS,
+            *(
+                []
+                if digests is None
+                else [
+                    "descriptor_sha256: 16 hex digits of the SHA-256 of the keyframe's stored "
+                    "local-view descriptors (vvloc loops --reuse matches keyframes by them)"
+                ]
+            ),
         ]
     ) + _comment_lines(comments)
     rows = [
