@@ -101,11 +101,15 @@ def reusable_loops(
     sessions listed in the other order) is left out: its search pads the other keyframe.
     Returns (LoopClosures or None, a line to print). ``ValueError`` when that run used another
     model or search settings, or wrote no record of them (a vvloc before 2026-12-06)."""
-    import csv
-
     import numpy as np
 
-    from vvloc.localize.export import LoopClosures, read_loop_csv
+    from vvloc.localize.export import (
+        _KEYFRAME_COLUMNS,
+        LoopClosures,
+        _csv_table,
+        read_keyframe_csv,
+        read_loop_csv,
+    )
 
     csv_path, kf_path = out / "loops.csv", out / "keyframes.csv"
     missing = [p.name for p in (csv_path, kf_path) if not p.is_file()]
@@ -120,21 +124,30 @@ def reusable_loops(
             "--reuse"
         )
     before = read_loop_csv(csv_path)
-    with open(kf_path, encoding="utf-8", newline="") as f:
-        table = list(csv.DictReader(line for line in f if not line.startswith("#")))
-    if not table or "descriptor_sha256" not in table[0]:
+    kf = read_keyframe_csv(kf_path)  # ValueError naming the file and line when malformed
+    with open(kf_path, encoding="utf-8") as f:
+        header = next((line for line in f if line.strip() and not line.startswith("#")), "")
+    if "descriptor_sha256" not in header.strip().split(","):
         raise ValueError(
             f"--reuse: {kf_path} has no descriptor_sha256 column (a vvloc before 2026-12-06); "
             "run without --reuse"
         )
-    try:
-        key_of = {
-            int(r["id"]): (r["session"], int(r["seq"]), round(float(r["timestamp"]) * 1e6),
-                           r["descriptor_sha256"])
-            for r in table
-        }  # fmt: skip
-    except (KeyError, TypeError, ValueError) as e:
-        raise ValueError(f"--reuse: {kf_path}: malformed keyframe row ({e})") from e
+    columns = (*_KEYFRAME_COLUMNS, "descriptor_sha256")
+    digest_col = [
+        fields[at["descriptor_sha256"]]
+        for _, fields, at in _csv_table(kf_path, columns, columns, "keyframe")
+    ]
+    key_of = {
+        i: (s, q, t, d)
+        for i, s, q, t, d in zip(
+            kf.ids.tolist(),
+            kf.sessions,
+            kf.seq.tolist(),
+            kf.timestamps_us.tolist(),
+            digest_col,
+            strict=True,
+        )
+    }
     times = np.round(np.asarray(db.timestamps) * 1e6).astype(np.int64).tolist()
     keys = [(db.session_of(r), int(db.seq[r]), t, digests[r]) for r, t in enumerate(times)]
     row_of = {key: r for r, key in enumerate(keys)}
