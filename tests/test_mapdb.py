@@ -205,6 +205,49 @@ def test_writer_appends_batches(tmp_path: Path) -> None:
         np.testing.assert_array_equal(db.bev(np.arange(N)), as_stored(kf["bevs"], "float16"))
 
 
+def test_writer_appends_a_whole_map_as_stored_and_refuses_another_models(tmp_path: Path) -> None:
+    base = make_map()
+    more = keyframes(4, seed=1)
+    with MapWriter(tmp_path / "grown.h5", model_config=CONFIG, grid_size=0.3) as w:
+        w.append_map(base)
+        more.update(ids=[1, 2, 3, 4], seq=[0, 1, 2, 3], sessions="s2")
+        w.append(**more)
+        assert len(w) == N + 4
+    with MapDatabase.open(tmp_path / "grown.h5") as db:
+        assert db.sessions == ("s0", "s1", "s2")
+        rows = np.arange(N)
+        for name in ("ids", "seq", "poses", "timestamps", "floors", "global_descriptors"):
+            np.testing.assert_array_equal(getattr(db, name)[rows], getattr(base, name))
+        np.testing.assert_array_equal(db.local_descriptors(rows), base.local_descriptors(rows))
+        np.testing.assert_array_equal(db.bev(rows), as_stored(base.bev(rows), "float16"))
+    other = MapDatabase.from_arrays(**keyframes(), model_config={**CONFIG, "T": 9}, grid_size=0.3)
+    coarse = MapDatabase.from_arrays(**keyframes(), model_config=CONFIG, grid_size=0.5)
+    weighed = MapDatabase.from_arrays(
+        **keyframes(), model_config=CONFIG, grid_size=0.3, weights_hash="a" * 64
+    )
+    with MapWriter(
+        tmp_path / "x.h5", model_config=CONFIG, grid_size=0.3, weights_hash="b" * 64
+    ) as w:
+        for db, error, match in [
+            (other, MapError, r"^db: in-memory map was built with model \w+, this writer's"),
+            (coarse, MapError, r"^db: in-memory map has BEV cells of 0\.5 m, this writer 0\.3"),
+            (weighed, MapError, r"^db: in-memory map was built with other weights"),
+            (base.ids, TypeError, r"^db: expected a MapDatabase, got ndarray"),
+        ]:
+            with pytest.raises(error, match=match):
+                w.append_map(db)  # type: ignore[arg-type]
+        w.append_map(make_map(bev=False))
+        with pytest.raises(ValueError, match=r"^db: keyframe ids already in the map"):
+            w.append_map(make_map(bev=False))
+        shifted = keyframes(seed=2)
+        shifted["ids"] = shifted["ids"] + 1000
+        bev = MapDatabase.from_arrays(**shifted, model_config=CONFIG, grid_size=0.3)
+        with pytest.raises(ValueError, match=r"^db: in-memory map has BEVs and earlier batches"):
+            w.append_map(bev)
+        assert len(w) == N  # the refusals wrote nothing
+    assert (tmp_path / "x.h5").exists()
+
+
 def test_writer_rejects_inconsistent_batches_and_stays_usable(tmp_path: Path) -> None:
     kf = keyframes(bev=False)
     path = tmp_path / "map.h5"

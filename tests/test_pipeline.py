@@ -902,6 +902,135 @@ def test_loops_cli_reuse_keeps_an_earlier_runs_pairs(tiny_world, model_dir, tmp_
     assert (tmp_path / "grown" / "loops.csv").read_text() == text  # left as it was
 
 
+def test_a_map_grows_from_a_base_map_without_encoding_its_frames_again(
+    tiny_world, map_file, model_dir, tmp_path, monkeypatch
+):
+    import vvloc.localize.localizer as localizer_module
+    from vvloc.localize import MapError
+    from vvloc.localize.mapdb import MapWriter
+
+    model = VVLocNet.load(model_dir)
+    ds = open_dataset(tiny_world)
+    encoded: list[int] = []
+    encode = localizer_module.encode_frames
+
+    def counting(model, frames, **kw):
+        encoded.append(len(frames))
+        return encode(model, frames, **kw)
+
+    monkeypatch.setattr(localizer_module, "encode_frames", counting)
+    grown = build_map(model, ds, ["s1"], tmp_path / "grown.h5", base=map_file, progress=False)
+    assert sum(encoded) == len(ds.session("s1"))  # the base's frames were not encoded again
+    fresh = build_map(model, ds, ["s0", "s1"], tmp_path / "fresh.h5", progress=False)
+    with (
+        MapDatabase.open(grown) as g,
+        MapDatabase.open(fresh) as f,
+        MapDatabase.open(map_file) as b,
+    ):
+        assert g.sessions == f.sessions == ("s0", "s1")
+        for name in ["ids", "seq", "poses", "timestamps", "floors", "session_index"]:
+            np.testing.assert_array_equal(getattr(g, name), getattr(f, name), err_msg=name)
+        old = np.arange(len(b))
+        np.testing.assert_array_equal(g.global_descriptors[old], b.global_descriptors)
+        np.testing.assert_array_equal(g.local_descriptors(old), b.local_descriptors(old))
+        np.testing.assert_array_equal(g.bev(old), b.bev(old))
+        rows = np.arange(len(g))  # the new session's frames as a fresh build encodes them
+        np.testing.assert_allclose(g.local_descriptors(rows), f.local_descriptors(rows), atol=1e-5)
+        assert g.rig == b.rig and g.weights_hash == b.weights_hash
+        n_fresh = len(f)
+    # in place: the base file is replaced by the grown map once it is complete
+    shutil.copy(map_file, tmp_path / "inplace.h5")
+    build_map(model, ds, ["s1"], tmp_path / "inplace.h5", base=tmp_path / "inplace.h5",
+              progress=False)  # fmt: skip
+    with MapDatabase.open(tmp_path / "inplace.h5") as m:
+        assert m.sessions == ("s0", "s1") and len(m) == n_fresh
+    # a float16 base stays float16 and its keyframes keep their stored values
+    with MapDatabase.open(map_file) as b:
+        b.save(tmp_path / "half.h5", dtype="float16")
+    build_map(model, ds, ["s2"], tmp_path / "half2.h5", base=tmp_path / "half.h5", progress=False)
+    with MapDatabase.open(tmp_path / "half2.h5") as h, MapDatabase.open(tmp_path / "half.h5") as b:
+        assert h.metadata.descriptor_dtype == "float16" and len(h.sessions) == 2
+        np.testing.assert_array_equal(h.global_descriptors[: len(b)], b.global_descriptors)
+    # what cannot join the base is refused before anything is written
+    other = VVLocNet(ModelConfig.small())  # its own random weights
+    turned = [c.to_json() for c in ds.cameras]
+    turned[1]["cam_to_ego"] = (  # turned 180° about its optical axis
+        np.array(turned[1]["cam_to_ego"]) @ np.diag([-1.0, -1, 1, 1])
+    ).tolist()
+    with MapDatabase.open(map_file) as b, MapWriter(
+        tmp_path / "rig.h5", model_config=b.model_config, grid_size=b.grid_size,
+        config_hash=b.config_hash, weights_hash=b.weights_hash, rig=turned,
+    ) as w:  # fmt: skip
+        w.append_map(b)
+    with MapDatabase.open(map_file) as b, MapWriter(
+        tmp_path / "norig.h5", model_config=b.model_config, grid_size=b.grid_size,
+        config_hash=b.config_hash, weights_hash=b.weights_hash,
+    ) as w:  # fmt: skip
+        w.append_map(b)  # as an older vvloc wrote maps: no rig recorded
+    with pytest.warns(UserWarning, match=r"^base: map .*norig\.h5 records no rig") as caught:
+        build_map(model, ds, ["s1"], tmp_path / "norig2.h5", base=tmp_path / "norig.h5",
+                  progress=False)  # fmt: skip
+    assert caught[0].filename == __file__
+    with MapDatabase.open(tmp_path / "norig2.h5") as m:
+        assert m.rig is None and m.sessions == ("s0", "s1")
+    for kwargs, error, match in [
+        ({"sessions": ["s0"]}, ValueError, r"^sessions: s0 already in the base map .*map\.h5"),
+        ({"dtype": "float16"}, ValueError, r"^dtype: the base map .* stores float32 descrip"),
+        ({"store_bev": False}, ValueError, r"^store_bev: the base map .* stores BEVs"),
+        ({"model": other}, MapError, r"map built with other weights"),
+        ({"base": tmp_path / "rig.h5"}, ValueError, r"^dataset: its rig is not the base map"),
+        ({"base": "nowhere.h5"}, FileNotFoundError, r"nowhere\.h5"),
+        ({"base": 3}, TypeError, r"^base: expected a MapDatabase or the path of a map, got int"),
+    ]:
+        args = {"model": model, "sessions": ["s1"], "base": map_file, **kwargs}
+        with pytest.raises(error, match=match):
+            build_map(args.pop("model"), ds, args.pop("sessions"), tmp_path / "bad.h5",
+                      progress=False, **args)  # fmt: skip
+        assert not list(tmp_path.glob("*bad.h5*")), kwargs
+
+
+def test_cli_map_build_base_grows_a_map_and_loops_reuse_keeps_its_pairs(
+    tiny_world, model_dir, map_file, tmp_path
+):
+    # the growing map's workflow: a session's map, its loops; the next session added with
+    # --base (the map file replaced in place), loops again: the first session's pairs are kept
+    shutil.copy(map_file, tmp_path / "map.h5")
+    exe = [sys.executable, "-m", "vvloc.cli"]
+    loops = [*exe, "loops", "--checkpoint", str(model_dir), "--map", str(tmp_path / "map.h5"),
+             "--out", str(tmp_path / "loops"), "--radius", "0.018", "--reuse"]  # fmt: skip
+    r = subprocess.run(loops, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    first = read_loop_csv(tmp_path / "loops" / "loops.csv")
+    assert len(first) > 0, r.stdout  # the untrained model's descriptors lie within 0.02
+    build = [*exe, "map", "build", "--checkpoint", str(model_dir), "--dataset", str(tiny_world),
+             "--sessions", "s1", "--base", str(tmp_path / "map.h5"),
+             "--out", str(tmp_path / "map.h5")]  # fmt: skip
+    r = subprocess.run(build, capture_output=True, text=True)
+    assert r.returncode == 2 and "pass --overwrite to replace it" in r.stderr, r.stderr
+    r = subprocess.run([*build, "--overwrite"], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    info = subprocess.run([*exe, "map", "info", str(tmp_path / "map.h5")], capture_output=True,
+                          text=True)  # fmt: skip
+    assert "in 2 sessions" in info.stdout and "  s1: 40 keyframes" in info.stdout, info.stdout
+    r = subprocess.run(loops, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    grown = read_loop_csv(tmp_path / "loops" / "loops.csv")
+    new = len(grown) - len(first)  # every earlier pair kept, only the new ones searched
+    assert new > 0 and f"--reuse: {len(first)} of {len(grown)} pairs kept, {new} searched" in (
+        r.stdout
+    ), r.stdout
+    fresh = [*loops[:-5], "--out", str(tmp_path / "fresh"), "--radius", "0.018"]
+    assert subprocess.run(fresh, capture_output=True, text=True).returncode == 0
+    if torch.backends.mkl.is_available():  # a fresh run's answer, bit for bit with MKL
+        text = (tmp_path / "fresh" / "loops.csv").read_text()
+        assert (tmp_path / "loops" / "loops.csv").read_text() == text
+    again = subprocess.run([*build, "--overwrite"], capture_output=True, text=True)
+    assert again.returncode == 2 and "s1 already in the base map" in again.stderr, again.stderr
+    r = subprocess.run([*build, "--overwrite", "--sessions", "s2", "--float16"],
+                       capture_output=True, text=True)  # fmt: skip
+    assert r.returncode == 2 and "stores float32 descriptors, not float16" in r.stderr, r.stderr
+
+
 def test_loops_cli_removes_only_its_own_stale_trajectories(tmp_path):
     from vvloc.commands.loops import remove_stale_trajectories
     from vvloc.localize.export import write_tum

@@ -83,12 +83,23 @@ def build(
     overwrite: Annotated[
         bool, typer.Option("--overwrite", help="Replace an existing vvloc map at --out.")
     ] = False,
+    base: Annotated[
+        Path | None,
+        typer.Option(
+            "--base",
+            help="Grow this map: its keyframes as stored (not encoded again), then --sessions'. "
+            "Same model and rig; its dtype and BEVs are kept. Read only; --out may name it "
+            "(with --overwrite).",
+        ),
+    ] = None,
 ) -> None:
     """Build a map (global + local-view descriptors, poses, BEVs) from dataset sessions.
 
     An existing map at --out is replaced only with --overwrite (then atomically: the old map
     stays whole until the new one is complete); any other file there, and an --out inside the
-    dataset, are refused."""
+    dataset, are refused. With --base, the new map holds that map's keyframes first, as it
+    stores them, then the frames of --sessions (sessions new to it), numbered on from its
+    largest keyframe id."""
 
     from vvloc.data.sampling import check_session_names
     from vvloc.localize.localizer import build_map
@@ -104,14 +115,25 @@ def build(
         model = VVLocNet.load(checkpoint_folder(checkpoint, "--checkpoint")).to(
             parse_device(device)
         )
-        path = build_map(
-            model,
-            ds,
-            names,
-            out,
-            dtype="float16" if float16 else "float32",
-            store_bev=not no_bev,
-        )
+        if base is None:
+            path = build_map(
+                model,
+                ds,
+                names,
+                out,
+                dtype="float16" if float16 else "float32",
+                store_bev=not no_bev,
+            )
+        else:  # the base's dtype and BEVs unless a flag asks for other ones (then refused)
+            path = build_map(
+                model,
+                ds,
+                names,
+                out,
+                dtype="float16" if float16 else None,
+                store_bev=False if no_bev else None,
+                base=base,
+            )
     typer.echo(f"map: {path}")
 
 

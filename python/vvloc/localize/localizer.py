@@ -64,7 +64,14 @@ from vvloc.data.frame import (
 )
 from vvloc.data.rig import SAME_MAP, SAME_MODEL, describe_rig, rig_difference
 from vvloc.data.sampling import check_session_names
-from vvloc.localize.mapdb import MapDatabase, MapError, MapWriter, check_unit_rows, check_weights
+from vvloc.localize.mapdb import (
+    MapDatabase,
+    MapError,
+    MapWriter,
+    _check_dtype,
+    check_unit_rows,
+    check_weights,
+)
 from vvloc.localize.metric import (
     METRIC_CANDIDATES,
     RETRIEVAL_WEIGHT,
@@ -1096,15 +1103,30 @@ def build_map(
     sessions: Iterable[str],
     out: str | os.PathLike[str],
     *,
-    dtype: str = "float32",
-    store_bev: bool = True,
+    dtype: str | None = None,
+    store_bev: bool | None = None,
     batch_size: int = 8,
     progress: bool = True,
+    base: MapDatabase | str | os.PathLike[str] | None = None,
 ) -> Path:
     """Encode every frame of ``sessions`` of ``dataset`` and write a map to ``out`` (HDF5,
-    atomically). ``store_bev`` keeps the float16 BEVs that loop-closure detection needs. Keyframe
-    ids are the running row numbers, sequence numbers each frame's index in its session; the
-    map records the dataset's rig (its cameras), which the localizer compares queries with.
+    atomically). ``dtype`` is the stored dtype of the descriptors, ``"float32"`` (the default)
+    or ``"float16"``; ``store_bev`` (default True) keeps the float16 BEVs that loop-closure
+    detection needs. Keyframe ids are the running row numbers, sequence numbers each frame's
+    index in its session; the map records the dataset's rig (its cameras), which the localizer
+    compares queries with.
+
+    ``base`` (a map, or the path of one) grows a map without encoding its frames again: the new
+    map holds ``base``'s keyframes first, as it stores them (ids, sessions, descriptors, BEVs),
+    then the frames of ``sessions``, numbered on from ``base``'s largest id. ``base`` must be
+    a map of this model (:func:`check_map_model`: :class:`MapError` otherwise), of the dataset's
+    rig (``ValueError`` when the rigs differ by more than
+    :data:`vvloc.data.rig.SAME_MAP`; a ``UserWarning`` when ``base`` records no rig, and the
+    new map records none), and must not hold a session of ``sessions`` (``ValueError``);
+    ``dtype`` and ``store_bev`` default to ``base``'s, and other values are refused
+    (``ValueError``: one map holds one dtype, and BEVs for every keyframe or none).
+    ``out`` may be ``base``'s own file: it is replaced only when the new map is complete.
+
     Frames without image content (:func:`vvloc.data.has_image_content`: every camera's picture
     flat, as from a covered or failed rig or a black stretch) are left out, with a
     ``UserWarning`` naming them: any two such frames match at a cost near 0, so one of them in a
@@ -1130,8 +1152,14 @@ def build_map(
     sessions = list(sessions)  # a generator is read once
     if not all(isinstance(s, str) for s in sessions):
         raise TypeError(f"sessions: expected session names (str), got {sessions!r:.80}")
-    if not isinstance(store_bev, (bool, np.bool_)):
+    if dtype is not None:
+        dtype = _check_dtype(dtype)
+    if store_bev is not None and not isinstance(store_bev, (bool, np.bool_)):
         raise TypeError(f"store_bev: expected a bool, got {type(store_bev).__name__}")
+    if base is not None and not isinstance(base, (MapDatabase, str, os.PathLike)):
+        raise TypeError(
+            f"base: expected a MapDatabase or the path of a map, got {type(base).__name__}"
+        )
     if not sessions:
         raise ValueError("sessions: expected at least one session name")
     check_session_names("sessions", dataset, sessions, "the dataset")  # each keyframe once
@@ -1142,19 +1170,32 @@ def build_map(
     cfg = model.config
     cfg.check_num_cameras(len(cameras), f"dataset: {dataset.root}")  # before any frame encodes
     check_training_rig(model, cameras, "the dataset's rig")  # named at build_map's caller
-    with (
-        contextlib.ExitStack() as stack,
-        MapWriter(
-            out,
-            model_config=cfg.to_dict(),
-            grid_size=float(cfg.grid_size),
-            config_hash=model.config_hash(),
-            weights_hash=model.weights_hash(),
-            dtype=dtype,  # type: ignore[arg-type]
-            expected_keyframes=total,
-            rig=cameras or None,
-        ) as writer,
-    ):
+    with contextlib.ExitStack() as stack:
+        db = None
+        if isinstance(base, MapDatabase):
+            db = base
+        elif base is not None:
+            db = stack.enter_context(MapDatabase.open(base))
+        if db is not None:
+            dtype, store_bev, rig = _base_settings(db, model, cameras, sessions, dtype, store_bev)
+        else:
+            rig = cameras or None
+        writer = stack.enter_context(
+            MapWriter(
+                out,
+                model_config=cfg.to_dict(),
+                grid_size=float(cfg.grid_size),
+                config_hash=model.config_hash(),
+                weights_hash=model.weights_hash(),
+                dtype="float32" if dtype is None else _check_dtype(dtype),
+                expected_keyframes=total + (0 if db is None else len(db)),
+                rig=rig,
+            )
+        )
+        next_id = 0
+        if db is not None:
+            writer.append_map(db)
+            next_id = int(db.ids.max()) + 1 if len(db) else 0
         bar = tqdm(total=total, desc="map", disable=not progress)
         stack.callback(bar.close)  # closed before an error is printed, not under it
         written = 0
@@ -1169,17 +1210,20 @@ def build_map(
                 bar.update(len(loaded) - len(frames))
                 if not frames:
                     continue
-                enc = encode_frames(model, frames, batch_size=batch_size, keep_bev=store_bev)
+                keep_bev = True if store_bev is None else bool(store_bev)
+                enc = encode_frames(model, frames, batch_size=batch_size, keep_bev=keep_bev)
                 writer.append(
                     poses=np.stack([f.pose for f in frames]),
                     timestamps=np.array([f.t for f in frames]),
                     sessions=name,
                     global_descriptors=enc.global_desc,
                     local_descriptors=enc.local_desc,
+                    ids=np.arange(next_id, next_id + len(frames)),
                     seq=np.array([f.index for f in frames]),
                     floors=np.array([f.floor for f in frames]),
                     bevs=enc.bev,
                 )
+                next_id += len(frames)
                 written += len(frames)
                 bar.update(len(frames))
             if blank:
@@ -1196,3 +1240,53 @@ def build_map(
                 "camera's picture flat): a map needs keyframes"
             )
     return Path(out)
+
+
+def _base_settings(
+    db: MapDatabase,
+    model: VVLocNet,
+    cameras: Sequence[Camera],
+    sessions: Sequence[str],
+    dtype: str | None,
+    store_bev: bool | None,
+) -> tuple[str, bool, list[Camera] | list[dict[str, Any]] | None]:
+    """``build_map``'s checks of its ``base`` map ``db``; returns the grown map's descriptor
+    dtype, whether it stores BEVs, and its rig."""
+    where = "in-memory map" if db.path is None else f"map {db.path}"
+    check_map_model(db, model, stacklevel=3)  # its warnings name build_map's caller
+    again = [s for s in sessions if s in db.sessions]
+    if again:
+        raise ValueError(
+            f"sessions: {list_entries(again)} already in the base {where}: a session is added "
+            "once (build the map anew to encode it again)"
+        )
+    stored = db.metadata.descriptor_dtype
+    if dtype is not None and dtype != stored:
+        raise ValueError(
+            f"dtype: the base {where} stores {stored} descriptors, not {dtype}: one map holds "
+            "one dtype (leave dtype out to take the base's)"
+        )
+    if store_bev is not None and bool(store_bev) != db.has_bev:
+        raise ValueError(
+            f"store_bev: the base {where} {'stores' if db.has_bev else 'has no'} BEVs: every "
+            "keyframe of a map has one or none has (leave store_bev out to take the base's)"
+        )
+    if db.rig is None:
+        warnings.warn(
+            f"base: {where} records no rig (written by an older vvloc), so it cannot be checked "
+            "that its keyframes come from the dataset's rig; the grown map records none either",
+            UserWarning,
+            stacklevel=3,
+        )
+        return stored, db.has_bev, None
+    if cameras:
+        K, cam_to_ego = stack_calibration(cameras)
+        size = (cameras[0].width, cameras[0].height)
+        rig = [Camera.from_json(c) for c in db.rig]
+        why = rig_difference(rig, K, cam_to_ego, size, SAME_MAP)
+        if why:
+            raise ValueError(
+                f"dataset: its rig is not the base {where}'s ({why}); one map holds the "
+                "keyframes of one rig, which the localizer compares queries with"
+            )
+    return stored, db.has_bev, db.rig

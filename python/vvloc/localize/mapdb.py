@@ -708,6 +708,70 @@ class MapWriter:
         self._shapes.update(shapes)
         self._has_bev = has_bev
 
+    def append_map(self, db: MapDatabase) -> None:
+        """Append every keyframe of ``db`` as it stores them: ids, session names, sequence
+        numbers, times, poses, floors, descriptors (converted to this writer's dtype) and
+        BEVs, in ``db``'s row order, a block of rows at a time.
+
+        ``db`` must come from the model this writer records: :class:`MapError` (a
+        ``ValueError``) when its model config hash, weights fingerprint (where both record
+        one) or grid size differs; ``ValueError`` when its ids or (session, sequence number)
+        pairs are already in this writer, or it has BEVs and earlier batches had none or the
+        reverse. Nothing is written then. The rigs are not compared (the caller's part:
+        :func:`vvloc.localize.build_map` with ``base`` does).
+        """
+        self._check_open()
+        if not isinstance(db, MapDatabase):
+            raise TypeError(f"db: expected a MapDatabase, got {type(db).__name__}")
+        db._check_open()
+        where = "in-memory map" if db.path is None else f"map {db.path}"
+        meta = db.metadata
+        if meta.model_config_hash != self._config_hash:
+            raise MapError(
+                f"db: {where} was built with model {meta.model_config_hash}, this writer's is "
+                f"{self._config_hash}: one map holds the descriptors of one model"
+            )
+        theirs, ours = meta.model_weights_hash, self._weights_hash
+        if theirs is not None and ours is not None and theirs != ours:
+            raise MapError(
+                f"db: {where} was built with other weights (weights {theirs}, this writer's "
+                f"{ours}): one map holds the descriptors of one model"
+            )
+        if meta.grid_size != self._grid_size:
+            raise MapError(
+                f"db: {where} has BEV cells of {meta.grid_size:g} m, this writer "
+                f"{self._grid_size:g} m"
+            )
+        if len(db) == 0:
+            return
+        dup = self._ids.intersection(db.ids.tolist())
+        if dup:
+            raise ValueError(f"db: keyframe ids already in the map: {sorted(dup)[:5]}")
+        if self._has_bev is not None and db.has_bev != self._has_bev:
+            raise ValueError(
+                f"db: {where} {'has' if db.has_bev else 'has no'} BEVs and earlier batches "
+                f"{'had' if self._has_bev else 'had none'}: every keyframe of a map has a BEV "
+                "or none has"
+            )
+        row_bytes = int(np.prod(db.local_shape)) * 4
+        if db.bev_shape is not None:
+            row_bytes += int(np.prod(db.bev_shape)) * 2
+        block = max(1, _COPY_BLOCK_BYTES // row_bytes)
+        sessions = db.sessions
+        for start in range(0, len(db), block):
+            rows = np.arange(start, min(start + block, len(db)))
+            self.append(
+                ids=db.ids[rows],
+                sessions=[sessions[s] for s in db.session_index[rows]],
+                seq=db.seq[rows],
+                timestamps=db.timestamps[rows],
+                poses=db.poses[rows],
+                floors=db.floors[rows],
+                global_descriptors=db.global_descriptors[rows],
+                local_descriptors=db.local_descriptors(rows),
+                bevs=db.bev(rows) if db.has_bev else None,
+            )
+
     def _stored_dtype(self, name: str) -> np.dtype[Any]:
         return _META_DATASETS.get(name, _BEV_DTYPE if name == "bev" else self._dtype)
 
@@ -1254,10 +1318,6 @@ class MapDatabase:
         """
         self._check_open()
         meta = self._metadata
-        row_bytes = int(np.prod(self.local_shape)) * 4
-        if self.bev_shape is not None:
-            row_bytes += int(np.prod(self.bev_shape)) * 2
-        block = max(1, _COPY_BLOCK_BYTES // row_bytes)
         with MapWriter(
             path,
             model_config=meta.model_config,
@@ -1268,19 +1328,7 @@ class MapDatabase:
             expected_keyframes=len(self),
             rig=meta.rig,
         ) as w:
-            for start in range(0, len(self), block):
-                rows = np.arange(start, min(start + block, len(self)))
-                w.append(
-                    ids=self._ids[rows],
-                    sessions=[self._session_names[s] for s in self._session_index[rows]],
-                    seq=self._seq[rows],
-                    timestamps=self._timestamps[rows],
-                    poses=self._poses[rows],
-                    floors=self._floors[rows],
-                    global_descriptors=self._global[rows],
-                    local_descriptors=self.local_descriptors(rows),
-                    bevs=None if self._bev is None else self.bev(rows),
-                )
+            w.append_map(self)
         return w.path
 
     def verify(self) -> None:
