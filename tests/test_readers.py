@@ -591,6 +591,59 @@ def test_convert_oxford_keeps_the_origin_and_resizes_a_vvloc_dataset(tmp_path):
     assert small.session(sess.name)[0].images.shape == (2, 3, 3, 4)
 
 
+def test_raw_readers_read_only_the_chosen_sessions(tmp_path):
+    import shutil
+
+    # NCLT: a second date whose ground truth is broken; choosing the first never reads it
+    src = tmp_path / "nclt"
+    _nclt(src)
+    shutil.copytree(src / DATE, src / "2013-04-05")
+    (src / "groundtruth_2013-04-05.csv").write_text("not,a,ground,truth\n")
+    with pytest.raises(DatasetFormatError, match=r"groundtruth_2013-04-05\.csv, line 1"):
+        open_dataset(src, cameras=(1,))
+    ds = open_dataset(src, cameras=(1,), sessions=[DATE])
+    assert ds.sessions == [DATE] and len(ds.session(DATE)) == 2
+    out = convert_dataset(src, tmp_path / "one", sessions=[DATE], cameras=(1,))
+    assert open_dataset(out).sessions == [DATE]
+    for sessions, error, match in [
+        (["2099-01-01"], KeyError, r"sessions: no session '2099-01-01' in .*'2012-01-08', '2013"),
+        ([DATE, DATE], ValueError, r"sessions: \['2012-01-08'\] listed more than once"),
+        (DATE, TypeError, r"^sessions: expected a list of session names"),
+        ([], TypeError, r"^sessions: expected a non-empty list"),
+    ]:
+        with pytest.raises(error, match=match):
+            open_dataset(src, cameras=(1,), sessions=sessions)
+    # RobotCar: the folder's first session is read for the world origin, chosen or not, so
+    # sessions read apart share one world frame; a later unchosen session is never read
+    src = tmp_path / "oxford"
+    src.mkdir()
+    first = _oxford(src)
+    second = src / "2019-01-11-12-26-55-radar-oxford-10k"
+    third = src / "2019-01-12-00-00-00-radar-oxford-10k"
+    shutil.copytree(first, second)
+    ins = second / "gps" / "ins.csv"
+    lines = ins.read_text().splitlines()  # the second drive 3 m further north
+    for k in range(1, len(lines)):
+        f = lines[k].split(",")
+        f[5] = str(float(f[5]) + 3.0)
+        lines[k] = ",".join(f)
+    ins.write_text("\n".join(lines) + "\n")
+    shutil.copytree(first, third)
+    (third / "gps" / "ins.csv").write_text("broken\n")
+    cams = ("stereo_centre", "mono_left")
+    with pytest.raises(DatasetFormatError):
+        open_dataset(src, cameras=cams)
+    both = open_dataset(src, cameras=cams, sessions=[first.name, second.name])
+    alone = open_dataset(src, cameras=cams, sessions=[second.name])
+    assert alone.sessions == [second.name]
+    assert alone.meta["origin_enu"] == both.meta["origin_enu"]
+    np.testing.assert_array_equal(alone.session(second.name).poses, both.session(second.name).poses)
+    np.testing.assert_allclose(
+        both.session(second.name).poses[:, :2] - both.session(first.name).poses[:, :2],
+        [[0.0, 3.0]] * len(both.session(first.name)), atol=1e-9,
+    )  # fmt: skip
+
+
 def test_convert_leaves_nothing_behind_on_failure(tmp_path, monkeypatch):
     from vvloc.data.nclt import NcltSession
 

@@ -49,7 +49,11 @@ def convert(
     ] = SourceFormat.auto,
     sessions: Annotated[
         str | None,
-        typer.Option("--sessions", help="Comma-separated sessions to convert (default all)."),
+        typer.Option(
+            "--sessions",
+            help="Comma-separated sessions to convert (default all); a raw folder's other "
+            "sessions are not read (RobotCar's first, which sets the world origin, is).",
+        ),
     ] = None,
     every: Annotated[
         int, typer.Option("--every", min=1, help="Keep every n-th frame of a session first.")

@@ -166,6 +166,8 @@ def convert_dataset(
         options["image_size"] = size  # the raw readers resize as they read: one interpolation
     keep = options.pop("cameras", None) if fmt == "vvloc" else None
     check_dataset_target(out, overwrite)  # before the source is read (slow for raw folders)
+    if sessions is not None and fmt != "vvloc":
+        options["sessions"] = list(sessions)  # a raw reader reads only these
     ds = open_dataset(src, format=fmt, **options)
     picked = None if keep is None else _camera_indices(keep, [c.name for c in ds.cameras])
     names = list(ds.sessions) if sessions is None else list(sessions)

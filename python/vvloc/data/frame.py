@@ -627,6 +627,30 @@ def check_reader_options(
     return size, int(tolerance_us)
 
 
+def chosen_sessions(sessions: Any, found: Sequence[str], root: object) -> set[str] | None:
+    """A raw reader's ``sessions`` option: None (every session ``found`` in the folder
+    ``root``) or a list of names of ``found``, each once; returned as a set. ``TypeError`` for
+    a str or a non-list, ``ValueError`` for a name listed twice, ``KeyError`` naming the
+    folder's sessions for a name it lacks (as :meth:`Dataset.session` does)."""
+    if sessions is None:
+        return None
+    if isinstance(sessions, (str, bytes)) or not hasattr(sessions, "__iter__"):
+        raise TypeError(
+            f"sessions: expected a list of session names, got {sessions!r} (one session: "
+            f"[{sessions!r}])"
+        )
+    names = list(sessions)
+    if not names or not all(isinstance(n, str) for n in names):
+        raise TypeError(f"sessions: expected a non-empty list of session names, got {names!r}")
+    repeated = sorted({n for n in names if names.count(n) > 1})
+    if repeated:
+        raise ValueError(f"sessions: {repeated} listed more than once")
+    for name in names:
+        if name not in found:
+            raise KeyError(f"sessions: no session {name!r} in {root}; sessions: {list(found)}")
+    return set(names)
+
+
 def nearest_within(
     reference: np.ndarray, queries: np.ndarray, tolerance: int
 ) -> tuple[np.ndarray, np.ndarray]:

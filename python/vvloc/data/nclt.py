@@ -61,6 +61,7 @@ from vvloc.data.frame import (
     Dataset,
     Session,
     check_reader_options,
+    chosen_sessions,
     ego_frames,
     euler_to_matrix,
     load_rgb,
@@ -223,6 +224,7 @@ def open_nclt(
     upright: bool = True,
     ego_height: float = 0.0,
     level: bool = True,
+    sessions: Sequence[str] | None = None,
 ) -> Dataset:
     """Open an NCLT raw folder as a :class:`Dataset` (one session per date).
 
@@ -242,12 +244,18 @@ def open_nclt(
             ``cam_to_ego`` (``Session.frame_cam_to_ego``), so the BEV's plane is the ground's.
             False keeps the tilting body frame as the ego frame (every frame the rig's
             ``cam_to_ego``).
+        sessions: the dates to read (default every date found); the others' images are not
+            listed and their ground truth not read (``KeyError`` naming the found dates for
+            one the folder lacks).
     """
     root = Path(root)
     image_size, tolerance_us = check_reader_options(cameras, image_size, tolerance_us)
     dates = _find_date_dirs(root)
     if not dates:
         raise DatasetFormatError(f"{root}: no <date>/lb3 folder found (NCLT layout)")
+    wanted = chosen_sessions(sessions, list(dates), root)
+    if wanted is not None:
+        dates = {d: lb3 for d, lb3 in dates.items() if d in wanted}
     for flag, value in (("upright", upright), ("level", level)):
         if not isinstance(value, (bool, np.bool_)):
             raise TypeError(f"{flag}: expected a bool, got {type(value).__name__}")
@@ -257,7 +265,7 @@ def open_nclt(
     params = root / "cam_params"
     T_body_lb3 = ssc_degrees_to_matrix(X_BODY_LB3)
     map_cache: dict[Path, tuple[np.ndarray, np.ndarray]] = {}
-    sessions: dict[str, Session] = {}
+    read: dict[str, Session] = {}
     rig: list[Camera] | None = None
     for date, lb3 in dates.items():
         dirs = [lb3 / f"Cam{i}" for i in cameras]
@@ -336,7 +344,7 @@ def open_nclt(
         note = heading_warning(date, poses)
         if note is not None:
             warnings.warn(note, stacklevel=2)
-        sessions[date] = NcltSession(
+        read[date] = NcltSession(
             date,
             dirs,
             cams,
@@ -351,4 +359,4 @@ def open_nclt(
         )
         rig = rig or cams
     assert rig is not None
-    return Dataset(root, rig, sessions)
+    return Dataset(root, rig, read)

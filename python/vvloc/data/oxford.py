@@ -77,6 +77,7 @@ from vvloc.data.frame import (
     Dataset,
     Session,
     check_reader_options,
+    chosen_sessions,
     ego_frames,
     euler_to_matrix,
     interpolate_rows,
@@ -271,6 +272,7 @@ def open_oxford(
     ins_good_only: bool = True,
     level: bool = True,
     motion_compensation: bool = True,
+    sessions: Sequence[str] | None = None,
 ) -> Dataset:
     """Open an Oxford RobotCar raw folder as a :class:`Dataset` (one session per folder).
 
@@ -293,6 +295,10 @@ def open_oxford(
             that fired 30 ms apart at 14 m/s is placed 0.4 m away from where the rig puts it.
             A frame is kept only when the INS covers every camera's time within
             ``tolerance_us``. False places every camera where the rig says.
+        sessions: the session folders to read (default every one found; ``KeyError`` naming
+            them for one the folder lacks). The folder's first session (in name order) is read
+            too, chosen or not: its first pose is the world origin of every session, so that
+            sessions read apart share one world frame.
     """
     from PIL import Image
 
@@ -318,14 +324,18 @@ def open_oxford(
     dirs = _sessions_in(root)
     if not dirs:
         raise DatasetFormatError(f"{root}: no <session>/gps/ins.csv found (RobotCar layout)")
+    wanted = chosen_sessions(sessions, [d.name for d in dirs], root)
     T_vehicle_ins = read_extrinsics(extr, "ins")
     ins_to_flu = np.linalg.inv(T_vehicle_ins) @ FRD_TO_FLU  # INS → vehicle (FLU)
-    sessions: dict[str, Session] = {}
+    read: dict[str, Session] = {}
     rig: list[Camera] = []
     origin: np.ndarray | None = None
     lut_cache: dict[tuple[Path, int, int], tuple[np.ndarray, np.ndarray]] = {}
     warned: set[str] = set()
     for sdir in dirs:
+        chosen = wanted is None or sdir.name in wanted
+        if not chosen and origin is not None:
+            continue  # the world origin is the first session's, chosen or not
         listed = [read_timestamps(sdir / CAMERA_SPECS[c][1]) for c in cameras]
         stamps = [
             s[[(sdir / CAMERA_SPECS[c][0] / f"{t}.png").is_file() for t in s]]
@@ -428,10 +438,12 @@ def open_oxford(
             level=level,
             world_body_at_cameras=at_cams,
         )
+        if not chosen:
+            continue
         note = heading_warning(sdir.name, poses)
         if note is not None:
             warnings.warn(note, stacklevel=2)
-        sessions[sdir.name] = OxfordSession(
+        read[sdir.name] = OxfordSession(
             sdir.name,
             paths,
             patterns,
@@ -445,4 +457,4 @@ def open_oxford(
         )
         rig = rig or cams
     meta = {"origin_enu": [float(v) for v in (origin if origin is not None else np.zeros(3))]}
-    return Dataset(root, rig, sessions, meta=meta)
+    return Dataset(root, rig, read, meta=meta)
