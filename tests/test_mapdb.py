@@ -205,7 +205,11 @@ def test_writer_appends_batches(tmp_path: Path) -> None:
         np.testing.assert_array_equal(db.bev(np.arange(N)), as_stored(kf["bevs"], "float16"))
 
 
-def test_writer_appends_a_whole_map_as_stored_and_refuses_another_models(tmp_path: Path) -> None:
+def test_writer_appends_a_whole_map_as_stored_and_refuses_another_models(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from vvloc.localize import mapdb as mapdb_module
+
     base = make_map()
     more = keyframes(4, seed=1)
     with MapWriter(tmp_path / "grown.h5", model_config=CONFIG, grid_size=0.3) as w:
@@ -221,27 +225,41 @@ def test_writer_appends_a_whole_map_as_stored_and_refuses_another_models(tmp_pat
         np.testing.assert_array_equal(db.local_descriptors(rows), base.local_descriptors(rows))
         np.testing.assert_array_equal(db.bev(rows), as_stored(base.bev(rows), "float16"))
     other = MapDatabase.from_arrays(**keyframes(), model_config={**CONFIG, "T": 9}, grid_size=0.3)
-    coarse = MapDatabase.from_arrays(**keyframes(), model_config=CONFIG, grid_size=0.5)
-    weighed = MapDatabase.from_arrays(
-        **keyframes(), model_config=CONFIG, grid_size=0.3, weights_hash="a" * 64
+    coarse = MapDatabase.from_arrays(
+        **keyframes(), model_config=CONFIG, grid_size=0.5, weights_hash="b" * 64
     )
+
+    def of_weights(weights: str | None, *, bev: bool = False, **change: Any) -> MapDatabase:
+        kf = {**keyframes(bev=bev), **change}
+        return MapDatabase.from_arrays(
+            **kf, model_config=CONFIG, grid_size=0.3, weights_hash=weights
+        )
+
     with MapWriter(
         tmp_path / "x.h5", model_config=CONFIG, grid_size=0.3, weights_hash="b" * 64
     ) as w:
         for db, error, match in [
             (other, MapError, r"^db: in-memory map was built with model \w+, this writer's"),
             (coarse, MapError, r"^db: in-memory map has BEV cells of 0\.5 m, this writer 0\.3"),
-            (weighed, MapError, r"^db: in-memory map was built with other weights"),
+            (of_weights("a" * 64), MapError, r"^db: in-memory map was built with other weights"),
+            (of_weights(None), MapError, r"^db: in-memory map records no weights fingerprint"),
             (base.ids, TypeError, r"^db: expected a MapDatabase, got ndarray"),
         ]:
             with pytest.raises(error, match=match):
                 w.append_map(db)  # type: ignore[arg-type]
-        w.append_map(make_map(bev=False))
+        w.append_map(of_weights("b" * 64))
         with pytest.raises(ValueError, match=r"^db: keyframe ids already in the map"):
-            w.append_map(make_map(bev=False))
-        shifted = keyframes(seed=2)
-        shifted["ids"] = shifted["ids"] + 1000
-        bev = MapDatabase.from_arrays(**shifted, model_config=CONFIG, grid_size=0.3)
+            w.append_map(of_weights("b" * 64))
+        # new ids, but one (session, sequence number) already written: refused before the
+        # first block (one row a block here), not half-way
+        seq = np.arange(N) + 1000
+        seq[-1] = 0
+        collide = of_weights("b" * 64, ids=np.arange(N) + 1000, seq=seq)
+        with monkeypatch.context() as m:
+            m.setattr(mapdb_module, "_COPY_BLOCK_BYTES", 1)
+            with pytest.raises(ValueError, match=r"^db: \(session, sequence number\) already"):
+                w.append_map(collide)
+        bev = of_weights("b" * 64, bev=True, ids=np.arange(N) + 1000, seq=np.arange(N) + 1000)
         with pytest.raises(ValueError, match=r"^db: in-memory map has BEVs and earlier batches"):
             w.append_map(bev)
         assert len(w) == N  # the refusals wrote nothing

@@ -973,7 +973,13 @@ def test_a_map_grows_from_a_base_map_without_encoding_its_frames_again(
     assert caught[0].filename == __file__
     with MapDatabase.open(tmp_path / "norig2.h5") as m:
         assert m.rig is None and m.sessions == ("s0", "s1")
+    with MapDatabase.open(map_file) as b, MapWriter(
+        tmp_path / "old.h5", model_config=b.model_config, grid_size=b.grid_size,
+        config_hash=b.config_hash, rig=b.rig,
+    ) as w:  # fmt: skip
+        w.append_map(b)  # as an older vvloc wrote maps: no weights fingerprint
     for kwargs, error, match in [
+        ({"base": tmp_path / "old.h5"}, MapError, r"^base: map .*old\.h5 records no weights"),
         ({"sessions": ["s0"]}, ValueError, r"^sessions: s0 already in the base map .*map\.h5"),
         ({"dtype": "float16"}, ValueError, r"^dtype: the base map .* stores float32 descrip"),
         ({"store_bev": False}, ValueError, r"^store_bev: the base map .* stores BEVs"),
@@ -1025,10 +1031,19 @@ def test_cli_map_build_base_grows_a_map_and_loops_reuse_keeps_its_pairs(
         text = (tmp_path / "fresh" / "loops.csv").read_text()
         assert (tmp_path / "loops" / "loops.csv").read_text() == text
     again = subprocess.run([*build, "--overwrite"], capture_output=True, text=True)
-    assert again.returncode == 2 and "s1 already in the base map" in again.stderr, again.stderr
+    assert again.returncode == 2 and "--sessions: s1 already in the --base map" in again.stderr, (
+        again.stderr
+    )
     r = subprocess.run([*build, "--overwrite", "--sessions", "s2", "--float16"],
                        capture_output=True, text=True)  # fmt: skip
-    assert r.returncode == 2 and "stores float32 descriptors, not float16" in r.stderr, r.stderr
+    assert r.returncode == 2 and "--float16: the --base map" in r.stderr, r.stderr
+    r = subprocess.run([*build, "--overwrite", "--sessions", "s2", "--no_bev"],
+                       capture_output=True, text=True)  # fmt: skip
+    assert r.returncode == 2 and "--no_bev: the --base map" in r.stderr, r.stderr
+    r = subprocess.run([*build[:-6], "--base", str(tmp_path / "nowhere.h5"), "--out",
+                        str(tmp_path / "x.h5"), "--sessions", "s2"], capture_output=True,
+                       text=True)  # fmt: skip
+    assert r.returncode == 2 and "--base: map file not found" in r.stderr, r.stderr
 
 
 def test_loops_cli_removes_only_its_own_stale_trajectories(tmp_path):

@@ -14,6 +14,7 @@ from vvloc.commands._util import (
     Threads,
     check_sessions,
     cli_errors,
+    named,
     parse_device,
     set_torch_threads,
     split_names,
@@ -66,6 +67,36 @@ def check_map_out(out: Path, *, overwrite: bool, dataset: Path) -> None:
             )
 
 
+def check_base(base: Path, sessions: list[str], *, float16: bool, no_bev: bool) -> None:
+    """``vvloc map build --base``, said before the dataset is read and the model loads: a vvloc
+    map that holds none of ``sessions``, whose descriptor dtype and BEVs ``--float16`` and
+    ``--no_bev`` (when given) agree with."""
+    from vvloc.localize import MapDatabase, MapError
+
+    with (
+        named("--base", MapError, FileNotFoundError, IsADirectoryError),
+        MapDatabase.open(base) as db,
+    ):
+        again = [s for s in sessions if s in db.sessions]
+        stored = db.metadata.descriptor_dtype
+        has_bev = db.has_bev
+    if again:
+        raise ValueError(
+            f"--sessions: {', '.join(again)} already in the --base map {base} (sessions: "
+            f"{', '.join(db.sessions)}); a session is added once"
+        )
+    if float16 and stored != "float16":
+        raise ValueError(
+            f"--float16: the --base map {base} stores {stored} descriptors, and one map holds "
+            "one dtype; leave --float16 out (the grown map takes the base's)"
+        )
+    if no_bev and has_bev:
+        raise ValueError(
+            f"--no_bev: the --base map {base} stores BEVs, and every keyframe of a map has one "
+            "or none has; leave --no_bev out (the grown map takes the base's)"
+        )
+
+
 @map_app.command("build")
 def build(
     checkpoint: Annotated[Path, typer.Option("--checkpoint", help="Checkpoint or run folder.")],
@@ -102,6 +133,7 @@ def build(
     largest keyframe id."""
 
     from vvloc.data.sampling import check_session_names
+    from vvloc.localize import MapError
     from vvloc.localize.localizer import build_map
     from vvloc.nets import VVLocNet
 
@@ -109,6 +141,8 @@ def build(
         set_torch_threads(threads)
         check_map_out(out, overwrite=overwrite, dataset=dataset)
         names = split_names(sessions, "--sessions", what="session name")
+        if base is not None:  # before the dataset is read and the model loads
+            check_base(base, names, float16=float16, no_bev=no_bev)
         # each exists and holds frames (an empty one was left out of the map without a word)
         ds = check_sessions(dataset, [("--sessions", name) for name in names])
         check_session_names("--sessions", ds, names, str(dataset))  # named once each
@@ -124,16 +158,9 @@ def build(
                 dtype="float16" if float16 else "float32",
                 store_bev=not no_bev,
             )
-        else:  # the base's dtype and BEVs unless a flag asks for other ones (then refused)
-            path = build_map(
-                model,
-                ds,
-                names,
-                out,
-                dtype="float16" if float16 else None,
-                store_bev=False if no_bev else None,
-                base=base,
-            )
+        else:  # the base's dtype and BEVs (check_base refused flags that ask for others)
+            with named("--base", MapError, FileNotFoundError, IsADirectoryError):
+                path = build_map(model, ds, names, out, base=base)
     typer.echo(f"map: {path}")
 
 

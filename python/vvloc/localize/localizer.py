@@ -1113,13 +1113,14 @@ def build_map(
     atomically). ``dtype`` is the stored dtype of the descriptors, ``"float32"`` (the default)
     or ``"float16"``; ``store_bev`` (default True) keeps the float16 BEVs that loop-closure
     detection needs. Keyframe ids are the running row numbers, sequence numbers each frame's
-    index in its session; the map records the dataset's rig (its cameras), which the localizer
-    compares queries with.
+    index in its session; the map records the dataset's rig (its cameras; with ``base``, the
+    base's), which the localizer compares queries with.
 
     ``base`` (a map, or the path of one) grows a map without encoding its frames again: the new
     map holds ``base``'s keyframes first, as it stores them (ids, sessions, descriptors, BEVs),
     then the frames of ``sessions``, numbered on from ``base``'s largest id. ``base`` must be
-    a map of this model (:func:`check_map_model`: :class:`MapError` otherwise), of the dataset's
+    a map of this model (:func:`check_map_model`; :class:`MapError` otherwise, and for a base
+    that records no weights fingerprint, which cannot be checked), of the dataset's
     rig (``ValueError`` when the rigs differ by more than
     :data:`vvloc.data.rig.SAME_MAP`; a ``UserWarning`` when ``base`` records no rig, and the
     new map records none), and must not hold a session of ``sessions`` (``ValueError``);
@@ -1237,7 +1238,8 @@ def build_map(
         if written == 0:
             raise ValueError(
                 f"sessions: none of the {total} frames of {sessions} has image content (every "
-                "camera's picture flat): a map needs keyframes"
+                "camera's picture flat): "
+                + ("a map needs keyframes" if db is None else "nothing to add to the base map")
             )
     return Path(out)
 
@@ -1253,6 +1255,11 @@ def _base_settings(
     """``build_map``'s checks of its ``base`` map ``db``; returns the grown map's descriptor
     dtype, whether it stores BEVs, and its rig."""
     where = "in-memory map" if db.path is None else f"map {db.path}"
+    if db.weights_hash is None:  # its keyframes would pass for these weights' in the grown map
+        raise MapError(
+            f"base: {where} records no weights fingerprint (written by an older vvloc), so "
+            "nothing shows that this model's weights built it; build the map anew"
+        )
     check_map_model(db, model, stacklevel=3)  # its warnings name build_map's caller
     again = [s for s in sessions if s in db.sessions]
     if again:

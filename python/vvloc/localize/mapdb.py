@@ -714,10 +714,11 @@ class MapWriter:
         BEVs, in ``db``'s row order, a block of rows at a time.
 
         ``db`` must come from the model this writer records: :class:`MapError` (a
-        ``ValueError``) when its model config hash, weights fingerprint (where both record
-        one) or grid size differs; ``ValueError`` when its ids or (session, sequence number)
-        pairs are already in this writer, or it has BEVs and earlier batches had none or the
-        reverse. Nothing is written then. The rigs are not compared (the caller's part:
+        ``ValueError``) when its model config hash or grid size differs, or its weights
+        fingerprint does, or it records none while this writer records one (its keyframes
+        would then pass for these weights'); ``ValueError`` when its ids or (session, sequence
+        number) pairs are already in this writer, or it has BEVs and earlier batches had none
+        or the reverse. Nothing is written then. The rigs are not compared (the caller's part:
         :func:`vvloc.localize.build_map` with ``base`` does).
         """
         self._check_open()
@@ -732,7 +733,12 @@ class MapWriter:
                 f"{self._config_hash}: one map holds the descriptors of one model"
             )
         theirs, ours = meta.model_weights_hash, self._weights_hash
-        if theirs is not None and ours is not None and theirs != ours:
+        if ours is not None and theirs is None:
+            raise MapError(
+                f"db: {where} records no weights fingerprint (written by an older vvloc), so "
+                f"nothing shows that the weights {ours} built it; build the map anew"
+            )
+        if ours is not None and theirs != ours:
             raise MapError(
                 f"db: {where} was built with other weights (weights {theirs}, this writer's "
                 f"{ours}): one map holds the descriptors of one model"
@@ -747,6 +753,17 @@ class MapWriter:
         dup = self._ids.intersection(db.ids.tolist())
         if dup:
             raise ValueError(f"db: keyframe ids already in the map: {sorted(dup)[:5]}")
+        sessions = db.sessions
+        taken = [
+            (sessions[s], q)
+            for s, q in zip(db.session_index.tolist(), db.seq.tolist(), strict=True)
+            if q in self._seqs.get(sessions[s], ())
+        ]
+        if taken:  # checked here for every block: a refusal half-way would keep half the map
+            raise ValueError(
+                f"db: (session, sequence number) already in the map: {taken[:5]} (sequence "
+                "numbers are unique within a session)"
+            )
         if self._has_bev is not None and db.has_bev != self._has_bev:
             raise ValueError(
                 f"db: {where} {'has' if db.has_bev else 'has no'} BEVs and earlier batches "
@@ -757,7 +774,6 @@ class MapWriter:
         if db.bev_shape is not None:
             row_bytes += int(np.prod(db.bev_shape)) * 2
         block = max(1, _COPY_BLOCK_BYTES // row_bytes)
-        sessions = db.sessions
         for start in range(0, len(db), block):
             rows = np.arange(start, min(start + block, len(db)))
             self.append(
