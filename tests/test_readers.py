@@ -638,6 +638,9 @@ def test_raw_readers_read_only_the_chosen_sessions(tmp_path):
     assert alone.sessions == [second.name]
     assert alone.meta["origin_enu"] == both.meta["origin_enu"]
     np.testing.assert_array_equal(alone.session(second.name).poses, both.session(second.name).poses)
+    (first / "mono_left.timestamps").unlink()  # the first session now fails to read
+    with pytest.raises(DatasetFormatError, match=r"read only for the world origin, which"):
+        open_dataset(src, cameras=cams, sessions=[second.name])
     np.testing.assert_allclose(
         both.session(second.name).poses[:, :2] - both.session(first.name).poses[:, :2],
         [[0.0, 3.0]] * len(both.session(first.name)), atol=1e-9,
@@ -849,8 +852,8 @@ def test_convert_keeps_the_named_cameras_of_a_vvloc_dataset(tmp_path):
     with DatasetWriter(src, rig) as w:
         s = w.add_session("s0")
         for k in range(3):
-            own = np.stack([np.eye(4)] * 3)
-            own[:, 0, 3] = [0.0, 1.0, 2.0]  # each camera's own extrinsics, told apart by x
+            own = np.stack([FORWARD] * 3)
+            own[:, 0, 3] = [0.0, 0.3, 0.6]  # each camera's own extrinsics, told apart by x
             images = np.stack([np.full((3, 6, 8), 10 * c + k, np.uint8) for c in range(3)])
             s.add(k, (float(k), 0.0, 0.0), images, cam_to_ego=own)
     out = convert_dataset(src, tmp_path / "two", cameras=["left", "front"])
@@ -858,7 +861,7 @@ def test_convert_keeps_the_named_cameras_of_a_vvloc_dataset(tmp_path):
     assert [c.name for c in two.cameras] == ["left", "front"]
     frame = two.session("s0")[2]
     assert frame.images[:, 0, 0, 0].tolist() == [12, 2]  # left's pixels, then front's
-    assert frame.cam_to_ego[:, 0, 3].tolist() == [1.0, 0.0]
+    assert frame.cam_to_ego[:, 0, 3].tolist() == [0.3, 0.0]
     assert two.meta["converted_from"]["options"] == {"cameras": ["left", "front"]}
     for cameras, match in (
         (["back"], r"cameras: \['back'\] not in the source's rig \['front', 'left', 'broken'\]"),
@@ -1091,7 +1094,7 @@ def test_the_writer_takes_per_frame_extrinsics_from_every_frame_or_none(tmp_path
     img = np.zeros((1, 3, 3, 4), np.uint8)
     with DatasetWriter(tmp_path / "a", [cam]) as w:
         s = w.add_session("s0")
-        s.add(0, (0, 0, 0), img, cam_to_ego=np.eye(4)[None])
+        s.add(0, (0, 0, 0), img, cam_to_ego=FORWARD[None])
         with pytest.raises(ValueError, match=r"cam_to_ego: every frame .* had its own"):
             s.add(1, (0, 0, 0), img)
         with pytest.raises(ValueError, match=r"cam_to_ego: expected float \(1, 4, 4\)"):
@@ -1102,7 +1105,7 @@ def test_the_writer_takes_per_frame_extrinsics_from_every_frame_or_none(tmp_path
         skewed[0, 3, 0] = 0.5  # not a rigid transform's bottom row (the file keeps 3 rows)
         with pytest.raises(ValueError, match="bottom row 0 0 0 1"):
             s.add(1, (0, 0, 0), img, cam_to_ego=skewed)
-        s.add(1, (0, 0, 0), img, cam_to_ego=np.eye(4)[None])
+        s.add(1, (0, 0, 0), img, cam_to_ego=FORWARD[None])
         t = w.add_session("s1")
         t.add(0, (0, 0, 0), img)
         with pytest.raises(ValueError, match="the first frame of this session had the rig's"):

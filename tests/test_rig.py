@@ -184,6 +184,58 @@ def test_opening_a_dataset_warns_about_its_rigs_extrinsics(tmp_path):
     assert ds.sessions == ["s0"]
 
 
+def test_frames_whose_own_extrinsics_no_rig_has_are_warned_about(tmp_path):
+    from vvloc.data import DatasetWriter, open_dataset
+    from vvloc.data.frame import ego_frames
+    from vvloc.data.rig import frame_extrinsics_warnings
+
+    rig_t = np.stack([c.cam_to_ego for c in RIG])
+    # a truck's far camera on a 16 % ramp (levelled: 9° about the ego origin, 1.2 m of shift),
+    # a 25° tilt, and a fast car's cameras fired 50 ms apart (1.5 m): frames of this rig
+    truck = [*RIG[:3], Camera(RIG[3].name, 160, 96, RIG[3].K, rig_t[3].copy())]
+    truck[3].cam_to_ego[:3, 3] = (7.0, 0.0, 3.0)
+    pitched = np.eye(4)
+    pitched[:3, :3] = Rotation.from_euler("y", -9.1, degrees=True).as_matrix()
+    _, _, levelled = ego_frames(pitched[None], truck, height=0.0, level=True)
+    assert levelled is not None
+    tilt = np.eye(4)
+    tilt[:3, :3] = Rotation.from_euler("xy", [25, -10], degrees=True).as_matrix()
+    fast = rig_t.copy()
+    fast[:, 0, 3] += [0.0, 1.5, 0.0, 1.5]
+    truck_t = np.stack([c.cam_to_ego for c in truck])
+    assert np.linalg.norm(levelled[0, 3, :3, 3] - truck_t[3, :3, 3]) > 1.0
+    assert frame_extrinsics_warnings(truck, [1], levelled) == []
+    frames = np.stack([rig_t, tilt @ rig_t, fast])
+    assert frame_extrinsics_warnings(RIG, [10, 20, 30], frames) == []
+    # millimetres in one row, an inverted transform in another, camera 0's rows for camera 3
+    bad = frames.copy()
+    bad[1, 2, :3, 3] *= 1000.0
+    bad[2, 2] = np.linalg.inv(fast[2])
+    bad[0, 3] = rig_t[0]
+    notes = frame_extrinsics_warnings(RIG, [10, 20, 30], bad)
+    assert len(notes) == 2, notes  # one per camera, the others' rows not blamed
+    assert notes[0].startswith(f"2 of 3 frames give camera {RIG[2].name!r} a mounting no rig")
+    assert re.search(
+        r"\(first at timestamp 20: \d+ m from the ego origin: millimetres\?\)", notes[0]
+    )
+    assert notes[1].startswith(f"1 of 3 frames give camera {RIG[3].name!r} a mounting no rig")
+    assert re.search(r"first at timestamp 10: turned by 90° against the frame's other", notes[1])
+    for args, match in [
+        (([10, 20], bad), r"^cam_to_ego: expected \(2, 4, 4, 4\) for 2 timestamps and 4 cameras"),
+        (([[10, 20, 30]], bad), r"^timestamps: expected shape \(N,\), got \(1, 3\)"),
+    ]:
+        with pytest.raises(ValueError, match=match):
+            frame_extrinsics_warnings(RIG, *args)
+    # opening a dataset warns, naming the session's cam_to_ego.csv
+    with DatasetWriter(tmp_path / "ds", RIG) as w:
+        s = w.add_session("s0")
+        for k, t in enumerate(bad[:2]):
+            s.add(k, (k * 1.0, 0.0, 0.0), np.zeros((4, 3, 96, 160), np.uint8), cam_to_ego=t)
+    with pytest.warns(UserWarning, match=r"s0/cam_to_ego\.csv: 1 of 2 frames give camera") as w:
+        open_dataset(tmp_path / "ds")
+    assert len(w) == 2  # camera 3 at frame 0, camera 2 at frame 1
+
+
 def test_the_same_cameras_in_another_order_are_named_so():
     # a rig.json listing the map's cameras in another order: it read as other intrinsics or a
     # 90° turn of camera 0, which sent users looking for a calibration error

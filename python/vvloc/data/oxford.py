@@ -332,129 +332,140 @@ def open_oxford(
     origin: np.ndarray | None = None
     lut_cache: dict[tuple[Path, int, int], tuple[np.ndarray, np.ndarray]] = {}
     warned: set[str] = set()
-    for sdir in dirs:
-        chosen = wanted is None or sdir.name in wanted
-        if not chosen and origin is not None:
-            continue  # the world origin is the first session's, chosen or not
-        listed = [read_timestamps(sdir / CAMERA_SPECS[c][1]) for c in cameras]
-        stamps = [
-            s[[(sdir / CAMERA_SPECS[c][0] / f"{t}.png").is_file() for t in s]]
-            for c, s in zip(cameras, listed, strict=True)
-        ]
-        if len(stamps[0]) == 0:
-            raise DatasetFormatError(f"{sdir}: no images of {cameras[0]} listed and present")
-        ref = stamps[0]
-        # each frame left out is counted under the first reason it fails, in this order
-        first = f"listed in {CAMERA_SPECS[cameras[0]][1]} but no image file"
-        left_out = {first: len(listed[0]) - len(ref)}
-        keep = np.ones(len(ref), dtype=bool)
-        picks = []
-        far = 0  # frames with no image of some camera listed within tolerance_us
-        for c, s, all_listed in zip(cameras, stamps, listed, strict=True):
-            p, ok = nearest_within(s, ref, tolerance_us)
-            picks.append(p)
-            _, near_listed = nearest_within(all_listed, ref, tolerance_us)
-            absent = keep & ~ok & near_listed  # listed near in time, but its file is missing
-            key = f"listed in {CAMERA_SPECS[c][1]} but no image file"
-            left_out[key] = left_out.get(key, 0) + int(absent.sum())
-            far += int((keep & ~ok & ~near_listed).sum())
+    origin_only: str | None = None  # the unchosen first session, read for the origin
+    try:
+        for sdir in dirs:
+            chosen = wanted is None or sdir.name in wanted
+            if not chosen and origin is not None:
+                continue  # the world origin is the first session's, chosen or not
+            origin_only = None if chosen else sdir.name
+            listed = [read_timestamps(sdir / CAMERA_SPECS[c][1]) for c in cameras]
+            stamps = [
+                s[[(sdir / CAMERA_SPECS[c][0] / f"{t}.png").is_file() for t in s]]
+                for c, s in zip(cameras, listed, strict=True)
+            ]
+            if len(stamps[0]) == 0:
+                raise DatasetFormatError(f"{sdir}: no images of {cameras[0]} listed and present")
+            ref = stamps[0]
+            # each frame left out is counted under the first reason it fails, in this order
+            first = f"listed in {CAMERA_SPECS[cameras[0]][1]} but no image file"
+            left_out = {first: len(listed[0]) - len(ref)}
+            keep = np.ones(len(ref), dtype=bool)
+            picks = []
+            far = 0  # frames with no image of some camera listed within tolerance_us
+            for c, s, all_listed in zip(cameras, stamps, listed, strict=True):
+                p, ok = nearest_within(s, ref, tolerance_us)
+                picks.append(p)
+                _, near_listed = nearest_within(all_listed, ref, tolerance_us)
+                absent = keep & ~ok & near_listed  # listed near in time, but its file is missing
+                key = f"listed in {CAMERA_SPECS[c][1]} but no image file"
+                left_out[key] = left_out.get(key, 0) + int(absent.sum())
+                far += int((keep & ~ok & ~near_listed).sum())
+                keep &= ok
+            left_out[f"no image of every camera within tolerance_us={tolerance_us}"] = far
+            ins = read_ins(sdir / "gps" / "ins.csv", good_only=ins_good_only)
+            ins_t = ins[:, 0].astype(np.int64)
+            ins_at, ok = interpolate_rows(
+                ins_t, ins[:, 1:7], ref, tolerance_us, angle_columns=(3, 4, 5)
+            )
+            # the rows read_ins kept: INS_SOLUTION_GOOD ones with ins_good_only
+            left_out[f"no INS row within tolerance_us={tolerance_us}"] = int((keep & ~ok).sum())
             keep &= ok
-        left_out[f"no image of every camera within tolerance_us={tolerance_us}"] = far
-        ins = read_ins(sdir / "gps" / "ins.csv", good_only=ins_good_only)
-        ins_t = ins[:, 0].astype(np.int64)
-        ins_at, ok = interpolate_rows(
-            ins_t, ins[:, 1:7], ref, tolerance_us, angle_columns=(3, 4, 5)
-        )
-        # the rows read_ins kept: INS_SOLUTION_GOOD ones with ins_good_only
-        left_out[f"no INS row within tolerance_us={tolerance_us}"] = int((keep & ~ok).sum())
-        keep &= ok
-        # the INS at each camera's own exposure (motion compensation); a camera without any
-        # image has joined no frame (keep is all False)
-        ins_cams = []
-        if motion_compensation and keep.any():
-            covered = np.ones(len(ref), dtype=bool)
-            for t_cam in (s[p] for s, p in zip(stamps, picks, strict=True)):
-                row, ok = interpolate_rows(
-                    ins_t, ins[:, 1:7], t_cam, tolerance_us, angle_columns=(3, 4, 5)
-                )
-                ins_cams.append(row)
-                covered &= ok
-            left_out["no INS row near some camera's exposure (motion_compensation)"] = int(
-                (keep & ~covered).sum()
-            )
-            keep &= covered
-        if not keep.any():
-            raise DatasetFormatError(
-                f"{sdir}: no frame has an image of every camera {list(cameras)} and an INS row "
-                f"within tolerance_us={tolerance_us}"
-            )
-        ref = ref[keep]
-        paths = [
-            [sdir / CAMERA_SPECS[c][0] / f"{t}.png" for t in s[p[keep]]]
-            for c, s, p in zip(cameras, stamps, picks, strict=True)
-        ]
-        cams: list[Camera] = []
-        luts: list[tuple[np.ndarray, np.ndarray] | None] = []
-        patterns: list[str] = []
-        for c, ps in zip(cameras, paths, strict=True):
-            _, _, model, sensor, pattern = CAMERA_SPECS[c]
-            K, G, lut_path = read_model(models, model)
-            try:
-                with Image.open(ps[0]) as im:
-                    w, h = im.size
-            except (OSError, SyntaxError) as e:  # FileNotFoundError, PIL's decoder errors
-                raise DatasetFormatError(f"{ps[0]}: not a readable image ({e})") from None
-            T_camera_vehicle = read_extrinsics(extr, sensor, required=sensor != "stereo")
-            cam_to_ego = FRD_TO_FLU @ np.linalg.inv(T_camera_vehicle) @ G
-            cams.append(Camera(c, w, h, K, cam_to_ego).with_ego_origin_lowered(height))
-            if lut_path is not None:
-                if (lut_path, w, h) not in lut_cache:  # one LUT per camera, every session
-                    lut_cache[(lut_path, w, h)] = read_lut(lut_path, w, h)
-                luts.append(lut_cache[(lut_path, w, h)])
-            else:
-                luts.append(None)
-                if c not in warned:
-                    warned.add(c)
-                    warnings.warn(
-                        f"{models}: no {model}_distortion_lut.bin; {c}'s images are used "
-                        "distorted, which its pinhole K does not describe",
-                        stacklevel=2,
+            # the INS at each camera's own exposure (motion compensation); a camera without any
+            # image has joined no frame (keep is all False)
+            ins_cams = []
+            if motion_compensation and keep.any():
+                covered = np.ones(len(ref), dtype=bool)
+                for t_cam in (s[p] for s, p in zip(stamps, picks, strict=True)):
+                    row, ok = interpolate_rows(
+                        ins_t, ins[:, 1:7], t_cam, tolerance_us, angle_columns=(3, 4, 5)
                     )
-            patterns.append(pattern)
-        size = image_size or (cams[0].width, cams[0].height)
-        cams = [cam.resized(*size) for cam in cams]
-        if origin is None:  # the first session's first ego origin (the ground under the roof)
-            T0 = NED_TO_ENU @ euler_to_matrix(*ins_at[keep][0]) @ ins_to_flu
-            origin = T0[:3, 3] - height * T0[:3, 2]
-        at_cams = None
-        if motion_compensation:
-            at_cams = np.stack(
-                [_world_vehicle(rows[keep], ins_to_flu, origin) for rows in ins_cams], axis=1
+                    ins_cams.append(row)
+                    covered &= ok
+                left_out["no INS row near some camera's exposure (motion_compensation)"] = int(
+                    (keep & ~covered).sum()
+                )
+                keep &= covered
+            if not keep.any():
+                raise DatasetFormatError(
+                    f"{sdir}: no frame has an image of every camera {list(cameras)} and an INS row "
+                    f"within tolerance_us={tolerance_us}"
+                )
+            ref = ref[keep]
+            paths = [
+                [sdir / CAMERA_SPECS[c][0] / f"{t}.png" for t in s[p[keep]]]
+                for c, s, p in zip(cameras, stamps, picks, strict=True)
+            ]
+            cams: list[Camera] = []
+            luts: list[tuple[np.ndarray, np.ndarray] | None] = []
+            patterns: list[str] = []
+            for c, ps in zip(cameras, paths, strict=True):
+                _, _, model, sensor, pattern = CAMERA_SPECS[c]
+                K, G, lut_path = read_model(models, model)
+                try:
+                    with Image.open(ps[0]) as im:
+                        w, h = im.size
+                except (OSError, SyntaxError) as e:  # FileNotFoundError, PIL's decoder errors
+                    raise DatasetFormatError(f"{ps[0]}: not a readable image ({e})") from None
+                T_camera_vehicle = read_extrinsics(extr, sensor, required=sensor != "stereo")
+                cam_to_ego = FRD_TO_FLU @ np.linalg.inv(T_camera_vehicle) @ G
+                cams.append(Camera(c, w, h, K, cam_to_ego).with_ego_origin_lowered(height))
+                if lut_path is not None:
+                    if (lut_path, w, h) not in lut_cache:  # one LUT per camera, every session
+                        lut_cache[(lut_path, w, h)] = read_lut(lut_path, w, h)
+                    luts.append(lut_cache[(lut_path, w, h)])
+                else:
+                    luts.append(None)
+                    if c not in warned:
+                        warned.add(c)
+                        warnings.warn(
+                            f"{models}: no {model}_distortion_lut.bin; {c}'s images are used "
+                            "distorted, which its pinhole K does not describe",
+                            stacklevel=2,
+                        )
+                patterns.append(pattern)
+            size = image_size or (cams[0].width, cams[0].height)
+            cams = [cam.resized(*size) for cam in cams]
+            if origin is None:  # the first session's first ego origin (the ground under the roof)
+                T0 = NED_TO_ENU @ euler_to_matrix(*ins_at[keep][0]) @ ins_to_flu
+                origin = T0[:3, 3] - height * T0[:3, 2]
+            at_cams = None
+            if motion_compensation:
+                at_cams = np.stack(
+                    [_world_vehicle(rows[keep], ins_to_flu, origin) for rows in ins_cams], axis=1
+                )
+            poses, zs, frame_cam_to_ego = ego_frames(
+                _world_vehicle(ins_at[keep], ins_to_flu, origin),
+                cams,
+                height=height,
+                level=level,
+                world_body_at_cameras=at_cams,
             )
-        poses, zs, frame_cam_to_ego = ego_frames(
-            _world_vehicle(ins_at[keep], ins_to_flu, origin),
-            cams,
-            height=height,
-            level=level,
-            world_body_at_cameras=at_cams,
-        )
-        if not chosen:
-            continue
-        note = heading_warning(sdir.name, poses)
-        if note is not None:
-            warnings.warn(note, stacklevel=2)
-        read[sdir.name] = OxfordSession(
-            sdir.name,
-            paths,
-            patterns,
-            luts,
-            cams,
-            ref,
-            poses,
-            zs,
-            frame_cam_to_ego,
-            left_out=left_out,
-        )
-        rig = rig or cams
+            if not chosen:
+                continue
+            note = heading_warning(sdir.name, poses)
+            if note is not None:
+                warnings.warn(note, stacklevel=2)
+            read[sdir.name] = OxfordSession(
+                sdir.name,
+                paths,
+                patterns,
+                luts,
+                cams,
+                ref,
+                poses,
+                zs,
+                frame_cam_to_ego,
+                left_out=left_out,
+            )
+            rig = rig or cams
+    except DatasetFormatError as e:
+        if origin_only is None:
+            raise
+        raise DatasetFormatError(
+            f"{e} ({origin_only} is the folder's first session, read only for the world "
+            "origin, which its first pose sets: mend it, or move it out of the folder and the "
+            "origin moves with it)"
+        ) from None
     meta = {"origin_enu": [float(v) for v in (origin if origin is not None else np.zeros(3))]}
     return Dataset(root, rig, read, meta=meta)

@@ -25,6 +25,7 @@ __all__ = [
     "SAME_MODEL",
     "RigTolerance",
     "describe_rig",
+    "frame_extrinsics_warnings",
     "rig_difference",
     "rig_warnings",
 ]
@@ -84,8 +85,9 @@ def rig_warnings(cameras: Sequence[Camera]) -> list[str]:
     horizon (another camera axis convention than OpenCV's, an inverted transform, or a camera
     that sees only sky). Each camera's ``cam_to_ego`` (4, 4) maps its OpenCV coordinates
     (x right, y down, z forward) to the ego frame (x forward, y left, z up, origin on the
-    ground), metres (DESIGN.md §3). Only the rig is checked, not a frame's own extrinsics, and a
-    plausible mounting in the wrong place (a transposed rotation that still looks down) passes."""
+    ground), metres (DESIGN.md §3). A frame's own extrinsics are checked against the rig by
+    :func:`frame_extrinsics_warnings`; a plausible mounting in the wrong place (a transposed
+    rotation that still looks down) passes."""
     hint = (
         "cam_to_ego maps camera coordinates (OpenCV: x right, y down, z forward) to the ego "
         "frame (x forward, y left, z up, origin on the ground), in metres (docs/dataset-format.md)"
@@ -119,6 +121,74 @@ def rig_warnings(cameras: Sequence[Camera]) -> list[str]:
                 f"another axis convention, or an inverted transform? (A camera that sees only "
                 f"sky adds nothing to a BEV.) {hint}"
             )
+    return notes
+
+
+def frame_extrinsics_warnings(
+    cameras: Sequence[Camera], timestamps: npt.ArrayLike, cam_to_ego: npt.ArrayLike
+) -> list[str]:
+    """Warnings about frames whose own extrinsics no rig of these cameras has, one per camera
+    at most, naming the first such frame: a camera farther than
+    :data:`MAX_CAMERA_DISTANCE_M` from the ego origin (millimetres), or one turned by more than
+    :data:`SAME_MAP`'s angle (14°) against the frame's other cameras, measured from how the
+    rig turns them against each other (an inverted transform, another camera's rows).
+
+    Levelling a tilting vehicle turns every camera of a frame alike (about the ego origin, so
+    far cameras move most), and motion compensation moves each camera by the vehicle's travel
+    between exposures: neither changes how the cameras are turned against each other, so both
+    pass whatever the slope and speed. A camera is named when the (lower) median of its turns
+    against the others' exceeds the angle: one wrong camera of three or more is named alone
+    (of two, both are). A one-camera rig gets the distance check alone.
+
+    Args:
+        cameras: the rig, M cameras in image order (``rig.json``).
+        timestamps: (N,) int the frames' timestamps (microseconds), named in the warnings.
+        cam_to_ego: (N, M, 4, 4) float each frame's camera → ego transforms, metres.
+    """
+    stamps = np.asarray(timestamps)
+    t = np.asarray(cam_to_ego, dtype=np.float64)
+    if stamps.ndim != 1:
+        raise ValueError(f"timestamps: expected shape (N,), got {stamps.shape}")
+    if t.shape != (len(stamps), len(cameras), 4, 4):
+        raise ValueError(
+            f"cam_to_ego: expected ({len(stamps)}, {len(cameras)}, 4, 4) for {len(stamps)} "
+            f"timestamps and {len(cameras)} cameras, got {t.shape}"
+        )
+    n, m = t.shape[:2]
+    far = np.linalg.norm(t[:, :, :3, 3], axis=2) > MAX_CAMERA_DISTANCE_M  # (N, M)
+    turned = np.zeros((n, m), dtype=bool)
+    worst = np.zeros((n, m))
+    if m > 1:
+        # each camera's turn of the rig's mounting in this frame, L = R_frame R_rig^T (N, M):
+        # one and the same for every camera of a consistent frame
+        rig = np.stack([c.cam_to_ego[:3, :3] for c in cameras])
+        lift = np.einsum("nmij,mkj->nmik", t[:, :, :3, :3], rig)
+        rel = np.einsum("naji,nbjk->nabik", lift, lift)  # L_a^T L_b (N, M, M, 3, 3)
+        cos = (np.trace(rel, axis1=3, axis2=4) - 1.0) / 2.0
+        angle = np.arccos(np.clip(cos, -1.0, 1.0))  # (N, M, M)
+        others = ~np.eye(m, dtype=bool)
+        # the lower median: with three cameras, one wrong camera leaves the others' low
+        worst = np.sort(angle[:, others].reshape(n, m, m - 1), axis=2)[:, :, (m - 2) // 2]
+        turned = worst > SAME_MAP.angle
+    notes = []
+    for c, cam in enumerate(cameras):
+        off = far[:, c] | turned[:, c]
+        if not off.any():
+            continue
+        k = int(np.argmax(off))
+        if far[k, c]:
+            dist = float(np.linalg.norm(t[k, c, :3, 3]))
+            why = f"{dist:.0f} m from the ego origin: millimetres?"
+        else:
+            why = (
+                f"turned by {np.degrees(worst[k, c]):.0f}° against the frame's other cameras, "
+                f"beyond {np.degrees(SAME_MAP.angle):.0f}° from how the rig turns them: an "
+                "inverted transform, or another camera's rows?"
+            )
+        notes.append(
+            f"{int(off.sum())} of {n} frames give camera {cam.name!r} a mounting no rig of "
+            f"these cameras has (first at timestamp {int(stamps[k])}: {why})"
+        )
     return notes
 
 

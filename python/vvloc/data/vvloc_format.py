@@ -42,7 +42,7 @@ from vvloc._io import (
 )
 from vvloc.data.frame import RIGID, Camera, Dataset, Session, is_rigid, load_rgb
 from vvloc.data.heading import heading_warning
-from vvloc.data.rig import rig_warnings
+from vvloc.data.rig import frame_extrinsics_warnings, rig_warnings
 from vvloc.kernels import _finite_float
 
 _log = logging.getLogger(__name__)
@@ -302,7 +302,10 @@ def open_vvloc(root: str | os.PathLike[str]) -> Dataset:
     row, rows out of time order, a camera that is not a pinhole with a rigid ``cam_to_ego``,
     cameras of different image sizes, a camera folder that is not in the rig, or a missing
     image. Warns (``UserWarning``) when a camera's extrinsics look wrong (another unit, axis
-    convention or direction: :func:`vvloc.data.rig.rig_warnings`) and when a session's yaw
+    convention or direction: :func:`vvloc.data.rig.rig_warnings`), when a session's
+    ``cam_to_ego.csv`` gives a camera a mounting no rig of these cameras has (millimetres, a
+    camera turned against the others: :func:`vvloc.data.rig.frame_extrinsics_warnings`) and
+    when a session's yaw
     looks like degrees or another convention (:func:`yaw_warnings`).
     """
     root = Path(root)
@@ -339,6 +342,8 @@ def open_vvloc(root: str | os.PathLike[str]) -> Dataset:
         extrinsics = None
         if (d / EXTRINSICS_FILE).is_file():
             extrinsics = read_extrinsics(d / EXTRINSICS_FILE, rows["timestamp"], cameras)
+            for note in frame_extrinsics_warnings(cameras, rows["timestamp"], extrinsics):
+                warnings.warn(f"{d / EXTRINSICS_FILE}: {note}", stacklevel=2)
         for note in yaw_warnings(d.name, rows):
             warnings.warn(note, stacklevel=2)
         sessions[d.name] = VvlocSession(d, d.name, cameras, rows, extrinsics)
