@@ -161,9 +161,15 @@ def test_the_map_records_its_rig_and_the_localizer_compares_queries_with_it(
     tilt[:3, :3] = Rotation.from_euler("y", 6, degrees=True).as_matrix()
     tilt[0, 3] = 0.4
     fresh = Localizer.open(map_file, model_dir, top_k=3, search=SMALL_SEARCH)
+    # ... and so is one on a 25° slope whose cameras fired apart at speed (1.5 m between them)
+    steep = np.eye(4)
+    steep[:3, :3] = Rotation.from_euler("xy", [10, 25], degrees=True).as_matrix()
+    fast = steep @ frame.cam_to_ego
+    fast[:2, :3, 3] += steep[:3, 0] * 1.5
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         fresh.localize(dataclasses.replace(frame, cam_to_ego=tilt @ frame.cam_to_ego))
+        fresh.localize(dataclasses.replace(frame, cam_to_ego=fast))
     lower = frame.cam_to_ego.copy()
     lower[1, :3, :3] = Rotation.from_euler("y", 20, degrees=True).as_matrix() @ lower[1, :3, :3]
     with pytest.warns(

@@ -236,6 +236,43 @@ def test_frames_whose_own_extrinsics_no_rig_has_are_warned_about(tmp_path):
     assert len(w) == 2  # camera 3 at frame 0, camera 2 at frame 1
 
 
+def test_without_levelling_takes_out_a_turn_and_shift_common_to_every_camera():
+    from vvloc.data.rig import without_levelling
+
+    rig_t = np.stack([c.cam_to_ego for c in RIG])
+    common = np.eye(4)
+    common[:3, :3] = Rotation.from_euler("xy", [15, -20], degrees=True).as_matrix()
+    common[:3, 3] = (1.0, 0.5, 0.0)
+    np.testing.assert_allclose(without_levelling(RIG, common @ rig_t), rig_t, atol=1e-12)
+    # a camera mounted otherwise stays off by its own turn; the others come back
+    lower = common @ rig_t
+    lower[1, :3, :3] = Rotation.from_euler("y", 20, degrees=True).as_matrix() @ lower[1, :3, :3]
+    back = without_levelling(RIG, lower)
+    np.testing.assert_allclose(back[[0, 2, 3]], rig_t[[0, 2, 3]], atol=1e-12)
+    turn = back[1, :3, :3] @ rig_t[1, :3, :3].T
+    assert np.degrees(np.arccos((np.trace(turn) - 1) / 2)) == pytest.approx(20.0)
+    # no vehicle's turn or shift, one camera, or another count: left as they are
+    for T, rig in [
+        (_turned(50) @ rig_t, RIG),
+        (_shifted(4.0) @ rig_t, RIG),
+        (common @ rig_t[:1], RIG[:1]),
+        (common @ rig_t[:3], RIG),
+    ]:
+        np.testing.assert_array_equal(without_levelling(rig, T), T)
+
+
+def _turned(degrees: float) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("y", degrees, degrees=True).as_matrix()
+    return T
+
+
+def _shifted(metres: float) -> np.ndarray:
+    T = np.eye(4)
+    T[0, 3] = metres
+    return T
+
+
 def test_the_same_cameras_in_another_order_are_named_so():
     # a rig.json listing the map's cameras in another order: it read as other intrinsics or a
     # 90° turn of camera 0, which sent users looking for a calibration error

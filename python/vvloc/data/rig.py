@@ -28,6 +28,7 @@ __all__ = [
     "frame_extrinsics_warnings",
     "rig_difference",
     "rig_warnings",
+    "without_levelling",
 ]
 
 
@@ -51,7 +52,9 @@ class RigTolerance:
 #: A query frame against its map's rig (:class:`vvloc.Localizer`): the very rig, its
 #: calibration to rounding, except that a frame's own extrinsics may differ by a tilting
 #: vehicle's levelling (a few degrees) and motion compensation (speed × exposure gap, 0.4 m at
-#: 14 m/s and 30 ms): 14° and 1 m.
+#: 14 m/s and 30 ms): 14° and 1 m. (The localizer also compares the frame with the turn and
+#: shift common to all its cameras taken out, :func:`without_levelling`: steeper slopes and
+#: faster travel.)
 SAME_MAP = RigTolerance(size=0.0, focal=1e-3, principal=1e-3, angle=0.25, shift=1.0)
 
 #: A map's rig against the rig the model was trained on: a recalibration or a copy of the rig on
@@ -163,9 +166,7 @@ def frame_extrinsics_warnings(
         # one and the same for every camera of a consistent frame
         rig = np.stack([c.cam_to_ego[:3, :3] for c in cameras])
         lift = np.einsum("nmij,mkj->nmik", t[:, :, :3, :3], rig)
-        rel = np.einsum("naji,nbjk->nabik", lift, lift)  # L_a^T L_b (N, M, M, 3, 3)
-        cos = (np.trace(rel, axis1=3, axis2=4) - 1.0) / 2.0
-        angle = np.arccos(np.clip(cos, -1.0, 1.0))  # (N, M, M)
+        angle = _rotation_angle(np.einsum("naji,nbjk->nabik", lift, lift))  # L_a^T L_b
         others = ~np.eye(m, dtype=bool)
         # the lower median: with three cameras, one wrong camera leaves the others' low
         worst = np.sort(angle[:, others].reshape(n, m, m - 1), axis=2)[:, :, (m - 2) // 2]
@@ -190,6 +191,42 @@ def frame_extrinsics_warnings(
             f"these cameras has (first at timestamp {int(stamps[k])}: {why})"
         )
     return notes
+
+
+#: The largest turn (radians) and shift (metres) of a whole rig that :func:`without_levelling`
+#: takes for a tilting vehicle's levelling and motion compensation: beyond any slope a vehicle
+#: drives (``vvloc sim`` tilts up to 30°) or its travel between two cameras' exposures.
+MAX_LEVELLING = (np.radians(35.0), 3.0)
+
+
+def without_levelling(reference: Sequence[Camera], cam_to_ego: npt.ArrayLike) -> np.ndarray:
+    """A frame's own extrinsics with the turn and shift they give every camera of
+    ``reference`` alike taken out: (M, 4, 4) float64 camera → ego transforms, metres.
+
+    Levelling a tilting vehicle's ego frame turns all its cameras about the ego origin, and
+    motion compensation moves them by the vehicle's travel: a frame of ``reference``'s rig then
+    comes back as ``reference``'s own mountings, and a camera mounted otherwise stays off. The
+    common turn is the one of the camera that agrees best with the others (the lowest median
+    turn against theirs), the shift the median camera's; ``cam_to_ego`` is returned as it is
+    when that turn exceeds 35° or that shift 3 m (:data:`MAX_LEVELLING`: no vehicle's), or the
+    rig has one camera (its levelling cannot be told from its mounting) or another camera count.
+    """
+    t = np.asarray(cam_to_ego, dtype=np.float64)
+    m = len(reference)
+    if m < 2 or t.shape != (m, 4, 4):
+        return t
+    ref = np.stack([c.cam_to_ego for c in reference])
+    lift = t[:, :3, :3] @ ref[:, :3, :3].transpose(0, 2, 1)  # L_m = R_frame R_rig^T
+    angle = _rotation_angle(lift.transpose(0, 2, 1)[:, None] @ lift[None])  # (M, M)
+    others = np.sort(angle[~np.eye(m, dtype=bool)].reshape(m, m - 1), axis=1)
+    turn = lift[int(np.argmin(others[:, (m - 2) // 2]))]
+    shift = np.median(t[:, :3, 3] - ref[:, :3, 3] @ turn.T, axis=0)
+    if _rotation_angle(turn) > MAX_LEVELLING[0] or np.linalg.norm(shift) > MAX_LEVELLING[1]:
+        return t
+    undo = np.eye(4)
+    undo[:3, :3] = turn.T
+    undo[:3, 3] = -turn.T @ shift
+    return undo @ t
 
 
 def _alike(

@@ -62,7 +62,13 @@ from vvloc.data.frame import (
     is_rigid,
     stack_calibration,
 )
-from vvloc.data.rig import SAME_MAP, SAME_MODEL, describe_rig, rig_difference
+from vvloc.data.rig import (
+    SAME_MAP,
+    SAME_MODEL,
+    describe_rig,
+    rig_difference,
+    without_levelling,
+)
 from vvloc.data.sampling import check_session_names
 from vvloc.localize.mapdb import (
     MapDatabase,
@@ -908,11 +914,17 @@ class Localizer:
 
     def _check_rig(self, frame: Frame, at: str) -> None:
         """Warn (once) when ``frame`` (the caller's argument ``at``) comes from a rig other
-        than the one the map records (:data:`vvloc.data.rig.SAME_MAP`)."""
+        than the one the map records (:data:`vvloc.data.rig.SAME_MAP`), as it is and with the
+        turn and shift common to all its cameras taken out
+        (:func:`vvloc.data.rig.without_levelling`)."""
         if self._map_rig is None or self._rig_warned:
             return
         h, w = frame.images.shape[2:]
         why = rig_difference(self._map_rig, frame.K, frame.cam_to_ego, (w, h), SAME_MAP)
+        if why:  # a tilting vehicle's levelled, motion-compensated frame is the map's rig
+            level = without_levelling(self._map_rig, frame.cam_to_ego)
+            if not rig_difference(self._map_rig, frame.K, level, (w, h), SAME_MAP):
+                why = ""
         if why:
             self._rig_warned = True
             warnings.warn(
@@ -942,7 +954,9 @@ class Localizer:
         :data:`vvloc.data.rig.SAME_MAP` allows, when the map records its rig)
         are localized with a warning, once per localizer: the model met only its training rig,
         and its poses may be far off. A tilting vehicle's levelled frames and motion-compensated
-        cameras (``Session.frame_cam_to_ego``) stay within those bounds. Frames without image
+        cameras (``Session.frame_cam_to_ego``) are the map's rig: a turn (up to 35°) and shift
+        (up to 3 m) common to all cameras is taken out before comparing
+        (:func:`vvloc.data.rig.without_levelling`). Frames without image
         content (:func:`vvloc.data.has_image_content`: a covered rig, a black stretch) are
         localized but not accepted (``has_content`` False), with a ``UserWarning``."""
         batch_size = kernels._positive_int(batch_size, "batch_size")
