@@ -135,6 +135,22 @@ def test_estimate_yaw_finds_a_close_match_just_below_a_whole_bin(eps):
         assert np.all(np.minimum(d, t - d) < 1e-6), (backend, est.shift - s_true)
 
 
+def test_the_reference_refines_every_basin_when_scan_points_tie():
+    # a half-turn-periodic pair: the scan costs at shifts 1 and 3 tie exactly, the minimum lies
+    # just below 3; the reference refined only around the first tied point (shift 1, a half
+    # turn off: yaw +90° against the kernel's right -90.4°)
+    a = np.array(
+        [[[-0.7019236, -0.4623309], [-0.05116928, 1.1469532], [-1.2918115, 0.4667015],
+          [0.6099724, 0.5582887]]], np.float32,
+    )  # fmt: skip
+    assert ref.shift_cost(a[0], -a[0], 1.0) == ref.shift_cost(a[0], -a[0], 3.0)
+    got = K.estimate_yaw(a, -a)
+    want = K.estimate_yaw(a, -a, backend="reference")
+    assert got.shift[0] == pytest.approx(2.99583, abs=1e-4)
+    assert want.shift[0] == pytest.approx(got.shift[0], abs=1e-6)
+    assert want.cost[0] == pytest.approx(got.cost[0], abs=1e-9)
+
+
 def test_estimate_yaw_paper_size_matches_reference_on_two_pairs():
     rng = np.random.default_rng(2)
     src = _smooth_rows(rng, 2, 120, 64)

@@ -49,6 +49,15 @@ def test_roll_interp_matches_reference(shape, shift, data):
     close(K.roll_interp(x, shift, axis), K.roll_interp(x, shift, axis, backend="reference"))
 
 
+def test_a_read_only_array_is_read_without_a_warning_by_either_backend():
+    # torch.from_numpy warned on a read-only array (a memory-mapped map, a frozen batch)
+    x = np.random.default_rng(0).normal(size=(8, 3)).astype(np.float32)
+    x.setflags(write=False)
+    for backend in ("rust", "reference"):
+        out = K.roll_interp(x, 1.5, backend=backend)
+        np.testing.assert_allclose(out, K.roll_interp(x.copy(), 1.5), atol=1e-6)
+
+
 def test_roll_interp_is_torch_roll_at_integers_and_continuous():
     x = field(np.random.default_rng(0), 7, 3)
     np.testing.assert_array_equal(K.roll_interp(x, 3.0), torch.roll(torch.from_numpy(x), 3, 0))

@@ -278,6 +278,16 @@ def test_save_load_round_trip(tmp_path, dtype):
     assert os.listdir(tmp_path) == ["map.vvidx"]  # no temporary file left behind
 
 
+def test_save_and_load_take_bytes_paths_and_name_a_bad_one(tmp_path):
+    index = DescriptorIndex(clustered(20, 4, 3))
+    raw = os.fsencode(tmp_path / "i.vvidx")
+    index.save(raw)
+    np.testing.assert_array_equal(DescriptorIndex.load(raw).descriptors, index.descriptors)
+    for call in (lambda: index.save(3), lambda: DescriptorIndex.load(None)):
+        with pytest.raises(TypeError, match=r"^path: expected a str or os.PathLike, got"):
+            call()
+
+
 def test_save_replaces_a_file_as_every_vvloc_file_is_replaced(tmp_path):
     x = clustered(40, 8, 3)
     private = tmp_path / "private.vvidx"
@@ -333,10 +343,17 @@ def test_bad_input_raises_value_error_naming_the_argument():
         (lambda: index.add(np.ones((2, 9))), "descriptors"),
         (lambda: index.topk(x[:2], 3, exclude=Exclusion([0], [0, 1])), "exclude.groups"),
         (lambda: index.topk(x[:2], 3, exclude=Exclusion([0, 0], [0, 1], -1)), "exclude.window"),
+        # d beyond the core's limit: refused before a float32 copy or statistics of d entries
+        (lambda: DescriptorIndex(np.zeros((0, 2**40), np.float32)), r"^descriptors: dimension"),
+        (lambda: DescriptorIndex(np.zeros((1, 2**20 + 1), np.float32)), r"^descriptors: dim"),
     ]
     for call, name in cases:
         with pytest.raises(ValueError, match=name):
             call()
+    # numpy's dtype objects name a storage as the strings do; other types are refused by name
+    assert DescriptorIndex(x, dtype=np.dtype("float16")).topk(x[:1], 1)[0][0, 0] == 0
+    with pytest.raises(TypeError, match=r"^dtype: expected one of .*, got int"):
+        DescriptorIndex(x, dtype=3)  # type: ignore[arg-type]
     with pytest.raises(TypeError, match="k"):
         index.topk(x[:2], 2.5)
     with pytest.raises(TypeError, match="exclude"):

@@ -172,8 +172,17 @@ class Exclusion:
     whole_group: bool = False
 
 
+#: The largest descriptor dimension d an index takes (the Rust core's ``MAX_DIM``).
+MAX_DIM = 1 << 20
+
+
 def _matrix(x: Any, name: str, dim: int | None) -> npt.NDArray[np.float32]:
+    shape = getattr(x, "shape", None)  # an array's: refused before a float32 copy is made
+    if shape is not None and len(shape) == 2 and int(shape[1]) > MAX_DIM:
+        raise ValueError(f"{name}: dimension d must be <= {MAX_DIM}, got shape {tuple(shape)}")
     arr = _as_f32(x, name, 2, "(n, d)")
+    if arr.shape[1] > MAX_DIM:
+        raise ValueError(f"{name}: dimension d must be <= {MAX_DIM}, got shape {arr.shape}")
     if dim is not None and arr.shape[1] != dim:
         raise ValueError(f"{name}: expected shape (n, {dim}), got {arr.shape}")
     return arr
@@ -206,12 +215,22 @@ def _exclusion(ex: Exclusion | None, nq: int) -> tuple[Any, Any, int, bool] | No
     )
 
 
+def _path(path: Any) -> str | os.PathLike[str]:
+    """``path`` (a str or ``os.PathLike``; bytes decoded as the file system does), or
+    ``TypeError`` naming it."""
+    if isinstance(path, bytes):
+        return os.fsdecode(path)
+    if not isinstance(path, (str, os.PathLike)):
+        raise TypeError(f"path: expected a str or os.PathLike, got {type(path).__name__}")
+    return path
+
+
 class DescriptorIndex:
     """Exact L2 nearest-neighbour index over N descriptors of dimension d (Rust, parallel).
 
     Args:
         descriptors: float array (N, d) (numpy or torch; converted to C-contiguous float32,
-            must be finite). N may be 0.
+            must be finite). N may be 0; d ≤ :data:`MAX_DIM` (2²⁰).
         dtype: storage of the scanned copy, ``"float32"``, ``"float16"``, ``"bfloat16"`` or
             ``"int8"`` (d ≤ 65536).
         groups: group id per entry, int (N,); default 0.
@@ -236,6 +255,10 @@ class DescriptorIndex:
             self._inner = _inner
             self._spread: _Spread | None = None  # computed when first needed (add)
             return
+        if isinstance(dtype, np.dtype):  # np.dtype("float16") compares equal to "float16"
+            dtype = dtype.name
+        if not isinstance(dtype, str):
+            raise TypeError(f"dtype: expected one of {DTYPES}, got {type(dtype).__name__}")
         if dtype not in DTYPES:
             raise ValueError(f"dtype: expected one of {DTYPES}, got {dtype!r}")
         rows = _matrix(descriptors, "descriptors", None)
@@ -321,6 +344,7 @@ class DescriptorIndex:
         target replaced (the link kept), a device or pipe written into, never renamed over.
         The destination is checked before the index is serialised; the serialised bytes are
         held in memory while they are written (about N · d · the storage dtype's bytes)."""
+        path = _path(path)
         with atomic_write(path, "wb") as f:
             f.write(self._inner.to_bytes())
 
@@ -332,6 +356,7 @@ class DescriptorIndex:
         regular file (a named pipe blocked the reader forever), ``OSError`` when it cannot be
         read.
         """
+        path = _path(path)
         check_readable_file(path)
         return DescriptorIndex(None, _inner=_core.DescriptorIndex.load(os.fspath(path)))
 

@@ -57,22 +57,27 @@ def yaw_costs(src: npt.ArrayLike, tgt: npt.ArrayLike) -> F64:
 
 def estimate_yaw_pair(src: npt.ArrayLike, tgt: npt.ArrayLike) -> tuple[float, float, float]:
     """(s*, φ̂, c(s*)) of one pair (T, C): dense scan every ``SCAN_STEP`` bins, then a bounded
-    scalar minimisation within one scan step on each side of the best scan point."""
+    scalar minimisation within one scan step on each side of every local minimum of the scan
+    (the lowest wins, ties to the lower shift): two basins whose scan points tie, or nearly,
+    may hide the global minimum in either (a half-turn-periodic scene)."""
     src = np.asarray(src, dtype=np.float64)
     t = src.shape[0]
     shifts = np.arange(round(t / SCAN_STEP)) * SCAN_STEP
     costs = np.array([shift_cost(src, tgt, float(s)) for s in shifts])
     i = int(np.argmin(costs))
     best_s, best_c = float(shifts[i]), float(costs[i])
-    for lo, hi in ((best_s - SCAN_STEP, best_s), (best_s, best_s + SCAN_STEP)):
-        r = minimize_scalar(
-            lambda s: shift_cost(src, tgt, s),
-            bounds=(lo, hi),
-            method="bounded",
-            options={"xatol": 1e-10},
-        )
-        if r.fun < best_c:
-            best_s, best_c = float(r.x), float(r.fun)
+    lowest = (costs <= np.roll(costs, 1)) & (costs <= np.roll(costs, -1))  # circular
+    for j in np.flatnonzero(lowest).tolist():
+        at = float(shifts[j])
+        for lo, hi in ((at - SCAN_STEP, at), (at, at + SCAN_STEP)):
+            r = minimize_scalar(
+                lambda s: shift_cost(src, tgt, s),
+                bounds=(lo, hi),
+                method="bounded",
+                options={"xatol": 1e-10},
+            )
+            if r.fun < best_c:
+                best_s, best_c = float(r.x), float(r.fun)
     best_s %= t
     # in bins first: s = T/2 gives exactly π (2π·s/T can round above π and wrap to −π)
     signed = best_s if best_s <= t / 2 else best_s - t

@@ -29,7 +29,10 @@ def roll_interp(x: F32Array, shift: float, axis: int = 0) -> F32Array:
     ``roll(x, s)[i] = x[(i − s) mod n]``; for real ``s`` with ``k = ⌊s⌋``, ``w = s − k``:
     ``ρ = (1 − w)·roll(x, k) + w·roll(x, k + 1)``. Returns float32, same shape as ``x``.
     """
-    t = torch.from_numpy(np.ascontiguousarray(x, dtype=np.float32))
+    arr = np.ascontiguousarray(x, dtype=np.float32)
+    if not arr.flags.writeable:  # torch warns on a read-only array; it only reads this one
+        arr = arr.copy()
+    t = torch.from_numpy(arr)
     n = t.shape[axis]
     if n == 0 or t.numel() == 0:
         return t.numpy().copy()
