@@ -77,13 +77,14 @@ def check_base(base: Path, sessions: list[str], *, float16: bool, no_bev: bool) 
         named("--base", MapError, FileNotFoundError, IsADirectoryError),
         MapDatabase.open(base) as db,
     ):
-        again = [s for s in sessions if s in db.sessions]
+        have = db.sessions
+        again = [s for s in sessions if s in have]
         stored = db.metadata.descriptor_dtype
         has_bev = db.has_bev
     if again:
         raise ValueError(
             f"--sessions: {', '.join(again)} already in the --base map {base} (sessions: "
-            f"{', '.join(db.sessions)}); a session is added once"
+            f"{', '.join(have)}); a session is added once"
         )
     if float16 and stored != "float16":
         raise ValueError(
