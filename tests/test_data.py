@@ -44,6 +44,23 @@ def _line(n, y=0.0, floor=0):
     return poses, np.full(n, floor)
 
 
+def test_a_frames_time_in_seconds_prints_its_microseconds(tmp_path):
+    # t was timestamps × 1e-6: a unit in the last place off for about a third of the
+    # microseconds, which the trajectories and keyframes.csv then printed (…0.1234589)
+    cams = make_rig(4, W, H)
+    us = [1_700_000_000_123_459, 1_700_000_000_123_464, 1_700_000_000_999_999]
+    with DatasetWriter(tmp_path / "ds", cams) as w:
+        s = w.add_session("s0")
+        for k, t in enumerate(us):
+            s.add(t, (2.0 * k, 0.0, 0.0), np.full((4, 3, H, W), 100 + k, np.uint8))
+    session = open_dataset(tmp_path / "ds").session("s0")
+    assert [repr(f.t) for f in session] == [
+        "1700000000.123459",
+        "1700000000.123464",
+        "1700000000.999999",
+    ]
+
+
 def test_writer_and_reader_round_trip_lazily(tmp_path, monkeypatch):
     root = tmp_path / "ds"
     cams = _write(root, {"s0": _line(5), "s1": _line(4, y=1.0, floor=1)})

@@ -346,6 +346,10 @@ def test_writer_with_no_keyframes_writes_nothing(tmp_path: Path) -> None:
         ({"timestamps": np.zeros(N - 1)}, ValueError, "timestamps"),
         ({"sessions": ["a"] * (N - 1)}, ValueError, "sessions"),
         ({"sessions": [1] * N}, TypeError, "sessions"),
+        # names the CSV exports and their readers would change (line breaks, stripped spaces)
+        ({"sessions": "day\n1"}, ValueError, r"^sessions: session name 'day\\n1' holds a con"),
+        ({"sessions": "a\x00"}, ValueError, r"^sessions: .* control character"),
+        ({"sessions": "day 1 "}, ValueError, r"^sessions: session name 'day 1 ' begins or ends"),
         ({"global_descriptors": np.zeros((N, DG), dtype=complex)}, TypeError, "global_desc"),
         ({"local_descriptors": np.zeros((N, T))}, ValueError, "local_descriptors"),
         (  # unnormalised global descriptors rank by their length: refused

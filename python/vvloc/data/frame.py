@@ -341,7 +341,9 @@ class Session(Sequence[Frame], abc.ABC):
                 self._cam_to_ego if self.frame_cam_to_ego is None else self.frame_cam_to_ego[j]
             ).copy(),
             pose=self.poses[j].copy(),
-            t=float(self.timestamps[j]) * 1e-6,
+            # an int below 2^53 divided: correctly rounded, so repr prints the microseconds
+            # (× 1e-6 was a unit in the last place off for a third of them)
+            t=int(self.timestamps[j]) / 1e6,
             floor=int(self.floors[j]),
             session=self.name,
             index=j,

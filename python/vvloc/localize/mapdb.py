@@ -306,8 +306,18 @@ def _session_labels(sessions: Any, rows: int) -> list[str]:
     if any(s == "" for s in labels):
         raise ValueError("sessions: session names must be non-empty")
     for s in labels:
-        if "\x00" in s:
-            raise ValueError(f"sessions: session names may not contain NUL characters: {s!r}")
+        # a line break splits the CSV rows the exports write, and their readers strip fields:
+        # such a session came back under another name (vvloc loops --reuse matched none of it)
+        if any(ord(c) < 32 or 127 <= ord(c) < 160 for c in s):
+            raise ValueError(
+                f"sessions: session name {s!r} holds a control character (a line break, tab, "
+                "NUL, ...): exported CSV rows would split; rename the session"
+            )
+        if s != s.strip():
+            raise ValueError(
+                f"sessions: session name {s!r} begins or ends with white space, which CSV "
+                "exports do not keep; rename the session"
+            )
         try:
             s.encode("utf-8")
         except UnicodeEncodeError as e:
