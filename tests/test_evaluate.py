@@ -332,6 +332,7 @@ def test_precision_recall_f1_on_a_tiny_set():
     nothing = curve.at(0.05)
     assert nothing["accepted"] == 0 and np.isnan(nothing["precision"])
     assert nothing["recall"] == 0.0
+    assert nothing["f1"] == 0.0  # 2TP / (2TP + FP + FN) with TP = FP = 0 < FN (it was nan)
 
 
 def test_cfer_counts_accepted_pairs_across_floors():

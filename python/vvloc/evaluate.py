@@ -589,7 +589,8 @@ class LoopClosureCurve:
 
         Returns ``{"threshold", "accepted", "true_accepted", "precision", "recall", "f1",
         "cfer"}``: precision = true accepted pairs / accepted pairs; recall = queries with ≥ 1
-        accepted true pair / :attr:`num_positive_queries`; F1 = 2PR/(P+R) (0 when P = R = 0);
+        accepted true pair / :attr:`num_positive_queries`; F1 = 2PR/(P+R) (0 when P = R = 0,
+        and when nothing is accepted while positive queries exist: 2TP/(2TP + FP + FN) = 0);
         CFER = accepted pairs joining different floors / accepted pairs. Undefined → ``nan``.
         """
         t = _real(threshold, "threshold")
@@ -737,8 +738,12 @@ def _undefined_point() -> dict[str, Any]:
 
 
 def _f1(precision: float, recall: float) -> float:
-    if np.isnan(precision) or np.isnan(recall):
+    """2PR/(P+R); 0 when P = R = 0 and when nothing is accepted (P undefined) while positive
+    queries exist (R = 0): F1 = 2TP/(2TP + FP + FN) = 0 then; ``nan`` without positives."""
+    if np.isnan(recall):
         return float("nan")
+    if np.isnan(precision):  # nothing accepted: TP = FP = 0, FN > 0
+        return 0.0
     s = precision + recall
     return 2.0 * precision * recall / s if s > 0 else 0.0
 
