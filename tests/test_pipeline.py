@@ -349,6 +349,10 @@ def test_localizer_options_are_checked_up_front(map_file, model_dir, tiny_world,
     with pytest.raises(TypeError, match="rerank: expected a bool"):
         Localizer(model, db, rerank="no")
     assert Localizer(model, db, top_k=np.int64(4)).top_k == 4
+    closed = MapDatabase.open(map_file)
+    closed.close()  # refused when the localizer is made, not at its first query
+    with pytest.raises(ValueError, match=r"map .*map\.h5 is closed"):
+        Localizer(model, closed)
     # without re-ranking there is no distinctiveness: a calibration cannot apply
     model.calibration = {"min_distinctiveness": 0.2}
     with pytest.raises(ValueError, match=r"min_distinctiveness: 0\.1 needs re-ranking"):

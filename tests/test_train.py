@@ -1794,12 +1794,80 @@ def test_resume_without_a_run_is_refused_before_the_world_is_rendered(tmp_path, 
     with pytest.raises(FileNotFoundError, match=r"holds other files: choose another --out"):
         vvloc.train.train(cfg, tmp_path / "notarun", resume=True)
     assert not (tmp_path / "new").exists() and not (tmp_path / "world").exists()
+    # a run of this config stopped in its first epoch: its own train_config.yaml, no
+    # trainer_state.pt; "the folder holds other files" sent the user elsewhere
+    (tmp_path / "stopped").mkdir()
+    (tmp_path / "stopped" / "train_config.yaml").write_text(yaml.safe_dump(cfg.to_dict()))
+    with pytest.raises(
+        FileNotFoundError, match=r"run stopped before its first epoch ended: drop --resume"
+    ):
+        vvloc.train.train(cfg, tmp_path / "stopped", resume=True)
+
+
+def test_a_relative_dataset_path_is_named_as_the_working_directory_reads_it(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(
+        FileNotFoundError,
+        match=r"^dataset: nowhere does not exist \(.*nowhere: a relative path is taken from the "
+        r"working directory, not the config's folder\)",
+    ):
+        vvloc.train._ensure_dataset("nowhere", None)
+
+
+def test_sessions_a_sim_section_would_not_render_are_refused_before_rendering(
+    tmp_path, monkeypatch
+):
+    def render(*a, **k):
+        raise AssertionError("rendered")
+
+    monkeypatch.setattr("vvloc.sim.simulate_dataset", render)
+    cfg = TrainConfig.from_dict(
+        {
+            "dataset": str(tmp_path / "world"),
+            "sim": {"sessions": 3, "frames": 4},
+            "train_sessions": ["s0", "s1"],
+            "val_sessions": ["s5"],
+            "val_database": "s2",
+        }
+    )
+    with pytest.raises(
+        ValueError,
+        match=r"^val_sessions: \['s5'\] not in .*world \(the sessions its sim section would "
+        r"render\); its sessions: s0, s1, s2",
+    ):
+        Trainer(cfg, tmp_path / "run")
+    assert not (tmp_path / "world").exists()
+
+
+def test_an_interrupted_train_command_says_where_the_run_stands(tmp_path, monkeypatch):
+    from typer.testing import CliRunner
+
+    from vvloc.cli import app
+
+    (tmp_path / "c.yaml").write_text(yaml.safe_dump({"dataset": str(tmp_path / "d")}))
+    out = tmp_path / "run"
+
+    def stopped(cfg, out_dir, resume=False):
+        Path(out_dir).mkdir(exist_ok=True)
+        if resume:
+            (Path(out_dir) / "trainer_state.pt").write_bytes(b"")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(vvloc.train, "train", stopped)
+    args = ["train", "--config", str(tmp_path / "c.yaml"), "--out", str(out)]
+    r = CliRunner().invoke(app, args)
+    assert r.exit_code == 130
+    assert "interrupted; no epoch had finished: rerun without --resume" in r.output, r.output
+    r = CliRunner().invoke(app, [*args, "--resume"])
+    assert r.exit_code == 130 and "rerun with --resume to continue it" in r.output, r.output
 
 
 def test_config_types_are_checked_by_name():
     base = {"dataset": "x"}
     cases = {
-        "weight_decay": ("1e-5", r"weight_decay: expected a number, got '1e-5' \(YAML"),
+        "weight_decay": ("1e-5", r"weight_decay: expected a number, got '1e-5' \(a number in"),
+        # a quoted whole number was told to write 1.0e-5
+        "stage1_epochs": ("2", r"stage1_epochs: expected an int, got '2' .*number as 2 or 1000"),
         "batch_size": (2.5, "batch_size: expected an int"),
         "stage2_epochs": (1.7, "stage2_epochs: expected an int"),
         "train_sessions": ("s0", r"train_sessions: expected a list of session names"),

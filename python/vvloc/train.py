@@ -65,6 +65,7 @@ import time
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any, NoReturn
 
 import numpy as np
@@ -377,7 +378,13 @@ class TrainConfig:
             if isinstance(value, str):
                 with contextlib.suppress(ValueError):
                     float(value)
-                    hint = " (YAML reads 1e-5 as a string: write 1.0e-5)"
+                    hint = (  # a quoted number, or an exponent YAML 1.1 does not read as one
+                        " (a number in quotes, or an exponent YAML reads as text: write it "
+                        "unquoted, a whole number as 2 or 1000)"
+                        if str(f.type) in ("int", "int | None")
+                        else " (a number in quotes, or an exponent YAML reads as text, as it "
+                        "reads 1e-5 and 1.0e3: write it unquoted as 1.0e-5 or 1.0e+3)"
+                    )
             raise ValueError(f"{f.name}: expected {check[1]}, got {value!r:.80}{hint}")
 
     @classmethod
@@ -1050,6 +1057,17 @@ def _check_rendered_rig(root: Path, sim: dict[str, Any], key: str) -> None:
         )
 
 
+def _resolved(path: Path) -> str:
+    """`` (/abs/path: ...)`` for a relative ``path`` (a config's paths are taken from the
+    working directory, not from the config's folder); "" for an absolute one."""
+    if path.is_absolute():
+        return ""
+    return (
+        f" ({path.resolve()}: a relative path is taken from the working directory, not the "
+        "config's folder)"
+    )
+
+
 def _ensure_dataset(dataset: str, sim: dict[str, Any] | None, prefix: str = "") -> None:
     """Render ``dataset`` from ``sim`` (arguments of :func:`vvloc.sim.simulate_dataset`) when it
     does not exist yet; errors name the config's keys, ``{prefix}dataset`` and ``{prefix}sim``
@@ -1090,13 +1108,32 @@ def _ensure_dataset(dataset: str, sim: dict[str, Any] | None, prefix: str = "") 
     if not sim:
         where = f"{prefix.rstrip('.')} has" if prefix else "the config has"
         raise FileNotFoundError(
-            f"{prefix}dataset: {root} does not exist and {where} no 'sim' section to render it"
+            f"{prefix}dataset: {root} does not exist{_resolved(root)} and {where} no 'sim' "
+            "section to render it"
         )
-    log.info("rendering the training dataset into %s", root)
+    log.info("rendering the training dataset into %s", root.resolve())
     try:
         simulate_dataset(root, **sim)
     except (TypeError, ValueError) as e:  # "frames: expected ..." is the config's sim.frames
         raise (TypeError if isinstance(e, TypeError) else ValueError)(f"{key}: {e}") from e
+
+
+def _check_sessions_to_render(cfg: TrainConfig) -> None:
+    """Refuse, naming the config key, a session of ``train_sessions``, ``val_sessions`` or
+    ``val_database`` that the config's ``sim`` section would not render (``vvloc sim`` names
+    them s0, s1, ...) when ``cfg.dataset`` does not exist yet: said before the rendering."""
+    sim = cfg.sim or {}
+    count = sim.get("sessions")
+    if Path(cfg.dataset).exists() or isinstance(count, bool) or not isinstance(count, int):
+        return
+    rendered: Any = SimpleNamespace(sessions=[f"s{i}" for i in range(max(count, 0))])
+    keys: list[tuple[str, list[str]]] = [("train_sessions", list(cfg.train_sessions or []))]
+    if cfg.val_sessions:
+        keys += [("val_sessions", list(cfg.val_sessions)), ("val_database", [cfg.val_database])]
+    for key, names in keys:
+        check_session_names(
+            key, rendered, names, cfg.dataset, " (the sessions its sim section would render)"
+        )
 
 
 def _check_session_keys(cfg: TrainConfig, ds: Any) -> None:
@@ -1241,6 +1278,7 @@ class Trainer:
         if cfg.threads:
             torch.set_num_threads(int(cfg.threads))
         seed_everything(cfg.seed)
+        _check_sessions_to_render(cfg)  # before minutes of rendering, not after them
         _ensure_dataset(cfg.dataset, cfg.sim)
         self.ds = open_dataset(cfg.dataset)
         cameras, most = len(self.ds.cameras), cfg.model_config().max_cameras
@@ -2585,14 +2623,14 @@ def train(
     out = Path(out_dir)
     check_run_folder(cfg, out, resume)
     if resume and not out.is_dir():
-        _no_run_to_resume(out)
+        _no_run_to_resume(out, cfg)
     created = not out.exists()
     out.mkdir(parents=True, exist_ok=True)  # to lock it
     try:
         with run_lock(out):
             check_run_folder(cfg, out, resume)  # again, now that no other run can change it
             if resume and not (out / "trainer_state.pt").is_file():  # before any rendering
-                _no_run_to_resume(out)
+                _no_run_to_resume(out, cfg)
             trainer = Trainer(cfg, out_dir)
             if resume and not trainer.resume():  # removed between the check and the lock
                 raise FileNotFoundError(f"--resume: no run to resume in {out_dir}")
@@ -2604,13 +2642,18 @@ def train(
     return trainer
 
 
-def _no_run_to_resume(out: Path) -> NoReturn:
-    """``FileNotFoundError`` for ``--resume`` into ``out``, which holds no ``trainer_state.pt``."""
-    what = (
-        "drop --resume to start one"
-        if not out.is_dir() or not any(out.iterdir())
-        else "the folder holds other files: choose another --out to start one"
-    )
+def _no_run_to_resume(out: Path, cfg: TrainConfig) -> NoReturn:
+    """``FileNotFoundError`` for ``--resume`` into ``out``, which holds no ``trainer_state.pt``
+    (a run of ``cfg`` stopped in its first epoch left its ``train_config.yaml``: said so)."""
+    if not out.is_dir() or not any(out.iterdir()):
+        what = "drop --resume to start one"
+    elif _same_run(cfg, out):
+        what = (
+            "this config's run stopped before its first epoch ended: drop --resume to start it "
+            "again"
+        )
+    else:
+        what = "the folder holds other files: choose another --out to start one"
     raise FileNotFoundError(f"--resume: no run to resume in {out} (no trainer_state.pt); {what}")
 
 

@@ -41,7 +41,12 @@ def train(
         if device is not None:
             resolve_device(device, argument="--device")  # refused by name before any work
             cfg = dataclasses.replace(cfg, device=device)
-        trainer = run_training(cfg, out, resume=resume)
+        try:
+            trainer = run_training(cfg, out, resume=resume)
+        except KeyboardInterrupt:  # Ctrl-C: where the run stands, not half a progress bar
+            typer.echo("", err=True)
+            typer.echo(f"vvloc train: interrupted; {_where_it_stands(out)}", err=True)
+            raise typer.Exit(130) from None
     start, end = int(trainer.process["epochs"][0]), trainer.epoch  # this process's epochs
     if end == start:
         done = f"nothing to train: the run had done its {end} epoch{'' if end == 1 else 's'}"
@@ -70,3 +75,15 @@ def train(
         with cli_errors("train"):  # the record as written (checked against the weights)
             produced = VVLocNet.load(ckpt).training_record
         typer.echo(f"trained on: {summarize(produced)}")
+
+
+def _where_it_stands(out: Path) -> str:
+    """What an interrupted run left in ``out`` and how to go on, in words."""
+    if (out / "trainer_state.pt").is_file():
+        return (
+            f"{out} holds the run up to its last finished epoch: rerun with --resume to "
+            "continue it (on the CPU, as if it had never stopped)"
+        )
+    if out.is_dir():
+        return f"no epoch had finished: rerun without --resume to start it again in {out}"
+    return "no epoch had finished and nothing was written"

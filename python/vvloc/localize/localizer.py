@@ -464,7 +464,9 @@ class LocalizationResult:
             coarse metric cost plus ``retrieval_weight`` × descriptor distance, then the others
             by yaw matching cost (with ``snap``, the snapped keyframe first); ``rerank_cost``
             their yaw matching costs, in the same order.
-        timings_ms: per-stage wall time: encode, retrieve, rerank, metric.
+        timings_ms: per-stage wall time in milliseconds: encode, retrieve, rerank, metric.
+            ``localize_batch`` encodes its frames together: each result's ``encode`` is the
+            batch's encoding time divided by its number of frames (the same for all of them).
         search: every evaluated translation hypothesis (xy (M, 2), yaw, cost, stage) of the
             search against ``metric_row`` (ξ_{q→m} hypotheses, query frame).
         distinctiveness: mean minus minimum of ``rerank_cost`` (≥ 0; higher = the best
@@ -648,6 +650,7 @@ class Localizer:
                 f"mapdb: expected a MapDatabase (MapDatabase.open(path), or Localizer.open(map "
                 f"path, checkpoint)), got {type(mapdb).__name__}"
             )
+        mapdb._check_open()  # a closed map was taken here and refused only at the first query
         check_map_model(mapdb, model)  # its warnings name the line that made this localizer
         self.model = model.eval()
         self.map = mapdb
