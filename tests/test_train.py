@@ -258,6 +258,13 @@ def _assert_resumed_run_equals_uninterrupted(cfg: TrainConfig, tmp_path: Path, c
         ("lr", -1.0, "lr"),
         ("rerank_weight", -1.0, "rerank_weight"),
         ("bogus", 1, "unknown keys"),
+        # a misspelt key is told its nearest name, not only the list of sixty
+        (
+            "stage1_epoch",
+            1,
+            r"unknown keys \['stage1_epoch'\] \(did you mean 'stage1_epoch' → "
+            r"'stage1_epochs'\?\); known: ",
+        ),
     ],
 )
 def test_bad_config_is_refused(key, value, match):

@@ -51,6 +51,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import difflib
 import hashlib
 import json
 import logging
@@ -398,7 +399,10 @@ class TrainConfig:
             raise ValueError(f"{source}: keys must be names, got {not_str!r}")
         unknown = sorted(set(raw) - names)
         if unknown:
-            raise ValueError(f"{source}: unknown keys {unknown}; known: {sorted(names)}")
+            near = {k: difflib.get_close_matches(k, names, n=1) for k in unknown}
+            meant = [f"{k!r} → {m[0]!r}" for k, m in near.items() if m]
+            hint = f" (did you mean {', '.join(meant)}?)" if meant else ""
+            raise ValueError(f"{source}: unknown keys {unknown}{hint}; known: {sorted(names)}")
         cfg = cls(**raw)
         cfg.validate()
         return cfg
