@@ -1131,23 +1131,26 @@ def _check_sessions_to_render(cfg: TrainConfig) -> None:
     if Path(cfg.dataset).exists() or isinstance(count, bool) or not isinstance(count, int):
         return
     rendered: Any = SimpleNamespace(sessions=[f"s{i}" for i in range(max(count, 0))])
-    keys: list[tuple[str, list[str]]] = [("train_sessions", list(cfg.train_sessions or []))]
-    if cfg.val_sessions:
-        keys += [("val_sessions", list(cfg.val_sessions)), ("val_database", [cfg.val_database])]
-    for key, names in keys:
+    for key, names in _session_keys(cfg):
         check_session_names(
             key, rendered, names, cfg.dataset, " (the sessions its sim section would render)"
         )
+
+
+def _session_keys(cfg: TrainConfig) -> list[tuple[str, list[str]]]:
+    """(config key, session names) of ``train_sessions``, and of ``val_sessions`` and
+    ``val_database`` when the config validates."""
+    keys: list[tuple[str, list[str]]] = [("train_sessions", list(cfg.train_sessions or []))]
+    if cfg.val_sessions:
+        keys += [("val_sessions", list(cfg.val_sessions)), ("val_database", [cfg.val_database])]
+    return keys
 
 
 def _check_session_keys(cfg: TrainConfig, ds: Any) -> None:
     """Refuse, naming the config key, a session of ``train_sessions``, ``val_sessions`` or
     ``val_database`` that ``ds`` (``cfg.dataset``) lacks, holds no frame of, or that the key
     names twice: before any epoch, and not with the sampler's or validation's words."""
-    keys: list[tuple[str, list[str]]] = [("train_sessions", list(cfg.train_sessions or []))]
-    if cfg.val_sessions:
-        keys += [("val_sessions", list(cfg.val_sessions)), ("val_database", [cfg.val_database])]
-    for key, names in keys:
+    for key, names in _session_keys(cfg):
         default = key == "val_database" and cfg.val_database == TrainConfig().val_database
         note = " (its default: set it to your map session)" if default else ""
         _check_sessions(key, cfg.dataset, ds, names, note)

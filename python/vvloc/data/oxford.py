@@ -298,7 +298,7 @@ def open_oxford(
         sessions: the session folders to read (default every one found; ``KeyError`` naming
             them for one the folder lacks). The folder's first session (in name order) is read
             too, chosen or not: its first pose is the world origin of every session, so that
-            sessions read apart share one world frame.
+            sessions read apart with the same options share one world frame.
     """
     from PIL import Image
 

@@ -127,6 +127,22 @@ def rig_warnings(cameras: Sequence[Camera]) -> list[str]:
     return notes
 
 
+def _turns(
+    rig: Sequence[Camera], rotations: npt.NDArray[np.float64]
+) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+    """Each camera's turn of ``rig``'s mounting in N frames, ``L = R_frame R_rig^T`` (N, M, 3,
+    3), the same for every camera of a frame that is the rig levelled, and the (lower) median
+    of each camera's angles to the other cameras' turns (N, M) radians: with three cameras, one
+    wrong camera leaves the others' low. ``rotations``: (N, M, 3, 3) the frames' camera → ego
+    rotations; M ≥ 2."""
+    m = len(rig)
+    ref = np.stack([c.cam_to_ego[:3, :3] for c in rig])
+    lift = np.einsum("nmij,mkj->nmik", rotations, ref)
+    angle = _rotation_angle(np.einsum("naji,nbjk->nabik", lift, lift))  # L_a^T L_b
+    others = angle[:, ~np.eye(m, dtype=bool)].reshape(len(lift), m, m - 1)
+    return lift, np.sort(others, axis=2)[:, :, (m - 2) // 2]
+
+
 def frame_extrinsics_warnings(
     cameras: Sequence[Camera], timestamps: npt.ArrayLike, cam_to_ego: npt.ArrayLike
 ) -> list[str]:
@@ -159,18 +175,10 @@ def frame_extrinsics_warnings(
         )
     n, m = t.shape[:2]
     far = np.linalg.norm(t[:, :, :3, 3], axis=2) > MAX_CAMERA_DISTANCE_M  # (N, M)
-    turned = np.zeros((n, m), dtype=bool)
     worst = np.zeros((n, m))
     if m > 1:
-        # each camera's turn of the rig's mounting in this frame, L = R_frame R_rig^T (N, M):
-        # one and the same for every camera of a consistent frame
-        rig = np.stack([c.cam_to_ego[:3, :3] for c in cameras])
-        lift = np.einsum("nmij,mkj->nmik", t[:, :, :3, :3], rig)
-        angle = _rotation_angle(np.einsum("naji,nbjk->nabik", lift, lift))  # L_a^T L_b
-        others = ~np.eye(m, dtype=bool)
-        # the lower median: with three cameras, one wrong camera leaves the others' low
-        worst = np.sort(angle[:, others].reshape(n, m, m - 1), axis=2)[:, :, (m - 2) // 2]
-        turned = worst > SAME_MAP.angle
+        _, worst = _turns(cameras, t[:, :, :3, :3])
+    turned = worst > SAME_MAP.angle
     notes = []
     for c, cam in enumerate(cameras):
         off = far[:, c] | turned[:, c]
@@ -215,11 +223,9 @@ def without_levelling(reference: Sequence[Camera], cam_to_ego: npt.ArrayLike) ->
     m = len(reference)
     if m < 2 or t.shape != (m, 4, 4):
         return t
+    lift, spread = _turns(reference, t[None, :, :3, :3])
+    turn = lift[0, int(np.argmin(spread[0]))]
     ref = np.stack([c.cam_to_ego for c in reference])
-    lift = t[:, :3, :3] @ ref[:, :3, :3].transpose(0, 2, 1)  # L_m = R_frame R_rig^T
-    angle = _rotation_angle(lift.transpose(0, 2, 1)[:, None] @ lift[None])  # (M, M)
-    others = np.sort(angle[~np.eye(m, dtype=bool)].reshape(m, m - 1), axis=1)
-    turn = lift[int(np.argmin(others[:, (m - 2) // 2]))]
     shift = np.median(t[:, :3, 3] - ref[:, :3, 3] @ turn.T, axis=0)
     if _rotation_angle(turn) > MAX_LEVELLING[0] or np.linalg.norm(shift) > MAX_LEVELLING[1]:
         return t
