@@ -325,8 +325,9 @@ def test_a_rig_other_than_the_models_training_rig_is_warned_about_once(
         Localizer.open(out, ckpt, top_k=3).map.close()
     # another process (here: a cleared registry) opening that map is told too
     monkeypatch.setattr(localizer, "_WARNED_RIGS", set())
-    with pytest.warns(UserWarning, match=r"map .*m\.h5's rig is not the rig the model was"):
+    with pytest.warns(UserWarning, match=r"map .*m\.h5's rig is not the rig the model was") as w:
         Localizer.open(out, ckpt, top_k=3).map.close()
+    assert w[0].filename == __file__  # open's caller, not open's own line
     # images resized to half size (K scaled with them) are another rig to the networks
     half = [c.resized(80, 48) for c in ds.cameras]
     with pytest.warns(UserWarning, match="half is not the rig"):
@@ -349,6 +350,14 @@ def test_localizer_options_are_checked_up_front(map_file, model_dir, tiny_world,
     with pytest.raises(TypeError, match="rerank: expected a bool"):
         Localizer(model, db, rerank="no")
     assert Localizer(model, db, top_k=np.int64(4)).top_k == 4
+    # a localizer made directly warns at its caller's line, as Localizer.open's callers are
+    model.calibration = {"min_distinctiveness": 0.2, "top_k": 20}
+    with pytest.warns(UserWarning, match=r"calibration was measured with top_k=20") as w:
+        Localizer(model, db, top_k=3)
+    with pytest.warns(UserWarning, match=r"rerank=False: the model's calibration") as w2:
+        Localizer(model, db, top_k=20, rerank=False)
+    assert w[0].filename == w2[0].filename == __file__
+    model.calibration = {}
     closed = MapDatabase.open(map_file)
     closed.close()  # refused when the localizer is made, not at its first query
     with pytest.raises(ValueError, match=r"map .*map\.h5 is closed"):

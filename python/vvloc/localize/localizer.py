@@ -34,6 +34,7 @@ them match at a cost near 0 wherever they were taken.
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import dataclasses
 import json
 import math
@@ -530,12 +531,18 @@ class LocalizationResult:
         )
 
 
+#: Frames between a ``Localizer``'s ``__init__`` and the code that asked for it: 1 while
+#: :meth:`Localizer.open` makes one, so that the warnings of ``__init__`` name the line of
+#: user code in either case.
+_OPENER_FRAMES: contextvars.ContextVar[int] = contextvars.ContextVar("_OPENER_FRAMES", default=0)
+
+
 def _check_calibration_settings(
-    calibration: Mapping[str, Any], top_k: int, accept_threshold: float
+    calibration: Mapping[str, Any], top_k: int, accept_threshold: float, stacklevel: int = 4
 ) -> None:
     """Warn when a localizer applies a calibration measured with other settings: the
     distinctiveness (mean − minimum of the K re-ranking costs) depends on K, and the precision
-    reached depends on the cost rule."""
+    reached depends on the cost rule. ``stacklevel``: the frame the warnings name."""
     threshold = calibration.get("min_distinctiveness")
     if not threshold:
         return
@@ -544,7 +551,7 @@ def _check_calibration_settings(
             "the model's calibration accepts nothing (no distinctiveness threshold reached its "
             "target precision on the validation sessions): every result has accepted=False; "
             "calibrate with vvloc calibrate, or pass min_distinctiveness",
-            stacklevel=4,
+            stacklevel=stacklevel,
         )
         return
     cal_k, cal_cost = calibration.get("top_k"), calibration.get("accept_threshold")
@@ -554,13 +561,13 @@ def _check_calibration_settings(
             f"re-ranks {top_k} candidates: distinctiveness depends on K, so its precision is not "
             "the calibrated one (vvloc calibrate with these settings, or pass "
             "min_distinctiveness)",
-            stacklevel=4,
+            stacklevel=stacklevel,
         )
     if cal_cost is not None and float(cal_cost) != accept_threshold:
         warnings.warn(
             f"the model's calibration was measured with accept_threshold={float(cal_cost):g}, "
             f"this localizer uses {accept_threshold:g}: its precision is not the calibrated one",
-            stacklevel=4,
+            stacklevel=stacklevel,
         )
 
 
@@ -651,7 +658,8 @@ class Localizer:
                 f"path, checkpoint)), got {type(mapdb).__name__}"
             )
         mapdb._check_open()  # a closed map was taken here and refused only at the first query
-        check_map_model(mapdb, model)  # its warnings name the line that made this localizer
+        up = _OPENER_FRAMES.get()  # the warnings below name the line that made this localizer
+        check_map_model(mapdb, model, stacklevel=2 + up)
         self.model = model.eval()
         self.map = mapdb
         self.top_k = kernels._positive_int(top_k, "top_k")
@@ -662,7 +670,10 @@ class Localizer:
         if min_distinctiveness is None:
             min_distinctiveness = model.calibration.get("min_distinctiveness", 0.0)  # type: ignore[assignment]
             _check_calibration_settings(
-                model.calibration, min(self.top_k, len(mapdb)), self.accept_threshold
+                model.calibration,
+                min(self.top_k, len(mapdb)),
+                self.accept_threshold,
+                stacklevel=3 + up,
             )
             if not self.rerank_enabled and min_distinctiveness:
                 # the calibration scores re-ranking costs: without them only the cost rule is left
@@ -670,7 +681,7 @@ class Localizer:
                     f"rerank=False: the model's calibration (min_distinctiveness "
                     f"{min_distinctiveness:.4g}) needs the re-ranking costs; accepting by the "
                     "cost rule alone",
-                    stacklevel=3,
+                    stacklevel=2 + up,
                 )
                 min_distinctiveness = 0.0
         elif not self.rerank_enabled and min_distinctiveness:
@@ -695,7 +706,7 @@ class Localizer:
                 f"map): its distinctiveness is 0, below min_distinctiveness "
                 f"{self.min_distinctiveness:.4g}, so no result is accepted (pass "
                 "min_distinctiveness=0 to accept by the cost rule alone)",
-                stacklevel=3,
+                stacklevel=2 + up,
             )
         self.metric_candidates = kernels._positive_int(metric_candidates, "metric_candidates")
         self.metric_from = metric_from
@@ -743,11 +754,14 @@ class Localizer:
             resolve_device(device)
         )
         mapdb = MapDatabase.open(map_path, expected_config_hash=model.config_hash())
+        opener = _OPENER_FRAMES.set(1)  # __init__'s warnings name open's caller
         try:
             return cls(model, mapdb, **kwargs)
         except BaseException:
             mapdb.close()
             raise
+        finally:
+            _OPENER_FRAMES.reset(opener)
 
     def close(self) -> None:
         """Close the map (its file, for an opened one). Idempotent; every stage then raises
