@@ -373,7 +373,7 @@ def check_map_model(mapdb: MapDatabase, model: VVLocNet, *, stacklevel: int = 2)
     vvloc before 2026-12-05 record no rig and are not checked). ``stacklevel``: which frame
     the warnings name, 1 the line calling this function, 2 (the default) its caller's.
     """
-    where = "in-memory map" if mapdb.path is None else f"map {mapdb.path}"
+    where = mapdb.label
     if mapdb.config_hash != model.config_hash():
         raise MapError(
             f"{where}: built with model {mapdb.config_hash}, "
@@ -1228,6 +1228,7 @@ def build_map(
         if db is not None:
             writer.append_map(db)
             next_id = int(db.ids.max()) + 1 if len(db) else 0
+        keep_bev = True if store_bev is None else bool(store_bev)
         bar = tqdm(total=total, desc="map", disable=not progress)
         stack.callback(bar.close)  # closed before an error is printed, not under it
         written = 0
@@ -1242,7 +1243,6 @@ def build_map(
                 bar.update(len(loaded) - len(frames))
                 if not frames:
                     continue
-                keep_bev = True if store_bev is None else bool(store_bev)
                 enc = encode_frames(model, frames, batch_size=batch_size, keep_bev=keep_bev)
                 writer.append(
                     poses=np.stack([f.pose for f in frames]),
@@ -1285,7 +1285,7 @@ def _base_settings(
 ) -> tuple[str, bool, list[Camera] | list[dict[str, Any]] | None]:
     """``build_map``'s checks of its ``base`` map ``db``; returns the grown map's descriptor
     dtype, whether it stores BEVs, and its rig."""
-    where = "in-memory map" if db.path is None else f"map {db.path}"
+    where = db.label
     if db.weights_hash is None:  # its keyframes would pass for these weights' in the grown map
         raise MapError(
             f"base: {where} records no weights fingerprint (written by an older vvloc), so "

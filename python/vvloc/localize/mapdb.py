@@ -735,7 +735,7 @@ class MapWriter:
         if not isinstance(db, MapDatabase):
             raise TypeError(f"db: expected a MapDatabase, got {type(db).__name__}")
         db._check_open()
-        where = "in-memory map" if db.path is None else f"map {db.path}"
+        where = db.label
         meta = db.metadata
         if meta.model_config_hash != self._config_hash:
             raise MapError(
@@ -1423,6 +1423,11 @@ class MapDatabase:
     def path(self) -> Path | None:
         """The file an opened map was read from; ``None`` for an in-memory map."""
         return self._path
+
+    @property
+    def label(self) -> str:
+        """The map in messages: ``"map <path>"``, or ``"in-memory map"``."""
+        return "in-memory map" if self._path is None else f"map {self._path}"
 
     @property
     def metadata(self) -> MapMetadata:
