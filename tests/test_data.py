@@ -711,6 +711,38 @@ def test_a_sampler_given_another_ones_state_draws_what_that_one_would(tmp_path):
     assert np.array_equal(old.sample(6), fresh.sample(6))
 
 
+def test_excluded_frames_are_never_drawn_again_and_a_state_carries_them(tmp_path):
+    ds = _drive_dataset(tmp_path / "ds")
+    plain = TripletSampler(ds, seed=4, cross_floor_fraction=0.5)
+    live = TripletSampler(ds, seed=4, cross_floor_fraction=0.5)
+    assert np.array_equal(live.exclude(np.array([], dtype=np.int64)), [])  # nothing: no change
+    assert np.array_equal(plain.sample(32), live.sample(32))
+    drawn = live.sample(40)
+    live.update(drawn, np.zeros(40, dtype=bool))  # every one hard
+    gone = np.unique(drawn[:5].reshape(-1))
+    assert np.array_equal(live.exclude(np.concatenate([gone, gone[:2]])), gone)
+    assert np.array_equal(live.exclude(gone[:3]), [])  # excluded before: not new
+    assert np.array_equal(live.excluded, gone) and not live.usable[gone].any()
+    assert not np.isin(live.hard, gone).any() and len(live.hard) > 0
+    assert not np.isin(live.anchors, gone).any()
+    assert all(not np.isin(live.positives[a], gone).any() for a in live.anchors)
+    for _ in range(20):
+        assert not np.isin(live.sample(32), gone).any()  # hard and fresh, every slot
+    state = live.state_dict()
+    copy = TripletSampler(ds, seed=4, cross_floor_fraction=0.5)
+    copy.load_state_dict(state)
+    assert np.array_equal(copy.excluded, gone)
+    for _ in range(3):
+        assert np.array_equal(copy.sample(16), live.sample(16))
+    with pytest.raises(ValueError, match=r"^gids: frame ids must lie in \[0, "):
+        live.exclude([len(live)])
+    with pytest.raises(TypeError, match=r"^gids: expected an integer array \(E,\)"):
+        live.exclude([0.5])
+    with pytest.raises(ValueError, match=r"^exclude: no anchor would be left"):
+        live.exclude(np.arange(len(live)))
+    assert np.array_equal(live.excluded, gone)  # a refused exclusion changes nothing
+
+
 def test_floors_are_different_places(tmp_path):
     root = tmp_path / "ds"
     _write(root, {"s0": _line(5, floor=0), "s1": _line(5, floor=1), "s2": _line(5, y=0.5)})

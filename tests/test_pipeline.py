@@ -21,6 +21,7 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
+from data_helpers import blank_frames
 from vvloc import geometry
 from vvloc.data import open_dataset
 from vvloc.localize import MapDatabase, read_g2o, read_loop_csv, read_tum
@@ -494,22 +495,6 @@ def test_localize_poses_are_consistent_and_batch_equals_single(tiny_world, map_f
         assert r.accepted == (r.cost < 0.75)
 
 
-def _blank_frames(root, session, indices, value=0):
-    """Overwrite every camera's image of ``session``'s frames ``indices`` with a flat picture."""
-    from PIL import Image
-
-    ds = open_dataset(root)
-    stamps = [
-        line.split(",")[0]
-        for line in (root / "sessions" / session / "poses.csv").read_text().splitlines()[1:]
-    ]
-    for i in indices:
-        for cam in ds.cameras:
-            p = root / "sessions" / session / cam.name / f"{stamps[i]}.png"
-            flat = np.full_like(np.asarray(Image.open(p)), value)
-            Image.fromarray(flat).save(p)
-
-
 def test_frames_without_image_content_are_left_out_of_maps_and_never_accepted(
     tiny_world, model_dir, tmp_path
 ):
@@ -517,8 +502,8 @@ def test_frames_without_image_content_are_left_out_of_maps_and_never_accepted(
     # drew every blank query to them at cost ~0, accepted, and made false loop closures
     root = tmp_path / "world"
     shutil.copytree(tiny_world, root)
-    _blank_frames(root, "s0", [3, 4, 30])
-    _blank_frames(root, "s1", [5], value=255)  # blown out: no content either
+    blank_frames(root, "s0", [3, 4, 30])
+    blank_frames(root, "s1", [5], value=255)  # blown out: no content either
     model = VVLocNet.load(model_dir)
     ds = open_dataset(root)
     with pytest.warns(
@@ -559,7 +544,7 @@ def test_frames_without_image_content_are_left_out_of_maps_and_never_accepted(
     assert np.isfinite(results[1].cost)  # still localized, for who wants the answer
     loc.close()
     # a session of blank frames alone makes no map, and leaves no file
-    _blank_frames(root, "s2", range(40))
+    blank_frames(root, "s2", range(40))
     with pytest.warns(UserWarning), pytest.raises(ValueError, match="none of the 40 frames"):
         build_map(model, open_dataset(root), ["s2"], tmp_path / "blank.h5", progress=False)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["map.h5", "world"]

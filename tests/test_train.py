@@ -17,6 +17,7 @@ import yaml
 from PIL import Image
 
 import vvloc.train
+from data_helpers import blank_frames
 from vvloc.checkpoints import resolve_checkpoint
 from vvloc.evaluate import to_jsonable
 from vvloc.losses import random_translation_bias
@@ -867,6 +868,61 @@ def test_local_stage_resume_continues_identically(tiny_world, tmp_path):
     base = tmp_path / "base"
     train(_config(tiny_world, stage1_epochs=1, stage2_epochs=0), base, progress=False)
     _assert_resumed_run_equals_uninterrupted(_local_only_config(tiny_world, base), tmp_path, cut=1)
+
+
+def test_frames_without_image_content_are_left_out_of_training(tiny_world, tmp_path, caplog):
+    # a covered rig's frames look alike wherever they were: their triplets cannot be learnt and
+    # stayed in the hard pool for good
+    root = tmp_path / "world"
+    shutil.copytree(tiny_world, root)
+    blank = range(0, 40, 2)
+    blank_frames(root, "s1", blank)
+    cfg = _config(
+        root,
+        stage1_epochs=2,
+        stage2_epochs=0,
+        steps_per_epoch=6,
+        head_epochs=1,
+        head_steps_per_epoch=2,
+        head_batch_size=4,
+        head_negatives=3,
+        local_epochs=1,
+        local_steps_per_epoch=1,
+        local_batch_size=2,
+    )
+    tr = Trainer(cfg, tmp_path / "run")
+    where = {("s1", i) for i in blank}
+    gids = np.array([g for g in range(len(tr.sampler)) if tr.sampler.locate(g) in where])
+    assert len(gids) == len(blank)
+    with caplog.at_level("WARNING", logger="vvloc.train"):
+        record = tr.run_epoch(progress=False)
+    found = tr.sampler.excluded
+    assert 0 < len(found) < len(blank) and np.isin(found, gids).all()  # those drawn
+    assert record["blank_triplets"] > 0
+    assert re.search(
+        rf"left {len(found)} training frames? without image content \(every camera's picture "
+        r"flat\) out of training from now on: s1:\d+",
+        caplog.text,
+    )
+    assert not np.isin(tr.sampler.hard, gids).any()
+    tr.run_epoch(progress=False)
+    assert np.isin(found, tr.sampler.excluded).all()
+    saved = tr.sampler.excluded
+    tr.save()
+    tr.run_epoch(progress=False)  # the head stage's cache finds every one of them
+    assert np.array_equal(tr.sampler.excluded, gids)
+    anchors = tr.sampler.sample_random(50)[:, 0]
+    assert not np.isin(anchors, gids).any()
+    g = tr._head_descriptors(tr.head_cache())
+    g[torch.from_numpy(gids)] = g[int(anchors[0])].clone()  # look-alikes of the anchor, not negatives
+    mined = tr._mined_negatives(g, np.full(50, anchors[0]))
+    assert not np.isin(mined, gids).any()
+    tr.run_epoch(progress=False)  # the local stage's: no new one
+    assert np.array_equal(tr.sampler.excluded, gids)
+    # the trainer state carries them: a resumed run leaves them out of its first draw
+    resumed = Trainer(cfg, tmp_path / "run")
+    assert resumed.resume()
+    assert np.array_equal(resumed.sampler.excluded, saved)
 
 
 def test_a_run_resumes_after_its_init_checkpoint_is_gone(tiny_world, tmp_path):

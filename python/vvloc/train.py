@@ -45,6 +45,15 @@ sampler and applies the yaw matching loss, the translation-bias loss and, with
 padded at the ground-truth relative pose. The BEV and the global descriptors, and so retrieval
 and loop detection by descriptor, are unchanged by it; the re-ranking and the metric pose are
 what it changes.
+
+Frames without image content (:func:`vvloc.data.has_image_content`: every camera's picture
+flat, e.g. a covered rig or a black stretch) look alike wherever they were taken: no model can
+tell them apart, and their triplets would stay violated in the hard pool for good. As the map
+builder and the localizer do, training leaves them out: stages 1-2 drop a batch's triplets that
+hold one (found as the worker loads them) and the stage-3/4 caches find them as they encode
+every frame; either way the sampler excludes the frame from every later draw
+(:meth:`vvloc.data.TripletSampler.exclude`, kept in the trainer state for ``--resume``), with a
+warning that names them and, in stages 1-2, an epoch log field ``blank_triplets``.
 """
 
 from __future__ import annotations
@@ -82,7 +91,7 @@ from vvloc._io import atomic_write, list_entries
 from vvloc.checkpoints import resolve_checkpoint
 from vvloc.data import RAW_FOLDER, TripletSampler, open_dataset
 from vvloc.data.augment import PhotometricAugment
-from vvloc.data.frame import Session
+from vvloc.data.frame import Session, has_image_content
 from vvloc.data.sampling import (
     check_query_sessions,
     check_session_names,
@@ -742,7 +751,9 @@ class TripletFrames(TorchDataset):
 
     Item k is a dict of tensors for frames (anchor, positive, negative): ``images`` (3, M, 3, H,
     W) uint8, ``intrinsics`` (3, M, 3, 3) float32, ``cam_to_ego`` (3, M, 4, 4) float32, ``poses``
-    (3, 3) float64 world (x, y, yaw) and ``triplet`` (3,) int64 ids. With ``augment``, each
+    (3, 3) float64 world (x, y, yaw), ``triplet`` (3,) int64 ids and ``content`` (3,) bool,
+    whether each frame has image content (:func:`vvloc.data.has_image_content` of its images as
+    loaded, before augmentation; the trainer drops triplets without). With ``augment``, each
     frame's images go through it with a generator seeded by ``(seed, k, slot)``, so an item is the
     same whichever worker process loads it.
     """
@@ -765,6 +776,7 @@ class TripletFrames(TorchDataset):
     def __getitem__(self, k: int) -> dict[str, torch.Tensor]:
         frames = [self.sampler.frame(int(g)) for g in self.triplets[k]]
         images = [f.images for f in frames]
+        content = [has_image_content(im) for im in images]
         if self.augment is not None:
             images = [
                 self.augment(im, np.random.default_rng([self.seed, k, slot]))
@@ -778,6 +790,7 @@ class TripletFrames(TorchDataset):
             ),
             "poses": torch.from_numpy(np.stack([f.pose for f in frames]).astype(np.float64)),
             "triplet": torch.from_numpy(self.triplets[k].copy()),
+            "content": torch.tensor(content, dtype=torch.bool),
         }
 
 
@@ -2032,6 +2045,8 @@ class Trainer:
         if cfg.tbias_near_weight > 0:  # logged only when on (the committed runs' logs stay)
             sums["tbias_near"] = 0.0
         violated = 0
+        blank = trained = 0  # triplets left out (a frame without image content), trained on
+        blank_frames: list[np.ndarray] = []  # their frames without content (global ids)
         t0 = time.perf_counter()
         batches = iter(loader)
         bar = tqdm(
@@ -2042,7 +2057,13 @@ class Trainer:
         )
         n = 0
         with _workers_stopped(batches):  # on an error too: see _workers_stopped
-            for batch in bar:
+            for loaded in bar:
+                batch, without = self._with_content(loaded)
+                blank_frames.append(without)
+                blank += len(loaded["triplet"]) - (0 if batch is None else len(batch["triplet"]))
+                if batch is None:  # no triplet left: no step
+                    continue
+                trained += len(batch["triplet"])
                 loss, parts, correct = training_losses(
                     self.model, batch, cfg, stage, self.step, self.device
                 )
@@ -2086,33 +2107,71 @@ class Trainer:
             "step": self.step,
             "lr": self.optimizer.param_groups[0]["lr"],
             **{f"loss_{k}": v / max(n, 1) for k, v in sums.items()},
-            "violated_share": violated / max(n * cfg.batch_size, 1),
+            "violated_share": violated / max(trained, 1),
             "hard_pool": len(self.sampler.hard),
             "seconds": time.perf_counter() - t0,
             "device": str(self.device),
         }
+        if blank:  # logged only then: the committed runs' logs stay as they are
+            record["blank_triplets"] = blank
+            self._exclude_blank(np.concatenate(blank_frames))
         self.scheduler.step()
         self.epoch += 1
         self.head_untrained = False  # stages 1-2 train the global head too
         return record
+
+    @staticmethod
+    def _with_content(
+        batch: dict[str, torch.Tensor],
+    ) -> tuple[dict[str, torch.Tensor] | None, np.ndarray]:
+        """``batch`` (a collated :class:`TripletFrames` batch) without its ``content`` flags and
+        without the triplets holding a frame without image content (None when none is left),
+        and the global ids of those frames ((E,) int64)."""
+        content = batch.pop("content")  # (B, 3) bool
+        kept = content.all(dim=1)
+        without = batch["triplet"][~content].numpy().astype(np.int64)
+        if bool(kept.all()):
+            return batch, without
+        if not bool(kept.any()):
+            return None, without
+        return {k: v[kept] for k, v in batch.items()}, without
+
+    def _exclude_blank(self, gids: np.ndarray) -> None:
+        """Exclude frames ``gids`` (global ids) without image content from the sampler's draws,
+        with a warning naming those not excluded before."""
+        new = self.sampler.exclude(gids)
+        if len(new):
+            where = [f"{s}:{i}" for s, i in (self.sampler.locate(int(g)) for g in new)]
+            log.warning(
+                "left %d training frame%s without image content (every camera's picture flat) "
+                "out of training from now on: %s (session:frame); %d excluded in all",
+                len(new),
+                "" if len(new) == 1 else "s",
+                list_entries(where),
+                len(self.sampler.excluded),
+            )
 
     # --- head stage ----------------------------------------------------------------------
 
     @torch.no_grad()
     def _sampler_bevs(self, desc: str, progress: bool) -> Iterator[tuple[list[Any], torch.Tensor]]:
         """Every sampler frame once, in batches of 16 (eval mode, no augmentation): yields
-        (frames, their BEVs (b, H, W, C) on the device)."""
+        (frames, their BEVs (b, H, W, C) on the device). Once all are through, the frames without
+        image content are excluded from the sampler's draws (they stay in the caches)."""
         self.model.eval()
         n = len(self.sampler)
         bar = tqdm(total=n, desc=desc, disable=not progress)
+        blank: list[int] = []
         for a in range(0, n, 16):
             frames = [self.sampler.frame(g) for g in range(a, min(a + 16, n))]
+            blank += [a + i for i, f in enumerate(frames) if not has_image_content(f.images)]
             images, k, t = frames_to_tensors(frames, self.device)
             feats = self.model.image_features(images)
             size = (int(images.shape[-2]), int(images.shape[-1]))
             yield frames, self.model.bev_from_features(feats, k, t, size)
             bar.update(len(frames))
         bar.close()
+        self._exclude_blank(np.asarray(blank, dtype=np.int64))
 
     @staticmethod
     def _joined(parts: list[torch.Tensor], what: str) -> torch.Tensor:
@@ -2162,6 +2221,8 @@ class Trainer:
         a = torch.from_numpy(anchors).to(g.device)
         sim = g[a] @ g.T  # (B, N)
         near = torch.cdist(pos[a], pos) <= self.sampler.neg_radius
+        if not self.sampler.usable.all():  # excluded frames are no negatives either
+            near |= torch.from_numpy(~self.sampler.usable).to(near.device)
         sim = sim.masked_fill(near, -math.inf)
         k = min(int(self.cfg.head_negatives), int((~near).sum(dim=1).min()))
         if k < 1:

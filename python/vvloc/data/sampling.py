@@ -74,6 +74,12 @@ class TripletSampler:
     that world (a float in (0, 1)), or None for the default, in proportion to its frames; the
     primary dataset and the None worlds share the rest in proportion to their frames. With no
     shares set the draws are exactly those of a sampler without the argument.
+
+    Frames found unusable while training (the trainer's: no image content, every camera's
+    picture flat) are taken out with :meth:`exclude` (:attr:`usable`, (N,) bool, is False for
+    them): never drawn again as anchor, positive or negative, and the hard triplets holding them
+    leave the pool. A sampler that excluded nothing
+    draws exactly what one without the method would.
     """
 
     def __init__(
@@ -215,10 +221,14 @@ class TripletSampler:
                 f"{'in another session ' if cross_session else ''}(sessions {self.sessions}); "
                 "a dataset of single drives that revisit places: set revisit_gap"
             )
-        p = self._anchor_probabilities(anchor_shares, len(extra))
+        self._anchor_shares = list(anchor_shares)
+        self._n_extra = len(extra)
+        p = self._anchor_probabilities(self._anchor_shares, self._n_extra)
         self._anchor_cdf = None if p is None else np.cumsum(p)
         self._hard: dict[tuple[int, int, int], None] = {}
         self._hard_cursor = 0
+        # (N,) False for the frames taken out by exclude()
+        self.usable = np.ones(len(self.positions), dtype=bool)
 
     def _anchor_probabilities(
         self, shares: Sequence[float | None], n_extra: int
@@ -300,12 +310,14 @@ class TripletSampler:
                 return int(near[self.rng.integers(len(near))])
         for _ in range(64):
             cand = int(self.rng.integers(len(self.positions)))
-            if np.linalg.norm(self.positions[cand] - self.positions[anchor]) > self.neg_radius:
+            far = np.linalg.norm(self.positions[cand] - self.positions[anchor]) > self.neg_radius
+            if far and self.usable[cand]:
                 return cand
         far = np.linalg.norm(self.positions - self.positions[anchor], axis=1) > self.neg_radius
-        choices = np.flatnonzero(far)
+        choices = np.flatnonzero(far & self.usable)
         if len(choices) == 0:
-            raise ValueError(f"frame {anchor} has no negative beyond {self.neg_radius} m")
+            left = "" if self.usable.all() else " among the frames not excluded"
+            raise ValueError(f"frame {anchor} has no negative beyond {self.neg_radius} m{left}")
         return int(self.rng.choice(choices))
 
     def sample_random(self, n: int) -> np.ndarray:
@@ -371,6 +383,52 @@ class TripletSampler:
         """(H, 3) int64 triplets currently in the hard pool."""
         return np.array(list(self._hard), dtype=np.int64).reshape(-1, 3)
 
+    @property
+    def excluded(self) -> np.ndarray:
+        """(E,) int64 sorted ids of the frames taken out by :meth:`exclude`."""
+        return np.flatnonzero(~self.usable).astype(np.int64)
+
+    def exclude(self, gids: Any) -> np.ndarray:
+        """Take frames (``gids`` (E,) ints in ``[0, len(self))``) out of every later draw: as
+        anchors, positives (an anchor left without one is no anchor) and negatives; the hard
+        triplets holding one leave the pool. Returns the (E',) int64 sorted ids newly taken out
+        (those excluded before are skipped). ``ValueError`` when no anchor would be left, or
+        none in an ``extra`` world that ``anchor_shares`` gives a share."""
+        ids = _int_array(gids, "gids", "(E,)", 1)
+        if ids.size and (ids.min() < 0 or ids.max() >= len(self)):
+            raise ValueError(f"gids: frame ids must lie in [0, {len(self)})")
+        new = np.unique(ids[self.usable[ids]])
+        if not len(new):
+            return new
+        usable = self.usable.copy()
+        usable[new] = False
+        positives = [p[usable[p]] for p in self.positives]
+        anchors = np.array(
+            [a for a in self.anchors if usable[a] and len(positives[a])], dtype=np.int64
+        )
+        if len(anchors) == 0:
+            raise ValueError(
+                f"exclude: no anchor would be left (sessions {self.sessions}; "
+                f"{int((~usable).sum())} of {len(self)} frames excluded)"
+            )
+        kept_anchors = self.anchors
+        self.anchors = anchors
+        try:
+            p = self._anchor_probabilities(self._anchor_shares, self._n_extra)
+        except ValueError as e:
+            self.anchors = kept_anchors
+            raise ValueError(f"exclude: {e} left") from None
+        self.usable = usable
+        self.positives = positives
+        self._anchor_cdf = None if p is None else np.cumsum(p)
+        if self.cross_floor is not None:
+            self.cross_floor = [c[usable[c]] for c in self.cross_floor]
+        for t in list(self._hard):
+            if not usable[list(t)].all():
+                del self._hard[t]
+        self._hard_cursor = self._hard_cursor % len(self._hard) if self._hard else 0
+        return new
+
     def restart_hard_pool(self) -> None:
         """Take the next hard triplets from the pool's first (oldest) one again; the pool itself
         is kept (the trainer's ``hard_pool_restarts``)."""
@@ -380,17 +438,21 @@ class TripletSampler:
         """Everything that decides the next draws: the generator's state, the hard pool in its
         order ((H, 3) int64) and the position in it from which :meth:`sample` takes next. A
         sampler built on the same data and given this by :meth:`load_state_dict` draws what this
-        one would (the trainer's ``--resume``)."""
+        one would (the trainer's ``--resume``), once it excluded the same frames: the state
+        lists them (``excluded``, (E,) int64), and :meth:`load_state_dict` excludes them."""
         return {
             "rng": self.rng.bit_generator.state,
             "hard": self.hard,
             "hard_cursor": self._hard_cursor,
+            "excluded": self.excluded,
         }
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
         """Restore a :meth:`state_dict` (the hard pool replaces this sampler's). A state without
         ``hard_cursor`` (saved by vvloc before 2026-12-03) starts the pool from its first
-        triplet, as those versions did on resume."""
+        triplet, as those versions did on resume; one without ``excluded`` (before 2026-12-07)
+        excludes nothing more."""
+        self.exclude(np.asarray(state.get("excluded", []), dtype=np.int64).reshape(-1))
         self.rng.bit_generator.state = state["rng"]
         self._hard = {}
         self.mark_hard(np.asarray(state["hard"], dtype=np.int64))
