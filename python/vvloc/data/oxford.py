@@ -64,6 +64,7 @@ import os
 import re
 import warnings
 from collections.abc import Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -251,6 +252,181 @@ def _world_vehicle(rows: np.ndarray, ins_to_flu: np.ndarray, origin: np.ndarray)
     return T
 
 
+#: The INS angle columns (roll, pitch, yaw) of ``read_ins``'s rows after the time column.
+_INS_ANGLES = (3, 4, 5)
+
+
+@dataclass
+class _SessionReader:
+    """How :func:`open_oxford` reads each session folder: its options, checked, and what the
+    sessions share (undistortion LUTs read once, one warning per camera without a LUT)."""
+
+    cameras: tuple[str, ...]
+    models: Path
+    extrinsics: Path
+    image_size: tuple[int, int] | None
+    tolerance_us: int
+    height: float  # ego_height, m
+    ins_good_only: bool
+    level: bool
+    motion_compensation: bool
+    ins_to_flu: np.ndarray  # (4, 4) INS → vehicle (FLU)
+    luts: dict[tuple[Path, int, int], tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+    warned: set[str] = field(default_factory=set)
+
+    def join_cameras(
+        self, sdir: Path
+    ) -> tuple[list[np.ndarray], list[np.ndarray], np.ndarray, dict[str, int]]:
+        """The frames of ``sdir``: each camera's timestamps with an image file (C lists of
+        int64 µs), its image nearest each first-camera timestamp (C index arrays), which of
+        those timestamps have every camera within ``tolerance_us`` ((N,) bool), and how many
+        were left out, under the first reason each fails."""
+        cameras, tol = self.cameras, self.tolerance_us
+        listed = [read_timestamps(sdir / CAMERA_SPECS[c][1]) for c in cameras]
+        stamps = [
+            s[[(sdir / CAMERA_SPECS[c][0] / f"{t}.png").is_file() for t in s]]
+            for c, s in zip(cameras, listed, strict=True)
+        ]
+        if len(stamps[0]) == 0:
+            raise DatasetFormatError(f"{sdir}: no images of {cameras[0]} listed and present")
+        ref = stamps[0]
+        # each frame left out is counted under the first reason it fails, in this order
+        first = f"listed in {CAMERA_SPECS[cameras[0]][1]} but no image file"
+        left_out = {first: len(listed[0]) - len(ref)}
+        keep = np.ones(len(ref), dtype=bool)
+        picks = []
+        far = 0  # frames with no image of some camera listed within tolerance_us
+        for c, s, all_listed in zip(cameras, stamps, listed, strict=True):
+            p, ok = nearest_within(s, ref, tol)
+            picks.append(p)
+            _, near_listed = nearest_within(all_listed, ref, tol)
+            absent = keep & ~ok & near_listed  # listed near in time, but its file is missing
+            key = f"listed in {CAMERA_SPECS[c][1]} but no image file"
+            left_out[key] = left_out.get(key, 0) + int(absent.sum())
+            far += int((keep & ~ok & ~near_listed).sum())
+            keep &= ok
+        left_out[f"no image of every camera within tolerance_us={tol}"] = far
+        return stamps, picks, keep, left_out
+
+    def join_ins(
+        self,
+        sdir: Path,
+        stamps: list[np.ndarray],
+        picks: list[np.ndarray],
+        keep: np.ndarray,
+        left_out: dict[str, int],
+    ) -> tuple[np.ndarray, list[np.ndarray], np.ndarray]:
+        """The INS rows (N, 6) at the first camera's timestamps and, with
+        ``motion_compensation``, at each camera's own exposure (C arrays (N, 6); else empty),
+        and ``keep`` narrowed to the frames the INS covers (``left_out`` counts the rest)."""
+        tol = self.tolerance_us
+        ins = read_ins(sdir / "gps" / "ins.csv", good_only=self.ins_good_only)
+        ins_t = ins[:, 0].astype(np.int64)
+        ins_at, ok = interpolate_rows(ins_t, ins[:, 1:7], stamps[0], tol, angle_columns=_INS_ANGLES)
+        # the rows read_ins kept: INS_SOLUTION_GOOD ones with ins_good_only
+        left_out[f"no INS row within tolerance_us={tol}"] = int((keep & ~ok).sum())
+        keep = keep & ok
+        # the INS at each camera's own exposure (motion compensation); a camera without any
+        # image has joined no frame (keep is all False)
+        ins_cams = []
+        if self.motion_compensation and keep.any():
+            covered = np.ones(len(keep), dtype=bool)
+            for t_cam in (s[p] for s, p in zip(stamps, picks, strict=True)):
+                row, ok = interpolate_rows(
+                    ins_t, ins[:, 1:7], t_cam, tol, angle_columns=_INS_ANGLES
+                )
+                ins_cams.append(row)
+                covered &= ok
+            left_out["no INS row near some camera's exposure (motion_compensation)"] = int(
+                (keep & ~covered).sum()
+            )
+            keep &= covered
+        return ins_at, ins_cams, keep
+
+    def rig(
+        self, first_images: list[Path]
+    ) -> tuple[list[Camera], list[tuple[np.ndarray, np.ndarray] | None], list[str]]:
+        """The cameras (resized to ``image_size``; ego origin lowered by ``height``), their
+        undistortion LUTs (None without one, warned once a camera) and Bayer patterns, each
+        camera's native size read from its image ``first_images[c]``."""
+        from PIL import Image
+
+        cams: list[Camera] = []
+        luts: list[tuple[np.ndarray, np.ndarray] | None] = []
+        patterns: list[str] = []
+        for c, image in zip(self.cameras, first_images, strict=True):
+            _, _, model, sensor, pattern = CAMERA_SPECS[c]
+            K, G, lut_path = read_model(self.models, model)
+            try:
+                with Image.open(image) as im:
+                    w, h = im.size
+            except (OSError, SyntaxError) as e:  # FileNotFoundError, PIL's decoder errors
+                raise DatasetFormatError(f"{image}: not a readable image ({e})") from None
+            T_camera_vehicle = read_extrinsics(self.extrinsics, sensor, required=sensor != "stereo")
+            cam_to_ego = FRD_TO_FLU @ np.linalg.inv(T_camera_vehicle) @ G
+            cams.append(Camera(c, w, h, K, cam_to_ego).with_ego_origin_lowered(self.height))
+            if lut_path is not None:
+                if (lut_path, w, h) not in self.luts:  # one LUT per camera, every session
+                    self.luts[(lut_path, w, h)] = read_lut(lut_path, w, h)
+                luts.append(self.luts[(lut_path, w, h)])
+            else:
+                luts.append(None)
+                if c not in self.warned:
+                    self.warned.add(c)
+                    warnings.warn(
+                        f"{self.models}: no {model}_distortion_lut.bin; {c}'s images are used "
+                        "distorted, which its pinhole K does not describe",
+                        stacklevel=4,  # open_oxford's caller
+                    )
+            patterns.append(pattern)
+        size = self.image_size or (cams[0].width, cams[0].height)
+        return [cam.resized(*size) for cam in cams], luts, patterns
+
+    def read(self, sdir: Path, origin: np.ndarray | None) -> tuple[OxfordSession, np.ndarray]:
+        """Session folder ``sdir`` in the world frame re-centred on ``origin`` (ENU, m), and
+        that origin: None takes this session's first ego origin (the ground under the roof)."""
+        stamps, picks, keep, left_out = self.join_cameras(sdir)
+        ins_at, ins_cams, keep = self.join_ins(sdir, stamps, picks, keep, left_out)
+        if not keep.any():
+            raise DatasetFormatError(
+                f"{sdir}: no frame has an image of every camera {list(self.cameras)} and an INS "
+                f"row within tolerance_us={self.tolerance_us}"
+            )
+        paths = [
+            [sdir / CAMERA_SPECS[c][0] / f"{t}.png" for t in s[p[keep]]]
+            for c, s, p in zip(self.cameras, stamps, picks, strict=True)
+        ]
+        cams, luts, patterns = self.rig([ps[0] for ps in paths])
+        if origin is None:
+            T0 = NED_TO_ENU @ euler_to_matrix(*ins_at[keep][0]) @ self.ins_to_flu
+            origin = T0[:3, 3] - self.height * T0[:3, 2]
+        at_cams = None
+        if self.motion_compensation:
+            at_cams = np.stack(
+                [_world_vehicle(rows[keep], self.ins_to_flu, origin) for rows in ins_cams], axis=1
+            )
+        poses, zs, frame_cam_to_ego = ego_frames(
+            _world_vehicle(ins_at[keep], self.ins_to_flu, origin),
+            cams,
+            height=self.height,
+            level=self.level,
+            world_body_at_cameras=at_cams,
+        )
+        session = OxfordSession(
+            sdir.name,
+            paths,
+            patterns,
+            luts,
+            cams,
+            stamps[0][keep],
+            poses,
+            zs,
+            frame_cam_to_ego,
+            left_out=left_out,
+        )
+        return session, origin
+
+
 def _sessions_in(root: Path) -> list[Path]:
     return sorted(d for d in root.iterdir() if d.is_dir() and (d / "gps" / "ins.csv").is_file())
 
@@ -300,8 +476,6 @@ def open_oxford(
             too, chosen or not: its first pose is the world origin of every session, so that
             sessions read apart with the same options share one world frame.
     """
-    from PIL import Image
-
     root = Path(root)
     models = Path(models_dir) if models_dir is not None else root / "models"
     extr = Path(extrinsics_dir) if extrinsics_dir is not None else root / "extrinsics"
@@ -326,12 +500,21 @@ def open_oxford(
         raise DatasetFormatError(f"{root}: no <session>/gps/ins.csv found (RobotCar layout)")
     wanted = chosen_sessions(sessions, [d.name for d in dirs], root)
     T_vehicle_ins = read_extrinsics(extr, "ins")
-    ins_to_flu = np.linalg.inv(T_vehicle_ins) @ FRD_TO_FLU  # INS → vehicle (FLU)
+    reader = _SessionReader(
+        cameras=tuple(cameras),
+        models=models,
+        extrinsics=extr,
+        image_size=image_size,
+        tolerance_us=tolerance_us,
+        height=height,
+        ins_good_only=bool(ins_good_only),
+        level=bool(level),
+        motion_compensation=bool(motion_compensation),
+        ins_to_flu=np.linalg.inv(T_vehicle_ins) @ FRD_TO_FLU,  # INS → vehicle (FLU)
+    )
     read: dict[str, Session] = {}
-    rig: list[Camera] = []
+    rig: Sequence[Camera] = []
     origin: np.ndarray | None = None
-    lut_cache: dict[tuple[Path, int, int], tuple[np.ndarray, np.ndarray]] = {}
-    warned: set[str] = set()
     origin_only: str | None = None  # the unchosen first session, read for the origin
     try:
         for sdir in dirs:
@@ -339,126 +522,14 @@ def open_oxford(
             if not chosen and origin is not None:
                 continue  # the world origin is the first session's, chosen or not
             origin_only = None if chosen else sdir.name
-            listed = [read_timestamps(sdir / CAMERA_SPECS[c][1]) for c in cameras]
-            stamps = [
-                s[[(sdir / CAMERA_SPECS[c][0] / f"{t}.png").is_file() for t in s]]
-                for c, s in zip(cameras, listed, strict=True)
-            ]
-            if len(stamps[0]) == 0:
-                raise DatasetFormatError(f"{sdir}: no images of {cameras[0]} listed and present")
-            ref = stamps[0]
-            # each frame left out is counted under the first reason it fails, in this order
-            first = f"listed in {CAMERA_SPECS[cameras[0]][1]} but no image file"
-            left_out = {first: len(listed[0]) - len(ref)}
-            keep = np.ones(len(ref), dtype=bool)
-            picks = []
-            far = 0  # frames with no image of some camera listed within tolerance_us
-            for c, s, all_listed in zip(cameras, stamps, listed, strict=True):
-                p, ok = nearest_within(s, ref, tolerance_us)
-                picks.append(p)
-                _, near_listed = nearest_within(all_listed, ref, tolerance_us)
-                absent = keep & ~ok & near_listed  # listed near in time, but its file is missing
-                key = f"listed in {CAMERA_SPECS[c][1]} but no image file"
-                left_out[key] = left_out.get(key, 0) + int(absent.sum())
-                far += int((keep & ~ok & ~near_listed).sum())
-                keep &= ok
-            left_out[f"no image of every camera within tolerance_us={tolerance_us}"] = far
-            ins = read_ins(sdir / "gps" / "ins.csv", good_only=ins_good_only)
-            ins_t = ins[:, 0].astype(np.int64)
-            ins_at, ok = interpolate_rows(
-                ins_t, ins[:, 1:7], ref, tolerance_us, angle_columns=(3, 4, 5)
-            )
-            # the rows read_ins kept: INS_SOLUTION_GOOD ones with ins_good_only
-            left_out[f"no INS row within tolerance_us={tolerance_us}"] = int((keep & ~ok).sum())
-            keep &= ok
-            # the INS at each camera's own exposure (motion compensation); a camera without any
-            # image has joined no frame (keep is all False)
-            ins_cams = []
-            if motion_compensation and keep.any():
-                covered = np.ones(len(ref), dtype=bool)
-                for t_cam in (s[p] for s, p in zip(stamps, picks, strict=True)):
-                    row, ok = interpolate_rows(
-                        ins_t, ins[:, 1:7], t_cam, tolerance_us, angle_columns=(3, 4, 5)
-                    )
-                    ins_cams.append(row)
-                    covered &= ok
-                left_out["no INS row near some camera's exposure (motion_compensation)"] = int(
-                    (keep & ~covered).sum()
-                )
-                keep &= covered
-            if not keep.any():
-                raise DatasetFormatError(
-                    f"{sdir}: no frame has an image of every camera {list(cameras)} and an INS row "
-                    f"within tolerance_us={tolerance_us}"
-                )
-            ref = ref[keep]
-            paths = [
-                [sdir / CAMERA_SPECS[c][0] / f"{t}.png" for t in s[p[keep]]]
-                for c, s, p in zip(cameras, stamps, picks, strict=True)
-            ]
-            cams: list[Camera] = []
-            luts: list[tuple[np.ndarray, np.ndarray] | None] = []
-            patterns: list[str] = []
-            for c, ps in zip(cameras, paths, strict=True):
-                _, _, model, sensor, pattern = CAMERA_SPECS[c]
-                K, G, lut_path = read_model(models, model)
-                try:
-                    with Image.open(ps[0]) as im:
-                        w, h = im.size
-                except (OSError, SyntaxError) as e:  # FileNotFoundError, PIL's decoder errors
-                    raise DatasetFormatError(f"{ps[0]}: not a readable image ({e})") from None
-                T_camera_vehicle = read_extrinsics(extr, sensor, required=sensor != "stereo")
-                cam_to_ego = FRD_TO_FLU @ np.linalg.inv(T_camera_vehicle) @ G
-                cams.append(Camera(c, w, h, K, cam_to_ego).with_ego_origin_lowered(height))
-                if lut_path is not None:
-                    if (lut_path, w, h) not in lut_cache:  # one LUT per camera, every session
-                        lut_cache[(lut_path, w, h)] = read_lut(lut_path, w, h)
-                    luts.append(lut_cache[(lut_path, w, h)])
-                else:
-                    luts.append(None)
-                    if c not in warned:
-                        warned.add(c)
-                        warnings.warn(
-                            f"{models}: no {model}_distortion_lut.bin; {c}'s images are used "
-                            "distorted, which its pinhole K does not describe",
-                            stacklevel=2,
-                        )
-                patterns.append(pattern)
-            size = image_size or (cams[0].width, cams[0].height)
-            cams = [cam.resized(*size) for cam in cams]
-            if origin is None:  # the first session's first ego origin (the ground under the roof)
-                T0 = NED_TO_ENU @ euler_to_matrix(*ins_at[keep][0]) @ ins_to_flu
-                origin = T0[:3, 3] - height * T0[:3, 2]
-            at_cams = None
-            if motion_compensation:
-                at_cams = np.stack(
-                    [_world_vehicle(rows[keep], ins_to_flu, origin) for rows in ins_cams], axis=1
-                )
-            poses, zs, frame_cam_to_ego = ego_frames(
-                _world_vehicle(ins_at[keep], ins_to_flu, origin),
-                cams,
-                height=height,
-                level=level,
-                world_body_at_cameras=at_cams,
-            )
+            session, origin = reader.read(sdir, origin)
             if not chosen:
                 continue
-            note = heading_warning(sdir.name, poses)
+            note = heading_warning(sdir.name, session.poses)
             if note is not None:
                 warnings.warn(note, stacklevel=2)
-            read[sdir.name] = OxfordSession(
-                sdir.name,
-                paths,
-                patterns,
-                luts,
-                cams,
-                ref,
-                poses,
-                zs,
-                frame_cam_to_ego,
-                left_out=left_out,
-            )
-            rig = rig or cams
+            read[sdir.name] = session
+            rig = rig or session.cameras
     except DatasetFormatError as e:
         if origin_only is None:
             raise
@@ -468,4 +539,4 @@ def open_oxford(
             "origin moves with it)"
         ) from None
     meta = {"origin_enu": [float(v) for v in (origin if origin is not None else np.zeros(3))]}
-    return Dataset(root, rig, read, meta=meta)
+    return Dataset(root, list(rig), read, meta=meta)
