@@ -734,6 +734,10 @@ def test_excluded_frames_are_never_drawn_again_and_a_state_carries_them(tmp_path
     assert np.array_equal(copy.excluded, gone)
     for _ in range(3):
         assert np.array_equal(copy.sample(16), live.sample(16))
+    other = TripletSampler(ds, seed=4, cross_floor_fraction=0.5)
+    other.exclude([int(np.setdiff1d(np.arange(len(other)), gone)[0])])
+    with pytest.raises(ValueError, match=r"^state: this sampler excludes frames the state does "):
+        other.load_state_dict(state)  # it would draw otherwise than the state's sampler
     with pytest.raises(ValueError, match=r"^gids: frame ids must lie in \[0, "):
         live.exclude([len(live)])
     with pytest.raises(TypeError, match=r"^gids: expected an integer array \(E,\)"):
@@ -741,6 +745,23 @@ def test_excluded_frames_are_never_drawn_again_and_a_state_carries_them(tmp_path
     with pytest.raises(ValueError, match=r"^exclude: no anchor would be left"):
         live.exclude(np.arange(len(live)))
     assert np.array_equal(live.excluded, gone)  # a refused exclusion changes nothing
+
+
+def test_an_anchor_whose_negatives_are_all_excluded_is_no_anchor(tmp_path):
+    # s0@0 and s1@0 keep a positive, but every frame left lies within neg_radius of them
+    x0, x1 = [-1.0, 0.0, 2.9, 10.0], [0.0, 2.9, 10.0]
+    line = [
+        (np.column_stack([x, np.zeros(len(x)), np.zeros(len(x))]), np.zeros(len(x), int))
+        for x in (x0, x1)
+    ]
+    _write(tmp_path / "ds", {"s0": line[0], "s1": line[1]}, cameras=make_rig(1, W, H))
+    sampler = TripletSampler(open_dataset(tmp_path / "ds"), seed=0)
+    assert sampler.anchors.tolist() == [0, 1, 2, 3, 4, 5, 6]
+    sampler.exclude([3, 6])  # the frames at x = 10 m
+    assert sampler.anchors.tolist() == [0, 2, 5]
+    t = sampler.sample(64)
+    d_neg = np.linalg.norm(sampler.positions[t[:, 0]] - sampler.positions[t[:, 2]], axis=1)
+    assert np.all(d_neg > 3.0) and not np.isin(t, [3, 6]).any()
 
 
 def test_floors_are_different_places(tmp_path):

@@ -5,6 +5,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import json
+import math
 import os
 import re
 import shutil
@@ -914,7 +915,7 @@ def test_frames_without_image_content_are_left_out_of_training(tiny_world, tmp_p
     anchors = tr.sampler.sample_random(50)[:, 0]
     assert not np.isin(anchors, gids).any()
     g = tr._head_descriptors(tr.head_cache())
-    g[torch.from_numpy(gids)] = g[int(anchors[0])].clone()  # look-alikes of the anchor, not negatives
+    g[torch.from_numpy(gids)] = g[int(anchors[0])].clone()  # the anchor's look-alikes
     mined = tr._mined_negatives(g, np.full(50, anchors[0]))
     assert not np.isin(mined, gids).any()
     tr.run_epoch(progress=False)  # the local stage's: no new one
@@ -923,6 +924,38 @@ def test_frames_without_image_content_are_left_out_of_training(tiny_world, tmp_p
     resumed = Trainer(cfg, tmp_path / "run")
     assert resumed.resume()
     assert np.array_equal(resumed.sampler.excluded, saved)
+
+
+def test_an_epoch_of_triplets_without_image_content_trains_no_step_and_says_so(
+    tiny_world, tmp_path, caplog
+):
+    root = tmp_path / "world"
+    shutil.copytree(tiny_world, root)
+    for name in ("s1", "s2"):  # every positive lies in another session: every triplet blank
+        blank_frames(root, name, range(40))
+    tr = Trainer(_config(root, stage1_epochs=2, stage2_epochs=0), tmp_path / "run")
+    before = [p.detach().clone() for p in tr.model.parameters()]
+    with caplog.at_level("WARNING", logger="vvloc.train"):
+        record = tr.run_epoch(progress=False)  # no torch warning of a schedule without a step
+    assert record["step"] == 0 and record["blank_triplets"] == 4
+    assert math.isnan(record["loss_total"]) and math.isnan(record["violated_share"])
+    assert "epoch 1 trained no step: each of its 4 triplets held a frame without image content" in (
+        caplog.text
+    )
+    assert all(torch.equal(a, b) for a, b in zip(before, tr.model.parameters(), strict=True))
+    tr.save()
+    tr._log_record(record)  # null, not a perfect epoch
+    logged = json.loads((tmp_path / "run" / "log.jsonl").read_text().splitlines()[0])
+    assert logged["loss_total"] is None and logged["violated_share"] is None
+    # once every blank frame is found, nothing is left to train on: said so, by its cause
+    every = [g for g in range(len(tr.sampler)) if tr.sampler.locate(g)[0] != "s0"]
+    with pytest.raises(
+        ValueError,
+        match=r"^training frames without image content \(every camera's picture flat\): leaving "
+        r"them out leaves nothing to train on \(exclude: no anchor would be left .*; the "
+        r"checkpoint in .* keeps the last finished epoch$",
+    ):
+        tr._exclude_blank(np.array(every))
 
 
 def test_a_run_resumes_after_its_init_checkpoint_is_gone(tiny_world, tmp_path):

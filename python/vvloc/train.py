@@ -72,6 +72,7 @@ import shutil
 import signal
 import sys
 import time
+import warnings
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -2068,11 +2069,7 @@ class Trainer:
                     self.model, batch, cfg, stage, self.step, self.device
                 )
                 if not math.isfinite(parts.total):  # before the step: the weights stay finite
-                    kept = (
-                        f"the checkpoint in {self.checkpoint_dir} keeps the last finished epoch"
-                        if self.epoch > 0
-                        else "no epoch had finished: nothing was saved"
-                    )
+                    kept = self._what_is_saved()
                     raise FloatingPointError(
                         f"epoch {self.epoch + 1}, step {self.step}: non-finite loss {parts} "
                         f"({kept}; a smaller lr, a grad_clip or smaller loss weights and margins "
@@ -2106,8 +2103,9 @@ class Trainer:
             "stage": stage,
             "step": self.step,
             "lr": self.optimizer.param_groups[0]["lr"],
-            **{f"loss_{k}": v / max(n, 1) for k, v in sums.items()},
-            "violated_share": violated / max(trained, 1),
+            # no step (every triplet held a frame without image content): no loss, null in the log
+            **{f"loss_{k}": v / n if n else math.nan for k, v in sums.items()},
+            "violated_share": violated / trained if trained else math.nan,
             "hard_pool": len(self.sampler.hard),
             "seconds": time.perf_counter() - t0,
             "device": str(self.device),
@@ -2115,10 +2113,27 @@ class Trainer:
         if blank:  # logged only then: the committed runs' logs stay as they are
             record["blank_triplets"] = blank
             self._exclude_blank(np.concatenate(blank_frames))
-        self.scheduler.step()
+        if n == 0:
+            log.warning(
+                "epoch %d trained no step: each of its %d triplets held a frame without image "
+                "content (%d such frames excluded from the next draws)",
+                self.epoch + 1,
+                blank,
+                len(self.sampler.excluded),
+            )
+        with warnings.catch_warnings():  # torch warns of a schedule stepped before any step
+            if n == 0:
+                warnings.filterwarnings("ignore", "Detected call of `lr_scheduler", UserWarning)
+            self.scheduler.step()
         self.epoch += 1
         self.head_untrained = False  # stages 1-2 train the global head too
         return record
+
+    def _what_is_saved(self) -> str:
+        """What a run that stops now leaves, for its error message."""
+        if self.epoch > 0:
+            return f"the checkpoint in {self.checkpoint_dir} keeps the last finished epoch"
+        return "no epoch had finished: nothing was saved"
 
     @staticmethod
     def _with_content(
@@ -2138,8 +2153,17 @@ class Trainer:
 
     def _exclude_blank(self, gids: np.ndarray) -> None:
         """Exclude frames ``gids`` (global ids) without image content from the sampler's draws,
-        with a warning naming those not excluded before."""
-        new = self.sampler.exclude(gids)
+        with a warning naming those not excluded before; ``ValueError`` saying so when that
+        leaves nothing to train on."""
+        try:
+            new = self.sampler.exclude(gids)
+        except ValueError as e:
+            kept = self._what_is_saved()
+            raise ValueError(
+                f"training frames without image content (every camera's picture flat): leaving "
+                f"them out leaves nothing to train on ({e}; extra_datasets' anchor_share, if "
+                f"set, needs anchors in its dataset); {kept}"
+            ) from None
         if len(new):
             where = [f"{s}:{i}" for s, i in (self.sampler.locate(int(g)) for g in new)]
             log.warning(

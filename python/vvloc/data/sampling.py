@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
+from vvloc._io import list_entries
 from vvloc.data.frame import Dataset, Frame
 from vvloc.evaluate import _int_array
 from vvloc.kernels import _positive_int
@@ -392,8 +393,9 @@ class TripletSampler:
         """Take frames (``gids`` (E,) ints in ``[0, len(self))``) out of every later draw: as
         anchors, positives (an anchor left without one is no anchor) and negatives; the hard
         triplets holding one leave the pool. Returns the (E',) int64 sorted ids newly taken out
-        (those excluded before are skipped). ``ValueError`` when no anchor would be left, or
-        none in an ``extra`` world that ``anchor_shares`` gives a share."""
+        (those excluded before are skipped). An anchor needs a positive and a negative among the
+        frames left. ``ValueError`` (nothing excluded) when no anchor would be left, or none in
+        an ``extra`` world that ``anchor_shares`` gives a share."""
         ids = _int_array(gids, "gids", "(E,)", 1)
         if ids.size and (ids.min() < 0 or ids.max() >= len(self)):
             raise ValueError(f"gids: frame ids must lie in [0, {len(self)})")
@@ -406,6 +408,10 @@ class TripletSampler:
         anchors = np.array(
             [a for a in self.anchors if usable[a] and len(positives[a])], dtype=np.int64
         )
+        if len(anchors):  # an anchor needs a negative too: a usable frame beyond neg_radius
+            within = self.tree.query_ball_point(self.positions[anchors], r=self.neg_radius)
+            near_usable = np.array([int(usable[list(w)].sum()) for w in within])
+            anchors = anchors[near_usable < int(usable.sum())]
         if len(anchors) == 0:
             raise ValueError(
                 f"exclude: no anchor would be left (sessions {self.sessions}; "
@@ -451,8 +457,16 @@ class TripletSampler:
         """Restore a :meth:`state_dict` (the hard pool replaces this sampler's). A state without
         ``hard_cursor`` (saved by vvloc before 2026-12-03) starts the pool from its first
         triplet, as those versions did on resume; one without ``excluded`` (before 2026-12-07)
-        excludes nothing more."""
-        self.exclude(np.asarray(state.get("excluded", []), dtype=np.int64).reshape(-1))
+        excludes nothing. ``ValueError`` when this sampler excludes a frame the state does not
+        (load into a fresh sampler): it would draw otherwise."""
+        excluded = np.asarray(state.get("excluded", []), dtype=np.int64).reshape(-1)
+        extra = np.setdiff1d(self.excluded, excluded)
+        if len(extra):
+            raise ValueError(
+                f"state: this sampler excludes frames the state does not ({len(extra)}, ids "
+                f"{list_entries([str(g) for g in extra])}); load it into a fresh sampler"
+            )
+        self.exclude(excluded)
         self.rng.bit_generator.state = state["rng"]
         self._hard = {}
         self.mark_hard(np.asarray(state["hard"], dtype=np.int64))
