@@ -15,7 +15,8 @@ import os
 import secrets
 import shutil
 import warnings
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -465,6 +466,323 @@ def _planned_alike(dataset: str | os.PathLike[str], session: str, sim: dict[str,
     )
 
 
+@dataclass
+class _Scored:
+    """The queries of an evaluation as localized, with their ground truth and their scores."""
+
+    frames: list[Frame]
+    results: list[LocalizationResult]
+    q_pose: np.ndarray  # (Q, 3) ground truth, world frame (x m, y m, yaw rad)
+    q_floor: np.ndarray  # (Q,) int
+    db_pose: np.ndarray  # (N, 3) the map's keyframes, world frame
+    db_floor: np.ndarray  # (N,) int
+    k: int  # candidates scored: top_k, at most the map's size
+    rec_g: evaluate.RecallResult  # retrieval alone (VVLoc-G)
+    rec_ml: evaluate.RecallResult  # re-ranked (VVLoc-ML)
+    est: np.ndarray  # (Q, 3) the metric poses, world frame
+    correct: np.ndarray  # (Q,) bool: VVLoc-ML's top-1 within 2 m on the query's floor
+    on_floor: np.ndarray  # (Q,) bool: the metric pose's keyframe is on the query's floor
+
+
+def _open_inputs(
+    checkpoint: str | os.PathLike[str],
+    dataset: str | os.PathLike[str],
+    database: str,
+    queries: list[str],
+    device: str,
+) -> tuple[VVLocNet, Any, list[str]]:
+    """The model, the opened dataset and the query sessions the checkpoint was trained on
+    (warned about); ``KeyError``/``ValueError`` naming ``database`` or ``queries`` for a
+    session missing or without frames."""
+    model = VVLocNet.load(checkpoint).to(resolve_device(device))
+    ds = open_dataset(dataset)
+    # sessions checked before the trained-on warning, which a missing one would follow
+    for name in [database, *queries]:
+        argument = "database" if name == database else "queries"
+        if name not in ds.sessions:
+            raise KeyError(f"{argument}: no session {name!r} in {dataset}; sessions: {ds.sessions}")
+        if len(ds.session(name)) == 0:
+            raise ValueError(f"{argument}: session {name!r} of {dataset} has no frames")
+    seen = trained_on(model.training_record, dataset, queries, opened=ds)
+    if seen:
+        log.warning(
+            "queries %s of %s were trained on (the checkpoint's training record): their "
+            "figures are not a held-out test",
+            seen,
+            dataset,
+        )
+    return model, ds, seen
+
+
+@contextlib.contextmanager
+def _report_stage(out_dir: Path) -> Iterator[Path]:
+    """A hidden folder inside ``out_dir`` (made, with its parents, as needed) to write a report
+    into, moved into place when the block ends without an error (:func:`_move_report`): a run
+    that fails or is stopped leaves an earlier report in ``out_dir`` as it was (its map, queries
+    and figures were replaced one by one before, under the old report). Either way the folder
+    is removed, and so are the folders made here that it left empty."""
+    made = [p for p in (out_dir, *out_dir.parents) if not p.exists()]  # removed if left empty
+    out_dir.mkdir(parents=True, exist_ok=True)
+    for stale in out_dir.glob(f"{_STAGE_PREFIX}*"):  # of a run killed outright
+        shutil.rmtree(stale, ignore_errors=True)
+    work = out_dir / f"{_STAGE_PREFIX}{secrets.token_hex(6)}"
+    work.mkdir()
+    try:
+        yield work
+        _move_report(work, out_dir)
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+        for folder in made:  # the folders this run made, left empty by a failure or Ctrl-C
+            with contextlib.suppress(OSError):  # not empty: a report is in it
+                folder.rmdir()
+
+
+def _score(
+    loc: Localizer,
+    mapdb: MapDatabase,
+    frames: list[Frame],
+    results: list[LocalizationResult],
+    top_k: int,
+) -> _Scored:
+    """Recall@N of retrieval alone and re-ranked, and the metric poses, of ``results`` (one
+    per query frame of ``frames``) against the map ``mapdb``."""
+    q_pose = np.stack([f.pose for f in frames])
+    q_floor = np.array([f.floor for f in frames])
+    db_pose = np.asarray(mapdb.poses)
+    db_floor = np.asarray(mapdb.floors)
+    k = min(top_k, len(mapdb))
+    kw: dict[str, Any] = {"query_floors": q_floor, "db_floors": db_floor, "top_n": _top_n(k)}
+    rec_g = evaluate.recall_at_n(
+        q_pose[:, :2], db_pose[:, :2], _ranked(results, "retrieved", k), **kw
+    )
+    rec_ml = evaluate.recall_at_n(
+        q_pose[:, :2], db_pose[:, :2], _ranked(results, "reranked", k), **kw
+    )
+    return _Scored(
+        frames=frames,
+        results=results,
+        q_pose=q_pose,
+        q_floor=q_floor,
+        db_pose=db_pose,
+        db_floor=db_floor,
+        k=k,
+        rec_g=rec_g,
+        rec_ml=rec_ml,
+        est=np.stack([r.global_pose for r in results]),
+        correct=rec_ml.correct(1, 2.0),
+        on_floor=_on_floor(results, db_floor, q_floor),
+    )
+
+
+def _top_n(k: int) -> tuple[int, ...]:
+    """The N of the report's Recall@N for ``k`` candidates: 1 and 5, as far as there are."""
+    return tuple(n for n in (1, 5) if n <= k)
+
+
+def _per_session(s: _Scored, queries: list[str]) -> dict[str, Any]:
+    """Recall@N of VVLoc-G and -ML per query session (empty for a single session)."""
+    out: dict[str, Any] = {}
+    if len(queries) < 2:
+        return out
+    q_session = np.array([f.session for f in s.frames])
+    ranked = {
+        "VVLoc-G": _ranked(s.results, "retrieved", s.k),
+        "VVLoc-ML": _ranked(s.results, "reranked", s.k),
+    }
+    for name in queries:
+        sel = q_session == name
+        for label, order in ranked.items():
+            out[f"{name}, {label}"] = evaluate.recall_at_n(
+                s.q_pose[sel, :2],
+                s.db_pose[:, :2],
+                order[sel],
+                query_floors=s.q_floor[sel],
+                db_floors=s.db_floor,
+                top_n=_top_n(s.k),
+            )
+    return out
+
+
+def _method_note(loc: Localizer, k: int) -> str:
+    """What VVLoc-ML's ranking is, in the localizer's settings, for the report's notes."""
+    ml = f"VVLoc-ML: the top-{k} re-ranked by yaw matching cost"
+    m_used = min(loc.metric_candidates, k)  # the localizer takes no more than it retrieved
+    if m_used > 1:
+        source = "retrieved" if loc.metric_from == "retrieval" else "re-ranked"
+        ml += (
+            f", then the first {m_used} {source} candidates put first, ordered "
+            "by the cost of the coarse translation search against each"
+            + (
+                f" plus {loc.retrieval_weight:g} × its global-descriptor distance"
+                if loc.retrieval_weight > 0
+                else ""
+            )
+            + " (the lowest refined by the fine stages)"
+        )
+    elif loc.metric_from == "retrieval":
+        ml += ", then the first retrieved candidate put first (the metric pose's keyframe)"
+    if loc.snap:
+        ml += (
+            "; the reported top-1 is the retrieved keyframe nearest to the metric pose "
+            "(snapping, same floor)"
+        )
+    return ml
+
+
+def _loop_notes(
+    sessions: list[str], loop_radius: float, loop_pairs: int, loop_sequence: int
+) -> list[str]:
+    """The report's notes on how loop closure over ``sessions`` was scored."""
+    notes = [
+        f"loop closure over all frames of {sessions}: pairs within "
+        f"{loop_radius} in descriptor distance, same-session pairs within 10 keyframes "
+        f"excluded; the {loop_pairs} closest verified metrically"
+    ]
+    if loop_sequence > 0:
+        notes.append(
+            f"VVLoc + sequence (±{loop_sequence} keyframes): a pair is kept only if the "
+            f"mean descriptor distance of its {2 * loop_sequence + 1} neighbouring "
+            "keyframe pairs (i + k, j ± k), in the better traversal direction, is below "
+            "the threshold as well (vvloc.localize.loops.sequence_distance)"
+        )
+    notes.append(
+        f"VVLoc + {FLOORS}: a pair is kept only if it agrees with the floors of the map's "
+        "sessions, in each session's own numbering: within one session the two keyframes' "
+        "floor numbers must be equal; for two sessions, the offset between their numbers "
+        "that the pair implies must be the one most single-keyframe pairs within "
+        f"{FLOOR_VOTE_FACTOR * loop_radius:g} vote for (at least {FLOOR_MIN_VOTES} votes "
+        "and "
+        f"{FLOOR_MARGIN:g} × any other offset's, never a tie; otherwise none of the two "
+        "sessions' pairs is kept; two sessions that each hold one floor number are not "
+        "judged) "
+        "(vvloc.localize.loops.floor_consensus); the precision-recall sweep keeps the "
+        "pairs of these offsets. The check reads the floor numbers the sessions record, "
+        "here the labels CFER is scored against: its rows are not the paper's visual CFER"
+    )
+    return notes
+
+
+def _sweep_note(sweep: float, over: bool, loop_radius: float, loop_sweep_pairs: int) -> str | None:
+    """The report's note on a loop precision-recall sweep narrowed by its memory bound."""
+    if over:
+        return (
+            f"loop precision-recall sweep (best F1) over the pairs within the acceptance "
+            f"radius {loop_radius} only, and those are more than about "
+            f"{loop_sweep_pairs:,} pairs (the loop_sweep_pairs memory bound)"
+        )
+    if sweep < LOOP_SWEEP_RADIUS:
+        return (
+            "loop precision-recall sweep (best F1) over the pairs within descriptor "
+            f"distance {sweep:.4g} only, not {LOOP_SWEEP_RADIUS}: about "
+            f"{loop_sweep_pairs:,} pairs, the loop_sweep_pairs memory bound"
+        )
+    return None
+
+
+def _write_queries_csv(path: Path, s: _Scored) -> None:
+    """``queries.csv``: one row per query, its answer against its ground truth."""
+    yaw_err, pos_err = evaluate.pose_errors(s.est, s.q_pose)
+    lines = [
+        "# vvloc evaluation per query. Poses: world frame x east, y north (m), yaw CCW from "
+        "east (deg). cost: matching cost (lower is better).",
+        "session,index,map_row,est_x,est_y,est_yaw_deg,gt_x,gt_y,gt_yaw_deg,pos_err_m,"
+        "yaw_err_deg,cost,accepted,top1_correct,distinctiveness,metric_row",
+    ]
+    for f, r, e, g, pe, ye, c in zip(
+        s.frames, s.results, s.est, s.q_pose, pos_err, yaw_err, s.correct, strict=True
+    ):
+        lines.append(  # a session name with a comma is quoted (RFC 4180)
+            csv_row(
+                f.session,
+                f.index,
+                r.map_row,
+                f"{e[0]:.4f}",
+                f"{e[1]:.4f}",
+                f"{np.degrees(e[2]):.3f}",
+                f"{g[0]:.4f}",
+                f"{g[1]:.4f}",
+                f"{np.degrees(g[2]):.3f}",
+                f"{pe:.4f}",
+                f"{ye:.3f}",
+                f"{r.cost:.5f}",
+                int(r.accepted),
+                int(c),
+                f"{r.distinctiveness:.5f}",
+                r.metric_row,
+            )
+        )
+    with atomic_write(path) as f:
+        f.write("\n".join(lines) + "\n")
+
+
+def _draw_figures(
+    work: Path, s: _Scored, loc: Localizer, mapdb: MapDatabase, metrics: dict[str, Any]
+) -> dict[str, Path]:
+    """The report's figures, drawn into ``work``: {caption: file}. The sample query of the
+    cost plots is the first true revisit (else the first query)."""
+    yaw_err, pos_err = evaluate.pose_errors(s.est, s.q_pose)
+    rec_ml = s.rec_ml
+    figures: dict[str, Path] = {}
+    figures["Recall@N at 2 m"] = viz.plot_recall_curves(
+        work / "recall.png", {"VVLoc-G": s.rec_g.curve(2.0), "VVLoc-ML": rec_ml.curve(2.0)}
+    )
+    sel = s.correct & rec_ml.kept
+    subsets = {
+        "top-1 true revisits": sel,
+        "all kept queries on their floor": rec_ml.kept & s.on_floor,
+    }
+    figures["Error CDFs"] = viz.plot_error_cdfs(
+        work / "error_cdf.png",
+        {f"VVLoc-ML, {k}": yaw_err[m] for k, m in subsets.items()},
+        {f"VVLoc-ML, {k}": pos_err[m] for k, m in subsets.items()},
+    )
+    figures["Trajectory"] = viz.plot_trajectory(
+        work / "trajectory.png",
+        s.db_pose[:, :2],
+        s.q_pose[:, :2],
+        s.correct,
+        kept=rec_ml.kept,
+        method="VVLoc-ML (re-ranked, snapped)" if loc.snap else "VVLoc-ML (re-ranked)",
+    )
+    sample = int(np.argmax(sel)) if sel.any() else 0
+    h = s.results[sample].search
+    if h is not None and len(h.cost):
+        # the search shifts the query's BEV: its hypotheses are ξ_{q→m} translations against
+        # the keyframe it was run on (metric_row)
+        truth = geometry.relative(s.q_pose[sample], s.db_pose[int(s.results[sample].metric_row)])
+        figures["Translation cost (sample query)"] = viz.plot_translation_costs(
+            work / "translation_costs.png",
+            h.xy,
+            h.cost,
+            estimate=h.xy[int(np.argmin(h.cost))],
+            truth=truth[:2],
+        )
+    if len(s.results):
+        r = s.results[sample]
+        dev = model_device(loc.model)
+        with torch.no_grad():  # the model's device (a CUDA model used to fail here)
+            a, b = loc.model.interact(
+                torch.from_numpy(loc_desc_of(loc, s.frames[sample]))[None].to(dev),
+                torch.from_numpy(mapdb.local_descriptors(int(r.metric_row)))[None].to(dev),
+            )
+        curve = kernels.yaw_costs(a, b)[0]  # the gateway takes tensors to the CPU
+        true_rel = geometry.relative(s.q_pose[sample], s.db_pose[int(r.metric_row)])
+        figures["Yaw cost curve (sample query, no padding)"] = viz.plot_yaw_cost_curve(
+            work / "yaw_cost_curve.png", curve, true_yaw=float(true_rel[2])
+        )
+    if "loop_closure" in metrics:
+        figures["Loop closure precision-recall"] = viz.plot_precision_recall(
+            work / "precision_recall.png",
+            {name: res["sweep"] for name, res in metrics["loop_closure"].items()},
+        )
+        name, res = next(iter(metrics["loop_pose"].items()))
+        if len(res["confidence_curve"]["threshold"]):
+            figures[f"Confidence curve ({name}, verified pairs)"] = viz.plot_confidence_curve(
+                work / "confidence_curve.png", res["confidence_curve"]
+            )
+    return figures
+
+
 def run_evaluation(
     checkpoint: str | os.PathLike[str],
     dataset: str | os.PathLike[str],
@@ -528,339 +846,147 @@ def run_evaluation(
             "of its own"
         )
     check_report_folder(out_dir)
-    model = VVLocNet.load(checkpoint).to(resolve_device(device))
-    ds = open_dataset(dataset)
-    # sessions checked before the trained-on warning, which a missing one would follow
-    for name in [database, *queries]:
-        argument = "database" if name == database else "queries"
-        if name not in ds.sessions:
-            raise KeyError(f"{argument}: no session {name!r} in {dataset}; sessions: {ds.sessions}")
-        if len(ds.session(name)) == 0:
-            raise ValueError(f"{argument}: session {name!r} of {dataset} has no frames")
-    seen = trained_on(model.training_record, dataset, queries, opened=ds)
-    if seen:
-        log.warning(
-            "queries %s of %s were trained on (the checkpoint's training record): their "
-            "figures are not a held-out test",
-            seen,
-            dataset,
-        )
-    made = [p for p in (out_dir, *out_dir.parents) if not p.exists()]  # removed if left empty
-    out_dir.mkdir(parents=True, exist_ok=True)  # after the inputs are checked: none left on error
-    # Everything is written into a hidden folder inside ``out`` and moved into place at the
-    # end: a run that fails or is stopped leaves an earlier report in ``out`` as it was (its
-    # map, queries and figures were replaced one by one before, under the old report).
-    for stale in out_dir.glob(f"{_STAGE_PREFIX}*"):  # of a run killed outright
-        shutil.rmtree(stale, ignore_errors=True)
-    work = out_dir / f"{_STAGE_PREFIX}{secrets.token_hex(6)}"
-    work.mkdir()
-    mapdb: MapDatabase | None = None
-    try:
+    model, ds, seen = _open_inputs(checkpoint, dataset, database, queries, device)
+    # the report folder is made after the inputs are checked: none is left on an error
+    with _report_stage(out_dir) as work:
         map_path = build_map(
             model, ds, [database], work / "map.h5", store_bev=False, progress=progress
         )
-        mapdb = MapDatabase.open(map_path, expected_config_hash=model.config_hash())
-        loc = Localizer(
-            model,
-            mapdb,
-            top_k=top_k,
-            search=search,
-            metric_candidates=metric_candidates,
-            metric_from=metric_from,
-            retrieval_weight=retrieval_weight,
-            snap=snap,
-        )
-        frames = [ds.session(s)[i] for s in queries for i in range(0, len(ds.session(s)), every)]
-        results = loc.localize_batch(frames, progress=progress)
-
-        q_pose = np.stack([f.pose for f in frames])
-        q_floor = np.array([f.floor for f in frames])
-        db_pose = np.asarray(mapdb.poses)
-        db_floor = np.asarray(mapdb.floors)
-        k = min(top_k, len(mapdb))
-        retrieved = _ranked(results, "retrieved", k)
-        reranked = _ranked(results, "reranked", k)
-        top_n = tuple(n for n in (1, 5) if n <= k)
-        kw: dict[str, Any] = {"query_floors": q_floor, "db_floors": db_floor, "top_n": top_n}
-        rec_g = evaluate.recall_at_n(q_pose[:, :2], db_pose[:, :2], retrieved, **kw)
-        rec_ml = evaluate.recall_at_n(q_pose[:, :2], db_pose[:, :2], reranked, **kw)
-        per_session: dict[str, Any] = {}
-        if len(queries) > 1:
-            q_session = np.array([f.session for f in frames])
-            for s in queries:
-                sel = q_session == s
-                for label, ranked in (("VVLoc-G", retrieved), ("VVLoc-ML", reranked)):
-                    per_session[f"{s}, {label}"] = evaluate.recall_at_n(
-                        q_pose[sel, :2],
-                        db_pose[:, :2],
-                        ranked[sel],
-                        query_floors=q_floor[sel],
-                        db_floors=db_floor,
-                        top_n=top_n,
-                    )
-        est = np.stack([r.global_pose for r in results])
-        correct = rec_ml.correct(1, 2.0)
-        on_floor = _on_floor(results, db_floor, q_floor)
-        pose_acc = evaluate.pose_accuracy(
-            est,
-            q_pose,
-            correct,
-            kept=rec_ml.kept,
-            same_floor=on_floor,
-            pose_keyframe_correct=_pose_keyframe_correct(results, db_pose, q_pose, on_floor),
-        )
-        stages = ("encode", "retrieve", "rerank", "metric")
-        latency = evaluate.latency_summary(
-            {s: [r.timings_ms.get(s, np.nan) for r in results] for s in stages}
-        )
-        accepted = np.array([r.accepted for r in results], dtype=bool)
-        kept_acc = accepted & rec_ml.kept
-        rule = f"cost < {loc.accept_threshold}"
-        if loc.min_distinctiveness > 0:
-            rule += (
-                f" and distinctiveness >= {loc.min_distinctiveness:.4g} (the model's calibration)"
-            )
-        acc_precision = evaluate._ratio(float((kept_acc & correct).sum()), float(kept_acc.sum()))
-        notes = [
-            f"{len(frames)} queries from {list(queries)}, map = {database} ({len(mapdb)} keyframes)"
-            + (
-                f"; **queries {seen} were trained on** (the checkpoint's training record): not a "
-                "held-out test"
-                if seen
-                else ""
-            ),
-            f"accepted ({rule}): {accepted.mean():.1%} of all queries; top-1 within 2 m among the "
-            f"accepted kept queries: {_share(acc_precision, 'none accepted')} (among all kept: "
-            f"{_share(rec_ml.at(1, 2.0), 'none kept')})",
-        ]
-        ml = f"VVLoc-ML: the top-{k} re-ranked by yaw matching cost"
-        m_used = min(loc.metric_candidates, k)  # the localizer takes no more than it retrieved
-        if m_used > 1:
-            source = "retrieved" if loc.metric_from == "retrieval" else "re-ranked"
-            ml += (
-                f", then the first {m_used} {source} candidates put first, ordered "
-                "by the cost of the coarse translation search against each"
-                + (
-                    f" plus {loc.retrieval_weight:g} × its global-descriptor distance"
-                    if loc.retrieval_weight > 0
-                    else ""
-                )
-                + " (the lowest refined by the fine stages)"
-            )
-        elif loc.metric_from == "retrieval":
-            ml += ", then the first retrieved candidate put first (the metric pose's keyframe)"
-        if loc.snap:
-            ml += (
-                "; the reported top-1 is the retrieved keyframe nearest to the metric pose "
-                "(snapping, same floor)"
-            )
-        notes.append(ml)
-        if loops:
-            notes.append(
-                f"loop closure over all frames of {[database, *queries]}: pairs within "
-                f"{loop_radius} in descriptor distance, same-session pairs within 10 keyframes "
-                f"excluded; the {loop_pairs} closest verified metrically"
-            )
-            if loop_sequence > 0:
-                notes.append(
-                    f"VVLoc + sequence (±{loop_sequence} keyframes): a pair is kept only if the "
-                    f"mean descriptor distance of its {2 * loop_sequence + 1} neighbouring "
-                    "keyframe pairs (i + k, j ± k), in the better traversal direction, is below "
-                    "the threshold as well (vvloc.localize.loops.sequence_distance)"
-                )
-            notes.append(
-                f"VVLoc + {FLOORS}: a pair is kept only if it agrees with the floors of the map's "
-                "sessions, in each session's own numbering: within one session the two keyframes' "
-                "floor numbers must be equal; for two sessions, the offset between their numbers "
-                "that the pair implies must be the one most single-keyframe pairs within "
-                f"{FLOOR_VOTE_FACTOR * loop_radius:g} vote for (at least {FLOOR_MIN_VOTES} votes "
-                "and "
-                f"{FLOOR_MARGIN:g} × any other offset's, never a tie; otherwise none of the two "
-                "sessions' pairs is kept; two sessions that each hold one floor number are not "
-                "judged) "
-                "(vvloc.localize.loops.floor_consensus); the precision-recall sweep keeps the "
-                "pairs of these offsets. The check reads the floor numbers the sessions record, "
-                "here the labels CFER is scored against: its rows are not the paper's visual CFER"
-            )
-        if untrained_warning:
-            notes.insert(0, untrained_warning)
-        metrics: dict[str, Any] = {
-            "meta": {
-                "checkpoint": str(checkpoint),
-                "dataset": str(dataset),
-                # the world it was rendered from (vvloc sim's rig.json meta; None for other data)
-                "scene": {
-                    k: ds.meta[k]
-                    for k in ("scene", "seed", "floors", "floor_marking")
-                    if k in ds.meta
-                }
-                or None,
-                "database": database,
-                "queries": ",".join(queries),
-                "model_config_hash": model.config_hash(),
-                "model_weights_hash": model.weights_hash(),
-                "every": every,
-                "top_k": k,
-                "metric_candidates": m_used,
-                "metric_from": loc.metric_from,
-                "retrieval_weight": loc.retrieval_weight,
-                "snap": loc.snap,
-                "device": device,
-                "hardware": hardware(),
-                "cpu": cpu_model(),
-                "torch_threads": torch.get_num_threads(),
-                "trained_on": summarize(model.training_record),
-                "trained_on_queries": list(seen),  # vvloc targets refuses a report with any
-            },
-            "training": model.training_record or None,
-            "global_localization": {"VVLoc-G": rec_g, "VVLoc-ML": rec_ml},
-            "per_session": per_session,
-            "pose_accuracy": {"VVLoc-ML": pose_acc},
-            "latency": latency,
-            "notes": notes,
-            "accepted_share": float(accepted.mean()),
-            "accepted_precision": acc_precision,
-            "min_distinctiveness": loc.min_distinctiveness,
-        }
-
-        if robustness:
-            metrics["robustness"], metrics["robustness_pose"] = _robustness(
-                loc, frames, q_pose, q_floor, db_pose, db_floor, k, progress
-            )
-            notes.append(
-                "robustness: the whole localizer on perturbed copies of the queries (map clean; "
-                "random choices drawn per query frame): "
-                + ", ".join(
-                    f"{label} ({name} {args})" for label, (name, args) in ROBUSTNESS.items()
-                )
-            )
-        if loops:
-            metrics["loop_closure"], metrics["loop_pose"], sweep, over = _loops(
+        with MapDatabase.open(map_path, expected_config_hash=model.config_hash()) as mapdb:
+            loc = Localizer(
                 model,
-                ds,
-                [database, *queries],
-                work,
-                loop_pairs,
-                search,
-                progress,
-                loop_radius,
-                loop_sequence,
-                loop_sweep_pairs,
+                mapdb,
+                top_k=top_k,
+                search=search,
+                metric_candidates=metric_candidates,
+                metric_from=metric_from,
+                retrieval_weight=retrieval_weight,
+                snap=snap,
             )
-            metrics["loop_sweep_radius"] = sweep
-            if over:
+            frames = [
+                ds.session(s)[i] for s in queries for i in range(0, len(ds.session(s)), every)
+            ]
+            scored = _score(
+                loc, mapdb, frames, loc.localize_batch(frames, progress=progress), top_k
+            )
+            rec_ml, results = scored.rec_ml, scored.results
+            pose_acc = evaluate.pose_accuracy(
+                scored.est,
+                scored.q_pose,
+                scored.correct,
+                kept=rec_ml.kept,
+                same_floor=scored.on_floor,
+                pose_keyframe_correct=_pose_keyframe_correct(
+                    results, scored.db_pose, scored.q_pose, scored.on_floor
+                ),
+            )
+            stages = ("encode", "retrieve", "rerank", "metric")
+            latency = evaluate.latency_summary(
+                {st: [r.timings_ms.get(st, np.nan) for r in results] for st in stages}
+            )
+            accepted = np.array([r.accepted for r in results], dtype=bool)
+            kept_acc = accepted & rec_ml.kept
+            rule = f"cost < {loc.accept_threshold}"
+            if loc.min_distinctiveness > 0:
+                rule += (
+                    f" and distinctiveness >= {loc.min_distinctiveness:.4g} (the model's "
+                    "calibration)"
+                )
+            acc_precision = evaluate._ratio(
+                float((kept_acc & scored.correct).sum()), float(kept_acc.sum())
+            )
+            notes = [
+                f"{len(frames)} queries from {list(queries)}, map = {database} ({len(mapdb)} "
+                "keyframes)"
+                + (
+                    f"; **queries {seen} were trained on** (the checkpoint's training record): "
+                    "not a held-out test"
+                    if seen
+                    else ""
+                ),
+                f"accepted ({rule}): {accepted.mean():.1%} of all queries; top-1 within 2 m "
+                f"among the accepted kept queries: {_share(acc_precision, 'none accepted')} "
+                f"(among all kept: {_share(rec_ml.at(1, 2.0), 'none kept')})",
+                _method_note(loc, scored.k),
+            ]
+            if loops:
+                notes += _loop_notes([database, *queries], loop_radius, loop_pairs, loop_sequence)
+            if untrained_warning:
+                notes.insert(0, untrained_warning)
+            metrics: dict[str, Any] = {
+                "meta": {
+                    "checkpoint": str(checkpoint),
+                    "dataset": str(dataset),
+                    # the world it was rendered from (vvloc sim's rig.json meta; None otherwise)
+                    "scene": {
+                        key: ds.meta[key]
+                        for key in ("scene", "seed", "floors", "floor_marking")
+                        if key in ds.meta
+                    }
+                    or None,
+                    "database": database,
+                    "queries": ",".join(queries),
+                    "model_config_hash": model.config_hash(),
+                    "model_weights_hash": model.weights_hash(),
+                    "every": every,
+                    "top_k": scored.k,
+                    "metric_candidates": min(loc.metric_candidates, scored.k),
+                    "metric_from": loc.metric_from,
+                    "retrieval_weight": loc.retrieval_weight,
+                    "snap": loc.snap,
+                    "device": device,
+                    "hardware": hardware(),
+                    "cpu": cpu_model(),
+                    "torch_threads": torch.get_num_threads(),
+                    "trained_on": summarize(model.training_record),
+                    "trained_on_queries": list(seen),  # vvloc targets refuses a report with any
+                },
+                "training": model.training_record or None,
+                "global_localization": {"VVLoc-G": scored.rec_g, "VVLoc-ML": rec_ml},
+                "per_session": _per_session(scored, queries),
+                "pose_accuracy": {"VVLoc-ML": pose_acc},
+                "latency": latency,
+                "notes": notes,
+                "accepted_share": float(accepted.mean()),
+                "accepted_precision": acc_precision,
+                "min_distinctiveness": loc.min_distinctiveness,
+            }
+            if robustness:
+                metrics["robustness"], metrics["robustness_pose"] = _robustness(
+                    loc,
+                    frames,
+                    scored.q_pose,
+                    scored.q_floor,
+                    scored.db_pose,
+                    scored.db_floor,
+                    scored.k,
+                    progress,
+                )
                 notes.append(
-                    f"loop precision-recall sweep (best F1) over the pairs within the acceptance "
-                    f"radius {loop_radius} only, and those are more than about "
-                    f"{loop_sweep_pairs:,} pairs (the loop_sweep_pairs memory bound)"
+                    "robustness: the whole localizer on perturbed copies of the queries (map "
+                    "clean; random choices drawn per query frame): "
+                    + ", ".join(
+                        f"{label} ({name} {args})" for label, (name, args) in ROBUSTNESS.items()
+                    )
                 )
-            elif sweep < LOOP_SWEEP_RADIUS:
-                notes.append(
-                    "loop precision-recall sweep (best F1) over the pairs within descriptor "
-                    f"distance {sweep:.4g} only, not {LOOP_SWEEP_RADIUS}: about "
-                    f"{loop_sweep_pairs:,} pairs, the loop_sweep_pairs memory bound"
+            if loops:
+                metrics["loop_closure"], metrics["loop_pose"], sweep, over = _loops(
+                    model,
+                    ds,
+                    [database, *queries],
+                    work,
+                    loop_pairs,
+                    search,
+                    progress,
+                    loop_radius,
+                    loop_sequence,
+                    loop_sweep_pairs,
                 )
-
-        # per-query CSV
-        yaw_err, pos_err = evaluate.pose_errors(est, q_pose)
-        lines = [
-            "# vvloc evaluation per query. Poses: world frame x east, y north (m), yaw CCW from "
-            "east (deg). cost: matching cost (lower is better).",
-            "session,index,map_row,est_x,est_y,est_yaw_deg,gt_x,gt_y,gt_yaw_deg,pos_err_m,"
-            "yaw_err_deg,cost,accepted,top1_correct,distinctiveness,metric_row",
-        ]
-        for f, r, e, g, pe, ye, c in zip(
-            frames, results, est, q_pose, pos_err, yaw_err, correct, strict=True
-        ):
-            lines.append(  # a session name with a comma is quoted (RFC 4180)
-                csv_row(
-                    f.session,
-                    f.index,
-                    r.map_row,
-                    f"{e[0]:.4f}",
-                    f"{e[1]:.4f}",
-                    f"{np.degrees(e[2]):.3f}",
-                    f"{g[0]:.4f}",
-                    f"{g[1]:.4f}",
-                    f"{np.degrees(g[2]):.3f}",
-                    f"{pe:.4f}",
-                    f"{ye:.3f}",
-                    f"{r.cost:.5f}",
-                    int(r.accepted),
-                    int(c),
-                    f"{r.distinctiveness:.5f}",
-                    r.metric_row,
-                )
-            )
-        with atomic_write(work / "queries.csv") as f:
-            f.write("\n".join(lines) + "\n")
-
-        figures = {}
-        figures["Recall@N at 2 m"] = viz.plot_recall_curves(
-            work / "recall.png", {"VVLoc-G": rec_g.curve(2.0), "VVLoc-ML": rec_ml.curve(2.0)}
-        )
-        sel = correct & rec_ml.kept
-        subsets = {
-            "top-1 true revisits": sel,
-            "all kept queries on their floor": rec_ml.kept & on_floor,
-        }
-        figures["Error CDFs"] = viz.plot_error_cdfs(
-            work / "error_cdf.png",
-            {f"VVLoc-ML, {k}": yaw_err[m] for k, m in subsets.items()},
-            {f"VVLoc-ML, {k}": pos_err[m] for k, m in subsets.items()},
-        )
-        figures["Trajectory"] = viz.plot_trajectory(
-            work / "trajectory.png",
-            db_pose[:, :2],
-            q_pose[:, :2],
-            correct,
-            kept=rec_ml.kept,
-            method="VVLoc-ML (re-ranked, snapped)" if loc.snap else "VVLoc-ML (re-ranked)",
-        )
-        sample = int(np.argmax(sel)) if sel.any() else 0
-        h = results[sample].search
-        if h is not None and len(h.cost):
-            # the search shifts the query's BEV: its hypotheses are ξ_{q→m} translations against
-            # the keyframe it was run on (metric_row)
-            truth = geometry.relative(q_pose[sample], db_pose[int(results[sample].metric_row)])
-            figures["Translation cost (sample query)"] = viz.plot_translation_costs(
-                work / "translation_costs.png",
-                h.xy,
-                h.cost,
-                estimate=h.xy[int(np.argmin(h.cost))],
-                truth=truth[:2],
-            )
-        if len(results):
-            r = results[sample]
-            dev = model_device(loc.model)
-            with torch.no_grad():  # the model's device (a CUDA model used to fail here)
-                a, b = loc.model.interact(
-                    torch.from_numpy(loc_desc_of(loc, frames[sample]))[None].to(dev),
-                    torch.from_numpy(mapdb.local_descriptors(int(r.metric_row)))[None].to(dev),
-                )
-            curve = kernels.yaw_costs(a, b)[0]  # the gateway takes tensors to the CPU
-            true_rel = geometry.relative(q_pose[sample], db_pose[int(r.metric_row)])
-            figures["Yaw cost curve (sample query, no padding)"] = viz.plot_yaw_cost_curve(
-                work / "yaw_cost_curve.png", curve, true_yaw=float(true_rel[2])
-            )
-        if loops:
-            figures["Loop closure precision-recall"] = viz.plot_precision_recall(
-                work / "precision_recall.png",
-                {name: res["sweep"] for name, res in metrics["loop_closure"].items()},
-            )
-            name, res = next(iter(metrics["loop_pose"].items()))
-            if len(res["confidence_curve"]["threshold"]):
-                figures[f"Confidence curve ({name}, verified pairs)"] = viz.plot_confidence_curve(
-                    work / "confidence_curve.png", res["confidence_curve"]
-                )
-        evaluate.write_report(work, metrics, title="vvloc evaluation", figures=figures)
-        mapdb.close()
-        _move_report(work, out_dir)
-    finally:
-        if mapdb is not None:
-            mapdb.close()
-        shutil.rmtree(work, ignore_errors=True)
-        for folder in made:  # the folders this run made, left empty by a failure or Ctrl-C
-            with contextlib.suppress(OSError):  # not empty: a report is in it
-                folder.rmdir()
+                metrics["loop_sweep_radius"] = sweep
+                note = _sweep_note(sweep, over, loop_radius, loop_sweep_pairs)
+                if note is not None:
+                    notes.append(note)
+            _write_queries_csv(work / "queries.csv", scored)
+            figures = _draw_figures(work, scored, loc, mapdb, metrics)
+            evaluate.write_report(work, metrics, title="vvloc evaluation", figures=figures)
     return metrics
