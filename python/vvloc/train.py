@@ -1800,16 +1800,30 @@ class Trainer:
             return False
         t0 = time.perf_counter()
         state = _load_trainer_state(self._state_path())
-        # Extending a run (more joint epochs) is allowed; any other change is a different run.
         # keys added to TrainConfig after the run started count as their defaults
+        old = {**TrainConfig().to_dict(), **state["config"]}
+        self._check_same_run(old, state)
+        self._check_same_data(old, state)
+        for folder in (self.checkpoint_dir, self.best_dir):  # a stop inside a folder's swap
+            self._recover_folder(folder)
+        loaded = VVLocNet.load(self.checkpoint_dir)
+        self._restore(state, loaded)
+        self._restore_record(state, loaded)
+        self.process["epochs"] = [self.epoch, self.epoch]
+        self.process["seconds"] += time.perf_counter() - t0
+        log.info("resumed %s at epoch %d, step %d", self.out, self.epoch, self.step)
+        return True
+
+    def _check_same_run(self, old: dict[str, Any], state: Mapping[str, Any]) -> None:
+        """Refuse to resume the run of config ``old`` (its trainer ``state``) under another
+        config than this trainer's (see :meth:`resume`), and set :attr:`joint_stopped`."""
+        # Extending a run (more joint epochs) is allowed; any other change is a different run.
         # how the run is executed may change: workers, threads and device (the last two
         # can move the weights' last bits, as on another machine)
         free = ("stage2_epochs", *RESUMABLE_CHANGES)
-        saved_cfg = {**TrainConfig().to_dict(), **state["config"]}
-        saved_cfg = {k: v for k, v in saved_cfg.items() if k not in free}
+        saved_cfg = {k: v for k, v in old.items() if k not in free}
         current = {k: v for k, v in self.cfg.to_dict().items() if k not in free}
-        # where the datasets lie is checked by their contents below
-        saved_paths, current_paths = _dataset_paths(saved_cfg), _dataset_paths(current)
+        # where the datasets lie is checked by their contents (_check_same_data)
         saved_cfg, current = _without_dataset_paths(saved_cfg), _without_dataset_paths(current)
         if saved_cfg != current:
             differ = sorted(
@@ -1819,17 +1833,15 @@ class Trainer:
                 f"{self._state_path()}: the run in {self.out} was started with another config "
                 f"(differing: {', '.join(differ)}); use a new --out directory or the same config"
             )
-        old_cfg = {**TrainConfig().to_dict(), **state["config"]}
         for key in ("threads", "device"):
-            if old_cfg.get(key) != getattr(self.cfg, key):
+            if old.get(key) != getattr(self.cfg, key):
                 log.warning(
                     "resuming with %s %r (the run started with %r): the weights may differ in "
                     "their last bits from an uninterrupted run",
                     key,
                     getattr(self.cfg, key),
-                    old_cfg.get(key),
+                    old.get(key),
                 )
-        old = {**TrainConfig().to_dict(), **state["config"]}
         if old["stage2_epochs"] != self.cfg.stage2_epochs and (
             self.cfg.stage2_epochs < old["stage2_epochs"]
             or int(state["epoch"]) > old["stage1_epochs"] + old["stage2_epochs"]
@@ -1860,6 +1872,11 @@ class Trainer:
                 "stage2_epochs does not restart it: start a new run (another --out) with "
                 f"init_checkpoint: {self.out}"
             )
+
+    def _check_same_data(self, old: dict[str, Any], state: Mapping[str, Any]) -> None:
+        """Refuse to resume the run of config ``old`` (its trainer ``state``) on other data: a
+        dataset folder named otherwise must hold the run's sessions (see :meth:`resume`)."""
+        saved_paths, current_paths = _dataset_paths(old), _dataset_paths(self.cfg.to_dict())
         data = state.get("data")
         moved = {
             key: (saved_paths[key], current_paths[key])
@@ -1894,9 +1911,11 @@ class Trainer:
                     "session of the datasets' folders, so a session added since counts too); "
                     "use a new --out directory, or remove the sessions added since"
                 )
-        for folder in (self.checkpoint_dir, self.best_dir):  # a stop inside a folder's swap
-            self._recover_folder(folder)
-        loaded = VVLocNet.load(self.checkpoint_dir)
+
+    def _restore(self, state: Mapping[str, Any], loaded: VVLocNet) -> None:
+        """Take the weights, optimizers, sampler, random generators, epoch, step and best epoch
+        of the trainer ``state`` (the weights of ``loaded``, checkpoint/, for a state written
+        before 2026-12-05)."""
         if "model" in state:  # the state's own weights (before 2026-12-05: checkpoint/'s)
             self.model.load_state_dict(state["model"])
             if loaded.weights_hash() != self.model.weights_hash():
@@ -1945,6 +1964,9 @@ class Trainer:
         if record is not None and int(record["epoch"]) not in self._logged_epochs():
             self._unlogged = record  # fit() writes it before training on
         self.best = state.get("best")
+
+    def _restore_record(self, state: Mapping[str, Any], loaded: VVLocNet) -> None:
+        """Take the run's training record so far from its checkpoint ``loaded``."""
         # The run's record so far is its latest checkpoint's (written with the state, brought
         # up at the end of fit): its processes, and the init checkpoint's runs as they were when
         # the run started (a run folder given as init_checkpoint moves on). A checkpoint of an
@@ -1978,10 +2000,6 @@ class Trainer:
             self.earlier_processes = [dict(p) for p in mine.get("processes", [])]
         else:
             self.earlier_processes = [{"epochs": [0, self.epoch], "seconds": None}]
-        self.process["epochs"] = [self.epoch, self.epoch]
-        self.process["seconds"] += time.perf_counter() - t0
-        log.info("resumed %s at epoch %d, step %d", self.out, self.epoch, self.step)
-        return True
 
     # --- training ------------------------------------------------------------------------
 
