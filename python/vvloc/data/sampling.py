@@ -79,8 +79,8 @@ class TripletSampler:
     Frames found unusable while training (the trainer's: no image content, every camera's
     picture flat) are taken out with :meth:`exclude` (:attr:`usable`, (N,) bool, is False for
     them): never drawn again as anchor, positive or negative, and the hard triplets holding them
-    leave the pool. A sampler that excluded nothing
-    draws exactly what one without the method would.
+    leave the pool. A sampler that excluded nothing draws exactly what one without the method
+    would.
     """
 
     def __init__(
