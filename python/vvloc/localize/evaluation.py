@@ -477,9 +477,13 @@ class _Scored:
     db_pose: np.ndarray  # (N, 3) the map's keyframes, world frame
     db_floor: np.ndarray  # (N,) int
     k: int  # candidates scored: top_k, at most the map's size
+    retrieved: np.ndarray  # (Q, k) map rows in retrieval order (VVLoc-G)
+    reranked: np.ndarray  # (Q, k) map rows in re-ranked order (VVLoc-ML)
     rec_g: evaluate.RecallResult  # retrieval alone (VVLoc-G)
     rec_ml: evaluate.RecallResult  # re-ranked (VVLoc-ML)
     est: np.ndarray  # (Q, 3) the metric poses, world frame
+    yaw_err: np.ndarray  # (Q,) |yaw error| of the metric poses, degrees
+    pos_err: np.ndarray  # (Q,) position error of the metric poses, metres
     correct: np.ndarray  # (Q,) bool: VVLoc-ML's top-1 within 2 m on the query's floor
     on_floor: np.ndarray  # (Q,) bool: the metric pose's keyframe is on the query's floor
 
@@ -538,26 +542,24 @@ def _report_stage(out_dir: Path) -> Iterator[Path]:
 
 
 def _score(
-    loc: Localizer,
     mapdb: MapDatabase,
     frames: list[Frame],
     results: list[LocalizationResult],
     top_k: int,
 ) -> _Scored:
-    """Recall@N of retrieval alone and re-ranked, and the metric poses, of ``results`` (one
-    per query frame of ``frames``) against the map ``mapdb``."""
+    """Recall@N of retrieval alone and re-ranked, and the metric poses' errors, of ``results``
+    (one per query frame of ``frames``) against the map ``mapdb``."""
     q_pose = np.stack([f.pose for f in frames])
     q_floor = np.array([f.floor for f in frames])
     db_pose = np.asarray(mapdb.poses)
     db_floor = np.asarray(mapdb.floors)
     k = min(top_k, len(mapdb))
+    retrieved = _ranked(results, "retrieved", k)
+    reranked = _ranked(results, "reranked", k)
     kw: dict[str, Any] = {"query_floors": q_floor, "db_floors": db_floor, "top_n": _top_n(k)}
-    rec_g = evaluate.recall_at_n(
-        q_pose[:, :2], db_pose[:, :2], _ranked(results, "retrieved", k), **kw
-    )
-    rec_ml = evaluate.recall_at_n(
-        q_pose[:, :2], db_pose[:, :2], _ranked(results, "reranked", k), **kw
-    )
+    rec_ml = evaluate.recall_at_n(q_pose[:, :2], db_pose[:, :2], reranked, **kw)
+    est = np.stack([r.global_pose for r in results])
+    yaw_err, pos_err = evaluate.pose_errors(est, q_pose)
     return _Scored(
         frames=frames,
         results=results,
@@ -566,9 +568,13 @@ def _score(
         db_pose=db_pose,
         db_floor=db_floor,
         k=k,
-        rec_g=rec_g,
+        retrieved=retrieved,
+        reranked=reranked,
+        rec_g=evaluate.recall_at_n(q_pose[:, :2], db_pose[:, :2], retrieved, **kw),
         rec_ml=rec_ml,
-        est=np.stack([r.global_pose for r in results]),
+        est=est,
+        yaw_err=yaw_err,
+        pos_err=pos_err,
         correct=rec_ml.correct(1, 2.0),
         on_floor=_on_floor(results, db_floor, q_floor),
     )
@@ -585,10 +591,7 @@ def _per_session(s: _Scored, queries: list[str]) -> dict[str, Any]:
     if len(queries) < 2:
         return out
     q_session = np.array([f.session for f in s.frames])
-    ranked = {
-        "VVLoc-G": _ranked(s.results, "retrieved", s.k),
-        "VVLoc-ML": _ranked(s.results, "reranked", s.k),
-    }
+    ranked = {"VVLoc-G": s.retrieved, "VVLoc-ML": s.reranked}
     for name in queries:
         sel = q_session == name
         for label, order in ranked.items():
@@ -681,7 +684,6 @@ def _sweep_note(sweep: float, over: bool, loop_radius: float, loop_sweep_pairs: 
 
 def _write_queries_csv(path: Path, s: _Scored) -> None:
     """``queries.csv``: one row per query, its answer against its ground truth."""
-    yaw_err, pos_err = evaluate.pose_errors(s.est, s.q_pose)
     lines = [
         "# vvloc evaluation per query. Poses: world frame x east, y north (m), yaw CCW from "
         "east (deg). cost: matching cost (lower is better).",
@@ -689,7 +691,7 @@ def _write_queries_csv(path: Path, s: _Scored) -> None:
         "yaw_err_deg,cost,accepted,top1_correct,distinctiveness,metric_row",
     ]
     for f, r, e, g, pe, ye, c in zip(
-        s.frames, s.results, s.est, s.q_pose, pos_err, yaw_err, s.correct, strict=True
+        s.frames, s.results, s.est, s.q_pose, s.pos_err, s.yaw_err, s.correct, strict=True
     ):
         lines.append(  # a session name with a comma is quoted (RFC 4180)
             csv_row(
@@ -720,7 +722,6 @@ def _draw_figures(
 ) -> dict[str, Path]:
     """The report's figures, drawn into ``work``: {caption: file}. The sample query of the
     cost plots is the first true revisit (else the first query)."""
-    yaw_err, pos_err = evaluate.pose_errors(s.est, s.q_pose)
     rec_ml = s.rec_ml
     figures: dict[str, Path] = {}
     figures["Recall@N at 2 m"] = viz.plot_recall_curves(
@@ -733,8 +734,8 @@ def _draw_figures(
     }
     figures["Error CDFs"] = viz.plot_error_cdfs(
         work / "error_cdf.png",
-        {f"VVLoc-ML, {k}": yaw_err[m] for k, m in subsets.items()},
-        {f"VVLoc-ML, {k}": pos_err[m] for k, m in subsets.items()},
+        {f"VVLoc-ML, {k}": s.yaw_err[m] for k, m in subsets.items()},
+        {f"VVLoc-ML, {k}": s.pos_err[m] for k, m in subsets.items()},
     )
     figures["Trajectory"] = viz.plot_trajectory(
         work / "trajectory.png",
@@ -866,9 +867,7 @@ def run_evaluation(
             frames = [
                 ds.session(s)[i] for s in queries for i in range(0, len(ds.session(s)), every)
             ]
-            scored = _score(
-                loc, mapdb, frames, loc.localize_batch(frames, progress=progress), top_k
-            )
+            scored = _score(mapdb, frames, loc.localize_batch(frames, progress=progress), top_k)
             rec_ml, results = scored.rec_ml, scored.results
             pose_acc = evaluate.pose_accuracy(
                 scored.est,
