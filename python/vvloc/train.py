@@ -1802,7 +1802,7 @@ class Trainer:
         state = _load_trainer_state(self._state_path())
         # keys added to TrainConfig after the run started count as their defaults
         old = {**TrainConfig().to_dict(), **state["config"]}
-        self._check_same_run(old, state)
+        self.joint_stopped = self._check_same_run(old, state)
         self._check_same_data(old, state)
         for folder in (self.checkpoint_dir, self.best_dir):  # a stop inside a folder's swap
             self._recover_folder(folder)
@@ -1814,9 +1814,10 @@ class Trainer:
         log.info("resumed %s at epoch %d, step %d", self.out, self.epoch, self.step)
         return True
 
-    def _check_same_run(self, old: dict[str, Any], state: Mapping[str, Any]) -> None:
+    def _check_same_run(self, old: dict[str, Any], state: Mapping[str, Any]) -> int | None:
         """Refuse to resume the run of config ``old`` (its trainer ``state``) under another
-        config than this trainer's (see :meth:`resume`), and set :attr:`joint_stopped`."""
+        config than this trainer's (see :meth:`resume`); returns the run's
+        :attr:`joint_stopped`, the epoch its joint stage stopped early at (or None)."""
         # Extending a run (more joint epochs) is allowed; any other change is a different run.
         # how the run is executed may change: workers, threads and device (the last two
         # can move the weights' last bits, as on another machine)
@@ -1851,10 +1852,10 @@ class Trainer:
                 f"stage (run in {self.out}: {old['stage2_epochs']} joint epochs, at epoch "
                 f"{state['epoch']}; asked for {self.cfg.stage2_epochs})"
             )
-        self.joint_stopped = state.get("joint_stopped")
+        joint_stopped = state.get("joint_stopped")
         best = state.get("best")
         if (
-            self.joint_stopped is None
+            joint_stopped is None
             and old["stage2_epochs"] != self.cfg.stage2_epochs
             and self.cfg.patience is not None
             and best is not None
@@ -1864,14 +1865,15 @@ class Trainer:
             # its last joint epoch skipped the patience check (no joint epoch was left to
             # stop); a run that had asked for more epochs from the start would have stopped
             # there, so an extension is refused as for one that did stop
-            self.joint_stopped = int(state["epoch"])
-        if self.joint_stopped is not None and old["stage2_epochs"] != self.cfg.stage2_epochs:
+            joint_stopped = int(state["epoch"])
+        if joint_stopped is not None and old["stage2_epochs"] != self.cfg.stage2_epochs:
             raise ValueError(
                 f"{self._state_path()}: the run in {self.out} stopped its joint stage early "
-                f"after epoch {self.joint_stopped} (patience {self.cfg.patience}); growing "
+                f"after epoch {joint_stopped} (patience {self.cfg.patience}); growing "
                 "stage2_epochs does not restart it: start a new run (another --out) with "
                 f"init_checkpoint: {self.out}"
             )
+        return joint_stopped
 
     def _check_same_data(self, old: dict[str, Any], state: Mapping[str, Any]) -> None:
         """Refuse to resume the run of config ``old`` (its trainer ``state``) on other data: a
@@ -1966,7 +1968,10 @@ class Trainer:
         self.best = state.get("best")
 
     def _restore_record(self, state: Mapping[str, Any], loaded: VVLocNet) -> None:
-        """Take the run's training record so far from its checkpoint ``loaded``."""
+        """Take the run's training record so far from its checkpoint ``loaded``, after
+        :meth:`_restore` (its processes start at the restored epoch). Refuses a run whose
+        ``init_checkpoint`` is gone when that checkpoint holds no record of it (written by an
+        earlier vvloc)."""
         # The run's record so far is its latest checkpoint's (written with the state, brought
         # up at the end of fit): its processes, and the init checkpoint's runs as they were when
         # the run started (a run folder given as init_checkpoint moves on). A checkpoint of an

@@ -188,8 +188,7 @@ def _robustness(
     accuracy})``, as for the clean queries."""
     recalls: dict[str, Any] = {}
     poses: dict[str, Any] = {}
-    top_n = tuple(n for n in (1, 5) if n <= k)
-    kw: dict[str, Any] = {"query_floors": q_floor, "db_floors": db_floor, "top_n": top_n}
+    kw: dict[str, Any] = {"query_floors": q_floor, "db_floors": db_floor, "top_n": _top_n(k)}
     for label in ROBUSTNESS:
         log.info("robustness: localizing the queries with %s", label)
         results = loc.localize_batch([perturbed(f, label) for f in frames], progress=progress)
@@ -585,31 +584,36 @@ def _top_n(k: int) -> tuple[int, ...]:
     return tuple(n for n in (1, 5) if n <= k)
 
 
-def _per_session(s: _Scored, queries: list[str]) -> dict[str, Any]:
+def _per_session(scored: _Scored, queries: list[str]) -> dict[str, Any]:
     """Recall@N of VVLoc-G and -ML per query session (empty for a single session)."""
     out: dict[str, Any] = {}
     if len(queries) < 2:
         return out
-    q_session = np.array([f.session for f in s.frames])
-    ranked = {"VVLoc-G": s.retrieved, "VVLoc-ML": s.reranked}
+    q_session = np.array([f.session for f in scored.frames])
+    ranked = {"VVLoc-G": scored.retrieved, "VVLoc-ML": scored.reranked}
     for name in queries:
         sel = q_session == name
         for label, order in ranked.items():
             out[f"{name}, {label}"] = evaluate.recall_at_n(
-                s.q_pose[sel, :2],
-                s.db_pose[:, :2],
+                scored.q_pose[sel, :2],
+                scored.db_pose[:, :2],
                 order[sel],
-                query_floors=s.q_floor[sel],
-                db_floors=s.db_floor,
-                top_n=_top_n(s.k),
+                query_floors=scored.q_floor[sel],
+                db_floors=scored.db_floor,
+                top_n=_top_n(scored.k),
             )
     return out
+
+
+def _metric_candidates(loc: Localizer, k: int) -> int:
+    """The M candidates the localizer scores metrically: no more than the ``k`` it retrieved."""
+    return min(loc.metric_candidates, k)
 
 
 def _method_note(loc: Localizer, k: int) -> str:
     """What VVLoc-ML's ranking is, in the localizer's settings, for the report's notes."""
     ml = f"VVLoc-ML: the top-{k} re-ranked by yaw matching cost"
-    m_used = min(loc.metric_candidates, k)  # the localizer takes no more than it retrieved
+    m_used = _metric_candidates(loc, k)
     if m_used > 1:
         source = "retrieved" if loc.metric_from == "retrieval" else "re-ranked"
         ml += (
@@ -682,7 +686,7 @@ def _sweep_note(sweep: float, over: bool, loop_radius: float, loop_sweep_pairs: 
     return None
 
 
-def _write_queries_csv(path: Path, s: _Scored) -> None:
+def _write_queries_csv(path: Path, scored: _Scored) -> None:
     """``queries.csv``: one row per query, its answer against its ground truth."""
     lines = [
         "# vvloc evaluation per query. Poses: world frame x east, y north (m), yaw CCW from "
@@ -691,7 +695,14 @@ def _write_queries_csv(path: Path, s: _Scored) -> None:
         "yaw_err_deg,cost,accepted,top1_correct,distinctiveness,metric_row",
     ]
     for f, r, e, g, pe, ye, c in zip(
-        s.frames, s.results, s.est, s.q_pose, s.pos_err, s.yaw_err, s.correct, strict=True
+        scored.frames,
+        scored.results,
+        scored.est,
+        scored.q_pose,
+        scored.pos_err,
+        scored.yaw_err,
+        scored.correct,
+        strict=True,
     ):
         lines.append(  # a session name with a comma is quoted (RFC 4180)
             csv_row(
@@ -718,39 +729,42 @@ def _write_queries_csv(path: Path, s: _Scored) -> None:
 
 
 def _draw_figures(
-    work: Path, s: _Scored, loc: Localizer, mapdb: MapDatabase, metrics: dict[str, Any]
+    work: Path, scored: _Scored, loc: Localizer, mapdb: MapDatabase, metrics: dict[str, Any]
 ) -> dict[str, Path]:
     """The report's figures, drawn into ``work``: {caption: file}. The sample query of the
-    cost plots is the first true revisit (else the first query)."""
-    rec_ml = s.rec_ml
+    cost plots is the first true revisit (else the first query); the loop closure figures are
+    drawn when ``metrics`` holds the loops' results (``loop_closure``, ``loop_pose``)."""
+    rec_ml = scored.rec_ml
     figures: dict[str, Path] = {}
     figures["Recall@N at 2 m"] = viz.plot_recall_curves(
-        work / "recall.png", {"VVLoc-G": s.rec_g.curve(2.0), "VVLoc-ML": rec_ml.curve(2.0)}
+        work / "recall.png", {"VVLoc-G": scored.rec_g.curve(2.0), "VVLoc-ML": rec_ml.curve(2.0)}
     )
-    sel = s.correct & rec_ml.kept
+    sel = scored.correct & rec_ml.kept
     subsets = {
         "top-1 true revisits": sel,
-        "all kept queries on their floor": rec_ml.kept & s.on_floor,
+        "all kept queries on their floor": rec_ml.kept & scored.on_floor,
     }
     figures["Error CDFs"] = viz.plot_error_cdfs(
         work / "error_cdf.png",
-        {f"VVLoc-ML, {k}": s.yaw_err[m] for k, m in subsets.items()},
-        {f"VVLoc-ML, {k}": s.pos_err[m] for k, m in subsets.items()},
+        {f"VVLoc-ML, {k}": scored.yaw_err[m] for k, m in subsets.items()},
+        {f"VVLoc-ML, {k}": scored.pos_err[m] for k, m in subsets.items()},
     )
     figures["Trajectory"] = viz.plot_trajectory(
         work / "trajectory.png",
-        s.db_pose[:, :2],
-        s.q_pose[:, :2],
-        s.correct,
+        scored.db_pose[:, :2],
+        scored.q_pose[:, :2],
+        scored.correct,
         kept=rec_ml.kept,
         method="VVLoc-ML (re-ranked, snapped)" if loc.snap else "VVLoc-ML (re-ranked)",
     )
     sample = int(np.argmax(sel)) if sel.any() else 0
-    h = s.results[sample].search
+    h = scored.results[sample].search
     if h is not None and len(h.cost):
         # the search shifts the query's BEV: its hypotheses are ξ_{q→m} translations against
         # the keyframe it was run on (metric_row)
-        truth = geometry.relative(s.q_pose[sample], s.db_pose[int(s.results[sample].metric_row)])
+        truth = geometry.relative(
+            scored.q_pose[sample], scored.db_pose[int(scored.results[sample].metric_row)]
+        )
         figures["Translation cost (sample query)"] = viz.plot_translation_costs(
             work / "translation_costs.png",
             h.xy,
@@ -758,16 +772,16 @@ def _draw_figures(
             estimate=h.xy[int(np.argmin(h.cost))],
             truth=truth[:2],
         )
-    if len(s.results):
-        r = s.results[sample]
+    if len(scored.results):
+        r = scored.results[sample]
         dev = model_device(loc.model)
         with torch.no_grad():  # the model's device (a CUDA model used to fail here)
             a, b = loc.model.interact(
-                torch.from_numpy(loc_desc_of(loc, s.frames[sample]))[None].to(dev),
+                torch.from_numpy(loc_desc_of(loc, scored.frames[sample]))[None].to(dev),
                 torch.from_numpy(mapdb.local_descriptors(int(r.metric_row)))[None].to(dev),
             )
         curve = kernels.yaw_costs(a, b)[0]  # the gateway takes tensors to the CPU
-        true_rel = geometry.relative(s.q_pose[sample], s.db_pose[int(r.metric_row)])
+        true_rel = geometry.relative(scored.q_pose[sample], scored.db_pose[int(r.metric_row)])
         figures["Yaw cost curve (sample query, no padding)"] = viz.plot_yaw_cost_curve(
             work / "yaw_cost_curve.png", curve, true_yaw=float(true_rel[2])
         )
@@ -929,7 +943,7 @@ def run_evaluation(
                     "model_weights_hash": model.weights_hash(),
                     "every": every,
                     "top_k": scored.k,
-                    "metric_candidates": min(loc.metric_candidates, scored.k),
+                    "metric_candidates": _metric_candidates(loc, scored.k),
                     "metric_from": loc.metric_from,
                     "retrieval_weight": loc.retrieval_weight,
                     "snap": loc.snap,
