@@ -951,9 +951,10 @@ def test_an_epoch_of_triplets_without_image_content_trains_no_step_and_says_so(
     every = [g for g in range(len(tr.sampler)) if tr.sampler.locate(g)[0] != "s0"]
     with pytest.raises(
         ValueError,
-        match=r"^training frames without image content \(every camera's picture flat\): leaving "
-        r"them out leaves nothing to train on \(exclude: no anchor would be left .*; the "
-        r"checkpoint in .* keeps the last finished epoch$",
+        match=r"^training frames without image content \(every camera's picture flat\) leave "
+        r"nothing to train on once left out: exclude: no anchor would be left \(sessions "
+        r"\['s0', 's1', 's2'\]; 80 of 120 frames excluded\); the checkpoint in .* keeps the "
+        r"last finished epoch$",
     ):
         tr._exclude_blank(np.array(every))
 

@@ -2181,11 +2181,9 @@ class Trainer:
         try:
             new = self.sampler.exclude(gids)
         except ValueError as e:
-            kept = self._what_is_saved()
-            raise ValueError(
-                f"training frames without image content (every camera's picture flat): leaving "
-                f"them out leaves nothing to train on ({e}; extra_datasets' anchor_share, if "
-                f"set, needs anchors in its dataset); {kept}"
+            raise ValueError(  # e names the anchors missing (or an extra's anchor_shares)
+                "training frames without image content (every camera's picture flat) leave "
+                f"nothing to train on once left out: {e}; {self._what_is_saved()}"
             ) from None
         if len(new):
             where = [f"{s}:{i}" for s, i in (self.sampler.locate(int(g)) for g in new)]
