@@ -104,6 +104,36 @@ def test_loop_csv_content_and_round_trip(tmp_path: Path) -> None:
         np.testing.assert_array_equal(getattr(back, name), getattr(loops, name))
 
 
+PROVENANCE = (
+    "model config 0123456789abcdef",
+    "model weights " + "ab" * 32,
+    "search SearchConfig(half_range=3.0, step=0.6, fine_samples=32, stages=4, shrink=0.5, seed=0)",
+)
+
+
+def test_loop_provenance_is_written_and_read_back_and_kept_by_select(tmp_path: Path) -> None:
+    # the model and search settings a pair's pose came from travel with the loops: in the
+    # file as comment lines after the conventions, before the caller's comments
+    base = loops_fixture()
+    assert base.provenance == ()
+    loops = LoopClosures(
+        base.i, base.j, base.relative_poses, base.costs, base.accepted, list(PROVENANCE)
+    )
+    assert loops.provenance == PROVENANCE  # a tuple, whatever iterable was given
+    assert loops.select([2, 0]).provenance == PROVENANCE
+    path = write_loop_csv(tmp_path / "l.csv", loops, comments=["map m.h5"])
+    lines = path.read_text().splitlines()
+    at = [lines.index(f"# {line}") for line in PROVENANCE]
+    assert at == sorted(at) and at[-1] + 1 == lines.index("# map m.h5")
+    assert read_loop_csv(path).provenance == PROVENANCE
+    assert read_loop_csv(write_loop_csv(tmp_path / "b.csv", base)).provenance == ()
+    # a user's comment that is no provenance line, or one after the header, is not taken
+    text = path.read_text().replace("# map m.h5", "# model config of the week: v2")
+    text += "# model weights " + "cd" * 32 + "\n"
+    path.write_text(text)
+    assert read_loop_csv(path).provenance == PROVENANCE
+
+
 def test_loop_csv_with_no_loops(tmp_path: Path) -> None:
     empty = LoopClosures(i=[], j=[], relative_poses=np.zeros((0, 3)), costs=[], accepted=[])
     back = read_loop_csv(write_loop_csv(tmp_path / "l.csv", empty))
@@ -120,6 +150,11 @@ def test_loop_csv_with_no_loops(tmp_path: Path) -> None:
         ({"accepted": [1]}, TypeError, "accepted.*bool"),
         ({"i": [0.5]}, TypeError, "i: expected an integer"),
         ({"j": np.array([2**63 + 5], np.uint64)}, ValueError, "j: ids beyond int64"),
+        ({"provenance": "model config ab"}, TypeError, "provenance: .*got one str"),
+        ({"provenance": 3}, TypeError, "provenance: expected an iterable of str lines, got int"),
+        ({"provenance": [b"model config ab"]}, TypeError, "provenance: expected str lines"),
+        ({"provenance": ["model config ab\nx"]}, ValueError, "provenance: expected lines"),
+        ({"provenance": ["threshold 0.75"]}, ValueError, "got 'threshold 0.75'"),
     ],
 )
 def test_loop_closures_validate(kwargs: dict, exc: type, match: str) -> None:

@@ -661,3 +661,58 @@ def test_detect_loops_searches_only_the_pairs_a_previous_call_did_not():
     with pytest.raises(TypeError, match="previous: expected LoopClosures or None, got dict"):
         detect_loops(model, db_of(n), previous={}, **kw)  # type: ignore[arg-type]
     assert isinstance(full, LoopClosures)
+
+
+def test_detect_loops_keeps_no_pose_of_another_model_or_search():
+    """``previous`` poses from other search settings or weights, or of unknown provenance,
+    would mix into the result silently: they are refused, naming ``previous``."""
+    import dataclasses
+
+    from vvloc.localize import LoopClosures
+    from vvloc.localize.loops import detect_loops, loop_provenance
+
+    torch.manual_seed(0)
+    model = VVLocNet(tiny_config()).eval()
+    cfg = model.config
+    rng = np.random.default_rng(1)
+    n = 6
+    db = MapDatabase.from_arrays(
+        poses=np.zeros((n, 3)),
+        timestamps=np.arange(n, dtype=np.float64),
+        sessions=["s0"] * 3 + ["s1"] * 3,
+        ids=np.arange(n),
+        global_descriptors=np.tile(np.eye(3, model.global_dim, dtype=np.float32), (2, 1)),
+        local_descriptors=rng.standard_normal((n, cfg.num_angles, cfg.channels)).astype(np.float32),
+        bevs=rng.standard_normal((n, cfg.bev_height, cfg.bev_width, cfg.channels)).astype(
+            np.float32
+        ),
+        model_config=cfg.to_dict(),
+        config_hash=model.config_hash(),
+        weights_hash=model.weights_hash(),
+        grid_size=cfg.grid_size,
+    )
+    search = SearchConfig(half_range=1.0, step=1.0, fine_samples=4, stages=2, seed=1)
+    kw = {"radius": 0.5, "window": 0, "sequence": 0, "check_floors": False, "progress": False}
+    full = detect_loops(model, db, search=search, **kw)
+    assert len(full) == 3
+    assert full.provenance == loop_provenance(model, search)
+    assert full.provenance[0] == f"model config {model.config_hash()}"
+    assert full.provenance[1] == f"model weights {model.weights_hash()}"
+    assert full.provenance[2] == f"search {search!r}"
+    again = detect_loops(model, db, search=search, previous=full, **kw)
+    np.testing.assert_array_equal(again.costs, full.costs)
+    unknown = LoopClosures(full.i, full.j, full.relative_poses, full.costs, full.accepted)
+    with pytest.raises(ValueError, match="previous: carries no provenance"):
+        detect_loops(model, db, search=search, previous=unknown, **kw)
+    # a LoopClosures of the caller's own making, told where its poses came from, is kept
+    own = dataclasses.replace(unknown, provenance=loop_provenance(model, search))
+    np.testing.assert_array_equal(
+        detect_loops(model, db, search=search, previous=own, **kw).costs, full.costs
+    )
+    other = dataclasses.replace(search, seed=2)
+    with pytest.raises(ValueError, match=r"previous: .*another model or search settings.*seed=2"):
+        detect_loops(model, db, search=other, previous=full, **kw)
+    weights = (full.provenance[0], "model weights " + "0" * 64, full.provenance[2])
+    stale = dataclasses.replace(full, provenance=weights)  # another model's, by its weights
+    with pytest.raises(ValueError, match=rf"this call has model weights {model.weights_hash()}"):
+        detect_loops(model, db, search=search, previous=stale, **kw)

@@ -61,20 +61,6 @@ def trajectory_file_names(sessions: Sequence[str]) -> dict[str, str]:
     return names
 
 
-def provenance_comments(config_hash: str, weights_hash: str) -> list[str]:
-    """The comment lines ``vvloc loops`` writes into ``loops.csv`` that say what a pair's pose
-    and cost depend on besides its two keyframes' stored descriptors: the model (architecture
-    and weights) and the metric search's settings (``--reuse`` takes an earlier run's pairs
-    only when all three are the same)."""
-    from vvloc.localize.metric import SearchConfig
-
-    return [
-        f"model config {config_hash}",
-        f"model weights {weights_hash}",
-        f"search {SearchConfig()!r}",
-    ]
-
-
 def keyframe_digests(db: MapDatabase) -> list[str]:
     """16 hex digits of the SHA-256 of each map keyframe's local-view descriptors (as read
     back: float32), in map row order: ``--reuse`` matches a keyframe of an earlier run only when
@@ -91,7 +77,7 @@ def keyframe_digests(db: MapDatabase) -> list[str]:
 
 
 def reusable_loops(
-    out: Path, config_hash: str, weights_hash: str, db: MapDatabase, digests: Sequence[str]
+    out: Path, provenance: Sequence[str], db: MapDatabase, digests: Sequence[str]
 ) -> tuple[LoopClosures | None, str]:
     """The loop closures an earlier ``vvloc loops`` run wrote into ``out``, in the ids of map
     ``db``: its ``loops.csv`` pairs whose two keyframes this map holds too, matched through its
@@ -100,7 +86,9 @@ def reusable_loops(
     sessions numbers its keyframes anew). A pair this map orders the other way round (two
     sessions listed in the other order) is left out: its search pads the other keyframe.
     Returns (LoopClosures or None, a line to print). ``ValueError`` when that run used another
-    model or search settings, or wrote no record of them (a vvloc before 2026-12-06)."""
+    model or search settings than ``provenance`` (this run's
+    :func:`~vvloc.localize.loops.loop_provenance`), or wrote no record of them (a vvloc before
+    2026-12-06)."""
     import numpy as np
 
     from vvloc.localize.export import (
@@ -115,15 +103,13 @@ def reusable_loops(
     missing = [p.name for p in (csv_path, kf_path) if not p.is_file()]
     if missing:
         return None, f"--reuse: no {' or '.join(missing)} in {out}: every pair searched"
-    with open(csv_path, encoding="utf-8") as f:
-        said = {line[2:].rstrip("\r\n") for line in f if line.startswith("# ")}
-    if not set(provenance_comments(config_hash, weights_hash)) <= said:
+    before = read_loop_csv(csv_path)  # ValueError naming the file and line when malformed
+    if before.provenance != tuple(provenance):
         raise ValueError(
             f"--reuse: {csv_path} was written with another model or search settings than "
             "these (or by a vvloc before 2026-12-06, which did not record them); run without "
             "--reuse"
         )
-    before = read_loop_csv(csv_path)
     kf = read_keyframe_csv(kf_path)  # ValueError naming the file and line when malformed
     with open(kf_path, encoding="utf-8") as f:
         header = next((line for line in f if line.strip() and not line.startswith("#")), "")
@@ -170,6 +156,7 @@ def reusable_loops(
         before.relative_poses[rows].reshape(-1, 3),
         before.costs[rows],
         np.asarray(before.accepted)[rows],
+        before.provenance,
     )
     line = f"--reuse: the earlier run in {out} searched {len(keep)} pairs of this map's keyframes"
     if reversed_:
@@ -346,7 +333,7 @@ def loops(
         loop_csv_text,
         tum_text,
     )
-    from vvloc.localize.loops import detect_loops
+    from vvloc.localize.loops import detect_loops, loop_provenance
     from vvloc.localize.mapdb import MapDatabase, MapError
     from vvloc.nets import VVLocNet
 
@@ -367,11 +354,10 @@ def loops(
                 f"{map_path}: keyframe ids {int(ids.min())}..{int(ids.max())} do not fit g2o's "
                 f"vertex ids [0, {G2O_MAX_ID}] (vvloc map build numbers them 0..N-1)"
             )
-        config, weights = model.config_hash(), model.weights_hash()  # the weights: hashed anew
         digests = keyframe_digests(db)
         previous = None
-        if reuse:
-            previous, line = reusable_loops(out, config, weights, db, digests)
+        if reuse:  # the weights are hashed anew, not taken from the checkpoint's record
+            previous, line = reusable_loops(out, loop_provenance(model), db, digests)
             typer.echo(line)
         found = detect_loops(
             model,
@@ -390,7 +376,7 @@ def loops(
             typer.echo(f"--reuse: {kept} of {len(found)} pairs kept, {len(found) - kept} searched")
         sessions = [db.session_of(i) for i in range(len(db))]
         files = {
-            "loops.csv": loop_csv_text(found, comments=provenance_comments(config, weights)),
+            "loops.csv": loop_csv_text(found),  # with its provenance (model, search)
             "graph.g2o": g2o_text(db.poses, found, ids=db.ids, sessions=sessions, seq=db.seq),
             "keyframes.csv": keyframe_csv_text(
                 db.ids,

@@ -20,6 +20,7 @@ import csv
 import io
 import math
 import os
+import re
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -211,6 +212,12 @@ class LoopClosures:
             frame (metres, radians CCW, yaw wrapped to (−π, π]).
         costs: (K,) float64 matching costs (lower is more confident).
         accepted: (K,) bool, typically ``costs < threshold``.
+        provenance: lines that say what the poses and costs depend on besides the two
+            keyframes: the model's architecture and weights fingerprints and the metric
+            search's settings (:func:`vvloc.localize.loops.loop_provenance`, which
+            ``detect_loops`` fills in). The CSV writer writes them as ``#`` lines and
+            :func:`read_loop_csv` reads them back; ``detect_loops(previous=...)`` keeps an
+            earlier result's pairs only when they are its own. Empty (the default): not known.
     """
 
     i: np.ndarray
@@ -218,6 +225,7 @@ class LoopClosures:
     relative_poses: np.ndarray
     costs: np.ndarray
     accepted: np.ndarray
+    provenance: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         i = _to_array(self.i, "i")
@@ -243,6 +251,7 @@ class LoopClosures:
         for name, arr in values.items():
             arr.setflags(write=False)
             object.__setattr__(self, name, arr)
+        object.__setattr__(self, "provenance", _provenance_lines(self.provenance))
 
     def __len__(self) -> int:
         return int(self.i.shape[0])
@@ -257,7 +266,37 @@ class LoopClosures:
             self.relative_poses[mask],
             self.costs[mask],
             self.accepted[mask],
+            self.provenance,
         )
+
+
+def _provenance_lines(lines: Any) -> tuple[str, ...]:
+    """``lines`` checked as :attr:`LoopClosures.provenance`: an iterable of one-line strings
+    that :func:`read_loop_csv` would read back as such (:data:`_PROVENANCE`)."""
+    if isinstance(lines, str):
+        raise TypeError("provenance: expected an iterable of str lines, got one str")
+    try:
+        out = tuple(lines)
+    except TypeError:
+        raise TypeError(
+            f"provenance: expected an iterable of str lines, got {type(lines).__name__}"
+        ) from None
+    for line in out:
+        if not isinstance(line, str):
+            raise TypeError(f"provenance: expected str lines, got {type(line).__name__}")
+        if not _PROVENANCE.fullmatch(line):
+            raise ValueError(
+                "provenance: expected lines 'model config <hex>', 'model weights <hex>' or "
+                f"'search SearchConfig(...)' (loop_provenance), got {line!r}"
+            )
+    return out
+
+
+#: A provenance line of a loop-closure CSV (:attr:`LoopClosures.provenance`), as ``vvloc
+#: loops`` has written them into ``loops.csv`` since 2026-12-06.
+_PROVENANCE = re.compile(
+    r"model config [0-9a-f]+|model weights [0-9a-f]+|search SearchConfig\([^\n]*\)"
+)
 
 
 def _selection(sel: Any, n: int, name: str) -> np.ndarray:
@@ -286,10 +325,11 @@ _LOOP_COLUMNS = ("i", "j", "x", "y", "yaw", "yaw_deg", "cost", "accepted")
 def write_loop_csv(path: PathLike, loops: LoopClosures, *, comments: Iterable[str] = ()) -> Path:
     """Write loop closures as CSV: ``i,j,x,y,yaw,yaw_deg,cost,accepted``, one row per loop.
 
-    ``#`` comment lines first state the conventions (plus ``comments``, e.g. the threshold or
-    the map file); then a header row. ``accepted`` is written as 1/0. Read with
-    :func:`read_loop_csv` or e.g. ``pandas.read_csv(path, comment="#")``. The file's text is
-    :func:`loop_csv_text`.
+    ``#`` comment lines first state the conventions, then the loops' provenance (the model and
+    search settings their poses came from, :attr:`LoopClosures.provenance`), then
+    ``comments`` (e.g. the threshold or the map file); then a header row. ``accepted`` is
+    written as 1/0. Read with :func:`read_loop_csv` or e.g. ``pandas.read_csv(path,
+    comment="#")``. The file's text is :func:`loop_csv_text`.
     """
     text = loop_csv_text(loops, comments=comments)
     with atomic_write(path, "w", newline="") as f:
@@ -310,6 +350,7 @@ def loop_csv_text(loops: LoopClosures, *, comments: Iterable[str] = ()) -> str:
             *_FRAME_COMMENTS,
             "yaw_deg: yaw in degrees; cost: matching cost (lower is better); "
             "accepted: 1 if the closure passed the cost threshold, else 0",
+            *loops.provenance,
         ]
     ) + _comment_lines(comments)
     rows = []
@@ -431,7 +472,9 @@ def _csv_fields(line: str) -> list[str]:
 def read_loop_csv(path: PathLike) -> LoopClosures:
     """Read a loop-closure CSV written by :func:`write_loop_csv`.
 
-    ``#`` and blank lines are skipped; the first other line is the header, which must name
+    ``#`` and blank lines are skipped, but for the provenance lines (``# model config …``,
+    ``# model weights …``, ``# search SearchConfig(…)``), which become
+    :attr:`LoopClosures.provenance`; the first other line is the header, which must name
     the columns ``i, j, x, y, yaw, cost, accepted`` once each (others, such as ``yaw_deg``, are
     ignored); every row has the header's number of fields. Ids are integers, values finite
     numbers as C reads them, ``accepted`` is 1/0/true/false. Anything else raises
@@ -459,7 +502,21 @@ def read_loop_csv(path: PathLike) -> LoopClosures:
         relative_poses=np.array([cols["x"], cols["y"], cols["yaw"]], np.float64).T.reshape(-1, 3),
         costs=np.array(cols["cost"], np.float64),
         accepted=np.array(cols["accepted"], bool),
+        provenance=_provenance_comments(p),
     )
+
+
+def _provenance_comments(p: Path) -> tuple[str, ...]:
+    """The provenance lines among the ``#`` lines of ``p`` before its header (once each)."""
+    found: list[str] = []
+    for line in _text_lines(p, newline=""):
+        text = line.strip()
+        if text and not text.startswith("#"):
+            break  # the header
+        line = text[1:].strip()
+        if _PROVENANCE.fullmatch(line) and line not in found:
+            found.append(line)
+    return tuple(found)
 
 
 def _csv_table(

@@ -53,6 +53,7 @@ __all__ = [
     "floor_consistent",
     "floor_offsets",
     "loop_candidates",
+    "loop_provenance",
     "sequence_distance",
     "sweep_radius",
     "verify_pairs",
@@ -650,7 +651,13 @@ def detect_loops(
     ``cost_threshold`` anew. A pair's search depends only on its two keyframes, the model and
     ``search``, so the result is the one a full run gives (bit for bit with MKL) as long as
     ``previous`` came from this model, the same ``search`` settings and keyframes that kept
-    their ids; nothing checks that.
+    their ids. The first two are checked: ``ValueError`` unless ``previous.provenance`` is
+    this call's :func:`loop_provenance` (an earlier call's result and :func:`read_loop_csv`
+    carry it; give it to a :class:`LoopClosures` of your own making). The ids are not: a map
+    built again numbers its keyframes anew (``vvloc loops --reuse`` matches them by session,
+    time and descriptors instead).
+
+    The result's ``provenance`` is :func:`loop_provenance` ``(model, search)``.
     """
     if previous is not None and not isinstance(previous, LoopClosures):
         raise TypeError(f"previous: expected LoopClosures or None, got {type(previous).__name__}")
@@ -659,6 +666,9 @@ def detect_loops(
     radius, window = _radius_and_window(radius, window)
     search = search_config(search, "search")
     search.validate()  # a bad one fails here, not at the first pair
+    provenance = loop_provenance(model, search)
+    if previous is not None:
+        _check_previous(previous.provenance, provenance)
     if max_pairs is not None:
         max_pairs = _positive_int(max_pairs, "max_pairs", minimum=0)
     if not mapdb.has_bev:
@@ -691,4 +701,37 @@ def detect_loops(
         relative_poses=poses,
         costs=costs,
         accepted=costs < cost_threshold,
+        provenance=provenance,
     )
+
+
+def loop_provenance(model: VVLocNet, search: SearchConfig | None = None) -> tuple[str, ...]:
+    """What the pose and cost of a loop pair depend on besides its two keyframes' stored BEV
+    and descriptors: ``("model config <16 hex>", "model weights <64 hex>", "search
+    SearchConfig(...)")``, the model's :meth:`~VVLocNet.config_hash` and
+    :meth:`~VVLocNet.weights_hash` and the metric search's settings (None: the defaults).
+    :attr:`LoopClosures.provenance` of :func:`detect_loops`' result; ``loops.csv`` holds
+    these lines as comments."""
+    search = search_config(search, "search")
+    return (
+        f"model config {model.config_hash()}",
+        f"model weights {model.weights_hash()}",
+        f"search {search!r}",
+    )
+
+
+def _check_previous(given: tuple[str, ...], wanted: tuple[str, ...]) -> None:
+    """``ValueError`` naming ``previous`` unless its provenance ``given`` is ``wanted``."""
+    if not given:
+        raise ValueError(
+            "previous: carries no provenance (the model and search settings its poses came "
+            "from), so its pairs cannot be kept safely: pass detect_loops' result or "
+            "read_loop_csv of a loops.csv written since 2026-12-06, or give a LoopClosures of "
+            "your own provenance=loop_provenance(model, search) when you know them"
+        )
+    if given != wanted:
+        differ = [w for w in wanted if w not in given] or list(wanted)
+        raise ValueError(
+            "previous: its poses came from another model or search settings than this "
+            f"call's; this call has {'; '.join(differ)}, previous has {'; '.join(given)}"
+        )
