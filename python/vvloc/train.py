@@ -139,6 +139,15 @@ RESUMABLE_CHANGES = ("num_workers", "threads", "device")
 SELECT_BY = ("reranked", "retrieval", "last")
 
 
+def _finite_at_least(name: str, value: float, *, strict: bool = False) -> None:
+    """``ValueError`` naming ``name`` unless the number ``value`` is finite and >= 0 (with
+    ``strict``: > 0); NaN fails both."""
+    if not ((value > 0 if strict else value >= 0) and math.isfinite(value)):
+        raise ValueError(
+            f"{name}: expected a finite number {'>' if strict else '>='} 0, got {value!r}"
+        )
+
+
 class _UniqueKeyLoader(yaml.SafeLoader):
     """YAML's safe loader, refusing a mapping that names a key twice (the safe loader keeps
     the last silently: ``lr`` written twice trained at the second). Merge keys (``<<: *base``)
@@ -418,43 +427,79 @@ class TrainConfig:
         return cfg
 
     def validate(self) -> None:
-        """Raise ``ValueError`` naming the first invalid field."""
+        """Raise ``ValueError`` naming the first invalid field: checked for its type
+        (:meth:`_check_types`), then the numbers, the schedule, validation, the extra datasets
+        and the model."""
         self._check_types()
-        for name in ("seed", "triplet_margin", "hinge_pos", "hinge_neg", "tbias_margin"):
-            value = getattr(self, name)
-            if not (value >= 0 and math.isfinite(value)):  # NaN fails both
-                raise ValueError(f"{name}: expected a finite number >= 0, got {value}")
+        self._check_numbers()
+        self._check_schedule()
+        self._check_validation()
+        self._check_extra_datasets()
+        if self.augment is not None:
+            PhotometricAugment.from_dict(self.augment)
+        try:  # a misspelt model field fails here, not after the dataset has been rendered
+            self.model_config()
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"model, model_overrides: {e}") from e
+
+    def _check_numbers(self) -> None:
+        """The seed, the losses' margins and weights, the learning rates, the radii and
+        shares (each a number of its type already: :meth:`_check_types`)."""
+        for name in (
+            "seed",
+            "triplet_margin",
+            "hinge_pos",
+            "hinge_neg",
+            "tbias_margin",
+            "yaw_weight",
+            "tbias_weight",
+            "grad_clip",  # 0: no clipping
+            "weight_decay",
+            "tbias_near_weight",
+            "tbias_near_slope",  # inf: a non-finite loss
+            "rerank_weight",
+            "rerank_margin",
+        ):
+            _finite_at_least(name, getattr(self, name))
         if self.seed >= 2**32:  # stage 2 seeds its losses with seed · 1 000 003 + step (int64)
             raise ValueError(f"seed: expected < 2**32, got {self.seed}")
-        for name in ("yaw_weight", "tbias_weight", "grad_clip"):  # grad_clip 0: no clipping
-            value = getattr(self, name)
-            if (
-                isinstance(value, bool)
-                or not isinstance(value, (int, float))
-                or not (value >= 0 and math.isfinite(value))
-            ):
-                raise ValueError(f"{name}: expected a finite number >= 0, got {value!r}")
-        gamma = self.yaw_gamma
-        if (
-            isinstance(gamma, bool)
-            or not isinstance(gamma, (int, float))
-            or not (gamma > 0 and math.isfinite(gamma))
-        ):
-            raise ValueError(f"yaw_gamma: expected a finite number > 0, got {gamma!r}")
-        if self.threads is not None and (
-            isinstance(self.threads, bool) or not isinstance(self.threads, int) or self.threads < 1
-        ):
+        for name in ("yaw_gamma", "lr", "head_lr", "local_lr"):
+            _finite_at_least(name, getattr(self, name), strict=True)
+        if not 0 < self.lr_decay <= 1:
+            raise ValueError("lr_decay: expected in (0, 1]")
+        if self.threads is not None and self.threads < 1:
             raise ValueError(f"threads: expected an int >= 1 or null, got {self.threads!r}")
         if not (0 < self.pos_radius < self.neg_radius and math.isfinite(self.neg_radius)):
             raise ValueError(
                 f"pos_radius, neg_radius: expected 0 < pos_radius < neg_radius < inf metres, got "
                 f"{self.pos_radius} and {self.neg_radius}"
             )
+        theta_p, theta_n = self.yaw_theta_p, self.yaw_theta_n
+        if not (0 <= theta_p < theta_n and math.isfinite(theta_n)):
+            raise ValueError(
+                "yaw_theta_p, yaw_theta_n: expected finite descriptor distances with "
+                f"0 <= yaw_theta_p < yaw_theta_n, got {theta_p} and {theta_n}"
+            )
+        near = self.tbias_near_range
+        if len(near) != 2 or not 0 < near[0] <= near[1] < math.inf:
+            raise ValueError(
+                "tbias_near_range: expected [low, high] metres with 0 < low <= high, finite, "
+                f"got {near!r}"
+            )
+        for name in ("hard_fraction", "tbias_near_zero", "cross_floor_fraction"):
+            if not 0.0 <= getattr(self, name) <= 1.0:  # NaN fails too
+                raise ValueError(f"{name}: expected a value in [0, 1], got {getattr(self, name)}")
+        if not 0.0 <= self.cross_floor_same_session <= 1.0:
+            raise ValueError("cross_floor_same_session: expected a value in [0, 1]")
+
+    def _check_schedule(self) -> None:
+        """The stages' epochs, steps and batches, the sessions trained on and what the stages
+        on a frozen encoder start from."""
         stages = ("stage1_epochs", "stage2_epochs", "head_epochs", "local_epochs")
         for name in stages:
-            if int(getattr(self, name)) < 0:
+            if getattr(self, name) < 0:
                 raise ValueError(f"{name}: expected >= 0")
-        if sum(int(getattr(self, name)) for name in stages) == 0:  # it wrote no checkpoint
+        if sum(getattr(self, name) for name in stages) == 0:  # it wrote no checkpoint
             raise ValueError(f"{', '.join(stages)}: expected at least one epoch, got 0 in all")
         for name in (
             "steps_per_epoch",
@@ -464,149 +509,27 @@ class TrainConfig:
             "local_steps_per_epoch",
             "local_batch_size",
         ):
-            if int(getattr(self, name)) < 1:
+            if getattr(self, name) < 1:
                 raise ValueError(f"{name}: expected >= 1")
-        for name in ("lr", "lr_decay", "head_lr", "local_lr"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, float)):
-                raise ValueError(
-                    f"{name}: expected a number, got {value!r} (in YAML write 1.0e-3, not 1e-3)"
-                )
-        for name in ("lr", "head_lr", "local_lr"):
-            value = getattr(self, name)
-            if not (value > 0 and math.isfinite(value)):
-                raise ValueError(f"{name}: expected a finite number > 0, got {value}")
-        if not (self.weight_decay >= 0 and math.isfinite(self.weight_decay)):
-            raise ValueError(
-                f"weight_decay: expected a finite number >= 0, got {self.weight_decay}"
-            )
-        if not 0.0 <= self.hard_fraction <= 1.0:  # NaN fails too
-            raise ValueError(f"hard_fraction: expected a value in [0, 1], got {self.hard_fraction}")
+        if self.head_batch_size < 2:
+            raise ValueError("head_batch_size: expected >= 2")
         if self.revisit_gap < 0:
             raise ValueError(f"revisit_gap: expected an int >= 0, got {self.revisit_gap}")
-        theta_p, theta_n = self.yaw_theta_p, self.yaw_theta_n
-        if not (0 <= theta_p < theta_n and math.isfinite(theta_n)):
-            raise ValueError(
-                "yaw_theta_p, yaw_theta_n: expected finite descriptor distances with "
-                f"0 <= yaw_theta_p < yaw_theta_n, got {theta_p} and {theta_n}"
-            )
+        if self.num_workers < 0:
+            raise ValueError("num_workers: expected >= 0")
         if self.train_sessions is not None and not self.train_sessions:
             raise ValueError("train_sessions: expected a non-empty list of session names or null")
-        if int(self.head_batch_size) < 2:
-            raise ValueError("head_batch_size: expected >= 2")
-        if int(self.stage1_epochs) + int(self.stage2_epochs) == 0 and self.init_checkpoint is None:
+        if self.stage1_epochs + self.stage2_epochs == 0 and self.init_checkpoint is None:
             # the stages on a frozen encoder need a trained one
             for name, stage, uses in (
                 ("head_epochs", "a head stage", "features it pools"),
                 ("local_epochs", "a local stage", "BEVs it pads"),
             ):
-                if int(getattr(self, name)) > 0:
+                if getattr(self, name) > 0:
                     raise ValueError(
                         f"{name}: {stage} without stages 1-2 needs init_checkpoint (the trained "
                         f"encoder whose {uses})"
                     )
-        for name in ("tbias_near_weight", "tbias_near_slope"):  # inf: a non-finite loss
-            value = getattr(self, name)
-            if (
-                isinstance(value, bool)
-                or not isinstance(value, (int, float))
-                or not (value >= 0 and math.isfinite(value))
-            ):
-                raise ValueError(f"{name}: expected a finite number >= 0, got {value!r}")
-        near = self.tbias_near_range
-        if (
-            not isinstance(near, (list, tuple))
-            or len(near) != 2
-            or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in near)
-            or not 0 < near[0] <= near[1] < math.inf
-        ):
-            raise ValueError(
-                "tbias_near_range: expected [low, high] metres with 0 < low <= high, finite, "
-                f"got {near!r}"
-            )
-        zero = self.tbias_near_zero
-        if isinstance(zero, bool) or not isinstance(zero, (int, float)) or not 0 <= zero <= 1:
-            raise ValueError(f"tbias_near_zero: expected a value in [0, 1], got {zero!r}")
-        for name in ("rerank_weight", "rerank_margin"):
-            value = getattr(self, name)
-            if (
-                isinstance(value, bool)
-                or not isinstance(value, (int, float))
-                or not (value >= 0 and math.isfinite(value))
-            ):
-                raise ValueError(f"{name}: expected a finite number >= 0, got {value!r}")
-        if not 0 < self.lr_decay <= 1:
-            raise ValueError("lr_decay: expected in (0, 1]")
-        if self.num_workers < 0:
-            raise ValueError("num_workers: expected >= 0")
-        if self.val_sessions is not None:
-            if not isinstance(self.val_sessions, list) or not self.val_sessions:
-                raise ValueError("val_sessions: expected a non-empty list of session names")
-            overlap = sorted(set(self.val_sessions) & set(self.train_sessions or []))
-            if overlap or self.train_sessions is None:
-                raise ValueError(
-                    "val_sessions: must not be trained on (set train_sessions without them); "
-                    f"overlap: {overlap or 'train_sessions is unset (all sessions train)'}"
-                )
-            check_query_sessions(self.val_database, self.val_sessions, "val_sessions")
-        if self.init_checkpoint is not None and not isinstance(self.init_checkpoint, str):
-            raise ValueError(
-                "init_checkpoint: expected a checkpoint or run folder path, "
-                f"got {self.init_checkpoint!r}"
-            )
-        if not isinstance(self.val_loops, list):
-            raise ValueError("val_loops: expected a list of mappings")
-        for k, entry in enumerate(self.val_loops):
-            if not isinstance(entry, dict) or not {"dataset", "sessions"} <= set(entry):
-                raise ValueError(
-                    f"val_loops[{k}]: expected a mapping with 'dataset' and 'sessions'"
-                )
-            unknown = sorted(set(entry) - {"dataset", "sessions", "radius", "window", "sequence"})
-            if unknown:
-                raise ValueError(
-                    f"val_loops[{k}]: unknown keys {unknown}; "
-                    "known: ['dataset', 'radius', 'sequence', 'sessions', 'window']"
-                )
-            if not isinstance(entry["sessions"], list) or not entry["sessions"]:
-                raise ValueError(f"val_loops[{k}].sessions: expected a non-empty list")
-            if not isinstance(entry["dataset"], str):
-                raise ValueError(
-                    f"val_loops[{k}].dataset: expected a folder path (str), got "
-                    f"{entry['dataset']!r}"
-                )
-            radius = entry.get("radius", 0.1)
-            if (
-                isinstance(radius, bool)
-                or not isinstance(radius, (int, float))
-                or not 0 < radius <= sys.float_info.max  # NaN, inf and 10**400 fail
-            ):
-                raise ValueError(
-                    f"val_loops[{k}].radius: expected a finite number > 0, got {radius!r:.80}"
-                )
-            window = entry.get("window", 10)
-            if isinstance(window, bool) or not isinstance(window, int) or window < 0:
-                raise ValueError(f"val_loops[{k}].window: expected an int >= 0, got {window!r}")
-            half = entry.get("sequence", 0)
-            if isinstance(half, bool) or not isinstance(half, int) or half < 0:
-                raise ValueError(f"val_loops[{k}].sequence: expected an int >= 0, got {half!r}")
-            sources = [{"dataset": self.dataset, "train_sessions": self.train_sessions}]
-            for extra in [*sources, *self.extra_datasets]:
-                if isinstance(extra, dict) and same_folder(extra.get("dataset"), entry["dataset"]):
-                    trained = set(extra.get("train_sessions") or []) & set(entry["sessions"])
-                    if trained or extra.get("train_sessions") is None:
-                        raise ValueError(
-                            f"val_loops[{k}].sessions: must not be trained on ({entry['dataset']} "
-                            f"trains {sorted(trained) or 'all its sessions'})"
-                        )
-        if self.patience is not None:
-            p = self.patience
-            if isinstance(p, bool) or not isinstance(p, int) or p < 1:
-                raise ValueError(f"patience: expected an int >= 1 or null, got {p!r}")
-            if not self.val_sessions or int(self.stage2_epochs) == 0:
-                raise ValueError(
-                    "patience: early stopping needs val_sessions and stage2_epochs > 0 (it stops "
-                    "the joint stage when validation stops improving)"
-                )
         restarts = self.hard_pool_restarts
         if not isinstance(restarts, list) or not all(
             isinstance(e, int) and not isinstance(e, bool) and e >= 1 for e in restarts
@@ -615,13 +538,40 @@ class TrainConfig:
                 f"hard_pool_restarts: expected a list of 1-based epochs (ints >= 1), got "
                 f"{restarts!r}"
             )
-        triplet_epochs = int(self.stage1_epochs) + int(self.stage2_epochs)
+        triplet_epochs = self.stage1_epochs + self.stage2_epochs
         if any(e > triplet_epochs for e in restarts):
             # the head stage mines its own negatives and has no hard pool to restart
             raise ValueError(
                 f"hard_pool_restarts: {restarts!r} names an epoch after stages 1-2, which end at "
                 f"epoch {triplet_epochs}: only their epochs draw from the hard pool"
             )
+
+    def _check_validation(self) -> None:
+        """The validation sessions (never trained on), the loop validations, early stopping
+        and how ``best/`` is selected."""
+        if self.val_sessions is not None:
+            if not self.val_sessions:
+                raise ValueError("val_sessions: expected a non-empty list of session names")
+            overlap = sorted(set(self.val_sessions) & set(self.train_sessions or []))
+            if overlap or self.train_sessions is None:
+                raise ValueError(
+                    "val_sessions: must not be trained on (set train_sessions without them); "
+                    f"overlap: {overlap or 'train_sessions is unset (all sessions train)'}"
+                )
+            check_query_sessions(self.val_database, self.val_sessions, "val_sessions")
+        for k, entry in enumerate(self.val_loops):
+            self._check_val_loop(k, entry)
+        for name in ("val_every", "val_top_k"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name}: expected an int >= 1")
+        if self.patience is not None:
+            if self.patience < 1:
+                raise ValueError(f"patience: expected an int >= 1 or null, got {self.patience!r}")
+            if not self.val_sessions or self.stage2_epochs == 0:
+                raise ValueError(
+                    "patience: early stopping needs val_sessions and stage2_epochs > 0 (it stops "
+                    "the joint stage when validation stops improving)"
+                )
         if self.select_by not in SELECT_BY:
             raise ValueError(
                 f"select_by: expected one of {list(SELECT_BY)}, got {self.select_by!r}"
@@ -635,10 +585,52 @@ class TrainConfig:
             raise ValueError("select_by: selects best/ by validation, so it needs val_sessions")
         if self.val_loops and not self.val_sessions:
             raise ValueError("val_loops: needs val_sessions (the Recall@1 validation) as well")
-        if not isinstance(self.extra_datasets, list):
-            raise ValueError("extra_datasets: expected a list of mappings")
+
+    def _check_val_loop(self, k: int, entry: dict[str, Any]) -> None:
+        """``val_loops[k]``: its keys, sessions none of the training datasets trains on, and
+        the loop detector's radius, window and sequence half-window."""
+        if not {"dataset", "sessions"} <= set(entry):
+            raise ValueError(f"val_loops[{k}]: expected a mapping with 'dataset' and 'sessions'")
+        unknown = sorted(set(entry) - {"dataset", "sessions", "radius", "window", "sequence"})
+        if unknown:
+            raise ValueError(
+                f"val_loops[{k}]: unknown keys {unknown}; "
+                "known: ['dataset', 'radius', 'sequence', 'sessions', 'window']"
+            )
+        if not isinstance(entry["sessions"], list) or not entry["sessions"]:
+            raise ValueError(f"val_loops[{k}].sessions: expected a non-empty list")
+        if not isinstance(entry["dataset"], str):
+            raise ValueError(
+                f"val_loops[{k}].dataset: expected a folder path (str), got {entry['dataset']!r}"
+            )
+        radius = entry.get("radius", 0.1)
+        if (
+            isinstance(radius, bool)
+            or not isinstance(radius, (int, float))
+            or not 0 < radius <= sys.float_info.max  # NaN, inf and 10**400 fail
+        ):
+            raise ValueError(
+                f"val_loops[{k}].radius: expected a finite number > 0, got {radius!r:.80}"
+            )
+        for key, default in (("window", 10), ("sequence", 0)):
+            value = entry.get(key, default)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+                raise ValueError(f"val_loops[{k}].{key}: expected an int >= 0, got {value!r}")
+        sources = [{"dataset": self.dataset, "train_sessions": self.train_sessions}]
+        for extra in [*sources, *self.extra_datasets]:
+            if same_folder(extra.get("dataset"), entry["dataset"]):
+                trained = set(extra.get("train_sessions") or []) & set(entry["sessions"])
+                if trained or extra.get("train_sessions") is None:
+                    raise ValueError(
+                        f"val_loops[{k}].sessions: must not be trained on ({entry['dataset']} "
+                        f"trains {sorted(trained) or 'all its sessions'})"
+                    )
+
+    def _check_extra_datasets(self) -> None:
+        """Each ``extra_datasets`` entry: its keys, a folder of its own, its anchor share and
+        the sessions it trains on."""
         for k, extra in enumerate(self.extra_datasets):
-            if not isinstance(extra, dict) or "dataset" not in extra:
+            if "dataset" not in extra:
                 raise ValueError(f"extra_datasets[{k}]: expected a mapping with a 'dataset' path")
             if not isinstance(extra["dataset"], str):
                 raise ValueError(
@@ -679,21 +671,6 @@ class TrainConfig:
                     f"extra_datasets[{k}].train_sessions: expected a list of session names, "
                     f"got {sessions!r}"
                 )
-        if not 0.0 <= float(self.cross_floor_fraction) <= 1.0:
-            raise ValueError("cross_floor_fraction: expected a value in [0, 1]")
-        if not 0.0 <= float(self.cross_floor_same_session) <= 1.0:
-            raise ValueError("cross_floor_same_session: expected a value in [0, 1]")
-        for name in ("val_every", "val_top_k"):
-            if isinstance(getattr(self, name), bool) or int(getattr(self, name)) < 1:
-                raise ValueError(f"{name}: expected an int >= 1")
-        if self.augment is not None:
-            if not isinstance(self.augment, dict):
-                raise ValueError("augment: expected a mapping of PhotometricAugment fields")
-            PhotometricAugment.from_dict(self.augment)
-        try:  # a misspelt model field fails here, not after the dataset has been rendered
-            self.model_config()
-        except (TypeError, ValueError) as e:
-            raise ValueError(f"model, model_overrides: {e}") from e
 
     def model_config(self) -> ModelConfig:
         """The :class:`ModelConfig` this run trains."""
