@@ -517,26 +517,34 @@ def test_session_ids_need_not_be_small_or_contiguous():
     assert (off.lo.tolist(), off.hi.tolist(), off.offset.tolist()) == ([-7], [4_000_000_000], [0])
 
 
+def model_map(model, sessions, g, rng):
+    """An in-memory map as ``model`` would build it (its shapes and fingerprints): global
+    descriptors ``g`` (N, D), random local-view descriptors and BEVs (drawn from ``rng`` in that
+    order), poses zero, one keyframe a second."""
+    cfg, n = model.config, len(g)
+    local = rng.standard_normal((n, cfg.num_angles, cfg.channels)).astype(np.float32)
+    bevs = rng.standard_normal((n, cfg.bev_height, cfg.bev_width, cfg.channels))
+    return MapDatabase.from_arrays(
+        poses=np.zeros((n, 3)),
+        timestamps=np.arange(n, dtype=np.float64),
+        sessions=sessions,
+        global_descriptors=g,
+        local_descriptors=local,
+        bevs=bevs.astype(np.float32),
+        model_config=cfg.to_dict(),
+        config_hash=model.config_hash(),
+        weights_hash=model.weights_hash(),
+        grid_size=cfg.grid_size,
+    )
+
+
 def test_verify_pairs_shares_each_sources_coarse_stage_and_equals_one_search_per_pair():
     """Pairs of one source keyframe share its coarse stage (padded and decoded once): every
     pair must still get the pose and cost of its own metric localization, in the given order."""
     torch.manual_seed(0)
     model = VVLocNet(tiny_config()).eval()
     cfg = model.config
-    rng = np.random.default_rng(0)
-    n = 5
-    db = MapDatabase.from_arrays(
-        poses=np.zeros((n, 3)),
-        timestamps=np.arange(n, dtype=np.float64),
-        sessions="s0",
-        global_descriptors=np.eye(n, 8, dtype=np.float32),
-        local_descriptors=rng.standard_normal((n, cfg.num_angles, cfg.channels)).astype(np.float32),
-        model_config=cfg.to_dict(),
-        grid_size=cfg.grid_size,
-        bevs=rng.standard_normal((n, cfg.bev_height, cfg.bev_width, cfg.channels)).astype(
-            np.float32
-        ),
-    )
+    db = model_map(model, "s0", np.eye(5, 8, dtype=np.float32), np.random.default_rng(0))
     search = SearchConfig(half_range=2.0, step=1.0, fine_samples=6, stages=3, seed=1)
     rows_i = np.array([3, 0, 3, 1, 0, 3])  # sources 3 and 0 twice or thrice, interleaved
     rows_j = np.array([0, 2, 4, 2, 4, 1])
@@ -673,24 +681,8 @@ def test_detect_loops_keeps_no_pose_of_another_model_or_search():
 
     torch.manual_seed(0)
     model = VVLocNet(tiny_config()).eval()
-    cfg = model.config
-    rng = np.random.default_rng(1)
-    n = 6
-    db = MapDatabase.from_arrays(
-        poses=np.zeros((n, 3)),
-        timestamps=np.arange(n, dtype=np.float64),
-        sessions=["s0"] * 3 + ["s1"] * 3,
-        ids=np.arange(n),
-        global_descriptors=np.tile(np.eye(3, model.global_dim, dtype=np.float32), (2, 1)),
-        local_descriptors=rng.standard_normal((n, cfg.num_angles, cfg.channels)).astype(np.float32),
-        bevs=rng.standard_normal((n, cfg.bev_height, cfg.bev_width, cfg.channels)).astype(
-            np.float32
-        ),
-        model_config=cfg.to_dict(),
-        config_hash=model.config_hash(),
-        weights_hash=model.weights_hash(),
-        grid_size=cfg.grid_size,
-    )
+    g = np.tile(np.eye(3, model.global_dim, dtype=np.float32), (2, 1))
+    db = model_map(model, ["s0"] * 3 + ["s1"] * 3, g, np.random.default_rng(1))
     search = SearchConfig(half_range=1.0, step=1.0, fine_samples=4, stages=2, seed=1)
     kw = {"radius": 0.5, "window": 0, "sequence": 0, "check_floors": False, "progress": False}
     full = detect_loops(model, db, search=search, **kw)
