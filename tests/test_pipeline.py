@@ -441,6 +441,25 @@ def test_localizer_options_are_checked_up_front(map_file, model_dir, tiny_world,
         with pytest.raises(error, match=match):
             call()
     assert not (tmp_path / "x.h5").exists()
+    # a file at out is replaced only with overwrite, and only a map (as vvloc map build's
+    # --out): the Python call replaced a user's file, and a map, without a word
+    mine = tmp_path / "notes.txt"
+    mine.write_text("hello")
+    shutil.copy(map_file, tmp_path / "kept.h5")
+    before = (tmp_path / "kept.h5").read_bytes()
+    for out, kwargs, error, match in [
+        (mine, {}, FileExistsError, r"^out: .*notes\.txt exists; pass overwrite=True"),
+        (mine, {"overwrite": True}, FileExistsError, r"notes\.txt exists and is not a vvloc map"),
+        (tmp_path / "kept.h5", {}, FileExistsError, r"kept\.h5 exists; pass overwrite=True"),
+        (tmp_path, {}, IsADirectoryError, r"^out: .* is a folder; expected the path of a map"),
+        ("", {}, IsADirectoryError, r"^out: \. is a folder"),
+        (3, {}, TypeError, r"^out: expected the path of a map file, got int"),
+        (tmp_path / "y.h5", {"overwrite": "yes"}, TypeError, r"^overwrite: expected a bool"),
+    ]:
+        with pytest.raises(error, match=match):
+            build_map(model, ds, ["s0"], out, progress=False, **kwargs)
+    assert mine.read_text() == "hello" and (tmp_path / "kept.h5").read_bytes() == before
+    assert not (tmp_path / "y.h5").exists()
     # a generator of names is read once (its duplicate check consumed it: "[] hold no frames")
     gen = build_map(model, ds, (s for s in ["s0"]), tmp_path / "gen.h5", progress=False)
     with MapDatabase.open(gen) as built:
@@ -945,7 +964,7 @@ def test_a_map_grows_from_a_base_map_without_encoding_its_frames_again(
     # in place: the base file is replaced by the grown map once it is complete
     shutil.copy(map_file, tmp_path / "inplace.h5")
     build_map(model, ds, ["s1"], tmp_path / "inplace.h5", base=tmp_path / "inplace.h5",
-              progress=False)  # fmt: skip
+              progress=False, overwrite=True)  # fmt: skip
     with MapDatabase.open(tmp_path / "inplace.h5") as m:
         assert m.sessions == ("s0", "s1") and len(m) == n_fresh
     # a float16 base stays float16 and its keyframes keep their stored values

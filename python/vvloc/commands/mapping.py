@@ -158,10 +158,11 @@ def build(
                 out,
                 dtype="float16" if float16 else "float32",
                 store_bev=not no_bev,
+                overwrite=overwrite,  # a map alone (check_map_out)
             )
         else:  # the base's dtype and BEVs (check_base refused flags that ask for others)
             with named("--base", MapError, FileNotFoundError, IsADirectoryError):
-                path = build_map(model, ds, names, out, base=base)
+                path = build_map(model, ds, names, out, base=base, overwrite=overwrite)
     typer.echo(f"map: {path}")
 
 

@@ -78,6 +78,7 @@ from vvloc.localize.mapdb import (
     _check_dtype,
     check_unit_rows,
     check_weights,
+    is_map_file,
 )
 from vvloc.localize.metric import (
     METRIC_CANDIDATES,
@@ -1139,11 +1140,15 @@ def build_map(
     batch_size: int = 8,
     progress: bool = True,
     base: MapDatabase | str | os.PathLike[str] | None = None,
+    overwrite: bool = False,
 ) -> Path:
     """Encode every frame of ``sessions`` of ``dataset`` and write a map to ``out`` (HDF5,
-    atomically). ``dtype`` is the stored dtype of the descriptors, ``"float32"`` (the default)
-    or ``"float16"``; ``store_bev`` (default True) keeps the float16 BEVs that loop-closure
-    detection needs. Keyframe ids are the running row numbers, sequence numbers each frame's
+    atomically). A file at ``out`` is replaced only with ``overwrite`` and only when it is a
+    vvloc map (:func:`~vvloc.localize.mapdb.is_map_file`), as ``vvloc map build --overwrite``
+    does: ``FileExistsError`` naming ``out`` otherwise, before anything is encoded. ``dtype``
+    is the stored dtype of the descriptors, ``"float32"`` (the default) or ``"float16"``;
+    ``store_bev`` (default True) keeps the float16 BEVs that loop-closure detection needs.
+    Keyframe ids are the running row numbers, sequence numbers each frame's
     index in its session; the map records the dataset's rig (its cameras; with ``base``, the
     base's), which the localizer compares queries with.
 
@@ -1157,7 +1162,8 @@ def build_map(
     new map records none), and must not hold a session of ``sessions`` (``ValueError``);
     ``dtype`` and ``store_bev`` default to ``base``'s, and other values are refused
     (``ValueError``: one map holds one dtype, and BEVs for every keyframe or none).
-    ``out`` may be ``base``'s own file: it is replaced only when the new map is complete.
+    ``out`` may be ``base``'s own file (with ``overwrite``): it is replaced only when the new
+    map is complete.
 
     Frames without image content (:func:`vvloc.data.has_image_content`: every camera's picture
     flat, as from a covered or failed rig or a black stretch) are left out, with a
@@ -1192,6 +1198,7 @@ def build_map(
         raise TypeError(
             f"base: expected a MapDatabase or the path of a map, got {type(base).__name__}"
         )
+    _check_map_out(out, overwrite)
     if not sessions:
         raise ValueError("sessions: expected at least one session name")
     check_session_names("sessions", dataset, sessions, "the dataset")  # each keyframe once
@@ -1273,6 +1280,27 @@ def build_map(
                 + ("a map needs keyframes" if db is None else "nothing to add to the base map")
             )
     return Path(out)
+
+
+def _check_map_out(out: Any, overwrite: Any) -> None:
+    """``build_map``'s ``out`` and ``overwrite``: a path, of no file unless ``overwrite`` is on
+    and the file is a vvloc map (a user's file is never replaced)."""
+    if not isinstance(out, (str, os.PathLike)):
+        raise TypeError(f"out: expected the path of a map file, got {type(out).__name__}")
+    if not isinstance(overwrite, (bool, np.bool_)):
+        raise TypeError(f"overwrite: expected a bool, got {type(overwrite).__name__}")
+    path = Path(os.fspath(out))
+    if not path.exists():
+        return
+    if path.is_dir():
+        raise IsADirectoryError(f"out: {path} is a folder; expected the path of a map file")
+    if not overwrite:
+        raise FileExistsError(f"out: {path} exists; pass overwrite=True to replace it")
+    if not is_map_file(path):
+        raise FileExistsError(
+            f"out: {path} exists and is not a vvloc map; overwrite replaces only a map (remove "
+            "the file yourself if it is a damaged one)"
+        )
 
 
 def _base_settings(
