@@ -1544,7 +1544,9 @@ def test_calibrate_localizer_refuses_queries_far_from_the_map_before_localizing_
         calibrate_localizer(loc, frames)  # type: ignore[arg-type]
 
 
-def test_cli_refuses_misleading_inputs_before_any_work(tiny_world, map_file, model_dir, tmp_path):
+def test_cli_refuses_misleading_inputs_before_any_work(
+    tiny_world, map_file, model_dir, tmp_path, tmp_path_factory
+):
     exe = [sys.executable, "-m", "vvloc.cli"]
     run = lambda *a: subprocess.run([*exe, *a], capture_output=True, text=True)  # noqa: E731
     ck = ["--checkpoint", str(model_dir), "--dataset", str(tiny_world)]
@@ -1586,6 +1588,19 @@ def test_cli_refuses_misleading_inputs_before_any_work(tiny_world, map_file, mod
         r = run(*cmd, "--out", str(inside))
         assert r.returncode == 2 and "lies inside the dataset" in r.stderr, r.stderr
     assert not inside.exists()
+    # an empty --out (an unset shell variable) is the working directory: the outputs went
+    # there, among whatever was there
+    here = tmp_path_factory.mktemp("here")  # not in tmp_path, whose listing is checked below
+    for cmd in (["eval", *ck, "--database", "s0", "--queries", "s1"],
+                ["localize", "--map", str(map_file), *ck, "--session", "s1"],
+                ["loops", "--map", str(map_file), "--checkpoint", str(model_dir)],
+                ["demo", "--checkpoint", str(model_dir)]):  # fmt: skip
+        for out in ("", ".", str(here.parent)):
+            r = subprocess.run([*exe, *cmd, "--out", out], capture_output=True, text=True,
+                               cwd=here)  # fmt: skip
+            assert r.returncode == 2, (cmd[0], out, r.stderr)
+            assert "is the working directory or a folder above it" in r.stderr, r.stderr
+    assert not list(here.iterdir())
     # the demo checks its checkpoint and its --out before rendering minutes of world
     r = run("demo", "--out", str(tmp_path / "d"), "--checkpoint", str(tmp_path / "nothing"))
     assert r.returncode == 2 and "--checkpoint:" in r.stderr and "rendering" not in r.stdout
@@ -1764,18 +1779,33 @@ def test_cli_version_and_quiet_logs(tmp_path):
     exe = [sys.executable, "-m", "vvloc.cli"]
     r = subprocess.run([*exe, "--version"], capture_output=True, text=True)
     assert r.returncode == 0 and r.stdout.startswith("vvloc ")
+    import io
     import os
     import warnings
 
+    from tqdm import tqdm
+
     from vvloc.cli import _quiet_when_logged
 
-    before = warnings.formatwarning
+    before = warnings.formatwarning, warnings.showwarning
     try:
         _quiet_when_logged()  # pytest's stderr is not a terminal
         assert os.environ.get("TQDM_MININTERVAL") == "30"
         assert warnings.formatwarning("x", UserWarning, "f.py", 1) == "vvloc: warning: x\n"
+        # a warning while a progress bar is drawn starts a line of its own (it was glued to
+        # the bar's: "map:   0%|          | 0/40 [...]vvloc: warning: ...")
+        log = io.StringIO()
+        bar = tqdm(total=4, desc="map", file=log, mininterval=0)
+        bar.update(1)
+        warnings.showwarning(UserWarning("2 frames blank"), UserWarning, "f.py", 1, file=log)
+        bar.close()
+        lines = log.getvalue().split("\n")
+        assert "vvloc: warning: 2 frames blank" in lines, lines
+        quiet = io.StringIO()  # no bar: the warning alone, as before
+        warnings.showwarning(UserWarning("y"), UserWarning, "f.py", 1, file=quiet)
+        assert quiet.getvalue() == "vvloc: warning: y\n"
     finally:
-        warnings.formatwarning = before
+        warnings.formatwarning, warnings.showwarning = before
         os.environ.pop("TQDM_MININTERVAL", None)
 
 
@@ -1954,6 +1984,14 @@ def test_cli_localize_names_the_session_of_another_rig(tiny_world, model_dir, ma
     # it named the library's argument, frames[0]
     said = f"vvloc: warning: --session s1 of --dataset {tmp_path / 't3'}: from another rig"
     assert said in r.stderr and r.stderr.count("from another rig") == 1, r.stderr
+    assert "keyframes of the map" not in r.stderr  # s1 is no map session
+    # the map's own session: each frame finds itself at cost ~0 (vvloc eval refuses it)
+    r = run("localize", "--map", str(map_file), "--checkpoint", str(model_dir), "--dataset",
+            str(tiny_world), "--session", "s0", "--out", str(tmp_path / "self"))  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    n = len(open_dataset(tiny_world).session("s0"))
+    said = f"vvloc: warning: --session s0: {n} of {n} frames are keyframes of the map"
+    assert said in r.stderr, r.stderr
 
 
 def test_cli_names_more_options_before_any_work(tiny_world, model_dir, map_file, tmp_path):

@@ -114,7 +114,8 @@ def _exit_on_sigterm() -> None:
 def _quiet_when_logged() -> None:
     """When stderr is not a terminal (a log file, CI), progress bars redraw every 30 s instead
     of ten times a second (``TQDM_MININTERVAL``; an explicit setting wins), and warnings print as
-    one line, ``vvloc: warning: ...``, without a source line."""
+    one line, ``vvloc: warning: ...``, without a source line, on a line of its own while a
+    progress bar is drawn (:func:`_show_warning`)."""
     if not sys.stderr.isatty():
         os.environ.setdefault("TQDM_MININTERVAL", "30")
 
@@ -122,6 +123,33 @@ def _quiet_when_logged() -> None:
         return f"vvloc: warning: {message}\n"
 
     warnings.formatwarning = one_line
+    warnings.showwarning = _show_warning
+
+
+def _show_warning(  # type: ignore[no-untyped-def]
+    message, category, filename, lineno, file=None, line=None
+) -> None:
+    """``warnings.showwarning`` of the CLI: a warning given while a progress bar is drawn was
+    glued to the bar's line (``map:   0%|...|vvloc: warning: ...``). On a terminal the bars
+    are cleared, the warning written and the bars drawn again below it (tqdm's
+    ``external_write_mode``); in a log, where a bar's line is not ended until the bar closes,
+    the warning starts a line of its own."""
+    stream = sys.stderr if file is None else file
+    if stream is None:  # pythonw: nowhere to write
+        return
+    text = warnings.formatwarning(message, category, filename, lineno, line)
+    from tqdm import tqdm
+
+    try:
+        if not getattr(tqdm, "_instances", None):
+            stream.write(text)
+        elif stream.isatty():
+            with tqdm.external_write_mode(file=stream):
+                stream.write(text)
+        else:
+            stream.write("\n" + text)
+    except OSError:  # the stream closed (a broken pipe): the warning is lost, as Python's own
+        pass
 
 
 def main() -> None:

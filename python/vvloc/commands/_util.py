@@ -274,12 +274,24 @@ def as_options(options: dict[str, str]) -> Iterator[None]:
         raise type(e)(f"{options[arg]}: {rest}") from None
 
 
-def check_out_folder(out: Path, option: str = "--out", *, outside: Path | None = None) -> None:
+def check_out_folder(
+    out: Path, option: str = "--out", *, outside: Path | None = None, own: bool = False
+) -> None:
     """Said before any work, not after it: ``NotADirectoryError`` naming ``option`` when
     ``out``, or a folder above it, exists and is not a folder; ``PermissionError`` when the
     folder, or the nearest one above it that exists, cannot be written (a read-only file
     system: found after every frame was localized before); ``ValueError`` when ``out`` is or
-    lies inside ``outside`` (the dataset, whose folders the outputs would corrupt)."""
+    lies inside ``outside`` (the dataset, whose folders the outputs would corrupt), and with
+    ``own`` when it is the working directory or a folder above it: the outputs go to a folder
+    of their own, and an empty value (an unset shell variable: ``--out "$OUT"``) reads as the
+    working directory, where they mixed with whatever was there."""
+    if own:
+        target, cwd = Path(os.path.realpath(out)), Path.cwd().resolve()
+        if target == cwd or target in cwd.parents:
+            raise ValueError(
+                f"{option}: {str(out)!r} is the working directory or a folder above it (as is "
+                "an empty value); write the outputs to a folder of their own, e.g. runs/out"
+            )
     if out.is_symlink() and not out.exists():  # found only when the outputs were written
         raise FileExistsError(
             f"{option}: {out} is a symbolic link to {os.readlink(out)}, which does not exist "

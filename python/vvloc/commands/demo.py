@@ -100,7 +100,7 @@ def demo(
 
     t0 = time.perf_counter()
     with cli_errors("demo"):
-        check_out_folder(out)
+        check_out_folder(out, own=True)
         check_report_folder(out, "--out")  # the report's files, refused before minutes of rendering
         data = out / "data"
         if checkpoint is not None:  # checked before minutes of rendering; a run folder works

@@ -96,7 +96,7 @@ def eval_command(
 
     with cli_errors("eval"):
         set_torch_threads(threads)
-        check_out_folder(out, outside=dataset)
+        check_out_folder(out, outside=dataset, own=True)
         check_report_folder(out, "--out")
         names = split_names(queries, "--queries", what="session name")
         check_query_sessions(database, names, "--queries")

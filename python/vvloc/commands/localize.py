@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import numpy as np
 import typer
@@ -25,6 +26,10 @@ from vvloc.commands._util import (
     set_torch_threads,
 )
 from vvloc.localize.metric import METRIC_CANDIDATES, RETRIEVAL_WEIGHT
+
+if TYPE_CHECKING:
+    from vvloc.data import Frame
+    from vvloc.localize.mapdb import MapDatabase
 
 #: How localize's queries.csv starts: an earlier localize's outputs are the ones it replaces.
 MARKER = "# vvloc localize."
@@ -64,6 +69,27 @@ def _check_localize_folder(out: Path) -> None:
         raise FileExistsError(
             f"--out: {out} holds {', '.join(clash)}, which no earlier vvloc localize wrote; "
             "its outputs would replace them: choose another folder"
+        )
+
+
+def _warn_if_mapped(db: MapDatabase, session: str, frames: Sequence[Frame]) -> None:
+    """A ``UserWarning`` when frames of ``--session`` are keyframes of the map (its session of
+    that name, the same timestamps to the microsecond): each finds itself at a cost near 0,
+    which says nothing of how the map localizes (``vvloc eval`` refuses the map session among
+    its queries)."""
+    import warnings
+
+    if session not in db.sessions or not frames:
+        return
+    mapped = set(np.round(db.timestamps[db.session_rows(session)] * 1e6).astype(np.int64).tolist())
+    same = sum(round(f.t * 1e6) in mapped for f in frames)
+    if same:
+        warnings.warn(
+            f"--session {session}: {same} of {len(frames)} frames are keyframes of the map (its "
+            f"session {session!r}, the same timestamps): each finds itself, at a cost near 0, "
+            "which says nothing of how the map localizes; query a session the map does not hold",
+            UserWarning,
+            stacklevel=2,
         )
 
 
@@ -107,7 +133,7 @@ def localize(
 
     with cli_errors("localize"):
         set_torch_threads(threads)
-        check_out_folder(out, outside=dataset)
+        check_out_folder(out, outside=dataset, own=True)
         _check_localize_folder(out)
         ds = check_sessions(dataset, [("--session", session)])
         sess = ds.session(session)
@@ -129,6 +155,7 @@ def localize(
         frames = list(sess)
         if frames:  # a rig other than the map's is said of the session, not of frames[0]
             loc._check_rig(frames[0], f"--session {session} of --dataset {dataset}")
+        _warn_if_mapped(loc.map, session, frames)
         results = loc.localize_batch(frames, progress=True)
         out.mkdir(parents=True, exist_ok=True)
         poses = np.stack([r.global_pose for r in results])

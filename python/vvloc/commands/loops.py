@@ -339,7 +339,7 @@ def loops(
 
     with cli_errors("loops"):
         set_torch_threads(threads)
-        check_out_folder(out)
+        check_out_folder(out, own=True)
         model = VVLocNet.load(checkpoint_folder(checkpoint, "--checkpoint")).to(
             parse_device(device)
         )
