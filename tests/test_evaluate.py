@@ -944,6 +944,13 @@ def test_recall_top_n_must_be_int_ranks():
         with pytest.raises(TypeError, match=r"^top_n: expected a sequence of int ranks"):
             ev.recall_at_n(q, db, [[0, 1, 2]], top_n=bad)
     assert (ev.recall_at_n(q, db, [[0, 1, 2]], top_n=[np.int64(2)]).recall == 1.0).all()
+    # the default (1, 5) with K = 3 retrieved: the message said "got (1, 5)" of a top_n the
+    # caller never passed
+    said = r"got \(1, 5\) \(the default top_n \(1, 5\) needs K >= 5 retrieved per query; "
+    with pytest.raises(ValueError, match=said + r"pass top_n=\(1,\) or retrieve more\)$"):
+        ev.recall_at_n(q, db, [[0, 1, 2]])
+    with pytest.raises(ValueError, match=r"^top_n: expected ranks in 1..K = 3, got \(1, 4\)$"):
+        ev.recall_at_n(q, db, [[0, 1, 2]], top_n=(1, 4))
 
 
 # ----------------------------------------------------------------------------- audit of 2026-12-06

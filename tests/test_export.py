@@ -239,6 +239,19 @@ def test_read_g2o_skips_comments_and_other_tags(tmp_path: Path) -> None:
     g = read_g2o(path)
     assert g.vertex_ids.tolist() == [0, 1] and g.edges.tolist() == [[0, 1]]
     np.testing.assert_array_equal(g.information[0], [[10, 1, 2], [1, 20, 3], [2, 3, 30]])
+    # a file of other lines alone read as an empty graph without a word (a 3D graph, a TUM
+    # trajectory); an empty one, or one of comments, is an empty graph
+    for name, text, tags in [
+        ("3d.g2o", "VERTEX_SE3:QUAT 0 0 0 0 0 0 0 1\nFIX 0\n", "'VERTEX_SE3:QUAT', 'FIX'"),
+        ("poses.tum", "# vvloc trajectory\n0.5 1 2 0 0 0 0 1\n", "'0.5'"),
+        ("loops.csv", "i,j,x\n1,2,3\n3,4,5\n", "'i,j,x', '1,2,3', '3,4,5'"),
+    ]:
+        (tmp_path / name).write_text(text)
+        with pytest.raises(ValueError, match=rf"{name}: no VERTEX_SE2 or EDGE_SE2 line, only "
+                           rf"lines tagged {tags}: not a 2D g2o"):  # fmt: skip
+            read_g2o(tmp_path / name)
+    (tmp_path / "empty.g2o").write_text("# nothing yet\n\n")
+    assert len(read_g2o(tmp_path / "empty.g2o").vertex_ids) == 0
 
 
 @pytest.mark.parametrize(

@@ -420,6 +420,9 @@ def test_model_config_hash_is_canonical() -> None:
 def test_missing_file(tmp_path: Path) -> None:
     with pytest.raises(FileNotFoundError, match=r"nope\.h5"):
         MapDatabase.open(tmp_path / "nope.h5")
+    # os.fspath's "expected str, bytes or os.PathLike object, not int" named no argument
+    with pytest.raises(TypeError, match=r"^path: expected a str or os.PathLike, got int"):
+        MapDatabase.open(5)  # type: ignore[arg-type]
 
 
 def test_garbage_file_is_refused(tmp_path: Path) -> None:

@@ -261,3 +261,33 @@ def test_a_decoder_whose_output_does_not_fit_is_named():
         metric_localize(bev_s, desc_t, lambda p: decode(p)[1:], cfg, G, T, R)
     with pytest.raises(ValueError, match=r"^decode/interact: expected a pair"):
         metric_localize(bev_s, desc_t, lambda p: (decode(p), decode(p)[:, :2]), cfg, G, T, R)
+
+
+def test_a_decoder_that_is_none_or_returns_nan_is_named():
+    _xi, bev_s, desc_t, decode = case(0)
+    cfg = SearchConfig(half_range=1.2, step=0.6, fine_samples=4, stages=1, shrink=0.5, seed=0)
+    tgts = desc_t[None]
+    # "'NoneType' object is not callable" at the first stage named nothing
+    with pytest.raises(TypeError, match=r"^decode: expected a callable mapping polar BEVs"):
+        metric_localize(bev_s, desc_t, None, cfg, G, T, R)  # type: ignore[arg-type]
+    for call in (metric_localize_best, metric_localize_each):
+        with pytest.raises(TypeError, match=r"^decode: expected a callable .*got int"):
+            call(bev_s, tgts, 3, None, cfg, G, T, R)  # type: ignore[arg-type]
+        with pytest.raises(TypeError, match=r"^interact: expected a callable or None, got str"):
+            call(bev_s, tgts, decode, "x", cfg, G, T, R)  # type: ignore[arg-type]
+
+    # the kernel named its own argument: "src: contains non-finite values"
+    def nan(p):
+        return np.full_like(decode(p), np.nan)
+
+    with pytest.raises(ValueError, match=r"^decode: returned source descriptors that the yaw "
+                       r"estimation refuses: contains non-finite values"):  # fmt: skip
+        metric_localize(bev_s, desc_t, nan, cfg, G, T, R)
+    with pytest.raises(ValueError, match=r"^decode/interact: returned target descriptors .*"
+                       r"refuses: values too large"):  # fmt: skip
+        metric_localize(bev_s, desc_t, lambda p: (decode(p), decode(p) * 1e30), cfg, G, T, R)
+    # a target too large to match is the caller's, named before any stage
+    with pytest.raises(ValueError, match=r"^desc_tgt: values too large"):
+        metric_localize(bev_s, desc_t * 1e30, decode, cfg, G, T, R)
+    with pytest.raises(ValueError, match=r"^desc_tgts: values too large"):
+        metric_localize_each(bev_s, tgts * 1e30, decode, None, cfg, G, T, R)

@@ -182,7 +182,11 @@ def test_the_map_records_its_rig_and_the_localizer_compares_queries_with_it(
     # calibration a rig.json could not hold is refused, whatever the rig (a singular
     # cam_to_ego failed inside the encoder's matrix inverse, a zero K gave an answer)
     bad = dataclasses.replace(frame, K=np.full_like(frame.K, np.nan))
-    with pytest.raises(ValueError, match=r"frames\[1\]\.K: expected finite \(4, 3, 3\)"):
+    with pytest.raises(
+        ValueError,
+        match=r"frames\[1\]\.K: expected finite \(4, 3, 3\) "
+        r"intrinsics, got non-finite values$",
+    ):  # it said "got (4, 3, 3)"
         loc.localize_batch([frame, bad])
     singular = frame.cam_to_ego.copy()
     singular[:, 3, :] = 0
@@ -190,7 +194,7 @@ def test_the_map_records_its_rig_and_the_localizer_compares_queries_with_it(
         ({"cam_to_ego": singular}, r"^frame\.cam_to_ego: expected a finite rigid"),
         ({"K": np.zeros_like(frame.K)}, r"^frame\.K: expected a pinhole matrix"),
         ({"K": np.swapaxes(frame.K, 1, 2)}, r"^frame\.K: expected a pinhole matrix"),
-        ({"K": frame.K[:3]}, r"^frame\.K: expected finite \(4, 3, 3\) intrinsics"),
+        ({"K": frame.K[:3]}, r"^frame\.K: expected finite \(4, 3, 3\) intrinsics, got shape"),
     ]:
         with pytest.raises(ValueError, match=match):
             loc.localize(dataclasses.replace(frame, **change))

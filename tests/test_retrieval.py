@@ -286,6 +286,9 @@ def test_save_and_load_take_bytes_paths_and_name_a_bad_one(tmp_path):
     for call in (lambda: index.save(3), lambda: DescriptorIndex.load(None)):
         with pytest.raises(TypeError, match=r"^path: expected a str or os.PathLike, got"):
             call()
+    # a bare OSError (os error 2) before, where every other vvloc reader says FileNotFoundError
+    with pytest.raises(FileNotFoundError, match=r"^index file not found: .*none\.vvidx"):
+        DescriptorIndex.load(tmp_path / "none.vvidx")
 
 
 def test_save_replaces_a_file_as_every_vvloc_file_is_replaced(tmp_path):

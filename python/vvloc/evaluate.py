@@ -365,7 +365,13 @@ def recall_at_n(
         raise TypeError(f"top_n: expected a sequence of int ranks, got {top_n!r}")  # 1.5 as 1
     ns = tuple(int(n) for n in ranks)
     if not ns or any(not 1 <= n <= k for n in ns):
-        raise ValueError(f"top_n: expected ranks in 1..K = {k}, got {ns}")
+        hint = ""
+        if top_n is DEFAULT_TOP_N:  # the caller set no top_n: say what the default asks
+            hint = (
+                f" (the default top_n {DEFAULT_TOP_N} needs K >= {max(DEFAULT_TOP_N)} "
+                "retrieved per query; pass top_n=(1,) or retrieve more)"
+            )
+        raise ValueError(f"top_n: expected ranks in 1..K = {k}, got {ns}{hint}")
     rs = tuple(_positive_float(r, "radii") for r in _sequence(radii, "radii", "radii (m)"))
     if not rs:
         raise ValueError("radii: expected at least one radius")

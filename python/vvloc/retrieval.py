@@ -352,11 +352,13 @@ class DescriptorIndex:
     def load(path: str | os.PathLike[str]) -> DescriptorIndex:
         """Read an index written by :meth:`save`.
 
-        Raises ``ValueError`` for a truncated, corrupted or foreign file, or one that is not a
-        regular file (a named pipe blocked the reader forever), ``OSError`` when it cannot be
-        read.
+        Raises ``FileNotFoundError`` when there is no file at ``path``, ``ValueError`` for a
+        truncated, corrupted or foreign file, or one that is not a regular file (a named pipe
+        blocked the reader forever), ``OSError`` when it cannot be read.
         """
         path = _path(path)
+        if not os.path.lexists(path):  # the Rust reader's error was a bare OSError (os error 2)
+            raise FileNotFoundError(f"index file not found: {os.fspath(path)}")
         check_readable_file(path)
         return DescriptorIndex(None, _inner=_core.DescriptorIndex.load(os.fspath(path)))
 

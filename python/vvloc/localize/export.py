@@ -799,7 +799,10 @@ def read_g2o(path: PathLike) -> G2OGraph:
     """Read the ``VERTEX_SE2`` and ``EDGE_SE2`` lines of a g2o file.
 
     Blank lines and ``#`` comments are skipped, as are lines with other tags (``FIX``, 3D
-    types, ...). ``ValueError`` naming the file and line for a malformed vertex or edge line
+    types, ...), but a file of such lines alone, without one ``VERTEX_SE2`` or ``EDGE_SE2`` line
+    (a 3D graph, or no g2o file at all: a TUM trajectory or a CSV), is refused with
+    ``ValueError`` naming its tags; an empty file (or one of comments) is an empty graph.
+    ``ValueError`` naming the file and line for a malformed vertex or edge line
     (field count, a number C would not read, a non-finite value, a vertex id outside
     [0, :data:`G2O_MAX_ID`]), a repeated vertex id, an edge from a vertex to itself, an
     information matrix that is not positive definite, or an edge whose endpoints no
@@ -813,11 +816,14 @@ def read_g2o(path: PathLike) -> G2OGraph:
     meas: list[list[float]] = []
     upper: list[list[float]] = []
     seen: set[int] = set()
+    skipped: list[str] = []  # the other tags, in the order they first appear
     edge_fields = ("dx", "dy", "dtheta", "I11", "I12", "I13", "I22", "I23", "I33")
     for lineno, line in enumerate(_text_lines(p), start=1):
         tok = line.split()
         if not tok or tok[0].startswith("#"):
             continue
+        if tok[0] not in ("VERTEX_SE2", "EDGE_SE2") and tok[0] not in skipped:
+            skipped.append(tok[0])
         try:
             if tok[0] == "VERTEX_SE2":
                 if len(tok) != 5:
@@ -845,6 +851,12 @@ def read_g2o(path: PathLike) -> G2OGraph:
                 upper.append(values[3:])
         except ValueError as err:
             raise ValueError(f"{p}:{lineno}: malformed g2o line: {err}") from None
+    if skipped and not vids and not edges:  # it read as an empty graph, without a word
+        tags = ", ".join(repr(t[:40]) for t in skipped[:3]) + (", ..." if len(skipped) > 3 else "")
+        raise ValueError(
+            f"{p}: no VERTEX_SE2 or EDGE_SE2 line, only lines tagged {tags}: not a 2D g2o pose "
+            "graph"
+        )
     u = np.array(upper, np.float64).reshape(-1, 6)
     info = u[:, [0, 1, 2, 1, 3, 4, 2, 4, 5]].reshape(-1, 3, 3)
     if len(info):

@@ -194,10 +194,12 @@ def _check_calibration(K: Any, cam_to_ego: Any, cameras: int, name: str) -> None
     otherwise (a singular transform failed inside the encoder's matrix inverse)."""
     K, T = np.asarray(K), np.asarray(cam_to_ego)
     if K.shape != (cameras, 3, 3) or not np.isfinite(K).all():
-        raise ValueError(f"{name}.K: expected finite ({cameras}, 3, 3) intrinsics, got {K.shape}")
+        got = f"shape {K.shape}" if K.shape != (cameras, 3, 3) else "non-finite values"
+        raise ValueError(f"{name}.K: expected finite ({cameras}, 3, 3) intrinsics, got {got}")
     if T.shape != (cameras, 4, 4) or not np.isfinite(T).all():
+        got = f"shape {T.shape}" if T.shape != (cameras, 4, 4) else "non-finite values"
         raise ValueError(
-            f"{name}.cam_to_ego: expected finite ({cameras}, 4, 4) transforms, got {T.shape}"
+            f"{name}.cam_to_ego: expected finite ({cameras}, 4, 4) transforms, got {got}"
         )
     if not is_pinhole(K):
         raise ValueError(f"{name}.K: expected a {PINHOLE} per camera")

@@ -1136,8 +1136,8 @@ class MapDatabase:
 
         Raises:
             FileNotFoundError: no file at ``path``.
-            TypeError: ``expected_config_hash`` or ``expected_weights_hash`` neither a non-empty
-                str nor None.
+            TypeError: ``path`` not a str or ``os.PathLike``; ``expected_config_hash`` or
+                ``expected_weights_hash`` neither a non-empty str nor None.
             MapError: not an HDF5 file, not a vvloc map, corrupted or truncated, missing
                 datasets or attributes, another format version, inconsistent lengths, checksum
                 mismatch, or a config hash or weights fingerprint other than the expected
@@ -1151,6 +1151,8 @@ class MapDatabase:
                 "expected_config_hash: expected a non-empty str or None, got "
                 f"{type(expected_config_hash).__name__}"
             )
+        if not isinstance(path, (str, os.PathLike)):  # os.fspath said it without the name
+            raise TypeError(f"path: expected a str or os.PathLike, got {type(path).__name__}")
         p = Path(os.fspath(path))
         if not p.exists():
             raise FileNotFoundError(f"map file not found: {p}")

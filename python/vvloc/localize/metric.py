@@ -149,7 +149,18 @@ def _score(
                 f"decode: returned shape {np.shape(src)}; expected (N, {tgt.shape[0]}, "
                 f"{tgt.shape[1]}), descriptors of the target's T and C"
             )
-    return kernels.estimate_yaw(src, t, backend=backend)
+    try:
+        return kernels.estimate_yaw(src, t, backend=backend)
+    except ValueError as e:  # named after the kernel's arguments, src and tgt
+        side, _, fault = str(e).partition(": ")
+        pair = isinstance(desc, tuple)  # else tgt is the caller's, checked up front
+        if side == "src" or (side == "tgt" and pair):
+            raise ValueError(
+                f"{'decode/interact' if pair else 'decode'}: returned "
+                f"{'source' if side == 'src' else 'target'} descriptors that the yaw estimation "
+                f"refuses: {fault}"
+            ) from None
+        raise
 
 
 def _report(search: kernels.TranslationSearch, est: kernels.YawEstimate, n: int) -> None:
@@ -214,9 +225,11 @@ def metric_localize(
         :class:`MetricResult` with the best (x, y, yaw) in the source frame (metres, radians).
     """
     cfg = search_config(config)
+    _check_callables(decode)
     t = kernels._as_f32(desc_tgt, "desc_tgt", 2, "(T, C)")
     if t.shape[0] != num_angles:
         raise ValueError(f"desc_tgt: expected (T={num_angles}, C), got shape {t.shape}")
+    kernels._check_row_norms(t, "desc_tgt")
     return _finish(
         _search(cfg, backend),
         bev_src,
@@ -278,6 +291,7 @@ def metric_localize_best(
         and cost, and each target's coarse-stage cost.
     """
     cfg = search_config(config)
+    _check_callables(decode, interact)
     tgts = _targets(desc_tgts, num_angles)
     if bias is None:
         offsets = np.zeros(len(tgts))
@@ -325,9 +339,23 @@ def metric_localize_each(
         M :class:`MetricResult`: pose ξ_{s→t_k} (metres, radians, source frame), cost, history.
     """
     cfg = search_config(config)
+    _check_callables(decode, interact)
     tgts = _targets(desc_tgts, num_angles)
     shared = _SharedCoarse(bev_src, tgts, decode, interact, cfg, grid_size, num_radii, backend)
     return [shared.finish(k) for k in range(len(tgts))]
+
+
+def _check_callables(decode: Any, interact: Any = None) -> None:
+    """``TypeError`` naming ``decode`` (a callable) or ``interact`` (a callable or None); an
+    object that is neither failed at the first search stage as "'NoneType' object is not
+    callable"."""
+    if not callable(decode):
+        raise TypeError(
+            "decode: expected a callable mapping polar BEVs (N, T, R, C) to descriptors, got "
+            f"{type(decode).__name__}"
+        )
+    if interact is not None and not callable(interact):
+        raise TypeError(f"interact: expected a callable or None, got {type(interact).__name__}")
 
 
 def _targets(desc_tgts: Any, num_angles: int) -> npt.NDArray[np.float32]:
@@ -335,6 +363,7 @@ def _targets(desc_tgts: Any, num_angles: int) -> npt.NDArray[np.float32]:
     tgts = kernels._as_f32(desc_tgts, "desc_tgts", 3, "(M, T, C)")
     if tgts.shape[0] < 1 or tgts.shape[1] != num_angles:
         raise ValueError(f"desc_tgts: expected (M >= 1, T={num_angles}, C), got shape {tgts.shape}")
+    kernels._check_row_norms(tgts, "desc_tgts")
     return tgts
 
 
