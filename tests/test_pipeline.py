@@ -362,6 +362,13 @@ def test_localizer_options_are_checked_up_front(map_file, model_dir, tiny_world,
     with pytest.warns(UserWarning, match=r"rerank=False: the model's calibration") as w2:
         Localizer(model, db, top_k=20, rerank=False)
     assert w[0].filename == w2[0].filename == __file__
+    # a map smaller than top_k cuts K to its keyframes: said, since no option of a command fixes
+    # it (vvloc demo --frames 10 warned of "top_k=20" it was never given)
+    n = len(db)
+    model.calibration = {"min_distinctiveness": 0.2, "top_k": n + 5}
+    said = rf"re-ranks {n} candidates \(all the map holds: {n} keyframes\).*; a map of more "
+    with pytest.warns(UserWarning, match=said + "keyframes re-ranks the calibrated K$"):
+        Localizer(model, db, top_k=n + 10)
     model.calibration = {}
     closed = MapDatabase.open(map_file)
     closed.close()  # refused when the localizer is made, not at its first query

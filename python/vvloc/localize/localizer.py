@@ -541,11 +541,16 @@ _OPENER_FRAMES: contextvars.ContextVar[int] = contextvars.ContextVar("_OPENER_FR
 
 
 def _check_calibration_settings(
-    calibration: Mapping[str, Any], top_k: int, accept_threshold: float, stacklevel: int = 4
+    calibration: Mapping[str, Any],
+    top_k: int,
+    accept_threshold: float,
+    stacklevel: int = 4,
+    map_size: int | None = None,
 ) -> None:
     """Warn when a localizer applies a calibration measured with other settings: the
     distinctiveness (mean − minimum of the K re-ranking costs) depends on K, and the precision
-    reached depends on the cost rule. ``stacklevel``: the frame the warnings name."""
+    reached depends on the cost rule. ``stacklevel``: the frame the warnings name; ``map_size``:
+    the map's keyframes when fewer than the localizer's top_k cut K to them (said so)."""
     threshold = calibration.get("min_distinctiveness")
     if not threshold:
         return
@@ -559,11 +564,14 @@ def _check_calibration_settings(
         return
     cal_k, cal_cost = calibration.get("top_k"), calibration.get("accept_threshold")
     if cal_k is not None and int(cal_k) != top_k:
+        small = map_size is not None and map_size == top_k
         warnings.warn(
             f"the model's calibration was measured with top_k={int(cal_k)}, this localizer "
-            f"re-ranks {top_k} candidates: distinctiveness depends on K, so its precision is not "
-            "the calibrated one (vvloc calibrate with these settings, or pass "
-            "min_distinctiveness)",
+            f"re-ranks {top_k} candidates"
+            + (f" (all the map holds: {map_size} keyframes)" if small else "")
+            + ": distinctiveness depends on K, so its precision is not the calibrated one "
+            "(vvloc calibrate with these settings, or pass min_distinctiveness)"
+            + ("; a map of more keyframes re-ranks the calibrated K" if small else ""),
             stacklevel=stacklevel,
         )
     if cal_cost is not None and float(cal_cost) != accept_threshold:
@@ -677,6 +685,7 @@ class Localizer:
                 min(self.top_k, len(mapdb)),
                 self.accept_threshold,
                 stacklevel=3 + up,
+                map_size=len(mapdb) if len(mapdb) < self.top_k else None,
             )
             if not self.rerank_enabled and min_distinctiveness:
                 # the calibration scores re-ranking costs: without them only the cost rule is left
