@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import itertools
 import math
@@ -120,6 +121,9 @@ def test_loop_provenance_is_written_and_read_back_and_kept_by_select(tmp_path: P
         base.i, base.j, base.relative_poses, base.costs, base.accepted, list(PROVENANCE)
     )
     assert loops.provenance == PROVENANCE  # a tuple, whatever iterable was given
+    # the same lines in another order, or repeated, are the same provenance
+    shuffled = [PROVENANCE[2], PROVENANCE[0], PROVENANCE[1], PROVENANCE[0]]
+    assert dataclasses.replace(loops, provenance=shuffled).provenance == PROVENANCE
     assert loops.select([2, 0]).provenance == PROVENANCE
     path = write_loop_csv(tmp_path / "l.csv", loops, comments=["map m.h5"])
     lines = path.read_text().splitlines()
@@ -127,6 +131,10 @@ def test_loop_provenance_is_written_and_read_back_and_kept_by_select(tmp_path: P
     assert at == sorted(at) and at[-1] + 1 == lines.index("# map m.h5")
     assert read_loop_csv(path).provenance == PROVENANCE
     assert read_loop_csv(write_loop_csv(tmp_path / "b.csv", base)).provenance == ()
+    # a comment that reads back as provenance would pass for the loops' own
+    with pytest.raises(ValueError, match=r"^comments: 'model weights 00' reads as a provenance"):
+        write_loop_csv(tmp_path / "c.csv", base, comments=["map m.h5", "model weights 00"])
+    assert not (tmp_path / "c.csv").exists()
     # a user's comment that is no provenance line, or one after the header, is not taken
     text = path.read_text().replace("# map m.h5", "# model config of the week: v2")
     text += "# model weights " + "cd" * 32 + "\n"
@@ -155,6 +163,9 @@ def test_loop_csv_with_no_loops(tmp_path: Path) -> None:
         ({"provenance": [b"model config ab"]}, TypeError, "provenance: expected str lines"),
         ({"provenance": ["model config ab\nx"]}, ValueError, "provenance: expected lines"),
         ({"provenance": ["threshold 0.75"]}, ValueError, "got 'threshold 0.75'"),
+        # a line break the CSV's comments split at: the line was lost on the way back
+        ({"provenance": ["search SearchConfig(a\rb)"]}, ValueError, "provenance: expected"),
+        ({"provenance": ["search SearchConfig(a\u2028b)"]}, ValueError, "provenance: expected"),
     ],
 )
 def test_loop_closures_validate(kwargs: dict, exc: type, match: str) -> None:

@@ -704,7 +704,13 @@ def test_detect_loops_keeps_no_pose_of_another_model_or_search():
     other = dataclasses.replace(search, seed=2)
     with pytest.raises(ValueError, match=r"previous: .*another model or search settings.*seed=2"):
         detect_loops(model, db, search=other, previous=full, **kw)
+    # equal settings written otherwise (an int for a float, numpy scalars) are the same search
+    same = SearchConfig(half_range=1, step=np.float64(1), fine_samples=np.int64(4), stages=2)
+    same = dataclasses.replace(same, seed=1)
+    assert same == search and loop_provenance(model, same) == full.provenance
+    detect_loops(model, db, search=same, previous=full, **kw)
     weights = (full.provenance[0], "model weights " + "0" * 64, full.provenance[2])
     stale = dataclasses.replace(full, provenance=weights)  # another model's, by its weights
-    with pytest.raises(ValueError, match=rf"this call has model weights {model.weights_hash()}"):
+    said = rf"this call has model weights {model.weights_hash()}, previous has model weights 0+$"
+    with pytest.raises(ValueError, match=said):  # only the line that differs
         detect_loops(model, db, search=search, previous=stale, **kw)

@@ -104,7 +104,7 @@ def reusable_loops(
     if missing:
         return None, f"--reuse: no {' or '.join(missing)} in {out}: every pair searched"
     before = read_loop_csv(csv_path)  # ValueError naming the file and line when malformed
-    if before.provenance != tuple(provenance):
+    if set(before.provenance) != set(provenance):
         raise ValueError(
             f"--reuse: {csv_path} was written with another model or search settings than "
             "these (or by a vvloc before 2026-12-06, which did not record them); run without "

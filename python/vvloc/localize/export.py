@@ -272,7 +272,9 @@ class LoopClosures:
 
 def _provenance_lines(lines: Any) -> tuple[str, ...]:
     """``lines`` checked as :attr:`LoopClosures.provenance`: an iterable of one-line strings
-    that :func:`read_loop_csv` would read back as such (:data:`_PROVENANCE`)."""
+    that :func:`read_loop_csv` would read back as such (:data:`_PROVENANCE`); returned sorted,
+    each once (the order :func:`~vvloc.localize.loops.loop_provenance` gives), so that the
+    same lines in another order are the same provenance."""
     if isinstance(lines, str):
         raise TypeError("provenance: expected an iterable of str lines, got one str")
     try:
@@ -284,12 +286,13 @@ def _provenance_lines(lines: Any) -> tuple[str, ...]:
     for line in out:
         if not isinstance(line, str):
             raise TypeError(f"provenance: expected str lines, got {type(line).__name__}")
-        if not _PROVENANCE.fullmatch(line):
+        # one line as the CSV's comments split them (\r, \x0b, \u2028 too), or it is lost there
+        if not _PROVENANCE.fullmatch(line) or line.splitlines() != [line]:
             raise ValueError(
                 "provenance: expected lines 'model config <hex>', 'model weights <hex>' or "
                 f"'search SearchConfig(...)' (loop_provenance), got {line!r}"
             )
-    return out
+    return tuple(sorted(set(out)))
 
 
 #: A provenance line of a loop-closure CSV (:attr:`LoopClosures.provenance`), as ``vvloc
@@ -353,6 +356,12 @@ def loop_csv_text(loops: LoopClosures, *, comments: Iterable[str] = ()) -> str:
             *loops.provenance,
         ]
     ) + _comment_lines(comments)
+    said = [c[2:] for c in _comment_lines(comments) if _PROVENANCE.fullmatch(c[2:])]
+    if said:  # read back, it would pass for the loops' provenance
+        raise ValueError(
+            f"comments: {said[0]!r} reads as a provenance line; give the loops' provenance as "
+            "LoopClosures.provenance"
+        )
     rows = []
     for r in range(len(loops)):
         x, y, yaw = loops.relative_poses[r]

@@ -21,6 +21,7 @@ loop is accepted when its matching cost is below ``cost_threshold`` (0.75).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import warnings
 from dataclasses import dataclass
@@ -711,12 +712,19 @@ def loop_provenance(model: VVLocNet, search: SearchConfig | None = None) -> tupl
     SearchConfig(...)")``, the model's :meth:`~VVLocNet.config_hash` and
     :meth:`~VVLocNet.weights_hash` and the metric search's settings (None: the defaults).
     :attr:`LoopClosures.provenance` of :func:`detect_loops`' result; ``loops.csv`` holds
-    these lines as comments."""
+    these lines as comments. The search is written by its values, so that equal settings give
+    one line (``half_range=2`` and ``2.0``, a numpy float): for the defaults it is the
+    ``repr`` that ``vvloc loops`` has written since 2026-12-06."""
     search = search_config(search, "search")
+    values = ", ".join(
+        f"{f.name}={int(v) if f.type in ('int', int) else float(v)!r}"
+        for f in dataclasses.fields(search)
+        for v in [getattr(search, f.name)]
+    )
     return (
         f"model config {model.config_hash()}",
         f"model weights {model.weights_hash()}",
-        f"search {search!r}",
+        f"search SearchConfig({values})",
     )
 
 
@@ -729,9 +737,11 @@ def _check_previous(given: tuple[str, ...], wanted: tuple[str, ...]) -> None:
             "read_loop_csv of a loops.csv written since 2026-12-06, or give a LoopClosures of "
             "your own provenance=loop_provenance(model, search) when you know them"
         )
-    if given != wanted:
-        differ = [w for w in wanted if w not in given] or list(wanted)
+    if set(given) != set(wanted):
+        ours = [w for w in wanted if w not in given]
+        theirs = [g for g in given if g not in wanted]
         raise ValueError(
             "previous: its poses came from another model or search settings than this "
-            f"call's; this call has {'; '.join(differ)}, previous has {'; '.join(given)}"
+            f"call's; this call has {'; '.join(ours) or '(nothing more)'}, previous has "
+            f"{'; '.join(theirs) or '(nothing more)'}"
         )
