@@ -1161,12 +1161,19 @@ def test_loops_cli_never_replaces_files_it_did_not_write(tmp_path):
     (out / "loops.csv").write_text("my,csv\n")
     with pytest.raises(FileExistsError, match=r"holds loops\.csv, graph\.g2o"):
         check_loops_folder(out, mine)
-    # nor inside a dataset, whose folders the outputs would corrupt
+    # nor inside a dataset, whose folders the outputs would corrupt: any dataset, not only
+    # the command's own (vvloc eval --out wrote a report into another dataset's folder)
+    from vvloc.commands._util import check_out_folder
+
     data = tmp_path / "data"
     (data / "sessions" / "s0").mkdir(parents=True)
     (data / "rig.json").write_text("{}")
-    with pytest.raises(ValueError, match="lies inside the dataset"):
-        check_loops_folder(data / "sessions" / "s0", mine)
+    for inside in (data, data / "sessions" / "s0", data / "sessions" / "new" / "deeper"):
+        with pytest.raises(ValueError, match=rf"^--out: .* lies inside the dataset {data}; "):
+            check_out_folder(inside)
+        with pytest.raises(ValueError, match=r"^--out: .* lies inside the dataset"):
+            check_out_folder(inside, outside=tmp_path / "other")
+    check_out_folder(tmp_path / "beside")  # beside a dataset: fine
 
 
 def test_calibrate_cli_scores_the_localizers_answers_and_never_loses_a_calibration(

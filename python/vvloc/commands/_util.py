@@ -281,7 +281,8 @@ def check_out_folder(
     ``out``, or a folder above it, exists and is not a folder; ``PermissionError`` when the
     folder, or the nearest one above it that exists, cannot be written (a read-only file
     system: found after every frame was localized before); ``ValueError`` when ``out`` is or
-    lies inside ``outside`` (the dataset, whose folders the outputs would corrupt), and with
+    lies inside ``outside`` (the dataset, whose folders the outputs would corrupt) or inside
+    any other vvloc dataset (a folder with ``rig.json`` beside ``sessions/``), and with
     ``own`` when it is the working directory or a folder above it: the outputs go to a folder
     of their own, and an empty value (an unset shell variable: ``--out "$OUT"``) reads as the
     working directory, where they mixed with whatever was there."""
@@ -312,5 +313,11 @@ def check_out_folder(
         if inside_folder(out, outside):
             raise ValueError(
                 f"{option}: {out} is or lies inside the dataset {outside}; write outputs to a "
+                "folder of their own"
+            )
+    for folder in (out, *Path(os.path.abspath(out)).parents):  # any other vvloc dataset too
+        if (folder / "rig.json").is_file() and (folder / "sessions").is_dir():
+            raise ValueError(
+                f"{option}: {out} is or lies inside the dataset {folder}; write outputs to a "
                 "folder of their own"
             )

@@ -185,18 +185,13 @@ def _starts_with(path: Path, head: str) -> bool:
 
 
 def check_loops_folder(out: Path, trajectory_files: Iterable[str]) -> None:
-    """``ValueError`` (``--out``) when ``out`` is or lies inside a vvloc dataset (a
-    ``rig.json`` beside ``sessions/``); ``FileExistsError`` when it holds a file this run
-    would write (``loops.csv``, ``graph.g2o``, ``keyframes.csv``, its ``trajectory_*.tum``)
-    that no earlier ``vvloc loops`` wrote: an earlier run's ``loops.csv`` starts with its
-    header (and vouches for the ``graph.g2o`` beside it, which g2o readers allow no header
-    in), its ``keyframes.csv`` and trajectories with theirs. A user's files are never replaced."""
-    for folder in (out, *out.parents):  # the map does not say which dataset built it
-        if (folder / "rig.json").is_file() and (folder / "sessions").is_dir():
-            raise ValueError(
-                f"--out: {out} is or lies inside the dataset {folder}; write outputs to a "
-                "folder of their own"
-            )
+    """``FileExistsError`` (``--out``) when ``out`` holds a file this run would write
+    (``loops.csv``, ``graph.g2o``, ``keyframes.csv``, its ``trajectory_*.tum``) that no earlier
+    ``vvloc loops`` wrote: an earlier run's ``loops.csv`` starts with its header (and vouches
+    for the ``graph.g2o`` beside it, which g2o readers allow no header in), its
+    ``keyframes.csv`` and trajectories with theirs. A user's files are never replaced. (An
+    ``out`` inside a vvloc dataset is refused before, by ``check_out_folder``: the map does
+    not say which dataset built it.)"""
     if not out.is_dir():
         return
     ours = _starts_with(out / "loops.csv", "# vvloc loop closures")
