@@ -623,17 +623,21 @@ class DatasetWriter:
 
     def add_session(self, name: str, meta: dict[str, Any] | None = None) -> SessionWriter:
         """Start session ``name`` (a plain folder name: no ``/``, no leading ``.``, no control
-        character such as a line break) and return its writer."""
+        character such as a line break, no space at either end, which the command line's
+        ``--sessions`` strips: such a session could not be named there) and return its
+        writer."""
         if (
-            not name
+            not isinstance(name, str)
+            or not name
             or "/" in name
             or name.startswith(".")
             or _has_control(name)
+            or name != name.strip()
             or name in self._sessions
         ):
             raise ValueError(
-                f"name: expected a new plain session name (no '/', leading '.' or control "
-                f"character), got {name!r}"
+                f"name: expected a new plain session name (no '/', leading '.', control "
+                f"character or space at either end), got {name!r}"
             )
         w = SessionWriter(self._tmp / "sessions" / name, self.cameras, meta)
         self._sessions[name] = w
