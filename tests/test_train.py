@@ -2186,6 +2186,15 @@ def test_a_non_finite_loss_in_the_first_epoch_is_one_line_saying_nothing_was_sav
     assert r.returncode == 1 and "Traceback" not in r.stderr, r.stderr[-2000:]
     assert "vvloc train: failed: epoch 1, step " in r.stderr
     assert "no epoch had finished: nothing was saved" in r.stderr
+    # ... and nothing is left: its train_config.yaml refused a corrected config's run there
+    assert not (tmp_path / "run").exists()
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "notes.txt").write_text("keep")  # a folder that held something
+    r = subprocess.run([*cmd, str(tmp_path / "mine")], capture_output=True, text=True)
+    assert r.returncode == 2 and "is not empty (notes.txt)" in r.stderr, r.stderr[-2000:]
+    (tmp_path / "empty").mkdir()  # an empty folder stays, empty
+    r = subprocess.run([*cmd, str(tmp_path / "empty")], capture_output=True, text=True)
+    assert r.returncode == 1 and not list((tmp_path / "empty").iterdir()), r.stderr[-2000:]
 
 
 def test_a_bad_sim_section_is_named_as_the_configs_key(tmp_path):

@@ -2706,7 +2706,8 @@ def train(
     (:func:`check_run_folder`; a run writes ``checkpoint/``, ``best/``, ``train_config.yaml``
     and ``log.jsonl`` there and replaces its own); ``resume`` needs the ``trainer_state.pt`` of
     a run there. It must lie outside every dataset the config reads. Both are checked before
-    any dataset is rendered or opened."""
+    any dataset is rendered or opened. A new run into a new or empty folder that fails (or is
+    interrupted) before its first epoch is saved removes what it wrote there."""
     cfg = config if isinstance(config, TrainConfig) else TrainConfig.from_yaml(config)
     if isinstance(config, TrainConfig):
         cfg.validate()  # built directly, it was never checked (from_yaml checks)
@@ -2715,6 +2716,7 @@ def train(
     if resume and not out.is_dir():
         _no_run_to_resume(out, cfg)
     created = not out.exists()
+    fresh = created or not any(out.iterdir())
     out.mkdir(parents=True, exist_ok=True)  # to lock it
     try:
         with run_lock(out):
@@ -2726,10 +2728,31 @@ def train(
                 raise FileNotFoundError(f"--resume: no run to resume in {out_dir}")
             trainer.fit(progress=progress)
     except BaseException:
+        if fresh:  # a run that failed before its first epoch was saved leaves nothing behind
+            _remove_unsaved_run(out)
         if created and not any(out.iterdir()):  # a run refused before any work leaves no folder
             out.rmdir()
         raise
     return trainer
+
+
+def _remove_unsaved_run(out: Path) -> None:
+    """Remove what a new run into the empty folder ``out`` wrote before it failed in its first
+    epoch: its ``train_config.yaml`` and hidden half-written files, when no epoch was saved (no
+    ``trainer_state.pt``, ``checkpoint/``, ``best/`` or ``log.jsonl``). Left there, the config
+    refused a corrected config's run into the same folder ("holds no run of this config");
+    anything else in the folder is left as it is."""
+    names = {p.name for p in out.iterdir()}
+    if names & {"trainer_state.pt", "log.jsonl", *_STOPPED_RUN_LEFTOVERS}:
+        return
+    for name in names:
+        path = out / name
+        if name == "train_config.yaml" or name.startswith(_STOPPED_RUN_HIDDEN):
+            if path.is_dir() and not path.is_symlink():
+                shutil.rmtree(path, ignore_errors=True)
+            else:
+                with contextlib.suppress(OSError):
+                    path.unlink()
 
 
 def _no_run_to_resume(out: Path, cfg: TrainConfig) -> NoReturn:
