@@ -318,7 +318,8 @@ def test_a_yaw_in_degrees_or_as_a_compass_heading_is_warned_about(tmp_path):
         open_dataset(root)  # a grid convergence's 1.4°: the converters warned, not every open
     for values, match in (
         (np.degrees(yaw), r"yaw reaches 210\.0 .*degrees\?"),
-        (np.pi / 2 - yaw, r"the yaw differs from the direction of travel .* radians"),
+        (np.pi / 2 - yaw, r"the yaw reads as a compass heading .* 0\.0° from 90° minus .* 30\.0°"),
+        (yaw + np.radians(12.0), r"the yaw differs from the direction of travel by .*\+12\.00°"),
     ):
         for row, v in zip(rows[1:], values, strict=True):
             row[4] = repr(float(v))
@@ -327,6 +328,24 @@ def test_a_yaw_in_degrees_or_as_a_compass_heading_is_warned_about(tmp_path):
             open_dataset(root)
         texts = [str(w.message) for w in caught]
         assert any(re.search(r"^session good: " + match, t) for t in texts), texts
+    # ... and along the axes, where a compass heading is 90° off the direction of travel (it
+    # went unwarned: heading_offset leaves offsets of 90° out as driving backwards), driven
+    # forwards and backwards, and with the yaw a little noisy
+    axis = np.repeat(np.radians([0.0, 90.0, 180.0, 270.0]), len(side))
+    xy = np.cumsum(np.column_stack([np.cos(axis), np.sin(axis)]), axis=0)
+    noise = np.random.default_rng(0).normal(0.0, np.radians(0.3), len(axis))
+    level = np.zeros(len(axis), int)
+    for name, travel in (("fwd", axis), ("back", axis + np.pi)):
+        compass = np.pi / 2 - travel + noise
+        compass = np.arctan2(np.sin(compass), np.cos(compass))  # within ±π, as a compass logs
+        _write(tmp_path / name, {name: (np.column_stack([xy, compass]), level)})
+        with pytest.warns(UserWarning, match=rf"^session {name}: the yaw reads as a compass"):
+            open_dataset(tmp_path / name)
+    right = tmp_path / "right"  # the same roads in the format's convention: no warning
+    _write(right, {"r": (np.column_stack([xy, axis + noise]), level)})
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        open_dataset(right)
 
 
 def test_writer_leaves_nothing_behind_on_error(tmp_path):

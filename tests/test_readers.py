@@ -1265,6 +1265,22 @@ def test_heading_offset_measures_a_yaw_off_the_direction_of_travel():
     note = heading_warning("s", _drive(1.4))
     assert note is not None and note.startswith("session s: the yaw differs from the direction")
     assert heading_warning("s", _drive(1.4, n=70)) is None  # too few stretches to tell
+    # a compass heading (90° − yaw) fits 90° minus the direction of travel, whichever way the
+    # roads run (this drive's run along the axes, where heading_offset sees ±90° and leaves
+    # them out), and driven backwards too
+    from vvloc.data.heading import compass_fit
+
+    drive = _drive(0.0)
+    travel, compass, n = compass_fit(drive)
+    assert travel == pytest.approx(0.0, abs=0.5) and compass > 45 and n >= MIN_STRETCHES
+    for p in (drive, back):
+        mirrored = p.copy()
+        mirrored[:, 2] = math.pi / 2 - p[:, 2]
+        travel, compass, _ = compass_fit(mirrored)
+        assert compass == pytest.approx(0.0, abs=0.5) and travel > 45
+        note = heading_warning("s", mirrored)
+        assert note is not None and note.startswith("session s: the yaw reads as a compass")
+    assert compass_fit(np.zeros((3, 3)))[2] == 0
 
 
 def test_the_readers_check_each_sessions_yaw_against_its_travel(tmp_path, monkeypatch):

@@ -5,9 +5,11 @@ atan2(Δy, Δx), equals its yaw up to a small sideslip. A constant offset betwee
 that the yaw and the positions are not in one frame: a yaw measured from true north beside
 UTM grid coordinates (the grid convergence, about 1.4° at Oxford), a yaw of a sensor mounted
 turned on the car. Every relative translation then turns by that offset. :func:`heading_offset`
-measures it; the NCLT and Oxford readers warn when a session's is large. (A mirrored yaw
-shows only on diagonal stretches: along the axes it looks like driving backwards, which is
-left out.)
+measures it; the NCLT and Oxford readers warn when a session's is large. A compass heading
+(clockwise from north, 90° minus the yaw) is no constant offset: it is the yaw mirrored about
+the diagonal, off the direction of travel by 90° − 2 × that direction, ±90° along the axes,
+where :func:`heading_offset` leaves it out with the stretches driven backwards, and 0 on the
+diagonals. :func:`compass_fit` tests that shape directly, whatever the roads' directions.
 """
 
 from __future__ import annotations
@@ -21,6 +23,11 @@ from vvloc.geometry import wrap_angle
 WARN_OFFSET_DEG = 0.5
 #: ... and has at least this many straight stretches behind it (of 2 m: 40 m of straight road).
 MIN_STRETCHES = 20
+#: A session's yaw reads as a compass heading when, over its straight stretches (driven
+#: forwards or backwards), it lies a median of at most ``COMPASS_FIT_DEG`` from 90° minus the
+#: direction of travel and at least ``COMPASS_MISFIT_DEG`` from the direction itself (degrees).
+COMPASS_FIT_DEG = 5.0
+COMPASS_MISFIT_DEG = 20.0
 
 
 def heading_offset(
@@ -42,6 +49,41 @@ def heading_offset(
         wrap(mean yaw − atan2(Δy, Δx)) in degrees (NaN when none counts), and their number.
         Stretches driven backwards (offset beyond ±90°) are left out.
     """
+    heading, travel = _straight_stretches(poses, step, max_turn_deg)
+    offset = wrap_angle(heading - travel)
+    offset = offset[np.abs(offset) < np.pi / 2]  # reversing
+    if offset.size == 0:
+        return float("nan"), 0
+    return float(np.degrees(np.median(offset))), int(offset.size)
+
+
+def compass_fit(
+    poses: npt.ArrayLike, *, step: float = 2.0, max_turn_deg: float = 1.0
+) -> tuple[float, float, int]:
+    """How well a session's yaw fits its direction of travel τ, and how well a compass
+    heading's, 90° − τ, over its straight stretches (those of :func:`heading_offset`, driven
+    forwards or backwards: each residual is taken modulo 180°, in [0°, 90°]).
+
+    Returns ``(travel_deg, compass_deg, count)``: the median residuals against τ and against
+    90° − τ, degrees (NaN when no stretch counts), and the number of stretches. A yaw in the
+    format's convention has a small first one; a compass heading a small second and, unless
+    every road runs diagonally (where the two agree), a large first."""
+    heading, travel = _straight_stretches(poses, step, max_turn_deg)
+    if heading.size == 0:
+        return float("nan"), float("nan"), 0
+
+    def residual(expected: np.ndarray) -> float:
+        r = np.abs(wrap_angle(2.0 * (heading - expected))) / 2.0  # modulo 180°: reversing too
+        return float(np.degrees(np.median(r)))
+
+    return residual(travel), residual(np.pi / 2 - travel), int(heading.size)
+
+
+def _straight_stretches(
+    poses: npt.ArrayLike, step: float, max_turn_deg: float
+) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+    """The mean yaw and the direction of travel atan2(Δy, Δx) (radians) of each straight
+    stretch of :func:`heading_offset` (reversing ones included)."""
     p = np.asarray(poses, dtype=np.float64)
     if p.ndim != 2 or p.shape[1] != 3:
         raise ValueError(f"poses: expected shape (N, 3), got {p.shape}")
@@ -67,18 +109,25 @@ def heading_offset(
     turn = wrap_angle(p[j, 2] - p[i, 2])
     straight = far & (np.abs(turn) <= np.radians(max_turn_deg))
     heading = p[i, 2] + 0.5 * turn
-    offset = wrap_angle(heading - np.arctan2(d[:, 1], d[:, 0]))[straight]
-    offset = offset[np.abs(offset) < np.pi / 2]  # reversing
-    if offset.size == 0:
-        return float("nan"), 0
-    return float(np.degrees(np.median(offset))), int(offset.size)
+    return heading[straight], np.arctan2(d[:, 1], d[:, 0])[straight]
 
 
 def heading_warning(
     name: str, poses: npt.ArrayLike, *, limit_deg: float = WARN_OFFSET_DEG
 ) -> str | None:
-    """A warning text when session ``name``'s :func:`heading_offset` exceeds ``limit_deg``
-    (degrees) over at least :data:`MIN_STRETCHES` stretches, else None."""
+    """A warning text when session ``name``'s yaw reads as a compass heading
+    (:func:`compass_fit`: within :data:`COMPASS_FIT_DEG` of 90° minus the direction of travel,
+    at least :data:`COMPASS_MISFIT_DEG` off the direction), or when its
+    :func:`heading_offset` exceeds ``limit_deg`` (degrees), each over at least
+    :data:`MIN_STRETCHES` stretches; else None."""
+    travel, compass, n = compass_fit(poses)
+    if n >= MIN_STRETCHES and compass <= COMPASS_FIT_DEG and travel >= COMPASS_MISFIT_DEG:
+        return (
+            f"session {name}: the yaw reads as a compass heading (clockwise from north): over "
+            f"{n} straight stretches it lies a median of {compass:.1f}° from 90° minus the "
+            f"direction of travel and {travel:.1f}° from the direction itself; every relative "
+            "pose turns with it (vvloc.data.heading)"
+        )
     offset, count = heading_offset(poses)
     if count < MIN_STRETCHES or abs(offset) <= limit_deg:
         return None
