@@ -28,7 +28,9 @@ torch.set_num_threads(2)
 ds = open_dataset(sys.argv[4] if len(sys.argv) > 4 else "data/synth-parking")
 val = ["s18", "s19", "s21", "s22", "s23", "s24", "s26", "s27", "s28", "s29"]
 model = VVLocNet.load(ckpt)
-mp = build_map(model, ds, ["s0"], f"{out}-map.h5", store_bev=False, progress=False, overwrite=True)
+mp = build_map(
+    model, ds, ["s0"], f"{out}-map.h5", store_bev=False, progress=False, overwrite=True
+)
 db = MapDatabase.open(mp, expected_config_hash=model.config_hash())
 loc = Localizer(model, db)
 frames = [ds.session(s)[i] for s in val for i in range(0, len(ds.session(s)), every)]
