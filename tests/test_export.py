@@ -134,6 +134,8 @@ def test_loop_provenance_is_written_and_read_back_and_kept_by_select(tmp_path: P
     # a comment that reads back as provenance would pass for the loops' own
     with pytest.raises(ValueError, match=r"^comments: 'model weights 00' reads as a provenance"):
         write_loop_csv(tmp_path / "c.csv", base, comments=["map m.h5", "model weights 00"])
+    with pytest.raises(ValueError, match=r"^comments: 'model weights 00' reads as a provenance"):
+        write_loop_csv(tmp_path / "c.csv", base, comments=(c for c in ["model weights 00"]))
     assert not (tmp_path / "c.csv").exists()
     # a user's comment that is no provenance line, or one after the header, is not taken
     text = path.read_text().replace("# map m.h5", "# model config of the week: v2")

@@ -345,23 +345,27 @@ def loop_csv_text(loops: LoopClosures, *, comments: Iterable[str] = ()) -> str:
     several files as one change (:func:`vvloc._io.write_together`)."""
     if not isinstance(loops, LoopClosures):
         raise TypeError(f"loops: expected LoopClosures, got {type(loops).__name__}")
-    header = _comment_lines(
-        [
-            "vvloc loop closures",
-            "i, j: keyframe ids; (x, y, yaw) = xi_{i->j}, the pose of keyframe j expressed in "
-            "the frame of keyframe i (T_world_j = T_world_i * xi)",
-            *_FRAME_COMMENTS,
-            "yaw_deg: yaw in degrees; cost: matching cost (lower is better); "
-            "accepted: 1 if the closure passed the cost threshold, else 0",
-            *loops.provenance,
-        ]
-    ) + _comment_lines(comments)
-    said = [c[2:] for c in _comment_lines(comments) if _PROVENANCE.fullmatch(c[2:])]
+    extra = _comment_lines(comments)  # once: comments may be a generator
+    said = [c[2:] for c in extra if _PROVENANCE.fullmatch(c[2:])]
     if said:  # read back, it would pass for the loops' provenance
         raise ValueError(
             f"comments: {said[0]!r} reads as a provenance line; give the loops' provenance as "
             "LoopClosures.provenance"
         )
+    header = (
+        _comment_lines(
+            [
+                "vvloc loop closures",
+                "i, j: keyframe ids; (x, y, yaw) = xi_{i->j}, the pose of keyframe j expressed in "
+                "the frame of keyframe i (T_world_j = T_world_i * xi)",
+                *_FRAME_COMMENTS,
+                "yaw_deg: yaw in degrees; cost: matching cost (lower is better); "
+                "accepted: 1 if the closure passed the cost threshold, else 0",
+                *loops.provenance,
+            ]
+        )
+        + extra
+    )
     rows = []
     for r in range(len(loops)):
         x, y, yaw = loops.relative_poses[r]
@@ -516,15 +520,16 @@ def read_loop_csv(path: PathLike) -> LoopClosures:
 
 
 def _provenance_comments(p: Path) -> tuple[str, ...]:
-    """The provenance lines among the ``#`` lines of ``p`` before its header (once each)."""
+    """The provenance lines among the ``#`` lines of ``p`` before its header, read up to the
+    header alone (``p`` has been read whole as a loop-closure CSV already: UTF-8 text)."""
     found: list[str] = []
-    for line in _text_lines(p, newline=""):
-        text = line.strip()
-        if text and not text.startswith("#"):
-            break  # the header
-        line = text[1:].strip()
-        if _PROVENANCE.fullmatch(line) and line not in found:
-            found.append(line)
+    with open(p, encoding="utf-8-sig", newline="") as f:
+        for line in f:
+            text = line.strip()
+            if text and not text.startswith("#"):
+                break  # the header
+            if _PROVENANCE.fullmatch(text[1:].strip()):
+                found.append(text[1:].strip())
     return tuple(found)
 
 
