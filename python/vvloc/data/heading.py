@@ -27,11 +27,14 @@ MIN_STRETCHES = 20
 #: forwards or backwards), it lies a median of at most ``COMPASS_FIT_DEG`` from 90° minus the
 #: direction of travel and at least ``COMPASS_MISFIT_DEG`` from the direction itself (degrees).
 COMPASS_FIT_DEG = 5.0
+#: The stretches' length (metres) and the most they may turn (degrees) to count as straight.
+STEP_M = 2.0
+MAX_TURN_DEG = 1.0
 COMPASS_MISFIT_DEG = 20.0
 
 
 def heading_offset(
-    poses: npt.ArrayLike, *, step: float = 2.0, max_turn_deg: float = 1.0
+    poses: npt.ArrayLike, *, step: float = STEP_M, max_turn_deg: float = MAX_TURN_DEG
 ) -> tuple[float, int]:
     """The median of yaw − direction of travel over a session's straight stretches.
 
@@ -49,7 +52,11 @@ def heading_offset(
         wrap(mean yaw − atan2(Δy, Δx)) in degrees (NaN when none counts), and their number.
         Stretches driven backwards (offset beyond ±90°) are left out.
     """
-    heading, travel = _straight_stretches(poses, step, max_turn_deg)
+    return _offset(*_straight_stretches(poses, step, max_turn_deg))
+
+
+def _offset(heading: np.ndarray, travel: np.ndarray) -> tuple[float, int]:
+    """:func:`heading_offset` of the stretches' mean yaws and directions of travel."""
     offset = wrap_angle(heading - travel)
     offset = offset[np.abs(offset) < np.pi / 2]  # reversing
     if offset.size == 0:
@@ -58,7 +65,7 @@ def heading_offset(
 
 
 def compass_fit(
-    poses: npt.ArrayLike, *, step: float = 2.0, max_turn_deg: float = 1.0
+    poses: npt.ArrayLike, *, step: float = STEP_M, max_turn_deg: float = MAX_TURN_DEG
 ) -> tuple[float, float, int]:
     """How well a session's yaw fits its direction of travel τ, and how well a compass
     heading's, 90° − τ, over its straight stretches (those of :func:`heading_offset`, driven
@@ -68,7 +75,11 @@ def compass_fit(
     90° − τ, degrees (NaN when no stretch counts), and the number of stretches. A yaw in the
     format's convention has a small first one; a compass heading a small second and, unless
     every road runs diagonally (where the two agree), a large first."""
-    heading, travel = _straight_stretches(poses, step, max_turn_deg)
+    return _compass(*_straight_stretches(poses, step, max_turn_deg))
+
+
+def _compass(heading: np.ndarray, travel: np.ndarray) -> tuple[float, float, int]:
+    """:func:`compass_fit` of the stretches' mean yaws and directions of travel."""
     if heading.size == 0:
         return float("nan"), float("nan"), 0
 
@@ -120,7 +131,8 @@ def heading_warning(
     at least :data:`COMPASS_MISFIT_DEG` off the direction), or when its
     :func:`heading_offset` exceeds ``limit_deg`` (degrees), each over at least
     :data:`MIN_STRETCHES` stretches; else None."""
-    travel, compass, n = compass_fit(poses)
+    stretches = _straight_stretches(poses, STEP_M, MAX_TURN_DEG)  # once, for both tests
+    travel, compass, n = _compass(*stretches)
     if n >= MIN_STRETCHES and compass <= COMPASS_FIT_DEG and travel >= COMPASS_MISFIT_DEG:
         return (
             f"session {name}: the yaw reads as a compass heading (clockwise from north): over "
@@ -128,7 +140,7 @@ def heading_warning(
             f"direction of travel and {travel:.1f}° from the direction itself; every relative "
             "pose turns with it (vvloc.data.heading)"
         )
-    offset, count = heading_offset(poses)
+    offset, count = _offset(*stretches)
     if count < MIN_STRETCHES or abs(offset) <= limit_deg:
         return None
     return (
