@@ -27,10 +27,10 @@ MIN_STRETCHES = 20
 #: forwards or backwards), it lies a median of at most ``COMPASS_FIT_DEG`` from 90° minus the
 #: direction of travel and at least ``COMPASS_MISFIT_DEG`` from the direction itself (degrees).
 COMPASS_FIT_DEG = 5.0
+COMPASS_MISFIT_DEG = 20.0
 #: The stretches' length (metres) and the most they may turn (degrees) to count as straight.
 STEP_M = 2.0
 MAX_TURN_DEG = 1.0
-COMPASS_MISFIT_DEG = 20.0
 
 
 def heading_offset(
