@@ -366,6 +366,26 @@ def test_writer_leaves_nothing_behind_on_error(tmp_path):
         DatasetWriter(tmp_path / "ds", cams)
 
 
+def test_writer_leaves_out_sessions_without_frames_and_says_so(tmp_path):
+    # a session without frames was written, and every command that reads one refuses it
+    cams = make_rig(4, W, H)
+    with pytest.warns(UserWarning, match=r"sessions \['e1', 'e2'\] left out: no frame"):
+        with DatasetWriter(tmp_path / "ds", cams) as w:
+            w.add_session("e1")
+            w.add_session("s0").add(1, (0, 0, 0), np.zeros((4, 3, H, W), np.uint8))
+            w.add_session("e2", meta={"note": "nothing"})
+    assert open_dataset(tmp_path / "ds").sessions == ["s0"]
+    assert sorted(p.name for p in (tmp_path / "ds" / "sessions").iterdir()) == ["s0"]
+    # no frame at all: refused, and nothing is left behind
+    for sessions in ([], ["e"]):
+        with pytest.raises(ValueError, match=r"no frame was added to any session"):
+            with DatasetWriter(tmp_path / "none", cams) as w:
+                for name in sessions:
+                    w.add_session(name)
+        assert not (tmp_path / "none").exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ds"]
+
+
 def test_session_names_with_control_characters_are_refused(tmp_path):
     # a line break in a session name split the rows of the CSV files that name sessions
     # (queries.csv, keyframes.csv): refused when writing and when reading a dataset

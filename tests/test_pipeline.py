@@ -475,10 +475,12 @@ def test_localizer_options_are_checked_up_front(map_file, model_dir, tiny_world,
     gen = build_map(model, ds, (s for s in ["s0"]), tmp_path / "gen.h5", progress=False)
     with MapDatabase.open(gen) as built:
         assert list(built.sessions) == ["s0"]
-    from vvloc.data import DatasetWriter
-
-    with DatasetWriter(tmp_path / "empty", open_dataset(tiny_world).cameras) as w:
-        w.add_session("e")  # no frame
+    shutil.copytree(tiny_world, tmp_path / "empty")  # session "e": a poses.csv of no rows
+    e = tmp_path / "empty" / "sessions" / "e"
+    shutil.copytree(tmp_path / "empty" / "sessions" / "s0", e)
+    (e / "poses.csv").write_text((e / "poses.csv").read_text().splitlines()[0] + "\n")
+    for png in e.glob("*/*.png"):
+        png.unlink()
     with pytest.raises(ValueError, match=r"sessions: \['e'\] hold no frames"):
         build_map(model, open_dataset(tmp_path / "empty"), ["e"], tmp_path / "e.h5")
     assert not (tmp_path / "e.h5").exists()

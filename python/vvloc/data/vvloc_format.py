@@ -645,9 +645,26 @@ class DatasetWriter:
         return w
 
     def close(self) -> Path:
-        """Finish: close every session and move the dataset into place. Returns ``root``."""
+        """Finish: close every session and move the dataset into place. Returns ``root``.
+
+        A session to which no frame was added is left out, with a ``UserWarning`` naming it
+        (every command refuses a session without frames); ``ValueError`` when no session has
+        a frame, and nothing is written."""
         for w in self._sessions.values():
             w.close()
+        empty = [name for name, w in self._sessions.items() if w.count == 0]
+        if len(empty) == len(self._sessions):
+            raise ValueError(
+                f"{self.root}: no frame was added to any session ({empty or 'no session'}); "
+                "a dataset needs at least one frame"
+            )
+        if empty:
+            for name in empty:
+                shutil.rmtree(self._sessions[name].directory)
+            warnings.warn(
+                f"{self.root}: sessions {empty} left out: no frame was added to them",
+                stacklevel=2,
+            )
         replaced: Path | None = None
         if self._target.exists():
             if self.overwrite and self._target.is_dir() and any(self._target.iterdir()):
