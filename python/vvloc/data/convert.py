@@ -16,12 +16,16 @@ import numbers
 import os
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from vvloc.data._remap import resize_rgb
+from vvloc.data.frame import Camera, Dataset, Session
 from vvloc.evaluate import _int_array, _real_array
+
+if TYPE_CHECKING:
+    from vvloc.data.vvloc_format import SessionWriter
 
 __all__ = ["convert_dataset", "select_keyframes"]
 
@@ -170,30 +174,7 @@ def convert_dataset(
         options["sessions"] = list(sessions)  # a raw reader reads only these
     ds = open_dataset(src, format=fmt, **options)
     picked = None if keep is None else _camera_indices(keep, [c.name for c in ds.cameras])
-    names = list(ds.sessions) if sessions is None else list(sessions)
-    repeated = sorted({n for n in names if names.count(n) > 1})
-    if repeated:
-        raise ValueError(f"sessions: {repeated} listed more than once")
-    for name in names:
-        try:  # a KeyError naming the known sessions, before anything is written
-            ds.session(name)
-        except KeyError as e:
-            raise KeyError(f"sessions: {e.args[0] if e.args else name}") from None
-    cameras = list(ds.cameras) if picked is None else [ds.cameras[i] for i in picked]
-    if size is not None and (cameras[0].width, cameras[0].height) != size:
-        cameras = [c.resized(*size) for c in cameras]
-    picks = {}
-    for name in names:
-        s = ds.session(name)
-        strided = np.arange(0, len(s), every, dtype=np.int64)
-        chosen = select_keyframes(
-            s.poses[strided],
-            min_distance=min_distance,
-            min_angle_deg=min_angle_deg,
-            z=s.z[strided],
-            floors=s.floors[strided],
-        )
-        picks[name] = strided[chosen]
+    names = _session_names(ds, sessions)
     empty = [name for name in names if len(ds.session(name)) == 0]
     if empty:
         raise DatasetFormatError(
@@ -205,7 +186,13 @@ def convert_dataset(
             )
             + "; leave them out with sessions (--sessions) or check the source"
         )
-    total = sum(len(v) for v in picks.values())
+    cameras = list(ds.cameras) if picked is None else [ds.cameras[i] for i in picked]
+    if size is not None and (cameras[0].width, cameras[0].height) != size:
+        cameras = [c.resized(*size) for c in cameras]
+    picks = {
+        name: _keyframe_picks(ds.session(name), every, min_distance, min_angle_deg)
+        for name in names
+    }
     converted_from: dict[str, Any] = {
         "path": str(Path(src).resolve()),
         "format": fmt,
@@ -229,39 +216,82 @@ def convert_dataset(
             if progress:
                 from tqdm import tqdm
 
+                total = sum(len(v) for v in picks.values())
                 bar = tqdm(total=total, desc="vvloc convert", unit="frame")
             for name in names:
-                s = ds.session(name)
                 w = writer.add_session(name, meta=_session_meta(src, fmt, name))
-                for i in picks[name]:
-                    f = s[int(i)]
-                    images = f.images if picked is None else f.images[picked]
-                    if images.shape[2:] != (cameras[0].height, cameras[0].width):
-                        images = np.stack(
-                            [
-                                resize_rgb(
-                                    img.transpose(1, 2, 0), cameras[0].width, cameras[0].height
-                                ).transpose(2, 0, 1)
-                                for img in images
-                            ]
-                        )
-                    own = s.frame_cam_to_ego is not None  # a tilting or unsynchronised rig
-                    w.add(
-                        int(s.timestamps[i]),
-                        f.pose,
-                        images,
-                        z=f.z,
-                        floor=f.floor,
-                        cam_to_ego=(f.cam_to_ego if picked is None else f.cam_to_ego[picked])
-                        if own
-                        else None,
-                    )
-                    if bar is not None:
-                        bar.update(1)
+                _write_session(w, ds.session(name), picks[name], picked, cameras[0], bar)
     finally:
         if bar is not None:
             bar.close()
     return Path(out)
+
+
+def _session_names(ds: Dataset, sessions: Sequence[str] | None) -> list[str]:
+    """The sessions of ``ds`` to convert: ``sessions``, or all of them when None;
+    ``ValueError`` for a name listed twice, ``KeyError`` naming ``sessions`` and the known
+    sessions for one ``ds`` lacks (before anything is written)."""
+    names = list(ds.sessions) if sessions is None else list(sessions)
+    repeated = sorted({n for n in names if names.count(n) > 1})
+    if repeated:
+        raise ValueError(f"sessions: {repeated} listed more than once")
+    for name in names:
+        try:
+            ds.session(name)
+        except KeyError as e:
+            raise KeyError(f"sessions: {e.args[0] if e.args else name}") from None
+    return names
+
+
+def _keyframe_picks(
+    session: Session, every: int, min_distance: float, min_angle_deg: float
+) -> np.ndarray:
+    """(K,) int64 increasing indices of the frames of ``session`` to write: every
+    ``every``-th frame, then among those the keyframes :func:`select_keyframes` keeps."""
+    strided = np.arange(0, len(session), every, dtype=np.int64)
+    chosen = select_keyframes(
+        session.poses[strided],
+        min_distance=min_distance,
+        min_angle_deg=min_angle_deg,
+        z=session.z[strided],
+        floors=session.floors[strided],
+    )
+    return strided[chosen]
+
+
+def _write_session(
+    w: SessionWriter,
+    session: Session,
+    picks: np.ndarray,
+    picked: list[int] | None,
+    camera: Camera,
+    bar: Any,
+) -> None:
+    """Write the frames ``picks`` of ``session`` to ``w``: the cameras ``picked`` (indices in
+    the source's rig order; None: all), images resized to ``camera``'s size where they differ,
+    and each frame's own ``cam_to_ego`` where the source gives frames their own; ``bar`` (a
+    tqdm bar or None) counts the frames."""
+    own = session.frame_cam_to_ego is not None  # a tilting or unsynchronised rig
+    for i in picks:
+        f = session[int(i)]
+        images = f.images if picked is None else f.images[picked]
+        if images.shape[2:] != (camera.height, camera.width):
+            images = np.stack(
+                [
+                    resize_rgb(img.transpose(1, 2, 0), camera.width, camera.height).transpose(
+                        2, 0, 1
+                    )
+                    for img in images
+                ]
+            )
+        cam_to_ego = None
+        if own:
+            cam_to_ego = f.cam_to_ego if picked is None else f.cam_to_ego[picked]
+        w.add(
+            int(session.timestamps[i]), f.pose, images, z=f.z, floor=f.floor, cam_to_ego=cam_to_ego
+        )
+        if bar is not None:
+            bar.update(1)
 
 
 def _camera_indices(keep: Any, rig: list[str]) -> list[int]:
