@@ -143,34 +143,17 @@ def convert(
         _fail("--width and --height go together")
     with cli_errors("convert"):
         fmt = detect_format(src, format.value)
-        options: dict[str, Any] = {}
         chosen = (
             None if sessions is None else split_names(sessions, "--sessions", what="session name")
         )
-        if cameras is not None:
-            names = split_names(cameras, "--cameras", what="camera")
-            if fmt == "nclt":
-                if not all(n.isdigit() for n in names):
-                    _fail(f"--cameras: NCLT cameras are numbers 1-5, got {cameras!r}")
-                options["cameras"] = [int(n) for n in names]
-            else:  # RobotCar's names, or a vvloc rig's
-                options["cameras"] = names
-        if ego_height is not None:
-            if fmt == "vvloc":
-                _fail("--ego_height applies to NCLT and RobotCar sources only")
-            options["ego_height"] = ego_height
-        if tolerance_us is not None:
-            if fmt == "vvloc":
-                _fail("--tolerance_us applies to NCLT and RobotCar sources only")
-            options["tolerance_us"] = tolerance_us
-        if level is not None:
-            if fmt == "vvloc":
-                _fail("--level/--no_level applies to NCLT and RobotCar sources only")
-            options["level"] = level
-        if motion_compensation is not None:
-            if fmt != "oxford":
-                _fail("--motion_compensation applies to RobotCar sources only")
-            options["motion_compensation"] = motion_compensation
+        options = _reader_options(
+            fmt,
+            cameras=cameras,
+            ego_height=ego_height,
+            tolerance_us=tolerance_us,
+            level=level,
+            motion_compensation=motion_compensation,
+        )
         if fmt != "vvloc" and "ego_height" not in options:
             check_dataset_target(out, overwrite)  # a refused command says one line, no warning
             # the default keeps the dataset's origin, which sits above the ground, where vvloc's
@@ -200,6 +183,36 @@ def convert(
             )
     typer.echo(f"wrote {path}")
     _say_left_out(path)
+
+
+def _reader_options(fmt: str, **given: Any) -> dict[str, Any]:
+    """The reader options of a ``fmt`` source (``vvloc.data.FORMATS``) from the command's
+    options ``given`` (None: not given); ``--cameras`` split at commas (NCLT's as ints). An
+    option the source's reader does not take fails the command naming it."""
+    options: dict[str, Any] = {}
+    if given["cameras"] is not None:
+        names = split_names(given["cameras"], "--cameras", what="camera")
+        if fmt == "nclt":
+            if not all(n.isdigit() for n in names):
+                _fail(f"--cameras: NCLT cameras are numbers 1-5, got {given['cameras']!r}")
+            options["cameras"] = [int(n) for n in names]
+        else:  # RobotCar's names, or a vvloc rig's
+            options["cameras"] = names
+    raw_only = {
+        "ego_height": "--ego_height",
+        "tolerance_us": "--tolerance_us",
+        "level": "--level/--no_level",
+    }
+    for key, flag in raw_only.items():
+        if given[key] is not None:
+            if fmt == "vvloc":
+                _fail(f"{flag} applies to NCLT and RobotCar sources only")
+            options[key] = given[key]
+    if given["motion_compensation"] is not None:
+        if fmt != "oxford":
+            _fail("--motion_compensation applies to RobotCar sources only")
+        options["motion_compensation"] = given["motion_compensation"]
+    return options
 
 
 def _say_left_out(path: Path) -> None:
