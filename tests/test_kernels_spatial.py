@@ -471,3 +471,47 @@ def test_huge_pages_can_be_turned_off_and_change_no_value(tmp_path):
         )
         assert run.returncode == 0
     assert np.array_equal(np.load(tmp_path / "1.npy"), np.load(tmp_path / "0.npy"))
+
+
+def _misaligned(a: np.ndarray) -> np.ndarray:
+    """A C-contiguous copy of ``a`` whose elements lie one byte off their alignment."""
+    buf = np.zeros(a.nbytes + 1, np.uint8)
+    out = np.frombuffer(buf.data, dtype=a.dtype, count=a.size, offset=1).reshape(a.shape)
+    out[...] = a
+    assert out.flags.c_contiguous and not out.flags.aligned
+    return out
+
+
+def test_misaligned_arrays_are_refused_by_the_extension_and_copied_by_the_gateway():
+    """A buffer viewed at an odd byte offset reached ndarray's views and slices unchecked: a
+    panic in a debug build, reads through misaligned references (undefined behaviour) in
+    release. ``_core`` refuses it naming the argument; the gateways copy it first."""
+    from vvloc import _core
+
+    rng = np.random.default_rng(0)
+    bev = rng.standard_normal((6, 6, 3)).astype(np.float32)
+    desc = rng.standard_normal((2, 8, 4)).astype(np.float32)
+    tr = np.array([[0.2, -0.4]])
+    odd_bev, odd_desc, odd_tr = _misaligned(bev), _misaligned(desc), _misaligned(tr)
+    refused = [
+        ("bev", lambda: _core.bev_pad(odd_bev, tr, 0.3)),
+        ("translations", lambda: _core.bev_pad(bev, odd_tr, 0.3)),
+        ("translations", lambda: _core.pad_polar(bev, odd_tr, 4, 2, 0.3)),
+        ("bev", lambda: _core.polar_sample(odd_bev, 4, 2, 0.3)),
+        ("x", lambda: _core.roll_interp(odd_bev, 0.5, 0)),
+        ("a", lambda: _core.matching_cost(odd_desc, desc)),
+        ("tgt", lambda: _core.yaw_costs(desc, odd_desc)),
+        ("src", lambda: _core.estimate_yaw(odd_desc, desc)),
+        ("src", lambda: _core.rerank(odd_desc, desc)),
+        (
+            "descriptors",
+            lambda: _core.DescriptorIndex(odd_desc.reshape(8, 8), "float32", None, None),
+        ),
+    ]
+    for name, call in refused:
+        with pytest.raises(ValueError, match=rf"^{name}: expected an aligned array"):
+            call()
+    np.testing.assert_array_equal(K.bev_pad(odd_bev, odd_tr, 0.3), K.bev_pad(bev, tr, 0.3))
+    np.testing.assert_array_equal(K.yaw_costs(odd_desc, desc), K.yaw_costs(desc, desc))
+    index = vvloc.DescriptorIndex(_misaligned(desc.reshape(8, 8)))
+    np.testing.assert_array_equal(index.descriptors, desc.reshape(8, 8))

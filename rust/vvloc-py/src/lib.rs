@@ -5,6 +5,7 @@
 //! kernel is known to run sequentially for that input, [`pool::run_where`]) and wraps the
 //! result. No algorithm lives here. Each area registers its functions from its own file.
 
+mod arrays;
 mod errors;
 mod fork;
 mod pool;

@@ -1,6 +1,7 @@
 //! Bindings of the matching kernels: matching cost, yaw cost curves, exact yaw estimation,
 //! re-ranking and the translation search.
 
+use crate::arrays::{check_aligned, view};
 use crate::errors::to_py;
 use crate::pool;
 use numpy::{IntoPyArray, PyArray1, PyArray2, PyReadonlyArray1, PyReadonlyArray3};
@@ -34,6 +35,7 @@ fn estimates_to_py<'py>(
 /// The elements of a float64 vector: borrowed when contiguous (the gateway's arrays), else
 /// copied into a fallibly allocated vector (`MemoryError` naming `arg`).
 fn f64_slice<'a>(x: &'a PyReadonlyArray1<'_, f64>, arg: &'static str) -> PyResult<Cow<'a, [f64]>> {
+    check_aligned(x, arg)?;
     match x.as_slice() {
         Ok(s) => Ok(Cow::Borrowed(s)),
         Err(_) => Ok(Cow::Owned(to_py(try_collect(
@@ -50,7 +52,7 @@ fn matching_cost<'py>(
     a: PyReadonlyArray3<'py, f32>,
     b: PyReadonlyArray3<'py, f32>,
 ) -> PyResult<F64Vec<'py>> {
-    let (a, b) = (a.as_array(), b.as_array());
+    let (a, b) = (view(&a, "a")?, view(&b, "b")?);
     let out = to_py(pool::run_where(
         py,
         cost::runs_sequentially(a.shape()[0]),
@@ -66,7 +68,7 @@ fn yaw_costs<'py>(
     src: PyReadonlyArray3<'py, f32>,
     tgt: PyReadonlyArray3<'py, f32>,
 ) -> PyResult<Bound<'py, PyArray2<f64>>> {
-    let (s, t) = (src.as_array(), tgt.as_array());
+    let (s, t) = (view(&src, "src")?, view(&tgt, "tgt")?);
     let out = to_py(pool::run_where(
         py,
         cost::runs_sequentially(s.shape()[0]),
@@ -82,7 +84,7 @@ fn estimate_yaw<'py>(
     src: PyReadonlyArray3<'py, f32>,
     tgt: PyReadonlyArray3<'py, f32>,
 ) -> PyResult<(F64Vec<'py>, F64Vec<'py>, F64Vec<'py>)> {
-    let (s, t) = (src.as_array(), tgt.as_array());
+    let (s, t) = (view(&src, "src")?, view(&tgt, "tgt")?);
     let est = to_py(pool::run_where(
         py,
         cost::runs_sequentially(s.shape()[0]),
@@ -104,7 +106,7 @@ fn rerank<'py>(
     F64Vec<'py>,
     F64Vec<'py>,
 )> {
-    let (s, t) = (src.as_array(), tgt.as_array());
+    let (s, t) = (view(&src, "src")?, view(&tgt, "tgt")?);
     let r = to_py(pool::run_where(
         py,
         cost::runs_sequentially(s.shape()[0]),

@@ -41,6 +41,7 @@ fn slice<'a, T: numpy::Element, D: ndarray::Dimension>(
     a: &'a numpy::PyReadonlyArray<'_, T, D>,
     name: &str,
 ) -> PyResult<&'a [T]> {
+    crate::arrays::check_aligned(a, name)?;
     let err = || PyValueError::new_err(format!("{name}: expected a C-contiguous array"));
     // as_slice() also takes a Fortran-ordered array, whose memory is not row-major
     if !a.is_c_contiguous() {

@@ -4,12 +4,11 @@
 //! `vvloc.kernels` validates and converts them. Each function releases the GIL and runs the
 //! core kernel in vvloc's pool; results are returned without a copy.
 
+use crate::arrays::view;
 use crate::errors::to_py;
 use crate::pool;
-use numpy::ndarray::ArrayViewD;
 use numpy::{
     IntoPyArray, PyArray4, PyArrayDyn, PyReadonlyArray2, PyReadonlyArray3, PyReadonlyArrayDyn,
-    PyUntypedArrayMethods,
 };
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
@@ -17,20 +16,6 @@ use pyo3::prelude::*;
 fn non_negative(v: i64, name: &str) -> PyResult<usize> {
     usize::try_from(v)
         .map_err(|_| PyValueError::new_err(format!("{name}: expected an int >= 1, got {v}")))
-}
-
-/// The most dimensions rust-numpy takes into a view (more would panic in `as_array`).
-const MAX_DIMS: usize = 32;
-
-/// A view of `x`, or a `ValueError` naming `name` for more than [`MAX_DIMS`] dimensions.
-fn view_dyn<'a>(x: &'a PyReadonlyArrayDyn<'_, f32>, name: &str) -> PyResult<ArrayViewD<'a, f32>> {
-    let ndim = x.ndim();
-    if ndim > MAX_DIMS {
-        return Err(PyValueError::new_err(format!(
-            "{name}: expected at most {MAX_DIMS} dimensions, got {ndim}"
-        )));
-    }
-    Ok(x.as_array())
 }
 
 /// Interpolated roll of `x` by `shift` elements along `axis` (0 <= axis < x.ndim).
@@ -42,7 +27,7 @@ fn roll_interp<'py>(
     shift: f64,
     axis: i64,
 ) -> PyResult<Bound<'py, PyArrayDyn<f32>>> {
-    let view = view_dyn(&x, "x")?;
+    let view = view(&x, "x")?;
     let ndim = view.ndim();
     let axis = usize::try_from(axis).map_err(|_| {
         PyValueError::new_err(format!("axis: expected 0 <= axis < {ndim}, got {axis}"))
@@ -63,7 +48,7 @@ fn bev_pad<'py>(
     translations: PyReadonlyArray2<'py, f64>,
     grid_size: f64,
 ) -> PyResult<Bound<'py, PyArray4<f32>>> {
-    let (b, t) = (bev.as_array(), translations.as_array());
+    let (b, t) = (view(&bev, "bev")?, view(&translations, "translations")?);
     let out = to_py(pool::run(py, || vvloc_core::pad::bev_pad(b, t, grid_size))?)?;
     Ok(out.into_pyarray(py))
 }
@@ -80,7 +65,7 @@ fn polar_sample<'py>(
 ) -> PyResult<Bound<'py, PyArrayDyn<f32>>> {
     let t = non_negative(num_angles, "num_angles")?;
     let r = non_negative(num_radii, "num_radii")?;
-    let b = view_dyn(&bev, "bev")?;
+    let b = view(&bev, "bev")?;
     let out = to_py(pool::run(py, || {
         vvloc_core::polar::polar_sample(b, t, r, grid_size)
     })?)?;
@@ -100,7 +85,7 @@ fn pad_polar<'py>(
 ) -> PyResult<Bound<'py, PyArray4<f32>>> {
     let t = non_negative(num_angles, "num_angles")?;
     let r = non_negative(num_radii, "num_radii")?;
-    let (b, tr) = (bev.as_array(), translations.as_array());
+    let (b, tr) = (view(&bev, "bev")?, view(&translations, "translations")?);
     let out = to_py(pool::run(py, || {
         vvloc_core::pad::pad_polar(b, tr, t, r, grid_size)
     })?)?;
