@@ -52,14 +52,27 @@ def test_env_var_sets_default_threads():
     assert "VVLOC_NUM_THREADS" not in out.stderr
 
 
-@pytest.mark.parametrize("value", ["abc", "0", "-3", "2.5"])
+@pytest.mark.parametrize("value", ["abc", "0", "-3", "2.5", "+2", "2_0", "\uff13"])
 def test_an_unusable_threads_variable_is_said_not_ignored(value):
+    # "+2", "2_0" and a full-width "3" are ints to Python's int() but not to the Rust pool,
+    # which used every core while no warning was given
     code = "import vvloc, os; print(vvloc.get_num_threads() == (os.cpu_count() or 1))"
     env = {**os.environ, "VVLOC_NUM_THREADS": value}
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "True"  # every core, as if it were unset
     assert f"VVLOC_NUM_THREADS={value!r} is not an int in [1, 1024]" in out.stderr
+
+
+@pytest.mark.parametrize("value", ["5000", "99999999999999999999"])
+def test_a_threads_variable_above_1024_asks_for_1024(value):
+    # twenty digits overflowed the pool's parse, which then used every core
+    code = "import vvloc; print(vvloc.get_num_threads())"  # reads the count, starts no thread
+    env = {**os.environ, "VVLOC_NUM_THREADS": f" {value} "}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "1024"
+    assert "is not an int in [1, 1024]; vvloc's kernels use 1024 threads" in out.stderr
 
 
 @pytest.mark.parametrize("module", ["vvloc", "vvloc.cli"])

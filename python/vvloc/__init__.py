@@ -43,15 +43,15 @@ def get_num_threads() -> int:
 
 
 def _check_threads_variable() -> None:
-    """Warn when ``VVLOC_NUM_THREADS`` is set but is no int in [1, 1024] (the pool then uses
-    every core, as if it were unset; above 1024 it uses 1024)."""
+    """Warn when ``VVLOC_NUM_THREADS`` is set but is no int in [1, 1024] written in ASCII digits
+    alone (blanks around them allowed): the pool then uses every core, as if it were unset, or
+    1024 for a larger number, as the Rust pool reads it."""
     text = os.environ.get("VVLOC_NUM_THREADS")
     if text is None or text.strip() == "":
         return
-    try:
-        ok = 1 <= int(text.strip()) <= MAX_THREADS
-    except ValueError:
-        ok = False
+    digits = text.strip()
+    # not int(): it also takes "+4", "2_0" and other scripts' digits, which the pool does not
+    ok = digits.isascii() and digits.isdigit() and 1 <= int(digits) <= MAX_THREADS
     if not ok:
         import warnings
 

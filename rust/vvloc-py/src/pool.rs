@@ -22,12 +22,23 @@ static STATE: Mutex<PoolState> = Mutex::new(PoolState {
     threads: 0,
 });
 
+/// The thread count `VVLOC_NUM_THREADS` asks for: ASCII digits alone, blanks around them
+/// allowed, at least 1, at most [`MAX_THREADS`] (a larger number, however many digits, asks
+/// for that many); None for anything else (a sign, `_`, other digits than ASCII's). The
+/// Python package warns of the same values (`vvloc._check_threads_variable`).
+fn threads_asked(text: &str) -> Option<usize> {
+    let digits = text.trim();
+    if digits.is_empty() || !digits.bytes().all(|b| b.is_ascii_digit()) {
+        return None;
+    }
+    let n = digits.parse::<usize>().unwrap_or(usize::MAX); // only too many digits fail here
+    (n > 0).then(|| n.min(MAX_THREADS as usize))
+}
+
 fn default_threads() -> usize {
     std::env::var("VVLOC_NUM_THREADS")
         .ok()
-        .and_then(|v| v.trim().parse::<usize>().ok())
-        .filter(|&n| n > 0)
-        .map(|n| n.min(MAX_THREADS as usize))
+        .and_then(|v| threads_asked(&v))
         .unwrap_or_else(|| {
             std::thread::available_parallelism()
                 .map(|n| n.get())
