@@ -64,6 +64,11 @@ def test_yaw_costs_equal_reference(p, t, c, seed, scale):
     want = K.yaw_costs(src, tgt, backend="reference")
     assert got.shape == (p, t) and got.dtype == np.float64
     np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6 * float(np.abs(src).max()))
+    if t < K.MIN_YAW_BINS:  # two bins: cost curves, but no yaw (its sign is undetermined)
+        for backend in ("rust", "reference"):
+            with pytest.raises(ValueError, match=r"^src: expected \(P, T, C\) with T >= 3 angle"):
+                K.estimate_yaw(src, tgt, backend=backend)
+        return
     est = K.estimate_yaw(src, tgt)
     for q in range(p):
         lit = ref.shift_cost(src[q], tgt[q], float(est.shift[q]))
@@ -74,7 +79,7 @@ def test_yaw_costs_equal_reference(p, t, c, seed, scale):
 @settings(max_examples=20, deadline=None)
 @given(
     p=st.integers(1, 3),
-    t=st.integers(2, 14),
+    t=st.integers(3, 14),
     c=st.integers(1, 24),
     seed=st.integers(0, 2**32 - 1),
     smooth=st.booleans(),
@@ -496,7 +501,8 @@ def test_both_backends_name_the_same_fault_first(fn, case):
     rust = _message(fn, src, tgt)
     assert rust == _message(fn, src, tgt, backend="reference")
     want = {
-        "nan_and_short_T": "src: expected (P, T, C) with T >= 2",
+        "nan_and_short_T": "src: expected (P, T, C) with T >= "
+        + ("2" if fn is K.yaw_costs else "3"),
         "nan_and_bad_tgt": "tgt: expected shape",
         "large_src_and_inf_tgt": "src: values too large",
         "nan_src_and_large_src": "src: contains non-finite",
@@ -515,7 +521,7 @@ def test_matching_cost_names_the_same_fault_first_on_both_backends():
         assert rust.startswith(want)
 
 
-@pytest.mark.parametrize("t", [2, 16, 17, 120])
+@pytest.mark.parametrize("t", [3, 16, 17, 120])
 def test_constant_descriptors_take_the_exact_path_everywhere(t):
     # every Gram entry of equal rows cancels: each is recomputed directly (in place, row by row)
     src = np.full((2, t, 8), 0.25, dtype=np.float32)
@@ -554,10 +560,10 @@ def test_pair_kernels_out_of_memory_is_a_memory_error_not_an_abort():
     lines = run_limited("""
 import numpy as np
 from vvloc import kernels as K
-src = np.ones((10_000_000, 2, 1), np.float32)  # 80 MB, allocated before the limit
+src = np.ones((10_000_000, 3, 1), np.float32)  # 120 MB, allocated before the limit
 K.estimate_yaw(src[:8], src[0]); K.matching_cost(src[:8], src[:8])  # the pool's threads
 limit(150)
-attempt("yaw_costs", lambda: K.yaw_costs(src, src[0]))  # (P, T) f64: 160 MB
+attempt("yaw_costs", lambda: K.yaw_costs(src, src[0]))  # (P, T) f64: 240 MB
 attempt("estimate_yaw", lambda: K.estimate_yaw(src, src[0]))  # P estimates: 240 MB
 limit(None)
 limit(60)

@@ -27,6 +27,7 @@ __all__ = [
     "MAX_ROLL_NDIM",
     "MAX_ROW_SQNORM",
     "MAX_STAGE_POINTS",
+    "MIN_YAW_BINS",
     "Backend",
     "Rerank",
     "SearchHistory",
@@ -438,9 +439,18 @@ def _check_pair_norms(s: F32Array, t: F32Array) -> None:
     _check_rows(t, "tgt")
 
 
-def _pairs(src: Any, tgt: Any, *, shared_ok: bool = True) -> tuple[F32Array, F32Array]:
-    """Validate descriptor pairs: ``src`` (P, T, C); ``tgt`` (P, T, C), or (1, T, C) / (T, C)
-    shared by every pair when ``shared_ok``. Returns both as 3-D C-contiguous float32.
+#: The fewest angle bins a yaw estimate takes: with T = 2 the interpolated roll by s and by
+#: 2 − s (= −s) are the same, so every cost curve is symmetric and a minimum off s = 1 has an
+#: equally good twin of the opposite yaw (the Rust kernel's ``MIN_YAW_BINS``).
+MIN_YAW_BINS = 3
+
+
+def _pairs(
+    src: Any, tgt: Any, *, shared_ok: bool = True, min_bins: int = 2
+) -> tuple[F32Array, F32Array]:
+    """Validate descriptor pairs: ``src`` (P, T, C) with T >= ``min_bins``; ``tgt`` (P, T, C),
+    or (1, T, C) / (T, C) shared by every pair when ``shared_ok``. Returns both as 3-D
+    C-contiguous float32.
 
     Non-finite values are refused later, after the shapes: by the Rust kernels' row check, or
     for the reference backend by its copy, :func:`_check_pair_norms` (testing them here as well
@@ -451,8 +461,15 @@ def _pairs(src: Any, tgt: Any, *, shared_ok: bool = True) -> tuple[F32Array, F32
     if t.ndim == 2:
         t = t[None]
     p, nt, c = s.shape  # P = 0, an empty batch, passes: its results are empty
-    if nt < 2:
-        raise ValueError(f"src: expected (P, T, C) with T >= 2 angle bins, got {s.shape}")
+    if nt < max(min_bins, 2):
+        why = (
+            " (with 2 bins, rolling by s and by -s give one curve: a yaw's sign is undetermined)"
+            if min_bins > 2
+            else ""
+        )
+        raise ValueError(
+            f"src: expected (P, T, C) with T >= {max(min_bins, 2)} angle bins{why}, got {s.shape}"
+        )
     if c == 0:
         raise ValueError(f"src: expected (P, T, C) with C >= 1 channels, got {s.shape}")
     if t.shape[1:] != (nt, c) or t.shape[0] not in ((p, 1) if shared_ok else (p,)):
@@ -512,10 +529,11 @@ def estimate_yaw(src: Any, tgt: Any, *, backend: Backend = "rust") -> YawEstimat
     exact minimiser;
     reference: dense 0.01-bin scan + refinement. One known limit of the Rust kernel: at a
     near-perfect match (cost ≲ 1e-3) with a second basin within the float32 error of the
-    Gram products (a scene periodic under a half turn), it may return the other basin.
+    Gram products (a scene periodic under a half turn), it may return the other basin. T >= 3
+    (:data:`MIN_YAW_BINS`: with 2 bins the yaw's sign is undetermined).
     """
     _check_backend(backend)
-    s, t = _pairs(src, tgt)
+    s, t = _pairs(src, tgt, min_bins=MIN_YAW_BINS)
     if backend == "reference":
         _check_pair_norms(s, t)
         from vvloc.reference import matching as ref_matching
@@ -533,10 +551,11 @@ def rerank(src: Any, tgt: Any, *, backend: Backend = "rust") -> Rerank:
     e.g. when a floor filter left no candidate), each pair's yaw that of
     its target relative to its source (:func:`estimate_yaw`, DESIGN.md §3 "Yaw"). The localizer
     passes the query as the source of every pair and the K candidates as the targets, so its
-    yaw is the candidate keyframe's in the query's frame (ξ_{q→m}'s yaw).
+    yaw is the candidate keyframe's in the query's frame (ξ_{q→m}'s yaw). T >= 3
+    (:data:`MIN_YAW_BINS`).
     """
     _check_backend(backend)
-    s, t = _pairs(src, tgt)
+    s, t = _pairs(src, tgt, min_bins=MIN_YAW_BINS)
     if backend == "reference":
         _check_pair_norms(s, t)
         from vvloc.reference import matching as ref_matching

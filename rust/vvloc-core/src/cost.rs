@@ -110,16 +110,27 @@ pub(crate) fn check_rows(x: &[f32], c: usize, arg: &'static str) -> Result<()> {
 /// Checks a batch of pairs; `tgt` may hold one matrix shared by all pairs. Returns (P, T, C)
 /// and C-contiguous data of both (P = 0, an empty batch, passes: its results are empty).
 /// `tables`: how many (T, S) f32 tables (or their equivalent in bytes) one pair's computation
-/// holds at once, to probe their allocation.
+/// holds at once, to probe their allocation; `min_bins`: the fewest angle bins T taken (2 for
+/// cost curves; 3 for a yaw estimate, [`MIN_YAW_BINS`]).
 fn check_pairs<'a>(
     src: &'a ArrayView3<'a, f32>,
     tgt: &'a ArrayView3<'a, f32>,
     tables: usize,
+    min_bins: usize,
 ) -> Result<Pairs<'a>> {
     let (p, t, c) = src.dim();
     let (pt, tt, ct) = tgt.dim();
-    if t < 2 {
-        return Err(Error::shape("src", "(P, T, C) with T >= 2", src.shape()));
+    if t < min_bins.max(2) {
+        let why = if min_bins > 2 {
+            " (with 2 bins, rolling by s and by -s give one curve: a yaw's sign is undetermined)"
+        } else {
+            ""
+        };
+        return Err(Error::shape(
+            "src",
+            format!("(P, T, C) with T >= {}{why}", min_bins.max(2)),
+            src.shape(),
+        ));
     }
     if c == 0 {
         return Err(Error::shape("src", "(P, T, C) with C >= 1", src.shape()));
@@ -245,7 +256,7 @@ pub fn matching_cost(a: ArrayView3<f32>, b: ArrayView3<f32>) -> Result<Vec<f64>>
 /// relative accuracy ~1e-6 at any scale (tiny pairs are rescaled first, see the module docs).
 pub fn yaw_costs(src: ArrayView3<f32>, tgt: ArrayView3<f32>) -> Result<Array2<f64>> {
     // the Gram products, the diagonal distances and their roots
-    let (p, t, c, s, g, shared) = check_pairs(&src, &tgt, 3)?;
+    let (p, t, c, s, g, shared) = check_pairs(&src, &tgt, 3, 2)?;
     let isa = Isa::detect();
     // the (P, T) result, allocated fallibly and written in place, a row per pair
     let mut out = try_filled("src", checked_len("src", &[p, t])?, 0.0f64)?;
@@ -264,12 +275,17 @@ pub fn yaw_costs(src: ArrayView3<f32>, tgt: ArrayView3<f32>) -> Result<Array2<f6
     Array2::from_shape_vec((p, t), out).map_err(|e| Error::value("src", e.to_string()))
 }
 
+/// The fewest angle bins a yaw estimate takes: with T = 2 the interpolated roll by s and by
+/// 2 − s (= −s) are the same matrix, so every curve is symmetric, c(s) = c(2 − s), and a
+/// minimum off s = 1 has an equally good twin of the opposite yaw.
+pub const MIN_YAW_BINS: usize = 3;
+
 /// Exact global continuous yaw minimum of each pair (see the module docs for the method); an
-/// empty batch (P = 0) gives no estimates.
+/// empty batch (P = 0) gives no estimates; T >= [`MIN_YAW_BINS`].
 pub fn estimate_yaw(src: ArrayView3<f32>, tgt: ArrayView3<f32>) -> Result<Vec<YawEstimate>> {
     // the curve's three tables, then its distances and inverse roots beside the polish's exact
     // rows (up to T rows of T f64, two tables' worth, when every shift is a near tie)
-    let (p, t, c, s, g, shared) = check_pairs(&src, &tgt, 4)?;
+    let (p, t, c, s, g, shared) = check_pairs(&src, &tgt, 4, MIN_YAW_BINS)?;
     let isa = Isa::detect();
     per_pair("src", p, |q| {
         let (ds, dt) = pair_slices(&s, &g, q, t, c, shared);
@@ -1474,7 +1490,7 @@ mod tests {
     #[test]
     fn estimate_yaw_is_the_dense_minimum() {
         for (t, c) in [
-            (2, 3),
+            (3, 3),
             (7, 5),
             (16, 20),
             (17, 16),
@@ -1646,5 +1662,29 @@ mod tests {
             Err(Error::Value { arg: "tgt", .. })
         ));
         assert!(matching_cost(ok.view(), data(2, 4, 4, 1).view()).is_err());
+    }
+
+    #[test]
+    fn two_bins_give_cost_curves_but_no_yaw() {
+        // with T = 2 every curve is symmetric, c(s) = c(2 - s): the yaw's sign is undetermined
+        let (src, tgt) = (data(3, 2, 4, 5), data(3, 2, 4, 6));
+        let curves = yaw_costs(src.view(), tgt.view()).unwrap();
+        for q in 0..3 {
+            let (ds, dt) = (src.index_axis(Axis(0), q), tgt.index_axis(Axis(0), q));
+            let (a, b) = (literal_cost(&ds, &dt, 0.3), literal_cost(&ds, &dt, 1.7));
+            assert!((a - b).abs() <= 1e-12 * a.abs().max(1.0), "{a} vs {b}");
+            assert!(curves[[q, 0]].is_finite() && curves[[q, 1]].is_finite());
+        }
+        for result in [
+            estimate_yaw(src.view(), tgt.view()).map(|_| ()),
+            rerank(src.view(), tgt.view()).map(|_| ()),
+        ] {
+            let message = result.unwrap_err().to_string();
+            assert!(
+                message.starts_with("src: expected shape (P, T, C) with T >= 3"),
+                "{message}"
+            );
+        }
+        assert!(estimate_yaw(data(3, 3, 4, 5).view(), data(3, 3, 4, 6).view()).is_ok());
     }
 }
