@@ -122,6 +122,11 @@ def test_config_rejects_bad_values():
     with pytest.raises(ValueError, match=r"ModelConfig\.gem_p: expected at most 16"):
         tiny_config(global_head="gem", gem_p=1000.0)
     assert tiny_config(global_head="gem", gem_p=16.0).gem_p == 16.0
+    # a yaw needs 3 angle bins (with 2 its sign is undetermined): refused before training
+    for t in (1, 2):
+        with pytest.raises(ValueError, match=r"ModelConfig\.num_angles: expected >= 3 angle"):
+            tiny_config(num_angles=t, disco_crop=(1, 1))
+    assert tiny_config(num_angles=3, disco_crop=(1, 1)).num_angles == 3
 
 
 # --- shapes -------------------------------------------------------------------------------

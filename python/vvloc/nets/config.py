@@ -11,6 +11,8 @@ from typing import Any
 
 import numpy as np
 
+from vvloc.kernels import MIN_YAW_BINS
+
 CONFIG_VERSION = 1
 GLOBAL_HEADS = ("gem", "netvlad", "disco")
 #: The largest GeM exponent a config may start from (:class:`vvloc.nets.heads.GeM`).
@@ -132,6 +134,11 @@ class ModelConfig:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v < math.inf:
                 raise ValueError(f"ModelConfig.{name}: expected a finite number > 0, got {v!r}")
+        if self.num_angles < MIN_YAW_BINS:
+            raise ValueError(
+                f"ModelConfig.num_angles: expected >= {MIN_YAW_BINS} angle bins (a yaw is "
+                f"estimated from them: with 2 its sign is undetermined), got {self.num_angles}"
+            )
         if self.bev_height < 2 or self.bev_width < 2:
             raise ValueError("ModelConfig.bev_height/bev_width: expected >= 2 cells")
         if len(self.backbone_widths) != 4 or len(self.backbone_blocks) != 4:
