@@ -401,9 +401,10 @@ print(DescriptorIndex(np.zeros((3, 4))).topk(np.zeros((0, 4)), 5)[0].shape)
     assert [line[:15] for line in lines[:2]] == ["MemoryError k: "] * 2, r.stdout
     assert lines[2:] == ["(0, 5)"], r.stdout
     # radii float32 cannot hold
-    for r in (1e300, 1e-50):
-        with pytest.raises(ValueError, match=r"^r: expected a radius float32 can hold"):
+    for r in (1e300, 1e-50, 1e-45):  # the bound the message names is the one it keeps
+        with pytest.raises(ValueError, match=r"^r: expected a radius float32 can hold \(1\.4e-45"):
             index.radius(x[:2], r)
+    index.radius(x[:2], 1.5e-45)
     # uint64 ids beyond int64 would wrap to negative numbers
     with pytest.raises(ValueError, match=r"^groups: values must fit in int64"):
         DescriptorIndex(x[:2], groups=np.array([1, 2**64 - 1], np.uint64))

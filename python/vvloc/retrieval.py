@@ -331,7 +331,7 @@ class DescriptorIndex:
         r = _positive_float(r, "r")
         f32 = np.finfo(np.float32)
         if not float(f32.smallest_subnormal) <= r <= float(f32.max):  # compared in float32
-            raise ValueError(f"r: expected a radius float32 can hold (1e-45 .. 3.4e38), got {r}")
+            raise ValueError(f"r: expected a radius float32 can hold (1.4e-45 .. 3.4e38), got {r}")
         r32 = np.float32(r)
         if float(r32) < r:  # float32 distances d < r  ⇔  d < r rounded up
             r32 = np.nextafter(r32, np.float32(np.inf))
