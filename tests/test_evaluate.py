@@ -184,6 +184,10 @@ def test_recall_with_no_kept_query_is_nan_and_summary_is_json():
         ({"query_positions": [[0.0, 0.0, 0.0]]}, ValueError, "query_positions"),
         ({"top_n": (1, 3)}, ValueError, "top_n"),
         ({"radii": (2.0, -1.0)}, ValueError, "radii"),
+        # one key of to_dict() and the report: the last value silently won
+        ({"radii": (2.0, 2.0000001)}, ValueError, r"^radii: \[2\.0, 2\.0000001\] are one radius"),
+        ({"radii": (5.0, 5)}, ValueError, r"^radii: .*labelled \['5'\]"),
+        ({"top_n": (1, 1)}, ValueError, r"^top_n: ranks \[1\] listed more than once"),
         ({"query_floors": [0]}, ValueError, "db_floors"),
         ({"db_positions": [[0.0, np.nan], [1.0, 0.0]]}, ValueError, "db_positions"),
     ],

@@ -372,9 +372,19 @@ def recall_at_n(
                 "retrieved per query; pass top_n=(1,) or retrieve more)"
             )
         raise ValueError(f"top_n: expected ranks in 1..K = {k}, got {ns}{hint}")
+    repeated = sorted({n for n in ns if ns.count(n) > 1})
+    if repeated:
+        raise ValueError(f"top_n: ranks {repeated} listed more than once")
     rs = tuple(_positive_float(r, "radii") for r in _sequence(radii, "radii", "radii (m)"))
     if not rs:
         raise ValueError("radii: expected at least one radius")
+    labels = [f"{r:g}" for r in rs]  # the keys of to_dict() and of the report
+    same = sorted({lab for lab in labels if labels.count(lab) > 1})
+    if same:
+        raise ValueError(
+            f"radii: {[r for r in rs if f'{r:g}' in same]} are one radius in the report "
+            f"(labelled {same}); give each radius once"
+        )
     elig = _positive_float(eligibility_radius, "eligibility_radius")
 
     nearest = nearest_map_distance(q, d, *(floors if floors is not None else (None, None)))
