@@ -679,8 +679,16 @@ def test_write_report_markdown_and_json(tmp_path):
     assert data["global_localization"]["VVLoc-G"]["eligibility_radius_m"] == 2.0
     assert text.count("*kept*: queries with a map frame within 2 m of their true position") == 1
     assert text.index("*kept*") < text.index("## Metric pose accuracy")
-    row = "| s1 | 0.350 | 3 | 66.7 | 66.7 | 0.667 | – | – | – | – / – / – | 0.750 | 0.900 |"
+    row = "| s1 | 0.350 | 3 | 66.7 | 66.7 | 0.667 | – | – | – | – | – / – / – | 0.750 | 0.900 |"
     assert row in text
+    # how AOE/APE@p are taken is said under their table
+    assert text.count("(the inverted-CDF percentile, no interpolation") == 1
+    # events: their CFER, not only its bound (the point estimate was in the JSON alone)
+    events = {"events": 87, "cross_floor_events": 5, "cfer": 5 / 87, "cfer_upper": 0.117}
+    curve = data["loop_closure"]["s1"] | {"events": events}
+    rendered = ev.render_markdown({"loop_closure": {"s1": curve}})
+    assert "| CFER (%) | events | CFER, events (%) | CFER 95 % bound, events (%) |" in rendered
+    assert "| 87 | 5.7 | 11.70 |" in rendered
     assert "| s1 | cost < 0.75 | 2 | 0 | 2.50 | 1.20 | 100.0 | 100.0 |" in text
     assert not list(tmp_path.glob(".*.tmp"))
 

@@ -1337,7 +1337,14 @@ def _pose_table(results: Mapping[str, Any]) -> list[str]:
                 other = row.get("other_floor", 0)
                 shown = f"{label} ({other} answered on another floor left out)" if other else label
                 rows.append([name, shown, str(row["count"]), *cells])
-    return _table(header, rows)
+    return [
+        *_table(header, rows)[:-1],
+        "",
+        "AOE@p / APE@p: the smallest absolute yaw / position error with at least p % of the "
+        "row's queries at or below it (the inverted-CDF percentile, no interpolation: each is "
+        "an observed error; vvloc.evaluate.error_percentiles).",
+        "",
+    ]
 
 
 def _loop_table(results: Mapping[str, Any]) -> list[str]:
@@ -1350,6 +1357,7 @@ def _loop_table(results: Mapping[str, Any]) -> list[str]:
         "F1",
         "CFER (%)",
         "events",
+        "CFER, events (%)",
         "CFER 95 % bound, events (%)",
         "CFER at Recall@2m " + " / ".join(f"{100 * r:g}" for r in SUMMARY_RECALLS) + " % (%)",
         "best F1",
@@ -1369,6 +1377,7 @@ def _loop_table(results: Mapping[str, Any]) -> list[str]:
                 _num(at["f1"], 3),
                 _pct(at["cfer"]),
                 str(ev["events"]) if ev else "–",
+                _pct(ev.get("cfer")),
                 "–" if ev.get("cfer_upper") is None else _num(100.0 * ev["cfer_upper"]),
                 " / ".join(_pct(o["cfer"]) for o in res.get("at_recall", [])) or "–",
                 _num(best["f1"], 3),
