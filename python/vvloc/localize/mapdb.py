@@ -1198,129 +1198,15 @@ class MapDatabase:
         expected_weights_hash: str | None,
         verify: bool,
     ) -> MapDatabase:
-        attrs = h5.attrs
-        # `in` and [] raise on a damaged header (a corrupted map); .get would say None
-        fmt = attrs["format"] if "format" in attrs else None
-        if isinstance(fmt, bytes):  # version 2 (fixed-length UTF-8); version 1 reads as str
-            fmt = fmt.decode("utf-8", errors="replace")
-        if not isinstance(fmt, str) or fmt != FORMAT_NAME:
-            raise MapError(f"{p}: not a vvloc map (attribute 'format' is {fmt!r})")
-        missing = [a for a in _REQUIRED_ATTRS if a not in attrs]
-        if missing:
-            raise MapError(f"{p}: corrupted map: missing attributes {missing}")
-        version = int(attrs["format_version"])
-        if version not in READABLE_FORMAT_VERSIONS:
-            raise MapError(
-                f"{p}: map format version {version} (written by vvloc "
-                f"{_text(attrs, 'vvloc_version')}), but this vvloc reads format versions "
-                f"{', '.join(map(str, READABLE_FORMAT_VERSIONS))}; rebuild the map"
-            )
-        if version >= 2:  # every attribute's value, whichever HDF5 structure holds it
-            stored = _text(attrs, _ATTRS_DIGEST) if _ATTRS_DIGEST in attrs else None
-            if stored != _attrs_digest(attrs):
-                raise MapError(
-                    f"{p}: corrupted map: "
-                    + ("no attribute checksum" if stored is None else "attribute checksum mismatch")
-                )
-        config_hash = _text(attrs, "model_config_hash")
-        if expected_config_hash is not None and config_hash != expected_config_hash:
-            raise MapError(
-                f"{p}: map built with another model: its model config hash is {config_hash}, "
-                f"the model in use has {expected_config_hash}; rebuild the map with this model"
-            )
-        weights_hash = _text(attrs, "model_weights_hash") if "model_weights_hash" in attrs else None
-        if weights_hash is not None and not weights_hash:
-            raise MapError(f"{p}: corrupted map: model_weights_hash is {weights_hash!r}")
-        check_weights(weights_hash, expected_weights_hash, p)
-        descriptor_dtype = _text(attrs, "descriptor_dtype")
-        if descriptor_dtype not in ("float32", "float16"):
-            raise MapError(f"{p}: corrupted map: descriptor dtype {descriptor_dtype!r}")
-
-        required = (*_SMALL, "local_descriptors", "session_names")
-        missing = [d for d in required if not isinstance(h5.get(d), h5py.Dataset)]
-        if missing:
-            raise MapError(f"{p}: corrupted map: missing datasets {missing}")
-        has_bev = "bev" in h5
-        if has_bev and not isinstance(h5["bev"], h5py.Dataset):
-            raise MapError(f"{p}: corrupted map: 'bev' is not a dataset")
-
-        n = attrs["num_keyframes"]
-        if isinstance(n, (bool, np.bool_)) or not isinstance(n, (int, np.integer)):
-            raise MapError(f"{p}: corrupted map: num_keyframes {n} is not an integer")
-        n = int(n)
-        ndims = {"poses": 2, "global_descriptors": 2, "local_descriptors": 3, "bev": 4}
-        per_keyframe = (*_SMALL, "local_descriptors", *(("bev",) if has_bev else ()))
-        lengths = {}
-        for name in per_keyframe:
-            ds = h5[name]
-            if ds.ndim != ndims.get(name, 1):
-                raise MapError(f"{p}: corrupted map: dataset {name!r} has shape {ds.shape}")
-            lengths[name] = ds.shape[0]
-        if n < 1 or any(length != n for length in lengths.values()):
-            raise MapError(
-                f"{p}: corrupted map: inconsistent lengths: num_keyframes = {n}, datasets "
-                + ", ".join(f"{k} = {v}" for k, v in lengths.items())
-            )
-        if h5["poses"].shape[1] != 3:
-            raise MapError(f"{p}: corrupted map: poses have shape {h5['poses'].shape}")
-        expected_dtypes = {
-            **_META_DATASETS,
-            "global_descriptors": np.dtype(descriptor_dtype),
-            "local_descriptors": np.dtype(descriptor_dtype),
-            "bev": _BEV_DTYPE,
-        }
-        for name in per_keyframe:
-            if h5[name].dtype != expected_dtypes[name]:
-                raise MapError(
-                    f"{p}: corrupted map: dataset {name!r} has dtype {h5[name].dtype}, "
-                    f"expected {expected_dtypes[name]}"
-                )
-
-        small = {name: h5[name][()] for name in _SMALL}
-        names = [str(s) for s in h5["session_names"].asstr()[()].tolist()]
-        if verify:
-            for name, arr in small.items():
-                _check_digest(p, h5[name], hashlib.sha256(_le(arr, arr.dtype).data).hexdigest())
-            _check_digest(p, h5["session_names"], _names_digest(names))
-
-        si = small["session_index"]
-        if si.size and (si.min() < 0 or si.max() >= len(names)):
-            raise MapError(f"{p}: corrupted map: session_index out of range [0, {len(names)})")
-        if np.unique(small["ids"]).size != n:
-            raise MapError(f"{p}: corrupted map: keyframe ids are not unique")
-        for name, arr in small.items():  # poses, timestamps, global descriptors
-            if arr.dtype.kind == "f" and not np.isfinite(arr).all():
-                what = name.replace("_", " ")
-                raise MapError(f"{p}: corrupted map: non-finite {what}")
-
-        grid_size = float(attrs["grid_size"])
-        if not (np.isfinite(grid_size) and grid_size > 0):
-            raise MapError(f"{p}: corrupted map: grid_size {grid_size}")
-        rig = None
-        if "rig_json" in attrs:
-            try:
-                rig = _check_rig(json.loads(_text(attrs, "rig_json")))
-            except (TypeError, ValueError, RecursionError) as e:
-                raise MapError(f"{p}: corrupted map: rig_json: {e}") from e
-        try:
-            model_config = json.loads(_text(attrs, "model_config_json"))
-            if not isinstance(model_config, dict):
-                raise TypeError(f"expected a JSON object, got {type(model_config).__name__}")
-        except (TypeError, ValueError, RecursionError) as e:
-            raise MapError(f"{p}: corrupted map: model_config_json: {e}") from e
-        metadata = MapMetadata(
-            model_config_hash=config_hash,
-            model_config=model_config,
-            grid_size=grid_size,
-            vvloc_version=_text(attrs, "vvloc_version"),
-            format_version=version,
-            created_utc=_text(attrs, "created_utc"),
-            descriptor_dtype=descriptor_dtype,
-            model_weights_hash=weights_hash,
-            rig=rig,
+        version, config_hash, weights_hash, descriptor_dtype = _check_header(
+            h5.attrs, p, expected_config_hash, expected_weights_hash
         )
+        n, has_bev = _check_datasets(h5, p, descriptor_dtype)
+        small, names = _read_small(h5, p, n, verify)
         return cls(
-            metadata=metadata,
+            metadata=_read_metadata(
+                h5.attrs, p, version, config_hash, weights_hash, descriptor_dtype
+            ),
             ids=small["ids"].astype(np.int64),
             session_names=names,
             session_index=small["session_index"].astype(np.int32),
@@ -1603,3 +1489,161 @@ def _check_digest(p: Path, ds: h5py.Dataset, actual: str) -> None:
             f"{p}: corrupted map: checksum mismatch in dataset {ds.name!r} "
             f"(stored sha256 {stored[:16]}…, data {actual[:16]}…)"
         )
+
+
+def _check_header(
+    attrs: Any,
+    p: Path,
+    expected_config_hash: str | None,
+    expected_weights_hash: str | None,
+) -> tuple[int, str, str | None, str]:
+    """A map file's header (HDF5 attributes) checked: the format and its version, the
+    attributes' checksum (version 2), the model's config and weights fingerprints against the
+    expected ones, the descriptor dtype. Returns ``(format_version, model_config_hash,
+    model_weights_hash or None, descriptor_dtype)``; :class:`MapError` naming ``p`` otherwise."""
+    # `in` and [] raise on a damaged header (a corrupted map); .get would say None
+    fmt = attrs["format"] if "format" in attrs else None
+    if isinstance(fmt, bytes):  # version 2 (fixed-length UTF-8); version 1 reads as str
+        fmt = fmt.decode("utf-8", errors="replace")
+    if not isinstance(fmt, str) or fmt != FORMAT_NAME:
+        raise MapError(f"{p}: not a vvloc map (attribute 'format' is {fmt!r})")
+    missing = [a for a in _REQUIRED_ATTRS if a not in attrs]
+    if missing:
+        raise MapError(f"{p}: corrupted map: missing attributes {missing}")
+    version = int(attrs["format_version"])
+    if version not in READABLE_FORMAT_VERSIONS:
+        raise MapError(
+            f"{p}: map format version {version} (written by vvloc "
+            f"{_text(attrs, 'vvloc_version')}), but this vvloc reads format versions "
+            f"{', '.join(map(str, READABLE_FORMAT_VERSIONS))}; rebuild the map"
+        )
+    if version >= 2:  # every attribute's value, whichever HDF5 structure holds it
+        stored = _text(attrs, _ATTRS_DIGEST) if _ATTRS_DIGEST in attrs else None
+        if stored != _attrs_digest(attrs):
+            raise MapError(
+                f"{p}: corrupted map: "
+                + ("no attribute checksum" if stored is None else "attribute checksum mismatch")
+            )
+    config_hash = _text(attrs, "model_config_hash")
+    if expected_config_hash is not None and config_hash != expected_config_hash:
+        raise MapError(
+            f"{p}: map built with another model: its model config hash is {config_hash}, "
+            f"the model in use has {expected_config_hash}; rebuild the map with this model"
+        )
+    weights_hash = _text(attrs, "model_weights_hash") if "model_weights_hash" in attrs else None
+    if weights_hash is not None and not weights_hash:
+        raise MapError(f"{p}: corrupted map: model_weights_hash is {weights_hash!r}")
+    check_weights(weights_hash, expected_weights_hash, p)
+    descriptor_dtype = _text(attrs, "descriptor_dtype")
+    if descriptor_dtype not in ("float32", "float16"):
+        raise MapError(f"{p}: corrupted map: descriptor dtype {descriptor_dtype!r}")
+    return version, config_hash, weights_hash, descriptor_dtype
+
+
+def _check_datasets(h5: h5py.File, p: Path, descriptor_dtype: str) -> tuple[int, bool]:
+    """A map file's datasets checked against its header: each present, of its number of
+    dimensions and dtype, one row per keyframe. Returns ``(num_keyframes, has_bev)``;
+    :class:`MapError` naming ``p`` otherwise. Reads no data."""
+    required = (*_SMALL, "local_descriptors", "session_names")
+    missing = [d for d in required if not isinstance(h5.get(d), h5py.Dataset)]
+    if missing:
+        raise MapError(f"{p}: corrupted map: missing datasets {missing}")
+    has_bev = "bev" in h5
+    if has_bev and not isinstance(h5["bev"], h5py.Dataset):
+        raise MapError(f"{p}: corrupted map: 'bev' is not a dataset")
+    n = h5.attrs["num_keyframes"]
+    if isinstance(n, (bool, np.bool_)) or not isinstance(n, (int, np.integer)):
+        raise MapError(f"{p}: corrupted map: num_keyframes {n} is not an integer")
+    n = int(n)
+    ndims = {"poses": 2, "global_descriptors": 2, "local_descriptors": 3, "bev": 4}
+    per_keyframe = (*_SMALL, "local_descriptors", *(("bev",) if has_bev else ()))
+    lengths = {}
+    for name in per_keyframe:
+        ds = h5[name]
+        if ds.ndim != ndims.get(name, 1):
+            raise MapError(f"{p}: corrupted map: dataset {name!r} has shape {ds.shape}")
+        lengths[name] = ds.shape[0]
+    if n < 1 or any(length != n for length in lengths.values()):
+        raise MapError(
+            f"{p}: corrupted map: inconsistent lengths: num_keyframes = {n}, datasets "
+            + ", ".join(f"{k} = {v}" for k, v in lengths.items())
+        )
+    if h5["poses"].shape[1] != 3:
+        raise MapError(f"{p}: corrupted map: poses have shape {h5['poses'].shape}")
+    expected_dtypes = {
+        **_META_DATASETS,
+        "global_descriptors": np.dtype(descriptor_dtype),
+        "local_descriptors": np.dtype(descriptor_dtype),
+        "bev": _BEV_DTYPE,
+    }
+    for name in per_keyframe:
+        if h5[name].dtype != expected_dtypes[name]:
+            raise MapError(
+                f"{p}: corrupted map: dataset {name!r} has dtype {h5[name].dtype}, "
+                f"expected {expected_dtypes[name]}"
+            )
+    return n, has_bev
+
+
+def _read_small(
+    h5: h5py.File, p: Path, n: int, verify: bool
+) -> tuple[dict[str, np.ndarray], list[str]]:
+    """The small per-keyframe datasets (``_SMALL``: ids, poses, timestamps, global descriptors,
+    ...) read into memory, and the session names; with ``verify``, each against its stored
+    sha256. :class:`MapError` naming ``p`` for a session index out of range, repeated keyframe
+    ids or non-finite values."""
+    small = {name: h5[name][()] for name in _SMALL}
+    names = [str(s) for s in h5["session_names"].asstr()[()].tolist()]
+    if verify:
+        for name, arr in small.items():
+            _check_digest(p, h5[name], hashlib.sha256(_le(arr, arr.dtype).data).hexdigest())
+        _check_digest(p, h5["session_names"], _names_digest(names))
+    si = small["session_index"]
+    if si.size and (si.min() < 0 or si.max() >= len(names)):
+        raise MapError(f"{p}: corrupted map: session_index out of range [0, {len(names)})")
+    if np.unique(small["ids"]).size != n:
+        raise MapError(f"{p}: corrupted map: keyframe ids are not unique")
+    for name, arr in small.items():  # poses, timestamps, global descriptors
+        if arr.dtype.kind == "f" and not np.isfinite(arr).all():
+            what = name.replace("_", " ")
+            raise MapError(f"{p}: corrupted map: non-finite {what}")
+    return small, names
+
+
+def _read_metadata(
+    attrs: Any,
+    p: Path,
+    version: int,
+    config_hash: str,
+    weights_hash: str | None,
+    descriptor_dtype: str,
+) -> MapMetadata:
+    """The map's :class:`MapMetadata` from its checked header (:func:`_check_header`'s
+    values) and its grid size, rig and model config attributes; :class:`MapError` naming ``p``
+    for one that does not parse."""
+    grid_size = float(attrs["grid_size"])
+    if not (np.isfinite(grid_size) and grid_size > 0):
+        raise MapError(f"{p}: corrupted map: grid_size {grid_size}")
+    rig = None
+    if "rig_json" in attrs:
+        try:
+            rig = _check_rig(json.loads(_text(attrs, "rig_json")))
+        except (TypeError, ValueError, RecursionError) as e:
+            raise MapError(f"{p}: corrupted map: rig_json: {e}") from e
+    try:
+        model_config = json.loads(_text(attrs, "model_config_json"))
+        if not isinstance(model_config, dict):
+            raise TypeError(f"expected a JSON object, got {type(model_config).__name__}")
+    except (TypeError, ValueError, RecursionError) as e:
+        raise MapError(f"{p}: corrupted map: model_config_json: {e}") from e
+    return MapMetadata(
+        model_config_hash=config_hash,
+        model_config=model_config,
+        grid_size=grid_size,
+        vvloc_version=_text(attrs, "vvloc_version"),
+        format_version=version,
+        created_utc=_text(attrs, "created_utc"),
+        descriptor_dtype=descriptor_dtype,
+        model_weights_hash=weights_hash,
+        rig=rig,
+    )
