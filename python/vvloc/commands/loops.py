@@ -321,13 +321,7 @@ def loops(
     import numpy as np
 
     from vvloc._io import write_together
-    from vvloc.localize.export import (
-        G2O_MAX_ID,
-        g2o_text,
-        keyframe_csv_text,
-        loop_csv_text,
-        tum_text,
-    )
+    from vvloc.localize.export import G2O_MAX_ID
     from vvloc.localize.loops import detect_loops, loop_provenance
     from vvloc.localize.mapdb import MapDatabase, MapError
     from vvloc.nets import VVLocNet
@@ -369,28 +363,7 @@ def loops(
             known = set(zip(previous.i.tolist(), previous.j.tolist(), strict=True))
             kept = sum(p in known for p in zip(found.i.tolist(), found.j.tolist(), strict=True))
             typer.echo(f"--reuse: {kept} of {len(found)} pairs kept, {len(found) - kept} searched")
-        sessions = [db.session_of(i) for i in range(len(db))]
-        files = {
-            "loops.csv": loop_csv_text(found),  # with its provenance (model, search)
-            "graph.g2o": g2o_text(db.poses, found, ids=db.ids, sessions=sessions, seq=db.seq),
-            "keyframes.csv": keyframe_csv_text(
-                db.ids,
-                sessions,
-                db.seq,
-                db.timestamps,
-                db.floors,
-                db.poses,
-                comments=[f"map {map_path}"],
-                digests=digests,
-            ),
-        }
-        for name, file_name in trajectories.items():
-            rows = db.session_rows(name)
-            files[file_name] = tum_text(
-                db.timestamps[rows],
-                db.poses[rows],
-                comments=[f"map session {name!r} of {map_path}: its keyframes' poses"],
-            )
+        files = _output_files(db, found, map_path, digests, trajectories)
         made = not out.exists()
         out.mkdir(parents=True, exist_ok=True)
         try:
@@ -403,3 +376,41 @@ def loops(
         remove_stale_trajectories(out, trajectories.values())
         n_acc = int(np.sum(found.accepted))
     typer.echo(f"{len(found.i)} candidates, {n_acc} accepted loop closures; outputs in {out}")
+
+
+def _output_files(
+    db: MapDatabase,
+    found: LoopClosures,
+    map_path: Path,
+    digests: Sequence[str],
+    trajectories: dict[str, str],
+) -> dict[str, str]:
+    """The texts ``vvloc loops`` writes, by file name: ``loops.csv`` (with its provenance:
+    model, search), ``graph.g2o``, ``keyframes.csv`` (with each keyframe's descriptor digest,
+    which ``--reuse`` matches) and each map session's TUM trajectory of keyframe poses under
+    its name in ``trajectories`` (:func:`trajectory_file_names`)."""
+    from vvloc.localize.export import g2o_text, keyframe_csv_text, loop_csv_text, tum_text
+
+    sessions = [db.session_of(i) for i in range(len(db))]
+    files = {
+        "loops.csv": loop_csv_text(found),
+        "graph.g2o": g2o_text(db.poses, found, ids=db.ids, sessions=sessions, seq=db.seq),
+        "keyframes.csv": keyframe_csv_text(
+            db.ids,
+            sessions,
+            db.seq,
+            db.timestamps,
+            db.floors,
+            db.poses,
+            comments=[f"map {map_path}"],
+            digests=digests,
+        ),
+    }
+    for name, file_name in trajectories.items():
+        rows = db.session_rows(name)
+        files[file_name] = tum_text(
+            db.timestamps[rows],
+            db.poses[rows],
+            comments=[f"map session {name!r} of {map_path}: its keyframes' poses"],
+        )
+    return files
