@@ -110,6 +110,19 @@ def test_metric_localize_rejects_mismatched_target():
         )
 
 
+def test_metric_localize_takes_the_models_grid_not_a_default():
+    # the defaults (0.3 m, 120 x 25) matched no model: a 0.5 m BEV searched with 0.3 m cells
+    # answered a translation 0.6 x the true one at as low a cost
+    bev, tgt, tgts = np.zeros((10, 10, 4)), np.zeros((8, 4)), np.zeros((2, 8, 4))
+    for call in (
+        lambda: metric_localize(bev, tgt, RadialMeanDecoder(), None),  # type: ignore[call-arg]
+        lambda: metric_localize_best(bev, tgts, RadialMeanDecoder(), None, None),  # type: ignore[call-arg]
+        lambda: metric_localize_each(bev, tgts, RadialMeanDecoder(), None, None, 0.3),  # type: ignore[call-arg]
+    ):
+        with pytest.raises(TypeError, match=r"missing \d required positional argument"):
+            call()
+
+
 def _targets(seed: int, n: int):
     """A source BEV and n targets around it (offsets within ±2.5 m, any yaw)."""
     rng = np.random.default_rng(2000 + seed)

@@ -200,10 +200,10 @@ def metric_localize(
     bev_src: Any,
     desc_tgt: Any,
     decode: Decoder,
-    config: SearchConfig | None = None,
-    grid_size: float = 0.3,
-    num_angles: int = 120,
-    num_radii: int = 25,
+    config: SearchConfig | None,
+    grid_size: float,
+    num_angles: int,
+    num_radii: int,
     *,
     backend: kernels.Backend = "rust",
 ) -> MetricResult:
@@ -217,8 +217,11 @@ def metric_localize(
             or to a pair (Ds', Dt') of (N, T, C) when the target side is refined per hypothesis
             too (the learned interactor); ``desc_tgt`` then only fixes T.
         config: the translation search; :class:`SearchConfig` defaults when None.
-        grid_size: BEV cell size g, metres.
-        num_angles, num_radii: polar grid T × R.
+        grid_size: BEV cell size g, metres: the model's (``ModelConfig.grid_size``), which
+            made ``bev_src``; no default (another cell size scales every translation wrongly
+            at a cost as low as the right one's).
+        num_angles, num_radii: polar grid T × R the decoder was trained on
+            (``ModelConfig.num_angles``, ``num_radii``); no default.
         backend: kernel backend of the padding, the yaw estimation and the search.
 
     Returns:
@@ -257,11 +260,11 @@ def metric_localize_best(
     bev_src: Any,
     desc_tgts: Any,
     decode: Decoder,
-    interact: Callable[[Any, int], tuple[Any, Any]] | None = None,
-    config: SearchConfig | None = None,
-    grid_size: float = 0.3,
-    num_angles: int = 120,
-    num_radii: int = 25,
+    interact: Callable[[Any, int], tuple[Any, Any]] | None,
+    config: SearchConfig | None,
+    grid_size: float,
+    num_angles: int,
+    num_radii: int,
     *,
     bias: npt.ArrayLike | None = None,
     backend: kernels.Backend = "rust",
@@ -317,11 +320,11 @@ def metric_localize_each(
     bev_src: Any,
     desc_tgts: Any,
     decode: Decoder,
-    interact: Callable[[Any, int], tuple[Any, Any]] | None = None,
-    config: SearchConfig | None = None,
-    grid_size: float = 0.3,
-    num_angles: int = 120,
-    num_radii: int = 25,
+    interact: Callable[[Any, int], tuple[Any, Any]] | None,
+    config: SearchConfig | None,
+    grid_size: float,
+    num_angles: int,
+    num_radii: int,
     *,
     backend: kernels.Backend = "rust",
 ) -> list[MetricResult]:
