@@ -81,6 +81,7 @@ from vvloc.retrieval import DescriptorIndex, Exclusion  # noqa: E402
 # Heavy (torch-importing) parts load on first use, so `import vvloc` stays light.
 _LAZY = {
     "Localizer": ("vvloc.localize.localizer", "Localizer"),
+    "build_map": ("vvloc.localize.localizer", "build_map"),
     "LocalizationResult": ("vvloc.localize.localizer", "LocalizationResult"),
     "MapDatabase": ("vvloc.localize.mapdb", "MapDatabase"),
     "nets": ("vvloc.nets", None),
@@ -108,6 +109,7 @@ __all__ = [
     "Localizer",
     "MapDatabase",
     "__version__",
+    "build_map",
     "get_num_threads",
     "kernels",
     "set_num_threads",

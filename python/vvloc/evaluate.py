@@ -279,7 +279,8 @@ class RecallResult:
         """``(Q,)`` bool: kept queries with a map frame within ``radius`` among their top ``n``.
 
         Excluded queries are False. ``correct(1, 2.0)`` marks the queries whose top-1 is a true
-        revisit (the AOE/APE subset).
+        revisit (the AOE/APE subset). ``radius`` (m) must be one of the evaluated
+        :attr:`radii` (``ValueError`` otherwise: run :func:`recall_at_n` with it).
         """
         n = _rank(n, "n")
         if not 1 <= n <= self.num_retrieved:
@@ -288,11 +289,13 @@ class RecallResult:
         return self.kept & (hit >= 0) & (hit < n)
 
     def at(self, n: int, radius: float) -> float:
-        """Recall@``n`` at ``radius`` (m), a fraction over the kept queries (``nan`` if none)."""
+        """Recall@``n`` at ``radius`` (m, one of the evaluated :attr:`radii`), a fraction over
+        the kept queries (``nan`` if none)."""
         return _ratio(self.correct(n, radius).sum(), self.num_kept)
 
     def curve(self, radius: float = 2.0) -> tuple[I64Array, F64Array]:
-        """Recall@N for N = 1..K at ``radius``: ``(ns (K,), recall (K,))``."""
+        """Recall@N for N = 1..K at ``radius`` (m, one of the evaluated :attr:`radii`):
+        ``(ns (K,) int64, recall (K,) float64)``."""
         hit = self.first_hit[self.kept, self._radius_index(radius)]
         ns = np.arange(1, self.num_retrieved + 1, dtype=np.int64)
         if hit.size == 0:
@@ -1063,8 +1066,9 @@ def loop_pose_metrics(
         ``{"all": row}`` plus ``{"confident": row}`` when costs are given. A row is
         ``{"count", "share", "cross_floor", "mRRE_deg", "mRTE_m", "RR_rot", "RR_trans"}``: mean
         RRE (°) and RTE (m) (:func:`relative_pose_errors`) over the pairs on one floor, RR_rot =
-        share of the count on one floor with RRE < 5°, RR_trans = with RTE < 2 m, share = count
-        / P, cross_floor = pairs across floors among the count. Undefined means are ``nan``.
+        share of the count on one floor with RRE < ``rot_threshold_deg``, RR_trans = with RTE <
+        ``trans_threshold_m``, share = count / P, cross_floor = pairs across floors among the
+        count. Undefined means are ``nan``.
     """
     rre, rte = relative_pose_errors(estimated, ground_truth)
     n = rre.shape[0]
@@ -1096,14 +1100,16 @@ def confidence_curve(
 ) -> dict[str, F64Array]:
     """Share of pairs kept vs their error as the matching-cost threshold moves.
 
-    For each distinct cost c (ascending) the pairs with cost ≤ c are kept. Returns arrays of
-    length M: ``threshold`` (c), ``kept_share`` (kept / P), ``mRRE_deg``, ``mRTE_m`` (means over
-    the kept pairs on one floor), ``RR_rot`` and ``RR_trans`` (shares of kept pairs on one floor
-    under 5° / 2 m, of all kept pairs).
+    For each distinct cost c (ascending) the pairs with cost ≤ c are kept. Returns float64
+    arrays of length M (the number of distinct costs): ``threshold`` (c), ``kept_share`` (kept /
+    P), ``mRRE_deg``, ``mRTE_m`` (means over the kept pairs on one floor), ``RR_rot`` and
+    ``RR_trans`` (shares of kept pairs on one floor with RRE < ``rot_threshold_deg`` / RTE <
+    ``trans_threshold_m``, of all kept pairs).
 
     Args:
-        costs: ``(P,)`` matching costs; rre_deg, rte_m: ``(P,)`` errors of the same pairs
-            (:func:`relative_pose_errors`).
+        costs: ``(P,)`` matching costs; rre_deg, rte_m: ``(P,)`` errors of the same pairs, °
+            and m (:func:`relative_pose_errors`).
+        rot_threshold_deg, trans_threshold_m: the RR thresholds (5°, 2 m).
         same_floor: optional ``(P,)`` bool, whether each pair's keyframes share a floor
             (default all; as in :func:`loop_pose_metrics`).
     """

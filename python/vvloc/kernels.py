@@ -245,8 +245,10 @@ def roll_interp(x: Any, shift: float, axis: int = 0, backend: Backend = "rust") 
 def bev_pad(bev: Any, translations: Any, grid_size: float, backend: Backend = "rust") -> F32Array:
     """BEV padding (paper Alg. 1, corrected fill) for N translation hypotheses.
 
-    ``bev``: (H, W, C) map, row i ↔ x, column j ↔ y, cells of ``grid_size`` metres.
-    ``translations``: (N, 2) target origins (x, y) in metres in the map's frame.
+    ``bev``: (H, W, C) BEV, row i ↔ ego x, column j ↔ ego y, cells of ``grid_size`` metres.
+    ``translations``: (N, 2) hypothesised target origins (x, y), metres, in this BEV's ego
+    frame (the source's; the localizer pads the query's BEV, DESIGN.md §3).
+    ``backend``: ``"rust"`` (the kernel) or ``"reference"`` (the readable numpy version).
     Returns (N, H, W, C) float32: the bilinear sample of ``bev`` at (i + x/g, j + y/g), 1 wherever
     a tap with non-zero weight falls outside the grid. Zero shift → unchanged; shifts of a map
     size or more → all ones. Shifts within 1e-6 cells of an integer are snapped to it.

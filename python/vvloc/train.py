@@ -177,10 +177,11 @@ class TrainConfig:
 
     ``model`` is ``"small"``, ``"paper"`` or a mapping of :class:`ModelConfig` fields;
     ``model_overrides`` are applied on top. ``sim`` (optional) holds the arguments of
-    :func:`vvloc.sim.simulate` used to render ``dataset`` when it does not exist yet, so that a
-    committed config reproduces its data and its model with one command. ``augment`` (optional)
-    holds :class:`vvloc.data.augment.PhotometricAugment` fields (``{}`` = its defaults; absent =
-    no augmentation), applied independently to each frame of every training triplet.
+    :func:`vvloc.sim.simulate.simulate_dataset` used to render ``dataset`` when it does not exist
+    yet, so that a committed config reproduces its data and its model with one command.
+    ``augment`` (optional) holds :class:`vvloc.data.augment.PhotometricAugment` fields (``{}`` =
+    its defaults; absent = no augmentation), applied independently to each frame of every
+    training triplet.
     ``rerank_weight`` (default 0: off, the paper's losses only) adds, in stage 2, our
     :func:`vvloc.losses.rerank_loss` (margin ``rerank_margin``): the anchor's re-ranking cost
     against its positive must beat its cost against the triplet's negative.

@@ -171,7 +171,9 @@ class Frame:
         cam_to_ego: (M, 4, 4) float64 camera (OpenCV) → ego (x fwd, y left, z up), metres.
         pose: (3,) float64 ego pose in the world (x east m, y north m, yaw rad CCW from east).
         t: timestamp, seconds.
-        floor: storey index (0 outdoors / ground level; garages count downwards 0, 1, ...).
+        floor: storey index, one numbering for every session of the dataset
+            (docs/dataset-format.md; 0 outdoors / ground level; the simulator's garages count
+            downwards, floor k at z = −3.2·k m).
         session: name of the session the frame belongs to.
         index: index of the frame in its session.
         z: height of the ego origin (ground under the vehicle), metres.
@@ -217,7 +219,7 @@ def has_image_content(images: Any) -> bool:
 
     A frame without content (a covered or failed rig, a black or blown-out stretch, flat
     sensor noise) encodes to the same descriptors as any other such frame, so two of them match
-    at a cost near 0 wherever they were taken: :func:`vvloc.localize.build_map` leaves such
+    at a cost near 0 wherever they were taken: :func:`vvloc.build_map` leaves such
     frames out of a map, and the localizer never accepts such a query. ``images`` (M, 3, H, W)
     uint8 or float, or a :class:`Frame` (its ``images``)."""
     arr = np.asarray(images.images if isinstance(images, Frame) else images)

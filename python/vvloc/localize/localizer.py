@@ -459,15 +459,18 @@ class LocalizationResult:
             the map is empty).
         relative_pose: ξ_{m→q} (3,) float64: the query frame expressed in the map keyframe's
             frame (x forward m, y left m, yaw CCW rad).
-        global_pose: the query's world pose (x, y, yaw) = T_world_m · ξ_{m→q}.
+        global_pose: the query's world pose (x, y, yaw) (3,) float64, metres and radians,
+            world frame: T_world_m · ξ_{m→q}.
         cost: matching cost at the estimate (lower is better), against ``metric_row``.
         accepted: ``cost < accept_threshold`` and ``distinctiveness >= min_distinctiveness``,
             and ``has_content``.
-        retrieved: (K,) map rows in retrieval order; ``retrieval_dist`` their L2 distances.
-        reranked: (K,) map rows: the M metric candidates (see ``Localizer(metric_from=)``) by
-            coarse metric cost plus ``retrieval_weight`` × descriptor distance, then the others
-            by yaw matching cost (with ``snap``, the snapped keyframe first); ``rerank_cost``
-            their yaw matching costs, in the same order.
+        retrieved: (K,) int64 map rows in retrieval order, K = min(``top_k``, map size) (0
+            for an empty map); ``retrieval_dist`` (K,) float32 their L2 descriptor distances.
+        reranked: (K,) int64, the same map rows: the M metric candidates (see
+            ``Localizer(metric_from=)``) by coarse metric cost plus ``retrieval_weight`` ×
+            descriptor distance, then the others by yaw matching cost (with ``snap``, the
+            snapped keyframe first); ``rerank_cost`` their yaw matching costs, in the same
+            order.
         timings_ms: per-stage wall time in milliseconds: encode, retrieve, rerank, metric.
             ``localize_batch`` encodes its frames together: each result's ``encode`` is the
             batch's encoding time divided by its number of frames (the same for all of them).
@@ -761,7 +764,9 @@ class Localizer:
         """Load a checkpoint directory and open a map built with it (refused otherwise, see
         :func:`check_map_model`; the map is closed again when the localizer cannot be made).
         ``checkpoint`` may also be a training run's folder: its ``best/`` when it has one, else
-        its ``checkpoint/``, as the CLI takes it."""
+        its ``checkpoint/``, as the CLI takes it. ``device``: where the network runs ("cpu",
+        "cuda", "cuda:1"; the kernels run on the CPU). ``**kwargs``: the localizer's settings,
+        passed to :class:`Localizer` (``top_k``, ``metric_candidates``, ``search``, ...)."""
         model = VVLocNet.load(checkpoint_folder(checkpoint, "checkpoint")).to(
             resolve_device(device)
         )
@@ -837,7 +842,9 @@ class Localizer:
 
     def retrieve(self, global_desc: F32) -> tuple[npt.NDArray[np.int64], F32]:
         """Top-K map rows (K,) int64 and their L2 descriptor distances (K,) float32, nearest
-        first, of one global descriptor (Dg,) (float32, unit length, as the encoder gives)."""
+        first, of one global descriptor (Dg,) (float32, unit length, as the encoder gives);
+        K = min(``top_k``, map size), 0 for an empty map (no padding rows, unlike
+        :meth:`DescriptorIndex.topk`'s -1)."""
         self._check_open()
         return self._retrieve(self._encoded("global_desc", global_desc))
 
@@ -987,7 +994,10 @@ class Localizer:
         (up to 3 m) common to all cameras is taken out before comparing
         (:func:`vvloc.data.rig.without_levelling`). Frames without image
         content (:func:`vvloc.data.has_image_content`: a covered rig, a black stretch) are
-        localized but not accepted (``has_content`` False), with a ``UserWarning``."""
+        localized but not accepted (``has_content`` False), with a ``UserWarning``.
+
+        ``batch_size``: frames encoded at once (int >= 1); ``progress``: a tqdm bar over the
+        frames. Returns one :class:`LocalizationResult` per frame, in order."""
         batch_size = kernels._positive_int(batch_size, "batch_size")
         if isinstance(frames, Frame) or not isinstance(frames, Iterable):
             raise TypeError(
@@ -1046,7 +1056,8 @@ class Localizer:
         """Localize an already encoded query: global descriptor g (Dg,), local-view descriptor
         loc (T, C), BEV (H, W, C) (e.g. encoded in a batch on a GPU elsewhere), float32, of
         the map's sizes, finite and within ±:data:`MAX_ENCODED` (``ValueError`` naming the
-        argument otherwise)."""
+        argument otherwise). ``t_encode_ms``: the encoding's wall time, milliseconds, reported
+        as the result's ``timings_ms["encode"]``."""
         self._check_open()
         for name, arr in (("g", g), ("loc", loc), ("bev", bev)):  # shapes first, all three
             want = self._encoded_shape(name)

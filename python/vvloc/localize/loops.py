@@ -546,7 +546,10 @@ def loop_candidates(
     check_floors: bool = False,
 ) -> LoopCandidates:
     """:func:`descriptor_loop_candidates` of a map's keyframes (rows, their sessions and
-    sequence numbers). ``check_floors`` (off here, on by default in :func:`detect_loops`): keep
+    sequence numbers): pairs whose global descriptors lie within ``radius`` (L2 distance of the
+    unit descriptors, dimensionless: not metres), same-session pairs within ``window``
+    sequence numbers of each other left out. ``sequence``: as in :func:`detect_loops`.
+    ``check_floors`` (off here, on by default in :func:`detect_loops`): keep
     only the candidates on one floor (:func:`floor_consensus`, the session pairs' offsets voted
     by the single-keyframe candidates within ``FLOOR_VOTE_FACTOR`` × ``radius``; the map's
     ``floors`` in each session's own numbering). A map built without floor numbers has 0
@@ -634,7 +637,12 @@ def detect_loops(
     """Detect loop closures in a map and estimate ξ_{i→j} for each; see the module docstring.
 
     Returns :class:`LoopClosures` whose ``i``/``j`` are keyframe *ids* (``mapdb.ids``), closest
-    candidates in descriptor space first.
+    candidates in descriptor space first, ``relative_poses`` (P, 3) ξ_{i→j} (metres, radians,
+    keyframe i's frame), ``costs`` (P,) and ``accepted`` (P,) = costs < ``cost_threshold``.
+
+    ``radius``: candidates are the keyframe pairs whose global descriptors lie within it (L2
+    distance of the unit descriptors, dimensionless: not metres); ``window``: pairs of one
+    session within this many sequence numbers of each other are not loops (neighbours).
 
     The map must hold BEVs (built with ``store_bev=True``) and have been built by ``model``
     (:func:`~vvloc.localize.localizer.check_map_model`: ``MapError`` otherwise). ``max_pairs``

@@ -520,7 +520,9 @@ class MapWriter:
     the BEV cell size g (metres). ``dtype`` is the stored dtype of the global and local
     descriptors (``"float32"`` or ``"float16"``); BEVs are always stored as float16.
     ``expected_keyframes`` (optional, a hint) caps the HDF5 chunk size so that a small map does
-    not occupy whole default-sized chunks.
+    not occupy whole default-sized chunks. ``rig`` (optional): the cameras whose frames built
+    the map, as a list of ``Camera.to_json()`` entries (:attr:`MapMetadata.rig`), against which
+    the localizer checks its queries' rig.
 
     Usage::
 
@@ -729,7 +731,7 @@ class MapWriter:
         would then pass for these weights'); ``ValueError`` when its ids or (session, sequence
         number) pairs are already in this writer, or it has BEVs and earlier batches had none
         or the reverse. Nothing is written then. The rigs are not compared (the caller's part:
-        :func:`vvloc.localize.build_map` with ``base`` does).
+        :func:`vvloc.build_map` with ``base`` does).
         """
         self._check_open()
         if not isinstance(db, MapDatabase):
