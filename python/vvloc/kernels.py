@@ -45,6 +45,8 @@ __all__ = [
 ]
 
 Backend = Literal["rust", "reference"]
+"""A kernel's implementation: ``"rust"`` (the extension, the default) or ``"reference"`` (the
+readable numpy/torch version in :mod:`vvloc.reference`, which the tests hold the kernel to)."""
 F32Array = npt.NDArray[np.float32]
 
 

@@ -126,7 +126,8 @@ def hinge_loss(
     pos_dist: Tensor, neg_dist: Tensor, pos_margin: float = 0.1, neg_margin: float = 0.2
 ) -> Tensor:
     """Double hinge: pull positive distances/costs below ``pos_margin`` and push negative ones
-    above ``neg_margin``: mean(max(0, d⁺ − 0.1)) + mean(max(0, 0.2 − d⁻)).
+    above ``neg_margin``: mean(max(0, d⁺ − pos_margin)) + mean(max(0, neg_margin − d⁻))
+    (defaults 0.1 and 0.2).
 
     ``pos_dist`` and ``neg_dist`` are any-shape tensors of distances (e.g. yaw-matching costs
     :func:`matching_cost` of positive and negative pairs); an empty tensor contributes 0.

@@ -34,6 +34,8 @@ __all__ = [
 ]
 
 Decoder = Callable[[npt.NDArray[np.float32]], Any]
+"""A local-view decoder: polar BEVs (N, T, R, C) float32 → descriptors (N, T, C) (numpy or
+torch), or the pair (Ds', Dt') of (N, T, C) (:func:`metric_localize`'s ``decode``)."""
 
 #: The localizer's defaults (``Localizer``, ``vvloc eval`` / ``vvloc localize``): M, the
 #: metric candidates given to :func:`metric_localize_best`, chosen by coarse matching cost +
