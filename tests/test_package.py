@@ -260,3 +260,50 @@ def test_the_localizers_search_config_is_importable_where_the_localizer_is():
     from vvloc.localize.metric import SearchConfig
 
     assert loc.SearchConfig is SearchConfig  # Localizer(search=SearchConfig(...))
+
+
+@pytest.mark.parametrize(
+    ("args", "said"),
+    [
+        (["sim"], "vvloc sim: error: Missing option '--out'."),
+        (["sim", "--out", "x", "--frames", "abc"], "vvloc sim: error: --frames: "),
+        (["eval", "--loop_radius", "0.7"], "vvloc eval: error: --loop_radius: expected a "),
+        (["map", "info", "--map", "x.h5"], "vvloc map info: error: No such option: --map"),
+        (["nonexistent"], "vvloc: error: No such command 'nonexistent'."),
+    ],
+)
+def test_the_parsers_refusals_read_like_the_commands_own(args, said, tmp_path):
+    # the parser printed a usage block and "Error: Invalid value for '--x': ..." where the
+    # commands' own checks print one line "vvloc <command>: error: --x: ..."
+    r = subprocess.run(
+        [sys.executable, "-m", "vvloc.cli", *args], capture_output=True, text=True, cwd=tmp_path
+    )
+    lines = r.stderr.splitlines()
+    assert r.returncode == 2 and r.stdout == "", r.stderr
+    assert len(lines) == 2 and lines[0].startswith(said), r.stderr
+    assert lines[1] == f"Try '{said.split(':')[0]} --help' for help."
+    assert "Traceback" not in r.stderr and "Usage:" not in r.stderr
+
+
+def test_help_version_and_a_bare_group_still_answer_as_before(tmp_path):
+    def run(*args: str) -> subprocess.CompletedProcess[str]:
+        exe = [sys.executable, "-m", "vvloc.cli", *args]
+        return subprocess.run(exe, capture_output=True, text=True, cwd=tmp_path)
+
+    version = run("--version")
+    assert (version.returncode, version.stdout) == (0, f"vvloc {vvloc.__version__}\n")
+    helped = run("sim", "--help")
+    assert helped.returncode == 0 and helped.stdout.startswith("Usage: vvloc sim [OPTIONS]")
+    for bare in ([], ["map"]):  # no command: the group's help, exit 2 as the parser gives it
+        r = run(*bare)
+        assert r.returncode == 2 and r.stderr.startswith("Usage: vvloc"), r.stderr
+
+
+def test_convert_names_src_when_it_is_no_dataset(tmp_path):
+    # it said "/nonexistent: no such dataset folder" without the option, unlike --dataset
+    for src, said in ((tmp_path / "none", "no such dataset folder"), (tmp_path, "not a dataset")):
+        exe = [sys.executable, "-m", "vvloc.cli", "convert", "--src", str(src)]
+        r = subprocess.run([*exe, "--out", str(tmp_path / "out")], capture_output=True, text=True)
+        assert r.returncode == 2, r.stderr
+        assert r.stderr.startswith(f"vvloc convert: error: --src: {src}: {said}"), r.stderr
+    assert not (tmp_path / "out").exists()

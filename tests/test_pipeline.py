@@ -1586,7 +1586,10 @@ def test_cli_refuses_misleading_inputs_before_any_work(
     assert r.returncode == 2 and "--database: no session 's9' in" in r.stderr, r.stderr
     # eval names its options as the command line spells them, not run_evaluation's arguments
     r = run("eval", *ck, "--loop_radius", "nan", "--out", str(tmp_path / "e"))
-    assert r.returncode == 2 and "'--loop_radius': expected a descriptor distance" in r.stderr
+    assert (
+        r.returncode == 2
+        and "eval: error: --loop_radius: expected a descriptor distance" in r.stderr
+    )
     assert not (tmp_path / "e").exists()
     # an --out that is a file is refused before localizing anything
     blocker = tmp_path / "file.txt"
@@ -1635,7 +1638,9 @@ def test_cli_refuses_misleading_inputs_before_any_work(
     # a NaN --radius passed typer's max=2 (NaN > 2 is false)
     r = run("loops", "--map", str(map_file), "--checkpoint", str(model_dir), "--radius", "nan",
             "--out", str(tmp_path / "l"))  # fmt: skip
-    assert r.returncode == 2 and "'--radius': expected a descriptor distance" in r.stderr
+    assert (
+        r.returncode == 2 and "loops: error: --radius: expected a descriptor distance" in r.stderr
+    )
     assert not (tmp_path / "l").exists() and not (tmp_path / "e").exists()
     r = run("demo", "--out", str(blocker))
     assert r.returncode == 2 and "--out:" in r.stderr and "rendering" not in r.stdout

@@ -255,7 +255,10 @@ def test_cli_prints_the_table_writes_json_and_fails_when_strict_and_missed(tmp_p
     bad = subprocess.run(
         [*exe[:-4], "--parking", str(tmp_path / "none")], capture_output=True, text=True
     )
-    assert bad.returncode == 2 and "vvloc targets: error" in bad.stderr
+    assert bad.returncode == 2 and "vvloc targets: error: --parking: no vvloc eval" in bad.stderr
+    # which of the reports is missing or not one is named
+    bad = subprocess.run([*exe[:-1], str(tmp_path)], capture_output=True, text=True)
+    assert bad.returncode == 2 and "vvloc targets: error: --garage: no vvloc eval" in bad.stderr
     # --out replaces an earlier figures file, never a report (its own input) or a user's file
     r = subprocess.run([*exe, "--out", str(tmp_path / "t.json")], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import logging
 import os
+import re
 import signal
 import sys
 import threading
@@ -152,11 +153,43 @@ def _show_warning(  # type: ignore[no-untyped-def]
         pass
 
 
+def _show_parse_error(e: typer.TyperException) -> None:
+    """A refusal of the option parser (a missing or unknown option, a value of the wrong type
+    or out of range) in the commands' own style: ``vvloc <command>: error: <what>`` on one
+    line, then where the help is (the parser's default was a usage block, then ``Error:``)."""
+    ctx = getattr(e, "ctx", None)
+    format_message = getattr(e, "format_message", None)
+    if ctx is None or format_message is None or type(e).__name__ == "NoArgsIsHelpError":
+        show = getattr(e, "show", None)  # the help of a bare group, or no context to name
+        if show is not None:
+            show()
+        else:
+            typer.echo(f"vvloc: error: {e}", err=True)
+        return
+    message = str(format_message())
+    # "Invalid value for '--threshold': expected ..." → "--threshold: expected ...", as the
+    # commands name an option
+    m = re.fullmatch(r"Invalid value for '([^']+)': (.*)", message, flags=re.DOTALL)
+    if m:
+        message = f"{m.group(1)}: {m.group(2)}"
+    typer.echo(f"{ctx.command_path}: error: {message}", err=True)
+    typer.echo(f"Try '{ctx.command_path} --help' for help.", err=True)
+
+
 def main() -> None:
     """Entry point of the ``vvloc`` console script."""
     _exit_on_sigterm()
     _quiet_when_logged()
-    app()
+    try:
+        # prog_name: the commands' own errors say "vvloc <command>", under python -m too
+        code = app(prog_name="vvloc", standalone_mode=False)
+    except typer.TyperException as e:  # the parser's refusals (exit 2) and other click errors
+        _show_parse_error(e)
+        sys.exit(int(getattr(e, "exit_code", 1)))
+    except typer.Abort:  # end of input at a prompt
+        typer.echo("Aborted!", err=True)
+        sys.exit(1)
+    sys.exit(code if isinstance(code, int) else 0)  # typer.Exit's code, else 0
 
 
 if __name__ == "__main__":

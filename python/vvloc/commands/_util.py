@@ -211,8 +211,9 @@ def check_sessions(dataset: Path, sessions: Iterable[tuple[str, str]]) -> Datase
     import warnings
 
     from vvloc.data import RAW_FOLDER, detect_format, open_dataset
+    from vvloc.data.vvloc_format import DatasetFormatError
 
-    with named("--dataset", FileNotFoundError, NotADirectoryError):
+    with named("--dataset", FileNotFoundError, NotADirectoryError, DatasetFormatError):
         fmt = detect_format(dataset)
     if fmt != "vvloc":  # said before the reader's own errors (e.g. a camera folder missing)
         warnings.warn(

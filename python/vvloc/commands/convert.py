@@ -10,7 +10,7 @@ from typing import Annotated, Any
 
 import typer
 
-from vvloc.commands._util import EXIT_USAGE, as_options, cli_errors, split_names
+from vvloc.commands._util import EXIT_USAGE, as_options, cli_errors, named, split_names
 
 #: convert_dataset's arguments and reader options, as the command line spells them.
 _OPTION_OF = {
@@ -137,12 +137,13 @@ def convert(
     frames (docs/dataset-format.md). Convert a public dataset once, then train, map and
     evaluate on the result."""
     from vvloc.data import convert_dataset, detect_format
-    from vvloc.data.vvloc_format import check_dataset_target
+    from vvloc.data.vvloc_format import DatasetFormatError, check_dataset_target
 
     if (width is None) != (height is None):
         _fail("--width and --height go together")
     with cli_errors("convert"):
-        fmt = detect_format(src, format.value)
+        with named("--src", FileNotFoundError, NotADirectoryError, DatasetFormatError):
+            fmt = detect_format(src, format.value)
         chosen = (
             None if sessions is None else split_names(sessions, "--sessions", what="session name")
         )

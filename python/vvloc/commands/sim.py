@@ -53,7 +53,14 @@ def sim(
         int, typer.Option("--seed", min=0, help="Seed of the world, the drives' wobble and cars.")
     ] = 0,
     cameras: Annotated[
-        int, typer.Option("--cameras", min=1, max=12, help="Cameras in the rig (4, 5, 6, ...).")
+        int,
+        typer.Option(
+            "--cameras",
+            min=1,
+            max=12,
+            help="Number of cameras in the rig, 1-12, evenly round the vehicle, front first "
+            "(fewer than 4 leave gaps between their views).",
+        ),
     ] = 4,
     width: Annotated[int, typer.Option("--width", min=8, help="Image width, pixels.")] = 160,
     height: Annotated[int, typer.Option("--height", min=8, help="Image height, pixels.")] = 96,

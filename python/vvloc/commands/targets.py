@@ -8,7 +8,7 @@ from typing import Annotated
 
 import typer
 
-from vvloc.commands._util import cli_errors
+from vvloc.commands._util import cli_errors, named
 
 #: The keys of the JSON ``vvloc targets --out`` writes: an existing file is replaced only when
 #: it holds exactly these (an earlier run's figures), never a report or a user's file.
@@ -68,12 +68,13 @@ def targets(
     with cli_errors("targets"):
         if out is not None:
             check_targets_out(out)
-        park = read_report(parking)
-        figures = check_targets(
-            park,
-            None if pillars is None else read_report(pillars),
-            None if garage is None else read_report(garage),
-        )
+        reports = {}
+        for option, path in (("--parking", parking), ("--pillars", pillars), ("--garage", garage)):
+            if path is not None:  # a missing or unreadable report names its option
+                with named(option, FileNotFoundError, ValueError):
+                    reports[option] = read_report(path)
+        park = reports["--parking"]
+        figures = check_targets(park, reports.get("--pillars"), reports.get("--garage"))
         weights = park["meta"].get("model_weights_hash")
         if out is not None:
             out.parent.mkdir(parents=True, exist_ok=True)
