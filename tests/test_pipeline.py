@@ -1417,6 +1417,21 @@ def test_evaluation_breaks_recall_down_by_query_session(tiny_world, model_dir, t
         # the sessions' correct top-1 add up to the whole's
         assert sum(int(p.correct(1, 2.0).sum()) for p in parts) == int(whole.correct(1, 2.0).sum())
     assert "## Global localization per query session" in (tmp_path / "ev" / "report.md").read_text()
+    # queries.csv carries what the report's rows select by: the kept count and the pose row
+    # over the kept queries on their floor can be recomputed from it
+    rows = list(
+        csv.DictReader(
+            line
+            for line in (tmp_path / "ev" / "queries.csv").read_text().splitlines()
+            if not line.startswith("#")
+        )
+    )
+    whole = m["global_localization"]["VVLoc-ML"]
+    assert len(rows) == whole.num_queries
+    assert sum(int(r["kept"]) for r in rows) == whole.num_kept
+    assert [int(r["kept"]) for r in rows] == whole.kept.astype(int).tolist()
+    on_floor = [r for r in rows if r["kept"] == "1" and r["floor"] == r["map_floor"]]
+    assert len(on_floor) == m["pose_accuracy"]["VVLoc-ML"]["all"]["count"]
     # a run into that folder that fails (or is stopped) after its map is built leaves the
     # earlier report whole: map, queries, figures and report as they were, nothing hidden
     import vvloc.localize.evaluation as ev

@@ -687,14 +687,18 @@ def _sweep_note(sweep: float, over: bool, loop_radius: float, loop_sweep_pairs: 
 
 
 def _write_queries_csv(path: Path, scored: _Scored) -> None:
-    """``queries.csv``: one row per query, its answer against its ground truth."""
+    """``queries.csv``: one row per query, its answer against its ground truth, with what
+    the report's rows select queries by (``floor``, the metric row's ``map_floor``, ``kept``),
+    so that each figure can be recomputed from the file."""
     lines = [
         "# vvloc evaluation per query. Poses: world frame x east, y north (m), yaw CCW from "
-        "east (deg). cost: matching cost (lower is better).",
+        "east (deg). cost: matching cost (lower is better). floor: the query's; map_floor: "
+        "metric_row's; kept: a map keyframe lies within 2 m on the query's floor (Recall@N "
+        "counts the kept queries).",
         "session,index,map_row,est_x,est_y,est_yaw_deg,gt_x,gt_y,gt_yaw_deg,pos_err_m,"
-        "yaw_err_deg,cost,accepted,top1_correct,distinctiveness,metric_row",
+        "yaw_err_deg,cost,accepted,top1_correct,distinctiveness,metric_row,floor,map_floor,kept",
     ]
-    for f, r, e, g, pe, ye, c in zip(
+    for f, r, e, g, pe, ye, c, kept in zip(
         scored.frames,
         scored.results,
         scored.est,
@@ -702,6 +706,7 @@ def _write_queries_csv(path: Path, scored: _Scored) -> None:
         scored.pos_err,
         scored.yaw_err,
         scored.correct,
+        scored.rec_ml.kept,
         strict=True,
     ):
         lines.append(  # a session name with a comma is quoted (RFC 4180)
@@ -722,6 +727,9 @@ def _write_queries_csv(path: Path, scored: _Scored) -> None:
                 int(c),
                 f"{r.distinctiveness:.5f}",
                 r.metric_row,
+                f.floor,
+                int(scored.db_floor[r.metric_row]) if r.metric_row >= 0 else "",
+                int(kept),
             )
         )
     with atomic_write(path) as f:
