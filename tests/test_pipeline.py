@@ -542,8 +542,9 @@ def test_frames_without_image_content_are_left_out_of_maps_and_never_accepted(
         UserWarning,
         match=r"session 's0': 3 of 40 frames have no image content "
         r"\(every camera's picture flat: frames 3, 4, 30\); left out of the map",
-    ):
+    ) as caught:
         build_map(model, ds, ["s0"], tmp_path / "map.h5", progress=False)
+    assert caught[0].filename == __file__  # said at build_map's caller
     with MapDatabase.open(tmp_path / "map.h5") as db:
         kept = [i for i in range(40) if i not in (3, 4, 30)]
         assert db.seq.tolist() == kept

@@ -54,7 +54,7 @@ from tqdm import tqdm
 from vvloc import evaluate, geometry, kernels
 from vvloc._io import list_entries
 from vvloc.checkpoints import checkpoint_folder
-from vvloc.data import Camera, Dataset, Frame
+from vvloc.data import Camera, Dataset, Frame, Session
 from vvloc.data.frame import (
     PINHOLE,
     RIGID,
@@ -1262,39 +1262,11 @@ def build_map(
         stack.callback(bar.close)  # closed before an error is printed, not under it
         written = 0
         for name in sessions:
-            sess = dataset.session(name)
-            blank: list[str] = []
-            for start in range(0, len(sess), batch_size):
-                loaded = [sess[i] for i in range(start, min(start + batch_size, len(sess)))]
-                content = [has_image_content(f.images) for f in loaded]
-                frames = [f for f, c in zip(loaded, content, strict=True) if c]
-                blank += [str(f.index) for f, c in zip(loaded, content, strict=True) if not c]
-                bar.update(len(loaded) - len(frames))
-                if not frames:
-                    continue
-                enc = encode_frames(model, frames, batch_size=batch_size, keep_bev=keep_bev)
-                writer.append(
-                    poses=np.stack([f.pose for f in frames]),
-                    timestamps=np.array([f.t for f in frames]),
-                    sessions=name,
-                    global_descriptors=enc.global_desc,
-                    local_descriptors=enc.local_desc,
-                    ids=np.arange(next_id, next_id + len(frames)),
-                    seq=np.array([f.index for f in frames]),
-                    floors=np.array([f.floor for f in frames]),
-                    bevs=enc.bev,
-                )
-                next_id += len(frames)
-                written += len(frames)
-                bar.update(len(frames))
-            if blank:
-                warnings.warn(
-                    f"session {name!r}: {len(blank)} of {len(sess)} frames have no image "
-                    f"content (every camera's picture flat: frames {list_entries(blank)}); "
-                    "left out of the map",
-                    UserWarning,
-                    stacklevel=2,
-                )
+            added = _append_session(
+                writer, model, dataset.session(name), name, next_id, batch_size, keep_bev, bar
+            )
+            next_id += added
+            written += added
         if written == 0:
             raise ValueError(
                 f"sessions: none of the {total} frames of {sessions} has image content (every "
@@ -1302,6 +1274,57 @@ def build_map(
                 + ("a map needs keyframes" if db is None else "nothing to add to the base map")
             )
     return Path(out)
+
+
+def _append_session(
+    writer: MapWriter,
+    model: VVLocNet,
+    session: Session,
+    name: str,
+    first_id: int,
+    batch_size: int,
+    keep_bev: bool,
+    bar: Any,
+) -> int:
+    """Encode the frames of ``session`` (called ``name``) in batches of ``batch_size`` and
+    append them to ``writer`` as keyframes ``first_id``, ``first_id + 1``, ... (with their
+    BEVs when ``keep_bev``); frames without image content are left out, with a
+    ``UserWarning`` naming them at :func:`build_map`'s caller. ``bar`` (tqdm) counts every
+    frame. Returns the number of keyframes appended."""
+    blank: list[str] = []
+    added = 0
+    for start in range(0, len(session), batch_size):
+        loaded = [session[i] for i in range(start, min(start + batch_size, len(session)))]
+        content = [has_image_content(f.images) for f in loaded]
+        frames = [f for f, c in zip(loaded, content, strict=True) if c]
+        blank += [str(f.index) for f, c in zip(loaded, content, strict=True) if not c]
+        bar.update(len(loaded) - len(frames))
+        if not frames:
+            continue
+        enc = encode_frames(model, frames, batch_size=batch_size, keep_bev=keep_bev)
+        ids = np.arange(first_id + added, first_id + added + len(frames))
+        writer.append(
+            poses=np.stack([f.pose for f in frames]),
+            timestamps=np.array([f.t for f in frames]),
+            sessions=name,
+            global_descriptors=enc.global_desc,
+            local_descriptors=enc.local_desc,
+            ids=ids,
+            seq=np.array([f.index for f in frames]),
+            floors=np.array([f.floor for f in frames]),
+            bevs=enc.bev,
+        )
+        added += len(frames)
+        bar.update(len(frames))
+    if blank:
+        warnings.warn(
+            f"session {name!r}: {len(blank)} of {len(session)} frames have no image "
+            f"content (every camera's picture flat: frames {list_entries(blank)}); "
+            "left out of the map",
+            UserWarning,
+            stacklevel=3,  # build_map's caller
+        )
+    return added
 
 
 def _check_map_out(out: Any, overwrite: Any) -> None:
