@@ -75,8 +75,9 @@ def _nclt(root, with_map=True):
 
 def test_nclt_reader_converts_frames_and_matches_poses(tmp_path):
     _nclt(tmp_path)
-    with pytest.warns(UserWarning, match=r"no U2D_Cam2_\*\.txt undistortion map"):
+    with pytest.warns(UserWarning, match=r"no U2D_Cam2_\*\.txt undistortion map") as caught:
         ds = open_dataset(tmp_path, cameras=(1, 2), upright=False)  # images as stored
+    assert not caught[0].filename.endswith("nclt.py")  # said at open_nclt's caller
     assert ds.sessions == [DATE]
     s = ds.session(DATE)
     assert len(s) == 2 and list(s.timestamps) == [1_000_000, 1_200_000]

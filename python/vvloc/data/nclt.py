@@ -272,13 +272,8 @@ def open_nclt(
         for d in dirs:
             if not d.is_dir():
                 raise DatasetFormatError(f"{d}: camera folder missing")
-        stamps = None
-        seen: set[int] = set()  # the times any camera has an image of
-        for d in dirs:
-            s = {int(p.stem) for p in d.glob("*.tiff") if p.stem.isdigit()}
-            stamps = s if stamps is None else stamps & s
-            seen |= s
-        utimes = np.array(sorted(stamps or ()), dtype=np.int64)
+        stamps, seen = _common_stamps(dirs)
+        utimes = np.array(sorted(stamps), dtype=np.int64)
         if len(utimes) == 0:
             raise DatasetFormatError(f"{lb3}: no <utime>.tiff present for every camera")
         maps: list[tuple[np.ndarray, np.ndarray] | None] = []
@@ -288,53 +283,21 @@ def open_nclt(
         for i in cameras:
             K = _read_numbers(params / f"K_cam{i}.csv", (3, 3))
             T_lb3_c = ssc_degrees_to_matrix(_read_numbers(params / f"x_lb3_c{i}.csv", (6,)))
-            cam_to_ego = FRD_TO_FLU @ T_body_lb3 @ T_lb3_c
-            u2d = sorted(params.glob(f"U2D_Cam{i}_*.txt"))
-            m = None
-            if u2d:
-                if u2d[0] not in map_cache:  # one map per camera, shared by every date
-                    map_cache[u2d[0]] = read_undistortion_map(u2d[0])
-                m = map_cache[u2d[0]]
-                if m[0].shape[::-1] != tuple(native):  # the map reads the raw image's pixels
-                    raise DatasetFormatError(
-                        f"{u2d[0]}: the undistortion map is {m[0].shape[1]}x{m[0].shape[0]}, "
-                        f"the images (e.g. {dirs[0]}) are {native[0]}x{native[1]}: a map of "
-                        "another image size"
-                    )
-            elif rig is None:
-                warnings.warn(
-                    f"{params}: no U2D_Cam{i}_*.txt undistortion map; Cam{i}'s images are used "
-                    "distorted, which its pinhole K does not describe",
-                    stacklevel=2,
-                )
+            m = _undistortion_map(params, i, native, dirs[0], map_cache, warn=rig is None)
             maps.append(m)
             size = (m[0].shape[1], m[0].shape[0]) if m is not None else tuple(native)
-            cam = Camera(f"Cam{i}", size[0], size[1], K, cam_to_ego)
+            cam = Camera(f"Cam{i}", size[0], size[1], K, FRD_TO_FLU @ T_body_lb3 @ T_lb3_c)
             k = cam.upright_quarter_turns() if upright else 0
             turns.append(k)
             cam = cam.rotated(k).with_ego_origin_lowered(height)
             if image_size is not None:
                 cam = cam.resized(*image_size)
             cams.append(cam)
-        gt_path = next(
-            (
-                p
-                for p in (
-                    root / f"groundtruth_{date}.csv",
-                    root / "ground_truth" / f"groundtruth_{date}.csv",
-                    lb3.parent / f"groundtruth_{date}.csv",
-                )
-                if p.is_file()
-            ),
-            None,
-        )
-        if gt_path is None:
-            raise DatasetFormatError(f"{root}: groundtruth_{date}.csv not found")
-        gt = read_groundtruth(gt_path)
+        gt = read_groundtruth(_groundtruth_path(root, lb3, date))
         pick, ok = nearest_within(gt[:, 0].astype(np.int64), utimes, tolerance_us)
         utimes, pick = utimes[ok], pick[ok]
         left_out = {
-            "an image missing for some camera": len(seen) - len(stamps or ()),
+            "an image missing for some camera": len(seen) - len(stamps),
             f"no ground truth within tolerance_us={tolerance_us}": int((~ok).sum()),
         }
         world_body = np.array(
@@ -360,3 +323,63 @@ def open_nclt(
         rig = rig or cams
     assert rig is not None
     return Dataset(root, rig, read)
+
+
+def _common_stamps(dirs: list[Path]) -> tuple[set[int], set[int]]:
+    """The ``<utime>.tiff`` times (µs) that every camera folder of ``dirs`` has an image of,
+    and those any of them has."""
+    common: set[int] | None = None
+    seen: set[int] = set()
+    for d in dirs:
+        s = {int(p.stem) for p in d.glob("*.tiff") if p.stem.isdigit()}
+        common = s if common is None else common & s
+        seen |= s
+    return common or set(), seen
+
+
+def _undistortion_map(
+    params: Path,
+    camera: int,
+    native: tuple[int, ...],
+    images: Path,
+    cache: dict[Path, tuple[np.ndarray, np.ndarray]],
+    *,
+    warn: bool,
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """Camera ``camera``'s undistortion map (``cam_params/U2D_Cam<i>_*.txt``), read once into
+    ``cache`` for every date, or None without one (a ``UserWarning`` at :func:`open_nclt`'s
+    caller when ``warn``: the images stay distorted). ``DatasetFormatError`` when it is not of
+    the raw images' (width, height) ``native`` (``images``: a camera folder, for the
+    message)."""
+    u2d = sorted(params.glob(f"U2D_Cam{camera}_*.txt"))
+    if not u2d:
+        if warn:
+            warnings.warn(
+                f"{params}: no U2D_Cam{camera}_*.txt undistortion map; Cam{camera}'s images are "
+                "used distorted, which its pinhole K does not describe",
+                stacklevel=3,
+            )
+        return None
+    if u2d[0] not in cache:
+        cache[u2d[0]] = read_undistortion_map(u2d[0])
+    m = cache[u2d[0]]
+    if m[0].shape[::-1] != tuple(native):  # the map reads the raw image's pixels
+        raise DatasetFormatError(
+            f"{u2d[0]}: the undistortion map is {m[0].shape[1]}x{m[0].shape[0]}, "
+            f"the images (e.g. {images}) are {native[0]}x{native[1]}: a map of "
+            "another image size"
+        )
+    return m
+
+
+def _groundtruth_path(root: Path, lb3: Path, date: str) -> Path:
+    """``groundtruth_<date>.csv`` in ``root``, ``root/ground_truth`` or beside the date's
+    folder (``lb3.parent``); ``DatasetFormatError`` when none holds it."""
+    for p in (
+        root / f"groundtruth_{date}.csv",
+        root / "ground_truth" / f"groundtruth_{date}.csv",
+        lb3.parent / f"groundtruth_{date}.csv",
+    ):
+        if p.is_file():
+            return p
+    raise DatasetFormatError(f"{root}: groundtruth_{date}.csv not found")
