@@ -376,13 +376,18 @@ def test_writer_leaves_out_sessions_without_frames_and_says_so(tmp_path):
             w.add_session("e2", meta={"note": "nothing"})
     assert open_dataset(tmp_path / "ds").sessions == ["s0"]
     assert sorted(p.name for p in (tmp_path / "ds" / "sessions").iterdir()) == ["s0"]
-    # no frame at all: refused, and nothing is left behind
+    # no frame at all: refused, and nothing is left behind, in a with block or not
     for sessions in ([], ["e"]):
         with pytest.raises(ValueError, match=r"no frame was added to any session"):
             with DatasetWriter(tmp_path / "none", cams) as w:
                 for name in sessions:
                     w.add_session(name)
         assert not (tmp_path / "none").exists()
+        w = DatasetWriter(tmp_path / "none", cams)
+        for name in sessions:
+            w.add_session(name)
+        with pytest.raises(ValueError, match=r"no frame was added to any session"):
+            w.close()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["ds"]
 
 

@@ -515,3 +515,15 @@ def test_misaligned_arrays_are_refused_by_the_extension_and_copied_by_the_gatewa
     np.testing.assert_array_equal(K.yaw_costs(odd_desc, desc), K.yaw_costs(desc, desc))
     index = vvloc.DescriptorIndex(_misaligned(desc.reshape(8, 8)))
     np.testing.assert_array_equal(index.descriptors, desc.reshape(8, 8))
+
+
+def test_an_empty_misaligned_array_is_refused_or_copied_too():
+    # numpy calls every empty array aligned, whatever its address; ndarray asserts the pointer
+    from vvloc import _core
+
+    buf = np.zeros(64, np.uint8)
+    empty = np.ndarray((0, 4, 5), np.float32, buffer=buf, offset=1)
+    assert empty.flags.aligned and empty.ctypes.data % 4 == 1
+    with pytest.raises(ValueError, match=r"^a: expected an aligned array"):
+        _core.matching_cost(empty, np.zeros((0, 4, 5), np.float32))
+    assert K.matching_cost(empty, np.zeros((0, 4, 5), np.float32)).shape == (0,)

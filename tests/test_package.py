@@ -52,10 +52,13 @@ def test_env_var_sets_default_threads():
     assert "VVLOC_NUM_THREADS" not in out.stderr
 
 
-@pytest.mark.parametrize("value", ["abc", "0", "-3", "2.5", "+2", "2_0", "\uff13"])
+@pytest.mark.parametrize(
+    "value", ["abc", "0", "-3", "2.5", "+2", "2_0", "\uff13", "\x1f3", "3\x1c"]
+)
 def test_an_unusable_threads_variable_is_said_not_ignored(value):
     # "+2", "2_0" and a full-width "3" are ints to Python's int() but not to the Rust pool,
-    # which used every core while no warning was given
+    # which used every core while no warning was given; str.strip() takes \x1c-\x1f, which
+    # Rust's trim does not
     code = "import vvloc, os; print(vvloc.get_num_threads() == (os.cpu_count() or 1))"
     env = {**os.environ, "VVLOC_NUM_THREADS": value}
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True)
@@ -64,9 +67,10 @@ def test_an_unusable_threads_variable_is_said_not_ignored(value):
     assert f"VVLOC_NUM_THREADS={value!r} is not an int in [1, 1024]" in out.stderr
 
 
-@pytest.mark.parametrize("value", ["5000", "99999999999999999999"])
+@pytest.mark.parametrize("value", ["5000", "99999999999999999999", "9" * 5000])
 def test_a_threads_variable_above_1024_asks_for_1024(value):
-    # twenty digits overflowed the pool's parse, which then used every core
+    # twenty digits overflowed the pool's parse, which then used every core; 5000 digits made
+    # Python's int() raise at import
     code = "import vvloc; print(vvloc.get_num_threads())"  # reads the count, starts no thread
     env = {**os.environ, "VVLOC_NUM_THREADS": f" {value} "}
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True)
@@ -270,6 +274,9 @@ def test_the_localizers_search_config_is_importable_where_the_localizer_is():
         (["eval", "--loop_radius", "0.7"], "vvloc eval: error: --loop_radius: expected a "),
         (["map", "info", "--map", "x.h5"], "vvloc map info: error: No such option: --map"),
         (["nonexistent"], "vvloc: error: No such command 'nonexistent'."),
+        # refused before the command has a context: the path comes from the arguments
+        (["sim", "--out"], "vvloc sim: error: Option '--out' requires an argument."),
+        (["map", "build", "--out"], "vvloc map build: error: Option '--out' requires an"),
     ],
 )
 def test_the_parsers_refusals_read_like_the_commands_own(args, said, tmp_path):

@@ -42,16 +42,29 @@ def get_num_threads() -> int:
     return int(_core.get_num_threads())
 
 
+#: The blanks around ``VVLOC_NUM_THREADS``'s digits that the pool skips (Rust's
+#: ``char::is_ascii_whitespace``: space, tab, line feed, form feed, carriage return).
+_ASCII_BLANKS = " \t\n\x0c\r"
+
+
 def _check_threads_variable() -> None:
     """Warn when ``VVLOC_NUM_THREADS`` is set but is no int in [1, 1024] written in ASCII digits
     alone (blanks around them allowed): the pool then uses every core, as if it were unset, or
     1024 for a larger number, as the Rust pool reads it."""
     text = os.environ.get("VVLOC_NUM_THREADS")
-    if text is None or text.strip() == "":
+    if text is None:
         return
-    digits = text.strip()
-    # not int(): it also takes "+4", "2_0" and other scripts' digits, which the pool does not
-    ok = digits.isascii() and digits.isdigit() and 1 <= int(digits) <= MAX_THREADS
+    digits = text.strip(_ASCII_BLANKS)  # str.strip() would also take \x1c-\x1f, Rust's not
+    if digits == "":
+        return
+    # not int() alone: it also takes "+4", "2_0" and other scripts' digits, which the pool
+    # does not, and refuses more than 4300 digits (a ValueError at import)
+    ok = (
+        digits.isascii()
+        and digits.isdigit()
+        and len(digits.lstrip("0")) <= 4
+        and 1 <= int(digits) <= MAX_THREADS
+    )
     if not ok:
         import warnings
 

@@ -157,23 +157,38 @@ def _show_parse_error(e: typer.TyperException) -> None:
     """A refusal of the option parser (a missing or unknown option, a value of the wrong type
     or out of range) in the commands' own style: ``vvloc <command>: error: <what>`` on one
     line, then where the help is (the parser's default was a usage block, then ``Error:``)."""
-    ctx = getattr(e, "ctx", None)
     format_message = getattr(e, "format_message", None)
-    if ctx is None or format_message is None or type(e).__name__ == "NoArgsIsHelpError":
-        show = getattr(e, "show", None)  # the help of a bare group, or no context to name
+    if format_message is None or type(e).__name__ == "NoArgsIsHelpError":
+        show = getattr(e, "show", None)  # the help of a bare group
         if show is not None:
             show()
         else:
             typer.echo(f"vvloc: error: {e}", err=True)
         return
+    ctx = getattr(e, "ctx", None)
+    # an option missing its value is refused before the command has a context
+    path = ctx.command_path if ctx is not None else _command_path(sys.argv[1:])
     message = str(format_message())
     # "Invalid value for '--threshold': expected ..." → "--threshold: expected ...", as the
     # commands name an option
     m = re.fullmatch(r"Invalid value for '([^']+)': (.*)", message, flags=re.DOTALL)
     if m:
         message = f"{m.group(1)}: {m.group(2)}"
-    typer.echo(f"{ctx.command_path}: error: {message}", err=True)
-    typer.echo(f"Try '{ctx.command_path} --help' for help.", err=True)
+    typer.echo(f"{path}: error: {message}", err=True)
+    typer.echo(f"Try '{path} --help' for help.", err=True)
+
+
+def _command_path(args: list[str]) -> str:
+    """``vvloc`` and the names of the command and subcommand that begin ``args``."""
+    command = typer.main.get_command(app)
+    path = ["vvloc"]
+    for word in args:
+        commands = getattr(command, "commands", None)
+        if not commands or word not in commands:
+            break
+        path.append(word)
+        command = commands[word]
+    return " ".join(path)
 
 
 def main() -> None:

@@ -84,9 +84,11 @@ def _asarray(x: Any, name: str, shape_doc: str) -> Any:
 def _c_array(arr: Any, dtype: Any) -> Any:
     """``arr`` as a C-contiguous, aligned array of ``dtype`` (copied only when needed): the
     Rust kernels view the memory directly, and ``np.ascontiguousarray`` keeps a misaligned
-    buffer (``np.frombuffer(..., offset=1)``) misaligned."""
+    buffer (``np.frombuffer(..., offset=1)``) misaligned. numpy calls every empty array
+    aligned, whatever its address: the address is tested too."""
     out = np.ascontiguousarray(arr, dtype=dtype)
-    return out if out.flags.aligned else out.copy()
+    aligned = out.flags.aligned and out.ctypes.data % out.dtype.alignment == 0
+    return out if aligned else out.copy()
 
 
 def _as_f32(

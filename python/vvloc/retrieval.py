@@ -317,7 +317,8 @@ class DescriptorIndex:
 
         Args:
             queries: float array (nq, d) (or (d,) for one query), the stored descriptors' units.
-            r: radius, a finite float in [1.4e-45, 3.4e38] (what float32 holds). Distances are
+            r: radius, a finite float from float32's smallest (≈ 1.4013e-45) to its largest
+                (≈ 3.4028e38). Distances are
                 float32; ``r`` is rounded *up* to float32, so that ``distance < r`` holds for
                 the real ``r`` (rounding to nearest could drop a distance just below it).
             exclude: optional :class:`Exclusion` (temporal neighbours).
@@ -330,8 +331,11 @@ class DescriptorIndex:
         q = _queries(queries, self.dim)
         r = _positive_float(r, "r")
         f32 = np.finfo(np.float32)
-        if not float(f32.smallest_subnormal) <= r <= float(f32.max):  # compared in float32
-            raise ValueError(f"r: expected a radius float32 can hold (1.4e-45 .. 3.4e38), got {r}")
+        low, high = float(f32.smallest_subnormal), float(f32.max)  # both taken
+        if not low <= r <= high:  # compared in float32
+            raise ValueError(
+                f"r: expected a radius float32 can hold ({low!r} .. {high!r}), got {r}"
+            )
         r32 = np.float32(r)
         if float(r32) < r:  # float32 distances d < r  ⇔  d < r rounded up
             r32 = np.nextafter(r32, np.float32(np.inf))

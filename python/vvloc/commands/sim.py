@@ -59,7 +59,7 @@ def sim(
             min=1,
             max=12,
             help="Number of cameras in the rig, 1-12, evenly round the vehicle, front first "
-            "(fewer than 4 leave gaps between their views).",
+            "(1 or 2 leave gaps between their views; 3 just cover the circle).",
         ),
     ] = 4,
     width: Annotated[int, typer.Option("--width", min=8, help="Image width, pixels.")] = 160,

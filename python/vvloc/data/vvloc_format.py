@@ -654,6 +654,7 @@ class DatasetWriter:
             w.close()
         empty = [name for name, w in self._sessions.items() if w.count == 0]
         if len(empty) == len(self._sessions):
+            self.abort()  # called outside a with block as well: nothing is left behind
             raise ValueError(
                 f"{self.root}: no frame was added to any session ({empty or 'no session'}); "
                 "a dataset needs at least one frame"

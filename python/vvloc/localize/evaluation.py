@@ -687,9 +687,10 @@ def _sweep_note(sweep: float, over: bool, loop_radius: float, loop_sweep_pairs: 
 
 
 def _write_queries_csv(path: Path, scored: _Scored) -> None:
-    """``queries.csv``: one row per query, its answer against its ground truth, with what
-    the report's rows select queries by (``floor``, the metric row's ``map_floor``, ``kept``),
-    so that each figure can be recomputed from the file."""
+    """``queries.csv``: one row per query, its top-1 answer against its ground truth, with
+    what the report's pose rows select queries by (``floor``, the metric row's
+    ``map_floor``, ``kept``): the pose rows and Recall@1 at 2 m re-ranked can be recomputed
+    from the file (the other recall figures need the ranked lists)."""
     lines = [
         "# vvloc evaluation per query. Poses: world frame x east, y north (m), yaw CCW from "
         "east (deg). cost: matching cost (lower is better). floor: the query's; map_floor: "

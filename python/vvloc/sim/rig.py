@@ -44,7 +44,8 @@ def make_rig(
     mounted on the outline of a 2.0 m × 1.8 m box centred 1.3 m ahead of the ego origin (the
     rear axle centre projected to the ground, x forward; the front camera at x = 2.3 m, the
     rear one at x = 0.3 m) at ``mount_height``. Default horizontal field of view: 360°/M + 10°
-    of overlap, at most 120° (so rigs of 1-3 cameras leave gaps between their views; pass
+    of overlap, at most 120° (so rigs of 1 or 2 cameras leave gaps between their views, and 3
+    just cover the circle without overlap; pass
     ``hfov_deg`` up to 150° for wider lenses). Square pixels, principal point at the image
     centre ((W−1)/2, (H−1)/2). ``width``, ``height``: ints >= 8 pixels; ``hfov_deg``,
     ``pitch_deg`` (downward tilt) degrees; ``mount_height`` metres > 0 above the ground.

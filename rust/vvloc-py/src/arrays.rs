@@ -2,7 +2,7 @@
 //! unsound or panic is refused with a `ValueError` naming the argument.
 
 use numpy::ndarray::{ArrayView, Dimension};
-use numpy::{Element, PyReadonlyArray, PyUntypedArrayMethods};
+use numpy::{Element, PyArrayMethods, PyReadonlyArray, PyUntypedArrayMethods};
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 
@@ -10,7 +10,8 @@ use pyo3::prelude::*;
 const MAX_DIMS: usize = 32;
 
 /// `ValueError` naming `name` unless every element of `x` is aligned for its type (numpy's
-/// `ALIGNED` flag, which covers the data pointer and the strides). ndarray's views and Rust
+/// `ALIGNED` flag, which covers the data pointer and the strides, and the data pointer itself:
+/// numpy calls every empty array aligned, while ndarray asserts its pointer). ndarray's views and Rust
 /// slices read elements through references, which must be aligned: a buffer viewed at an odd
 /// byte offset (`np.frombuffer(buf, np.float32, offset=1)`) is refused here rather than read
 /// (a panic in a debug build, undefined behaviour in release). `vvloc.kernels` and
@@ -19,7 +20,7 @@ pub fn check_aligned<T: Element, D: Dimension>(
     x: &PyReadonlyArray<'_, T, D>,
     name: &str,
 ) -> PyResult<()> {
-    if x.is_aligned() {
+    if x.is_aligned() && (x.data() as usize).is_multiple_of(std::mem::align_of::<T>()) {
         Ok(())
     } else {
         Err(PyValueError::new_err(format!(

@@ -22,12 +22,12 @@ static STATE: Mutex<PoolState> = Mutex::new(PoolState {
     threads: 0,
 });
 
-/// The thread count `VVLOC_NUM_THREADS` asks for: ASCII digits alone, blanks around them
-/// allowed, at least 1, at most [`MAX_THREADS`] (a larger number, however many digits, asks
+/// The thread count `VVLOC_NUM_THREADS` asks for: ASCII digits alone, ASCII blanks around
+/// them allowed (space, tab, line feed, form feed, carriage return), at least 1, at most [`MAX_THREADS`] (a larger number, however many digits, asks
 /// for that many); None for anything else (a sign, `_`, other digits than ASCII's). The
 /// Python package warns of the same values (`vvloc._check_threads_variable`).
 fn threads_asked(text: &str) -> Option<usize> {
-    let digits = text.trim();
+    let digits = text.trim_matches(|c: char| c.is_ascii_whitespace());
     if digits.is_empty() || !digits.bytes().all(|b| b.is_ascii_digit()) {
         return None;
     }
