@@ -68,8 +68,10 @@ def _check_threads_variable() -> None:
     if not ok:
         import warnings
 
+        shown = repr(text) if len(text) <= 40 else f"{text[:20]!r}... ({len(text)} characters)"
+
         warnings.warn(
-            f"VVLOC_NUM_THREADS={text!r} is not an int in [1, {MAX_THREADS}]; vvloc's kernels use "
+            f"VVLOC_NUM_THREADS={shown} is not an int in [1, {MAX_THREADS}]; vvloc's kernels use "
             f"{get_num_threads()} threads",
             RuntimeWarning,
             stacklevel=3,
