@@ -23,9 +23,10 @@ static STATE: Mutex<PoolState> = Mutex::new(PoolState {
 });
 
 /// The thread count `VVLOC_NUM_THREADS` asks for: ASCII digits alone, ASCII blanks around
-/// them allowed (space, tab, line feed, form feed, carriage return), at least 1, at most [`MAX_THREADS`] (a larger number, however many digits, asks
-/// for that many); None for anything else (a sign, `_`, other digits than ASCII's). The
-/// Python package warns of the same values (`vvloc._check_threads_variable`).
+/// them allowed (space, tab, line feed, form feed, carriage return), at least 1; a larger
+/// number than [`MAX_THREADS`], however many digits, asks for [`MAX_THREADS`]. None for
+/// anything else (a sign, `_`, other digits than ASCII's). The Python package warns of the
+/// same values (`vvloc._check_threads_variable`).
 fn threads_asked(text: &str) -> Option<usize> {
     let digits = text.trim_matches(|c: char| c.is_ascii_whitespace());
     if digits.is_empty() || !digits.bytes().all(|b| b.is_ascii_digit()) {
