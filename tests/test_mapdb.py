@@ -1247,6 +1247,12 @@ def test_map_info_reports_the_map_and_verify_reads_every_byte(tmp_path: Path) ->
     r = subprocess.run([*cli, str(one)], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     assert "keyframes: 2 in 1 session\n" in r.stdout and "  s0: 2 keyframes, floor 1\n" in r.stdout
+    # --map, as localize and loops take the map, says the same; the map once, not twice
+    same = subprocess.run([*cli, "--map", str(one)], capture_output=True, text=True)
+    assert (same.returncode, same.stdout) == (0, r.stdout), same.stderr
+    for args in ([], [str(one), "--map", str(one)]):
+        bad = subprocess.run([*cli, *args], capture_output=True, text=True)
+        assert bad.returncode == 2 and "give the map once" in bad.stderr, bad.stderr
     flip_byte_in_chunk(path, "bev", 5)  # lazily read: found by --verify only
     assert subprocess.run([*cli, str(path)], capture_output=True).returncode == 0
     r = subprocess.run([*cli, str(path), "--verify"], capture_output=True, text=True)

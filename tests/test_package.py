@@ -272,11 +272,13 @@ def test_the_localizers_search_config_is_importable_where_the_localizer_is():
         (["sim"], "vvloc sim: error: Missing option '--out'."),
         (["sim", "--out", "x", "--frames", "abc"], "vvloc sim: error: --frames: "),
         (["eval", "--loop_radius", "0.7"], "vvloc eval: error: --loop_radius: expected a "),
-        (["map", "info", "--map", "x.h5"], "vvloc map info: error: No such option: --map"),
+        (["map", "info", "--mapp", "x.h5"], "vvloc map info: error: No such option: --mapp"),
         (["nonexistent"], "vvloc: error: No such command 'nonexistent'."),
         # refused before the command has a context: the path comes from the arguments
         (["sim", "--out"], "vvloc sim: error: Option '--out' requires an argument."),
         (["map", "build", "--out"], "vvloc map build: error: Option '--out' requires an"),
+        # demo takes --threads like the other commands that run the networks
+        (["demo", "--threads", "0"], "vvloc demo: error: --threads: "),
     ],
 )
 def test_the_parsers_refusals_read_like_the_commands_own(args, said, tmp_path):

@@ -11,7 +11,7 @@ from typing import Annotated
 
 import typer
 
-from vvloc.commands._util import check_out_folder, cli_errors
+from vvloc.commands._util import Threads, check_out_folder, cli_errors, set_torch_threads
 
 #: Where the committed trained small model lives (relative to the repository root).
 DEFAULT_MODEL = Path(__file__).resolve().parents[3] / "models" / "synth-small"
@@ -87,6 +87,7 @@ def demo(
     frames: Annotated[int, typer.Option("--frames", min=10, help="Keyframes per session.")] = 120,
     every: Annotated[int, typer.Option("--every", min=1, help="Localize every n-th query.")] = 3,
     seed: Annotated[int, typer.Option("--seed", min=0, help="World seed.")] = 0,
+    threads: Threads = None,
 ) -> None:
     """Render a small synthetic parking lot (5 sessions) into --out/data, or reuse the one an
     earlier demo rendered there; map its session s0 (day) with the committed model (or
@@ -100,6 +101,7 @@ def demo(
 
     t0 = time.perf_counter()
     with cli_errors("demo"):
+        set_torch_threads(threads)
         check_out_folder(out, own=True)
         check_report_folder(out, "--out")  # the report's files, refused before minutes of rendering
         data = out / "data"

@@ -11,6 +11,7 @@ import typer
 
 from vvloc.checkpoints import checkpoint_folder
 from vvloc.commands._util import (
+    EXIT_USAGE,
     Threads,
     check_sessions,
     cli_errors,
@@ -168,7 +169,13 @@ def build(
 
 @map_app.command("info")
 def info(
-    map_path: Annotated[Path, typer.Argument(help="Map file (.h5).", metavar="MAP")],
+    map_path: Annotated[
+        Path | None, typer.Argument(help="Map file (.h5); or --map.", metavar="MAP")
+    ] = None,
+    map_option: Annotated[
+        Path | None,
+        typer.Option("--map", help="Map file (.h5), as localize and loops take it."),
+    ] = None,
     verify: Annotated[
         bool,
         typer.Option(
@@ -187,6 +194,13 @@ def info(
 
     from vvloc.localize import MapDatabase
 
+    if (map_path is None) == (map_option is None):
+        typer.echo(
+            "vvloc map info: error: give the map once: vvloc map info MAP or --map MAP", err=True
+        )
+        raise typer.Exit(code=EXIT_USAGE)
+    map_path = map_path if map_path is not None else map_option
+    assert map_path is not None
     with cli_errors("map info"), MapDatabase.open(map_path) as db:
         if verify:
             db.verify()
