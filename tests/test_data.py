@@ -369,11 +369,18 @@ def test_writer_leaves_nothing_behind_on_error(tmp_path):
 def test_writer_leaves_out_sessions_without_frames_and_says_so(tmp_path):
     # a session without frames was written, and every command that reads one refuses it
     cams = make_rig(4, W, H)
-    with pytest.warns(UserWarning, match=r"sessions \['e1', 'e2'\] left out: no frame"):
+    with pytest.warns(UserWarning, match=r"sessions \['e1', 'e2'\] left out: no frame") as caught:
         with DatasetWriter(tmp_path / "ds", cams) as w:
             w.add_session("e1")
             w.add_session("s0").add(1, (0, 0, 0), np.zeros((4, 3, H, W), np.uint8))
             w.add_session("e2", meta={"note": "nothing"})
+    assert caught[0].filename == __file__  # at the with block, not in the writer
+    w = DatasetWriter(tmp_path / "ds2", cams)
+    w.add_session("s0").add(1, (0, 0, 0), np.zeros((4, 3, H, W), np.uint8))
+    w.add_session("e")
+    with pytest.warns(UserWarning, match=r"sessions \['e'\] left out") as caught:
+        w.close()
+    assert caught[0].filename == __file__
     assert open_dataset(tmp_path / "ds").sessions == ["s0"]
     assert sorted(p.name for p in (tmp_path / "ds" / "sessions").iterdir()) == ["s0"]
     # no frame at all: refused, and nothing is left behind, in a with block or not
@@ -388,7 +395,7 @@ def test_writer_leaves_out_sessions_without_frames_and_says_so(tmp_path):
             w.add_session(name)
         with pytest.raises(ValueError, match=r"no frame was added to any session"):
             w.close()
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["ds"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ds", "ds2"]
 
 
 def test_session_names_with_control_characters_are_refused(tmp_path):

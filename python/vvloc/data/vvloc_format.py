@@ -650,6 +650,11 @@ class DatasetWriter:
         A session to which no frame was added is left out, with a ``UserWarning`` naming it
         (every command refuses a session without frames); ``ValueError`` when no session has
         a frame, and nothing is written."""
+        return self._close(stacklevel=3)
+
+    def _close(self, stacklevel: int) -> Path:
+        """:meth:`close`, its warning ``stacklevel`` frames up (at the caller of ``close`` or of
+        the ``with`` block)."""
         for w in self._sessions.values():
             w.close()
         empty = [name for name, w in self._sessions.items() if w.count == 0]
@@ -664,7 +669,7 @@ class DatasetWriter:
                 shutil.rmtree(self._sessions[name].directory)
             warnings.warn(
                 f"{self.root}: sessions {empty} left out: no frame was added to them",
-                stacklevel=2,
+                stacklevel=stacklevel,
             )
         replaced: Path | None = None
         if self._target.exists():
@@ -714,7 +719,7 @@ class DatasetWriter:
     ) -> None:
         if exc_type is None:
             try:
-                self.close()
+                self._close(stacklevel=3)
             except BaseException:
                 self.abort()  # no partial folder left behind
                 raise
