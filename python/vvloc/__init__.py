@@ -59,11 +59,12 @@ def _check_threads_variable() -> None:
         return
     # not int() alone: it also takes "+4", "2_0" and other scripts' digits, which the pool
     # does not, and refuses more than 4300 digits (a ValueError at import)
+    significant = digits.lstrip("0")  # int() counts leading zeros toward its limit too
     ok = (
         digits.isascii()
         and digits.isdigit()
-        and len(digits.lstrip("0")) <= 4
-        and 1 <= int(digits) <= MAX_THREADS
+        and len(significant) <= 4
+        and 1 <= int(significant or "0") <= MAX_THREADS
     )
     if not ok:
         import warnings

@@ -38,7 +38,8 @@ MetricCandidates = Annotated[
 
 
 #: ``--threads`` of the commands that run the networks (``eval``, ``localize``, ``loops``,
-#: ``map build``, ``calibrate``): PyTorch's CPU threads, as :func:`set_torch_threads` sets them.
+#: ``map build``, ``calibrate``, ``demo``): PyTorch's CPU threads, as :func:`set_torch_threads`
+#: sets them.
 Threads = Annotated[
     int | None,
     typer.Option(

@@ -12,9 +12,9 @@ const MAX_DIMS: usize = 32;
 /// `ValueError` naming `name` unless every element of `x` is aligned for its type: numpy's
 /// `ALIGNED` flag, which covers the data pointer and the strides, and the data pointer itself
 /// (numpy calls every empty array aligned, while ndarray asserts its pointer). ndarray's views
-/// and Rust slices read elements through references, which must be aligned: a buffer viewed at an odd
-/// byte offset (`np.frombuffer(buf, np.float32, offset=1)`) is refused here rather than read
-/// (a panic in a debug build, undefined behaviour in release). `vvloc.kernels` and
+/// and Rust slices read elements through references, which must be aligned: a buffer viewed at
+/// an odd byte offset (`np.frombuffer(buf, np.float32, offset=1)`) is refused here rather than
+/// read (a panic in a debug build, undefined behaviour in release). `vvloc.kernels` and
 /// `vvloc.retrieval` copy such arrays before they get here.
 pub fn check_aligned<T: Element, D: Dimension>(
     x: &PyReadonlyArray<'_, T, D>,
