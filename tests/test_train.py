@@ -18,6 +18,9 @@ import yaml
 from PIL import Image
 
 import vvloc.train
+import vvloc.train.data
+import vvloc.train.steps
+import vvloc.train.trainer
 from data_helpers import blank_frames
 from vvloc.checkpoints import resolve_checkpoint
 from vvloc.evaluate import to_jsonable
@@ -75,7 +78,7 @@ def test_the_near_loss_draws_its_offsets_from_a_stream_of_its_own(seed):
 def test_the_near_losses_are_seeded_by_near_seed(monkeypatch, tiny_world):
     seen = []
     monkeypatch.setattr(
-        vvloc.train, "near_translation_loss", lambda *a, **kw: seen.append(kw["seed"])
+        vvloc.train.steps, "near_translation_loss", lambda *a, **kw: seen.append(kw["seed"])
     )
     cfg = _config(tiny_world, tbias_near_weight=1.0, seed=5)
     vvloc.train.near_losses(None, None, None, None, None, cfg, 17)
@@ -675,7 +678,7 @@ def test_init_checkpoint_starts_from_trained_weights_and_refuses_another_model(
 
 
 def test_a_garage_rendered_with_another_floor_marking_is_refused(tmp_path):
-    from vvloc.train import _check_rendered_like
+    from vvloc.train.data import _check_rendered_like
 
     root = tmp_path / "garage"
     root.mkdir()
@@ -1671,7 +1674,7 @@ def test_resume_fingerprints_only_the_sessions_the_run_reads(tiny_world, tmp_pat
 
 
 def test_a_non_finite_loss_stops_before_the_step(tiny_world, tmp_path, monkeypatch):
-    import vvloc.train as train_module
+    import vvloc.train.trainer as train_module
 
     cfg = _config(tiny_world, stage1_epochs=2, stage2_epochs=0, steps_per_epoch=2)
     out = tmp_path / "run"
@@ -1880,7 +1883,7 @@ def test_resume_without_a_run_is_refused_before_the_world_is_rendered(tmp_path, 
     def render(*a, **k):
         raise AssertionError("rendered")
 
-    monkeypatch.setattr(vvloc.train, "_ensure_dataset", render)
+    monkeypatch.setattr(vvloc.train.trainer, "_ensure_dataset", render)
     cfg = TrainConfig.from_dict(
         {"dataset": str(tmp_path / "world"), "sim": {"sessions": 2, "frames": 4}}
     )
@@ -1908,7 +1911,7 @@ def test_a_relative_dataset_path_is_named_as_the_working_directory_reads_it(tmp_
         match=r"^dataset: nowhere does not exist \(.*nowhere: a relative path is taken from the "
         r"working directory, not the config's folder\)",
     ):
-        vvloc.train._ensure_dataset("nowhere", None)
+        vvloc.train.data._ensure_dataset("nowhere", None)
 
 
 def test_sessions_a_sim_section_would_not_render_are_refused_before_rendering(
@@ -2002,8 +2005,8 @@ def test_validation_without_a_query_near_the_map_is_refused(tiny_world, tmp_path
     with pytest.raises(ValueError, match="val_sessions: no query of"):
         tr.validate()
     # known from the poses alone: the trainer refuses it before any epoch
-    real_open = vvloc.train.open_dataset
-    monkeypatch.setattr(vvloc.train, "open_dataset", lambda root: _FarAway(real_open(root)))
+    real_open = vvloc.train.trainer.open_dataset
+    monkeypatch.setattr(vvloc.train.trainer, "open_dataset", lambda root: _FarAway(real_open(root)))
     with pytest.raises(ValueError, match=r"val_sessions: no query of \['s2'\]"):
         Trainer(cfg, tmp_path / "far")
     assert not (tmp_path / "far").exists()
@@ -2198,7 +2201,7 @@ def test_a_non_finite_loss_in_the_first_epoch_is_one_line_saying_nothing_was_sav
 
 
 def test_a_bad_sim_section_is_named_as_the_configs_key(tmp_path):
-    from vvloc.train import _ensure_dataset
+    from vvloc.train.data import _ensure_dataset
 
     world = tmp_path / "world"
     with pytest.raises(ValueError, match=r"^sim: unknown keys \['frame'\] \(known: \["):
@@ -2219,7 +2222,7 @@ def test_a_bad_sim_section_is_named_as_the_configs_key(tmp_path):
 def test_running_out_of_memory_names_the_batch_size_and_what_the_run_keeps(
     tiny_world, tmp_path, monkeypatch, error
 ):
-    import vvloc.train as train_module
+    import vvloc.train.trainer as train_module
 
     cfg = _config(tiny_world, stage1_epochs=2, stage2_epochs=0, steps_per_epoch=2, batch_size=3)
     out = tmp_path / "run"
@@ -2272,7 +2275,7 @@ def test_out_of_memory_names_each_stages_batch_key(tiny_world):
 
 
 def test_other_runtime_errors_pass_through_unchanged(tiny_world, tmp_path, monkeypatch):
-    import vvloc.train as train_module
+    import vvloc.train.trainer as train_module
 
     def broken(*args, **kwargs):
         raise RuntimeError("mat1 and mat2 shapes cannot be multiplied")
