@@ -34,7 +34,8 @@ HEAD_FIELDS = ("global_head", "netvlad_clusters", "global_dim", "disco_crop", "g
 RESUMABLE_CHANGES = ("num_workers", "threads", "device")
 
 
-#: What ``best/`` is selected by first (``TrainConfig.select_by``; :meth:`Trainer.selection_key`).
+#: What ``best/`` is selected by first (``TrainConfig.select_by``;
+#: :meth:`vvloc.train.Trainer.selection_key`).
 SELECT_BY = ("reranked", "retrieval", "last")
 
 
@@ -108,11 +109,11 @@ class TrainConfig:
     ``dataset``, ``sessions`` (never trained on) and optionally ``radius`` (descriptor distance,
     default 0.1), ``window`` (same-session neighbours excluded, default 10 keyframes) and
     ``sequence`` (the loop detector's sequence-check half-window, default 0: single keyframes,
-    the paper's test; :mod:`vvloc.localize.loops`): each
-    validated epoch then also counts the loop closures that all frames of those sessions accept
-    at ``radius`` and how many join two floors (:func:`loop_validation`), and ``best/`` goes to
-    the epoch with the fewest such cross-floor pairs (summed over the entries), ties by the
-    Recall@1 figures above. Needs ``val_sessions``.
+    the paper's test; :mod:`vvloc.localize.loops`): each validated epoch then also counts the
+    loop closures that all frames of those sessions accept at ``radius`` and how many join two
+    floors (:func:`vvloc.train.loop_validation`), and ``best/`` goes to the epoch with the fewest
+    such cross-floor pairs (summed over the entries), ties by the Recall@1 figures above. Needs
+    ``val_sessions``.
     ``select_by`` (``"reranked"``, the default, or ``"retrieval"``): which Recall@1 (2 m)
     decides ``best/`` first (the other breaks ties; cross-floor loop closures on ``val_loops``
     come before both). ``"retrieval"`` is for head-stage runs: the head stage changes only the
@@ -134,7 +135,7 @@ class TrainConfig:
     last epoch left it. This is what a ``--resume`` did before 2026-12-03, when the trainer
     state did not hold the position in the pool. ``models/synth-small``'s step 1 was resumed
     that way after epoch 10, and ``hard_pool_restarts: [11]`` trains it again without a break.
-    ``head_epochs`` (default 0) adds the head stage (module docstring): ``head_steps_per_epoch``
+    ``head_epochs`` (default 0) adds the head stage (:mod:`vvloc.train`): ``head_steps_per_epoch``
     steps of ``head_batch_size`` triplets at learning rate ``head_lr`` (Adam, ×``lr_decay`` per
     epoch), negatives mined among the ``head_negatives`` nearest. Its cache holds every training
     frame's polar BEV in float16 on the training device: N · T · R · C · 2 bytes (the small
@@ -145,7 +146,7 @@ class TrainConfig:
     applied, our :func:`vvloc.losses.near_translation_loss`: offsets of ‖Δ‖ in
     ``tbias_near_range`` (metres), margin ``tbias_near_slope`` × ‖Δ‖, the zero translation
     instead for the share ``tbias_near_zero`` of the pairs.
-    ``local_epochs`` (default 0) adds the local stage (module docstring), after the head stage:
+    ``local_epochs`` (default 0) adds the local stage (:mod:`vvloc.train`), after the head stage:
     ``local_steps_per_epoch`` steps of ``local_batch_size`` (anchor, positive) pairs at learning
     rate ``local_lr`` (Adam, ×``lr_decay`` per epoch), on the decoder and the interactor only,
     with the stage-2 weights ``yaw_weight``, ``tbias_weight`` and ``tbias_near_weight``. Its

@@ -1,6 +1,8 @@
 """The datasets a run reads: :class:`TripletFrames` (the stages-1-2 loader's dataset of a
 sampler's triplets), rendering a config's simulated datasets when missing, and the checks that a
-run's datasets, sessions and ``init_checkpoint`` are what its config names."""
+run's datasets, sessions and ``init_checkpoint`` are what its config names (with the helpers
+by which a resumed run recognises its datasets: their paths in the config and its sessions'
+fingerprints)."""
 
 from __future__ import annotations
 
@@ -206,26 +208,6 @@ def _check_session_keys(cfg: TrainConfig, ds: Any) -> None:
         default = key == "val_database" and cfg.val_database == TrainConfig().val_database
         note = " (its default: set it to your map session)" if default else ""
         _check_sessions(key, cfg.dataset, ds, names, note)
-
-
-def _load_trainer_state(path: Path) -> dict[str, Any]:
-    """``torch.load`` of a run's ``trainer_state.pt``: ``ValueError`` naming the file when it
-    is truncated (a disk that filled, a copy cut short) or not a trainer state; torch says
-    ``EOFError: Ran out of input`` or ``pickle data was truncated`` without the file."""
-    import pickle
-
-    try:
-        state = torch.load(path, map_location="cpu", weights_only=False)
-    except (RuntimeError, EOFError, pickle.UnpicklingError) as e:
-        why: str = str(e).split(". ")[0]
-    else:
-        if isinstance(state, dict) and "config" in state:
-            return state
-        why = f"a {type(state).__name__} without the run's config"
-    raise ValueError(
-        f"{path}: not a readable trainer state ({why}): this run cannot be resumed; start a new "
-        "run into another folder (init_checkpoint: its checkpoint/ to keep its weights)"
-    )
 
 
 def _check_sessions(key: str, dataset: str, ds: Any, names: Sequence[str], note: str = "") -> None:

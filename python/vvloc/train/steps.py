@@ -1,6 +1,6 @@
-"""The losses of one training step of stages 1-2 (:func:`global_losses`,
-:func:`training_losses`), the local stage's near translation loss (:func:`near_losses`) and its
-seed stream (:func:`near_seed`)."""
+"""The losses of one training step: :func:`global_losses` (triplet + hinge, stages 1-2 and the
+head stage), :func:`training_losses` (a stage 1-2 step), the local stage's near translation loss
+(:func:`near_losses`) and its seed stream (:func:`near_seed`)."""
 
 from __future__ import annotations
 

@@ -63,7 +63,6 @@ from vvloc.train.data import (
     _ensure_dataset,
     _hash_session,
     _is_checkpoint,
-    _load_trainer_state,
     _named_paths,
     _no_init_checkpoint,
     _open_named,
@@ -98,6 +97,26 @@ def seed_everything(seed: int) -> None:
     random.seed(seed)
     np.random.seed(seed % 2**32)  # noqa: NPY002 (seed the legacy global RNG too)
     torch.manual_seed(seed)
+
+
+def _load_trainer_state(path: Path) -> dict[str, Any]:
+    """``torch.load`` of a run's ``trainer_state.pt``: ``ValueError`` naming the file when it
+    is truncated (a disk that filled, a copy cut short) or not a trainer state; torch says
+    ``EOFError: Ran out of input`` or ``pickle data was truncated`` without the file."""
+    import pickle
+
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=False)
+    except (RuntimeError, EOFError, pickle.UnpicklingError) as e:
+        why: str = str(e).split(". ")[0]
+    else:
+        if isinstance(state, dict) and "config" in state:
+            return state
+        why = f"a {type(state).__name__} without the run's config"
+    raise ValueError(
+        f"{path}: not a readable trainer state ({why}): this run cannot be resumed; start a new "
+        "run into another folder (init_checkpoint: its checkpoint/ to keep its weights)"
+    )
 
 
 class Trainer:
@@ -1106,7 +1125,7 @@ class Trainer:
         return l_tri + l_hinge, l_tri, l_hinge, int((~correct).sum())
 
     def _head_epoch(self, progress: bool) -> dict[str, Any]:
-        """One epoch of the head stage (see the module docstring); returns its log record."""
+        """One epoch of the head stage (:mod:`vvloc.train`); returns its log record."""
         cfg = self.cfg
         t0 = time.perf_counter()
         cache = self.head_cache(progress)
@@ -1226,7 +1245,7 @@ class Trainer:
         return total, l_yaw, l_tb, l_near
 
     def _local_epoch(self, progress: bool) -> dict[str, Any]:
-        """One epoch of the local stage (see the module docstring); returns its log record."""
+        """One epoch of the local stage (:mod:`vvloc.train`); returns its log record."""
         cfg = self.cfg
         t0 = time.perf_counter()
         bevs, poses = self.local_cache(progress)
@@ -1292,7 +1311,8 @@ class Trainer:
         return self.cfg.stage2_epochs == 0 or self.stage_of(epoch) >= 2
 
     def validate(self) -> dict[str, Any]:
-        """Score the current model on ``val_sessions`` (see :func:`validation_recall`)."""
+        """Score the current model on ``val_sessions``
+        (:func:`vvloc.train.validation_recall`)."""
         cfg = self.cfg
         t0 = time.perf_counter()
         res = validation_recall(

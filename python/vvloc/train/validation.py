@@ -1,6 +1,8 @@
 """Scoring epochs on held-out sessions: :func:`validation_recall` (Recall@1 at 2 m after
-re-ranking and by retrieval alone, which ``best/`` is selected by) and :func:`loop_validation`
-(loop closures on a ``val_loops`` dataset: precision, recall and CFER at the loop radius)."""
+re-ranking and by retrieval alone, which ``best/`` is selected by; :func:`validation_query_count`
+counts its queries from the poses alone, checked before the first epoch) and
+:func:`loop_validation` (loop closures on a ``val_loops`` dataset: precision, recall and CFER at
+the loop radius)."""
 
 from __future__ import annotations
 
