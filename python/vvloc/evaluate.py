@@ -32,9 +32,18 @@ import numpy as np
 import numpy.typing as npt
 from scipy.spatial import cKDTree
 
+from vvloc._checks import (
+    as_array,
+    bool_array,
+    finite_float,
+    int_array,
+    positive_float,
+    positive_int,
+    real_array,
+    real_number,
+)
 from vvloc._io import atomic_write
 from vvloc.geometry import wrap_angle
-from vvloc.kernels import _finite_float, _positive_float, _positive_int
 
 __all__ = [
     "DEFAULT_COST_THRESHOLD",
@@ -83,27 +92,9 @@ DEFAULT_COST_THRESHOLD = 0.75
 # ----------------------------------------------------------------------------- validation
 
 
-def _asarray(x: Any, name: str, shape_doc: str) -> npt.NDArray[Any]:
-    """``np.asarray(x)``, a ragged nested sequence refused naming ``name``."""
-    try:
-        return np.asarray(x)
-    except ValueError as e:  # numpy's "inhomogeneous shape after 1 dimensions"
-        raise ValueError(f"{name}: expected an array of shape {shape_doc}, got a ragged one") from e
-
-
-def _real(x: Any, name: str) -> float:
-    """A real number, ±inf allowed, NaN refused (a threshold: ``inf`` accepts everything)."""
-    if isinstance(x, bool) or not isinstance(x, (int, float, np.integer, np.floating)):
-        raise TypeError(f"{name}: expected a real number, got {type(x).__name__}")
-    v = float(x)
-    if np.isnan(v):
-        raise ValueError(f"{name}: expected a number, got nan")
-    return v
-
-
 def _share(x: Any, name: str, closed_above: bool) -> float:
     """A finite share in (0, 1] (``closed_above``) or (0, 1), named in the error."""
-    v = _finite_float(x, name)
+    v = finite_float(x, name)
     if not (0.0 < v <= 1.0 if closed_above else 0.0 < v < 1.0):
         raise ValueError(
             f"{name}: expected a value in (0, {'1]' if closed_above else '1)'}, got {v}"
@@ -125,47 +116,6 @@ def _rank(n: Any, name: str) -> int:
     return int(n)
 
 
-def _real_array(x: Any, name: str, shape_doc: str, ndim: int, last: int | None = None) -> F64Array:
-    """Return ``x`` as a finite float64 array of ``ndim`` dimensions (last axis ``last``)."""
-    if x is None or isinstance(x, (str, bytes)):
-        raise TypeError(f"{name}: expected a real array of shape {shape_doc}, got {x!r}")
-    arr = _asarray(x, name, shape_doc)
-    if arr.dtype == np.bool_ or not (
-        np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)
-    ):
-        raise TypeError(
-            f"{name}: expected a real array of shape {shape_doc}, got dtype {arr.dtype}"
-        )
-    if arr.ndim != ndim or (last is not None and arr.shape[-1] != last):
-        raise ValueError(f"{name}: expected shape {shape_doc}, got {arr.shape}")
-    out = arr.astype(np.float64)
-    if out.size and not np.isfinite(out).all():
-        raise ValueError(f"{name}: contains non-finite values (NaN or inf)")
-    return out
-
-
-def _int_array(x: Any, name: str, shape_doc: str, ndim: int, last: int | None = None) -> I64Array:
-    """Return ``x`` as an int64 array of ``ndim`` dimensions (last axis ``last``)."""
-    arr = _asarray(x, name, shape_doc)
-    if arr.dtype == np.bool_ or not np.issubdtype(arr.dtype, np.integer):
-        if not (arr.size == 0 and arr.dtype == np.float64):  # np.asarray([]) is float64
-            raise TypeError(f"{name}: expected an integer array {shape_doc}, got dtype {arr.dtype}")
-    if arr.ndim != ndim or (last is not None and arr.shape[-1] != last):
-        raise ValueError(f"{name}: expected shape {shape_doc}, got {arr.shape}")
-    return arr.astype(np.int64)
-
-
-def _bool_array(x: Any, name: str, length: int) -> BoolArray:
-    arr = np.asarray(x)
-    if arr.dtype != np.bool_:
-        raise TypeError(
-            f"{name}: expected a bool array of shape ({length},), got dtype {arr.dtype}"
-        )
-    if arr.shape != (length,):
-        raise ValueError(f"{name}: expected shape ({length},), got {arr.shape}")
-    return arr
-
-
 def _floors(
     query_floors: Any, db_floors: Any, num_queries: int, num_db: int
 ) -> tuple[I64Array, I64Array] | None:
@@ -174,8 +124,8 @@ def _floors(
         return None
     if query_floors is None or db_floors is None:
         raise ValueError("query_floors and db_floors: give both or neither")
-    qf = _int_array(query_floors, "query_floors", f"({num_queries},)", 1)
-    df = _int_array(db_floors, "db_floors", f"({num_db},)", 1)
+    qf = int_array(query_floors, "query_floors", f"({num_queries},)", 1)
+    df = int_array(db_floors, "db_floors", f"({num_db},)", 1)
     if qf.shape[0] != num_queries:
         raise ValueError(f"query_floors: expected shape ({num_queries},), got {qf.shape}")
     if df.shape[0] != num_db:
@@ -187,7 +137,7 @@ def _pair_array(pairs: Any) -> I64Array:
     """``pairs`` as a ``(P, 2)`` int64 array (an empty input of any shape: no pairs)."""
     if not np.size(pairs):
         return np.zeros((0, 2), np.int64)
-    return _int_array(pairs, "pairs", "(P, 2)", 2, 2)
+    return int_array(pairs, "pairs", "(P, 2)", 2, 2)
 
 
 def _ratio(num: float, den: float) -> float:
@@ -213,8 +163,8 @@ def nearest_map_distance(
     Returns:
         ``(Q,)`` float64 distances; ``inf`` where no map frame shares the query's floor.
     """
-    q = _real_array(query_positions, "query_positions", "(Q, 2)", 2, 2)
-    d = _real_array(db_positions, "db_positions", "(N, 2)", 2, 2)
+    q = real_array(query_positions, "query_positions", "(Q, 2)", 2, 2)
+    d = real_array(db_positions, "db_positions", "(N, 2)", 2, 2)
     floors = _floors(query_floors, db_floors, q.shape[0], d.shape[0])
     out = np.full(q.shape[0], np.inf)
     if floors is None:
@@ -269,7 +219,7 @@ class RecallResult:
         return int(self.kept.sum())
 
     def _radius_index(self, radius: float) -> int:
-        radius = _positive_float(radius, "radius")
+        radius = positive_float(radius, "radius")
         for i, r in enumerate(self.radii):
             if np.isclose(r, radius):
                 return i
@@ -353,9 +303,9 @@ def recall_at_n(
     Returns:
         A :class:`RecallResult` (``num_kept`` says how many queries were kept).
     """
-    q = _real_array(query_positions, "query_positions", "(Q, 2)", 2, 2)
-    d = _real_array(db_positions, "db_positions", "(N, 2)", 2, 2)
-    idx = _int_array(retrieved, "retrieved", "(Q, K)", 2)
+    q = real_array(query_positions, "query_positions", "(Q, 2)", 2, 2)
+    d = real_array(db_positions, "db_positions", "(N, 2)", 2, 2)
+    idx = int_array(retrieved, "retrieved", "(Q, K)", 2)
     num_q, num_db = q.shape[0], d.shape[0]
     if idx.shape[0] != num_q:
         raise ValueError(f"retrieved: expected {num_q} rows (one per query), got {idx.shape}")
@@ -378,7 +328,7 @@ def recall_at_n(
     repeated = sorted({n for n in ns if ns.count(n) > 1})
     if repeated:
         raise ValueError(f"top_n: ranks {repeated} listed more than once")
-    rs = tuple(_positive_float(r, "radii") for r in _sequence(radii, "radii", "radii (m)"))
+    rs = tuple(positive_float(r, "radii") for r in _sequence(radii, "radii", "radii (m)"))
     if not rs:
         raise ValueError("radii: expected at least one radius")
     labels = [f"{r:g}" for r in rs]  # the keys of to_dict() and of the report
@@ -388,7 +338,7 @@ def recall_at_n(
             f"radii: {[r for r in rs if f'{r:g}' in same]} are one radius in the report "
             f"(labelled {same}); give each radius once"
         )
-    elig = _positive_float(eligibility_radius, "eligibility_radius")
+    elig = positive_float(eligibility_radius, "eligibility_radius")
 
     nearest = nearest_map_distance(q, d, *(floors if floors is not None else (None, None)))
     kept = nearest <= elig
@@ -449,8 +399,8 @@ def pose_errors(estimated: npt.ArrayLike, ground_truth: npt.ArrayLike) -> tuple[
         ``(yaw_error_deg (Q,), position_error_m (Q,))``: ``|wrap(yaw_est − yaw_gt)|`` in degrees
         (in [0, 180], so 179° vs −179° is 2°) and the Euclidean distance of the x, y parts.
     """
-    est = _real_array(estimated, "estimated", "(Q, 3)", 2, 3)
-    gt = _real_array(ground_truth, "ground_truth", "(Q, 3)", 2, 3)
+    est = real_array(estimated, "estimated", "(Q, 3)", 2, 3)
+    gt = real_array(ground_truth, "ground_truth", "(Q, 3)", 2, 3)
     if est.shape != gt.shape:
         raise ValueError(f"estimated, ground_truth: shapes differ ({est.shape} vs {gt.shape})")
     yaw = np.degrees(np.abs(wrap_angle(est[:, 2] - gt[:, 2])))
@@ -479,9 +429,9 @@ def error_percentiles(
     ``error_percentiles([0, 0, 0, 90], (50, 75, 95)) == [0, 0, 90]``. Returns ``(len(p),)``
     float64, ``nan`` for an empty sample.
     """
-    e = _real_array(errors, "errors", "(n,)", 1)
+    e = real_array(errors, "errors", "(n,)", 1)
     items = _sequence(percentiles, "percentiles", "percentages in [0, 100]")
-    p = np.array([_finite_float(v, "percentiles") for v in items], dtype=np.float64)
+    p = np.array([finite_float(v, "percentiles") for v in items], dtype=np.float64)
     if ((p < 0) | (p > 100)).any():
         raise ValueError(f"percentiles: expected values in [0, 100], got {p.tolist()}")
     if e.size == 0:
@@ -546,16 +496,16 @@ def pose_accuracy(
     """
     yaw, pos = pose_errors(estimated, ground_truth)
     n = yaw.shape[0]
-    corr = _bool_array(correct, "correct", n)
-    keep = np.ones(n, dtype=bool) if kept is None else _bool_array(kept, "kept", n)
+    corr = bool_array(correct, "correct", n)
+    keep = np.ones(n, dtype=bool) if kept is None else bool_array(kept, "kept", n)
     floor_ok = (
-        np.ones(n, dtype=bool) if same_floor is None else _bool_array(same_floor, "same_floor", n)
+        np.ones(n, dtype=bool) if same_floor is None else bool_array(same_floor, "same_floor", n)
     )
     sub = corr & keep
     every = keep & floor_ok
     rows = {"true_revisit": _aoe_ape(yaw[sub], pos[sub], percentiles)}
     if pose_keyframe_correct is not None:
-        basis = _bool_array(pose_keyframe_correct, "pose_keyframe_correct", n) & keep
+        basis = bool_array(pose_keyframe_correct, "pose_keyframe_correct", n) & keep
         rows["pose_keyframe"] = _aoe_ape(yaw[basis], pos[basis], percentiles)
     rows["all"] = _aoe_ape(yaw[every], pos[every], percentiles) | {
         "other_floor": int((keep & ~floor_ok).sum())
@@ -612,7 +562,7 @@ class LoopClosureCurve:
         and when nothing is accepted while positive queries exist: 2TP/(2TP + FP + FN) = 0);
         CFER = accepted pairs joining different floors / accepted pairs. Undefined → ``nan``.
         """
-        t = _real(threshold, "threshold")
+        t = real_number(threshold, "threshold")
         k = int(np.searchsorted(self.distances, t, side="left" if strict else "right"))
         tp = int(self.is_true[:k].sum())
         precision = _ratio(tp, k)
@@ -720,10 +670,10 @@ def thin_sweep(sweep: Mapping[str, npt.ArrayLike], points: int) -> dict[str, F64
     and the best F1 (when ``f1`` is there). A sweep over millions of pairs keeps its shape along
     both axes in a few kilobytes of JSON (by rank alone, the low-recall end would be one
     segment). Returns float64 arrays under the same names."""
-    points = _positive_int(points, "points")
+    points = positive_int(points, "points")
     arrays = {}
     for k, v in sweep.items():
-        arr = _asarray(v, f"sweep[{k!r}]", "(n,)")
+        arr = as_array(v, f"sweep[{k!r}]", "(n,)")
         if arr.dtype.kind not in "fiu" or arr.ndim != 1:  # no bool, complex or object
             raise ValueError(
                 f"sweep[{k!r}]: expected a 1-D real array (n,), got {arr.dtype} {arr.shape}"
@@ -812,11 +762,11 @@ def loop_closure_curve(
             detects both frames, and a frame is never its own loop (not with ``causal``).
         radius: true-loop radius (m).
     """
-    q = _real_array(query_positions, "query_positions", "(Q, 2)", 2, 2)
-    d = _real_array(db_positions, "db_positions", "(N, 2)", 2, 2)
+    q = real_array(query_positions, "query_positions", "(Q, 2)", 2, 2)
+    d = real_array(db_positions, "db_positions", "(N, 2)", 2, 2)
     num_q, num_db = q.shape[0], d.shape[0]
     pr = _pair_array(pairs)
-    dist = _real_array(distances, "distances", "(P,)", 1)
+    dist = real_array(distances, "distances", "(P,)", 1)
     if dist.shape[0] != pr.shape[0]:
         raise ValueError(f"distances: expected shape ({pr.shape[0]},), got {dist.shape}")
     if pr.size and not (
@@ -831,15 +781,15 @@ def loop_closure_curve(
         raise ValueError("query_times and db_times: give both or neither")
     times = None
     if query_times is not None:
-        qt = _real_array(query_times, "query_times", f"({num_q},)", 1)
-        dt = _real_array(db_times, "db_times", f"({num_db},)", 1)
+        qt = real_array(query_times, "query_times", f"({num_q},)", 1)
+        dt = real_array(db_times, "db_times", f"({num_db},)", 1)
         if qt.shape[0] != num_q or dt.shape[0] != num_db:
             raise ValueError("query_times, db_times: expected shapes (Q,) and (N,)")
         times = (qt, dt)
-    window = _finite_float(time_window, "time_window")
+    window = finite_float(time_window, "time_window")
     if window < 0:
         raise ValueError(f"time_window: expected a finite value >= 0, got {time_window}")
-    rad = _positive_float(radius, "radius")
+    rad = positive_float(radius, "radius")
     if symmetric and (causal or num_q != num_db):
         raise ValueError(
             "symmetric: needs the same frames as query and map (Q == N) and causal=False"
@@ -926,13 +876,13 @@ def self_loop_closure_curve(
     and ``seqs`` (N,) integers. Pairs of one session within ``window`` sequence numbers are
     temporal neighbours (not admissible); pairs of two sessions always are admissible. Each
     pair is listed once; a true pair detects both of its frames (``symmetric``)."""
-    n = _real_array(positions, "positions", "(N, 2)", 2, 2).shape[0]
+    n = real_array(positions, "positions", "(N, 2)", 2, 2).shape[0]
     arrays = {}
     for name, x in (("floors", floors), ("sessions", sessions), ("seqs", seqs)):
-        arrays[name] = _int_array(x, name, f"({n},)", 1)
+        arrays[name] = int_array(x, name, f"({n},)", 1)
         if arrays[name].shape != (n,):
             raise ValueError(f"{name}: expected shape ({n},), got {arrays[name].shape}")
-    w = _positive_int(window, "window", minimum=0)
+    w = positive_int(window, "window", minimum=0)
     # sessions never overlap; exact in float64 while the spans stay below 2**53
     seq, ses = arrays["seqs"].astype(np.float64), arrays["sessions"].astype(np.float64)
     span = float(np.abs(seq).max(initial=0.0)) + float(w) + 1.0
@@ -980,16 +930,16 @@ def cross_floor_events(
     Returns ``{"events", "cross_floor_events", "cfer", "cfer_upper", "confidence", "cell_m"}``:
     CFER = cross-floor events / events and its bound (``nan`` without events).
     """
-    pos = _real_array(positions, "positions", "(N, 2)", 2, 2)
+    pos = real_array(positions, "positions", "(N, 2)", 2, 2)
     n = pos.shape[0]
-    fl = _int_array(floors, "floors", "(N,)", 1)
-    ses = _int_array(sessions, "sessions", "(N,)", 1)
+    fl = int_array(floors, "floors", "(N,)", 1)
+    ses = int_array(sessions, "sessions", "(N,)", 1)
     if fl.shape != (n,) or ses.shape != (n,):
         raise ValueError(f"floors, sessions: expected ({n},) each, got {fl.shape} and {ses.shape}")
     pr = _pair_array(pairs)
     if pr.size and (pr.min() < 0 or pr.max() >= n):
         raise ValueError(f"pairs: expected indices in [0, {n}), got values outside it")
-    cell = _positive_float(cell, "cell")
+    cell = positive_float(cell, "cell")
     confidence = _share(confidence, "confidence", closed_above=False)
     a, b = pr[:, 0], pr[:, 1]
     grid = np.floor(pos[a] / cell).astype(np.int64)
@@ -1072,17 +1022,17 @@ def loop_pose_metrics(
     """
     rre, rte = relative_pose_errors(estimated, ground_truth)
     n = rre.shape[0]
-    rot_t = _positive_float(rot_threshold_deg, "rot_threshold_deg")
-    trans_t = _positive_float(trans_threshold_m, "trans_threshold_m")
+    rot_t = positive_float(rot_threshold_deg, "rot_threshold_deg")
+    trans_t = positive_float(trans_threshold_m, "trans_threshold_m")
     floor_ok = (
-        np.ones(n, dtype=bool) if same_floor is None else _bool_array(same_floor, "same_floor", n)
+        np.ones(n, dtype=bool) if same_floor is None else bool_array(same_floor, "same_floor", n)
     )
     out = {"all": _loop_pose_row(rre, rte, floor_ok, n, rot_t, trans_t)}
     if costs is not None:
-        c = _real_array(costs, "costs", f"({n},)", 1)
+        c = real_array(costs, "costs", f"({n},)", 1)
         if c.shape[0] != n:
             raise ValueError(f"costs: expected shape ({n},), got {c.shape}")
-        threshold = _real(cost_threshold, "cost_threshold")
+        threshold = real_number(cost_threshold, "cost_threshold")
         keep = c < threshold
         row = _loop_pose_row(rre[keep], rte[keep], floor_ok[keep], n, rot_t, trans_t)
         out["confident"] = row | {"cost_threshold": threshold}
@@ -1113,19 +1063,19 @@ def confidence_curve(
         same_floor: optional ``(P,)`` bool, whether each pair's keyframes share a floor
             (default all; as in :func:`loop_pose_metrics`).
     """
-    c = _real_array(costs, "costs", "(P,)", 1)
-    rre = _real_array(rre_deg, "rre_deg", "(P,)", 1)
-    rte = _real_array(rte_m, "rte_m", "(P,)", 1)
+    c = real_array(costs, "costs", "(P,)", 1)
+    rre = real_array(rre_deg, "rre_deg", "(P,)", 1)
+    rte = real_array(rte_m, "rte_m", "(P,)", 1)
     if not c.shape == rre.shape == rte.shape:
         raise ValueError(
             f"costs, rre_deg, rte_m: shapes differ ({c.shape}, {rre.shape}, {rte.shape})"
         )
-    rot_t = _positive_float(rot_threshold_deg, "rot_threshold_deg")
-    trans_t = _positive_float(trans_threshold_m, "trans_threshold_m")
+    rot_t = positive_float(rot_threshold_deg, "rot_threshold_deg")
+    trans_t = positive_float(trans_threshold_m, "trans_threshold_m")
     ok = (
         np.ones(c.size, dtype=bool)
         if same_floor is None
-        else _bool_array(same_floor, "same_floor", c.size)
+        else bool_array(same_floor, "same_floor", c.size)
     )
     order = np.argsort(c, kind="stable")
     c, rre, rte, ok = c[order], rre[order], rte[order], ok[order]
@@ -1158,7 +1108,7 @@ def distinctiveness(rerank_costs: npt.ArrayLike) -> F64Array:
     Returns:
         ``(Q,)`` float64, ≥ 0.
     """
-    c = _real_array(rerank_costs, "rerank_costs", "(Q, K)", 2)
+    c = real_array(rerank_costs, "rerank_costs", "(Q, K)", 2)
     if c.shape[1] == 0:
         raise ValueError(f"rerank_costs: expected shape (Q, K) with K >= 1, got {c.shape}")
     return np.maximum(c.mean(axis=1) - c.min(axis=1), 0.0)
@@ -1190,8 +1140,8 @@ def calibrate_acceptance(
         "target_precision", "min_accepted", "base_precision"}`` (``base_precision`` = share of
         correct results when everything is accepted).
     """
-    sc = _real_array(score, "score", "(Q,)", 1)
-    ok = _bool_array(correct, "correct", sc.shape[0])
+    sc = real_array(score, "score", "(Q,)", 1)
+    ok = bool_array(correct, "correct", sc.shape[0])
     tp = _share(target_precision, "target_precision", closed_above=True)
     if isinstance(min_accepted, bool) or not isinstance(min_accepted, (int, np.integer)):
         raise TypeError(f"min_accepted: expected an int, got {type(min_accepted).__name__}")
@@ -1243,7 +1193,7 @@ def latency_summary(samples_ms: Mapping[str, npt.ArrayLike]) -> dict[str, dict[s
         )
     out: dict[str, dict[str, Any]] = {}
     for stage, samples in samples_ms.items():
-        s = _real_array(samples, f"samples_ms[{stage!r}]", "(n,)", 1)
+        s = real_array(samples, f"samples_ms[{stage!r}]", "(n,)", 1)
         out[str(stage)] = {
             "count": int(s.size),
             "mean_ms": float(s.mean()) if s.size else float("nan"),

@@ -22,6 +22,7 @@ import numpy as np
 import numpy.typing as npt
 
 from vvloc import _core
+from vvloc._checks import finite_float, positive_float, positive_int
 
 __all__ = [
     "MAX_ROLL_NDIM",
@@ -141,47 +142,6 @@ def _as_f32(
     return out
 
 
-def _to_float(x: Any, name: str) -> float:
-    """``float(x)``, with an int too large for a float (10**400) named in a ``ValueError``."""
-    try:
-        return float(x)
-    except OverflowError:
-        raise ValueError(
-            f"{name}: expected a finite value, got an int too large for a float"
-        ) from None
-
-
-def _positive_float(x: Any, name: str) -> float:
-    if isinstance(x, bool) or not isinstance(x, (int, float, np.integer, np.floating)):
-        raise TypeError(f"{name}: expected a positive float, got {type(x).__name__}")
-    v = _to_float(x, name)
-    if not np.isfinite(v) or v <= 0.0:
-        raise ValueError(f"{name}: expected a finite value > 0, got {v}")
-    return v
-
-
-def _finite_float(x: Any, name: str) -> float:
-    if isinstance(x, bool) or not isinstance(x, (int, float, np.integer, np.floating)):
-        raise TypeError(f"{name}: expected a float, got {type(x).__name__}")
-    v = _to_float(x, name)
-    if not np.isfinite(v):
-        raise ValueError(f"{name}: expected a finite value, got {v}")
-    return v
-
-
-def _positive_int(x: Any, name: str, minimum: int = 1, maximum: int = 2**63 - 1) -> int:
-    """An int in [minimum, maximum] (default: what the Rust kernels' sizes hold), named in the
-    error otherwise (not Python's 'int too big to convert')."""
-    if isinstance(x, bool) or not isinstance(x, (int, np.integer)):
-        raise TypeError(f"{name}: expected an int >= {minimum}, got {type(x).__name__}")
-    v = int(x)
-    if v < minimum:
-        raise ValueError(f"{name}: expected an int >= {minimum}, got {v}")
-    if v > maximum:
-        raise ValueError(f"{name}: expected an int <= {maximum}, got {v}")
-    return v
-
-
 # --- spatial kernels (roll_interp, bev_pad, polar_sample, pad_polar) -------------------------
 
 
@@ -232,7 +192,7 @@ def roll_interp(x: Any, shift: float, axis: int = 0, backend: Backend = "rust") 
         raise ValueError("x: expected an array with at least 1 dimension, got a scalar")
     if arr.ndim > MAX_ROLL_NDIM:  # rust-numpy's dynamic arrays panic beyond it
         raise ValueError(f"x: expected at most {MAX_ROLL_NDIM} dimensions, got {arr.ndim}")
-    s = _finite_float(shift, "shift")
+    s = finite_float(shift, "shift")
     if isinstance(axis, bool) or not isinstance(axis, (int, np.integer)):
         raise TypeError(f"axis: expected an int, got {type(axis).__name__}")
     if not -arr.ndim <= int(axis) < arr.ndim:
@@ -261,7 +221,7 @@ def bev_pad(bev: Any, translations: Any, grid_size: float, backend: Backend = "r
     backend = _check_backend(backend)
     q = _bev(bev)
     t = _translations(translations)
-    g = _positive_float(grid_size, "grid_size")
+    g = positive_float(grid_size, "grid_size")
     if backend == "reference":
         from vvloc.reference import spatial as ref
 
@@ -311,9 +271,9 @@ def polar_sample(
     """
     backend = _check_backend(backend)
     q = _bev(bev, batched=True)
-    t = _positive_int(num_angles, "num_angles")
-    r = _positive_int(num_radii, "num_radii")
-    g = _positive_float(grid_size, "grid_size")
+    t = positive_int(num_angles, "num_angles")
+    r = positive_int(num_radii, "num_radii")
+    g = positive_float(grid_size, "grid_size")
     _check_polar_radius(q, g)
     if backend == "reference":
         from vvloc.reference import spatial as ref
@@ -340,9 +300,9 @@ def pad_polar(
     backend = _check_backend(backend)
     q = _bev(bev)
     tr = _translations(translations)
-    t = _positive_int(num_angles, "num_angles")
-    r = _positive_int(num_radii, "num_radii")
-    g = _positive_float(grid_size, "grid_size")
+    t = positive_int(num_angles, "num_angles")
+    r = positive_int(num_radii, "num_radii")
+    g = positive_float(grid_size, "grid_size")
     _check_polar_radius(q, g)
     if backend == "reference":
         from vvloc.reference import spatial as ref
@@ -602,12 +562,12 @@ class TranslationSearch:
         backend: Backend = "rust",
     ) -> None:
         _check_backend(backend)
-        hr = _positive_float(half_range, "half_range")
-        st = _positive_float(step, "step")
+        hr = positive_float(half_range, "half_range")
+        st = positive_float(step, "step")
         if hr < st:
             raise ValueError(f"half_range: expected a value >= step ({st}), got {hr}")
-        nst = _positive_int(stages, "stages")
-        nfs = _positive_int(fine_samples, "fine_samples", 1 if nst > 1 else 0)
+        nst = positive_int(stages, "stages")
+        nfs = positive_int(fine_samples, "fine_samples", 1 if nst > 1 else 0)
         if nfs > MAX_STAGE_POINTS:
             raise ValueError(
                 f"fine_samples: expected at most {MAX_STAGE_POINTS} samples per stage, got {nfs}"
@@ -623,10 +583,10 @@ class TranslationSearch:
             raise ValueError(
                 f"step: the coarse grid would have {n_side}×{n_side} points; use a larger step"
             )
-        sh = _positive_float(shrink, "shrink")
+        sh = positive_float(shrink, "shrink")
         if sh > 1.0:
             raise ValueError(f"shrink: expected a value in (0, 1], got {sh}")
-        sd = _positive_int(seed, "seed", 0, maximum=2**64 - 1)
+        sd = positive_int(seed, "seed", 0, maximum=2**64 - 1)
         self.backend = backend
         if backend == "rust":
             self._impl: Any = _core.TranslationSearch(hr, st, nfs, nst, sh, sd)

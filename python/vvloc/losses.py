@@ -27,7 +27,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from vvloc.kernels import _finite_float, _positive_int
+from vvloc._checks import finite_float, positive_int
 from vvloc.nets.polar import bev_pad, float_tensor, polar_sample, roll_interp
 
 __all__ = [
@@ -215,8 +215,8 @@ def random_translation_bias(
 ) -> Tensor:
     """n random 2-D offsets (n, 2) float32 metres: uniform direction, length uniform in
     ``bias_range`` (0 <= low <= high, finite), drawn from a generator seeded with ``seed``."""
-    n = _positive_int(n, "n", minimum=0)
-    lo, hi = (_finite_float(v, "bias_range") for v in bias_range)
+    n = positive_int(n, "n", minimum=0)
+    lo, hi = (finite_float(v, "bias_range") for v in bias_range)
     if not 0.0 <= lo <= hi:
         raise ValueError(f"bias_range: expected 0 <= low <= high metres, got {bias_range}")
     gen = torch.Generator().manual_seed(int(seed))

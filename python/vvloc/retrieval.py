@@ -43,8 +43,9 @@ import numpy as np
 import numpy.typing as npt
 
 from vvloc import _core
+from vvloc._checks import positive_float, positive_int
 from vvloc._io import atomic_write, check_readable_file
-from vvloc.kernels import _as_f32, _asarray, _c_array, _positive_float, _positive_int
+from vvloc.kernels import _as_f32, _asarray, _c_array
 
 __all__ = [
     "CONDITIONING",
@@ -202,7 +203,7 @@ def _exclusion(ex: Exclusion | None, nq: int) -> tuple[Any, Any, int, bool] | No
         return None
     if not isinstance(ex, Exclusion):
         raise TypeError(f"exclude: expected a vvloc.Exclusion or None, got {type(ex).__name__}")
-    window = _positive_int(ex.window, "exclude.window", minimum=0)
+    window = positive_int(ex.window, "exclude.window", minimum=0)
     if not isinstance(ex.whole_group, (bool, np.bool_)):  # bool("no") would be True
         raise TypeError(
             f"exclude.whole_group: expected a bool, got {type(ex.whole_group).__name__}"
@@ -307,7 +308,7 @@ class DescriptorIndex:
             and distance +inf.
         """
         q = _queries(queries, self.dim)
-        k = _positive_int(k, "k")
+        k = positive_int(k, "k")
         return self._inner.topk(q, k, _exclusion(exclude, q.shape[0]))
 
     def radius(
@@ -329,7 +330,7 @@ class DescriptorIndex:
             index.
         """
         q = _queries(queries, self.dim)
-        r = _positive_float(r, "r")
+        r = positive_float(r, "r")
         f32 = np.finfo(np.float32)
         low, high = float(f32.smallest_subnormal), float(f32.max)  # both taken
         if not low <= r <= high:  # compared in float32

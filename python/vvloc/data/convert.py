@@ -20,9 +20,9 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from vvloc._checks import int_array, real_array
 from vvloc.data._remap import resize_rgb
 from vvloc.data.frame import Camera, Dataset, Session
-from vvloc.evaluate import _int_array, _real_array
 
 if TYPE_CHECKING:
     from vvloc.data.vvloc_format import SessionWriter
@@ -54,11 +54,11 @@ def select_keyframes(
     Returns:
         (K,) int64 increasing indices, K ≥ 1 when N ≥ 1.
     """
-    p = _real_array(poses, "poses", "(N, 3)", 2, 3)  # real, finite: named otherwise
+    p = real_array(poses, "poses", "(N, 3)", 2, 3)  # real, finite: named otherwise
     min_distance, min_angle_deg = _spacing(min_distance, min_angle_deg)
     n = len(p)
-    height = np.zeros(n) if z is None else _real_array(z, "z", f"({n},)", 1)
-    storey = np.zeros(n, np.int64) if floors is None else _int_array(floors, "floors", f"({n},)", 1)
+    height = np.zeros(n) if z is None else real_array(z, "z", f"({n},)", 1)
+    storey = np.zeros(n, np.int64) if floors is None else int_array(floors, "floors", f"({n},)", 1)
     for name, values in (("z", height), ("floors", storey)):
         if values.shape != (n,):
             raise ValueError(f"{name}: expected shape ({n},), got {values.shape}")

@@ -15,6 +15,8 @@ from typing import Any, overload
 
 import numpy as np
 
+from vvloc._checks import as_array, real_array
+
 
 @dataclass(frozen=True, eq=False)
 class Camera:
@@ -97,10 +99,8 @@ class Camera:
         along the camera's optical axis. A point behind the camera (depth <= 0) still gets a
         (u, v), through the projective division: keep only depth > 0 for points it sees. A
         single point may be given as (3,)."""
-        from vvloc.evaluate import _asarray, _real_array
-
-        p = _asarray(points, "points", "(N, 3)")
-        p = _real_array(p[None] if p.ndim == 1 else p, "points", "(N, 3)", 2, 3)
+        p = as_array(points, "points", "(N, 3)")
+        p = real_array(p[None] if p.ndim == 1 else p, "points", "(N, 3)", 2, 3)
         ego_to_cam = np.linalg.inv(self.cam_to_ego)
         pc = p @ ego_to_cam[:3, :3].T + ego_to_cam[:3, 3]
         uvw = pc @ self.K.T

@@ -18,8 +18,8 @@ from typing import Any
 import numpy as np
 from scipy.ndimage import convolve
 
+from vvloc._checks import finite_float, positive_int
 from vvloc.data.frame import Frame
-from vvloc.kernels import _finite_float, _positive_int
 
 
 def _check(images: np.ndarray) -> np.ndarray:
@@ -71,11 +71,11 @@ def mask_cameras(
     ``cameras`` lists the indices to blank; if None, ``count`` distinct cameras are drawn.
     """
     images = _check(images)
-    seed = _positive_int(seed, "seed", 0)  # None would draw fresh entropy: not reproducible
+    seed = positive_int(seed, "seed", 0)  # None would draw fresh entropy: not reproducible
     m = images.shape[0]
     value = _fill(fill)
     if cameras is None:
-        count = _positive_int(count, "count", 0)
+        count = positive_int(count, "count", 0)
         if count > m:
             raise ValueError(f"count: expected 0..{m}, got {count}")
         cameras = np.random.default_rng(seed).choice(m, size=count, replace=False).tolist()
@@ -95,10 +95,10 @@ def motion_blur(
     """Linear motion blur of ``length`` pixels along ``angle_deg`` (image x axis = 0°, random
     per camera when None) on the chosen cameras (all by default); see :func:`line_kernel`."""
     images = _check(images)
-    length = _positive_int(length, "length", 1)
+    length = positive_int(length, "length", 1)
     if angle_deg is not None:
-        _finite_float(angle_deg, "angle_deg")
-    rng = np.random.default_rng(_positive_int(seed, "seed", 0))
+        finite_float(angle_deg, "angle_deg")
+    rng = np.random.default_rng(positive_int(seed, "seed", 0))
     out = images.copy()
     for c in _camera_list(cameras, images.shape[0]):
         ang = float(rng.uniform(0, 180)) if angle_deg is None else float(angle_deg)
@@ -118,8 +118,8 @@ def line_kernel(length: int, angle_deg: float) -> np.ndarray:
     onto the next pixel outside the rest).
     k = the odd number ≥ ``length``, plus 2 for the bilinear spill at the ends. ``length`` an
     int >= 1, ``angle_deg`` finite."""
-    length = _positive_int(length, "length", 1)
-    angle_deg = _finite_float(angle_deg, "angle_deg")
+    length = positive_int(length, "length", 1)
+    angle_deg = finite_float(angle_deg, "angle_deg")
     k = (length if length % 2 == 1 else length + 1) + 2
     kern = np.zeros((k, k))
     c = (k - 1) / 2
@@ -143,13 +143,13 @@ def region_boxes(
     ``shape`` is the images' (M, 3, H, W), H, W >= 1 pixels."""
     if not isinstance(shape, (tuple, list)) or len(shape) != 4:
         raise ValueError(f"shape: expected the images' shape (M, 3, H, W), got {shape!r}")
-    m, _, h, w = (_positive_int(v, "shape", 0) for v in shape)
+    m, _, h, w = (positive_int(v, "shape", 0) for v in shape)
     if min(h, w) < 1:
         raise ValueError(f"shape: expected H, W >= 1 pixels, got {tuple(shape)}")
-    count = _positive_int(count, "count", 0)
-    if not 0 < _finite_float(size, "size") <= 1:
+    count = positive_int(count, "count", 0)
+    if not 0 < finite_float(size, "size") <= 1:
         raise ValueError(f"size: expected a fraction of the image side in (0, 1], got {size}")
-    rng = np.random.default_rng(_positive_int(seed, "seed", 0))
+    rng = np.random.default_rng(positive_int(seed, "seed", 0))
     bh, bw = max(1, round(size * h)), max(1, round(size * w))
     boxes = []
     for c in _camera_list(cameras, m):
@@ -191,7 +191,7 @@ def exposure(
 ) -> np.ndarray:
     """Exposure change: ``255 · (gain · x / 255) ** gamma``, clipped, on the chosen cameras."""
     images = _check(images)
-    if not (_finite_float(gain, "gain") > 0 and _finite_float(gamma, "gamma") > 0):
+    if not (finite_float(gain, "gain") > 0 and finite_float(gamma, "gamma") > 0):
         raise ValueError(f"gain, gamma: expected finite values > 0, got {gain}, {gamma}")
     out = images.copy()
     for c in _camera_list(cameras, images.shape[0]):
@@ -209,9 +209,9 @@ def noise(
 ) -> np.ndarray:
     """Additive Gaussian noise of standard deviation ``sigma`` grey levels, clipped."""
     images = _check(images)
-    if _finite_float(sigma, "sigma") < 0:
+    if finite_float(sigma, "sigma") < 0:
         raise ValueError(f"sigma: expected a finite value >= 0, got {sigma}")
-    rng = np.random.default_rng(_positive_int(seed, "seed", 0))
+    rng = np.random.default_rng(positive_int(seed, "seed", 0))
     out = images.copy()
     for c in _camera_list(cameras, images.shape[0]):
         x = images[c].astype(np.float64) + rng.normal(0.0, sigma, size=images[c].shape)

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
+from vvloc._checks import positive_float, real_array
 from vvloc.data.frame import Camera
 
 __all__ = [
@@ -312,13 +313,10 @@ def rig_difference(
         size: (width, height) of the compared rig's images, pixels.
         tolerance: how far counts as the same rig (:data:`SAME_MAP`, :data:`SAME_MODEL`).
     """
-    from vvloc.evaluate import _real_array
-    from vvloc.kernels import _positive_float
-
     if not reference:
         raise ValueError("reference: expected at least one camera")
-    k = _real_array(K, "K", "(M, 3, 3)", 3)  # finite: NaN compared as 'the same rig'
-    t = _real_array(cam_to_ego, "cam_to_ego", "(M, 4, 4)", 3)
+    k = real_array(K, "K", "(M, 3, 3)", 3)  # finite: NaN compared as 'the same rig'
+    t = real_array(cam_to_ego, "cam_to_ego", "(M, 4, 4)", 3)
     if k.shape[1:] != (3, 3):
         raise ValueError(f"K: expected shape (M, 3, 3), got {k.shape}")
     if t.shape != (len(k), 4, 4):  # (1, 4, 4) was broadcast over every camera
@@ -326,7 +324,7 @@ def rig_difference(
     if not isinstance(size, (tuple, list)) or len(size) != 2:
         raise TypeError(f"size: expected (width, height) pixels, got {size!r}")
     for v in size:  # finite, > 0: inf compared as "another size" in words of inf
-        _positive_float(v, "size")
+        positive_float(v, "size")
     width, height = size  # as given: 80x48, not 80.0x48.0, in the message
     m = len(reference)
     if k.shape[0] != m:

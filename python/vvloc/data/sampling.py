@@ -19,10 +19,9 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
+from vvloc._checks import int_array, positive_int
 from vvloc._io import list_entries
 from vvloc.data.frame import Dataset, Frame
-from vvloc.evaluate import _int_array
-from vvloc.kernels import _positive_int
 
 FLOOR_SEPARATION = 1000.0
 #: Levels reserved per world (dataset) when a sampler spans several: floors must stay below it.
@@ -32,7 +31,7 @@ WORLD_LEVELS = 1000
 def _triplets(triplets: Any) -> np.ndarray:
     """(T, 3) int64 frame-id triplets, named ``triplets`` otherwise (rows neither truncated from
     floats nor refolded from another shape)."""
-    return _int_array(triplets, "triplets", "(T, 3)", 2, 3)
+    return int_array(triplets, "triplets", "(T, 3)", 2, 3)
 
 
 def _positions(poses: np.ndarray, floors: np.ndarray, floor_separation: float) -> np.ndarray:
@@ -291,7 +290,7 @@ class TripletSampler:
 
     def _gid(self, gid: int) -> int:
         """``gid`` checked: an int in [0, len(self)), named otherwise (not read from the end)."""
-        return _positive_int(gid, "gid", minimum=0, maximum=len(self) - 1)
+        return positive_int(gid, "gid", minimum=0, maximum=len(self) - 1)
 
     def frame(self, gid: int) -> Frame:
         """The :class:`Frame` of global frame id ``gid`` (an int in [0, len); loads its
@@ -396,7 +395,7 @@ class TripletSampler:
         (those excluded before are skipped). An anchor needs a positive and a negative among the
         frames left. ``ValueError`` (nothing excluded) when no anchor would be left, or none in
         an ``extra`` world that ``anchor_shares`` gives a share."""
-        ids = _int_array(gids, "gids", "(E,)", 1)
+        ids = int_array(gids, "gids", "(E,)", 1)
         if ids.size and (ids.min() < 0 or ids.max() >= len(self)):
             raise ValueError(f"gids: frame ids must lie in [0, {len(self)})")
         new = np.unique(ids[self.usable[ids]])

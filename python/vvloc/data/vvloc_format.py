@@ -31,6 +31,7 @@ from typing import Any
 
 import numpy as np
 
+from vvloc._checks import finite_float
 from vvloc._io import (
     FLOAT_TEXT,
     INT_TEXT,
@@ -43,7 +44,6 @@ from vvloc._io import (
 from vvloc.data.frame import RIGID, Camera, Dataset, Session, is_rigid, load_rgb
 from vvloc.data.heading import heading_warning
 from vvloc.data.rig import frame_extrinsics_warnings, rig_warnings
-from vvloc.kernels import _finite_float
 
 _log = logging.getLogger(__name__)
 
@@ -420,7 +420,7 @@ class SessionWriter:
         if p is None or p.shape != (3,) or not np.isfinite(p).all():
             raise ValueError(f"pose: expected 3 finite numbers (x, y, yaw) m, m, rad, got {pose!r}")
         x, y, yaw = (float(v) for v in p)
-        z = _finite_float(z, "z")  # metres
+        z = finite_float(z, "z")  # metres
         m = len(self.cameras)
         h, w = self.cameras[0].height, self.cameras[0].width
         if not isinstance(images, np.ndarray):

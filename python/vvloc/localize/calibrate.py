@@ -27,6 +27,7 @@ import numpy.typing as npt
 import torch
 
 from vvloc import evaluate
+from vvloc._checks import real_array
 from vvloc.data import Frame, has_image_content
 from vvloc.localize.localizer import (
     LocalizationResult,
@@ -198,8 +199,8 @@ def check_revisits(
         query_poses: ``(Q, 3)`` world poses (x, y m; yaw rad); ``query_floors`` ``(Q,)``.
         db_poses: ``(N, 3)`` the map keyframes' world poses; ``db_floors`` ``(N,)``.
     """
-    q = evaluate._real_array(query_poses, "query_poses", "(Q, 3)", 2, 3)
-    d = evaluate._real_array(db_poses, "db_poses", "(N, 3)", 2, 3)
+    q = real_array(query_poses, "query_poses", "(Q, 3)", 2, 3)
+    d = real_array(db_poses, "db_poses", "(N, 3)", 2, 3)
     nearest = evaluate.nearest_map_distance(q[:, :2], d[:, :2], query_floors, db_floors)
     if not (nearest <= 2.0).any():
         raise ValueError(
@@ -241,10 +242,10 @@ def calibration_of_results(
     """
     if not results:
         raise ValueError("results: expected at least one localization result")
-    q_pose = evaluate._real_array(query_poses, "query_poses", f"({len(results)}, 3)", 2, 3)
+    q_pose = real_array(query_poses, "query_poses", f"({len(results)}, 3)", 2, 3)
     if q_pose.shape != (len(results), 3):
         raise ValueError(f"query_poses: expected shape ({len(results)}, 3), got {q_pose.shape}")
-    m_pose = evaluate._real_array(db_poses, "db_poses", "(N, 3)", 2, 3)
+    m_pose = real_array(db_poses, "db_poses", "(N, 3)", 2, 3)
     top1 = np.array([[r.reranked[0] if len(r.reranked) else -1] for r in results], np.int64)
     if np.any(top1 < 0):
         raise ValueError("results: a result without candidates (an empty map?)")

@@ -24,6 +24,7 @@ import numpy as np
 import torch
 
 from vvloc import evaluate, geometry, kernels, viz
+from vvloc._checks import positive_int
 from vvloc._io import atomic_write, csv_row
 from vvloc.data import Frame, open_dataset
 from vvloc.data.perturb import SEEDED, frame_seed, perturb_frame
@@ -859,8 +860,8 @@ def run_evaluation(
     """
     if not 0 < loop_radius <= 0.5:
         raise ValueError(f"loop_radius: expected a value in (0, 0.5], got {loop_radius}")
-    loop_sequence = kernels._positive_int(loop_sequence, "loop_sequence", minimum=0)
-    loop_sweep_pairs = kernels._positive_int(loop_sweep_pairs, "loop_sweep_pairs")
+    loop_sequence = positive_int(loop_sequence, "loop_sequence", minimum=0)
+    loop_sweep_pairs = positive_int(loop_sweep_pairs, "loop_sweep_pairs")
     queries = list(queries)
     check_query_sessions(database, queries)
     out_dir = Path(out)

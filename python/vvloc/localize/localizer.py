@@ -51,7 +51,8 @@ import numpy.typing as npt
 import torch
 from tqdm import tqdm
 
-from vvloc import evaluate, geometry, kernels
+from vvloc import geometry, kernels
+from vvloc._checks import int_array, positive_int, real_array
 from vvloc._io import list_entries
 from vvloc.checkpoints import checkpoint_folder
 from vvloc.data import Camera, Dataset, Frame, Session
@@ -676,7 +677,7 @@ class Localizer:
         check_map_model(mapdb, model, stacklevel=2 + up)
         self.model = model.eval()
         self.map = mapdb
-        self.top_k = kernels._positive_int(top_k, "top_k")
+        self.top_k = positive_int(top_k, "top_k")
         if not isinstance(rerank, (bool, np.bool_)):
             raise TypeError(f"rerank: expected a bool, got {type(rerank).__name__}")
         self.rerank_enabled = bool(rerank)
@@ -723,7 +724,7 @@ class Localizer:
                 "min_distinctiveness=0 to accept by the cost rule alone)",
                 stacklevel=2 + up,
             )
-        self.metric_candidates = kernels._positive_int(metric_candidates, "metric_candidates")
+        self.metric_candidates = positive_int(metric_candidates, "metric_candidates")
         self.metric_from = metric_from
         if isinstance(retrieval_weight, np.floating):
             retrieval_weight = float(retrieval_weight)
@@ -832,7 +833,7 @@ class Localizer:
     def _rows(self, rows: Any, name: str = "rows") -> npt.NDArray[np.int64]:
         """Map rows (K,), K >= 1, each in [0, len(map)), named in the error otherwise (-1 is
         not the last row)."""
-        arr = evaluate._int_array(rows, name, "(K,)", 1)
+        arr = int_array(rows, name, "(K,)", 1)
         n = len(self.map)
         if arr.size == 0:
             raise ValueError(f"{name}: expected at least one map row")
@@ -878,7 +879,7 @@ class Localizer:
         in the keyframe's frame, metres and radians CCW; the dimensionless matching cost, lower
         is better; the search history)."""
         self._check_open()
-        row = kernels._positive_int(row, "row", minimum=0)  # an int: 1.7 is not row 1
+        row = positive_int(row, "row", minimum=0)  # an int: 1.7 is not row 1
         rows = self._rows(np.array([row], dtype=np.int64), "row")  # and a row of the map
         _, xi_mq, cost, history, _ = self._metric_best(self._encoded("bev", bev), rows)
         return xi_mq, cost, history
@@ -896,7 +897,7 @@ class Localizer:
         self._check_open()
         rows = self._rows(rows)
         if bias is not None:
-            bias = evaluate._real_array(bias, "bias", f"({len(rows)},)", 1)
+            bias = real_array(bias, "bias", f"({len(rows)},)", 1)
             if bias.shape != rows.shape:
                 raise ValueError(f"bias: expected shape {rows.shape}, got {bias.shape}")
         return self._metric_best(self._encoded("bev", bev), rows, bias)
@@ -935,7 +936,7 @@ class Localizer:
         """The row among ``rows`` (K,) nearest in x-y (metres, world frame) to ``global_pose``
         (x, y, yaw) on ``floor`` (the first on ties; -1 when none is on that floor)."""
         self._check_open()
-        pose = evaluate._real_array(global_pose, "global_pose", "(3,)", 1, 3)
+        pose = real_array(global_pose, "global_pose", "(3,)", 1, 3)
         if isinstance(floor, bool) or not isinstance(floor, (int, np.integer)):
             raise TypeError(f"floor: expected an int, got {type(floor).__name__}")
         return self._snap_row(pose, self._rows(rows), int(floor))
@@ -998,7 +999,7 @@ class Localizer:
 
         ``batch_size``: frames encoded at once (int >= 1); ``progress``: a tqdm bar over the
         frames. Returns one :class:`LocalizationResult` per frame, in order."""
-        batch_size = kernels._positive_int(batch_size, "batch_size")
+        batch_size = positive_int(batch_size, "batch_size")
         if isinstance(frames, Frame) or not isinstance(frames, Iterable):
             raise TypeError(
                 f"frames: expected a sequence of vvloc.data.Frame, got {type(frames).__name__}"
@@ -1202,7 +1203,7 @@ def build_map(
             "dataset: expected a vvloc dataset (vvloc.data.open_dataset(path)), got "
             f"{type(dataset).__name__}"
         )
-    batch_size = kernels._positive_int(batch_size, "batch_size")
+    batch_size = positive_int(batch_size, "batch_size")
     if isinstance(sessions, str):
         raise TypeError(f"sessions: expected a list of session names, got the str {sessions!r}")
     if not isinstance(sessions, Iterable):

@@ -31,8 +31,7 @@ import numpy as np
 import numpy.typing as npt
 from tqdm import tqdm
 
-from vvloc.evaluate import _int_array, _real
-from vvloc.kernels import _positive_float, _positive_int
+from vvloc._checks import int_array, positive_float, positive_int, real_number
 from vvloc.localize.export import LoopClosures, _selection
 from vvloc.localize.localizer import _cost_threshold, check_map_model, learned_matcher
 from vvloc.localize.mapdb import MapDatabase
@@ -83,7 +82,7 @@ class LoopCandidates:
         """The candidates with ``distance < radius`` (the pairs a radius query at ``radius``
         returns; this compares float64 distances, the Rust query float32 ones, so a pair at
         exactly the radius may fall either way). ``radius`` a number, not NaN (inf: all)."""
-        return self.subset(self.distance < _real(radius, "radius"))  # NaN kept nothing
+        return self.subset(self.distance < real_number(radius, "radius"))  # NaN kept nothing
 
 
 #: Pairs per block in :func:`sequence_distance` (bounds its temporaries to BLOCK · D floats).
@@ -116,15 +115,15 @@ def sequence_distance(
     session). ``half_window = 0`` gives the pair's own descriptor distance (or +inf for an
     inadmissible pair). ``i`` and ``j``: (P,) row indices.
     """
-    L = _positive_int(half_window, "half_window", minimum=0)
-    excl = _positive_int(window, "window", minimum=0)
+    L = positive_int(half_window, "half_window", minimum=0)
+    excl = positive_int(window, "window", minimum=0)
     g = np.asarray(descriptors)
     if g.ndim != 2 or not np.issubdtype(g.dtype, np.number):
         raise ValueError(f"descriptors: expected a numeric (N, D) array, got shape {g.shape}")
     n = len(g)
     sess, seq = _sessions_and_seqs(g, sessions, seqs)
-    i = _int_array(i, "i", "(P,)", 1)
-    j = _int_array(j, "j", "(P,)", 1)
+    i = int_array(i, "i", "(P,)", 1)
+    j = int_array(j, "j", "(P,)", 1)
     if i.shape != j.shape or i.ndim != 1:
         raise ValueError(f"i, j: expected (P,) each, got {i.shape} and {j.shape}")
     if i.size and (min(i.min(), j.min()) < 0 or max(i.max(), j.max()) >= n):
@@ -175,7 +174,7 @@ def _radius_and_window(radius: Any, window: Any) -> tuple[float, int]:
     """A loop detector's descriptor ``radius`` (a finite float > 0) and temporal ``window``
     (an int >= 0: keyframes of one session this close in sequence number are neighbours, not
     loops), named in the error otherwise."""
-    return _positive_float(radius, "radius"), _positive_int(window, "window", minimum=0)
+    return positive_float(radius, "radius"), positive_int(window, "window", minimum=0)
 
 
 def _sessions_and_seqs(
@@ -184,8 +183,8 @@ def _sessions_and_seqs(
     """``sessions`` and ``seqs`` as (N,) int64, one per row of ``descriptors`` (N, D): a
     ``TypeError``/``ValueError`` naming the argument otherwise (float session ids were cut to
     ints, 0.2 and 0.7 into one session)."""
-    sess = _int_array(sessions, "sessions", "(N,)", 1)
-    seq = _int_array(seqs, "seqs", "(N,)", 1)
+    sess = int_array(sessions, "sessions", "(N,)", 1)
+    seq = int_array(seqs, "seqs", "(N,)", 1)
     shape = np.shape(descriptors)
     n = int(shape[0]) if len(shape) == 2 else len(sess)
     for name, arr in (("sessions", sess), ("seqs", seq)):
@@ -210,7 +209,7 @@ def descriptor_loop_candidates(
     pair's :func:`sequence_distance` with half-window L (and the same ``window``) to be below
     ``radius``."""
     radius, window = _radius_and_window(radius, window)
-    sequence = _positive_int(sequence, "sequence", minimum=0)
+    sequence = positive_int(sequence, "sequence", minimum=0)
     groups, seq = _sessions_and_seqs(descriptors, sessions, seqs)
     index = DescriptorIndex(descriptors, groups=groups, seqs=seq)
     offsets, idx, dist = index.radius(
@@ -275,8 +274,8 @@ class _Floors:
 
     @classmethod
     def of(cls, sessions: npt.ArrayLike, floors: npt.ArrayLike) -> _Floors:
-        sess = _int_array(sessions, "sessions", "(N,)", 1)
-        fl = _int_array(floors, "floors", "(N,)", 1)
+        sess = int_array(sessions, "sessions", "(N,)", 1)
+        fl = int_array(floors, "floors", "(N,)", 1)
         if fl.shape != sess.shape:
             raise ValueError(f"floors: expected shape {sess.shape} like sessions, got {fl.shape}")
         ids, dense = np.unique(sess, return_inverse=True)
@@ -291,8 +290,8 @@ class _Floors:
         self, i: npt.ArrayLike, j: npt.ArrayLike, name: str = "i, j"
     ) -> tuple[np.ndarray, np.ndarray]:
         """Row-index pairs ``i``, ``j`` (P,) validated against this map (errors name ``name``)."""
-        i = _int_array(i, name, "(P,)", 1)
-        j = _int_array(j, name, "(P,)", 1)
+        i = int_array(i, name, "(P,)", 1)
+        j = int_array(j, name, "(P,)", 1)
         if i.shape != j.shape:
             raise ValueError(f"{name}: expected (P,) row indices each, got {i.shape} and {j.shape}")
         n = len(self.dense)
@@ -369,10 +368,10 @@ def floor_offsets(
 
 def _vote(f: _Floors, i: np.ndarray, j: np.ndarray, margin: float, min_votes: int) -> FloorOffsets:
     """:func:`floor_offsets` of validated inputs."""
-    margin = _positive_float(margin, "margin")
+    margin = positive_float(margin, "margin")
     if margin < 1.0:
         raise ValueError(f"margin: expected a value >= 1, got {margin}")
-    min_votes = _positive_int(min_votes, "min_votes")
+    min_votes = positive_int(min_votes, "min_votes")
     span = len(f.ids)
     key, offset = f.pair_keys(i, j)
     a, b = f.dense[i], f.dense[j]
@@ -405,9 +404,9 @@ def _offset_keys(offsets: FloorOffsets, ids: np.ndarray) -> tuple[np.ndarray, np
     and their offsets; ValueError/TypeError naming ``offsets`` when they are not of these."""
     if not isinstance(offsets, FloorOffsets):
         raise TypeError(f"offsets: expected FloorOffsets, got {type(offsets).__name__}")
-    lo = _int_array(offsets.lo, "offsets.lo", "(K,)", 1)
-    hi = _int_array(offsets.hi, "offsets.hi", "(K,)", 1)
-    off = _int_array(offsets.offset, "offsets.offset", "(K,)", 1)
+    lo = int_array(offsets.lo, "offsets.lo", "(K,)", 1)
+    hi = int_array(offsets.hi, "offsets.hi", "(K,)", 1)
+    off = int_array(offsets.offset, "offsets.offset", "(K,)", 1)
     if not lo.shape == hi.shape == off.shape:
         raise ValueError(
             f"offsets: expected lo, hi, offset of one length, got {lo.shape}, {hi.shape}, "
@@ -516,10 +515,10 @@ def sweep_radius(
     result may lie below the radius the caller must cover, or be 0.0 (more pairs at distance 0
     than allowed): the caller decides what then.
     """
-    max_pairs = _positive_int(max_pairs, "max_pairs")
-    sample = _positive_int(sample, "sample")
-    r_max = _positive_float(r_max, "r_max")
-    window = _positive_int(window, "window", minimum=0)
+    max_pairs = positive_int(max_pairs, "max_pairs")
+    sample = positive_int(sample, "sample")
+    r_max = positive_float(r_max, "r_max")
+    window = positive_int(window, "window", minimum=0)
     groups, seq = _sessions_and_seqs(descriptors, sessions, seqs)
     n = len(groups)
     if n == 0:
@@ -565,7 +564,7 @@ def loop_candidates(
         g, sess, seq, _index_radius(FLOOR_VOTE_FACTOR * radius), window
     )
     cand = voters.within(radius)
-    sequence = _positive_int(sequence, "sequence", minimum=0)
+    sequence = positive_int(sequence, "sequence", minimum=0)
     if sequence:
         cand = confirm_sequence(cand, g, sess, seq, radius, sequence, window)
     kept = floor_consensus(cand, sess, mapdb.floors, voters)
@@ -589,8 +588,8 @@ def verify_pairs(
     decoded once). It does not check that ``model`` built the map (the caller does, once:
     :func:`~vvloc.localize.localizer.check_map_model`, as :func:`detect_loops` does)."""
     cfg = model.config
-    rows_i = _int_array(rows_i, "rows_i", "(P,)", 1)
-    rows_j = _int_array(rows_j, "rows_j", f"({len(rows_i)},), as rows_i", 1, len(rows_i))
+    rows_i = int_array(rows_i, "rows_i", "(P,)", 1)
+    rows_j = int_array(rows_j, "rows_j", f"({len(rows_i)},), as rows_i", 1, len(rows_i))
     poses = np.zeros((len(rows_i), 3))
     costs = np.zeros(len(rows_i))
     search = search_config(search, "search")
@@ -679,7 +678,7 @@ def detect_loops(
     if previous is not None:
         _check_previous(previous.provenance, provenance)
     if max_pairs is not None:
-        max_pairs = _positive_int(max_pairs, "max_pairs", minimum=0)
+        max_pairs = positive_int(max_pairs, "max_pairs", minimum=0)
     if not mapdb.has_bev:
         raise ValueError(
             f"map {mapdb.path}: has no BEVs; rebuild it with BEVs stored to detect loops"

@@ -68,8 +68,8 @@ import h5py
 import numpy as np
 import numpy.typing as npt
 
+from vvloc._checks import positive_float
 from vvloc._io import AtomicPath
-from vvloc.kernels import _positive_float
 
 __all__ = [
     "FORMAT_NAME",
@@ -568,7 +568,7 @@ class MapWriter:
             raise TypeError("config_hash: expected a non-empty str")
         self._config_hash = config_hash
         self._weights_hash = _check_weights_hash(weights_hash)
-        self._grid_size = _positive_float(grid_size, "grid_size")
+        self._grid_size = positive_float(grid_size, "grid_size")
         self._dtype = np.dtype(_check_dtype(dtype)).newbyteorder("<")
         if expected_keyframes is not None and (
             isinstance(expected_keyframes, bool)
@@ -1093,7 +1093,7 @@ class MapDatabase:
         metadata = MapMetadata(
             model_config_hash=config_hash,
             model_config=json.loads(config_json),
-            grid_size=_positive_float(grid_size, "grid_size"),
+            grid_size=positive_float(grid_size, "grid_size"),
             vvloc_version=__version__,
             format_version=FORMAT_VERSION,
             created_utc=_dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),

@@ -15,7 +15,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from vvloc.kernels import _positive_float, _positive_int
+from vvloc._checks import positive_float, positive_int
 from vvloc.nets.config import ModelConfig
 from vvloc.nets.deformable import DeformableAttention, ms_deform_sample
 from vvloc.nets.polar import float_tensor
@@ -26,8 +26,8 @@ _MIN_DEPTH = 1e-3  # metres: a point must be at least this far in front of the c
 def bev_cell_centres(height: int, width: int, grid_size: float) -> Tensor:
     """Ego-frame (x, y) metres of every BEV cell, (H·W, 2) float32, row-major over (i, j)
     (DESIGN §3); ``height``, ``width`` ints >= 1 and ``grid_size`` (m, finite, > 0) checked."""
-    height, width = _positive_int(height, "height"), _positive_int(width, "width")
-    grid_size = _positive_float(grid_size, "grid_size")
+    height, width = positive_int(height, "height"), positive_int(width, "width")
+    grid_size = positive_float(grid_size, "grid_size")
     i = torch.arange(height, dtype=torch.float32)
     j = torch.arange(width, dtype=torch.float32)
     x = (i - (height - 1) / 2.0) * grid_size
@@ -63,7 +63,7 @@ def project_points(
         )
     if not isinstance(image_size, (tuple, list)) or len(image_size) != 2:
         raise TypeError(f"image_size: expected a pair (Hi, Wi) of ints, got {image_size!r}")
-    hi, wi = (_positive_int(v, "image_size") for v in image_size)
+    hi, wi = (positive_int(v, "image_size") for v in image_size)
     try:
         ego_to_cam = torch.linalg.inv(cam_to_ego.to(torch.float64))
     except torch.linalg.LinAlgError as e:

@@ -15,7 +15,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from vvloc.kernels import _positive_float, _positive_int
+from vvloc._checks import positive_float, positive_int
 from vvloc.reference.torch_spatial import torch_bev_pad, torch_polar_sample
 
 
@@ -71,8 +71,8 @@ def polar_sample(bev: Tensor, num_angles: int, num_radii: int, grid_size: float)
     as the kernels check them.
     """
     _check_bev(bev)
-    t, r = _positive_int(num_angles, "num_angles"), _positive_int(num_radii, "num_radii")
-    g = _positive_float(grid_size, "grid_size")
+    t, r = positive_int(num_angles, "num_angles"), positive_int(num_radii, "num_radii")
+    g = positive_float(grid_size, "grid_size")
     return torch_polar_sample(bev, t, r, g).contiguous()
 
 
@@ -88,7 +88,7 @@ def bev_pad(bev: Tensor, translations: Tensor, grid_size: float) -> Tensor:
     checked as the kernels check them.
     """
     _check_bev(bev, single=True)
-    grid_size = _positive_float(grid_size, "grid_size")
+    grid_size = positive_float(grid_size, "grid_size")
     t = _real64(translations, "translations", "metres", bev.device)
     if t.ndim != 2 or t.shape[1] != 2:
         raise ValueError(f"translations: expected shape (N, 2), got {tuple(t.shape)}")

@@ -17,8 +17,8 @@ from typing import Any
 
 import numpy as np
 
+from vvloc._checks import finite_float
 from vvloc.data.frame import Camera
-from vvloc.kernels import _finite_float
 from vvloc.sim import world as W
 
 MAX_LIGHTS = 8
@@ -328,7 +328,7 @@ class Renderer:
         sizes = {(c.width, c.height) for c in cameras}
         if len(sizes) != 1:
             raise ValueError(f"cameras: all cameras must share one image size, got {sizes}")
-        texture_strength = _finite_float(texture_strength, "texture_strength")
+        texture_strength = finite_float(texture_strength, "texture_strength")
         if not texture_strength >= 0:
             raise ValueError(
                 f"texture_strength: expected a finite value >= 0, got {texture_strength}"

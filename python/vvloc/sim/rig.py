@@ -6,8 +6,8 @@ import math
 
 import numpy as np
 
+from vvloc._checks import finite_float, positive_float, positive_int
 from vvloc.data.frame import Camera
-from vvloc.kernels import _finite_float, _positive_float, _positive_int
 
 RIG_NAMES = {
     4: ("front", "left", "rear", "right"),
@@ -50,12 +50,12 @@ def make_rig(
     centre ((W−1)/2, (H−1)/2). ``width``, ``height``: ints >= 8 pixels; ``hfov_deg``,
     ``pitch_deg`` (downward tilt) degrees; ``mount_height`` metres > 0 above the ground.
     """
-    num_cameras = _positive_int(num_cameras, "num_cameras")  # numpy ints too
-    width, height = (_positive_int(v, key, 8) for key, v in (("width", width), ("height", height)))
-    pitch_deg = _finite_float(pitch_deg, "pitch_deg")
-    mount_height = _positive_float(mount_height, "mount_height")  # "1.6" was cast silently
+    num_cameras = positive_int(num_cameras, "num_cameras")  # numpy ints too
+    width, height = (positive_int(v, key, 8) for key, v in (("width", width), ("height", height)))
+    pitch_deg = finite_float(pitch_deg, "pitch_deg")
+    mount_height = positive_float(mount_height, "mount_height")  # "1.6" was cast silently
     if hfov_deg is not None:
-        hfov_deg = _finite_float(hfov_deg, "hfov_deg")
+        hfov_deg = finite_float(hfov_deg, "hfov_deg")
     fov = hfov_deg if hfov_deg is not None else min(360.0 / num_cameras + 10.0, 120.0)
     if not 10.0 <= fov <= 150.0:
         raise ValueError(f"hfov_deg: expected 10..150 degrees, got {fov}")

@@ -12,8 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from vvloc.evaluate import _real_array
-from vvloc.kernels import _finite_float, _positive_float, _positive_int
+from vvloc._checks import finite_float, positive_float, positive_int, real_array
 
 
 def _wrap(a: np.ndarray | float) -> np.ndarray | float:
@@ -25,13 +24,13 @@ def sample_loop(waypoints: np.ndarray, radius: float = 4.0, step: float = 0.05) 
     reads −π), arclength (m) along a closed loop of ``waypoints`` (K, 2) m, K >= 3, each
     distinct from the next, with corners rounded by circular arcs of ``radius`` m (>= 0;
     shrunk where segments are short), sampled every ``step`` m (> 0)."""
-    P = _real_array(waypoints, "waypoints", "(K, 2)", 2, 2)
+    P = real_array(waypoints, "waypoints", "(K, 2)", 2, 2)
     k = len(P)
     if k < 3:
         raise ValueError(f"waypoints: expected (K>=3, 2), got {P.shape}")
     if (np.linalg.norm(P - np.roll(P, 1, axis=0), axis=1) == 0).any():
         raise ValueError("waypoints: a waypoint repeats the one before it (a segment of length 0)")
-    radius, step = _finite_float(radius, "radius"), _positive_float(step, "step")
+    radius, step = finite_float(radius, "radius"), positive_float(step, "step")
     if radius < 0:
         raise ValueError(f"radius: expected metres >= 0, got {radius}")
     corners = []
@@ -100,11 +99,11 @@ def drive_keyframes(
     the last, driving at ``speed`` m/s (> 0). Laps repeat until ``count`` (an int >= 1)
     keyframes are taken; each lap has its own wobble phase so laps do not coincide exactly.
     """
-    count = _positive_int(count, "count")  # 2.5 never equalled len: the whole lap was taken
-    loop = _real_array(loop, "loop", "(S, 4) from sample_loop", 2, 4)
-    speed = _positive_float(speed, "speed")
+    count = positive_int(count, "count")  # 2.5 never equalled len: the whole lap was taken
+    loop = real_array(loop, "loop", "(S, 4) from sample_loop", 2, 4)
+    speed = positive_float(speed, "speed")
     for name, value in (("key_distance", key_distance), ("key_yaw_deg", key_yaw_deg)):
-        if _finite_float(value, name) < 0:
+        if finite_float(value, name) < 0:
             raise ValueError(f"{name}: expected a value >= 0, got {value}")
     rng = np.random.default_rng([drive.seed, 3])
     phase = rng.uniform(0, 2 * np.pi, size=2)

@@ -11,9 +11,9 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from vvloc._checks import finite_float, positive_int
 from vvloc.data.frame import Camera, euler_to_matrix
 from vvloc.data.vvloc_format import DatasetWriter
-from vvloc.kernels import _finite_float, _positive_int
 from vvloc.sim.render import PRESETS, Renderer
 from vvloc.sim.rig import make_rig
 from vvloc.sim.sequences import Drive, drive_keyframes, sample_loop
@@ -147,7 +147,7 @@ def simulate_dataset(
     if floors is None:
         floors = 2
     sessions, frames, floors = (
-        _positive_int(v, key)
+        positive_int(v, key)
         for key, v in (("sessions", sessions), ("frames", frames), ("floors", floors))
     )
     if scene == "garage" and floors > MAX_FLOORS:  # the parking lot has one level
@@ -156,8 +156,8 @@ def simulate_dataset(
         raise ValueError(
             f"frames: expected at least one frame per floor ({floors}) a session, got {frames}"
         )
-    seed = _positive_int(seed, "seed", 0)
-    texture_strength = _finite_float(texture_strength, "texture_strength")  # a plain float
+    seed = positive_int(seed, "seed", 0)
+    texture_strength = finite_float(texture_strength, "texture_strength")  # a plain float
     if texture_strength < 0:
         raise ValueError(f"texture_strength: expected a value >= 0, got {texture_strength}")
     for key, v in (("max_roll", max_roll), ("max_pitch", max_pitch)):

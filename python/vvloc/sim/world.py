@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from vvloc.kernels import _positive_int
+from vvloc._checks import positive_int
 
 # Material ids, mirrored in the fragment shader (render.py).
 ASPHALT, PAINT, CAR, GLASS, CONCRETE, FACADE, FOLIAGE, SIGN, EMISSIVE, MARKER, BARK = range(11)
@@ -576,8 +576,8 @@ def garage_world(
     every pillar (a 1.2 m band of :data:`FLOOR_COLOURS`) with the level number above it on the
     faces towards the aisles. Geometry, cars and lights are the same for both.
     Floor f's driving surface is at z = −3.2·f."""
-    floors = _positive_int(floors, "floors")
-    n_bays = _positive_int(n_bays, "n_bays", 3)  # the level signs need the room
+    floors = positive_int(floors, "floors")
+    n_bays = positive_int(n_bays, "n_bays", 3)  # the level signs need the room
     _check_share(occupancy, "occupancy")
     if floor_marking not in FLOOR_MARKINGS:
         raise ValueError(f"floor_marking: expected one of {FLOOR_MARKINGS}, got {floor_marking!r}")

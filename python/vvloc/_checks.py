@@ -1,0 +1,118 @@
+"""Argument checks shared by the package: numbers and arrays, each refusal a ``TypeError`` (wrong
+type) or ``ValueError`` (wrong value or shape) that names the argument and says what was expected
+(README, "Errors"). The kernels' gateway (:mod:`vvloc.kernels`) has its own array conversion for
+the Rust extension (float32, C order, aligned); these are for everything else."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+F64Array = npt.NDArray[np.float64]
+I64Array = npt.NDArray[np.int64]
+BoolArray = npt.NDArray[np.bool_]
+
+
+def to_float(x: Any, name: str) -> float:
+    """``float(x)``, with an int too large for a float (10**400) named in a ``ValueError``."""
+    try:
+        return float(x)
+    except OverflowError:
+        raise ValueError(
+            f"{name}: expected a finite value, got an int too large for a float"
+        ) from None
+
+
+def positive_float(x: Any, name: str) -> float:
+    """A finite real number > 0 (an int or float, numpy's too; not a bool) as a float."""
+    if isinstance(x, bool) or not isinstance(x, (int, float, np.integer, np.floating)):
+        raise TypeError(f"{name}: expected a positive float, got {type(x).__name__}")
+    v = to_float(x, name)
+    if not np.isfinite(v) or v <= 0.0:
+        raise ValueError(f"{name}: expected a finite value > 0, got {v}")
+    return v
+
+
+def finite_float(x: Any, name: str) -> float:
+    """A finite real number (an int or float, numpy's too; not a bool) as a float."""
+    if isinstance(x, bool) or not isinstance(x, (int, float, np.integer, np.floating)):
+        raise TypeError(f"{name}: expected a float, got {type(x).__name__}")
+    v = to_float(x, name)
+    if not np.isfinite(v):
+        raise ValueError(f"{name}: expected a finite value, got {v}")
+    return v
+
+
+def positive_int(x: Any, name: str, minimum: int = 1, maximum: int = 2**63 - 1) -> int:
+    """An int in [minimum, maximum] (default: what the Rust kernels' sizes hold), named in the
+    error otherwise (not Python's 'int too big to convert')."""
+    if isinstance(x, bool) or not isinstance(x, (int, np.integer)):
+        raise TypeError(f"{name}: expected an int >= {minimum}, got {type(x).__name__}")
+    v = int(x)
+    if v < minimum:
+        raise ValueError(f"{name}: expected an int >= {minimum}, got {v}")
+    if v > maximum:
+        raise ValueError(f"{name}: expected an int <= {maximum}, got {v}")
+    return v
+
+
+def as_array(x: Any, name: str, shape_doc: str) -> npt.NDArray[Any]:
+    """``np.asarray(x)``, a ragged nested sequence refused naming ``name``."""
+    try:
+        return np.asarray(x)
+    except ValueError as e:  # numpy's "inhomogeneous shape after 1 dimensions"
+        raise ValueError(f"{name}: expected an array of shape {shape_doc}, got a ragged one") from e
+
+
+def real_number(x: Any, name: str) -> float:
+    """A real number, ±inf allowed, NaN refused (a threshold: ``inf`` accepts everything)."""
+    if isinstance(x, bool) or not isinstance(x, (int, float, np.integer, np.floating)):
+        raise TypeError(f"{name}: expected a real number, got {type(x).__name__}")
+    v = float(x)
+    if np.isnan(v):
+        raise ValueError(f"{name}: expected a number, got nan")
+    return v
+
+
+def real_array(x: Any, name: str, shape_doc: str, ndim: int, last: int | None = None) -> F64Array:
+    """Return ``x`` as a finite float64 array of ``ndim`` dimensions (last axis ``last``)."""
+    if x is None or isinstance(x, (str, bytes)):
+        raise TypeError(f"{name}: expected a real array of shape {shape_doc}, got {x!r}")
+    arr = as_array(x, name, shape_doc)
+    if arr.dtype == np.bool_ or not (
+        np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)
+    ):
+        raise TypeError(
+            f"{name}: expected a real array of shape {shape_doc}, got dtype {arr.dtype}"
+        )
+    if arr.ndim != ndim or (last is not None and arr.shape[-1] != last):
+        raise ValueError(f"{name}: expected shape {shape_doc}, got {arr.shape}")
+    out = arr.astype(np.float64)
+    if out.size and not np.isfinite(out).all():
+        raise ValueError(f"{name}: contains non-finite values (NaN or inf)")
+    return out
+
+
+def int_array(x: Any, name: str, shape_doc: str, ndim: int, last: int | None = None) -> I64Array:
+    """Return ``x`` as an int64 array of ``ndim`` dimensions (last axis ``last``)."""
+    arr = as_array(x, name, shape_doc)
+    if arr.dtype == np.bool_ or not np.issubdtype(arr.dtype, np.integer):
+        if not (arr.size == 0 and arr.dtype == np.float64):  # np.asarray([]) is float64
+            raise TypeError(f"{name}: expected an integer array {shape_doc}, got dtype {arr.dtype}")
+    if arr.ndim != ndim or (last is not None and arr.shape[-1] != last):
+        raise ValueError(f"{name}: expected shape {shape_doc}, got {arr.shape}")
+    return arr.astype(np.int64)
+
+
+def bool_array(x: Any, name: str, length: int) -> BoolArray:
+    """``x`` as it is, when it is a bool array of shape ``(length,)``."""
+    arr = np.asarray(x)
+    if arr.dtype != np.bool_:
+        raise TypeError(
+            f"{name}: expected a bool array of shape ({length},), got dtype {arr.dtype}"
+        )
+    if arr.shape != (length,):
+        raise ValueError(f"{name}: expected shape ({length},), got {arr.shape}")
+    return arr
