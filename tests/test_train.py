@@ -172,6 +172,52 @@ def test_a_run_resumed_inside_its_hard_pool_equals_the_uninterrupted_run(tiny_wo
     assert cut_state["hard_cursor"] > 0 and len(cut_state["hard"]) > cut_state["hard_cursor"]
 
 
+class _MakesADirectoryWhenUnpickled:
+    def __init__(self, path: Path) -> None:
+        self.path = path
+
+    def __reduce__(self):
+        return (os.mkdir, (str(self.path),))
+
+
+def test_a_trainer_state_is_unpickled_without_running_what_it_names(tmp_path):
+    # torch.load(weights_only=False) ran whatever a trainer_state.pt named: a file handed over
+    # with a run folder could run code at --resume
+    load = vvloc.train.trainer._load_trainer_state
+    marker = tmp_path / "ran"
+    torch.save({"config": {}, "x": _MakesADirectoryWhenUnpickled(marker)}, tmp_path / "evil.pt")
+    with pytest.raises(ValueError, match=r"evil.pt: .*names posix\.mkdir, .*could run code"):
+        load(tmp_path / "evil.pt")
+    assert not marker.exists()
+    # what a state holds loads: tensors, numpy arrays and scalars, the generator's state
+    rng = np.random.default_rng(3)
+    state = {
+        "config": {"seed": 3},
+        "sampler": {"rng": rng.bit_generator.state, "hard": np.arange(6).reshape(2, 3)},
+        "best": {"key": (np.float64(0.5), 0.25)},
+        "torch_rng": torch.get_rng_state(),
+    }
+    torch.save(state, tmp_path / "state.pt")
+    back = load(tmp_path / "state.pt")
+    assert back["sampler"]["rng"] == rng.bit_generator.state
+    assert np.array_equal(back["sampler"]["hard"], state["sampler"]["hard"])
+    assert back["best"]["key"] == (0.5, 0.25) and torch.equal(back["torch_rng"], state["torch_rng"])
+    # and a state numpy 1 pickled (its arrays' reconstructor lived in numpy.core)
+    import zipfile
+
+    with zipfile.ZipFile(tmp_path / "state.pt") as z:
+        parts = {i: z.read(i) for i in z.infolist()}
+    with zipfile.ZipFile(tmp_path / "numpy1.pt", "w", zipfile.ZIP_STORED) as z:
+        for info, data in parts.items():
+            if info.filename.endswith("data.pkl"):
+                assert b"numpy._core.multiarray" in data
+                data = data.replace(b"numpy._core.multiarray", b"numpy.core.multiarray")
+            z.writestr(info, data)
+    assert np.array_equal(
+        load(tmp_path / "numpy1.pt")["sampler"]["hard"], np.arange(6).reshape(2, 3)
+    )
+
+
 def test_a_trainer_state_saved_before_the_pool_position_was_kept_still_resumes(
     tiny_world, tmp_path
 ):

@@ -11,6 +11,7 @@ import logging
 import math
 import os
 import random
+import re
 import secrets
 import shutil
 import signal
@@ -99,16 +100,44 @@ def seed_everything(seed: int) -> None:
     torch.manual_seed(seed)
 
 
+def _state_globals() -> list[Any]:
+    """What a trainer state holds besides tensors and plain Python values, for ``torch.load``'s
+    ``weights_only`` unpickler: numpy arrays and scalars (the sampler's hard pool and
+    exclusions, figures of the best epoch) of bool and numeric dtypes, their reconstructors
+    under numpy 2's module name and numpy 1's (a run saved under either resumes under the
+    other)."""
+    core = getattr(np, "_core", None) or np.core  # numpy 2 / numpy 1
+    rec, scalar = core.multiarray._reconstruct, core.multiarray.scalar
+    names = [
+        (f, f"numpy.{m}.multiarray.{f.__name__}") for f in (rec, scalar) for m in ("core", "_core")
+    ]
+    codes = "?" + np.typecodes["AllInteger"] + np.typecodes["AllFloat"]
+    dtypes = list(dict.fromkeys(type(np.dtype(c)) for c in codes))  # numpy.dtypes.Int64DType, ...
+    return [rec, scalar, *names, np.ndarray, np.dtype, *dtypes, bytes]
+
+
 def _load_trainer_state(path: Path) -> dict[str, Any]:
     """``torch.load`` of a run's ``trainer_state.pt``: ``ValueError`` naming the file when it
     is truncated (a disk that filled, a copy cut short) or not a trainer state; torch says
-    ``EOFError: Ran out of input`` or ``pickle data was truncated`` without the file."""
+    ``EOFError: Ran out of input`` or ``pickle data was truncated`` without the file. Read with
+    ``weights_only``: a file that names any other Python object (pickle can call any function
+    while it loads) is refused without running it."""
     import pickle
 
     try:
-        state = torch.load(path, map_location="cpu", weights_only=False)
+        with torch.serialization.safe_globals(_state_globals()):
+            state = torch.load(path, map_location="cpu", weights_only=True)
     except (RuntimeError, EOFError, pickle.UnpicklingError) as e:
         why: str = str(e).split(". ")[0]
+        if "Weights only load failed" in str(e):
+            # torch says "Unsupported global: GLOBAL x.y", "unsupported GLOBAL x.y whose
+            # module x is blocked" or "got <class 'x.y'>", by the kind of object
+            named = re.search(r"GLOBAL ([\w.]+)|got <class '([\w.]+)'>", str(e))
+            what = next((g for g in named.groups() if g), "") if named else ""
+            why = (
+                f"it names {what or 'a Python object'}, which no trainer state holds: not "
+                "loaded, as unpickling it could run code"
+            )
     else:
         if isinstance(state, dict) and "config" in state:
             return state
