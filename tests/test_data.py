@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 import vvloc.data.vvloc_format as fmt
+from vvloc._io import FLOAT_TEXT
 from vvloc.data import (
     DatasetFormatError,
     DatasetWriter,
@@ -19,6 +20,7 @@ from vvloc.data import (
     open_dataset,
     perturb,
 )
+from vvloc.data.sampling import rendered_world
 from vvloc.sim.rig import make_rig
 from vvloc.sim.sequences import Drive, drive_keyframes, sample_loop
 from vvloc.sim.world import parking_world
@@ -117,6 +119,50 @@ def test_files_that_are_not_utf8_text_are_named(tmp_path):
     (root / "rig.json").write_bytes(b"\x89PNG\r\n\x1a\n")
     with pytest.raises(DatasetFormatError, match=r"rig\.json: cannot read rig: 'utf-8' codec"):
         open_dataset(root)
+
+
+def _with_x(row: str, x: str) -> str:
+    """A poses.csv row with its x field replaced by ``x``."""
+    fields = row.split(",")
+    return ",".join([fields[0], x, *fields[2:]])
+
+
+def test_csv_errors_and_a_rig_that_is_no_file_are_named(tmp_path):
+    import csv as csv_module
+
+    root = tmp_path / "ds"
+    _write(root, {"s0": _line(3)})
+    p = root / "sessions" / "s0" / "poses.csv"
+    good = p.read_text()
+    lines = good.splitlines()
+    # a field beyond the csv module's limit raised _csv.Error, naming neither file nor line
+    big = "0." + "0" * (csv_module.field_size_limit() + 10)
+    p.write_text("\n".join([*lines[:2], _with_x(lines[2], big), *lines[3:]]) + "\n")
+    with pytest.raises(DatasetFormatError, match=r"poses\.csv, line 3: field larger than"):
+        open_dataset(root)
+    p.write_text(good)
+    if hasattr(os, "mkfifo"):  # a named pipe as rig.json blocked format="vvloc" for good
+        (root / "rig.json").unlink()
+        os.mkfifo(root / "rig.json")
+        with pytest.raises(DatasetFormatError, match=r"rig\.json: not a regular file"):
+            open_dataset(root, format="vvloc")
+        assert rendered_world(root) is None
+
+
+def test_a_long_number_field_is_refused_at_once_and_quoted_short(tmp_path):
+    # FLOAT_TEXT split a run of digits between two parts in every way: a 40 000-digit field
+    # that failed to match took 23 s, one of 10^6 digits hours; the message quoted it whole
+    root = tmp_path / "ds"
+    _write(root, {"s0": _line(3)})
+    p = root / "sessions" / "s0" / "poses.csv"
+    lines = p.read_text().splitlines()
+    field = "1" * 100_000 + "x"
+    p.write_text("\n".join([*lines[:2], _with_x(lines[2], field), *lines[3:]]) + "\n")
+    with pytest.raises(DatasetFormatError, match=r"expected a number, got '1{50,}") as e:
+        open_dataset(root)
+    assert len(str(e.value)) < 1000
+    assert FLOAT_TEXT.fullmatch("1" * 100_000) and FLOAT_TEXT.fullmatch("-12.5e-3")
+    assert not FLOAT_TEXT.fullmatch("1" * 100_000 + "x")
 
 
 def test_a_missing_dataset_and_a_file_are_told_apart(tmp_path):

@@ -149,7 +149,9 @@ def read_groundtruth(path: Path) -> np.ndarray:
             try:
                 vals = [float(v) for v in row]
             except ValueError as e:
-                raise DatasetFormatError(f"{path}, line {line}: malformed row {row}: {e}") from e
+                raise DatasetFormatError(
+                    f"{path}, line {line}: malformed row {row!r:.200}: {e}"
+                ) from e
             if all(np.isfinite(vals)):
                 rows.append(vals)
     arr = np.array(rows, dtype=np.float64).reshape(-1, 7)

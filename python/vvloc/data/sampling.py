@@ -554,8 +554,11 @@ def sim_world(sim: dict[str, Any]) -> dict[str, Any]:
 def rendered_world(root: str | os.PathLike[str]) -> dict[str, Any] | None:
     """The world ``vvloc sim`` recorded in ``root``'s ``rig.json`` (``meta``), in the form of
     :func:`sim_world`; None for a dataset that ``vvloc sim`` did not render."""
+    rig = Path(root) / "rig.json"
+    if not rig.is_file():  # none, or a pipe, which would block the read
+        return None
     try:
-        meta = json.loads((Path(root) / "rig.json").read_text(encoding="utf-8")).get("meta", {})
+        meta = json.loads(rig.read_text(encoding="utf-8")).get("meta", {})
         if not isinstance(meta, dict) or meta.get("generator") != "vvloc.sim":
             return None
         world = {"scene": meta.get("scene"), "seed": meta.get("seed")}

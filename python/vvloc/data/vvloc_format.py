@@ -106,6 +106,8 @@ class VvlocSession(Session):
 
 def read_rig(path: Path) -> tuple[list[Camera], dict[str, Any]]:
     """Read ``rig.json``: the cameras and the whole document."""
+    if path.exists() and not path.is_file():  # a pipe would block the read for good
+        raise DatasetFormatError(f"{path}: not a regular file (a folder, device or pipe)")
     try:
         doc = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, ValueError, RecursionError) as e:  # JSON, UTF-8 errors; too deep nesting
@@ -149,7 +151,7 @@ def _number_texts(fields: Sequence[str], kinds: str) -> None:
     for text, kind in zip(fields, kinds, strict=False):
         pattern, what = (INT_TEXT, "an integer") if kind == "i" else (FLOAT_TEXT, "a number")
         if not pattern.fullmatch(text.strip()):
-            raise ValueError(f"expected {what}, got {text!r}")
+            raise ValueError(f"expected {what}, got {text!r:.60}")
 
 
 def read_poses(path: Path) -> np.ndarray:
@@ -165,7 +167,7 @@ def read_poses(path: Path) -> np.ndarray:
             x, y, z, yaw = (float(v) for v in row[1:5])
             floor = int(row[5])
         except ValueError as e:
-            raise DatasetFormatError(f"{path}, line {line}: malformed row {row}: {e}") from e
+            raise DatasetFormatError(f"{path}, line {line}: malformed row {row!r:.200}: {e}") from e
         for name, v in (("timestamp", ts), ("floor", floor)):
             if not -(2**63) <= v < 2**63:
                 raise DatasetFormatError(
@@ -200,6 +202,8 @@ def _csv_rows(path: Path, header: tuple[str, ...]) -> Iterator[tuple[int, list[s
             yield from _checked_rows(path, reader, header)
         except UnicodeDecodeError as e:
             raise DatasetFormatError(f"{path}: not UTF-8 text ({e})") from None
+        except csv.Error as e:  # a field over the csv module's size limit, a NUL byte, ...
+            raise DatasetFormatError(f"{path}, line {reader.line_num}: {e}") from None
 
 
 def _checked_rows(
@@ -484,7 +488,7 @@ def _check_replaceable(root: Path) -> None:
     folder, so anything a user keeps there (notes, runs, another tool's files) would go too."""
     rig = root / "rig.json"
     try:
-        doc = json.loads(rig.read_text(encoding="utf-8"))
+        doc = json.loads(rig.read_text(encoding="utf-8")) if rig.is_file() else None
     except (OSError, UnicodeDecodeError, ValueError):
         doc = None
     if not (isinstance(doc, dict) and doc.get("format") == FORMAT_NAME):

@@ -398,8 +398,11 @@ def _lineage(dataset: str | os.PathLike[str]) -> list[tuple[str, str | None]]:
     as the conversion recorded it (None for ``dataset`` itself): ``rig.json``'s
     ``meta.converted_from`` and its ``source_converted_from``."""
     out: list[tuple[str, str | None]] = [(os.fspath(dataset), None)]
+    rig = Path(dataset) / "rig.json"
+    if not rig.is_file():  # none, or a pipe, which would block the read
+        return out
     try:
-        meta = json.loads((Path(dataset) / "rig.json").read_text(encoding="utf-8")).get("meta")
+        meta = json.loads(rig.read_text(encoding="utf-8")).get("meta")
     except (OSError, ValueError, AttributeError):  # no rig.json, or not a vvloc one
         return out
     step = meta.get("converted_from") if isinstance(meta, dict) else None

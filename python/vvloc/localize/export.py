@@ -99,7 +99,7 @@ def _int_field(text: str, what: str) -> int:
     """A field of a file read as a 64-bit integer, as C's strtol reads it (Python alone reads
     ``1_000``: :data:`vvloc._io.INT_TEXT`); ``ValueError`` naming ``what`` otherwise."""
     if not INT_TEXT.fullmatch(text):
-        raise ValueError(f"{what}: expected an integer, got {text!r}")
+        raise ValueError(f"{what}: expected an integer, got {text!r:.60}")
     v = int(text)
     if not -(2**63) <= v < 2**63:
         raise ValueError(f"{what}: {text} does not fit in a 64-bit integer")
@@ -110,7 +110,7 @@ def _float_field(text: str, what: str) -> float:
     """A field of a file read as a finite float, as C's strtod reads it
     (:data:`vvloc._io.FLOAT_TEXT`); ``ValueError`` naming ``what`` otherwise."""
     if not FLOAT_TEXT.fullmatch(text):
-        raise ValueError(f"{what}: expected a number, got {text!r}")
+        raise ValueError(f"{what}: expected a number, got {text!r:.60}")
     v = float(text)
     if not math.isfinite(v):
         raise ValueError(f"{what}: non-finite value {text!r} (nan or inf)")
