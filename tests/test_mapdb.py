@@ -475,6 +475,45 @@ def test_an_edited_attribute_is_refused_by_the_attribute_checksum(tmp_path: Path
         MapDatabase.open(path)
 
 
+def test_a_declared_size_the_file_does_not_store_is_refused_before_any_read(
+    tmp_path: Path,
+) -> None:
+    # a dataset declared with 10^12 rows (never written: HDF5 reads unwritten chunks as zeros)
+    # in a file of kilobytes was allocated by open(): numpy's "Unable to allocate 7.28 TiB";
+    # 2·10^7 rows took 1.8 GiB before the checksum refused them
+    path = saved(tmp_path)
+    big = 10**12
+
+    def declare(f: h5py.File, name: str, shape: tuple[int, ...], **kw: Any) -> None:
+        old = f[name]
+        sha, dtype = old.attrs["sha256"], old.dtype
+        del f[name]
+        chunks = (min(shape[0], 1 << 14), *shape[1:])
+        f.create_dataset(name, shape=shape, dtype=dtype, chunks=chunks, **kw).attrs["sha256"] = sha
+
+    def grow(f: h5py.File) -> None:
+        for name in ("ids", "session_index", "seq", "timestamps", "poses", "floors"):
+            declare(f, name, (big, *f[name].shape[1:]), fletcher32=True)
+        for name in ("global_descriptors", "local_descriptors", "bev"):
+            declare(f, name, (big, *f[name].shape[1:]), fletcher32=True)
+        f.attrs["num_keyframes"] = np.int64(big)
+
+    edit(path, grow)
+    assert path.stat().st_size < 1_000_000
+    with pytest.raises(
+        MapError,
+        match=r"map\.h5: corrupted map: dataset 'ids' of shape "
+        r"\(1000000000000,\) declares 8000000000000 bytes but stores",
+    ):
+        MapDatabase.open(path)
+    # the right number of rows, compressed (a 2 GiB chunk of zeros in 2 MB): never written so
+    (tmp_path / "z").mkdir()
+    path = saved(tmp_path / "z")
+    edit(path, lambda f: declare(f, "ids", f["ids"].shape, compression="gzip"))
+    with pytest.raises(MapError, match=r"dataset 'ids' is compressed \(gzip\)"):
+        MapDatabase.open(path)
+
+
 def test_a_long_text_attribute_is_checksummed_too(tmp_path: Path) -> None:
     """HDF5 keeps a value over ~4 KiB in a heap object without a checksum of its own."""
     config = {**CONFIG, "notes": "x" * 5000}

@@ -1584,7 +1584,29 @@ def _check_datasets(h5: h5py.File, p: Path, descriptor_dtype: str) -> tuple[int,
                 f"{p}: corrupted map: dataset {name!r} has dtype {h5[name].dtype}, "
                 f"expected {expected_dtypes[name]}"
             )
+    for name in (*per_keyframe, "session_names"):
+        _check_stored(h5[name], p, name)
     return n, has_bev
+
+
+def _check_stored(ds: h5py.Dataset, p: Path, name: str) -> None:
+    """:class:`MapError` naming ``p`` unless the dataset ``ds`` stores all that its shape
+    declares, uncompressed, as :class:`MapWriter` writes it. Checked before any read: a shape
+    of 10¹² rows (or a per-row shape of 10¹²) in a file of kilobytes, never written (HDF5 reads
+    unwritten chunks as zeros) or compressed from zeros, was allocated by the first read."""
+    if ds.compression is not None or ds.scaleoffset is not None:
+        how = ds.compression or "scaleoffset"
+        raise MapError(
+            f"{p}: corrupted map: dataset {name!r} is compressed ({how}), which vvloc's maps "
+            "never are"
+        )
+    item = 16 if ds.dtype.kind == "O" else ds.dtype.itemsize  # a variable-length string's heap id
+    declared, stored = ds.size * item, ds.id.get_storage_size()
+    if stored < declared:
+        raise MapError(
+            f"{p}: corrupted map: dataset {name!r} of shape {ds.shape} declares {declared} bytes "
+            f"but stores {stored}"
+        )
 
 
 def _read_small(
