@@ -442,6 +442,28 @@ print(DescriptorIndex(np.zeros((3, 4))).topk(np.zeros((0, 4)), 5)[0].shape)
     assert len(raw) == 50
 
 
+def test_load_reads_no_body_of_a_file_its_header_refuses(tmp_path):
+    # load read the whole file before its header: a 3 GiB foreign file (sparse, nothing on
+    # disk) took 9 s and 3 GiB, and under an address-space limit its refusal was "out of
+    # memory" instead of the format error
+    from memory_helpers import run_limited
+
+    path = tmp_path / "foreign.vvidx"
+    with open(path, "wb") as f:
+        f.write(b"NOTANIDX" + bytes(32))
+        f.truncate(3 << 30)
+    lines = run_limited(f"""
+from vvloc import DescriptorIndex
+limit(256)
+try:
+    DescriptorIndex.load({str(path)!r})
+except (ValueError, OSError, MemoryError) as e:
+    print(type(e).__name__, e)
+""")
+    assert len(lines) == 1 and lines[0].startswith("ValueError"), lines
+    assert "foreign.vvidx" in lines[0] and "wrong magic bytes" in lines[0], lines
+
+
 def test_out_of_memory_is_a_memory_error_not_an_abort():
     # under an address-space limit (ulimit -v, common on clusters), building an index or
     # collecting radius hits that do not fit raised nothing: the allocator aborted the process

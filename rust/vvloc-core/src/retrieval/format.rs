@@ -20,7 +20,7 @@
 
 use super::{DescriptorIndex, Dtype};
 use crate::{Error, Result};
-use std::io::Write;
+use std::io::{Read, Write};
 use std::path::Path;
 
 const MAGIC: &[u8; 8] = b"VVLOCIDX";
@@ -86,17 +86,21 @@ pub fn to_bytes(index: &DescriptorIndex) -> Result<Vec<u8>> {
     Ok(out)
 }
 
-/// Parses a version-1 file's bytes; any inconsistency is an [`Error::Format`].
-pub fn from_bytes(bytes: &[u8]) -> Result<DescriptorIndex> {
-    let bad = |msg: &str| Error::Format(format!("not a valid vvloc descriptor index: {msg}"));
-    if bytes.len() < HEADER {
+fn bad(msg: &str) -> Error {
+    Error::Format(format!("not a valid vvloc descriptor index: {msg}"))
+}
+
+/// The header's dtype, N and d, checked against the length `len` of the whole file: `head`
+/// holds its first `min(len, 40)` bytes. Any inconsistency is an [`Error::Format`].
+fn parse_header(head: &[u8], len: u64) -> Result<(Dtype, u64, u64)> {
+    if head.len() < HEADER || len < HEADER as u64 {
         return Err(bad("file is shorter than the 40-byte header (truncated?)"));
     }
-    if &bytes[..8] != MAGIC {
+    if &head[..8] != MAGIC {
         return Err(bad("wrong magic bytes"));
     }
-    let u32_at = |o: usize| u32::from_le_bytes(bytes[o..o + 4].try_into().unwrap());
-    let u64_at = |o: usize| u64::from_le_bytes(bytes[o..o + 8].try_into().unwrap());
+    let u32_at = |o: usize| u32::from_le_bytes(head[o..o + 4].try_into().unwrap());
+    let u64_at = |o: usize| u64::from_le_bytes(head[o..o + 8].try_into().unwrap());
     let version = u32_at(8);
     if version != VERSION {
         return Err(bad(&format!(
@@ -116,14 +120,20 @@ pub fn from_bytes(bytes: &[u8]) -> Result<DescriptorIndex> {
             "header says d=0 (descriptors have at least one dimension)",
         ));
     }
-    if expected != bytes.len() as u64 {
+    if expected != len {
         return Err(bad(&format!(
-            "header says N={n}, d={d} ({expected} bytes) but the file has {} bytes (truncated?)",
-            bytes.len()
+            "header says N={n}, d={d} ({expected} bytes) but the file has {len} bytes (truncated?)"
         )));
     }
+    Ok((dtype, n, d))
+}
+
+/// Parses a version-1 file's bytes; any inconsistency is an [`Error::Format`].
+pub fn from_bytes(bytes: &[u8]) -> Result<DescriptorIndex> {
+    let (dtype, n, d) = parse_header(&bytes[..bytes.len().min(HEADER)], bytes.len() as u64)?;
     let payload = &bytes[HEADER..];
-    if checksum(&[&bytes[8..32], payload]) != u64_at(32) {
+    let stored = u64::from_le_bytes(bytes[32..HEADER].try_into().unwrap());
+    if checksum(&[&bytes[8..32], payload]) != stored {
         return Err(bad("checksum mismatch (corrupted file)"));
     }
     let (n, d) = (n as usize, d as usize);
@@ -173,11 +183,31 @@ impl DescriptorIndex {
 
     /// Reads an index written by [`DescriptorIndex::save`]; a truncated, corrupted or foreign
     /// file is an [`Error::Format`], a missing or unreadable one an [`Error::Io`].
+    ///
+    /// The header is checked against the file's length before the rest is read: a foreign or
+    /// truncated file of gigabytes is refused without reading it into memory.
     pub fn load(path: &Path) -> Result<DescriptorIndex> {
-        let bytes = std::fs::read(path).map_err(|e| io_err(path, e))?;
-        from_bytes(&bytes).map_err(|e| match e {
+        let named = |e: Error| match e {
             Error::Format(m) => Error::Format(format!("{}: {m}", path.display())),
             other => other,
-        })
+        };
+        let mut f = std::fs::File::open(path).map_err(|e| io_err(path, e))?;
+        let len = f.metadata().map_err(|e| io_err(path, e))?.len();
+        let mut head = Vec::with_capacity(HEADER);
+        (&mut f)
+            .take(HEADER as u64)
+            .read_to_end(&mut head)
+            .map_err(|e| io_err(path, e))?;
+        parse_header(&head, len).map_err(named)?;
+        let mut bytes = head;
+        usize::try_from(len)
+            .ok()
+            .and_then(|l| bytes.try_reserve_exact(l - HEADER).ok())
+            .ok_or_else(|| Error::Memory {
+                arg: "path",
+                what: format!("the {len} bytes of {}", path.display()),
+            })?;
+        f.read_to_end(&mut bytes).map_err(|e| io_err(path, e))?;
+        from_bytes(&bytes).map_err(named)
     }
 }

@@ -295,6 +295,26 @@ fn save_load_round_trip_and_corruption_detected() {
         DescriptorIndex::load(&dir.join("missing")),
         Err(Error::Io { .. })
     ));
+    // the header is checked against the file's length before the body is read: a foreign
+    // file of 1 GiB (sparse: nothing on disk) is refused by its magic bytes, and a header
+    // whose sizes differ from the file's by its length
+    let foreign = dir.join("foreign.vvidx");
+    let f = std::fs::File::create(&foreign).unwrap();
+    f.set_len(1 << 30).unwrap();
+    drop(f);
+    let e = DescriptorIndex::load(&foreign).unwrap_err().to_string();
+    assert!(
+        e.contains("foreign.vvidx") && e.contains("wrong magic bytes"),
+        "{e}"
+    );
+    let mut longer = bytes.clone();
+    longer.extend_from_slice(&[0; 8]);
+    std::fs::write(&foreign, &longer).unwrap();
+    let e = DescriptorIndex::load(&foreign).unwrap_err().to_string();
+    assert!(
+        e.contains(&format!("but the file has {} bytes", longer.len())),
+        "{e}"
+    );
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
