@@ -459,7 +459,7 @@ def edit(path: Path, fn: Any, *, reseal: bool = True) -> None:
     file written so by a faulty writer, to reach the check behind it)."""
     from vvloc.localize.mapdb import _ATTRS_DIGEST, _attrs_digest, _set_text
 
-    with h5py.File(path, "a") as f:
+    with h5py.File(path, "a", libver=("v110", "v110")) as f:  # as MapWriter writes
         fn(f)
         if reseal and _ATTRS_DIGEST in f.attrs:
             _set_text(f.attrs, _ATTRS_DIGEST, _attrs_digest(f.attrs))
@@ -511,6 +511,27 @@ def test_a_declared_size_the_file_does_not_store_is_refused_before_any_read(
     path = saved(tmp_path / "z")
     edit(path, lambda f: declare(f, "ids", f["ids"].shape, compression="gzip"))
     with pytest.raises(MapError, match=r"dataset 'ids' is compressed \(gzip\)"):
+        MapDatabase.open(path)
+
+
+def test_a_format_2_label_on_unchecksummed_hdf5_structures_is_refused(tmp_path: Path) -> None:
+    # a format-1 file relabelled format 2 (attribute checksum and all) opened as format 2;
+    # damaged, such a file crashed the interpreter in HDF5 when a dataset's sha256 was read
+    from vvloc.localize.mapdb import _ATTRS_DIGEST, _attrs_digest, _set_text
+
+    path = tmp_path / "relabelled.h5"
+    shutil.copy(Path(__file__).parent / "data" / "map-format-1.h5", path)
+
+    def relabel(f: h5py.File) -> None:
+        f.attrs["format_version"] = np.int64(2)
+        _set_text(f.attrs, _ATTRS_DIGEST, _attrs_digest(f.attrs))
+
+    edit(path, relabel, reseal=False)
+    with pytest.raises(
+        MapError,
+        match=r"relabelled\.h5: corrupted map: it says format version 2 "
+        r"but has HDF5 superblock version 0",
+    ):
         MapDatabase.open(path)
 
 

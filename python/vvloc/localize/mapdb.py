@@ -1203,6 +1203,8 @@ class MapDatabase:
         version, config_hash, weights_hash, descriptor_dtype = _check_header(
             h5.attrs, p, expected_config_hash, expected_weights_hash
         )
+        if version >= 2:
+            _check_structures(h5, p)
         n, has_bev = _check_datasets(h5, p, descriptor_dtype)
         small, names = _read_small(h5, p, n, verify)
         return cls(
@@ -1540,6 +1542,26 @@ def _check_header(
     if descriptor_dtype not in ("float32", "float16"):
         raise MapError(f"{p}: corrupted map: descriptor dtype {descriptor_dtype!r}")
     return version, config_hash, weights_hash, descriptor_dtype
+
+
+def _check_structures(h5: h5py.File, p: Path) -> None:
+    """:class:`MapError` naming ``p`` unless a file that says it is format 2 has the
+    checksummed HDF5 structures this format promises (superblock version 2 or later, version-2
+    object headers for its datasets): HDF5 parses the older ones without a check, and a damaged
+    one of those crashed the interpreter (a segmentation fault) when a dataset's attribute was
+    read. Reads no attribute or data."""
+    superblock = h5.id.get_create_plist().get_version()[0]
+    if superblock < 2:
+        raise MapError(
+            f"{p}: corrupted map: it says format version 2 but has HDF5 superblock version "
+            f"{superblock}, without the checksums vvloc's maps are written with"
+        )
+    for name, obj in h5.items():
+        if isinstance(obj, h5py.Dataset) and h5py.h5o.get_info(obj.id).hdr.version < 2:
+            raise MapError(
+                f"{p}: corrupted map: dataset {name!r} has an HDF5 object header without "
+                "checksums, which vvloc's maps are not written with"
+            )
 
 
 def _check_datasets(h5: h5py.File, p: Path, descriptor_dtype: str) -> tuple[int, bool]:
