@@ -1368,6 +1368,13 @@ def test_non_finite_timestamps_or_descriptors_and_a_fractional_count_are_refused
         edit(path, nan_in(name))
         with pytest.raises(MapError, match=rf"map\.h5: corrupted map: non-finite {said}"):
             MapDatabase.open(path)  # opened silently (only poses were checked)
+    for name, said in (("local_descriptors", "local descriptors"), ("bev", "bev")):
+        (tmp_path / name).mkdir()
+        path = saved(tmp_path / name)
+        edit(path, nan_in(name))
+        with MapDatabase.open(path) as db:  # read lazily: verify() reads them all
+            with pytest.raises(MapError, match=rf"map\.h5: corrupted map: non-finite {said}$"):
+                db.verify()
     (tmp_path / "count").mkdir()
     path = saved(tmp_path / "count")
     edit(path, lambda f: f.attrs.__setitem__("num_keyframes", 12.7))

@@ -1250,9 +1250,11 @@ class MapDatabase:
         return w.path
 
     def verify(self) -> None:
-        """Check the SHA-256 of every dataset in the file, including the lazily read ones.
+        """Check the SHA-256 of every dataset in the file, including the lazily read ones, and
+        that the local descriptors and BEVs are finite (as :meth:`open` checks the others).
 
-        Reads the whole file. Raises :class:`MapError` on a mismatch or unreadable chunk.
+        Reads the whole file. Raises :class:`MapError` on a mismatch, an unreadable chunk or a
+        non-finite value.
         Does nothing for an in-memory map.
         """
         self._check_open()
@@ -1271,12 +1273,17 @@ class MapDatabase:
             row_bytes = max(1, int(np.prod(ds.shape[1:])) * ds.dtype.itemsize)
             block = max(1, _COPY_BLOCK_BYTES // row_bytes)
             digest = hashlib.sha256()
+            finite = True
             try:
                 for start in range(0, ds.shape[0], block):
-                    digest.update(_le(ds[start : start + block], ds.dtype).data)
+                    rows = ds[start : start + block]
+                    digest.update(_le(rows, ds.dtype).data)
+                    finite = finite and (rows.dtype.kind != "f" or bool(np.isfinite(rows).all()))
             except OSError as e:
                 raise MapError(f"{self._path}: corrupted map: cannot read {name!r}: {e}") from e
             _check_digest(self._path, ds, digest.hexdigest())
+            if not finite:  # open() checks the small datasets; the lazy ones are read here
+                raise MapError(f"{self._path}: corrupted map: non-finite {name.replace('_', ' ')}")
 
     def close(self) -> None:
         """Close the file of an opened map (idempotent); lazy accessors then raise."""
