@@ -506,6 +506,35 @@ def test_a_declared_size_the_file_does_not_store_is_refused_before_any_read(
         r"\(1000000000000,\) declares 8000000000000 bytes but stores",
     ):
         MapDatabase.open(path)
+    # every chunk indexed but holding 8 bytes (HDF5's storage size counts what its chunk index
+    # says, not what the chunks hold): a file of 112 KB made open() ask numpy for 745 GiB
+    (tmp_path / "c").mkdir()
+    path = saved(tmp_path / "c")
+    rows = 1 << 24
+
+    def indexed(f: h5py.File) -> None:
+        for name in ("ids", "session_index", "seq", "timestamps", "poses", "floors"):
+            declare(f, name, (rows, *f[name].shape[1:]))
+        for name in ("global_descriptors", "local_descriptors", "bev"):
+            declare(f, name, (rows, *f[name].shape[1:]))
+        for name in (
+            *("ids", "session_index", "seq", "timestamps", "poses", "floors"),
+            "global_descriptors",
+            "local_descriptors",
+            "bev",
+        ):
+            ds = f[name]
+            for start in range(0, rows, ds.chunks[0]):
+                ds.id.write_direct_chunk((start, *([0] * (ds.ndim - 1))), b"\0" * 8)
+        f.attrs["num_keyframes"] = np.int64(rows)
+
+    edit(path, indexed)
+    with pytest.raises(
+        MapError,
+        match=r"corrupted map: its datasets declare \d+ bytes in all, "
+        r"more than the file's \d+",
+    ):
+        MapDatabase.open(path)
     # the right number of rows, compressed (a 2 GiB chunk of zeros in 2 MB): never written so
     (tmp_path / "z").mkdir()
     path = saved(tmp_path / "z")

@@ -462,6 +462,20 @@ except (ValueError, OSError, MemoryError) as e:
 """)
     assert len(lines) == 1 and lines[0].startswith("ValueError"), lines
     assert "foreign.vvidx" in lines[0] and "wrong magic bytes" in lines[0], lines
+    # a valid header for those 3 GiB: the body's buffer is refused as a MemoryError naming the
+    # path (reserved fallibly, not an abort)
+    import struct
+
+    n, d = ((3 << 30) - 40) // (2 * 4 + 16), 2
+    with open(path, "r+b") as f:
+        f.write(b"VVLOCIDX" + struct.pack("<IIQQQ", 1, 0, n, d, 0))
+        f.truncate(40 + n * (d * 4 + 16))
+    lines = run_limited(f"""
+from vvloc import DescriptorIndex
+limit(256)
+attempt("load", lambda: DescriptorIndex.load({str(path)!r}))
+""")
+    assert lines[0].startswith("load MemoryError path:") and "foreign.vvidx" in lines[0], lines
 
 
 def test_out_of_memory_is_a_memory_error_not_an_abort():

@@ -3,7 +3,6 @@ map of another session, print the metrics and write plots to ``runs/demo/``."""
 
 from __future__ import annotations
 
-import json
 import re
 import time
 from pathlib import Path
@@ -36,9 +35,10 @@ def _reusable(data: Path, frames: int, seed: int) -> bool:
     """Whether ``data`` already holds the demo's world: a readable dataset rendered from parking
     world ``seed`` with the map and query sessions of ``frames`` keyframes each."""
     from vvloc.data import open_dataset
+    from vvloc.data.vvloc_format import rig_meta
 
     try:
-        meta = json.loads((data / "rig.json").read_text()).get("meta", {})
+        meta = rig_meta(data) or {}
         ds = open_dataset(data)
         names = [MAP_SESSION, *QUERY_SESSIONS]
         return (
@@ -57,10 +57,9 @@ def _ours_to_replace(data: Path) -> bool:
     there, or one with more sessions, is never replaced)."""
     if not data.exists() or (data.is_dir() and not any(data.iterdir())):
         return True
-    try:
-        meta = json.loads((data / "rig.json").read_text()).get("meta", {})
-    except (OSError, ValueError, AttributeError):
-        return False
+    from vvloc.data.vvloc_format import rig_meta
+
+    meta = rig_meta(data) or {}
     if not (meta.get("generator") == "vvloc.sim" and meta.get("scene") == "parking"):
         return False
     sessions = data / "sessions"

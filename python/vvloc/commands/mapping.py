@@ -181,7 +181,7 @@ def info(
         typer.Option(
             "--verify",
             help="Also check the SHA-256 of every dataset, the lazily read local-view "
-            "descriptors and BEVs included (reads the whole file).",
+            "descriptors and BEVs included, and that those are finite (reads the whole file).",
         ),
     ] = False,
 ) -> None:

@@ -48,8 +48,9 @@ import csv
 import os
 import re
 import warnings
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -137,11 +138,21 @@ def read_undistortion_map(path: Path) -> tuple[np.ndarray, np.ndarray]:
     return mapu, mapv
 
 
+def _csv_lines(path: Path, f: Any) -> Iterator[tuple[int, list[str]]]:
+    """(row number from 1, fields) of the open CSV file ``f``; the csv module's own errors (a
+    field over its size limit) as a :class:`DatasetFormatError` naming ``path`` and the line."""
+    reader = csv.reader(f)
+    try:
+        yield from enumerate(reader, start=1)
+    except csv.Error as e:
+        raise DatasetFormatError(f"{path}, line {reader.line_num}: {e}") from None
+
+
 def read_groundtruth(path: Path) -> np.ndarray:
     """(N, 7) float64 rows utime, x, y, z, roll, pitch, yaw sorted by time; NaN rows dropped."""
     rows = []
     with path.open(newline="") as f:
-        for line, row in enumerate(csv.reader(f), start=1):
+        for line, row in _csv_lines(path, f):
             if not row:
                 continue
             if len(row) != 7:

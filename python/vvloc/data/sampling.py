@@ -9,7 +9,6 @@ frames of different worlds are never positives, whatever their coordinates.
 
 from __future__ import annotations
 
-import json
 import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -22,6 +21,7 @@ from scipy.spatial import cKDTree
 from vvloc._checks import int_array, positive_int
 from vvloc._io import list_entries
 from vvloc.data.frame import Dataset, Frame
+from vvloc.data.vvloc_format import rig_meta
 
 FLOOR_SEPARATION = 1000.0
 #: Levels reserved per world (dataset) when a sampler spans several: floors must stay below it.
@@ -554,17 +554,14 @@ def sim_world(sim: dict[str, Any]) -> dict[str, Any]:
 def rendered_world(root: str | os.PathLike[str]) -> dict[str, Any] | None:
     """The world ``vvloc sim`` recorded in ``root``'s ``rig.json`` (``meta``), in the form of
     :func:`sim_world`; None for a dataset that ``vvloc sim`` did not render."""
-    rig = Path(root) / "rig.json"
-    if not rig.is_file():  # none, or a pipe, which would block the read
+    meta = rig_meta(root)
+    if meta is None or meta.get("generator") != "vvloc.sim":
         return None
+    world = {"scene": meta.get("scene"), "seed": meta.get("seed")}
     try:
-        meta = json.loads(rig.read_text(encoding="utf-8")).get("meta", {})
-        if not isinstance(meta, dict) or meta.get("generator") != "vvloc.sim":
-            return None
-        world = {"scene": meta.get("scene"), "seed": meta.get("seed")}
         for key in ("max_roll", "max_pitch"):  # absent from a level dataset's meta
             world[key] = float(meta.get(key, 0.0))
-    except (OSError, ValueError, TypeError, AttributeError):  # no rig.json, or not this one's
+    except (ValueError, TypeError):  # not this one's
         return None
     if world["scene"] == "garage":
         world |= {"floors": meta.get("floors"), "floor_marking": meta.get("floor_marking", "walls")}

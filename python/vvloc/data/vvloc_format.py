@@ -104,6 +104,20 @@ class VvlocSession(Session):
         return np.ascontiguousarray(np.stack(out))
 
 
+def rig_meta(root: str | os.PathLike[str]) -> dict[str, Any] | None:
+    """The ``meta`` object of the dataset folder ``root``'s ``rig.json`` (what ``vvloc sim``
+    or ``vvloc convert`` recorded); None when there is no ``rig.json`` that is a regular file
+    (a named pipe would block the read for good), it is not JSON, or it has no such object."""
+    rig = Path(root) / "rig.json"
+    if not rig.is_file():
+        return None
+    try:
+        meta = json.loads(rig.read_text(encoding="utf-8")).get("meta")
+    except (OSError, ValueError, AttributeError, RecursionError):  # not a vvloc rig.json
+        return None
+    return meta if isinstance(meta, dict) else None
+
+
 def read_rig(path: Path) -> tuple[list[Camera], dict[str, Any]]:
     """Read ``rig.json``: the cameras and the whole document."""
     if path.exists() and not path.is_file():  # a pipe would block the read for good
@@ -171,11 +185,11 @@ def read_poses(path: Path) -> np.ndarray:
         for name, v in (("timestamp", ts), ("floor", floor)):
             if not -(2**63) <= v < 2**63:
                 raise DatasetFormatError(
-                    f"{path}, line {line}: {name} {row[0] if name == 'timestamp' else row[5]} "
+                    f"{path}, line {line}: {name} {row[0] if name == 'timestamp' else row[5]:.60} "
                     "is outside the int64 range"
                 )
         if not all(math.isfinite(v) for v in (x, y, z, yaw)):
-            raise DatasetFormatError(f"{path}, line {line}: non-finite value in {row}")
+            raise DatasetFormatError(f"{path}, line {line}: non-finite value in {row!r:.200}")
         if last is not None and ts <= last:
             raise DatasetFormatError(
                 f"{path}, line {line}: timestamp {ts} does not follow the row before's {last} "
@@ -202,7 +216,7 @@ def _csv_rows(path: Path, header: tuple[str, ...]) -> Iterator[tuple[int, list[s
             yield from _checked_rows(path, reader, header)
         except UnicodeDecodeError as e:
             raise DatasetFormatError(f"{path}: not UTF-8 text ({e})") from None
-        except csv.Error as e:  # a field over the csv module's size limit, a NUL byte, ...
+        except csv.Error as e:  # a field over the csv module's size limit, ...
             raise DatasetFormatError(f"{path}, line {reader.line_num}: {e}") from None
 
 

@@ -35,6 +35,7 @@ from vvloc.data.sampling import (
     same_folder,
     sim_world,
 )
+from vvloc.data.vvloc_format import rig_meta
 from vvloc.localize.localizer import (
     LocalizationResult,
     Localizer,
@@ -398,14 +399,8 @@ def _lineage(dataset: str | os.PathLike[str]) -> list[tuple[str, str | None]]:
     as the conversion recorded it (None for ``dataset`` itself): ``rig.json``'s
     ``meta.converted_from`` and its ``source_converted_from``."""
     out: list[tuple[str, str | None]] = [(os.fspath(dataset), None)]
-    rig = Path(dataset) / "rig.json"
-    if not rig.is_file():  # none, or a pipe, which would block the read
-        return out
-    try:
-        meta = json.loads(rig.read_text(encoding="utf-8")).get("meta")
-    except (OSError, ValueError, AttributeError):  # no rig.json, or not a vvloc one
-        return out
-    step = meta.get("converted_from") if isinstance(meta, dict) else None
+    meta = rig_meta(dataset)  # None: no rig.json, or not a vvloc one
+    step = meta.get("converted_from") if meta is not None else None
     while isinstance(step, dict) and isinstance(step.get("path"), str):
         fmt = step.get("format")
         out.append((step["path"], fmt if isinstance(fmt, str) else None))

@@ -102,7 +102,7 @@ def _int_field(text: str, what: str) -> int:
         raise ValueError(f"{what}: expected an integer, got {text!r:.60}")
     v = int(text)
     if not -(2**63) <= v < 2**63:
-        raise ValueError(f"{what}: {text} does not fit in a 64-bit integer")
+        raise ValueError(f"{what}: {text:.60} does not fit in a 64-bit integer")
     return v
 
 
@@ -113,7 +113,7 @@ def _float_field(text: str, what: str) -> float:
         raise ValueError(f"{what}: expected a number, got {text!r:.60}")
     v = float(text)
     if not math.isfinite(v):
-        raise ValueError(f"{what}: non-finite value {text!r} (nan or inf)")
+        raise ValueError(f"{what}: non-finite value {text!r:.60} (nan or inf)")
     return v
 
 

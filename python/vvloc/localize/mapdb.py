@@ -1613,16 +1613,21 @@ def _check_datasets(h5: h5py.File, p: Path, descriptor_dtype: str) -> tuple[int,
                 f"{p}: corrupted map: dataset {name!r} has dtype {h5[name].dtype}, "
                 f"expected {expected_dtypes[name]}"
             )
-    for name in (*per_keyframe, "session_names"):
-        _check_stored(h5[name], p, name)
+    declared = sum(_check_stored(h5[name], p, name) for name in (*per_keyframe, "session_names"))
+    if declared > h5.id.get_filesize():  # HDF5 counts chunks it indexes, not what they hold
+        raise MapError(
+            f"{p}: corrupted map: its datasets declare {declared} bytes in all, more than the "
+            f"file's {h5.id.get_filesize()}"
+        )
     return n, has_bev
 
 
-def _check_stored(ds: h5py.Dataset, p: Path, name: str) -> None:
+def _check_stored(ds: h5py.Dataset, p: Path, name: str) -> int:
     """:class:`MapError` naming ``p`` unless the dataset ``ds`` stores all that its shape
     declares, uncompressed, as :class:`MapWriter` writes it. Checked before any read: a shape
     of 10¹² rows (or a per-row shape of 10¹²) in a file of kilobytes, never written (HDF5 reads
-    unwritten chunks as zeros) or compressed from zeros, was allocated by the first read."""
+    unwritten chunks as zeros) or compressed from zeros, was allocated by the first read.
+    Returns the declared bytes."""
     if ds.compression is not None or ds.scaleoffset is not None:
         how = ds.compression or "scaleoffset"
         raise MapError(
@@ -1636,6 +1641,7 @@ def _check_stored(ds: h5py.Dataset, p: Path, name: str) -> None:
             f"{p}: corrupted map: dataset {name!r} of shape {ds.shape} declares {declared} bytes "
             f"but stores {stored}"
         )
+    return int(declared)
 
 
 def _read_small(

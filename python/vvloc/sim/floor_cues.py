@@ -42,6 +42,7 @@ from scipy.spatial import cKDTree
 
 from vvloc import geometry
 from vvloc.data import Camera, Dataset, open_dataset
+from vvloc.data.vvloc_format import rig_meta
 from vvloc.sim.simulate import build_world
 from vvloc.sim.world import World
 
@@ -67,7 +68,7 @@ def keyframes(ds: Dataset, sessions: list[str]) -> dict[str, np.ndarray]:
 def sim_garage(dataset: str) -> tuple[dict[str, Any], World]:
     """``rig.json``'s ``meta`` of a garage dataset written by ``vvloc sim``, and its world
     rebuilt from it; ``ValueError`` for any other dataset."""
-    meta = json.loads((Path(dataset) / "rig.json").read_text()).get("meta") or {}
+    meta = rig_meta(dataset) or {}
     if meta.get("scene") != "garage" or meta.get("generator") != "vvloc.sim":
         raise ValueError(f"dataset: expected a garage of vvloc sim, got meta {meta}")
     return meta, build_world("garage", meta["seed"], meta["floors"], meta["floor_marking"])

@@ -116,28 +116,45 @@ def _state_globals() -> list[Any]:
     return [rec, scalar, *names, np.ndarray, np.dtype, *dtypes, bytes]
 
 
+def _unreadable_state(e: BaseException) -> str:
+    """Why ``torch.load(weights_only=True)`` refused a trainer state, in a few words: the
+    Python object a crafted file names, the unpickler's complaint about a damaged one, or a
+    file that ends early (an empty ``EOFError``, where the unrestricted loader said "Ran out of
+    input"; a cut old-style pickle, ``struct.error``)."""
+    import struct
+
+    text = str(e)
+    if isinstance(e, (EOFError, struct.error)) or "truncated" in text or not text.strip():
+        return "the file ends early (truncated?)"
+    if "Weights only load failed" not in text:
+        return text.split(". ")[0]
+    # torch says "Unsupported global: GLOBAL x.y", "unsupported GLOBAL x.y whose module x is
+    # blocked" or "got <class 'x.y'>" for an object it does not build
+    named = re.search(r"GLOBAL ([\w.]+)|got <class '([\w.]+)'>", text)
+    if named:
+        what = next(g for g in named.groups() if g)
+        return (
+            f"it names {what}, which no trainer state holds: not loaded, as unpickling it "
+            "could run code"
+        )
+    detail = text.split("WeightsUnpickler error:", 1)[-1].strip().split("\n")[0]
+    return f"not a pickle torch wrote ({detail.rstrip('.')})"
+
+
 def _load_trainer_state(path: Path) -> dict[str, Any]:
     """``torch.load`` of a run's ``trainer_state.pt``: ``ValueError`` naming the file when it
     is truncated (a disk that filled, a copy cut short) or not a trainer state; torch says
-    ``EOFError: Ran out of input`` or ``pickle data was truncated`` without the file. Read with
+    ``EOFError`` (or ``pickle data was truncated``) without the file. Read with
     ``weights_only``: a file that names any other Python object (pickle can call any function
     while it loads) is refused without running it."""
     import pickle
+    import struct
 
     try:
         with torch.serialization.safe_globals(_state_globals()):
             state = torch.load(path, map_location="cpu", weights_only=True)
-    except (RuntimeError, EOFError, pickle.UnpicklingError) as e:
-        why: str = str(e).split(". ")[0]
-        if "Weights only load failed" in str(e):
-            # torch says "Unsupported global: GLOBAL x.y", "unsupported GLOBAL x.y whose
-            # module x is blocked" or "got <class 'x.y'>", by the kind of object
-            named = re.search(r"GLOBAL ([\w.]+)|got <class '([\w.]+)'>", str(e))
-            what = next((g for g in named.groups() if g), "") if named else ""
-            why = (
-                f"it names {what or 'a Python object'}, which no trainer state holds: not "
-                "loaded, as unpickling it could run code"
-            )
+    except (RuntimeError, EOFError, pickle.UnpicklingError, struct.error) as e:
+        why = _unreadable_state(e)
     else:
         if isinstance(state, dict) and "config" in state:
             return state

@@ -191,6 +191,14 @@ impl DescriptorIndex {
             Error::Format(m) => Error::Format(format!("{}: {m}", path.display())),
             other => other,
         };
+        let meta = std::fs::metadata(path).map_err(|e| io_err(path, e))?;
+        if !meta.is_file() {
+            // a pipe would block the open, and a device's length says nothing
+            return Err(Error::Io {
+                path: path.display().to_string(),
+                msg: "not a regular file (a folder, device or pipe)".into(),
+            });
+        }
         let mut f = std::fs::File::open(path).map_err(|e| io_err(path, e))?;
         let len = f.metadata().map_err(|e| io_err(path, e))?.len();
         let mut head = Vec::with_capacity(HEADER);

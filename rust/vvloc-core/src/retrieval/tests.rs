@@ -315,6 +315,8 @@ fn save_load_round_trip_and_corruption_detected() {
         e.contains(&format!("but the file has {} bytes", longer.len())),
         "{e}"
     );
+    let e = DescriptorIndex::load(&dir).unwrap_err().to_string();
+    assert!(e.contains("not a regular file"), "{e}");
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
