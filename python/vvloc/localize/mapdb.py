@@ -29,9 +29,13 @@ heap object without a checksum of its own). Every per-keyframe dataset is chunke
 with HDF5's Fletcher-32 filter (a corrupted chunk fails when it is read), and every dataset
 carries a ``sha256`` attribute of its stored bytes (little-endian, C order).
 :meth:`MapDatabase.open` verifies the SHA-256 of every small dataset (all but the local
-descriptors and the BEVs, which are read lazily); :meth:`MapDatabase.verify` checks all of them.
-So a damaged file is refused with :class:`MapError` instead of being read as other values
-(``tests/test_mapdb.py`` flips single bits all over a map file). Version 1 (vvloc before
+descriptors and the BEVs, which are read lazily); :meth:`MapDatabase.verify` checks all of them
+(and that the lazy ones are finite). Before it reads anything, :meth:`MapDatabase.open` refuses
+a file that says version 2 without those structures (superblock version 2 or later, version-2
+object headers), and a dataset that does not store, uncompressed, every byte its shape declares
+(a crafted shape would otherwise be allocated by the first read). So a damaged file is refused
+with :class:`MapError` instead of being read as other values (``tests/test_mapdb.py`` flips
+single bits all over a map file). Version 1 (vvloc before
 2026-12-05) stored text as HDF5 variable-length strings in the global heap, which has no
 checksum, and used HDF5's oldest structures: a flipped bit could change an attribute unnoticed,
 or crash or hang HDF5 itself. Version-1 maps are still read, without that protection;
