@@ -491,14 +491,15 @@ def test_a_declared_size_the_file_does_not_store_is_refused_before_any_read(
         chunks = (min(shape[0], 1 << 14), *shape[1:])
         f.create_dataset(name, shape=shape, dtype=dtype, chunks=chunks, **kw).attrs["sha256"] = sha
 
-    def grow(f: h5py.File) -> None:
-        for name in ("ids", "session_index", "seq", "timestamps", "poses", "floors"):
-            declare(f, name, (big, *f[name].shape[1:]), fletcher32=True)
-        for name in ("global_descriptors", "local_descriptors", "bev"):
-            declare(f, name, (big, *f[name].shape[1:]), fletcher32=True)
-        f.attrs["num_keyframes"] = np.int64(big)
+    per_keyframe = ("ids", "session_index", "seq", "timestamps", "poses", "floors")
+    per_keyframe += ("global_descriptors", "local_descriptors", "bev")
 
-    edit(path, grow)
+    def grow(f: h5py.File, rows: int, **kw: Any) -> None:
+        for name in per_keyframe:
+            declare(f, name, (rows, *f[name].shape[1:]), **kw)
+        f.attrs["num_keyframes"] = np.int64(rows)
+
+    edit(path, lambda f: grow(f, big, fletcher32=True))
     assert path.stat().st_size < 1_000_000
     with pytest.raises(
         MapError,
@@ -510,23 +511,13 @@ def test_a_declared_size_the_file_does_not_store_is_refused_before_any_read(
     # says, not what the chunks hold): a file of 112 KB made open() ask numpy for 745 GiB
     (tmp_path / "c").mkdir()
     path = saved(tmp_path / "c")
-    rows = 1 << 24
 
     def indexed(f: h5py.File) -> None:
-        for name in ("ids", "session_index", "seq", "timestamps", "poses", "floors"):
-            declare(f, name, (rows, *f[name].shape[1:]))
-        for name in ("global_descriptors", "local_descriptors", "bev"):
-            declare(f, name, (rows, *f[name].shape[1:]))
-        for name in (
-            *("ids", "session_index", "seq", "timestamps", "poses", "floors"),
-            "global_descriptors",
-            "local_descriptors",
-            "bev",
-        ):
+        grow(f, 1 << 24)
+        for name in per_keyframe:
             ds = f[name]
-            for start in range(0, rows, ds.chunks[0]):
+            for start in range(0, ds.shape[0], ds.chunks[0]):
                 ds.id.write_direct_chunk((start, *([0] * (ds.ndim - 1))), b"\0" * 8)
-        f.attrs["num_keyframes"] = np.int64(rows)
 
     edit(path, indexed)
     with pytest.raises(

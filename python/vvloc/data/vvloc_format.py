@@ -35,6 +35,7 @@ from vvloc._checks import finite_float
 from vvloc._io import (
     FLOAT_TEXT,
     INT_TEXT,
+    check_readable_file,
     list_entries,
     remove_stale_temps,
     stale_temps,
@@ -120,8 +121,10 @@ def rig_meta(root: str | os.PathLike[str]) -> dict[str, Any] | None:
 
 def read_rig(path: Path) -> tuple[list[Camera], dict[str, Any]]:
     """Read ``rig.json``: the cameras and the whole document."""
-    if path.exists() and not path.is_file():  # a pipe would block the read for good
-        raise DatasetFormatError(f"{path}: not a regular file (a folder, device or pipe)")
+    try:
+        check_readable_file(path)  # a pipe would block the read for good
+    except ValueError as e:
+        raise DatasetFormatError(str(e)) from None
     try:
         doc = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, ValueError, RecursionError) as e:  # JSON, UTF-8 errors; too deep nesting
