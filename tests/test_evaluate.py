@@ -982,6 +982,16 @@ def test_error_percentiles_is_the_exact_inverted_cdf_for_every_percentile():
     assert ev.error_percentiles(np.arange(1000.0), (99.9,))[0] == 998.0
 
 
+def test_error_percentiles_refuse_a_signed_sample():
+    # a signed yaw difference would rank -170 deg below 1 deg: refused, not ranked
+    with pytest.raises(ValueError, match=r"errors: expected absolute errors .*1 negative.*-170"):
+        ev.error_percentiles([1.0, -170.0, 3.0], (50,))
+    np.testing.assert_array_equal(ev.error_percentiles(np.abs([1.0, -170.0, 3.0]), (50,)), [3.0])
+    negative = r"samples_ms\['metric'\]: expected durations >= 0 ms, got -0.5"
+    with pytest.raises(ValueError, match=negative):
+        ev.latency_summary({"metric": [1.0, -0.5]})
+
+
 def test_error_percentiles_refuse_a_scalar_or_nan_percentile_by_name():
     with pytest.raises(TypeError, match="percentiles: expected a sequence"):
         ev.error_percentiles([1.0, 2.0], 50)

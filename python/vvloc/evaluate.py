@@ -425,11 +425,19 @@ def error_percentiles(
 ) -> F64Array:
     """Percentiles of an error sample: the smallest error e with at least p% of samples ≤ e.
 
-    This is the inverted-CDF percentile (no interpolation), so every value is an observed error:
+    ``errors`` is ``(n,)`` of absolute errors (≥ 0, e.g. degrees or metres), finite. A signed
+    sample (yaw differences in (−180°, 180°]) is refused rather than ranked: its percentiles
+    would rank −170° below 1°; pass its absolute values. This is the inverted-CDF percentile (no
+    interpolation), so every value is an observed error:
     ``error_percentiles([0, 0, 0, 90], (50, 75, 95)) == [0, 0, 90]``. Returns ``(len(p),)``
     float64, ``nan`` for an empty sample.
     """
     e = real_array(errors, "errors", "(n,)", 1)
+    if (e < 0).any():
+        raise ValueError(
+            f"errors: expected absolute errors (>= 0), got {int((e < 0).sum())} negative, the "
+            f"smallest {float(e.min()):.6g}: pass np.abs() of a signed error"
+        )
     items = _sequence(percentiles, "percentiles", "percentages in [0, 100]")
     p = np.array([finite_float(v, "percentiles") for v in items], dtype=np.float64)
     if ((p < 0) | (p > 100)).any():
@@ -1194,6 +1202,10 @@ def latency_summary(samples_ms: Mapping[str, npt.ArrayLike]) -> dict[str, dict[s
     out: dict[str, dict[str, Any]] = {}
     for stage, samples in samples_ms.items():
         s = real_array(samples, f"samples_ms[{stage!r}]", "(n,)", 1)
+        if (s < 0).any():
+            raise ValueError(
+                f"samples_ms[{stage!r}]: expected durations >= 0 ms, got {float(s.min()):.6g}"
+            )
         out[str(stage)] = {
             "count": int(s.size),
             "mean_ms": float(s.mean()) if s.size else float("nan"),
