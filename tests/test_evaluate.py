@@ -9,6 +9,7 @@ import stat
 
 import numpy as np
 import pytest
+import torch
 
 from vvloc import evaluate as ev
 from vvloc import geometry as geo
@@ -598,6 +599,26 @@ def test_confidence_curve():
     np.testing.assert_allclose(curve["kept_share"], [0.25, 0.5, 0.75, 1.0])
     np.testing.assert_allclose(curve["mRRE_deg"], [1.0, 2.5, 11 / 3, 5.25])
     np.testing.assert_allclose(curve["RR_trans"], [1.0, 1.0, 2 / 3, 0.5])
+    # a signed rotation error would average -30 and 1 to -14.5 and count -30 as registered
+    with pytest.raises(ValueError, match=r"rre_deg: expected absolute errors .*-30"):
+        ev.confidence_curve([0.1, 0.2], [-30.0, 1.0], [0.5, 0.5])
+    with pytest.raises(ValueError, match=r"rte_m: expected absolute errors"):
+        ev.confidence_curve([0.1, 0.2], [30.0, 1.0], [0.5, -0.5])
+
+
+def test_loop_closure_curve_flags_are_bools():
+    # causal="no" is truthy: it scored as causal=True (no pair) without a word
+    pos = np.c_[np.arange(5.0), np.zeros(5)]
+    pairs = [[0, 0], [1, 2], [2, 4]]
+    for key in ("causal", "symmetric"):
+        with pytest.raises(TypeError, match=f"{key}: expected a bool, got str"):
+            ev.loop_closure_curve(pairs, [0.1, 0.1, 0.1], pos, pos, **{key: "no"})
+    assert (
+        ev.loop_closure_curve(pairs, [0.1] * 3, pos, pos, causal=np.bool_(False)).at(1.0)[
+            "accepted"
+        ]
+        == ev.loop_closure_curve(pairs, [0.1] * 3, pos, pos).at(1.0)["accepted"]
+    )
 
 
 def test_relative_pose_errors_consistent_with_geometry():
@@ -1093,6 +1114,56 @@ def test_self_loop_closure_curve_checks_its_frame_arrays_by_name():
     for window, err in ((np.nan, TypeError), (-1, ValueError), (1.5, TypeError)):
         with pytest.raises(err, match="window"):
             ev.self_loop_closure_curve([[0, 2]], [0.1], pos, window=window, **good)
+
+
+def test_self_loop_closure_curve_is_exact_for_any_sequence_numbers():
+    # nanosecond stamps or numbers past 2**53: only differences within a session matter, so the
+    # temporal neighbours stay neighbours (as floats 2**53 + k rounded into each other)
+    pos = np.c_[np.arange(8) * 0.5, np.zeros(8)]
+    floors, sessions = np.zeros(8, np.int64), np.repeat([3, 7], 4)
+    pairs = np.array([[0, 2], [1, 3], [0, 4], [1, 6], [5, 7]])
+    seqs = np.tile(np.arange(4), 2)
+
+    def summary(base: int, window: int) -> dict:
+        curve = ev.self_loop_closure_curve(
+            pairs, np.full(5, 0.1), pos, floors, sessions, base + seqs, window
+        )
+        return curve.summary(0.5)
+
+    want = summary(0, 2)
+    assert want["at_threshold"]["accepted"] == 2  # the two pairs across sessions
+    for base in (2**53, 10**18, -(10**18)):
+        assert summary(base, 2) == want
+    # a window wider than any session excludes the same pairs as one just wider than its span
+    assert summary(0, 2**62) == summary(0, 4)
+    with pytest.raises(ValueError, match="seqs: expected each session's sequence numbers to span"):
+        ev.self_loop_closure_curve(
+            pairs,
+            np.full(5, 0.1),
+            pos,
+            floors,
+            sessions,
+            np.array([-(2**62)] * 3 + [2**62] + [0] * 4),
+            1,
+        )
+
+
+def test_integer_arguments_beyond_int64_are_refused_not_wrapped():
+    # uint64 2**64 - 1 cast to int64 is -1, an empty slot of a retrieval list
+    top = np.array([[2**64 - 1, 0]], np.uint64)
+    with pytest.raises(ValueError, match="retrieved: expected values that fit int64, got 1844"):
+        ev.recall_at_n([[0.0, 0.0]], [[0.0, 0.0], [50.0, 0.0]], top, top_n=(1,))
+    ok = ev.recall_at_n(
+        [[0.0, 0.0]], [[0.0, 0.0], [50.0, 0.0]], np.array([[0, 1]], np.uint64), top_n=(1,)
+    )
+    assert ok.first_hit[0, 0] == 0
+
+
+def test_torch_tensors_are_taken_as_the_kernels_take_them():
+    # a tensor that requires grad (a loss's inputs) or in bfloat16 is read, not refused by torch
+    yaw = torch.tensor([1.0, 3.0, 2.0], requires_grad=True)
+    np.testing.assert_array_equal(ev.error_percentiles(yaw, (50,)), [2.0])
+    np.testing.assert_array_equal(ev.error_percentiles(yaw.detach().bfloat16(), (100,)), [3.0])
 
 
 def test_latency_summary_wants_a_mapping():

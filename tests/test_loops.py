@@ -95,6 +95,28 @@ def test_half_window_zero_is_the_pair_distance():
     np.testing.assert_allclose(got, np.linalg.norm(g[i] - g[j], axis=1))
 
 
+def test_sequence_distance_refuses_descriptors_it_cannot_measure():
+    g, sessions, seqs = two_drives()
+    i, j = np.array([0, 3]), np.array([12, 20])
+    bad = g.copy()
+    bad[1, 0] = np.nan  # a neighbour of row 0: its distance came out nan, neither number nor inf
+    with pytest.raises(ValueError, match=r"descriptors: contains non-finite values"):
+        sequence_distance(bad, sessions, seqs, i, j, 1)
+    for dtype in (np.bool_, np.complex128):
+        with pytest.raises(
+            TypeError, match=f"descriptors: expected a real .* got dtype {dtype.__name__}"
+        ):
+            sequence_distance(g.astype(dtype), sessions, seqs, i, j, 1)
+    with pytest.raises(ValueError, match=r"descriptors: expected a real \(N, D\) array, got shape"):
+        sequence_distance(g[0], sessions, seqs, i, j, 1)
+    # a torch tensor that requires grad is read, as the kernels read it
+    torch = pytest.importorskip("torch")
+    t = torch.tensor(g, requires_grad=True)
+    np.testing.assert_array_equal(
+        sequence_distance(t, sessions, seqs, i, j, 1), sequence_distance(g, sessions, seqs, i, j, 1)
+    )
+
+
 @pytest.mark.parametrize("reverse", [False, True])
 def test_a_revisit_in_either_direction_is_consistent(reverse):
     g, sessions, seqs = two_drives(reverse=reverse)

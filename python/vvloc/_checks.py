@@ -58,8 +58,22 @@ def positive_int(x: Any, name: str, minimum: int = 1, maximum: int = 2**63 - 1) 
     return v
 
 
+def flag(x: Any, name: str) -> bool:
+    """A bool (numpy's too), refused otherwise: a string ``"no"`` is truthy."""
+    if not isinstance(x, (bool, np.bool_)):
+        raise TypeError(f"{name}: expected a bool, got {type(x).__name__}")
+    return bool(x)
+
+
 def as_array(x: Any, name: str, shape_doc: str) -> npt.NDArray[Any]:
-    """``np.asarray(x)``, a ragged nested sequence refused naming ``name``."""
+    """``np.asarray(x)``, a ragged nested sequence refused naming ``name``. A torch tensor is
+    taken as the kernels' gateway takes it: detached, moved to the CPU, bfloat16 (which numpy
+    lacks) widened exactly to float32."""
+    if hasattr(x, "detach") and hasattr(x, "cpu"):  # torch.Tensor, without importing torch
+        x = x.detach().cpu()
+        if str(x.dtype) == "torch.bfloat16":
+            x = x.float()
+        x = x.numpy()
     try:
         return np.asarray(x)
     except ValueError as e:  # numpy's "inhomogeneous shape after 1 dimensions"
@@ -103,6 +117,9 @@ def int_array(x: Any, name: str, shape_doc: str, ndim: int, last: int | None = N
             raise TypeError(f"{name}: expected an integer array {shape_doc}, got dtype {arr.dtype}")
     if arr.ndim != ndim or (last is not None and arr.shape[-1] != last):
         raise ValueError(f"{name}: expected shape {shape_doc}, got {arr.shape}")
+    if arr.dtype == np.uint64 and arr.size and int(arr.max()) > np.iinfo(np.int64).max:
+        # astype would wrap 2**64 - 1 to -1, which several callers read as "no entry"
+        raise ValueError(f"{name}: expected values that fit int64, got {int(arr.max())}")
     return arr.astype(np.int64)
 
 

@@ -36,6 +36,7 @@ from vvloc._checks import (
     as_array,
     bool_array,
     finite_float,
+    flag,
     int_array,
     positive_float,
     positive_int,
@@ -420,6 +421,18 @@ def relative_pose_errors(
     return pose_errors(estimated, ground_truth)
 
 
+def _absolute_errors(x: npt.ArrayLike, name: str) -> F64Array:
+    """``x`` as a finite ``(n,)`` float64 array of absolute errors, a negative one refused: a
+    signed sample's percentiles or means say nothing about the error's size."""
+    e = real_array(x, name, "(n,)", 1)
+    if (e < 0).any():
+        raise ValueError(
+            f"{name}: expected absolute errors (>= 0), got {int((e < 0).sum())} negative, the "
+            f"smallest {float(e.min()):.6g}: pass np.abs() of a signed error"
+        )
+    return e
+
+
 def error_percentiles(
     errors: npt.ArrayLike, percentiles: Sequence[float] = DEFAULT_PERCENTILES
 ) -> F64Array:
@@ -432,12 +445,7 @@ def error_percentiles(
     ``error_percentiles([0, 0, 0, 90], (50, 75, 95)) == [0, 0, 90]``. Returns ``(len(p),)``
     float64, ``nan`` for an empty sample.
     """
-    e = real_array(errors, "errors", "(n,)", 1)
-    if (e < 0).any():
-        raise ValueError(
-            f"errors: expected absolute errors (>= 0), got {int((e < 0).sum())} negative, the "
-            f"smallest {float(e.min()):.6g}: pass np.abs() of a signed error"
-        )
+    e = _absolute_errors(errors, "errors")
     items = _sequence(percentiles, "percentiles", "percentages in [0, 100]")
     p = np.array([finite_float(v, "percentiles") for v in items], dtype=np.float64)
     if ((p < 0) | (p > 100)).any():
@@ -798,6 +806,7 @@ def loop_closure_curve(
     if window < 0:
         raise ValueError(f"time_window: expected a finite value >= 0, got {time_window}")
     rad = positive_float(radius, "radius")
+    causal, symmetric = flag(causal, "causal"), flag(symmetric, "symmetric")
     if symmetric and (causal or num_q != num_db):
         raise ValueError(
             "symmetric: needs the same frames as query and map (Q == N) and causal=False"
@@ -891,10 +900,26 @@ def self_loop_closure_curve(
         if arrays[name].shape != (n,):
             raise ValueError(f"{name}: expected shape ({n},), got {arrays[name].shape}")
     w = positive_int(window, "window", minimum=0)
-    # sessions never overlap; exact in float64 while the spans stay below 2**53
-    seq, ses = arrays["seqs"].astype(np.float64), arrays["sessions"].astype(np.float64)
-    span = float(np.abs(seq).max(initial=0.0)) + float(w) + 1.0
-    times = seq + 2.0 * span * ses
+    # Times that loop_closure_curve compares in float64: each session's sequence numbers counted
+    # from its first (only differences within a session matter, so nanosecond stamps of 10**18
+    # lose nothing), the sessions laid end to end 2 spans apart, so that they never overlap.
+    _, rank = np.unique(arrays["sessions"], return_inverse=True)
+    rank = rank.reshape(-1)
+    seq = arrays["seqs"]
+    first = np.full(int(rank.max(initial=-1)) + 1, np.iinfo(np.int64).max, dtype=np.int64)
+    np.minimum.at(first, rank, seq)
+    rel = seq - first[rank]  # >= 0 unless a session spans 2**63 or more (int64 wraps)
+    if (rel < 0).any():
+        raise ValueError("seqs: expected each session's sequence numbers to span less than 2**63")
+    longest = int(rel.max(initial=0))
+    w = min(w, longest + 1)  # a wider window excludes the same pairs
+    span = longest + w + 1
+    if 2 * span * max(first.size, 1) >= 2**53:
+        raise ValueError(
+            f"seqs: each session's sequence numbers span up to {longest}, too many to compare "
+            f"exactly over {first.size} sessions (expected under 2**53 in all)"
+        )
+    times = (rel + 2 * span * rank).astype(np.float64)
     return loop_closure_curve(
         pairs,
         distances,
@@ -1072,8 +1097,8 @@ def confidence_curve(
             (default all; as in :func:`loop_pose_metrics`).
     """
     c = real_array(costs, "costs", "(P,)", 1)
-    rre = real_array(rre_deg, "rre_deg", "(P,)", 1)
-    rte = real_array(rte_m, "rte_m", "(P,)", 1)
+    rre = _absolute_errors(rre_deg, "rre_deg")
+    rte = _absolute_errors(rte_m, "rte_m")
     if not c.shape == rre.shape == rte.shape:
         raise ValueError(
             f"costs, rre_deg, rte_m: shapes differ ({c.shape}, {rre.shape}, {rte.shape})"

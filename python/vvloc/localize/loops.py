@@ -31,7 +31,7 @@ import numpy as np
 import numpy.typing as npt
 from tqdm import tqdm
 
-from vvloc._checks import int_array, positive_float, positive_int, real_number
+from vvloc._checks import as_array, int_array, positive_float, positive_int, real_number
 from vvloc.localize.export import LoopClosures, _selection
 from vvloc.localize.localizer import _cost_threshold, check_map_model, learned_matcher
 from vvloc.localize.mapdb import MapDatabase
@@ -117,9 +117,15 @@ def sequence_distance(
     """
     L = positive_int(half_window, "half_window", minimum=0)
     excl = positive_int(window, "window", minimum=0)
-    g = np.asarray(descriptors)
-    if g.ndim != 2 or not np.issubdtype(g.dtype, np.number):
-        raise ValueError(f"descriptors: expected a numeric (N, D) array, got shape {g.shape}")
+    g = as_array(descriptors, "descriptors", "(N, D)")  # float32 stays float32: no copy
+    if g.dtype == np.bool_ or not (
+        np.issubdtype(g.dtype, np.floating) or np.issubdtype(g.dtype, np.integer)
+    ):
+        raise TypeError(f"descriptors: expected a real (N, D) array, got dtype {g.dtype}")
+    if g.ndim != 2:
+        raise ValueError(f"descriptors: expected a real (N, D) array, got shape {g.shape}")
+    if not np.isfinite(g).all():  # a NaN row would give NaN distances, never +inf or a number
+        raise ValueError("descriptors: contains non-finite values (NaN or inf)")
     n = len(g)
     sess, seq = _sessions_and_seqs(g, sessions, seqs)
     i = int_array(i, "i", "(P,)", 1)
