@@ -144,6 +144,17 @@ def test_loop_provenance_is_written_and_read_back_and_kept_by_select(tmp_path: P
     assert read_loop_csv(path).provenance == PROVENANCE
 
 
+def test_loop_csv_refuses_a_loop_from_a_keyframe_to_itself_naming_the_line(tmp_path: Path) -> None:
+    one = LoopClosures(i=[0], j=[1], relative_poses=[[0, 0, 0]], costs=[0.1], accepted=[True])
+    path = write_loop_csv(tmp_path / "l.csv", one)
+    lines = path.read_text().splitlines()
+    lines[-1] = "0,0," + lines[-1].split(",", 2)[2]
+    path.write_text("\n".join(lines) + "\n")
+    want = rf"l.csv:{len(lines)}: malformed loop-closure row: i, j: .* got 0 twice"
+    with pytest.raises(ValueError, match=want):
+        read_loop_csv(path)
+
+
 def test_loop_csv_with_no_loops(tmp_path: Path) -> None:
     empty = LoopClosures(i=[], j=[], relative_poses=np.zeros((0, 3)), costs=[], accepted=[])
     back = read_loop_csv(write_loop_csv(tmp_path / "l.csv", empty))
@@ -160,6 +171,8 @@ def test_loop_csv_with_no_loops(tmp_path: Path) -> None:
         ({"accepted": [1]}, TypeError, "accepted.*bool"),
         ({"i": [0.5]}, TypeError, "i: expected an integer"),
         ({"j": np.array([2**63 + 5], np.uint64)}, ValueError, "j: ids beyond int64"),
+        # an edge from a vertex to itself: write_g2o wrote what read_g2o refuses
+        ({"j": [0]}, ValueError, r"i, j: a loop joins two keyframes, got keyframe 0 to itself"),
         ({"provenance": "model config ab"}, TypeError, "provenance: .*got one str"),
         ({"provenance": 3}, TypeError, "provenance: expected an iterable of str lines, got int"),
         ({"provenance": [b"model config ab"]}, TypeError, "provenance: expected str lines"),

@@ -153,6 +153,12 @@ def test_metric_localize_best_of_one_equals_metric_localize():
         metric_localize_best(bev_s, tgts, decode, None, {}, G, T, R)  # type: ignore[arg-type]
     with pytest.raises(TypeError, match=r"bias: expected \(1,\) real numbers"):
         metric_localize_best(bev_s, tgts, decode, None, cfg, G, T, R, bias=["a"])
+    # numbers as text were parsed, bools read as 1 and 0
+    for bad, dtype in ((["1"], "<U1"), ([True], "bool"), ([1j], "complex128")):
+        with pytest.raises(
+            TypeError, match=rf"bias: expected \(1,\) real numbers, got dtype {dtype}"
+        ):
+            metric_localize_best(bev_s, tgts, decode, None, cfg, G, T, R, bias=bad)
 
 
 @pytest.mark.parametrize("seed", range(3))
@@ -222,6 +228,9 @@ def test_metric_localize_best_calls_the_interactor_per_target():
     assert decoded == [121, cfg.fine_samples]
     with pytest.raises(TypeError, match="decode"):
         metric_localize_best(bev_s, tgts, lambda p: (decode(p), decode(p)), None, cfg, G, T, R)
+    # an interactor that returns one array, not the pair: it was matched against the target
+    with pytest.raises(TypeError, match=r"interact: expected the pair \(Ds', Dt'\) .* ndarray"):
+        metric_localize_best(bev_s, tgts, decode, lambda ds, k: ds, cfg, G, T, R)
 
 
 def test_metric_localize_best_refuses_a_non_finite_cost(monkeypatch):

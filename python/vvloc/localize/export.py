@@ -248,6 +248,12 @@ class LoopClosures:
             "costs": _floats(self.costs, "costs", f"({k},)", (k,)),
             "accepted": acc.copy(),
         }
+        same = np.flatnonzero(values["i"] == values["j"])
+        if same.size:  # g2o readers (ours too) refuse the edge such a loop becomes
+            raise ValueError(
+                f"i, j: a loop joins two keyframes, got keyframe {int(values['i'][same[0]])} to "
+                f"itself (row {int(same[0])})"
+            )
         for name, arr in values.items():
             arr.setflags(write=False)
             object.__setattr__(self, name, arr)
@@ -507,6 +513,8 @@ def read_loop_csv(path: PathLike) -> LoopClosures:
             if flag.lower() not in flags:
                 raise ValueError(f"accepted: expected 1, 0, true or false, got {flag!r}")
             cols["accepted"].append(flags[flag.lower()])
+            if cols["i"][-1] == cols["j"][-1]:
+                raise ValueError(f"i, j: a loop joins two keyframes, got {cols['i'][-1]} twice")
         except ValueError as e:
             raise ValueError(f"{p}:{lineno}: malformed loop-closure row: {e}") from None
     return LoopClosures(

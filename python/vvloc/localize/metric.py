@@ -18,6 +18,7 @@ import numpy as np
 import numpy.typing as npt
 
 from vvloc import kernels
+from vvloc._checks import as_array
 
 __all__ = [
     "METRIC_CANDIDATES",
@@ -302,9 +303,12 @@ def metric_localize_best(
         offsets = np.zeros(len(tgts))
     else:
         try:
-            offsets = np.asarray(bias, dtype=np.float64)
-        except (TypeError, ValueError) as e:
+            raw = as_array(bias, "bias", f"({len(tgts)},)")
+        except ValueError as e:
             raise TypeError(f"bias: expected ({len(tgts)},) real numbers, got {bias!r:.80}") from e
+        if raw.dtype.kind not in "iuf":  # strings would be parsed, bools read as 1 and 0
+            raise TypeError(f"bias: expected ({len(tgts)},) real numbers, got dtype {raw.dtype}")
+        offsets = raw.astype(np.float64)
         if offsets.shape != (len(tgts),):
             raise ValueError(
                 f"bias: expected shape ({len(tgts)},), one per target, got {offsets.shape}"
@@ -406,7 +410,13 @@ class _SharedCoarse:
 
     def _score(self, ds: Any, k: int) -> kernels.YawEstimate:
         if self.interact is not None:
-            return _score(self.interact(ds, k), self.tgts[k], self.backend)
+            pair = self.interact(ds, k)
+            if not isinstance(pair, tuple):  # one array would be matched against the target
+                raise TypeError(
+                    "interact: expected the pair (Ds', Dt') of (N, T, C) arrays, got "
+                    f"{type(pair).__name__}"
+                )
+            return _score(pair, self.tgts[k], self.backend)
         if isinstance(ds, tuple):
             raise TypeError(
                 "decode: expected source descriptors (N, T, C) when interact is None, got a pair"
