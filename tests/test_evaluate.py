@@ -6,6 +6,7 @@ import json
 import math
 import os
 import stat
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -748,6 +749,32 @@ def test_write_report_rejects_unserialisable(tmp_path):
     with pytest.raises(TypeError, match="JSON"):
         ev.write_report(tmp_path / "out", {"meta": {"x": object()}})
     assert list(tmp_path.iterdir()) == []
+
+
+def test_write_report_names_what_is_not_its_layout(tmp_path):
+    out = tmp_path / "out"
+    for metrics, key in (
+        ({"global_localization": {"m": 3}}, "global_localization"),
+        ({"loop_closure": {"a": 5}}, "loop_closure"),
+        ({"pose_accuracy": {"a": [1]}}, "pose_accuracy"),
+        ({"latency": [1, 2]}, "latency"),
+        ({"notes": 5}, "notes"),
+        ({"notes": ["a", 5]}, "notes"),
+        ({"meta": [1]}, "meta"),
+    ):
+        with pytest.raises(TypeError, match=rf"^metrics\['{key}'\]: expected"):
+            ev.write_report(out, metrics)
+    with pytest.raises(TypeError, match="out_dir: expected a path"):
+        ev.write_report(5, {})  # type: ignore[arg-type]
+    # "../x" wrote x.md and x.json beside out_dir, not into it
+    for stem in ("../x", "a/b", "", "..", "a\\b"):
+        with pytest.raises(ValueError, match="stem: expected a plain file name"):
+            ev.write_report(out, {}, stem=stem)
+    with pytest.raises(TypeError, match="stem: expected a file name"):
+        ev.write_report(out, {}, stem=Path("x"))  # type: ignore[arg-type]
+    assert list(tmp_path.iterdir()) == []
+    md, js = ev.write_report(out, {"notes": "one"}, stem="x.y")
+    assert (md.name, js.name, md.parent) == ("x.y.md", "x.y.json", out)
 
 
 # ----------------------------------------------------------------------------- plots

@@ -36,6 +36,19 @@ def test_triplet_loss_hand_computed():
     )
 
 
+def test_losses_of_no_pair_are_zero_and_keep_the_graph():
+    # mean() of nothing is nan, which would stop training at the step that drew no triplet
+    a = torch.randn(0, 4, requires_grad=True)
+    empty = losses.triplet_loss(a, a, a)
+    no_negatives = losses.triplet_loss(torch.randn(3, 4), torch.randn(3, 4), torch.zeros(3, 0, 4))
+    d = torch.randn(0, 6, 4, requires_grad=True)
+    circle = losses.yaw_circle_loss(d, d)
+    for loss in (empty, no_negatives, circle):
+        assert loss.shape == () and loss.item() == 0.0
+    (empty + circle).backward()  # still part of the graph, so a step over it runs
+    assert a.grad is not None and d.grad is not None
+
+
 def test_hinge_loss_hand_computed():
     pos = torch.tensor([0.05, 0.3])
     neg = torch.tensor([0.1, 0.5])
@@ -380,6 +393,16 @@ def test_losses_name_inputs_they_cannot_use():
         losses.random_translation_bias(2.5)  # type: ignore[arg-type]
     with pytest.raises(ValueError, match=r"^bias_range: expected 0 <= low <= high"):
         losses.random_translation_bias(2, (3.0, 1.0))
+    # a range of three values or a bare number, a seed torch would truncate or wrap
+    with pytest.raises(ValueError, match=r"^bias_range: expected \(low, high\) metres, got 3"):
+        losses.random_translation_bias(2, (1.0, 2.0, 3.0))  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match=r"^bias_range: expected \(low, high\) metres, got 2.0"):
+        losses.random_translation_bias(2, 2.0)  # type: ignore[arg-type]
+    for seed, err in ((1.5, TypeError), (-1, ValueError), (2**64, ValueError)):
+        with pytest.raises(err, match=r"^seed: expected an int"):
+            losses.random_translation_bias(2, seed=seed)  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match=r"^n: expected an int <= "):
+        losses.random_translation_bias(2**62)
     # what they take still works, and the unchecked broadcast inside roll_min_cost too
     assert losses.matching_cost(a, a).shape == (3,)
     assert losses.roll_min_cost(a, a).shape == (3,)

@@ -1441,6 +1441,12 @@ _SECTIONS = {
 }
 
 
+def _brief(x: Any) -> str:
+    """``repr(x)`` cut to 60 characters, for messages."""
+    r = repr(x)
+    return r if len(r) <= 60 else r[:57] + "..."
+
+
 def render_markdown(
     metrics: Mapping[str, Any],
     *,
@@ -1451,6 +1457,8 @@ def render_markdown(
     m = to_jsonable(metrics)
     lines = [f"# {title}", ""]
     meta = m.get("meta") or {}
+    if not isinstance(meta, dict):
+        raise TypeError(f"metrics['meta']: expected a mapping of key to value, got {_brief(meta)}")
     for k, v in meta.items():
         if isinstance(v, dict):  # e.g. the world: "scene: parking, seed: 0"
             v = ", ".join(f"{a}: {b}" for a, b in v.items())
@@ -1472,15 +1480,28 @@ def render_markdown(
         if not section:
             continue
         lines += [f"## {heading}", ""]
-        if first:
-            lines += _recall_table(section, first, define_kept=not kept_defined)
-            kept_defined = True
-        else:
-            lines += builders[key](section)
+        try:
+            if first:
+                lines += _recall_table(section, first, define_kept=not kept_defined)
+                kept_defined = True
+            else:
+                lines += builders[key](section)
+        except (TypeError, AttributeError, KeyError, IndexError, ValueError) as e:
+            # a hand-made section that is not what this module's functions return
+            raise TypeError(
+                f"metrics[{key!r}]: expected the layout write_report documents for it, got "
+                f"{type(section).__name__} {_brief(section)} ({type(e).__name__}: {e})"
+            ) from e
     notes = m.get("notes")
     if notes:
+        if isinstance(notes, str):
+            notes = [notes]
+        if not isinstance(notes, list) or not all(isinstance(n, str) for n in notes):
+            raise TypeError(
+                f"metrics['notes']: expected a string or a list of strings, got {_brief(notes)}"
+            )
         lines += ["## Notes", ""]
-        lines += [f"- {n}" for n in ([notes] if isinstance(notes, str) else notes)]
+        lines += [f"- {n}" for n in notes]
         lines.append("")
     if figures:
         lines += ["## Figures", ""]
@@ -1518,9 +1539,20 @@ def write_report(
     inside ``out_dir`` are linked relatively. Files are written atomically (temporary file +
     rename). Returns ``(markdown_path, json_path)``.
     """
+    if not isinstance(out_dir, (str, os.PathLike)):
+        raise TypeError(
+            f"out_dir: expected a path (str or os.PathLike), got {type(out_dir).__name__}"
+        )
     out = Path(out_dir)
     if not isinstance(metrics, Mapping):
         raise TypeError(f"metrics: expected a mapping of sections, got {type(metrics).__name__}")
+    if not isinstance(stem, str):
+        raise TypeError(
+            f"stem: expected a file name without suffix (str), got {type(stem).__name__}"
+        )
+    if stem in ("", ".", "..") or Path(stem).name != stem or "\\" in stem or "\0" in stem:
+        # "../x" wrote x.md beside out_dir, not into it
+        raise ValueError(f"stem: expected a plain file name (no folder), got {stem!r:.60}")
     links: dict[str, str] = {}
     for name, p in (figures or {}).items():
         fp = Path(p)

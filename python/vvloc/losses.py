@@ -98,7 +98,8 @@ def triplet_loss(anchor: Tensor, positive: Tensor, negative: Tensor, margin: flo
     """Triplet margin loss on L2-normalised global descriptors.
 
     anchor, positive (B, Dg); negative (B, Dg) or (B, K, Dg) (K negatives per anchor).
-    L = mean over (b, k) of max(0, ‖a − p‖₂ − ‖a − n_k‖₂ + margin).
+    L = mean over (b, k) of max(0, ‖a − p‖₂ − ‖a − n_k‖₂ + margin); 0 for no triplet (B = 0 or
+    K = 0), as :func:`hinge_loss` gives for an empty tensor.
     """
     _tensors(anchor=anchor, positive=positive, negative=negative)
     if anchor.ndim != 2 or positive.shape != anchor.shape:
@@ -119,7 +120,8 @@ def triplet_loss(anchor: Tensor, positive: Tensor, negative: Tensor, margin: flo
         )
     d_pos = (anchor - positive).norm(dim=-1)  # (B,)
     d_neg = (anchor[:, None] - negative).norm(dim=-1)  # (B, K)
-    return F.relu(d_pos[:, None] - d_neg + margin).mean()
+    terms = F.relu(d_pos[:, None] - d_neg + margin)
+    return terms.mean() if terms.numel() else terms.sum()  # no triplet: 0, not mean()'s nan
 
 
 def hinge_loss(
@@ -152,7 +154,8 @@ def yaw_circle_loss(
     so the paper's squared terms max(0, δ − ϑ)² appear with the weight treated as a constant, and
         Lᵢ = log(1 + exp(s_p)·Σ_{j≠i} exp(s_n,ij)) − log T.
     Subtracting the floor log T (all logits 0 ⇒ log(1 + (T − 1))) makes a row whose margins are all
-    met contribute exactly 0 without changing any gradient. Returns the mean over (P, T).
+    met contribute exactly 0 without changing any gradient. Returns the mean over (P, T), 0 for
+    P = 0.
     """
     _pairs(src, tgt, "src, tgt", "(P, T, C)", 3)
     _p, t, _ = src.shape
@@ -163,8 +166,8 @@ def yaw_circle_loss(
     alpha_n = F.relu(theta_n - dist).detach()
     s_p = gamma * alpha_p * (d_pos - theta_p)
     s_n = (gamma * alpha_n * (theta_n - dist)).masked_fill(eye, float("-inf"))
-    row = F.softplus(s_p + torch.logsumexp(s_n, dim=-1)) - math.log(t)
-    return row.clamp(min=0.0).mean()
+    row = (F.softplus(s_p + torch.logsumexp(s_n, dim=-1)) - math.log(t)).clamp(min=0.0)
+    return row.mean() if row.numel() else row.sum()  # no pair: 0, not mean()'s nan
 
 
 def aligned_descriptors(
@@ -215,11 +218,16 @@ def random_translation_bias(
 ) -> Tensor:
     """n random 2-D offsets (n, 2) float32 metres: uniform direction, length uniform in
     ``bias_range`` (0 <= low <= high, finite), drawn from a generator seeded with ``seed``."""
-    n = positive_int(n, "n", minimum=0)
+    n = positive_int(n, "n", minimum=0, maximum=2**40)  # 16 TiB of offsets: a mistake
+    if isinstance(bias_range, (str, bytes)) or not hasattr(bias_range, "__len__"):
+        raise TypeError(f"bias_range: expected (low, high) metres, got {bias_range!r:.60}")
+    if len(bias_range) != 2:
+        raise ValueError(f"bias_range: expected (low, high) metres, got {len(bias_range)} values")
     lo, hi = (finite_float(v, "bias_range") for v in bias_range)
     if not 0.0 <= lo <= hi:
         raise ValueError(f"bias_range: expected 0 <= low <= high metres, got {bias_range}")
-    gen = torch.Generator().manual_seed(int(seed))
+    # torch seeds with a uint64; 1.5 was truncated to 1, -1 taken as 2**64 - 1
+    gen = torch.Generator().manual_seed(positive_int(seed, "seed", minimum=0, maximum=2**64 - 1))
     ang = torch.rand(n, generator=gen, dtype=torch.float64) * (2.0 * math.pi)
     mag = lo + (hi - lo) * torch.rand(n, generator=gen, dtype=torch.float64)
     return torch.stack([mag * ang.cos(), mag * ang.sin()], -1).to(torch.float32)
