@@ -93,10 +93,15 @@ def test_from_dict_rejects_unknown_keys_and_accepts_empty():
 
 
 @pytest.mark.parametrize(
-    "bad", [np.zeros((3, 8, 8), np.uint8), np.zeros((1, 3, 8, 8), np.float32), [[1]]]
+    ("bad", "err", "match"),
+    [
+        (np.zeros((3, 8, 8), np.uint8), ValueError, r"got shape \(3, 8, 8\)"),
+        (np.zeros((1, 3, 8, 8), np.float32), TypeError, "got dtype float32"),
+        ([[1]], TypeError, "got list"),
+    ],
 )
-def test_bad_images_are_refused(bad):
-    with pytest.raises(ValueError, match="images"):
+def test_bad_images_are_refused(bad, err, match):
+    with pytest.raises(err, match=rf"^images: expected a uint8 .*{match}"):
         PhotometricAugment()(bad, np.random.default_rng(0))
 
 

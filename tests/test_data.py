@@ -882,6 +882,11 @@ def test_floors_are_different_places(tmp_path):
     assert evaluation_split(ds, database="s0").revisit_radius == 2.0  # vvloc eval's keep radius
     with pytest.raises(ValueError, match="more than once"):
         evaluation_split(ds, database="s0", queries=["s2", "s2"])
+    # one str was split into sessions 's' and '2': "no session 's'"
+    with pytest.raises(
+        TypeError, match=r"queries: expected a sequence of session names, .*\['s2'\]"
+    ):
+        evaluation_split(ds, database="s0", queries="s2")
     for bad in ("2", np.nan, np.inf, True):
         with pytest.raises(ValueError, match="revisit_radius: expected a finite distance"):
             evaluation_split(ds, database="s0", revisit_radius=bad)
@@ -943,6 +948,9 @@ def test_perturbations_change_only_what_they_say():
     assert 5 < diff.std() < 12 and np.array_equal(n, perturb.noise(x, 10.0, cameras=[3], seed=2))
     with pytest.raises(ValueError, match="images"):
         perturb.noise(x[0])
+    # a float image (0-1 or 0-255) is a wrong type, said as such, not a wrong shape
+    with pytest.raises(TypeError, match=r"^images: expected a uint8 .* got dtype float64"):
+        perturb.noise(x / 255.0)
     with pytest.raises(ValueError, match="cameras"):
         perturb.mask_cameras(x, [7])
     for bad in ("01", 2, [1.7], [True]):  # were read as cameras [0, 1], an error, [1], [1]

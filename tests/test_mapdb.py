@@ -376,6 +376,25 @@ def test_from_arrays_validates(change: dict[str, Any], exc: type, match: str) ->
         MapDatabase.from_arrays(**args)
 
 
+def test_yaws_are_stored_wrapped(tmp_path: Path) -> None:
+    # 4π + 0.3 read back as 12.04 rad, unlike every other yaw of the package
+    kf = keyframes(bev=False)
+    raw = np.array(kf["poses"], copy=True)
+    kf["poses"] = raw + np.array([0.0, 0.0, 4 * np.pi])
+    kf["poses"][0, 2] = -np.pi  # the interval is (−π, π]
+    db = MapDatabase.from_arrays(**kf, model_config=CONFIG, grid_size=0.3)
+    np.testing.assert_allclose(db.poses[1:], raw[1:], atol=1e-12)
+    assert db.poses[0, 2] == np.pi
+    assert ((db.poses[:, 2] > -np.pi) & (db.poses[:, 2] <= np.pi)).all()
+    with MapWriter(tmp_path / "m.h5", model_config=CONFIG, grid_size=0.3) as w:
+        w.append(**kf)
+    with MapDatabase.open(tmp_path / "m.h5") as back:
+        np.testing.assert_array_equal(back.poses, db.poses)
+    # yaws already in (−π, π] are kept bit for bit
+    exact = MapDatabase.from_arrays(**{**kf, "poses": raw}, model_config=CONFIG, grid_size=0.3)
+    np.testing.assert_array_equal(exact.poses, raw)
+
+
 def test_from_arrays_keeps_copies_of_its_own() -> None:
     # it once froze the caller's arrays (writeable=False) and saw their later edits, past the
     # finite and unit-norm checks

@@ -133,3 +133,21 @@ def bool_array(x: Any, name: str, length: int) -> BoolArray:
     if arr.shape != (length,):
         raise ValueError(f"{name}: expected shape ({length},), got {arr.shape}")
     return arr
+
+
+def uint8_images(images: Any) -> npt.NDArray[np.uint8]:
+    """``images`` if it is a uint8 numpy array (M, 3, H, W), H, W ≥ 1: a ``TypeError`` for
+    another type or dtype, a ``ValueError`` for another shape (both naming ``images``)."""
+    if not isinstance(images, np.ndarray):
+        raise TypeError(
+            f"images: expected a uint8 numpy array (M, 3, H, W), got {type(images).__name__}"
+        )
+    if images.dtype != np.uint8:  # a float image in [0, 1] would be taken as near black
+        raise TypeError(f"images: expected a uint8 (M, 3, H, W) array, got dtype {images.dtype}")
+    if images.ndim != 4:
+        raise ValueError(f"images: expected a uint8 (M, 3, H, W) array, got shape {images.shape}")
+    if images.shape[1] != 3:
+        raise ValueError(f"images: expected 3 channels on axis 1, got shape {images.shape}")
+    if min(images.shape[2:]) < 1:
+        raise ValueError(f"images: expected H, W >= 1, got shape {images.shape}")
+    return images

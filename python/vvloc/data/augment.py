@@ -21,6 +21,8 @@ from typing import Any
 
 import numpy as np
 
+from vvloc._checks import uint8_images
+
 #: The largest log range (``brightness``, ``contrast``, ``gamma``, ``camera_jitter``) allowed.
 LOG_RANGE_MAX = 5.0
 
@@ -91,11 +93,7 @@ class PhotometricAugment:
 
     def __call__(self, images: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """Augmented copy of ``images`` (M, 3, H, W) uint8; random draws come from ``rng``."""
-        if not isinstance(images, np.ndarray) or images.dtype != np.uint8 or images.ndim != 4:
-            got = getattr(images, "shape", type(images).__name__)
-            raise ValueError(f"images: expected a uint8 (M, 3, H, W) array, got {got}")
-        if images.shape[1] != 3:
-            raise ValueError(f"images: expected 3 channels on axis 1, got shape {images.shape}")
+        uint8_images(images)
         if not isinstance(rng, np.random.Generator):
             raise TypeError(f"rng: expected a numpy Generator, got {type(rng).__name__}")
         if rng.random() >= self.prob:

@@ -18,19 +18,8 @@ from typing import Any
 import numpy as np
 from scipy.ndimage import convolve
 
-from vvloc._checks import finite_float, positive_int
+from vvloc._checks import finite_float, positive_int, uint8_images
 from vvloc.data.frame import Frame
-
-
-def _check(images: np.ndarray) -> np.ndarray:
-    if not isinstance(images, np.ndarray) or images.dtype != np.uint8 or images.ndim != 4:
-        got = getattr(images, "shape", type(images).__name__)
-        raise ValueError(f"images: expected a uint8 (M, 3, H, W) array, got {got}")
-    if images.shape[1] != 3:
-        raise ValueError(f"images: expected 3 channels on axis 1, got shape {images.shape}")
-    if min(images.shape[2:]) < 1:
-        raise ValueError(f"images: expected H, W >= 1, got shape {images.shape}")
-    return images
 
 
 def _fill(x: Any) -> np.uint8:
@@ -70,7 +59,7 @@ def mask_cameras(
 
     ``cameras`` lists the indices to blank; if None, ``count`` distinct cameras are drawn.
     """
-    images = _check(images)
+    images = uint8_images(images)
     seed = positive_int(seed, "seed", 0)  # None would draw fresh entropy: not reproducible
     m = images.shape[0]
     value = _fill(fill)
@@ -94,7 +83,7 @@ def motion_blur(
 ) -> np.ndarray:
     """Linear motion blur of ``length`` pixels along ``angle_deg`` (image x axis = 0°, random
     per camera when None) on the chosen cameras (all by default); see :func:`line_kernel`."""
-    images = _check(images)
+    images = uint8_images(images)
     length = positive_int(length, "length", 1)
     if angle_deg is not None:
         finite_float(angle_deg, "angle_deg")
@@ -174,7 +163,7 @@ def mask_regions(
     Each rectangle is ``size`` × the image height by ``size`` × the image width, placed at
     random; :func:`region_boxes` returns the same rectangles.
     """
-    images = _check(images)
+    images = uint8_images(images)
     value = _fill(fill)
     out = images.copy()
     for c, r0, r1, c0, c1 in region_boxes(images.shape, count, size, seed, cameras):
@@ -190,7 +179,7 @@ def exposure(
     cameras: Sequence[int] | None = None,
 ) -> np.ndarray:
     """Exposure change: ``255 · (gain · x / 255) ** gamma``, clipped, on the chosen cameras."""
-    images = _check(images)
+    images = uint8_images(images)
     if not (finite_float(gain, "gain") > 0 and finite_float(gamma, "gamma") > 0):
         raise ValueError(f"gain, gamma: expected finite values > 0, got {gain}, {gamma}")
     out = images.copy()
@@ -208,7 +197,7 @@ def noise(
     seed: int = 0,
 ) -> np.ndarray:
     """Additive Gaussian noise of standard deviation ``sigma`` grey levels, clipped."""
-    images = _check(images)
+    images = uint8_images(images)
     if finite_float(sigma, "sigma") < 0:
         raise ValueError(f"sigma: expected a finite value >= 0, got {sigma}")
     rng = np.random.default_rng(positive_int(seed, "seed", 0))

@@ -517,6 +517,11 @@ def check_query_sessions(database: str, queries: Sequence[str], argument: str = 
     """``ValueError`` naming ``argument`` (the query sessions) when the query sessions repeat a
     name or include the map session ``database``: its frames would find themselves (100 %
     recall, a calibration learnt on the map), or a session would count twice."""
+    if isinstance(queries, (str, bytes)):  # "s1" would be the sessions 's' and '1'
+        raise TypeError(
+            f"{argument}: expected a sequence of session names, got one str {queries!r:.60} "
+            f"(pass [{queries!r:.60}])"
+        )
     names = list(queries)
     repeated = sorted({q for q in names if names.count(q) > 1})
     if repeated:
@@ -613,8 +618,10 @@ def evaluation_split(
     if database is None and not names:
         raise ValueError("ds: the dataset has no sessions (no database session to default to)")
     database = database if database is not None else names[0]
-    queries = list(queries) if queries is not None else [n for n in names if n != database]
-    check_query_sessions(database, queries)
+    if queries is None:
+        queries = [n for n in names if n != database]
+    check_query_sessions(database, queries)  # before list(), which would split a str
+    queries = list(queries)
     if (
         isinstance(revisit_radius, bool)
         or not isinstance(revisit_radius, (int, float, np.number))

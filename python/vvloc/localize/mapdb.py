@@ -74,6 +74,7 @@ import numpy.typing as npt
 
 from vvloc._checks import positive_float
 from vvloc._io import AtomicPath
+from vvloc.geometry import wrap_angle
 
 __all__ = [
     "FORMAT_NAME",
@@ -386,6 +387,9 @@ def _validate_batch(
     k = p.shape[0]
     if p.shape[1] != 3:
         raise ValueError(f"poses: expected shape (N, 3) = (x, y, yaw), got shape {p.shape}")
+    if not ((p[:, 2] > -np.pi) & (p[:, 2] <= np.pi)).all():
+        p = p.copy()  # stored as every other yaw of the package: wrapped (4π + 0.3 read back)
+        p[:, 2] = wrap_angle(p[:, 2])
     t = _float_array(timestamps, "timestamps", f"({k},)", 1, k, np.float64)
     labels = _session_labels(sessions, k)
     g = _float_array(global_descriptors, "global_descriptors", f"({k}, Dg)", 2, k, np.float32)
@@ -622,7 +626,8 @@ class MapWriter:
         """Append k keyframes.
 
         Args:
-            poses: (k, 3) world-frame (x, y, yaw): metres, radians CCW.
+            poses: (k, 3) world-frame (x, y, yaw): metres, radians CCW (stored wrapped to
+                (−π, π]).
             timestamps: (k,) seconds.
             sessions: one session name for all k, or k names.
             global_descriptors: (k, Dg) float, each row of unit L2 norm (as the encoder gives
