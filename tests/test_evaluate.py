@@ -1193,6 +1193,12 @@ def test_torch_tensors_are_taken_as_the_kernels_take_them():
     np.testing.assert_array_equal(ev.error_percentiles(yaw.detach().bfloat16(), (100,)), [3.0])
 
 
+def test_calibrate_acceptance_of_no_result_accepts_nothing():
+    # two empty lists: "correct: expected a bool array of shape (0,), got dtype float64"
+    out = ev.calibrate_acceptance([], [])
+    assert out["queries"] == 0 and out["threshold"] == math.inf
+
+
 def test_latency_summary_wants_a_mapping():
     with pytest.raises(TypeError, match="samples_ms: expected a mapping"):
         ev.latency_summary([1.0, 2.0])

@@ -189,6 +189,20 @@ def test_loop_closures_validate(kwargs: dict, exc: type, match: str) -> None:
         LoopClosures(**{**args, **kwargs})
 
 
+def test_information_from_sigmas_refuses_what_is_no_information_matrix() -> None:
+    np.testing.assert_allclose(information_from_sigmas(0.5, 0.25, 2.0), np.diag([4, 16, 0.25]))
+    # 1e-200 gave inf entries, 1e200 a zero one (a singular matrix), each with only a warning
+    for sigmas in ((1e-200, 0.1, 0.05), (0.1, 1e200, 0.05)):
+        with pytest.raises(ValueError, match=r"sigmas: 1/sigma\^2 must be a finite float > 0"):
+            information_from_sigmas(*sigmas)
+    with pytest.raises(ValueError, match=r"sigmas: standard deviations must be > 0"):
+        information_from_sigmas(0.1, 0.0, 0.05)
+    with pytest.raises(TypeError, match=r"^sigma_x: expected a float, got ndarray"):
+        information_from_sigmas(np.array([0.1, 0.2]), 0.1, 0.05)  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match=r"^sigma_yaw: expected a finite value"):
+        information_from_sigmas(0.1, 0.1, np.inf)
+
+
 # ---------------------------------------------------------------------------------------------
 # g2o
 

@@ -228,6 +228,11 @@ def test_metric_localize_best_calls_the_interactor_per_target():
     assert decoded == [121, cfg.fine_samples]
     with pytest.raises(TypeError, match="decode"):
         metric_localize_best(bev_s, tgts, lambda p: (decode(p), decode(p)), None, cfg, G, T, R)
+    for bad, err in (("36", TypeError), (2, ValueError)):  # "36" != 36 said desc_tgt was wrong
+        with pytest.raises(err, match=r"^num_angles: expected an int"):
+            metric_localize_best(bev_s, tgts, decode, None, cfg, G, bad, R)
+        with pytest.raises(err, match=r"^num_angles: expected an int"):
+            metric_localize(bev_s, tgts[0], decode, cfg, G, bad, R)
     # an interactor that returns one array, not the pair: it was matched against the target
     with pytest.raises(TypeError, match=r"interact: expected the pair \(Ds', Dt'\) .* ndarray"):
         metric_localize_best(bev_s, tgts, decode, lambda ds, k: ds, cfg, G, T, R)

@@ -67,6 +67,12 @@ def test_config_presets_and_json_roundtrip():
         assert back == cfg
         assert back.config_hash() == cfg.config_hash()
     assert paper.config_hash() != ModelConfig.small().config_hash()
+    with pytest.raises(ValueError, match=r"^text: not the JSON of a ModelConfig"):
+        ModelConfig.from_json("{")
+    with pytest.raises(
+        TypeError, match=r"^text: expected the JSON text of a ModelConfig, got dict"
+    ):
+        ModelConfig.from_json({})  # type: ignore[arg-type]
     assert len(paper.config_hash()) == 16
     # equal configs hash the same, however their numbers were written (a YAML override of
     # sigma_a: 15 against a checkpoint's 15.0 read as another model before)

@@ -124,8 +124,10 @@ def int_array(x: Any, name: str, shape_doc: str, ndim: int, last: int | None = N
 
 
 def bool_array(x: Any, name: str, length: int) -> BoolArray:
-    """``x`` as it is, when it is a bool array of shape ``(length,)``."""
-    arr = np.asarray(x)
+    """``x`` as it is, when it is a bool array of shape ``(length,)`` (an empty list too)."""
+    arr = as_array(x, name, f"({length},)")
+    if arr.size == 0 and arr.dtype == np.float64:  # np.asarray([]) is float64
+        arr = arr.astype(np.bool_)
     if arr.dtype != np.bool_:
         raise TypeError(
             f"{name}: expected a bool array of shape ({length},), got dtype {arr.dtype}"

@@ -28,6 +28,7 @@ from typing import Any, SupportsFloat
 
 import numpy as np
 
+from vvloc._checks import finite_float
 from vvloc._io import FLOAT_TEXT, INT_TEXT, atomic_write, check_readable_file
 from vvloc.geometry import relative as relative_pose
 from vvloc.geometry import wrap_angle
@@ -173,11 +174,26 @@ def _information(x: Any, name: str, k: int) -> np.ndarray:
 
 
 def information_from_sigmas(sigma_x: float, sigma_y: float, sigma_yaw: float) -> np.ndarray:
-    """(3, 3) diagonal information matrix diag(1/σx², 1/σy², 1/σyaw²) (metres, radians)."""
-    sig = _floats([sigma_x, sigma_y, sigma_yaw], "sigmas", "(3,)", (3,))
+    """(3, 3) diagonal information matrix diag(1/σx², 1/σy², 1/σyaw²) (metres, radians); each
+    σ a real number > 0 whose 1/σ² is a finite, non-zero float64 (about 1e-154 to 1e154)."""
+    sig = np.array(
+        [
+            finite_float(v, n)
+            for v, n in zip((sigma_x, sigma_y, sigma_yaw), _SIGMA_NAMES, strict=True)
+        ]
+    )
     if (sig <= 0).any():
         raise ValueError(f"sigmas: standard deviations must be > 0, got {sig.tolist()}")
-    return np.diag(1.0 / sig**2)
+    with np.errstate(over="ignore", divide="ignore", under="ignore"):
+        info = 1.0 / sig**2
+    if not (np.isfinite(info) & (info > 0)).all():  # inf, or 0: a singular matrix
+        raise ValueError(
+            f"sigmas: 1/sigma^2 must be a finite float > 0, got {info.tolist()} for {sig.tolist()}"
+        )
+    return np.diag(info)
+
+
+_SIGMA_NAMES = ("sigma_x", "sigma_y", "sigma_yaw")
 
 
 def _comment_lines(comments: Iterable[str]) -> list[str]:

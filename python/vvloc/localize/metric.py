@@ -18,7 +18,7 @@ import numpy as np
 import numpy.typing as npt
 
 from vvloc import kernels
-from vvloc._checks import as_array
+from vvloc._checks import as_array, positive_int
 
 __all__ = [
     "METRIC_CANDIDATES",
@@ -233,6 +233,7 @@ def metric_localize(
     cfg = search_config(config)
     _check_callables(decode)
     t = kernels._as_f32(desc_tgt, "desc_tgt", 2, "(T, C)")
+    num_angles = positive_int(num_angles, "num_angles", minimum=3)
     if t.shape[0] != num_angles:
         raise ValueError(f"desc_tgt: expected (T={num_angles}, C), got shape {t.shape}")
     kernels._check_row_norms(t, "desc_tgt")
@@ -369,6 +370,7 @@ def _check_callables(decode: Any, interact: Any = None) -> None:
 
 def _targets(desc_tgts: Any, num_angles: int) -> npt.NDArray[np.float32]:
     """``desc_tgts`` as (M ≥ 1, T = ``num_angles``, C) float32, or a ValueError naming it."""
+    num_angles = positive_int(num_angles, "num_angles", minimum=3)  # the kernels' T >= 3
     tgts = kernels._as_f32(desc_tgts, "desc_tgts", 3, "(M, T, C)")
     if tgts.shape[0] < 1 or tgts.shape[1] != num_angles:
         raise ValueError(f"desc_tgts: expected (M >= 1, T={num_angles}, C), got shape {tgts.shape}")

@@ -258,7 +258,15 @@ class ModelConfig:
     @classmethod
     def from_json(cls, text: str) -> ModelConfig:
         """Inverse of :meth:`to_json`."""
-        return cls.from_dict(json.loads(text))
+        if not isinstance(text, (str, bytes, bytearray)):
+            raise TypeError(
+                f"text: expected the JSON text of a ModelConfig, got {type(text).__name__}"
+            )
+        try:
+            raw = json.loads(text)
+        except json.JSONDecodeError as e:
+            raise ValueError(f"text: not the JSON of a ModelConfig ({e})") from None
+        return cls.from_dict(raw)
 
     def config_hash(self) -> str:
         """Stable 16-hex-digit hash of the canonical JSON (same config ⇒ same hash)."""
