@@ -418,6 +418,10 @@ def test_cross_floor_events_rejects_bad_input():
         ev.cross_floor_events([[0, 1]], pos, fl, ses, confidence=1.0)
     with pytest.raises(ValueError, match="cell"):
         ev.cross_floor_events([[0, 1]], pos, fl, ses, cell=0.0)
+    # cells beyond int64 were cast to one wrapped cell: distinct events merged, with a warning
+    far = np.array([[1e300, 0.0], [-1e300, 0.0]])
+    with pytest.raises(ValueError, match=r"cell: 1e-10 m cells number more than 2\*\*62"):
+        ev.cross_floor_events([[0, 1], [1, 0]], far, fl, np.array([0, 1]), cell=1e-10)
 
 
 def test_temporal_window_and_causality_define_the_ground_truth():

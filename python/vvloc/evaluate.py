@@ -975,7 +975,13 @@ def cross_floor_events(
     cell = positive_float(cell, "cell")
     confidence = _share(confidence, "confidence", closed_above=False)
     a, b = pr[:, 0], pr[:, 1]
-    grid = np.floor(pos[a] / cell).astype(np.int64)
+    with np.errstate(over="ignore"):
+        cells = np.floor(pos[a] / cell)
+    if not (np.abs(cells) < 2.0**62).all():  # astype would merge them into one wrapped cell
+        raise ValueError(
+            f"cell: {cell} m cells number more than 2**62 across the positions; take larger cells"
+        )
+    grid = cells.astype(np.int64)
     keys = np.stack(
         [np.minimum(ses[a], ses[b]), np.maximum(ses[a], ses[b]), fl[a], grid[:, 0], grid[:, 1]],
         axis=1,
