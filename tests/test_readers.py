@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 import warnings
 
 import numpy as np
@@ -1249,12 +1250,16 @@ def test_heading_offset_measures_a_yaw_off_the_direction_of_travel():
     for offset in (0.0, 1.4, -3.0, 12.0):
         got, count = heading_offset(_drive(offset))
         assert got == pytest.approx(offset, abs=0.1) and count >= MIN_STRETCHES
-    # driven backwards: the yaw points against the travel, those stretches are left out
+    # driven backwards: the yaw points against the travel, those stretches are left out ...
     back = _drive(0.0)
     back[:, 2] += math.pi
-    assert heading_offset(back) == (pytest.approx(float("nan"), nan_ok=True), 0)
     got, _ = heading_offset(np.concatenate([_drive(0.7), back]))
     assert got == pytest.approx(0.7, abs=0.1)
+    # ... but a whole session "reversing" is a yaw pointing backwards (it went unmeasured)
+    for offset in (100.0, 180.0, -135.0):
+        got, count = heading_offset(_drive(offset, n=400))
+        assert (got - offset + 180) % 360 - 180 == pytest.approx(0.0, abs=0.1)
+        assert count >= MIN_STRETCHES
     # a car standing still, or too few poses: nothing to measure
     assert heading_offset(np.zeros((50, 3)))[1] == 0
     assert heading_offset(np.zeros((0, 3)))[1] == 0
@@ -1282,6 +1287,44 @@ def test_heading_offset_measures_a_yaw_off_the_direction_of_travel():
         note = heading_warning("s", mirrored)
         assert note is not None and note.startswith("session s: the yaw reads as a compass")
     assert compass_fit(np.zeros((3, 3)))[2] == 0
+
+
+def test_heading_warning_tells_a_mirrored_yaw_from_a_constant_offset():
+    from vvloc.data.heading import heading_warning, mirror_fit
+
+    drive = _drive(0.0, n=400)  # along the axes: where the two readings agree modulo 180°
+    assert heading_warning("s", drive) is None
+    assert mirror_fit(drive)[1] is False
+    # a yaw off by a quarter turn or more: said as an offset (a quarter turn read as a compass
+    # heading before, and from 90° on nothing was said: every stretch counted as reversing)
+    for offset in (90.0, -90.0, 100.0, 180.0):
+        note = heading_warning("s", _drive(offset, n=400))
+        assert note is not None, offset
+        said = re.search(r"differs from the direction of travel by a median of ([-+.0-9]+)°", note)
+        assert said is not None
+        assert (float(said[1]) - offset + 180) % 360 - 180 == pytest.approx(0, abs=0.5)
+        assert "the yaw's x axis is not the vehicle's forward" in note
+    assert "x axis is not" not in (heading_warning("s", _drive(12.0)) or "")
+    # a clockwise (negated) yaw: right on the east-west roads, a half turn off on the others
+    negated = drive.copy()
+    negated[:, 2] = -drive[:, 2]
+    assert mirror_fit(negated)[:2] == (pytest.approx(0.0, abs=0.5), True)
+    note = heading_warning("s", negated)
+    assert note is not None and "the yaw reads as clockwise (the y axis flipped)" in note
+    # clockwise from another axis (here 40°), on roads that do not run along the axes either
+    turned = drive.copy()
+    turned[:, :2] = drive[:, :2] @ np.array([[0.8, 0.6], [-0.6, 0.8]])  # rotated by 36.87°
+    turned[:, 2] = drive[:, 2] + math.atan2(0.6, 0.8)
+    assert heading_warning("s", turned) is None
+    turned[:, 2] = math.radians(40.0) - turned[:, 2]
+    note = heading_warning("s", turned)
+    assert note is not None and "clockwise: 40.0° minus the direction of travel" in note
+    # the compass heading, driven forwards and backwards, is still named as such
+    for p in (drive, _drive(180.0, n=400)):
+        compass = p.copy()
+        compass[:, 2] = math.pi / 2 - p[:, 2]
+        note = heading_warning("s", compass)
+        assert note is not None and note.startswith("session s: the yaw reads as a compass")
 
 
 def test_the_readers_check_each_sessions_yaw_against_its_travel(tmp_path, monkeypatch):

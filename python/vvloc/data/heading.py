@@ -7,9 +7,11 @@ UTM grid coordinates (the grid convergence, about 1.4° at Oxford), a yaw of a s
 turned on the car. Every relative translation then turns by that offset. :func:`heading_offset`
 measures it; the NCLT and Oxford readers warn when a session's is large. A compass heading
 (clockwise from north, 90° minus the yaw) is no constant offset: it is the yaw mirrored about
-the diagonal, off the direction of travel by 90° − 2 × that direction, ±90° along the axes,
-where :func:`heading_offset` leaves it out with the stretches driven backwards, and 0 on the
-diagonals. :func:`compass_fit` tests that shape directly, whatever the roads' directions.
+the diagonal, off the direction of travel by 90° − 2 × that direction, ±90° along the axes and
+0 on the diagonals; a clockwise yaw (a flipped y axis) is the yaw mirrored about the x axis.
+:func:`compass_fit` tests the compass shape directly, whatever the roads' directions, and
+:func:`mirror_fit` any mirror, telling it from a constant offset on roads along two axes too
+(where the two agree up to a half turn); :func:`heading_warning` says which it finds.
 """
 
 from __future__ import annotations
@@ -50,7 +52,9 @@ def heading_offset(
     Returns:
         ``(offset_deg, count)``: the median over the counted stretches of
         wrap(mean yaw − atan2(Δy, Δx)) in degrees (NaN when none counts), and their number.
-        Stretches driven backwards (offset beyond ±90°) are left out.
+        Stretches driven backwards (more than 90° off the direction most stretches give) are
+        left out: a car drives forwards mostly, so a whole session "driven backwards" is a yaw
+        whose axis points to the rear, measured as an offset of about 180°.
     """
     return _offset(*_straight_stretches(poses, step, max_turn_deg))
 
@@ -58,10 +62,74 @@ def heading_offset(
 def _offset(heading: np.ndarray, travel: np.ndarray) -> tuple[float, int]:
     """:func:`heading_offset` of the stretches' mean yaws and directions of travel."""
     offset = wrap_angle(heading - travel)
-    offset = offset[np.abs(offset) < np.pi / 2]  # reversing
     if offset.size == 0:
         return float("nan"), 0
-    return float(np.degrees(np.median(offset))), int(offset.size)
+    # about the direction most stretches give (0 for a car that drives where its yaw points,
+    # the half turn for a yaw whose axis points to the rear); the others were driven backwards
+    centre = _centre(offset)
+    about = wrap_angle(offset - centre)
+    kept = about[np.abs(about) < np.pi / 2]
+    return float(np.degrees(wrap_angle(centre + np.median(kept)))), int(kept.size)
+
+
+def _centre(x: np.ndarray) -> float:
+    """The direction (radians) most of the angles ``x`` point to: the axis of their doubled
+    angles' circular mean (an angle and its reverse agree on it), at the end holding more."""
+    axis = float(np.angle(np.exp(2j * x).sum())) / 2.0
+    near = np.abs(wrap_angle(x - axis)) < np.pi / 2
+    return axis if 2 * near.sum() >= x.size else float(wrap_angle(axis + np.pi))
+
+
+def _spread_deg(x: np.ndarray, centre: float) -> float:
+    """The median distance (degrees) of the angles ``x`` from the axis through ``centre``,
+    modulo 180° (a stretch driven backwards fits as well)."""
+    return float(np.degrees(np.median(np.abs(wrap_angle(2.0 * (x - centre))) / 2.0)))
+
+
+def _share_within(x: np.ndarray, centre: float, tol_deg: float) -> float:
+    """The share of the angles ``x`` within ``tol_deg`` of ``centre`` (a full turn apart)."""
+    return float(np.mean(np.abs(wrap_angle(x - centre)) <= np.radians(tol_deg)))
+
+
+def mirror_fit(
+    poses: npt.ArrayLike, *, step: float = STEP_M, max_turn_deg: float = MAX_TURN_DEG
+) -> tuple[float, bool, int]:
+    """Whether a session's yaw reads as a *mirrored* angle, c − τ for one constant c, rather
+    than the format's τ + offset (τ: the direction of travel of its straight stretches, those
+    of :func:`heading_offset`). c = 90° is a compass heading (clockwise from north), c = 0 a
+    clockwise yaw (a flipped y axis); any other c a clockwise angle from another axis.
+
+    Decided in two steps. Modulo 180° (a stretch driven backwards fits either way): the
+    mirror fits within :data:`COMPASS_FIT_DEG` and a constant offset is at least
+    :data:`COMPASS_MISFIT_DEG` off (medians over the stretches). Where both fit modulo 180°
+    (roads along two perpendicular axes only, where c − τ and τ + c′ agree up to a half turn),
+    by full angles: the mirror must hold within :data:`COMPASS_FIT_DEG` for more stretches than
+    the constant offset, by at least 5 %, each taken about the direction most stretches give.
+
+    Returns ``(c_deg, mirrored, count)``: the mirror's constant (degrees, in (−180°, 180°]),
+    the verdict, and the number of stretches (NaN, False, 0 without any).
+    """
+    return _mirror(*_straight_stretches(poses, step, max_turn_deg))
+
+
+def _mirror(heading: np.ndarray, travel: np.ndarray) -> tuple[float, bool, int]:
+    """:func:`mirror_fit` of the stretches' mean yaws and directions of travel."""
+    n = int(heading.size)
+    if n == 0:
+        return float("nan"), False, 0
+    offset, flipped = wrap_angle(heading - travel), wrap_angle(heading + travel)
+    c_off, c_mir = _centre(offset), _centre(flipped)
+    mir_spread, off_spread = _spread_deg(flipped, c_mir), _spread_deg(offset, c_off)
+    if mir_spread > COMPASS_FIT_DEG:
+        mirrored = False
+    elif off_spread >= COMPASS_MISFIT_DEG:
+        mirrored = True
+    elif off_spread > COMPASS_FIT_DEG:
+        mirrored = False  # in between: neither reading is clear
+    else:  # both fit modulo 180°: the full angles decide
+        tol = COMPASS_FIT_DEG
+        mirrored = _share_within(flipped, c_mir, tol) >= _share_within(offset, c_off, tol) + 0.05
+    return float(np.degrees(c_mir)), bool(mirrored), n
 
 
 def compass_fit(
@@ -126,26 +194,45 @@ def _straight_stretches(
 def heading_warning(
     name: str, poses: npt.ArrayLike, *, limit_deg: float = WARN_OFFSET_DEG
 ) -> str | None:
-    """A warning text when session ``name``'s yaw reads as a compass heading
-    (:func:`compass_fit`: within :data:`COMPASS_FIT_DEG` of 90° minus the direction of travel,
-    at least :data:`COMPASS_MISFIT_DEG` off the direction), or when its
-    :func:`heading_offset` exceeds ``limit_deg`` (degrees), each over at least
-    :data:`MIN_STRETCHES` stretches; else None."""
-    stretches = _straight_stretches(poses, STEP_M, MAX_TURN_DEG)  # once, for both tests
-    travel, compass, n = _compass(*stretches)
-    if n >= MIN_STRETCHES and compass <= COMPASS_FIT_DEG and travel >= COMPASS_MISFIT_DEG:
+    """A warning text when session ``name``'s yaw reads as mirrored (:func:`mirror_fit`:
+    named a compass heading when its constant is 90° modulo 180°, a clockwise yaw when 0), or
+    when its :func:`heading_offset` exceeds ``limit_deg`` (degrees, any size up to 180°), each
+    over at least :data:`MIN_STRETCHES` stretches; else None. ``poses`` (N, 3) world x, y (m),
+    yaw (rad), in time order."""
+    stretches = _straight_stretches(poses, STEP_M, MAX_TURN_DEG)  # once, for every test
+    c_mir, mirrored, n = _mirror(*stretches)
+    if n >= MIN_STRETCHES and mirrored:
+        travel, compass, _ = _compass(*stretches)
+        axis = abs(float(np.degrees(wrap_angle(2.0 * np.radians(c_mir))))) / 2.0  # mod 180°
+        if abs(axis - 90.0) <= COMPASS_FIT_DEG:
+            return (
+                f"session {name}: the yaw reads as a compass heading (clockwise from north): "
+                f"over {n} straight stretches it lies a median of {compass:.1f}° from 90° minus "
+                f"the direction of travel and {travel:.1f}° from the direction itself; every "
+                "relative pose turns with it (vvloc.data.heading)"
+            )
+        what = (
+            "clockwise (the y axis flipped): the negated direction of travel"
+            if axis <= COMPASS_FIT_DEG
+            else f"clockwise: {c_mir:.1f}° minus the direction of travel"
+        )
         return (
-            f"session {name}: the yaw reads as a compass heading (clockwise from north): over "
-            f"{n} straight stretches it lies a median of {compass:.1f}° from 90° minus the "
-            f"direction of travel and {travel:.1f}° from the direction itself; every relative "
-            "pose turns with it (vvloc.data.heading)"
+            f"session {name}: the yaw reads as {what}, over {n} straight stretches, not "
+            "counter-clockwise from the world's x axis; every relative pose turns with it "
+            "(vvloc.data.heading)"
         )
     offset, count = _offset(*stretches)
     if count < MIN_STRETCHES or abs(offset) <= limit_deg:
         return None
+    askew = (
+        " (the yaw's x axis is not the vehicle's forward: a sensor's frame taken for the "
+        "vehicle's?)"
+        if abs(offset) > 45.0
+        else ""
+    )
     return (
         f"session {name}: the yaw differs from the direction of travel by a median of "
-        f"{offset:+.2f}° over {count} straight stretches; the yaw and the positions may not be "
-        "in one frame (e.g. a yaw from true north beside UTM grid coordinates), and relative "
-        "translations turn by that much (vvloc.data.heading)"
+        f"{offset:+.2f}° over {count} straight stretches{askew}; the yaw and the positions "
+        "may not be in one frame (e.g. a yaw from true north beside UTM grid coordinates), and "
+        "relative translations turn by that much (vvloc.data.heading)"
     )
