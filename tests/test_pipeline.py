@@ -668,7 +668,8 @@ def test_cli_names_a_dataset_of_more_cameras_than_the_model_holds(map_file, mode
     run = lambda *a: subprocess.run([*exe, *a], capture_output=True, text=True)  # noqa: E731
     common = ["--checkpoint", str(model_dir), "--dataset", str(nine)]
     said = rf"--dataset: {nine}: 9 cameras exceed ModelConfig.max_cameras=8 "
-    r = run("map", "build", *common, "--sessions", "s0", "--out", str(tmp_path / "m.h5"))
+    new = tmp_path / "maps" / "m.h5"  # a folder made only once the build passes its checks
+    r = run("map", "build", *common, "--sessions", "s0", "--out", str(new))
     assert r.returncode == 2 and f"vvloc map build: error: {said}" in r.stderr, r.stderr
     assert sorted(p.name for p in tmp_path.iterdir()) == ["nine"]
     out = tmp_path / "loc"
@@ -679,7 +680,7 @@ def test_cli_names_a_dataset_of_more_cameras_than_the_model_holds(map_file, mode
 
 def test_cli_map_localize_loops_end_to_end(tiny_world, model_dir, tmp_path):
     exe = [sys.executable, "-m", "vvloc.cli"]
-    map_path = tmp_path / "m.h5"
+    map_path = tmp_path / "maps" / "m.h5"  # its folder is made, as eval and loops make theirs
     run = lambda *a: subprocess.run([*exe, *a], capture_output=True, text=True)  # noqa: E731
     r = run(
         "map",
@@ -706,8 +707,11 @@ def test_cli_map_localize_loops_end_to_end(tiny_world, model_dir, tmp_path):
     r = run("map", "build", "--checkpoint", str(model_dir), "--dataset", str(tiny_world),
             "--sessions", "s0,s1", "--out", str(map_path), "--overwrite")  # fmt: skip
     assert r.returncode == 0, r.stderr
-    r = bad_map(tmp_path / "nowhere" / "m.h5")
-    assert r.returncode == 2 and "does not exist" in r.stderr and ".tmp" not in r.stderr
+    r = bad_map(tmp_path / "nowhere" / "deeper" / "m.h5", "s0,s0")  # a refused build ...
+    assert r.returncode == 2 and "more than once" in r.stderr
+    assert not (tmp_path / "nowhere").exists()  # ... leaves no folder either
+    r = bad_map(tmp_path / "maps" / "m.h5" / "m.h5")
+    assert r.returncode == 2 and "m.h5 is a file, not a folder" in r.stderr, r.stderr
     r = bad_map(tmp_path)
     assert r.returncode == 2 and "is a folder" in r.stderr
     r = bad_map(tmp_path / "twice.h5", "s0,s0")
@@ -1775,8 +1779,10 @@ def test_map_build_replaces_only_a_map_and_never_writes_into_the_dataset(tmp_pat
         check_map_out(tmp_path, overwrite=True, dataset=data)
     with pytest.raises(ValueError, match=r"^--out: expected the path of a map file"):
         check_map_out(Path(""), overwrite=False, dataset=data)
-    with pytest.raises(FileNotFoundError, match=r"^--out: the folder .* does not exist"):
-        check_map_out(tmp_path / "nowhere" / "m.h5", overwrite=False, dataset=data)
+    check_map_out(tmp_path / "nowhere" / "m.h5", overwrite=False, dataset=data)  # made later
+    assert not (tmp_path / "nowhere").exists()
+    with pytest.raises(NotADirectoryError, match=r"^--out: .*notes.txt is a file, not a folder"):
+        check_map_out(notes / "sub" / "m.h5", overwrite=False, dataset=data)
     with pytest.raises(ValueError, match=r"^--out: /dev/null is not a regular file"):
         check_map_out(Path("/dev/null"), overwrite=True, dataset=data)
     assert notes.read_text() == "mine" and (data / "rig.json").read_text() == "{}"

@@ -5,6 +5,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import json
+import logging
 import math
 import os
 import re
@@ -2262,6 +2263,24 @@ def test_a_bad_sim_section_is_named_as_the_configs_key(tmp_path):
     with pytest.raises(ValueError, match=r"^extra_datasets\[1\]\.sim: frames: expected"):
         _ensure_dataset(str(world), {"frames": -5}, "extra_datasets[1].")
     assert not world.exists()
+
+
+def test_rendering_a_missing_dataset_is_said_at_the_default_level(tmp_path, caplog):
+    # a mistyped dataset path beside a leftover sim section trained on a rendered world, said
+    # only with -v
+    from vvloc.train.data import _ensure_dataset
+
+    world = tmp_path / "mien"
+    sim = {"sessions": 1, "frames": 2, "width": 32, "height": 24, "progress": False}
+    with caplog.at_level(logging.WARNING, logger="vvloc"):
+        _ensure_dataset(str(world), sim)
+    said = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+    assert any(
+        f"dataset {world} does not exist: rendering it from the config's sim section (parking, 1 "
+        "sessions); for a dataset of your own, check the path and delete the sim section" in m
+        for m in said
+    ), said
+    assert (world / "rig.json").is_file()
 
 
 @pytest.mark.parametrize(

@@ -3,9 +3,11 @@ what a map holds, and whether every byte of it is intact."""
 
 from __future__ import annotations
 
+import contextlib
 import os
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 
@@ -30,8 +32,9 @@ def _s(n: int) -> str:
 
 
 def check_map_out(out: Path, *, overwrite: bool, dataset: Path) -> None:
-    """``vvloc map build --out``, said before the model loads: a file path in an existing,
-    writable folder, outside the dataset; an existing file only with ``overwrite``, and then
+    """``vvloc map build --out``, said before the model loads: a file path in a writable folder
+    (made when missing, as other commands make theirs, once every check has passed), outside
+    the dataset; an existing file only with ``overwrite``, and then
     only a vvloc map (the README: outputs never replace what vvloc did not write)."""
     from vvloc._io import _is_stream, symlink_loop
     from vvloc.data.sampling import inside_folder
@@ -54,10 +57,13 @@ def check_map_out(out: Path, *, overwrite: bool, dataset: Path) -> None:
             f"--out: {out} lies inside the dataset {dataset}; write the map outside it"
         )
     parent = Path(os.path.realpath(out)).parent
-    if not parent.is_dir():
-        raise FileNotFoundError(f"--out: the folder {parent} does not exist (create it first)")
-    if not os.access(parent, os.W_OK | os.X_OK):
-        raise PermissionError(f"--out: the folder {parent} is not writable")
+    existing = parent
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent  # the folders below it are made before the map is written
+    if not existing.is_dir():
+        raise NotADirectoryError(f"--out: {existing} is a file, not a folder to write the map in")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise PermissionError(f"--out: the folder {existing} is not writable")
     if out.exists():
         if not overwrite:
             raise FileExistsError(f"--out: {out} exists; pass --overwrite to replace it")
@@ -135,8 +141,6 @@ def build(
     largest keyframe id."""
 
     from vvloc.data.sampling import check_session_names
-    from vvloc.localize import MapError
-    from vvloc.localize.localizer import build_map
     from vvloc.nets import VVLocNet
 
     with cli_errors("map build"):
@@ -151,20 +155,60 @@ def build(
         model = VVLocNet.load(checkpoint_folder(checkpoint, "--checkpoint")).to(
             parse_device(device)
         )
-        if base is None:
-            path = build_map(
-                model,
-                ds,
-                names,
-                out,
-                dtype="float16" if float16 else "float32",
-                store_bev=not no_bev,
-                overwrite=overwrite,  # a map alone (check_map_out)
-            )
-        else:  # the base's dtype and BEVs (check_base refused flags that ask for others)
-            with named("--base", MapError, FileNotFoundError, IsADirectoryError):
-                path = build_map(model, ds, names, out, base=base, overwrite=overwrite)
+        with _parent_folders(out):  # made as eval, loops and train make theirs
+            path = _build(model, ds, names, out, base, float16, no_bev, overwrite)
     typer.echo(f"map: {path}")
+
+
+@contextlib.contextmanager
+def _parent_folders(out: Path) -> Iterator[None]:
+    """Make ``out``'s missing folders, and remove them again, while empty, when the body
+    raises (a refused build leaves no folder either)."""
+    missing = []
+    for folder in Path(os.path.realpath(out)).parents:
+        if folder.exists():
+            break
+        missing.append(folder)
+    for folder in reversed(missing):
+        folder.mkdir()
+    try:
+        yield
+    except BaseException:
+        for folder in missing:  # the deepest first
+            try:
+                folder.rmdir()
+            except OSError:  # not empty, or gone: left as it is
+                break
+        raise
+
+
+def _build(
+    model: Any,
+    ds: Any,
+    names: list[str],
+    out: Path,
+    base: Path | None,
+    float16: bool,
+    no_bev: bool,
+    overwrite: bool,
+) -> Path:
+    """``vvloc map build``'s map, once its arguments have been checked."""
+    from vvloc.localize import MapError
+    from vvloc.localize.localizer import build_map
+
+    if base is None:
+        return build_map(
+            model,
+            ds,
+            names,
+            out,
+            dtype="float16" if float16 else "float32",
+            store_bev=not no_bev,
+            overwrite=overwrite,  # a map alone (check_map_out)
+        )
+    # the base's dtype and BEVs (check_base refused flags that ask for others)
+    with named("--base", MapError, FileNotFoundError, IsADirectoryError):
+        return build_map(model, ds, names, out, base=base, overwrite=overwrite)
 
 
 @map_app.command("info")

@@ -169,7 +169,18 @@ def _ensure_dataset(dataset: str, sim: dict[str, Any] | None, prefix: str = "") 
             f"{prefix}dataset: {root} does not exist{_resolved(root)} and {where} no 'sim' "
             "section to render it"
         )
-    log.info("rendering the training dataset into %s", root.resolve())
+    # said at the default level: a mistyped path beside a leftover sim section would otherwise
+    # train on a synthetic world without a word (README, "Your own rig's data")
+    log.warning(
+        "%sdataset %s does not exist: rendering it from the config's %s section (%s, %s "
+        "sessions); for a dataset of your own, check the path and delete the %s section",
+        prefix,
+        root.resolve(),
+        key,
+        sim.get("scene", params["scene"].default),
+        sim.get("sessions", params["sessions"].default),
+        key,
+    )
     try:
         simulate_dataset(root, **sim)
     except (TypeError, ValueError) as e:  # "frames: expected ..." is the config's sim.frames
