@@ -724,6 +724,16 @@ def test_report_header_says_which_world_and_when_there_is_none():
     assert "- **scene**: scene: garage, floors: 2" in rendered
     own = ev.render_markdown({"meta": {"dataset": "data/mine", "scene": None}})
     assert "- **scene**: – (not rendered by vvloc sim)" in own and "None" not in own
+    # the report's scene of a dataset of one's own: its rig.json's meta.scene, as it is (a dict
+    # of it printed "scene: scene: mine")
+    from vvloc.localize.evaluation import _scene
+
+    assert _scene({"scene": "mine", "seed": 3}) == "mine"
+    assert _scene({"operator": "me"}) is None
+    sim = {"generator": "vvloc.sim", "scene": "garage", "seed": 0, "floors": 2, "lighting": []}
+    assert _scene(sim) == {"scene": "garage", "seed": 0, "floors": 2}
+    mine = ev.render_markdown({"meta": {"scene": _scene({"scene": "mine"})}})
+    assert "- **scene**: mine\n" in mine
 
 
 def test_report_and_figure_files_get_the_mode_of_a_plain_open(tmp_path):

@@ -604,6 +604,17 @@ def _per_session(scored: _Scored, queries: list[str]) -> dict[str, Any]:
     return out
 
 
+def _scene(meta: dict[str, Any]) -> dict[str, Any] | str | None:
+    """The report's ``scene``: the world a ``vvloc sim`` dataset was rendered from (its
+    ``rig.json`` meta's scene, seed, floors and floor marking), another dataset's own
+    ``meta.scene`` as it is (a str; "scene: scene: mine" before), else None."""
+    if meta.get("generator") == "vvloc.sim":
+        keys = ("scene", "seed", "floors", "floor_marking")
+        return {key: meta[key] for key in keys if key in meta} or None
+    scene = meta.get("scene")
+    return None if scene is None else str(scene)
+
+
 def _metric_candidates(loc: Localizer, k: int) -> int:
     """The M candidates the localizer scores metrically: no more than the ``k`` it retrieved."""
     return min(loc.metric_candidates, k)
@@ -938,13 +949,7 @@ def run_evaluation(
                 "meta": {
                     "checkpoint": str(checkpoint),
                     "dataset": str(dataset),
-                    # the world it was rendered from (vvloc sim's rig.json meta; None otherwise)
-                    "scene": {
-                        key: ds.meta[key]
-                        for key in ("scene", "seed", "floors", "floor_marking")
-                        if key in ds.meta
-                    }
-                    or None,
+                    "scene": _scene(ds.meta),
                     "database": database,
                     "queries": ",".join(queries),
                     "model_config_hash": model.config_hash(),
