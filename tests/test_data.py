@@ -46,6 +46,26 @@ def _line(n, y=0.0, floor=0):
     return poses, np.full(n, floor)
 
 
+def test_a_session_of_images_of_another_size_is_named_when_the_dataset_opens(tmp_path):
+    # rig.json said one size, every PNG had another: open_dataset passed, and training failed
+    # in a DataLoader worker at its first frame
+    from PIL import Image
+
+    cams = _write(tmp_path / "ds", {"s0": _line(3), "s1": _line(3)})
+    front = sorted((tmp_path / "ds" / "sessions" / "s1" / cams[0].name).glob("*.png"))
+    small = np.zeros((H // 2, W // 2, 3), np.uint8)
+    Image.fromarray(small).save(front[1])  # a later frame: said when it is read, as before
+    ds = open_dataset(tmp_path / "ds")
+    with pytest.raises(DatasetFormatError, match=rf"image is {W // 2}x{H // 2}, rig.json says"):
+        ds.session("s1")[1]
+    Image.fromarray(small).save(front[0])  # the first frame: said on opening
+    want = rf"{front[0]}: image is {W // 2}x{H // 2}, rig.json says {W}x{H} \(the session's first"
+    with pytest.raises(DatasetFormatError, match=want):
+        open_dataset(tmp_path / "ds")
+    front[0].write_bytes(b"not a png")  # no PNG: named by the decoder when read, as before
+    open_dataset(tmp_path / "ds")
+
+
 def test_a_frames_time_in_seconds_prints_its_microseconds(tmp_path):
     # t was timestamps × 1e-6: a unit in the last place off for about a third of the
     # microseconds, which the trajectories and keyframes.csv then printed (…0.1234589)

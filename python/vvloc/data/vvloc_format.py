@@ -314,21 +314,44 @@ def yaw_warnings(name: str, rows: np.ndarray) -> list[str]:
     return notes
 
 
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def _check_png_size(path: Path, cam: Camera) -> None:
+    """``DatasetFormatError`` when the PNG at ``path`` declares another size than ``cam``'s
+    (read from its IHDR header, 24 bytes); a file that is no PNG is left to the decoder, which
+    names it when the frame is read."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(24)
+    except OSError:
+        return  # unreadable: said with the reason when the frame is read
+    if len(head) < 24 or head[:8] != _PNG_SIGNATURE or head[12:16] != b"IHDR":
+        return
+    width, height = int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+    if (width, height) != (cam.width, cam.height):
+        raise DatasetFormatError(
+            f"{path}: image is {width}x{height}, rig.json says {cam.width}x{cam.height} (the "
+            "session's first frame)"
+        )
+
+
 def open_vvloc(root: str | os.PathLike[str]) -> Dataset:
     """Open a vvloc-format dataset lazily and validate its structure.
 
-    Reads ``rig.json`` and every ``poses.csv`` and lists the image folders (no image is decoded).
+    Reads ``rig.json`` and every ``poses.csv``, lists the image folders and reads the size in
+    the PNG header of each session's first frame (no image is decoded).
     ``ds.meta`` is ``rig.json``'s optional ``meta`` object (``vvloc sim`` records its world:
     scene, seed, floors, floor_marking).
     Raises :class:`DatasetFormatError` (a ``ValueError``) naming the file and line for a malformed
     row, rows out of time order, a camera that is not a pinhole with a rigid ``cam_to_ego``,
-    cameras of different image sizes, a camera folder that is not in the rig, or a missing
-    image. Warns (``UserWarning``) when a camera's extrinsics look wrong (another unit, axis
+    cameras of different image sizes, a camera folder that is not in the rig, a missing
+    image, or a session whose first frame's PNGs are of another size than ``rig.json`` says.
+    Warns (``UserWarning``) when a camera's extrinsics look wrong (another unit, axis
     convention or direction: :func:`vvloc.data.rig.rig_warnings`), when a session's
     ``cam_to_ego.csv`` gives a camera a mounting no rig of these cameras has (millimetres, a
     camera turned against the others: :func:`vvloc.data.rig.frame_extrinsics_warnings`) and
-    when a session's yaw
-    looks like degrees or another convention (:func:`yaw_warnings`).
+    when a session's yaw looks like degrees or another convention (:func:`yaw_warnings`).
     """
     root = Path(root)
     cameras, doc = read_rig(root / "rig.json")
@@ -361,6 +384,9 @@ def open_vvloc(root: str | os.PathLike[str]) -> Dataset:
                         f"{cam_dir / f'{ts}.png'}: image missing "
                         f"(listed in {poses_path}, line {k + 2})"
                     )
+            if len(rows["timestamp"]):  # a whole session at another size: said now, not
+                # when training reads its frames (the PNG's header only, no decoding)
+                _check_png_size(cam_dir / f"{rows['timestamp'][0]}.png", cam)
         extrinsics = None
         if (d / EXTRINSICS_FILE).is_file():
             extrinsics = read_extrinsics(d / EXTRINSICS_FILE, rows["timestamp"], cameras)
