@@ -345,10 +345,14 @@ def test_images_other_than_8_bit_are_refused_and_grey_or_alpha_converted(tmp_pat
         assert im.mode == "RGB"
     with pytest.raises(DatasetFormatError, match=r"front/1000\.png: RGB image of 16 bits"):
         open_dataset(root).session("s0")[0]
-    # a header claiming a decompression bomb: named, not PIL's DecompressionBombError
+    # a header claiming a decompression bomb: named, not PIL's DecompressionBombError (when
+    # the frame is read, for a dataset opened before; opening it names the header's size)
+    opened = open_dataset(root)
     png.write_bytes(_png16(np.zeros((1, 1, 3), np.uint16), size=(40_000, 40_000), bits=8))
     with pytest.raises(DatasetFormatError, match=r"front/1000\.png: not a readable image"):
-        open_dataset(root).session("s0")[0]
+        opened.session("s0")[0]
+    with pytest.raises(DatasetFormatError, match=r"1000\.png: image is 40000x40000, rig.json"):
+        open_dataset(root)
     # a copy cut short: PIL reads the header and fails only when decoding, naming no file
     Image.fromarray(rgb).save(png)
     png.write_bytes(png.read_bytes()[: png.stat().st_size // 2])
@@ -401,11 +405,16 @@ def test_a_yaw_in_degrees_or_as_a_compass_heading_is_warned_about(tmp_path):
     xy = np.cumsum(np.column_stack([np.cos(axis), np.sin(axis)]), axis=0)
     noise = np.random.default_rng(0).normal(0.0, np.radians(0.3), len(axis))
     level = np.zeros(len(axis), int)
-    for name, travel in (("fwd", axis), ("back", axis + np.pi)):
+    # (a whole session facing backwards reads as a car driving forwards, its yaw clockwise
+    # from -90°: 90° minus the reversed yaw)
+    for name, travel, said in (
+        ("fwd", axis, "a compass heading"),
+        ("back", axis + np.pi, "clockwise: -90.0° minus the direction of travel"),
+    ):
         compass = np.pi / 2 - travel + noise
         compass = np.arctan2(np.sin(compass), np.cos(compass))  # within ±π, as a compass logs
         _write(tmp_path / name, {name: (np.column_stack([xy, compass]), level)})
-        with pytest.warns(UserWarning, match=rf"^session {name}: the yaw reads as a compass"):
+        with pytest.warns(UserWarning, match=rf"^session {name}: the yaw reads as {said}"):
             open_dataset(tmp_path / name)
     right = tmp_path / "right"  # the same roads in the format's convention: no warning
     _write(right, {"r": (np.column_stack([xy, axis + noise]), level)})
@@ -907,6 +916,9 @@ def test_floors_are_different_places(tmp_path):
         TypeError, match=r"queries: expected a sequence of session names, .*\['s2'\]"
     ):
         evaluation_split(ds, database="s0", queries="s2")
+    gen = evaluation_split(ds, database="s0", queries=(n for n in ["s2"]))  # read once
+    assert np.array_equal(gen.query_indices, evaluation_split(ds, "s0", ["s2"]).query_indices)
+    assert len(gen.query_indices) == 5
     for bad in ("2", np.nan, np.inf, True):
         with pytest.raises(ValueError, match="revisit_radius: expected a finite distance"):
             evaluation_split(ds, database="s0", revisit_radius=bad)

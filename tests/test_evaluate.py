@@ -1175,6 +1175,15 @@ def test_self_loop_closure_curve_is_exact_for_any_sequence_numbers():
     assert want["at_threshold"]["accepted"] == 2  # the two pairs across sessions
     for base in (2**53, 10**18, -(10**18)):
         assert summary(base, 2) == want
+    # one session, a pair two numbers apart under window 1: admissible, a true loop (as floats
+    # 10**18 + k, the pair rounded to one time and was dropped as a temporal neighbour)
+    one = np.zeros(3, np.int64)
+    line = np.c_[np.arange(3) * 0.5, np.zeros(3)]
+    for base in (0, 10**18):
+        near = ev.self_loop_closure_curve(
+            [[0, 2]], [0.1], line, one, one, base + np.arange(3), 1
+        ).summary(0.5)
+        assert near["at_threshold"]["accepted"] == 1 and near["at_threshold"]["recall"] == 1.0
     # a window wider than any session excludes the same pairs as one just wider than its span
     assert summary(0, 2**62) == summary(0, 4)
     with pytest.raises(ValueError, match="seqs: expected each session's sequence numbers to span"):

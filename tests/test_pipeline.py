@@ -1319,6 +1319,8 @@ def test_evaluation_scores_loop_closures_at_the_given_radius(tiny_world, model_d
         run_evaluation(
             model_dir, tiny_world, "s0", ["s1"], tmp_path / "bad", loop_sequence=1.0, **kw
         )
+    with pytest.raises(TypeError, match=r"queries: expected a sequence of session names"):
+        run_evaluation(model_dir, tiny_world, "s0", "s1", tmp_path / "bad", **kw)  # not 's', '1'
     assert not (tmp_path / "bad").exists()
     m = run_evaluation(model_dir, tiny_world, "s0", ["s1"], tmp_path / "ev", loop_radius=0.3, **kw)
     world = {"scene": "parking", "seed": 0, "floors": 1, "floor_marking": "walls"}

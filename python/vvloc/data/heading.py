@@ -86,9 +86,16 @@ def _spread_deg(x: np.ndarray, centre: float) -> float:
     return float(np.degrees(np.median(np.abs(wrap_angle(2.0 * (x - centre))) / 2.0)))
 
 
-def _share_within(x: np.ndarray, centre: float, tol_deg: float) -> float:
-    """The share of the angles ``x`` within ``tol_deg`` of ``centre`` (a full turn apart)."""
-    return float(np.mean(np.abs(wrap_angle(x - centre)) <= np.radians(tol_deg)))
+def _half_open(deg: float) -> float:
+    """``deg`` rounded to 0.1°, in (−180°, 180°] (a half turn printed as 180.0, never −180.0)."""
+    r = round(deg, 1)
+    return 180.0 if r <= -180.0 else r
+
+
+def _reversing(x: np.ndarray, centre: float) -> int:
+    """How many of the angles ``x`` lie more than 90° from ``centre``: the stretches a reading
+    with that centre takes as driven backwards."""
+    return int(np.count_nonzero(np.abs(wrap_angle(x - centre)) > np.pi / 2))
 
 
 def mirror_fit(
@@ -102,9 +109,13 @@ def mirror_fit(
     Decided in two steps. Modulo 180° (a stretch driven backwards fits either way): the
     mirror fits within :data:`COMPASS_FIT_DEG` and a constant offset is at least
     :data:`COMPASS_MISFIT_DEG` off (medians over the stretches). Where both fit modulo 180°
-    (roads along two perpendicular axes only, where c − τ and τ + c′ agree up to a half turn),
-    by full angles: the mirror must hold within :data:`COMPASS_FIT_DEG` for more stretches than
-    the constant offset, by at least 5 %, each taken about the direction most stretches give.
+    (roads along one axis, or along two perpendicular ones, where c − τ and τ + c′ agree up to
+    a half turn), by full angles: a car drives forwards mostly, so the mirror must take at least
+    a tenth of the stretches fewer as driven backwards (more than 90° off the direction most
+    stretches give) than the offset. On roads of one direction that never holds (the two
+    readings reverse the same stretches): a mirrored yaw there reads as an offset. On a grid
+    driven partly in reverse gear the two can trade places (a clockwise yaw with the north legs
+    reversed is a correct one with the south legs reversed): the offset is then said.
 
     Returns ``(c_deg, mirrored, count)``: the mirror's constant (degrees, in (−180°, 180°]),
     the verdict, and the number of stretches (NaN, False, 0 without any).
@@ -126,9 +137,12 @@ def _mirror(heading: np.ndarray, travel: np.ndarray) -> tuple[float, bool, int]:
         mirrored = True
     elif off_spread > COMPASS_FIT_DEG:
         mirrored = False  # in between: neither reading is clear
-    else:  # both fit modulo 180°: the full angles decide
-        tol = COMPASS_FIT_DEG
-        mirrored = _share_within(flipped, c_mir, tol) >= _share_within(offset, c_off, tol) + 0.05
+    else:
+        # Both fit modulo 180°: roads along one axis, or along two perpendicular ones. A car
+        # drives forwards mostly, so the mirror is taken only when it has at least a tenth of
+        # the stretches fewer driven backwards than the offset; on roads of one direction the
+        # two readings reverse the same stretches, and the offset stands.
+        mirrored = _reversing(offset, c_off) - _reversing(flipped, c_mir) >= max(1.0, 0.1 * n)
     return float(np.degrees(c_mir)), bool(mirrored), n
 
 
@@ -195,7 +209,8 @@ def heading_warning(
     name: str, poses: npt.ArrayLike, *, limit_deg: float = WARN_OFFSET_DEG
 ) -> str | None:
     """A warning text when session ``name``'s yaw reads as mirrored (:func:`mirror_fit`:
-    named a compass heading when its constant is 90° modulo 180°, a clockwise yaw when 0), or
+    named a compass heading when its constant is 90°, a clockwise yaw when 0, within
+    :data:`COMPASS_FIT_DEG`), or
     when its :func:`heading_offset` exceeds ``limit_deg`` (degrees, any size up to 180°), each
     over at least :data:`MIN_STRETCHES` stretches; else None. ``poses`` (N, 3) world x, y (m),
     yaw (rad), in time order."""
@@ -203,8 +218,7 @@ def heading_warning(
     c_mir, mirrored, n = _mirror(*stretches)
     if n >= MIN_STRETCHES and mirrored:
         travel, compass, _ = _compass(*stretches)
-        axis = abs(float(np.degrees(wrap_angle(2.0 * np.radians(c_mir))))) / 2.0  # mod 180°
-        if abs(axis - 90.0) <= COMPASS_FIT_DEG:
+        if abs(float(np.degrees(wrap_angle(np.radians(c_mir - 90.0))))) <= COMPASS_FIT_DEG:
             return (
                 f"session {name}: the yaw reads as a compass heading (clockwise from north): "
                 f"over {n} straight stretches it lies a median of {compass:.1f}° from 90° minus "
@@ -213,8 +227,8 @@ def heading_warning(
             )
         what = (
             "clockwise (the y axis flipped): the negated direction of travel"
-            if axis <= COMPASS_FIT_DEG
-            else f"clockwise: {c_mir:.1f}° minus the direction of travel"
+            if abs(c_mir) <= COMPASS_FIT_DEG
+            else f"clockwise: {_half_open(c_mir):.1f}° minus the direction of travel"
         )
         return (
             f"session {name}: the yaw reads as {what}, over {n} straight stretches, not "

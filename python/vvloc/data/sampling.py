@@ -620,8 +620,10 @@ def evaluation_split(
     database = database if database is not None else names[0]
     if queries is None:
         queries = [n for n in names if n != database]
-    check_query_sessions(database, queries)  # before list(), which would split a str
-    queries = list(queries)
+    elif isinstance(queries, (str, bytes)):
+        check_query_sessions(database, queries)  # refused: list() would split it
+    queries = list(queries)  # once: a generator is read once
+    check_query_sessions(database, queries)
     if (
         isinstance(revisit_radius, bool)
         or not isinstance(revisit_radius, (int, float, np.number))

@@ -290,8 +290,8 @@ CONVENTION_OFFSET_DEG = 5.0
 def yaw_warnings(name: str, rows: np.ndarray) -> list[str]:
     """Warnings about a session's yaw convention (``poses.csv`` rows from :func:`read_poses`).
 
-    A yaw beyond ±2π is most likely in degrees; a yaw that reads as a compass heading
-    (clockwise from north) or keeps a steady offset of more than
+    A yaw beyond ±2π is most likely in degrees; a yaw that reads as mirrored (a compass
+    heading, clockwise from north; a clockwise yaw) or keeps a steady offset of more than
     :data:`CONVENTION_OFFSET_DEG` from the direction of travel
     (:func:`vvloc.data.heading.heading_warning`) is in another convention. Each turns every
     relative pose. (The NCLT and
