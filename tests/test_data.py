@@ -247,6 +247,48 @@ def test_a_rig_of_ones_own_is_checked_camera_by_camera(tmp_path, edit, match):
         open_dataset(root)
 
 
+def test_a_rig_of_cameras_of_different_sizes_is_read_at_one_size_when_asked(tmp_path):
+    # a front camera at twice the others' resolution: refused as such (a Frame stacks the
+    # cameras), read with image_size, and converted to a dataset of one size
+    from PIL import Image
+
+    from vvloc.data import convert_dataset
+    from vvloc.data._remap import resize_rgb
+
+    root = tmp_path / "ds"
+    cams = _write(root, {"s0": _line(2)})
+    ds = open_dataset(root)
+    want = [ds.session("s0")[k].images for k in range(2)]
+    front = cams[0]
+    bigs = []
+    for png in sorted((root / "sessions" / "s0" / front.name).glob("*.png")):
+        with Image.open(png) as im:  # the same picture at 2x
+            bigs.append(np.asarray(im.convert("RGB")).repeat(2, axis=0).repeat(2, axis=1))
+        Image.fromarray(bigs[-1]).save(png)
+
+    def twice(doc):
+        cam = doc["cameras"][0]
+        cam["width"], cam["height"] = 2 * W, 2 * H
+        cam["K"] = front.resized(2 * W, 2 * H).K.tolist()
+
+    _edit_rig(root, twice)
+    with pytest.raises(DatasetFormatError, match=r"share one image size.* image_size=\(W, H\)"):
+        open_dataset(root)
+    one = open_dataset(root, image_size=(W, H))
+    assert [(c.width, c.height) for c in one.cameras] == [(W, H)] * len(cams)
+    np.testing.assert_allclose(one.cameras[0].K, front.K, atol=1e-12)
+    for k in range(2):
+        got = one.session("s0")[k].images
+        assert got.shape == want[k].shape
+        np.testing.assert_array_equal(got[1:], want[k][1:])  # the others as they were
+        # the front camera resized down from its 2x copy, as the raw readers resize
+        np.testing.assert_array_equal(got[0], resize_rgb(bigs[k], W, H).transpose(2, 0, 1))
+    out = convert_dataset(root, tmp_path / "one", image_size=(W, H))
+    np.testing.assert_array_equal(open_dataset(out).session("s0")[1].images, got)
+    with pytest.raises(TypeError, match=r"the vvloc format takes one option, image_size"):
+        open_dataset(root, ego_height=1.0)
+
+
 def test_rig_entries_and_versions_other_than_the_formats_are_refused(tmp_path):
     root = tmp_path / "ds"
     _write(root, {"s0": _line(2)})

@@ -58,13 +58,14 @@ def detect_format(path: str | os.PathLike[str], format: str = "auto") -> str:
 def open_dataset(path: str | os.PathLike[str], format: str = "auto", **kwargs: Any) -> Dataset:
     """Open a dataset folder lazily: a vvloc-format dataset (``rig.json``), an NCLT raw folder or
     an Oxford RobotCar raw folder. ``kwargs`` go to the format's reader (``open_nclt``,
-    ``open_oxford``). Raises ``FileNotFoundError`` / ``DatasetFormatError`` naming the problem."""
+    ``open_oxford``; ``open_vvloc`` takes ``image_size``). Raises ``FileNotFoundError`` /
+    ``DatasetFormatError`` naming the problem."""
     root = Path(path)
     format = detect_format(root, format)
     if format == "vvloc":
-        if kwargs:
-            raise TypeError(f"the vvloc format takes no options, got {sorted(kwargs)}")
-        return open_vvloc(root)
+        if set(kwargs) - {"image_size"}:
+            raise TypeError(f"the vvloc format takes one option, image_size, got {sorted(kwargs)}")
+        return open_vvloc(root, **kwargs)
     if format == "nclt":
         return open_nclt(root, **kwargs)
     return open_oxford(root, **kwargs)

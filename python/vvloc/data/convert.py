@@ -164,10 +164,12 @@ def convert_dataset(
             f"out: {out} is, lies inside or holds the source {src}; write the converted "
             "dataset to a folder of its own"
         )
-    if size is not None and fmt != "vvloc":
+    if size is not None:
         if "image_size" in options:
             raise TypeError("image_size: give it once, not also as a reader option")
-        options["image_size"] = size  # the raw readers resize as they read: one interpolation
+        # the readers resize as they read (one interpolation); a vvloc rig of cameras of
+        # different sizes is read only so
+        options["image_size"] = size
     keep = options.pop("cameras", None) if fmt == "vvloc" else None
     check_dataset_target(out, overwrite)  # before the source is read (slow for raw folders)
     if sessions is not None and fmt != "vvloc":

@@ -42,7 +42,16 @@ from vvloc._io import (
     symlink_loop,
     temp_tag,
 )
-from vvloc.data.frame import RIGID, Camera, Dataset, Session, is_rigid, load_rgb
+from vvloc.data._remap import resize_rgb
+from vvloc.data.frame import (
+    RIGID,
+    Camera,
+    Dataset,
+    Session,
+    check_image_size,
+    is_rigid,
+    load_rgb,
+)
 from vvloc.data.heading import heading_warning
 from vvloc.data.rig import frame_extrinsics_warnings, rig_warnings
 
@@ -70,8 +79,11 @@ class VvlocSession(Session):
         cameras: Sequence[Camera],
         rows: np.ndarray,
         frame_cam_to_ego: np.ndarray | None = None,
+        native: Sequence[Camera] | None = None,
     ):
         self.directory = directory
+        # the cameras as rig.json gives them (their PNGs' sizes); ``cameras`` may be resized
+        self._native = list(cameras if native is None else native)
         super().__init__(
             name,
             cameras,
@@ -88,7 +100,7 @@ class VvlocSession(Session):
 
     def _load_images(self, index: int) -> np.ndarray:
         out = []
-        for cam in self.cameras:
+        for cam, nat in zip(self.cameras, self._native, strict=True):
             path = self.image_path(index, cam.name)
             if not path.is_file():
                 raise DatasetFormatError(f"{path}: image missing (frame {index})")
@@ -96,11 +108,13 @@ class VvlocSession(Session):
                 img = load_rgb(path)
             except ValueError as e:
                 raise DatasetFormatError(str(e)) from e
-            if img.shape != (cam.height, cam.width, 3):
+            if img.shape != (nat.height, nat.width, 3):
                 raise DatasetFormatError(
                     f"{path}: image is {img.shape[1]}x{img.shape[0]}, "
-                    f"rig.json says {cam.width}x{cam.height}"
+                    f"rig.json says {nat.width}x{nat.height}"
                 )
+            if (cam.width, cam.height) != (nat.width, nat.height):  # open_vvloc's image_size
+                img = resize_rgb(img, cam.width, cam.height)
             out.append(img.transpose(2, 0, 1))
         return np.ascontiguousarray(np.stack(out))
 
@@ -119,8 +133,9 @@ def rig_meta(root: str | os.PathLike[str]) -> dict[str, Any] | None:
     return meta if isinstance(meta, dict) else None
 
 
-def read_rig(path: Path) -> tuple[list[Camera], dict[str, Any]]:
-    """Read ``rig.json``: the cameras and the whole document."""
+def read_rig(path: Path, *, one_size: bool = True) -> tuple[list[Camera], dict[str, Any]]:
+    """Read ``rig.json``: the cameras and the whole document. ``one_size``: refuse cameras of
+    different image sizes (a Frame stacks them), unless the reader resizes them to one."""
     try:
         check_readable_file(path)  # a pipe would block the read for good
     except ValueError as e:
@@ -148,11 +163,13 @@ def read_rig(path: Path) -> tuple[list[Camera], dict[str, Any]]:
     names = [c.name for c in cameras]
     if len(set(names)) != len(names):
         raise DatasetFormatError(f"{path}: duplicate camera names {names}")
-    if len({(c.width, c.height) for c in cameras}) > 1:
+    if one_size and len({(c.width, c.height) for c in cameras}) > 1:
         sizes = [f"{c.name!r} {c.width}x{c.height}" for c in cameras]
         raise DatasetFormatError(
             f"{path}: cameras must share one image size (a Frame stacks them into one "
-            f"(M, 3, H, W) array; resize the images and scale K), got {', '.join(sizes)}"
+            f"(M, 3, H, W) array), got {', '.join(sizes)}: open it with "
+            "open_dataset(..., image_size=(W, H)), which resizes every camera to one size and "
+            "scales K, or write such a copy with vvloc convert --width W --height H"
         )
     return cameras, doc
 
@@ -336,8 +353,13 @@ def _check_png_size(path: Path, cam: Camera) -> None:
         )
 
 
-def open_vvloc(root: str | os.PathLike[str]) -> Dataset:
+def open_vvloc(root: str | os.PathLike[str], image_size: tuple[int, int] | None = None) -> Dataset:
     """Open a vvloc-format dataset lazily and validate its structure.
+
+    ``image_size``: (width, height) pixels to resize every camera's images to as frames are
+    read (``K`` scaled exactly, pixel-centre convention); None (default) keeps ``rig.json``'s
+    size, which then must be one for all cameras. A rig of cameras of different sizes is read
+    only with it.
 
     Reads ``rig.json`` and every ``poses.csv``, lists the image folders and reads the size in
     the PNG header of each session's first frame (no image is decoded).
@@ -354,7 +376,11 @@ def open_vvloc(root: str | os.PathLike[str]) -> Dataset:
     when a session's yaw looks like degrees or another convention (:func:`yaw_warnings`).
     """
     root = Path(root)
-    cameras, doc = read_rig(root / "rig.json")
+    size = check_image_size(image_size)
+    native, doc = read_rig(root / "rig.json", one_size=size is None)
+    cameras = [
+        c if size is None or (c.width, c.height) == size else c.resized(*size) for c in native
+    ]
     for note in rig_warnings(cameras):
         warnings.warn(f"{root / 'rig.json'}: {note}", stacklevel=2)
     names = {c.name for c in cameras}
@@ -375,7 +401,7 @@ def open_vvloc(root: str | os.PathLike[str]) -> Dataset:
                 raise DatasetFormatError(
                     f"{sub}: camera {sub.name!r} is not in rig.json (cameras: {sorted(names)})"
                 )
-        for cam in cameras:
+        for cam in native:
             cam_dir = d / cam.name
             present = set(os.listdir(cam_dir)) if cam_dir.is_dir() else set()
             for k, ts in enumerate(rows["timestamp"]):
@@ -394,7 +420,7 @@ def open_vvloc(root: str | os.PathLike[str]) -> Dataset:
                 warnings.warn(f"{d / EXTRINSICS_FILE}: {note}", stacklevel=2)
         for note in yaw_warnings(d.name, rows):
             warnings.warn(note, stacklevel=2)
-        sessions[d.name] = VvlocSession(d, d.name, cameras, rows, extrinsics)
+        sessions[d.name] = VvlocSession(d, d.name, cameras, rows, extrinsics, native)
     meta = doc.get("meta")
     return Dataset(root, cameras, sessions, meta=meta if isinstance(meta, dict) else None)
 
