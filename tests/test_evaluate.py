@@ -714,7 +714,13 @@ def test_write_report_markdown_and_json(tmp_path):
     curve = data["loop_closure"]["s1"] | {"events": events}
     rendered = ev.render_markdown({"loop_closure": {"s1": curve}})
     assert "| CFER (%) | events | CFER, events (%) | CFER 95 % bound, events (%) |" in rendered
-    assert "| 87 | 5.7 | 11.70 |" in rendered
+    assert "| 87 | 5.75 | 11.70 |" in rendered  # CFER to 0.01 %: 0.26 % is a target
+    # the bound's level and the recall targets as the results hold them (95 % was printed)
+    other = curve | {"events": events | {"confidence": 0.9}}
+    other["at_recall"] = [{"target_recall": 0.3, "cfer": 0.0012}]
+    rendered = ev.render_markdown({"loop_closure": {"s1": other}})
+    assert "| CFER 90 % bound, events (%) | CFER at Recall@2m 30 % (%) |" in rendered
+    assert "| 11.70 | 0.12 |" in rendered
     assert "| s1 | cost < 0.75 | 2 | 0 | 2.50 | 1.20 | 100.0 | 100.0 |" in text
     assert not list(tmp_path.glob(".*.tmp"))
 
@@ -1220,6 +1226,35 @@ def test_calibrate_acceptance_of_no_result_accepts_nothing():
     # two empty lists: "correct: expected a bool array of shape (0,), got dtype float64"
     out = ev.calibrate_acceptance([], [])
     assert out["queries"] == 0 and out["threshold"] == math.inf
+
+
+def test_best_f1_takes_the_lowest_of_equal_f1s():
+    # pairs in score order false, true, true, true, false, false, true; 5 positive queries,
+    # each true pair detecting another: F1 is exactly 2/3 at thresholds 4 and 7, which
+    # 2PR/(P+R) rounded an ulp apart, the later one up (best F1 then reported at 7)
+    pattern = [False, True, True, True, False, False, True]
+    queries = np.c_[np.arange(5) * 100.0, np.zeros(5)]
+    db = [tuple(p) for p in queries]  # a map frame on every query: all 5 are positive
+    pairs, detected = [], 0
+    for t in pattern:
+        qi = detected if t else 0
+        detected += t
+        db.append((qi * 100.0 + (0.0 if t else 50.0), 0.0))  # on the query, or 50 m off
+        pairs.append((qi, len(db) - 1))
+    dist = np.arange(1.0, len(pattern) + 1)
+    curve = ev.loop_closure_curve(np.array(pairs), dist, queries, np.array(db))
+    best = curve.best_f1()
+    assert (best["threshold"], best["accepted"]) == (4.0, 4)
+    assert (best["precision"], best["recall"]) == (0.75, 0.6)
+    assert curve.sweep()["f1"][3] == curve.sweep()["f1"][6]
+
+
+def test_recall_at_a_radius_close_to_another_reads_its_own_column():
+    # np.isclose(2.0, 2.00001) is True: at(1, 2.00001) read the 2 m column
+    res = ev.recall_at_n([[0.0, 0.0]], [[2.000005, 0.0], [0.0, 1.0]], [[0]], top_n=(1,),
+                         radii=(2.0, 2.00001))  # fmt: skip
+    assert (res.at(1, 2.0), res.at(1, 2.00001)) == (0.0, 1.0)
+    assert res.at(1, 0.1 + 0.2 + 1.7) == 0.0  # a radius as typed still finds its column
 
 
 def test_latency_summary_wants_a_mapping():

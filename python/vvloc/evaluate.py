@@ -221,8 +221,11 @@ class RecallResult:
 
     def _radius_index(self, radius: float) -> int:
         radius = positive_float(radius, "radius")
-        for i, r in enumerate(self.radii):
-            if np.isclose(r, radius):
+        for i, r in enumerate(self.radii):  # exactly first: 2.0 and 2.00001 are two radii
+            if r == radius:
+                return i
+        for i, r in enumerate(self.radii):  # then as typed (0.1 + 0.2 for 0.3)
+            if np.isclose(r, radius, rtol=1e-12, atol=0.0):
                 return i
         raise ValueError(f"radius: {radius} m is not one of the evaluated radii {self.radii}")
 
@@ -608,18 +611,19 @@ class LoopClosureCurve:
         last = np.flatnonzero(np.append(np.diff(self.distances) > 0, True))  # last of each score
         thresholds = self.distances[last]
         accepted = last + 1.0
-        precision = np.cumsum(self.is_true)[last] / accepted
+        true = np.cumsum(self.is_true)[last].astype(np.float64)
+        precision = true / accepted
         first = np.sort(self.query_first_true)
-        detected = np.searchsorted(first, thresholds, side="right")
-        recall = (
-            detected / self.num_positive_queries
-            if self.num_positive_queries
-            else np.full(thresholds.shape, np.nan)
-        )
+        detected = np.searchsorted(first, thresholds, side="right").astype(np.float64)
+        npos = float(self.num_positive_queries)
+        recall = detected / npos if npos else np.full(thresholds.shape, np.nan)
+        # F1 = 2PR / (P + R) = 2·TP·D / (TP·Q + D·A) (TP true pairs, A accepted, D detected of
+        # Q positive queries): whole numbers (exact below 2**53) and one correctly rounded
+        # division, so that equal F1s are equal floats and best_f1 takes the lowest threshold
+        # (2PR / (P + R) rounded them an ulp apart, and nanargmax took a later one)
+        den = true * npos + detected * accepted
         with np.errstate(invalid="ignore", divide="ignore"):
-            f1 = np.where(
-                precision + recall > 0, 2 * precision * recall / (precision + recall), 0.0
-            )
+            f1 = np.where(den > 0, 2.0 * true * detected / np.where(den > 0, den, 1.0), 0.0)
         f1 = np.where(np.isnan(recall), np.nan, f1)
         cfer = (
             np.cumsum(self.is_cross_floor)[last] / accepted
@@ -1278,8 +1282,15 @@ def to_jsonable(value: Any) -> Any:
     raise TypeError(f"metrics: cannot write a {type(value).__name__} to JSON")
 
 
-def _pct(v: Any) -> str:
-    return "–" if v is None else f"{100.0 * v:.1f}"
+def _pct(v: Any, digits: int = 1) -> str:
+    return "–" if v is None else f"{100.0 * v:.{digits}f}"
+
+
+def _one_label(values: set[str], default: str) -> str:
+    """The one label the rows share, ``default`` when none gives one; several: "per row"."""
+    if not values:
+        return default
+    return next(iter(values)) if len(values) == 1 else "(per row: see the JSON)"
 
 
 def _num(v: Any, digits: int = 2) -> str:
@@ -1347,6 +1358,18 @@ def _pose_table(results: Mapping[str, Any]) -> list[str]:
 
 
 def _loop_table(results: Mapping[str, Any]) -> list[str]:
+    # the bound's level and the recall targets as the rows hold them (one header for all)
+    levels = {
+        f"{100 * r['events']['confidence']:g}"
+        for r in results.values()
+        if r.get("events", {}).get("confidence") is not None
+    }
+    targets = {
+        " / ".join(f"{100 * o['target_recall']:g}" for o in r["at_recall"])
+        for r in results.values()
+        if r.get("at_recall")
+    }
+    default_targets = " / ".join(f"{100 * r:g}" for r in SUMMARY_RECALLS)
     header = [
         "name",
         "threshold",
@@ -1357,8 +1380,8 @@ def _loop_table(results: Mapping[str, Any]) -> list[str]:
         "CFER (%)",
         "events",
         "CFER, events (%)",
-        "CFER 95 % bound, events (%)",
-        "CFER at Recall@2m " + " / ".join(f"{100 * r:g}" for r in SUMMARY_RECALLS) + " % (%)",
+        f"CFER {_one_label(levels, '95')} % bound, events (%)",
+        f"CFER at Recall@2m {_one_label(targets, default_targets)} % (%)",
         "best F1",
         "best-F1 threshold",
     ]
@@ -1374,11 +1397,11 @@ def _loop_table(results: Mapping[str, Any]) -> list[str]:
                 _pct(at["precision"]),
                 _pct(at["recall"]),
                 _num(at["f1"], 3),
-                _pct(at["cfer"]),
+                _pct(at["cfer"], 2),  # two decimals: 0.26 % is a target
                 str(ev["events"]) if ev else "–",
-                _pct(ev.get("cfer")),
+                _pct(ev.get("cfer"), 2),
                 "–" if ev.get("cfer_upper") is None else _num(100.0 * ev["cfer_upper"]),
-                " / ".join(_pct(o["cfer"]) for o in res.get("at_recall", [])) or "–",
+                " / ".join(_pct(o["cfer"], 2) for o in res.get("at_recall", [])) or "–",
                 _num(best["f1"], 3),
                 _num(best["threshold"], 3),
             ]
