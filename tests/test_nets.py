@@ -93,6 +93,11 @@ def test_config_rejects_bad_values():
         tiny_config(encoder_heads=3)
     with pytest.raises(ValueError, match="unknown fields"):
         ModelConfig.from_dict({"channels": 8, "colour": 1})
+    # a model_overrides typo: the field it was meant to be, and the known ones
+    with pytest.raises(
+        ValueError, match=r"\['chanels'\] \(did you mean 'chanels' → 'channels'\?\); known: \["
+    ):
+        ModelConfig.from_dict({"chanels": 8})
     with pytest.raises(ValueError, match="disco_crop"):
         tiny_config(disco_crop=(20, 2))
     for name, bad in (("grid_size", math.inf), ("gem_p", math.inf), ("sigma_a", math.nan)):

@@ -146,6 +146,12 @@ def test_fit_writes_checkpoint_log_and_resume_continues_from_the_same_step(tiny_
     assert longer.resume() and longer.epoch == 2
     longer.fit(progress=False)
     assert longer.epoch == 3
+    # the run's checkpoint folder deleted: said as such ("directory: ... does not exist")
+    kept = tmp_path / "kept"
+    (out / "checkpoint").rename(kept)
+    with pytest.raises(FileNotFoundError, match=r"trainer_state.pt is here but not its checkpoint"):
+        Trainer(_config(tiny_world, stage2_epochs=2), out).resume()
+    kept.rename(out / "checkpoint")
     # a truncated or foreign trainer state is refused naming the file (torch said "Ran out of
     # input" or "pickle data was truncated" alone, neither a ValueError nor an OSError)
     state = (out / "trainer_state.pt").read_bytes()
@@ -671,6 +677,9 @@ def test_a_dataset_rendered_by_another_config_or_missing_val_sessions_are_clear_
         Trainer(direct, tmp_path / "run")
     with pytest.raises(TypeError, match=r"^cfg: expected a TrainConfig"):
         Trainer({"dataset": str(tiny_world)}, tmp_path / "run")  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match=r"^config: expected a YAML config path or a TrainConfig"):
+        vvloc.train.train({"dataset": str(tiny_world)}, tmp_path / "run")  # type: ignore[arg-type]
+    assert not (tmp_path / "run").exists()
     # a session name that is wrong, repeated or empty is refused naming its key
     bad = [
         ({"train_sessions": ["s0", "s9"]}, r"train_sessions: \['s9'\] not in .*its sessions: s0"),
@@ -1604,7 +1613,11 @@ def test_resume_refuses_other_data_and_names_a_differing_key(tiny_world, tmp_pat
         _config(tiny_world, stage1_epochs=2, stage2_epochs=0, steps_per_epoch=2, num_workers=1), out
     ).resume()
     # ... what it trains may not, and the message says which key
-    with pytest.raises(ValueError, match=r"another config \(differing: batch_size\)"):
+    said = (
+        r"another config \(differing: batch_size; batch_size: 2 in the run, 3 now\); use a new "
+        r"--out directory or the same config \(a resume may change num_workers, threads, device"
+    )
+    with pytest.raises(ValueError, match=said):
         Trainer(
             _config(tiny_world, stage1_epochs=2, stage2_epochs=0, steps_per_epoch=2, batch_size=3),
             out,
@@ -1993,6 +2006,78 @@ def test_sessions_a_sim_section_would_not_render_are_refused_before_rendering(
     assert not (tmp_path / "world").exists()
 
 
+def test_extra_datasets_val_loops_and_init_checkpoint_are_checked_before_rendering(
+    tmp_path, monkeypatch
+):
+    # each of these was found only after the main dataset had been rendered
+    import functools
+
+    from vvloc.sim import simulate_dataset  # the real one, before it is replaced
+
+    @functools.wraps(simulate_dataset)  # its signature, which the sim section is checked by
+    def render(*a, **k):
+        raise AssertionError("rendered")
+
+    monkeypatch.setattr("vvloc.sim.simulate_dataset", render)
+    have = tmp_path / "have"
+    simulate_dataset(have, sessions=2, frames=3, width=32, height=24, progress=False)
+    base = {
+        "dataset": str(tmp_path / "world"),
+        "sim": {"sessions": 3, "frames": 4},
+        "train_sessions": ["s0", "s1"],
+        "val_sessions": ["s2"],
+        "val_database": "s0",
+    }
+    cases = [
+        (
+            {"extra_datasets": [{"dataset": str(tmp_path / "nothere")}]},
+            FileNotFoundError,
+            r"^extra_datasets\[0\]\.dataset: .*nothere does not exist .* no 'sim' section",
+        ),
+        (
+            {"extra_datasets": [{"dataset": str(have), "train_sessions": ["s5"]}]},
+            ValueError,
+            r"^extra_datasets\[0\]\.train_sessions: \['s5'\] not in",
+        ),
+        (
+            {
+                "extra_datasets": [
+                    {
+                        "dataset": str(tmp_path / "garage"),
+                        "sim": {"scene": "garage", "sessions": 2, "frames": 4},
+                        "train_sessions": ["s5"],
+                    }
+                ]
+            },
+            ValueError,
+            r"^extra_datasets\[0\]\.train_sessions: \['s5'\] not in .*garage \(the sessions",
+        ),
+        (
+            {"val_loops": [{"dataset": str(tmp_path / "gone"), "sessions": ["s1"]}]},
+            FileNotFoundError,
+            r"^val_loops\[0\]\.dataset: ",
+        ),
+        (
+            {"val_loops": [{"dataset": str(have), "sessions": ["s7"]}]},
+            ValueError,
+            r"^val_loops\[0\]\.sessions: \['s7'\] not in",
+        ),
+        (
+            {"init_checkpoint": str(tmp_path / "runs" / "typo")},
+            FileNotFoundError,
+            r"^init_checkpoint: no checkpoint \(config.json\) in",
+        ),
+    ]
+    for extra, err, match in cases:
+        with pytest.raises(err, match=match):
+            Trainer(TrainConfig.from_dict(base | extra), tmp_path / "run")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["have"]
+    # a val_loops entry on the dataset the config renders is checked once it is rendered
+    ok = base | {"val_loops": [{"dataset": str(tmp_path / "world"), "sessions": ["s2"]}]}
+    with pytest.raises(AssertionError, match="rendered"):
+        Trainer(TrainConfig.from_dict(ok), tmp_path / "run")
+
+
 def test_an_interrupted_train_command_says_where_the_run_stands(tmp_path, monkeypatch):
     from typer.testing import CliRunner
 
@@ -2048,6 +2133,13 @@ def test_config_types_are_checked_by_name():
         ("val_database: 2012-01-08", "val_database"),
     ):
         with pytest.raises(ValueError, match=rf"{key}: expected .*quote .*'2012-01-08'"):
+            TrainConfig.from_dict({**base, **yaml.safe_load(text)})
+    # on/off read as bools; a list key whose entries were all commented out reads as null
+    with pytest.raises(ValueError, match=r"val_database: expected a str .*bool: .*'on'"):
+        TrainConfig.from_dict({**base, **yaml.safe_load("val_database: on")})
+    for key in ("extra_datasets", "val_loops", "hard_pool_restarts"):
+        text = f"{key}:\n  # - commented out\n"
+        with pytest.raises(ValueError, match=rf"^{key}: expected .*write \[\] for none"):
             TrainConfig.from_dict({**base, **yaml.safe_load(text)})
 
 

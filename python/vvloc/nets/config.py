@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import hashlib
 import json
 import math
@@ -248,7 +249,10 @@ class ModelConfig:
         names = {f.name for f in dataclasses.fields(cls)}
         unknown = sorted(set(d) - names)
         if unknown:
-            raise ValueError(f"ModelConfig: unknown fields {unknown}")
+            near = {k: difflib.get_close_matches(str(k), names, n=1) for k in unknown}
+            meant = [f"{k!r} → {m[0]!r}" for k, m in near.items() if m]
+            hint = f" (did you mean {', '.join(meant)}?)" if meant else ""
+            raise ValueError(f"ModelConfig: unknown fields {unknown}{hint}; known: {sorted(names)}")
         return cls(**d)
 
     def to_json(self) -> str:

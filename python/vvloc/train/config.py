@@ -260,7 +260,7 @@ class TrainConfig:
             "float": (number, "a number"),
             "str": (
                 lambda v: isinstance(v, str),
-                "a str (quote one YAML reads as a date or number: '2012-01-08')",
+                "a str (quote one YAML reads as a date, number or bool: '2012-01-08', 'on')",
             ),
             "int | None": (lambda v: v is None or integer(v), "an int or null"),
             "str | None": (lambda v: v is None or isinstance(v, str), "a str or null"),
@@ -296,6 +296,8 @@ class TrainConfig:
             int_field = str(f.type) in ("int", "int | None", "float", "float | None")
             if isinstance(value, int) and not isinstance(value, bool) and int_field:
                 hint = " (out of range)"  # an int where one goes: too large
+            if value is None and str(f.type).startswith("list["):
+                hint = " (a key left empty, its entries commented out?: write [] for none)"
             if isinstance(value, str):
                 with contextlib.suppress(ValueError):
                     float(value)
@@ -435,9 +437,10 @@ class TrainConfig:
         if not isinstance(restarts, list) or not all(
             isinstance(e, int) and not isinstance(e, bool) and e >= 1 for e in restarts
         ):
+            empty = " (a key left empty?: write [] for none)" if restarts is None else ""
             raise ValueError(
                 f"hard_pool_restarts: expected a list of 1-based epochs (ints >= 1), got "
-                f"{restarts!r}"
+                f"{restarts!r}{empty}"
             )
         triplet_epochs = self.stage1_epochs + self.stage2_epochs
         if any(e > triplet_epochs for e in restarts):

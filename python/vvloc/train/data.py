@@ -23,6 +23,7 @@ from vvloc.data.frame import Session, has_image_content
 from vvloc.data.sampling import (
     check_session_names,
     rendered_world,
+    same_folder,
     sim_world,
 )
 from vvloc.train.config import TrainConfig
@@ -188,18 +189,51 @@ def _ensure_dataset(dataset: str, sim: dict[str, Any] | None, prefix: str = "") 
 
 
 def _check_sessions_to_render(cfg: TrainConfig) -> None:
-    """Refuse, naming the config key, a session of ``train_sessions``, ``val_sessions`` or
-    ``val_database`` that the config's ``sim`` section would not render (``vvloc sim`` names
-    them s0, s1, ...) when ``cfg.dataset`` does not exist yet: said before the rendering."""
-    sim = cfg.sim or {}
-    count = sim.get("sessions")
-    if Path(cfg.dataset).exists() or isinstance(count, bool) or not isinstance(count, int):
-        return
-    rendered: Any = SimpleNamespace(sessions=[f"s{i}" for i in range(max(count, 0))])
-    for key, names in _session_keys(cfg):
-        check_session_names(
-            key, rendered, names, cfg.dataset, " (the sessions its sim section would render)"
-        )
+    """Refuse, naming the config key, what can be known wrong before any rendering: a session
+    of ``train_sessions``, ``val_sessions`` or ``val_database`` that the config's ``sim``
+    section would not render (``vvloc sim`` names them s0, s1, ...) when ``cfg.dataset`` does
+    not exist yet; for each of ``extra_datasets``, a dataset that neither exists nor has a
+    ``sim`` section, or ``train_sessions`` it lacks (or would not render); for each of
+    ``val_loops``, a dataset that does not exist (none that a sim section renders) or sessions
+    it lacks. (A typo there was found after minutes of rendering the main dataset.)"""
+    note = " (the sessions its sim section would render)"
+    to_render = []
+    for key, root, sim, keyed in (
+        ("", cfg.dataset, cfg.sim, _session_keys(cfg)),
+        *(
+            (
+                f"extra_datasets[{i}].",
+                e["dataset"],
+                e.get("sim"),
+                [(f"extra_datasets[{i}].train_sessions", list(e.get("train_sessions") or []))],
+            )
+            for i, e in enumerate(cfg.extra_datasets)
+        ),
+    ):
+        if Path(root).exists():
+            if key:  # the main dataset's sessions are checked once it is opened
+                opened = _open_named(f"{key}dataset", root)
+                for k, names in keyed:
+                    _check_sessions(k, root, opened, names)
+            continue
+        if not sim:
+            where = f"{key.rstrip('.')} has" if key else "the config has"
+            raise FileNotFoundError(
+                f"{key}dataset: {root} does not exist{_resolved(Path(root))} and {where} no "
+                "'sim' section to render it"
+            )
+        to_render.append(root)
+        count = sim.get("sessions")
+        if isinstance(count, bool) or not isinstance(count, int):
+            continue  # said by the sim section's own check
+        rendered: Any = SimpleNamespace(sessions=[f"s{i}" for i in range(max(count, 0))])
+        for k, names in keyed:
+            check_session_names(k, rendered, names, root, note)
+    for j, entry in enumerate(cfg.val_loops):
+        if any(same_folder(entry["dataset"], root) for root in to_render):
+            continue  # rendered first; its sessions are checked once it is opened
+        loop_ds = _open_named(f"val_loops[{j}].dataset", entry["dataset"])
+        _check_sessions(f"val_loops[{j}].sessions", entry["dataset"], loop_ds, entry["sessions"])
 
 
 def _session_keys(cfg: TrainConfig) -> list[tuple[str, list[str]]]:

@@ -97,6 +97,11 @@ def train(
     a run there. It must lie outside every dataset the config reads. Both are checked before
     any dataset is rendered or opened. A new run into a new or empty folder that fails (or is
     interrupted) before its first epoch is saved removes what it wrote there."""
+    if not isinstance(config, (TrainConfig, str, os.PathLike)):
+        raise TypeError(
+            f"config: expected a YAML config path or a TrainConfig (TrainConfig.from_dict for a "
+            f"dict), got {type(config).__name__}"
+        )
     cfg = config if isinstance(config, TrainConfig) else TrainConfig.from_yaml(config)
     if isinstance(config, TrainConfig):
         cfg.validate()  # built directly, it was never checked (from_yaml checks)

@@ -184,6 +184,9 @@ class Trainer:
             torch.set_num_threads(int(cfg.threads))
         seed_everything(cfg.seed)
         _check_sessions_to_render(cfg)  # before minutes of rendering, not after them
+        init = None if cfg.init_checkpoint is None else Path(cfg.init_checkpoint)
+        if init is not None and not self._state_path().is_file() and not _is_checkpoint(init):
+            raise _no_init_checkpoint(init)  # (a resumed run needs it not: its own weights)
         _ensure_dataset(cfg.dataset, cfg.sim)
         self.ds = open_dataset(cfg.dataset)
         cameras, most = len(self.ds.cameras), cfg.model_config().max_cameras
@@ -690,6 +693,13 @@ class Trainer:
         self._check_same_data(old, state)
         for folder in (self.checkpoint_dir, self.best_dir):  # a stop inside a folder's swap
             self._recover_folder(folder)
+        if not (self.checkpoint_dir / "config.json").is_file():
+            # its weights are gone (a folder deleted or emptied): said as the run's state
+            raise FileNotFoundError(
+                f"{self.out}: the run's trainer_state.pt is here but not its checkpoint "
+                f"({self.checkpoint_dir} holds no config.json): it cannot be resumed; train "
+                "anew into another --out (or restore that folder)"
+            )
         loaded = VVLocNet.load(self.checkpoint_dir)
         self._restore(state, loaded)
         self._restore_record(state, loaded)
@@ -714,9 +724,15 @@ class Trainer:
             differ = sorted(
                 k for k in set(saved_cfg) | set(current) if saved_cfg.get(k) != current.get(k)
             )
+            values = "; ".join(
+                f"{k}: {saved_cfg.get(k)!r:.60} in the run, {current.get(k)!r:.60} now"
+                for k in differ
+            )
             raise ValueError(
                 f"{self._state_path()}: the run in {self.out} was started with another config "
-                f"(differing: {', '.join(differ)}); use a new --out directory or the same config"
+                f"(differing: {', '.join(differ)}; {values}); use a new --out directory or the "
+                f"same config (a resume may change {', '.join(RESUMABLE_CHANGES)} and grow "
+                "stage2_epochs)"
             )
         for key in ("threads", "device"):
             if old.get(key) != getattr(self.cfg, key):
