@@ -210,10 +210,9 @@ def heading_warning(
 ) -> str | None:
     """A warning text when session ``name``'s yaw reads as mirrored (:func:`mirror_fit`:
     named a compass heading when its constant is 90°, a clockwise yaw when 0, within
-    :data:`COMPASS_FIT_DEG`), or
-    when its :func:`heading_offset` exceeds ``limit_deg`` (degrees, any size up to 180°), each
-    over at least :data:`MIN_STRETCHES` stretches; else None. ``poses`` (N, 3) world x, y (m),
-    yaw (rad), in time order."""
+    :data:`COMPASS_FIT_DEG`), or when its :func:`heading_offset` exceeds ``limit_deg``
+    (degrees, any size up to 180°), each over at least :data:`MIN_STRETCHES` stretches; else
+    None. ``poses`` (N, 3) world x, y (m), yaw (rad), in time order."""
     stretches = _straight_stretches(poses, STEP_M, MAX_TURN_DEG)  # once, for every test
     c_mir, mirrored, n = _mirror(*stretches)
     if n >= MIN_STRETCHES and mirrored:
