@@ -1102,6 +1102,26 @@ def test_a_symbolic_link_that_loops_is_refused_before_anything_is_written(tmp_pa
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a", "b"]
 
 
+def test_made_folders_are_removed_again_only_when_the_block_fails_and_leaves_them_empty(
+    tmp_path: Path,
+) -> None:
+    from vvloc._io import made_folders
+
+    deep = tmp_path / "a" / "b" / "c"
+    with pytest.raises(RuntimeError), made_folders(deep) as got:
+        assert got == deep and deep.is_dir()
+        raise RuntimeError("boom")
+    assert list(tmp_path.iterdir()) == []  # a, b and c: made here, left empty, removed
+    (tmp_path / "a").mkdir()
+    with pytest.raises(KeyboardInterrupt), made_folders(deep):
+        (tmp_path / "a" / "b" / "mine.txt").write_text("x")  # written into meanwhile: stays
+        raise KeyboardInterrupt
+    assert sorted(p.name for p in (tmp_path / "a" / "b").iterdir()) == ["mine.txt"]
+    with made_folders(deep):  # a block that succeeds keeps what it made, empty or not
+        pass
+    assert deep.is_dir()
+
+
 def test_atomic_write_into_missing_directory_fails_cleanly(tmp_path: Path) -> None:
     with (
         pytest.raises(FileNotFoundError, match=r"its folder .* does not exist"),

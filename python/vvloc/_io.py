@@ -158,6 +158,25 @@ def remove_stale_temps(directory: Path, prefix: str, suffix: str = "") -> list[P
     return removed
 
 
+@contextlib.contextmanager
+def made_folders(folder: str | os.PathLike[str]) -> Iterator[Path]:
+    """Make ``folder`` and its missing parents for the block (yields it); when the block
+    raises (an error, Ctrl-C), remove the folders made here that it left empty, deepest first
+    (one written into meanwhile stays, and so do those above it)."""
+    target = Path(folder)
+    made = [p for p in (target, *target.parents) if not p.exists()]  # the deepest first
+    target.mkdir(parents=True, exist_ok=True)
+    try:
+        yield target
+    except BaseException:
+        for p in made:
+            try:
+                p.rmdir()
+            except OSError:  # not empty, or gone
+                break
+        raise
+
+
 def symlink_loop(path: str | os.PathLike[str]) -> str | None:
     """``"<path> is a symbolic link that loops"`` (for a message) when following ``path``, or a
     folder above it, meets a loop of symbolic links (``ELOOP``: it can be neither read nor

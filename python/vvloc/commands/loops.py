@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import math
 import os
@@ -320,7 +319,7 @@ def loops(
     earlier run left there for sessions this map lacks are then removed."""
     import numpy as np
 
-    from vvloc._io import write_together
+    from vvloc._io import made_folders, write_together
     from vvloc.localize.export import G2O_MAX_ID
     from vvloc.localize.loops import detect_loops, loop_provenance
     from vvloc.localize.mapdb import MapDatabase, MapError
@@ -364,15 +363,8 @@ def loops(
             kept = sum(p in known for p in zip(found.i.tolist(), found.j.tolist(), strict=True))
             typer.echo(f"--reuse: {kept} of {len(found)} pairs kept, {len(found) - kept} searched")
         files = _output_files(db, found, map_path, digests, trajectories)
-        made = not out.exists()
-        out.mkdir(parents=True, exist_ok=True)
-        try:
+        with made_folders(out):  # those made here are removed again if the write fails
             write_together(out, {name: text.encode() for name, text in files.items()})
-        except BaseException:
-            if made:  # the folder this run made, left empty by the failed write
-                with contextlib.suppress(OSError):
-                    out.rmdir()
-            raise
         remove_stale_trajectories(out, trajectories.values())
         n_acc = int(np.sum(found.accepted))
     typer.echo(f"{len(found.i)} candidates, {n_acc} accepted loop closures; outputs in {out}")

@@ -3,14 +3,13 @@ what a map holds, and whether every byte of it is intact."""
 
 from __future__ import annotations
 
-import contextlib
 import os
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Annotated, Any
 
 import typer
 
+from vvloc._io import made_folders
 from vvloc.checkpoints import checkpoint_folder
 from vvloc.commands._util import (
     EXIT_USAGE,
@@ -155,31 +154,9 @@ def build(
         model = VVLocNet.load(checkpoint_folder(checkpoint, "--checkpoint")).to(
             parse_device(device)
         )
-        with _parent_folders(out):  # made as eval, loops and train make theirs
+        with made_folders(Path(os.path.realpath(out)).parent):  # as eval, loops, train do
             path = _build(model, ds, names, out, base, float16, no_bev, overwrite)
     typer.echo(f"map: {path}")
-
-
-@contextlib.contextmanager
-def _parent_folders(out: Path) -> Iterator[None]:
-    """Make ``out``'s missing folders, and remove them again, while empty, when the body
-    raises (a refused build leaves no folder either)."""
-    missing = []
-    for folder in Path(os.path.realpath(out)).parents:
-        if folder.exists():
-            break
-        missing.append(folder)
-    for folder in reversed(missing):
-        folder.mkdir()
-    try:
-        yield
-    except BaseException:
-        for folder in missing:  # the deepest first
-            try:
-                folder.rmdir()
-            except OSError:  # not empty, or gone: left as it is
-                break
-        raise
 
 
 def _build(

@@ -25,7 +25,7 @@ import torch
 
 from vvloc import evaluate, geometry, kernels, viz
 from vvloc._checks import positive_int
-from vvloc._io import atomic_write, csv_row
+from vvloc._io import atomic_write, csv_row, made_folders
 from vvloc.data import Frame, open_dataset
 from vvloc.data.perturb import SEEDED, frame_seed, perturb_frame
 from vvloc.data.sampling import (
@@ -523,20 +523,16 @@ def _report_stage(out_dir: Path) -> Iterator[Path]:
     that fails or is stopped leaves an earlier report in ``out_dir`` as it was (its map, queries
     and figures were replaced one by one before, under the old report). Either way the folder
     is removed, and so are the folders made here that it left empty."""
-    made = [p for p in (out_dir, *out_dir.parents) if not p.exists()]  # removed if left empty
-    out_dir.mkdir(parents=True, exist_ok=True)
-    for stale in out_dir.glob(f"{_STAGE_PREFIX}*"):  # of a run killed outright
-        shutil.rmtree(stale, ignore_errors=True)
-    work = out_dir / f"{_STAGE_PREFIX}{secrets.token_hex(6)}"
-    work.mkdir()
-    try:
-        yield work
-        _move_report(work, out_dir)
-    finally:
-        shutil.rmtree(work, ignore_errors=True)
-        for folder in made:  # the folders this run made, left empty by a failure or Ctrl-C
-            with contextlib.suppress(OSError):  # not empty: a report is in it
-                folder.rmdir()
+    with made_folders(out_dir):  # those made here are removed again if the run fails
+        for stale in out_dir.glob(f"{_STAGE_PREFIX}*"):  # of a run killed outright
+            shutil.rmtree(stale, ignore_errors=True)
+        work = out_dir / f"{_STAGE_PREFIX}{secrets.token_hex(6)}"
+        work.mkdir()
+        try:
+            yield work
+            _move_report(work, out_dir)
+        finally:
+            shutil.rmtree(work, ignore_errors=True)
 
 
 def _score(
