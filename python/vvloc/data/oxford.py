@@ -69,6 +69,7 @@ from pathlib import Path
 
 import numpy as np
 
+from vvloc._checks import flag
 from vvloc.data._remap import remap_bilinear, resize_rgb
 from vvloc.data.bayer import demosaic_bilinear
 from vvloc.data.frame import (
@@ -485,13 +486,12 @@ def open_oxford(
         raise ValueError(
             f"cameras: expected names from {sorted(CAMERA_SPECS)}, got {list(cameras)}"
         )
-    for flag, value in (
+    for name, value in (
         ("ins_good_only", ins_good_only),
         ("level", level),
         ("motion_compensation", motion_compensation),
     ):
-        if not isinstance(value, (bool, np.bool_)):
-            raise TypeError(f"{flag}: expected a bool, got {type(value).__name__}")
+        flag(value, name)
     height = float(ego_height)
     if not np.isfinite(height):
         raise ValueError(f"ego_height: expected a finite height in metres, got {ego_height!r}")

@@ -10,7 +10,7 @@ frames of different worlds are never positives, whatever their coordinates.
 from __future__ import annotations
 
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
-from vvloc._checks import int_array, positive_int
+from vvloc._checks import flag, int_array, positive_int
 from vvloc._io import list_entries
 from vvloc.data.frame import Dataset, Frame
 from vvloc.data.vvloc_format import rig_meta
@@ -109,8 +109,7 @@ class TripletSampler:
         cross_floor_fraction = _real(cross_floor_fraction, "cross_floor_fraction")
         cross_floor_same_session = _real(cross_floor_same_session, "cross_floor_same_session")
         floor_separation = _real(floor_separation, "floor_separation")
-        if not isinstance(cross_session, (bool, np.bool_)):
-            raise TypeError(f"cross_session: expected a bool, got {type(cross_session).__name__}")
+        flag(cross_session, "cross_session")
         if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
             raise ValueError(f"seed: expected an int >= 0, got {seed!r}")
         if not (pos_radius > 0 and neg_radius >= pos_radius):
@@ -513,10 +512,14 @@ def check_session_names(
         )
 
 
-def check_query_sessions(database: str, queries: Sequence[str], argument: str = "queries") -> None:
-    """``ValueError`` naming ``argument`` (the query sessions) when the query sessions repeat a
-    name or include the map session ``database``: its frames would find themselves (100 %
-    recall, a calibration learnt on the map), or a session would count twice."""
+def check_query_sessions(
+    database: str, queries: Iterable[str], argument: str = "queries"
+) -> list[str]:
+    """The query sessions ``queries`` as a list (an iterator read once), checked: a
+    ``TypeError`` naming ``argument`` for one str (it would be split into letters), a
+    ``ValueError`` when they repeat a name or include the map session ``database``: its frames
+    would find themselves (100 % recall, a calibration learnt on the map), or a session would
+    count twice."""
     if isinstance(queries, (str, bytes)):  # "s1" would be the sessions 's' and '1'
         raise TypeError(
             f"{argument}: expected a sequence of session names, got one str {queries!r:.60} "
@@ -531,6 +534,7 @@ def check_query_sessions(database: str, queries: Sequence[str], argument: str = 
             f"{argument}: the map session {database!r} is among the queries: its frames would "
             "find themselves; query other sessions"
         )
+    return names
 
 
 def same_folder(a: Any, b: Any) -> bool:
@@ -620,10 +624,7 @@ def evaluation_split(
     database = database if database is not None else names[0]
     if queries is None:
         queries = [n for n in names if n != database]
-    elif isinstance(queries, (str, bytes)):
-        check_query_sessions(database, queries)  # refused: list() would split it
-    queries = list(queries)  # once: a generator is read once
-    check_query_sessions(database, queries)
+    queries = check_query_sessions(database, queries)  # a list (a generator read once)
     if (
         isinstance(revisit_radius, bool)
         or not isinstance(revisit_radius, (int, float, np.number))

@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from vvloc._checks import finite_float
+from vvloc._checks import finite_float, flag
 from vvloc._io import (
     FLOAT_TEXT,
     INT_TEXT,
@@ -580,8 +580,7 @@ def check_dataset_target(root: str | os.PathLike[str], overwrite: bool) -> None:
     ``overwrite`` (``FileExistsError``), or one with ``overwrite`` that is not a vvloc dataset
     (:func:`_check_replaceable`). What a writer of ``root`` killed outright left is recovered
     first (:func:`recover_dataset_target`)."""
-    if not isinstance(overwrite, (bool, np.bool_)):  # "no" is truthy: it replaced a dataset
-        raise TypeError(f"overwrite: expected a bool, got {type(overwrite).__name__}")
+    flag(overwrite, "overwrite")  # "no" is truthy: it replaced a dataset
     root = Path(root)
     loop = symlink_loop(root)
     if loop:  # found only when the finished dataset was renamed into place

@@ -867,10 +867,7 @@ def run_evaluation(
         raise ValueError(f"loop_radius: expected a value in (0, 0.5], got {loop_radius}")
     loop_sequence = positive_int(loop_sequence, "loop_sequence", minimum=0)
     loop_sweep_pairs = positive_int(loop_sweep_pairs, "loop_sweep_pairs")
-    if isinstance(queries, (str, bytes)):
-        check_query_sessions(database, queries)  # refused: list() would split it
-    queries = list(queries)
-    check_query_sessions(database, queries)
+    queries = check_query_sessions(database, queries)  # a list (a str refused)
     out_dir = Path(out)
     if inside_folder(out_dir, dataset):  # a report among the sessions breaks the dataset
         raise ValueError(

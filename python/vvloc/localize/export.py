@@ -28,7 +28,7 @@ from typing import Any, SupportsFloat
 
 import numpy as np
 
-from vvloc._checks import finite_float
+from vvloc._checks import finite_float, flag
 from vvloc._io import FLOAT_TEXT, INT_TEXT, atomic_write, check_readable_file
 from vvloc.geometry import relative as relative_pose
 from vvloc.geometry import wrap_angle
@@ -786,8 +786,7 @@ def g2o_text(
             f"ids: g2o vertex ids must lie in [0, {G2O_MAX_ID}], got {int(vid.min())}.."
             f"{int(vid.max())}"
         )
-    if not isinstance(only_accepted, (bool, np.bool_)):
-        raise TypeError(f"only_accepted: expected a bool, got {type(only_accepted).__name__}")
+    flag(only_accepted, "only_accepted")
     seq_arr = None if seq is None else _ints(seq, "seq", n)
     if isinstance(sessions, str):
         raise TypeError("sessions: expected a sequence of N labels, got a str")

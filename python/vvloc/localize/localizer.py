@@ -52,7 +52,7 @@ import torch
 from tqdm import tqdm
 
 from vvloc import geometry, kernels
-from vvloc._checks import int_array, positive_int, real_array
+from vvloc._checks import flag, int_array, positive_int, real_array
 from vvloc._io import list_entries
 from vvloc.checkpoints import checkpoint_folder
 from vvloc.data import Camera, Dataset, Frame, Session
@@ -678,8 +678,7 @@ class Localizer:
         self.model = model.eval()
         self.map = mapdb
         self.top_k = positive_int(top_k, "top_k")
-        if not isinstance(rerank, (bool, np.bool_)):
-            raise TypeError(f"rerank: expected a bool, got {type(rerank).__name__}")
+        flag(rerank, "rerank")
         self.rerank_enabled = bool(rerank)
         self.accept_threshold = _cost_threshold(accept_threshold, "accept_threshold")
         if min_distinctiveness is None:
@@ -737,8 +736,7 @@ class Localizer:
                 f"retrieval_weight: expected a finite value >= 0, got {retrieval_weight}"
             )
         self.retrieval_weight = float(retrieval_weight)
-        if not isinstance(snap, (bool, np.bool_)):
-            raise TypeError(f"snap: expected a bool, got {type(snap).__name__}")
+        flag(snap, "snap")
         self.snap = bool(snap)
         if search is not None and not isinstance(search, SearchConfig):
             raise TypeError(f"search: expected a SearchConfig, got {type(search).__name__}")
@@ -1215,8 +1213,8 @@ def build_map(
         raise TypeError(f"sessions: expected session names (str), got {sessions!r:.80}")
     if dtype is not None:
         dtype = _check_dtype(dtype)
-    if store_bev is not None and not isinstance(store_bev, (bool, np.bool_)):
-        raise TypeError(f"store_bev: expected a bool, got {type(store_bev).__name__}")
+    if store_bev is not None:
+        flag(store_bev, "store_bev")
     if base is not None and not isinstance(base, (MapDatabase, str, os.PathLike)):
         raise TypeError(
             f"base: expected a MapDatabase or the path of a map, got {type(base).__name__}"
@@ -1333,8 +1331,7 @@ def _check_map_out(out: Any, overwrite: Any) -> None:
     and the file is a vvloc map (a user's file is never replaced)."""
     if not isinstance(out, (str, os.PathLike)):
         raise TypeError(f"out: expected the path of a map file, got {type(out).__name__}")
-    if not isinstance(overwrite, (bool, np.bool_)):
-        raise TypeError(f"overwrite: expected a bool, got {type(overwrite).__name__}")
+    flag(overwrite, "overwrite")
     path = Path(os.fspath(out))
     if not path.exists():
         return

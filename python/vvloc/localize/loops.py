@@ -31,7 +31,7 @@ import numpy as np
 import numpy.typing as npt
 from tqdm import tqdm
 
-from vvloc._checks import as_array, int_array, positive_float, positive_int, real_number
+from vvloc._checks import as_array, flag, int_array, positive_float, positive_int, real_number
 from vvloc.localize.export import LoopClosures, _selection
 from vvloc.localize.localizer import _cost_threshold, check_map_model, learned_matcher
 from vvloc.localize.mapdb import MapDatabase
@@ -562,8 +562,7 @@ def loop_candidates(
     unless some sessions of the map do carry floor numbers (mixing them misjudges the pairs)."""
     g, sess, seq = mapdb.global_descriptors, mapdb.session_index, mapdb.seq
     radius, window = _radius_and_window(radius, window)  # before the voters' radius
-    if not isinstance(check_floors, (bool, np.bool_)):
-        raise TypeError(f"check_floors: expected a bool, got {type(check_floors).__name__}")
+    flag(check_floors, "check_floors")
     if not check_floors:
         return descriptor_loop_candidates(g, sess, seq, radius, window, sequence)
     voters = descriptor_loop_candidates(

@@ -127,6 +127,16 @@ def _resolved(path: Path) -> str:
     )
 
 
+def _nothing_to_render(prefix: str, root: Path) -> FileNotFoundError:
+    """The error for the config's ``{prefix}dataset`` ``root``, which does not exist, when its
+    entry has no ``sim`` section to render it."""
+    where = f"{prefix.rstrip('.')} has" if prefix else "the config has"
+    return FileNotFoundError(
+        f"{prefix}dataset: {root} does not exist{_resolved(root)} and {where} no 'sim' section "
+        "to render it"
+    )
+
+
 def _ensure_dataset(dataset: str, sim: dict[str, Any] | None, prefix: str = "") -> None:
     """Render ``dataset`` from ``sim`` (arguments of :func:`vvloc.sim.simulate_dataset`) when it
     does not exist yet; errors name the config's keys, ``{prefix}dataset`` and ``{prefix}sim``
@@ -165,11 +175,7 @@ def _ensure_dataset(dataset: str, sim: dict[str, Any] | None, prefix: str = "") 
                 )
         return
     if not sim:
-        where = f"{prefix.rstrip('.')} has" if prefix else "the config has"
-        raise FileNotFoundError(
-            f"{prefix}dataset: {root} does not exist{_resolved(root)} and {where} no 'sim' "
-            "section to render it"
-        )
+        raise _nothing_to_render(prefix, root)
     # said at the default level: a mistyped path beside a leftover sim section would otherwise
     # train on a synthetic world without a word (README, "Your own rig's data")
     log.warning(
@@ -217,11 +223,7 @@ def _check_sessions_to_render(cfg: TrainConfig) -> None:
                     _check_sessions(k, root, opened, names)
             continue
         if not sim:
-            where = f"{key.rstrip('.')} has" if key else "the config has"
-            raise FileNotFoundError(
-                f"{key}dataset: {root} does not exist{_resolved(Path(root))} and {where} no "
-                "'sim' section to render it"
-            )
+            raise _nothing_to_render(key, Path(root))
         to_render.append(root)
         count = sim.get("sessions")
         if isinstance(count, bool) or not isinstance(count, int):
