@@ -197,7 +197,7 @@ class _MakesADirectoryWhenUnpickled:
 def test_a_trainer_state_is_unpickled_without_running_what_it_names(tmp_path):
     # torch.load(weights_only=False) ran whatever a trainer_state.pt named: a file handed over
     # with a run folder could run code at --resume
-    load = vvloc.train.trainer._load_trainer_state
+    load = vvloc.train.resume.load_trainer_state
     marker = tmp_path / "ran"
     torch.save({"config": {}, "x": _MakesADirectoryWhenUnpickled(marker)}, tmp_path / "evil.pt")
     with pytest.raises(ValueError, match=r"evil.pt: .*names posix\.mkdir, .*could run code"):

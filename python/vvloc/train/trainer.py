@@ -6,14 +6,10 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
-import json
 import logging
 import math
 import os
 import random
-import re
-import secrets
-import shutil
 import signal
 import sys
 import time
@@ -54,7 +50,7 @@ from vvloc.provenance import (
     session_digest,
     write_record,
 )
-from vvloc.train.config import HEAD_FIELDS, HEAD_REFRESH, RESUMABLE_CHANGES, SELECT_BY, TrainConfig
+from vvloc.train.config import HEAD_FIELDS, HEAD_REFRESH, SELECT_BY, TrainConfig
 from vvloc.train.data import (
     TripletFrames,
     _check_session_keys,
@@ -67,7 +63,14 @@ from vvloc.train.data import (
     _named_paths,
     _no_init_checkpoint,
     _open_named,
-    _without_dataset_paths,
+)
+from vvloc.train.resume import check_same_run, load_trainer_state
+from vvloc.train.runfolder import (
+    LOG_FILE,
+    append_log_line,
+    logged_epochs,
+    recover_folder,
+    swap_in_folder,
 )
 from vvloc.train.steps import global_losses, near_losses, training_losses
 from vvloc.train.validation import (
@@ -98,71 +101,6 @@ def seed_everything(seed: int) -> None:
     random.seed(seed)
     np.random.seed(seed % 2**32)  # noqa: NPY002 (seed the legacy global RNG too)
     torch.manual_seed(seed)
-
-
-def _state_globals() -> list[Any]:
-    """What a trainer state holds besides tensors and plain Python values, for ``torch.load``'s
-    ``weights_only`` unpickler: numpy arrays and scalars (the sampler's hard pool and
-    exclusions, figures of the best epoch) of bool and numeric dtypes, their reconstructors
-    under numpy 2's module name and numpy 1's (a run saved under either resumes under the
-    other)."""
-    core = getattr(np, "_core", None) or np.core  # numpy 2 / numpy 1
-    rec, scalar = core.multiarray._reconstruct, core.multiarray.scalar
-    names = [
-        (f, f"numpy.{m}.multiarray.{f.__name__}") for f in (rec, scalar) for m in ("core", "_core")
-    ]
-    codes = "?" + np.typecodes["AllInteger"] + np.typecodes["AllFloat"]
-    dtypes = list(dict.fromkeys(type(np.dtype(c)) for c in codes))  # numpy.dtypes.Int64DType, ...
-    return [rec, scalar, *names, np.ndarray, np.dtype, *dtypes, bytes]
-
-
-def _unreadable_state(e: BaseException) -> str:
-    """Why ``torch.load(weights_only=True)`` refused a trainer state, in a few words: the
-    Python object a crafted file names, the unpickler's complaint about a damaged one, or a
-    file that ends early (an empty ``EOFError``, where the unrestricted loader said "Ran out of
-    input"; a cut old-style pickle, ``struct.error``)."""
-    import struct
-
-    text = str(e)
-    if isinstance(e, (EOFError, struct.error)) or "truncated" in text or not text.strip():
-        return "the file ends early (truncated?)"
-    if "Weights only load failed" not in text:
-        return text.split(". ")[0]
-    # torch says "Unsupported global: GLOBAL x.y", "unsupported GLOBAL x.y whose module x is
-    # blocked" or "got <class 'x.y'>" for an object it does not build
-    named = re.search(r"GLOBAL ([\w.]+)|got <class '([\w.]+)'>", text)
-    if named:
-        what = next(g for g in named.groups() if g)
-        return (
-            f"it names {what}, which no trainer state holds: not loaded, as unpickling it "
-            "could run code"
-        )
-    detail = text.split("WeightsUnpickler error:", 1)[-1].strip().split("\n")[0]
-    return f"not a pickle torch wrote ({detail.rstrip('.')})"
-
-
-def _load_trainer_state(path: Path) -> dict[str, Any]:
-    """``torch.load`` of a run's ``trainer_state.pt``: ``ValueError`` naming the file when it
-    is truncated (a disk that filled, a copy cut short) or not a trainer state; torch says
-    ``EOFError`` (or ``pickle data was truncated``) without the file. Read with
-    ``weights_only``: a file that names any other Python object (pickle can call any function
-    while it loads) is refused without running it."""
-    import pickle
-    import struct
-
-    try:
-        with torch.serialization.safe_globals(_state_globals()):
-            state = torch.load(path, map_location="cpu", weights_only=True)
-    except (RuntimeError, EOFError, pickle.UnpicklingError, struct.error) as e:
-        why = _unreadable_state(e)
-    else:
-        if isinstance(state, dict) and "config" in state:
-            return state
-        why = f"a {type(state).__name__} without the run's config"
-    raise ValueError(
-        f"{path}: not a readable trainer state ({why}): this run cannot be resumed; start a new "
-        "run into another folder (init_checkpoint: its checkpoint/ to keep its weights)"
-    )
 
 
 class Trainer:
@@ -476,63 +414,18 @@ class Trainer:
         return record is not None and not record["runs"][-1].get("complete")
 
     def _save_model(self, folder: Path, weights_epoch: int) -> None:
-        """Write the model into ``folder`` (``checkpoint/``, ``best/``) as a whole: into a
-        hidden folder beside it, swapped in by two renames, so that a stop never leaves one
-        epoch's weights beside another's calibration or record. A stop between the renames
-        leaves the previous folder under a hidden name, which :meth:`_recover_folder` puts
-        back."""
-        self._recover_folder(folder)
-        tmp = folder.parent / f".{folder.name}.partial-{secrets.token_hex(6)}"
+        """Write the model with its training record at ``weights_epoch`` into ``folder``
+        (``checkpoint/``, ``best/``) as a whole (:func:`~vvloc.train.runfolder.swap_in_folder`)."""
         self.model.training_record = self.record_for(weights_epoch)
         try:
-            self.model.save(tmp)
-        except BaseException:
-            shutil.rmtree(tmp, ignore_errors=True)
-            raise
+            swap_in_folder(folder, self.model.save)
         finally:
             self.model.training_record = {}
-        old = folder.parent / f".{folder.name}.old-{secrets.token_hex(6)}"
-        if folder.exists():
-            os.replace(folder, old)
-        os.replace(tmp, folder)
-        shutil.rmtree(old, ignore_errors=True)
-
-    @staticmethod
-    def _recover_folder(folder: Path) -> None:
-        """Undo what a stop inside :meth:`_save_model` left: remove half-written hidden folders,
-        and put the previous folder back where a stop between the two renames took it away."""
-        for stale in folder.parent.glob(f".{folder.name}.partial-*"):
-            shutil.rmtree(stale, ignore_errors=True)
-        olds = sorted(folder.parent.glob(f".{folder.name}.old-*"))
-        if olds and not folder.exists():
-            os.replace(olds.pop(), folder)
-        for old in olds:
-            shutil.rmtree(old, ignore_errors=True)
 
     def _log_record(self, rec: dict[str, Any]) -> None:
-        """Append one epoch's record to ``log.jsonl`` (strict JSON: NaN/inf as null). A torn
-        last line (a process killed or a disk full while it appended one) is cut off first: it
-        is no epoch (:meth:`_logged_epochs`), and the new line must not continue it."""
-        path = self.out / "log.jsonl"
-        if path.is_file():
-            data = path.read_bytes()
-            if data and not data.endswith(b"\n"):
-                with open(path, "r+b") as f:
-                    f.truncate(data.rfind(b"\n") + 1)
-        with open(path, "a") as f:
-            f.write(json.dumps(to_jsonable(rec), allow_nan=False) + "\n")
-
-    def _logged_epochs(self) -> set[int]:
-        """The epochs ``log.jsonl`` holds a line of (a torn last line is no epoch)."""
-        path = self.out / "log.jsonl"
-        done: set[int] = set()
-        if path.is_file():
-            for line in path.read_text().splitlines():
-                try:
-                    done.add(int(json.loads(line)["epoch"]))
-                except (ValueError, KeyError, TypeError):
-                    continue
-        return done
+        """Append one epoch's record to ``log.jsonl``
+        (:func:`~vvloc.train.runfolder.append_log_line`)."""
+        append_log_line(self.out / LOG_FILE, rec)
 
     def save(self, record: dict[str, Any] | None = None) -> None:
         """Write the model checkpoint (with its training record) and the trainer state
@@ -686,13 +579,13 @@ class Trainer:
         if not self._state_path().is_file():
             return False
         t0 = time.perf_counter()
-        state = _load_trainer_state(self._state_path())
+        state = load_trainer_state(self._state_path())
         # keys added to TrainConfig after the run started count as their defaults
         old = {**TrainConfig().to_dict(), **state["config"]}
-        self.joint_stopped = self._check_same_run(old, state)
+        self.joint_stopped = check_same_run(old, state, self.cfg, self._state_path(), self.out)
         self._check_same_data(old, state)
         for folder in (self.checkpoint_dir, self.best_dir):  # a stop inside a folder's swap
-            self._recover_folder(folder)
+            recover_folder(folder)
         if not (self.checkpoint_dir / "config.json").is_file():
             # its weights are gone (a folder deleted or emptied): said as the run's state
             raise FileNotFoundError(
@@ -707,73 +600,6 @@ class Trainer:
         self.process["seconds"] += time.perf_counter() - t0
         log.info("resumed %s at epoch %d, step %d", self.out, self.epoch, self.step)
         return True
-
-    def _check_same_run(self, old: dict[str, Any], state: Mapping[str, Any]) -> int | None:
-        """Refuse to resume the run of config ``old`` (its trainer ``state``) under another
-        config than this trainer's (see :meth:`resume`); returns the run's
-        :attr:`joint_stopped`, the epoch its joint stage stopped early at (or None)."""
-        # Extending a run (more joint epochs) is allowed; any other change is a different run.
-        # how the run is executed may change: workers, threads and device (the last two
-        # can move the weights' last bits, as on another machine)
-        free = ("stage2_epochs", *RESUMABLE_CHANGES)
-        saved_cfg = {k: v for k, v in old.items() if k not in free}
-        current = {k: v for k, v in self.cfg.to_dict().items() if k not in free}
-        # where the datasets lie is checked by their contents (_check_same_data)
-        saved_cfg, current = _without_dataset_paths(saved_cfg), _without_dataset_paths(current)
-        if saved_cfg != current:
-            differ = sorted(
-                k for k in set(saved_cfg) | set(current) if saved_cfg.get(k) != current.get(k)
-            )
-            values = "; ".join(
-                f"{k}: {saved_cfg.get(k)!r:.60} in the run, {current.get(k)!r:.60} now"
-                for k in differ
-            )
-            raise ValueError(
-                f"{self._state_path()}: the run in {self.out} was started with another config "
-                f"(differing: {', '.join(differ)}; {values}); use a new --out directory or the "
-                f"same config (a resume may change {', '.join(RESUMABLE_CHANGES)} and grow "
-                "stage2_epochs)"
-            )
-        for key in ("threads", "device"):
-            if old.get(key) != getattr(self.cfg, key):
-                log.warning(
-                    "resuming with %s %r (the run started with %r): the weights may differ in "
-                    "their last bits from an uninterrupted run",
-                    key,
-                    getattr(self.cfg, key),
-                    old.get(key),
-                )
-        if old["stage2_epochs"] != self.cfg.stage2_epochs and (
-            self.cfg.stage2_epochs < old["stage2_epochs"]
-            or int(state["epoch"]) > old["stage1_epochs"] + old["stage2_epochs"]
-        ):
-            raise ValueError(
-                f"{self._state_path()}: stage2_epochs can only grow, and only before the head "
-                f"stage (run in {self.out}: {old['stage2_epochs']} joint epochs, at epoch "
-                f"{state['epoch']}; asked for {self.cfg.stage2_epochs})"
-            )
-        joint_stopped = state.get("joint_stopped")
-        best = state.get("best")
-        if (
-            joint_stopped is None
-            and old["stage2_epochs"] != self.cfg.stage2_epochs
-            and self.cfg.patience is not None
-            and best is not None
-            and int(state["epoch"]) == old["stage1_epochs"] + old["stage2_epochs"]
-            and int(state["epoch"]) - int(best["epoch"]) >= self.cfg.patience
-        ):
-            # its last joint epoch skipped the patience check (no joint epoch was left to
-            # stop); a run that had asked for more epochs from the start would have stopped
-            # there, so an extension is refused as for one that did stop
-            joint_stopped = int(state["epoch"])
-        if joint_stopped is not None and old["stage2_epochs"] != self.cfg.stage2_epochs:
-            raise ValueError(
-                f"{self._state_path()}: the run in {self.out} stopped its joint stage early "
-                f"after epoch {joint_stopped} (patience {self.cfg.patience}); growing "
-                "stage2_epochs does not restart it: start a new run (another --out) with "
-                f"init_checkpoint: {self.out}"
-            )
-        return joint_stopped
 
     def _check_same_data(self, old: dict[str, Any], state: Mapping[str, Any]) -> None:
         """Refuse to resume the run of config ``old`` (its trainer ``state``) on other data: a
@@ -863,7 +689,7 @@ class Trainer:
         self.epoch = int(state["epoch"])
         self.step = int(state["step"])
         record = state.get("record")
-        if record is not None and int(record["epoch"]) not in self._logged_epochs():
+        if record is not None and int(record["epoch"]) not in logged_epochs(self.out / LOG_FILE):
             self._unlogged = record  # fit() writes it before training on
         self.best = state.get("best")
 
