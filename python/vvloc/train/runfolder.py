@@ -44,7 +44,7 @@ def logged_epochs(path: Path) -> set[int]:
     return done
 
 
-def swap_in_folder(folder: Path, write: Callable[[Path], None]) -> None:
+def swap_in_folder(folder: Path, write: Callable[[Path], object]) -> None:
     """Replace ``folder`` (``checkpoint/``, ``best/``) as a whole by what ``write(tmp)`` puts
     into a new folder ``tmp``: written into a hidden folder beside it and swapped in by two
     renames, so that a stop never leaves one epoch's weights beside another's calibration or
