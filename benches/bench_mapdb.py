@@ -18,7 +18,7 @@ import numpy as np
 
 from _common import print_table, timeit, write_json
 from vvloc.localize import MapDatabase
-from vvloc.localize import mapdb as _mapdb
+from vvloc.localize import mapwriter as _mapwriter
 
 DG, T, C = 256, 120, 256
 BEV = (100, 100, 256)
@@ -66,14 +66,14 @@ SAVE_ROUNDS = 3
 def save(db: MapDatabase, path: Path, dtype: str, v1_layout: bool) -> float:
     """Seconds to save ``db`` to ``path`` (``v1_layout``: HDF5's oldest structures, as format
     version 1 wrote them)."""
-    libver = _mapdb._LIBVER
+    libver = _mapwriter._LIBVER
     if v1_layout:
-        _mapdb._LIBVER = ("earliest", "v110")
+        _mapwriter._LIBVER = ("earliest", "v110")
     t0 = time.perf_counter()
     try:
         db.save(path, dtype=dtype)  # type: ignore[arg-type]
     finally:
-        _mapdb._LIBVER = libver
+        _mapwriter._LIBVER = libver
     return time.perf_counter() - t0
 
 

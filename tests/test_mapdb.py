@@ -208,7 +208,7 @@ def test_writer_appends_batches(tmp_path: Path) -> None:
 def test_writer_appends_a_whole_map_as_stored_and_refuses_another_models(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    from vvloc.localize import mapdb as mapdb_module
+    from vvloc.localize import mapwriter as mapwriter_module
 
     base = make_map()
     more = keyframes(4, seed=1)
@@ -256,7 +256,7 @@ def test_writer_appends_a_whole_map_as_stored_and_refuses_another_models(
         seq[-1] = 0
         collide = of_weights("b" * 64, ids=np.arange(N) + 1000, seq=seq)
         with monkeypatch.context() as m:
-            m.setattr(mapdb_module, "_COPY_BLOCK_BYTES", 1)
+            m.setattr(mapwriter_module, "_COPY_BLOCK_BYTES", 1)
             with pytest.raises(ValueError, match=r"^db: \(session, sequence number\) already"):
                 w.append_map(collide)
         bev = of_weights("b" * 64, bev=True, ids=np.arange(N) + 1000, seq=np.arange(N) + 1000)
@@ -476,7 +476,7 @@ def test_hdf5_file_that_is_not_a_map(tmp_path: Path) -> None:
 def edit(path: Path, fn: Any, *, reseal: bool = True) -> None:
     """Apply ``fn`` to the open file; ``reseal`` brings the attribute checksum up to date (a
     file written so by a faulty writer, to reach the check behind it)."""
-    from vvloc.localize.mapdb import _ATTRS_DIGEST, _attrs_digest, _set_text
+    from vvloc.localize.mapfile import _ATTRS_DIGEST, _attrs_digest, _set_text
 
     with h5py.File(path, "a", libver=("v110", "v110")) as f:  # as MapWriter writes
         fn(f)
@@ -556,7 +556,7 @@ def test_a_declared_size_the_file_does_not_store_is_refused_before_any_read(
 def test_a_format_2_label_on_unchecksummed_hdf5_structures_is_refused(tmp_path: Path) -> None:
     # a format-1 file relabelled format 2 (attribute checksum and all) opened as format 2;
     # damaged, such a file crashed the interpreter in HDF5 when a dataset's sha256 was read
-    from vvloc.localize.mapdb import _ATTRS_DIGEST, _attrs_digest, _set_text
+    from vvloc.localize.mapfile import _ATTRS_DIGEST, _attrs_digest, _set_text
 
     path = tmp_path / "relabelled.h5"
     shutil.copy(Path(__file__).parent / "data" / "map-format-1.h5", path)
@@ -937,13 +937,15 @@ def test_a_disk_too_small_for_the_map_is_said_before_hdf5_writes(
     # HDF5 crashes the interpreter when the disk fills under it: the writer checks first
     from types import SimpleNamespace
 
-    from vvloc.localize import mapdb
+    from vvloc.localize import mapwriter
 
     path = saved(tmp_path)
     before = file_sha(path)
-    real = mapdb.shutil.disk_usage
+    real = mapwriter.shutil.disk_usage
     free = {"bytes": 0}
-    monkeypatch.setattr(mapdb.shutil, "disk_usage", lambda p: SimpleNamespace(free=free["bytes"]))
+    monkeypatch.setattr(
+        mapwriter.shutil, "disk_usage", lambda p: SimpleNamespace(free=free["bytes"])
+    )
     with pytest.raises(
         OSError, match=r"map.h5: not enough free space for the map: 12 keyframes"
     ) as e:
@@ -1313,7 +1315,7 @@ def test_an_unreadable_checksum_and_a_map_held_for_writing_are_map_errors(tmp_pa
     import subprocess
     import sys
 
-    from vvloc.localize.mapdb import _check_digest
+    from vvloc.localize.mapfile import _check_digest
 
     class Damaged:  # a dataset whose checksum attribute HDF5 cannot read (a flipped bit)
         name = "/bev"
@@ -1386,7 +1388,7 @@ def test_map_info_reports_the_map_and_verify_reads_every_byte(tmp_path: Path) ->
 
 
 def test_a_model_config_that_is_no_json_object_is_refused(tmp_path: Path) -> None:
-    from vvloc.localize.mapdb import _set_text
+    from vvloc.localize.mapfile import _set_text
 
     path = saved(tmp_path)
     for text in ("[1]", "[" * 3000 + "]" * 3000):  # a list; nesting past Python's recursion
@@ -1409,7 +1411,7 @@ def test_a_descriptor_index_path_that_is_a_named_pipe_is_refused_not_waited_on(
 def test_non_finite_timestamps_or_descriptors_and_a_fractional_count_are_refused(
     tmp_path: Path,
 ) -> None:
-    from vvloc.localize.mapdb import _le, _set_text
+    from vvloc.localize.mapfile import _le, _set_text
 
     def nan_in(name: str) -> Any:
         def fn(f: h5py.File) -> None:

@@ -37,7 +37,7 @@ def check_map_out(out: Path, *, overwrite: bool, dataset: Path) -> None:
     only a vvloc map (the README: outputs never replace what vvloc did not write)."""
     from vvloc._io import _is_stream, symlink_loop
     from vvloc.data.sampling import inside_folder
-    from vvloc.localize.mapdb import is_map_file
+    from vvloc.localize.mapfile import is_map_file
 
     if out.name in ("", ".", ".."):
         raise ValueError(f"--out: expected the path of a map file (.h5), got {str(out)!r}")

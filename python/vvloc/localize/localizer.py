@@ -72,15 +72,9 @@ from vvloc.data.rig import (
     without_levelling,
 )
 from vvloc.data.sampling import check_session_names
-from vvloc.localize.mapdb import (
-    MapDatabase,
-    MapError,
-    MapWriter,
-    _check_dtype,
-    check_unit_rows,
-    check_weights,
-    is_map_file,
-)
+from vvloc.localize.mapdb import MapDatabase
+from vvloc.localize.mapfile import MapError, check_weights, is_map_file
+from vvloc.localize.mapwriter import MapWriter, _check_dtype, check_unit_rows
 from vvloc.localize.metric import (
     METRIC_CANDIDATES,
     RETRIEVAL_WEIGHT,
@@ -369,7 +363,7 @@ def _check_model(model: Any) -> None:
 
 
 def check_map_model(mapdb: MapDatabase, model: VVLocNet, *, stacklevel: int = 2) -> None:
-    """Refuse a map that ``model`` did not build: :class:`~vvloc.localize.mapdb.MapError` (a
+    """Refuse a map that ``model`` did not build: :class:`~vvloc.localize.mapfile.MapError` (a
     ``ValueError``) when its config hash or its weights fingerprint differs from the model's,
     or its descriptors' or BEVs' shapes per keyframe are not the model's outputs'; a
     ``UserWarning`` when the map records no weights fingerprint (written by an older vvloc),
@@ -1165,7 +1159,7 @@ def build_map(
 ) -> Path:
     """Encode every frame of ``sessions`` of ``dataset`` and write a map to ``out`` (HDF5,
     atomically). A file at ``out`` is replaced only with ``overwrite`` and only when it is a
-    vvloc map (:func:`~vvloc.localize.mapdb.is_map_file`), as ``vvloc map build --overwrite``
+    vvloc map (:func:`~vvloc.localize.mapfile.is_map_file`), as ``vvloc map build --overwrite``
     does: ``FileExistsError`` naming ``out`` otherwise, before anything is encoded. ``dtype``
     is the stored dtype of the descriptors, ``"float32"`` (the default) or ``"float16"``;
     ``store_bev`` (default True) keeps the float16 BEVs that loop-closure detection needs.
