@@ -140,6 +140,19 @@ def test_estimate_yaw_finds_a_close_match_just_below_a_whole_bin(eps):
         assert np.all(np.minimum(d, t - d) < 1e-6), (backend, est.shift - s_true)
 
 
+def test_estimate_yaw_with_rows_of_very_different_sizes_matches_the_reference():
+    # rows of sizes 1 to 1e6 in one descriptor: the kernel's float32 end slope of the best
+    # interval had the wrong sign (b - a + e cancels), the interval was taken as minimal at an
+    # end, and the yaw came out half a turn off (-0.05 rad against -3.09), without an error
+    src = np.float32([[-1.0], [1.1e6], [1.0], [-130.0]])[None]
+    tgt = np.float32([[35000.0], [-180.0], [4000.0], [-17.0]])[None]
+    want = K.estimate_yaw(src, tgt, backend="reference")
+    for got in (K.estimate_yaw(src, tgt), K.rerank(src, tgt)):
+        assert got.shift[0] == pytest.approx(want.shift[0], abs=1e-6)
+        assert got.cost[0] == pytest.approx(want.cost[0], rel=1e-12)
+    assert want.yaw[0] == pytest.approx(-3.0916, abs=1e-4)
+
+
 def test_the_reference_refines_every_basin_when_scan_points_tie():
     # a half-turn-periodic pair: the scan costs at shifts 1 and 3 tie exactly, the minimum lies
     # just below 3; the reference refined only around the first tied point (shift 1, a half

@@ -527,3 +527,18 @@ def test_an_empty_misaligned_array_is_refused_or_copied_too():
     with pytest.raises(ValueError, match=r"^a: expected an aligned array"):
         _core.matching_cost(empty, np.zeros((0, 4, 5), np.float32))
     assert K.matching_cost(empty, np.zeros((0, 4, 5), np.float32)).shape == (0,)
+
+
+def test_polar_sampling_needs_no_table_of_its_sample_points():
+    # a table of 16 bytes a point (T·R points) was built before the output's size was checked,
+    # also for an empty output: 8192 × 8192 bins of C = 0 took 1 GiB, and a T·R near 1e9 could
+    # pass the allocation probe and fill 16 GiB
+    lines = run_limited("""
+import numpy as np
+from vvloc import kernels as K
+bev = np.ones((4, 4, 0), np.float32)
+limit(64)
+attempt("empty", lambda: print(K.polar_sample(bev, 8192, 8192, 1.0).shape))
+attempt("pad_polar", lambda: print(K.pad_polar(bev, [[0.0, 0.0]], 8192, 8192, 1.0).shape))
+""")
+    assert lines == ["(8192, 8192, 0)", "empty fitted", "(1, 8192, 8192, 0)", "pad_polar fitted"]

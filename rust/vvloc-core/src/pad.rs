@@ -106,22 +106,25 @@ fn shifts(
     }
     // the size first: a vast broadcast view is refused before it is scanned
     check_alloc::<(AxisShift, AxisShift)>("translations", translations.nrows())?;
-    if translations.iter().any(|v| !v.is_finite()) {
-        return Err(Error::value(
-            "translations",
-            "contains non-finite values (NaN or inf)",
-        ));
-    }
-    Ok(translations
+    // each value read once, checked where it is used (read twice, a value that another thread
+    // changed in between could pass the check as finite and be used as NaN)
+    translations
         .rows()
         .into_iter()
         .map(|t| {
-            (
-                AxisShift::new(t[0], grid_size, h),
-                AxisShift::new(t[1], grid_size, w),
-            )
+            let (x, y) = (t[0], t[1]);
+            if !(x.is_finite() && y.is_finite()) {
+                return Err(Error::value(
+                    "translations",
+                    "contains non-finite values (NaN or inf)",
+                ));
+            }
+            Ok((
+                AxisShift::new(x, grid_size, h),
+                AxisShift::new(y, grid_size, w),
+            ))
         })
-        .collect())
+        .collect()
 }
 
 /// One row `i` of the padded map for shift `s`: writes the (W, C) block `out`.

@@ -36,9 +36,20 @@ pub struct PolarGrid {
     pub num_radii: usize,
     /// Cell size g in metres.
     pub grid_size: f64,
-    /// Fractional (row, column) index of point `(k, m)` at `k·R + m`.
-    points: Vec<[f64; 2]>,
+    /// `(sin θ_k, cos θ_k)` of angle bin `k` (T entries).
+    angles: Vec<[f64; 2]>,
+    /// Radius `r_m` of radius bin `m`, metres (R entries).
+    radii: Vec<f64>,
+    /// Fractional (row, column) index of the BEV's centre.
+    centre: [f64; 2],
+    /// Every point's [`PolarGrid::point`] at `k·R + m`, when there are at most
+    /// [`POINT_TABLE_MAX`] (a sampler reads each many times); computed on the fly beyond.
+    table: Vec<[f64; 2]>,
 }
+
+/// The most points a [`PolarGrid`] keeps in a table (16 MiB): a table of every point was built
+/// before the output's size was checked, also for an empty output, and grew without bound.
+const POINT_TABLE_MAX: usize = 1 << 20;
 
 impl PolarGrid {
     /// Builds the sample geometry. Errors if a size is 0 or `grid_size` is not finite and > 0.
@@ -72,36 +83,68 @@ impl PolarGrid {
                 ),
             ));
         }
-        let (ci, cj) = ((height as f64 - 1.0) / 2.0, (width as f64 - 1.0) / 2.0);
-        let mut points = Vec::new();
+        let centre = [(height as f64 - 1.0) / 2.0, (width as f64 - 1.0) / 2.0];
+        // T + R numbers, and a table of the T·R points only up to POINT_TABLE_MAX: the output
+        // (T·R·C floats, checked by its caller) is the only allocation that grows with T·R
         let len = checked_len("num_angles", &[num_angles, num_radii])?;
-        points.try_reserve_exact(len).map_err(|_| Error::Memory {
-            arg: "num_angles",
-            what: format!("{len} polar sample points"),
-        })?;
+        let (mut angles, mut radii) = (Vec::new(), Vec::new());
+        let memory = |arg: &'static str, n: usize| Error::Memory {
+            arg,
+            what: format!("{n} polar bins"),
+        };
+        angles
+            .try_reserve_exact(num_angles)
+            .map_err(|_| memory("num_angles", num_angles))?;
+        radii
+            .try_reserve_exact(num_radii)
+            .map_err(|_| memory("num_radii", num_radii))?;
         for k in 0..num_angles {
             let theta = (k as f64 + 0.5) * 2.0 * PI / num_angles as f64;
             let (s, c) = theta.sin_cos();
-            for m in 0..num_radii {
-                let r = (m as f64 + 0.5) * r_max / num_radii as f64;
-                let (x, y) = (r * s, r * c);
-                points.push([x / grid_size + ci, y / grid_size + cj]);
-            }
+            angles.push([s, c]);
         }
-        Ok(PolarGrid {
+        for m in 0..num_radii {
+            radii.push((m as f64 + 0.5) * r_max / num_radii as f64);
+        }
+        let mut grid = PolarGrid {
             height,
             width,
             num_angles,
             num_radii,
             grid_size,
-            points,
-        })
+            angles,
+            radii,
+            centre,
+            table: Vec::new(),
+        };
+        if len <= POINT_TABLE_MAX {
+            let table = (0..len)
+                .map(|n| grid.compute_point(n / num_radii, n % num_radii))
+                .collect();
+            grid.table = table;
+        }
+        Ok(grid)
     }
 
-    /// Fractional (row, column) index of sample point (angle bin `k`, radius bin `m`).
+    /// Fractional (row, column) index of sample point (angle bin `k`, radius bin `m`):
+    /// `(r_m·sin θ_k / g + (H − 1)/2, r_m·cos θ_k / g + (W − 1)/2)`.
     #[inline]
     pub fn point(&self, k: usize, m: usize) -> [f64; 2] {
-        self.points[k * self.num_radii + m]
+        if self.table.is_empty() {
+            self.compute_point(k, m)
+        } else {
+            self.table[k * self.num_radii + m]
+        }
+    }
+
+    #[inline]
+    fn compute_point(&self, k: usize, m: usize) -> [f64; 2] {
+        let ([s, c], r) = (self.angles[k], self.radii[m]);
+        let (x, y) = (r * s, r * c);
+        [
+            x / self.grid_size + self.centre[0],
+            y / self.grid_size + self.centre[1],
+        ]
     }
 }
 

@@ -5,9 +5,11 @@
 //! (e.g. a PyTorch DataLoader worker) inherits no worker threads, so it rebuilds its own pool on
 //! first use. `_reset_pool_after_fork` is also registered with `os.register_at_fork`.
 
-use pyo3::exceptions::PyValueError;
+use pyo3::exceptions::{PyRuntimeError, PyValueError};
 use pyo3::prelude::*;
 use rayon::{ThreadPool, ThreadPoolBuilder};
+use std::any::Any;
+use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::sync::{Arc, Mutex};
 
 struct PoolState {
@@ -81,14 +83,45 @@ pub fn get() -> PyResult<Arc<ThreadPool>> {
     Ok(st.pool.as_ref().expect("pool was just built").clone())
 }
 
-/// Runs `f` with the GIL released, inside vvloc's pool.
+/// Runs `f`, catching a panic in it: the kernels return errors for the input they refuse, so
+/// a panic is a bug (or input changed under a running kernel by another thread). Its message
+/// comes back as the error, for [`internal_error`]: no `PanicException`, a `BaseException`
+/// that `except Exception` lets through, reaches Python. Unwind safety: the caller drops
+/// whatever `f` was building; state shared beyond it (an index behind a poisoned lock) is
+/// read on through the lock's poison, as before.
+pub fn guarded<T>(f: impl FnOnce() -> T) -> Result<T, String> {
+    catch_unwind(AssertUnwindSafe(f)).map_err(|p| panic_message(p.as_ref()))
+}
+
+fn panic_message(payload: &(dyn Any + Send)) -> String {
+    if let Some(s) = payload.downcast_ref::<&str>() {
+        (*s).to_string()
+    } else if let Some(s) = payload.downcast_ref::<String>() {
+        s.clone()
+    } else {
+        "a panic without a message".to_string()
+    }
+}
+
+/// The Python exception of a panic caught by [`guarded`]: a `RuntimeError` that names it.
+pub fn internal_error(message: String) -> PyErr {
+    PyRuntimeError::new_err(format!(
+        "vvloc internal error in a Rust kernel ({message}): a bug, or an input array that \
+         another thread changed during the call; please report it with the call's shapes \
+         and dtypes"
+    ))
+}
+
+/// Runs `f` with the GIL released, inside vvloc's pool; a panic becomes a `RuntimeError`
+/// ([`guarded`]).
 pub fn run<T, F>(py: Python<'_>, f: F) -> PyResult<T>
 where
     T: Send,
     F: FnOnce() -> T + Send,
 {
     let pool = get()?;
-    Ok(py.detach(move || pool.install(f)))
+    py.detach(move || guarded(|| pool.install(f)))
+        .map_err(internal_error)
 }
 
 /// Runs `f` with the GIL released: on the calling thread when `sequential` (the kernel is known
@@ -100,7 +133,7 @@ where
     F: FnOnce() -> T + Send,
 {
     if sequential {
-        Ok(py.detach(f))
+        py.detach(|| guarded(f)).map_err(internal_error)
     } else {
         run(py, f)
     }

@@ -104,12 +104,13 @@ impl DescriptorIndex {
         F: FnOnce(&CoreIndex) -> T + Send,
     {
         let pool = pool::get()?;
-        Ok(py.detach(|| {
+        py.detach(|| {
             let _inside = fork::enter();
             let guard = self.read();
             let index: &CoreIndex = &guard;
-            pool.install(|| f(index))
-        }))
+            pool::guarded(|| pool.install(|| f(index)))
+        })
+        .map_err(pool::internal_error)
     }
 
     /// Runs `f` on the index with the GIL released, on this thread.
@@ -159,11 +160,12 @@ impl DescriptorIndex {
         let rows = matrix(&descriptors, "descriptors", self.dim)?;
         let groups = groups.as_ref().map(|g| slice(g, "groups")).transpose()?;
         let seqs = seqs.as_ref().map(|s| slice(s, "seqs")).transpose()?;
-        to_py(py.detach(|| {
+        let added = py.detach(|| {
             let _inside = fork::enter();
             let mut w = self.inner.write().unwrap_or_else(|p| p.into_inner());
-            w.add(rows, groups, seqs)
-        }))
+            pool::guarded(|| w.add(rows, groups, seqs))
+        });
+        to_py(added.map_err(pool::internal_error)?)
     }
 
     #[pyo3(signature = (queries, k, exclude = None))]
