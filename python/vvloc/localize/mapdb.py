@@ -1,10 +1,10 @@
 """The map database: keyframes with poses and descriptors, stored as one HDF5 file.
 
-:class:`MapDatabase` opens a map file read-only (its format: :mod:`vvloc.localize.mapfile`), or
-holds one in memory (:meth:`MapDatabase.from_arrays`); :class:`MapWriter`
-(:mod:`vvloc.localize.mapwriter`) writes one. The arrays held in memory (poses, global
-descriptors, ids, ...) are returned as read-only arrays, lazy reads (local descriptors,
-BEVs) as fresh float32 copies.
+:class:`MapDatabase` opens a map file read-only (h5py mode ``"r"``; its format:
+:mod:`vvloc.localize.mapfile`), or holds one in memory (:meth:`MapDatabase.from_arrays`);
+:class:`MapWriter` (:mod:`vvloc.localize.mapwriter`) writes one. The arrays held in memory
+(poses, global descriptors, ids, ...) are returned as read-only arrays, lazy reads (local
+descriptors, BEVs) as fresh float32 copies.
 
 A map built with another model is refused: pass the model's config hash as
 ``expected_config_hash`` (and its weights fingerprint as ``expected_weights_hash``: two trained

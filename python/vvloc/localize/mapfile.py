@@ -28,10 +28,11 @@ other file attribute (HDF5 stores a value over about 4 KiB, such as a long model
 heap object without a checksum of its own). Every per-keyframe dataset is chunked
 with HDF5's Fletcher-32 filter (a corrupted chunk fails when it is read), and every dataset
 carries a ``sha256`` attribute of its stored bytes (little-endian, C order).
-:meth:`MapDatabase.open` verifies the SHA-256 of every small dataset (all but the local
-descriptors and the BEVs, which are read lazily); :meth:`MapDatabase.verify` checks all of them
-(and that the lazy ones are finite). Before it reads anything, :meth:`MapDatabase.open` refuses
-a file that says version 2 without those structures (superblock version 2 or later, version-2
+:meth:`~vvloc.localize.mapdb.MapDatabase.open` verifies the SHA-256 of every small dataset
+(all but the local descriptors and the BEVs, which are read lazily);
+:meth:`~vvloc.localize.mapdb.MapDatabase.verify` checks all of them (and that the lazy ones are
+finite). Before it reads anything, :meth:`~vvloc.localize.mapdb.MapDatabase.open` refuses a
+file that says version 2 without those structures (superblock version 2 or later, version-2
 object headers), and a dataset that does not store, uncompressed, every byte its shape declares
 (a crafted shape would otherwise be allocated by the first read). So a damaged file is refused
 with :class:`MapError` instead of being read as other values (``tests/test_mapdb.py`` flips

@@ -3,9 +3,7 @@ before any of it reaches HDF5 (:mod:`vvloc.localize.mapfile` has the format).
 
 Files are written atomically (:mod:`vvloc._io`): a temporary file in the same directory, fsync,
 ``os.replace``. A failed or interrupted write leaves no temporary file and leaves an existing
-map at the destination untouched. Maps are opened read-only (h5py mode ``"r"``); the arrays
-held in memory (poses, global descriptors, ids, ...) are returned as read-only arrays, lazy
-reads (local descriptors, BEVs) as fresh float32 copies."""
+map at the destination untouched."""
 
 from __future__ import annotations
 
