@@ -86,9 +86,10 @@ pub fn get() -> PyResult<Arc<ThreadPool>> {
 /// Runs `f`, catching a panic in it: the kernels return errors for the input they refuse, so
 /// a panic is a bug (or input changed under a running kernel by another thread). Its message
 /// comes back as the error, for [`internal_error`]: no `PanicException`, a `BaseException`
-/// that `except Exception` lets through, reaches Python. Unwind safety: the caller drops
-/// whatever `f` was building; state shared beyond it (an index behind a poisoned lock) is
-/// read on through the lock's poison, as before.
+/// that `except Exception` lets through, reaches Python. Unwind safety (`AssertUnwindSafe`):
+/// what `f` was building is dropped with the panic; shared state that it changed (an index that
+/// a panicking `add` left half-updated) stays as the panic left it, as it did when the panic
+/// reached Python (the index's lock ignores poisoning).
 pub fn guarded<T>(f: impl FnOnce() -> T) -> Result<T, String> {
     catch_unwind(AssertUnwindSafe(f)).map_err(|p| panic_message(p.as_ref()))
 }
