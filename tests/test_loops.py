@@ -736,3 +736,53 @@ def test_detect_loops_keeps_no_pose_of_another_model_or_search():
     said = rf"this call has model weights {model.weights_hash()}, previous has model weights 0+$"
     with pytest.raises(ValueError, match=said):  # only the line that differs
         detect_loops(model, db, search=search, previous=stale, **kw)
+
+
+def _closest_per_keyframe_by_hand(c: LoopCandidates, k: int) -> np.ndarray:
+    """The pairs among the k closest of either keyframe, ranked one keyframe at a time."""
+    keep = np.zeros(len(c.i), dtype=bool)
+    for kf in set(c.i.tolist()) | set(c.j.tolist()):
+        mine = [p for p in range(len(c.i)) if kf in (c.i[p], c.j[p])]
+        mine.sort(key=lambda p: (c.distance[p], p))
+        keep[mine[:k]] = True
+    return keep
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    st.lists(st.tuples(st.integers(0, 9), st.integers(0, 9), st.integers(0, 4)), max_size=40),
+    st.integers(1, 4),
+)
+def test_closest_per_keyframe_keeps_each_keyframes_k_closest(rows, k):
+    pairs = {(min(a, b), max(a, b)): d for a, b, d in rows if a != b}  # ties: few distances
+    c = LoopCandidates(
+        np.array([p[0] for p in pairs], dtype=np.int64),
+        np.array([p[1] for p in pairs], dtype=np.int64),
+        np.array(list(pairs.values()), dtype=np.float64) / 10,
+    )
+    got = c.closest_per_keyframe(k)
+    keep = _closest_per_keyframe_by_hand(c, k)
+    np.testing.assert_array_equal(got.i, c.i[keep])
+    np.testing.assert_array_equal(got.j, c.j[keep])
+    np.testing.assert_array_equal(got.distance, c.distance[keep])
+    keyframes = np.concatenate([c.i, c.j])
+    assert len(got.i) <= k * len(np.unique(keyframes))
+
+
+def test_closest_per_keyframe_bounds_the_pairs_of_many_sessions():
+    # 12 sessions of the same 30 places: every place's keyframes are each other's candidates,
+    # 66 pairs a place; two per keyframe leave at most 2 · 360
+    g, sess, seqs = random_drives(30, sessions=1, d=16, seed=3)
+    g = np.repeat(g, 12, axis=0)
+    g += np.random.default_rng(4).normal(0, 0.004, g.shape).astype(np.float32)
+    g /= np.linalg.norm(g, axis=1, keepdims=True)
+    sess, seqs = np.tile(np.arange(12), 30), np.repeat(np.arange(30), 12)
+    full = descriptor_loop_candidates(g, sess, seqs, radius=0.1, window=2)
+    assert len(full.i) == 30 * 66
+    kept = full.closest_per_keyframe(2)
+    assert 360 <= len(kept.i) <= 2 * 360
+    assert set(np.concatenate([kept.i, kept.j]).tolist()) == set(range(360))  # none left out
+    with pytest.raises(ValueError, match="k: expected an int >= 1, got 0"):
+        full.closest_per_keyframe(0)
+    with pytest.raises(TypeError, match="k: expected an int"):
+        full.closest_per_keyframe(2.0)  # type: ignore[arg-type]

@@ -805,7 +805,19 @@ def test_cli_map_localize_loops_end_to_end(tiny_world, model_dir, tmp_path):
     assert r.returncode == 0, r.stderr
     unchecked = read_loop_csv(tmp_path / "loops-all" / "loops.csv")
     assert (unchecked.i.tolist(), unchecked.j.tolist()) == (loops.i.tolist(), loops.j.tolist())
+    # the closest candidates of each keyframe, then the closest of those
+    r = loops_cli(tmp_path / "loops-few", "--radius", "0.5", "--max_pairs", "2",
+                  "--max_per_keyframe", "1")  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    few = read_loop_csv(tmp_path / "loops-few" / "loops.csv")
+    with MapDatabase.open(map_path) as db:
+        kept = loop_candidates(db, 0.5, 10, 1, True).closest_per_keyframe(1)
+        first = np.argsort(kept.distance, kind="stable")[:2]
+        assert few.i.tolist() == db.ids[kept.i[first]].tolist()
+        assert few.j.tolist() == db.ids[kept.j[first]].tolist()
     # bad input: exit code 2 and a message naming the problem
+    r = loops_cli(tmp_path / "loops-bad", "--max_per_keyframe", "-1")
+    assert r.returncode == 2 and "--max_per_keyframe" in r.stderr
     r = loops_cli(tmp_path / "loops-bad", "--sequence", "-1")
     assert r.returncode == 2 and "--sequence" in r.stderr
     r = loops_cli(tmp_path / "loops-bad", "--threshold", "nan")
@@ -882,6 +894,15 @@ def test_detect_loops_api_returns_ids_and_costs(map_file, model_dir):
         with pytest.raises(TypeError, match="max_pairs"):
             detect_loops(model, db, max_pairs=2.5, **kw)  # type: ignore[arg-type]
         assert len(detect_loops(model, db, max_pairs=0, **kw).i) == 0
+        # the closest candidates of each keyframe, then the closest of those
+        few = detect_loops(model, db, max_pairs=3, max_per_keyframe=1, **kw)
+        kept = seq.closest_per_keyframe(1)
+        assert 0 < len(kept.i) < len(seq.i)
+        first = np.argsort(kept.distance, kind="stable")[:3]
+        np.testing.assert_array_equal(few.i, ids[kept.i[first]])
+        np.testing.assert_array_equal(few.j, ids[kept.j[first]])
+        with pytest.raises(ValueError, match="max_per_keyframe: expected an int >= 1, got 0"):
+            detect_loops(model, db, max_per_keyframe=0, **kw)
         # every argument is checked up front, by name, even when no pair is left to verify
         base = {"max_pairs": 0, "progress": False}
         for change, error, match in [

@@ -300,6 +300,17 @@ def loops(
             "thousands.",
         ),
     ] = 0,
+    max_per_keyframe: Annotated[
+        int,
+        typer.Option(
+            "--max_per_keyframe",
+            min=0,
+            help="Verify only the candidates among the N closest (in descriptor space) of "
+            "either of their keyframes (0: all; applied before --max_pairs): with many sessions "
+            "revisiting the same places the candidates grow about as the square of the "
+            "sessions, this bounds them by the keyframes.",
+        ),
+    ] = 0,
     device: Annotated[str, typer.Option("--device", help="cpu, cuda[:N] or auto.")] = "cpu",
     threads: Threads = None,
     reuse: Annotated[
@@ -356,6 +367,7 @@ def loops(
             check_floors=check_floors,
             cost_threshold=threshold,
             max_pairs=max_pairs or None,
+            max_per_keyframe=max_per_keyframe or None,
             previous=previous,
         )
         if previous is not None:

@@ -84,6 +84,26 @@ class LoopCandidates:
         exactly the radius may fall either way). ``radius`` a number, not NaN (inf: all)."""
         return self.subset(self.distance < real_number(radius, "radius"))  # NaN kept nothing
 
+    def closest_per_keyframe(self, k: int) -> LoopCandidates:
+        """The candidates that are among the ``k`` (an int >= 1) closest of either of their two
+        keyframes: each keyframe's candidates (the pairs it is ``i`` or ``j`` of) ranked by
+        ``distance``, equal distances in candidate order. At most N·k pairs stay for N keyframes
+        however many sessions revisit a place (the candidates grow about as their square), and
+        every keyframe that had a candidate keeps its closest. Order as in ``self``."""
+        k = positive_int(k, "k")
+        n = len(self.i)
+        by_distance = np.argsort(self.distance, kind="stable")
+        # both ends of every pair, in distance order: (keyframe, rank of the pair, pair)
+        ends = np.concatenate([self.i[by_distance], self.j[by_distance]])
+        rank = np.tile(np.arange(n), 2)
+        at = np.lexsort((rank, ends))  # by keyframe, then by distance
+        ends = ends[at]
+        start = np.searchsorted(ends, ends)  # where each keyframe's candidates begin
+        within = np.arange(2 * n) - start < k  # the pair is among its keyframe's k closest
+        keep = np.zeros(n, dtype=bool)
+        keep[np.tile(by_distance, 2)[at][within]] = True
+        return self.subset(keep)
+
 
 #: Pairs per block in :func:`sequence_distance` (bounds its temporaries to BLOCK · D floats).
 BLOCK = 65_536
@@ -637,6 +657,7 @@ def detect_loops(
     max_pairs: int | None = None,
     progress: bool = True,
     previous: LoopClosures | None = None,
+    max_per_keyframe: int | None = None,
 ) -> LoopClosures:
     """Detect loop closures in a map and estimate ξ_{i→j} for each; see the module docstring.
 
@@ -650,9 +671,13 @@ def detect_loops(
 
     The map must hold BEVs (built with ``store_bev=True``) and have been built by ``model``
     (:func:`~vvloc.localize.localizer.check_map_model`: ``MapError`` otherwise). ``max_pairs``
-    (an int >= 0; None: all) keeps only the closest candidates in descriptor space.
-    ``sequence``: the half-window L of the sequence-consistency check (default 1: the pairs of
-    the neighbouring keyframes must match too; 0: single keyframes, the paper's test).
+    (an int >= 0; None: all) keeps only the closest candidates in descriptor space;
+    ``max_per_keyframe`` (an int >= 1; None: all), applied before it, only those among the
+    closest of either keyframe (:meth:`LoopCandidates.closest_per_keyframe`): the candidates of
+    a map whose sessions revisit the same places grow about as the square of the sessions, this
+    bounds them by the keyframes. ``sequence``: the half-window L of the sequence-consistency
+    check (default 1: the pairs of the neighbouring keyframes must match too; 0: single
+    keyframes, the paper's test).
     ``check_floors`` (default on): keep only candidates consistent with the floors of the map's
     sessions (:func:`floor_consensus`; the module docstring).
 
@@ -684,11 +709,15 @@ def detect_loops(
         _check_previous(previous.provenance, provenance)
     if max_pairs is not None:
         max_pairs = positive_int(max_pairs, "max_pairs", minimum=0)
+    if max_per_keyframe is not None:
+        max_per_keyframe = positive_int(max_per_keyframe, "max_per_keyframe")
     if not mapdb.has_bev:
         raise ValueError(
             f"map {mapdb.path}: has no BEVs; rebuild it with BEVs stored to detect loops"
         )
     cand = loop_candidates(mapdb, radius, window, sequence, check_floors)
+    if max_per_keyframe is not None:
+        cand = cand.closest_per_keyframe(max_per_keyframe)
     order = np.argsort(cand.distance, kind="stable")
     if max_pairs is not None:
         order = order[:max_pairs]
