@@ -99,7 +99,7 @@ def check_same_run(
     free = ("stage2_epochs", *RESUMABLE_CHANGES)
     saved_cfg = {k: v for k, v in old.items() if k not in free}
     current = {k: v for k, v in cfg.to_dict().items() if k not in free}
-    # where the datasets lie is checked by their contents (_check_same_data)
+    # where the datasets lie is checked by their contents (Trainer._check_same_data)
     saved_cfg, current = _without_dataset_paths(saved_cfg), _without_dataset_paths(current)
     if saved_cfg != current:
         differ = sorted(
