@@ -31,6 +31,7 @@ from vvloc.localize.mapfile import (
     _SMALL,
     FORMAT_NAME,
     FORMAT_VERSION,
+    READABLE_FORMAT_VERSIONS,
     DescriptorDType,
     MapError,
     MapMetadata,
@@ -48,26 +49,34 @@ from vvloc.localize.mapfile import (
     _read_small,
     _stored_digest,
     check_weights,
+    is_map_file,
     model_config_hash,
 )
 from vvloc.localize.mapwriter import (
+    UNIT_TOLERANCE,
     MapWriter,
     _to_numpy,
     _validate_batch,
+    check_unit_rows,
 )
 
 #: Rows read at a time by :meth:`MapDatabase.verify` (whole blocks of this many bytes).
 _VERIFY_BLOCK_BYTES = 64 << 20
 
 
+# the module's public names before the format and the writer had modules of their own
 __all__ = [
     "FORMAT_NAME",
     "FORMAT_VERSION",
+    "READABLE_FORMAT_VERSIONS",
+    "UNIT_TOLERANCE",
     "MapDatabase",
     "MapError",
     "MapMetadata",
     "MapWriter",
+    "check_unit_rows",
     "check_weights",
+    "is_map_file",
     "model_config_hash",
 ]
 
