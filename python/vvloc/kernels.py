@@ -496,7 +496,12 @@ def estimate_yaw(src: Any, tgt: Any, *, backend: Backend = "rust") -> YawEstimat
     exact minimiser;
     reference: dense 0.01-bin scan + refinement. One known limit of the Rust kernel: at a
     near-perfect match (cost ≲ 1e-3) with a second basin within the float32 error of the
-    Gram products (a scene periodic under a half turn), it may return the other basin. T >= 3
+    Gram products (a scene periodic under a half turn), it may return the other basin. A second:
+    with rows of very different sizes in one descriptor (norms spanning 10³ and more) the
+    float32 slopes that prune intervals can err past the pruning margin, and a few pairs per
+    thousand of such random rows come out in another basin (a review's fuzz, 2026-12-07; the
+    sign of an interval's end slopes is checked against its rounding bound, its lower bounds
+    are not). Learned descriptors of similar row norms are far from both. T >= 3
     (:data:`MIN_YAW_BINS`: with 2 bins the yaw's sign is undetermined).
     """
     _check_backend(backend)

@@ -1175,9 +1175,12 @@ fn estimate_impl<G: Gram>(ds: &[f32], dt: &[f32], t: usize, c: usize, g: &G) -> 
         if wx.is_nan() {
             continue; // unreachable for inputs check_rows admits; never a panic below
         }
-        // (the bounds below take the f32 slopes as they are: their error moves a bound by
-        // about as much as the values' own, which the margin covers as for the values; the
-        // error bound on both ends kept intervals of flat curves and doubled the kernel's time)
+        // The bounds below take the f32 slopes as they are. With rows of similar size their
+        // error is far below the margin; with rows spanning 10³ and more in size it can pass
+        // it and prune the best interval (a review's fuzz: a few pairs per thousand, rows of
+        // 1 to 3e6). Moving the bounds by slope_error_bound, a worst-case bound, kept most
+        // intervals of flat curves and doubled the kernel's time; a bound tight enough needs
+        // the Gram products' own summation order. A known limit (kernels.estimate_yaw).
         if c0 + d0 * wx > best + margin(best) {
             continue; // the end tangents' lower bound cannot beat the best
         }
@@ -1307,8 +1310,9 @@ fn estimate_impl<G: Gram>(ds: &[f32], dt: &[f32], t: usize, c: usize, g: &G) -> 
 /// and its f32 Gram product errs by at most C·u·(‖s‖² + ‖t‖²)/2, so a, b and their f32 storage
 /// err by ρ = (C/NEAR_ZERO_REL + 1)·u relatively (recomputed entries by u); 1/sqrt(a) by
 /// ρ/2 + 2u; b − a ± e formed in f32 adds u·(a + b + e); the lanes' f32 sums add (T/16 + 1)·u
-/// of the sum of magnitudes. Worst-case rounding, not typical: it costs only the exact
-/// minimisation of intervals whose end slope lies within it.
+/// of the sum of magnitudes. A first-order estimate of the worst case (it leaves out products of
+/// these errors and a few roundings of u each, far below the Gram term), not the typical error:
+/// it costs only the exact minimisation of intervals whose end slope lies within it.
 fn slope_error_bound(t: usize, c: usize) -> f64 {
     let u = f32::EPSILON as f64 / 2.0;
     let rho = (c as f64 / NEAR_ZERO_REL + 1.0) * u;
@@ -1661,7 +1665,10 @@ mod tests {
             if is_x86_feature_detected!("avx2") && is_x86_feature_detected!("fma") {
                 isas.push(Isa::Avx2);
             }
-            if is_x86_feature_detected!("avx512f") {
+            if is_x86_feature_detected!("avx512f")
+                && is_x86_feature_detected!("avx2")
+                && is_x86_feature_detected!("fma")
+            {
                 isas.push(Isa::Avx512);
             }
         }
