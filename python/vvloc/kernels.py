@@ -501,7 +501,8 @@ def estimate_yaw(src: Any, tgt: Any, *, backend: Backend = "rust") -> YawEstimat
     float32 slopes that prune intervals can err past the pruning margin, and a few pairs per
     thousand of such random rows come out in another basin (a review's fuzz, 2026-12-07; the
     sign of an interval's end slopes is checked against its rounding bound, its lower bounds
-    are not). Learned descriptors of similar row norms are far from both. T >= 3
+    and approximate minima are not). Learned descriptors of similar row norms are far from
+    both. T >= 3
     (:data:`MIN_YAW_BINS`: with 2 bins the yaw's sign is undetermined).
     """
     _check_backend(backend)
