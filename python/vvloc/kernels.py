@@ -493,16 +493,14 @@ def estimate_yaw(src: Any, tgt: Any, *, backend: Backend = "rust") -> YawEstimat
     ``src`` (P, T, C) source local-view descriptors, ``tgt`` (P, T, C) or (T, C) shared target.
     Returns :class:`YawEstimate` (shift (P,) bins in [0, T), yaw (P,) radians in (−π, π],
     a half turn exactly π; cost (P,) = c(shift) in f64; empty for P = 0). Rust: Gram-based
-    exact minimiser;
-    reference: dense 0.01-bin scan + refinement. One known limit of the Rust kernel: at a
-    near-perfect match (cost ≲ 1e-3) with a second basin within the float32 error of the
-    Gram products (a scene periodic under a half turn), it may return the other basin. A second:
-    with rows of very different sizes in one descriptor (norms spanning 10³ and more) the
-    float32 slopes that prune intervals can err past the pruning margin, and a few pairs per
-    thousand of such random rows come out in another basin (a review's fuzz, 2026-12-07; the
-    sign of an interval's end slopes is checked against its rounding bound, its lower bounds
-    and approximate minima are not). Learned descriptors of similar row norms are far from
-    both. T >= 3
+    exact minimiser (float32 tables prune the shift intervals, the best are re-minimised on
+    rows recomputed in float64); a pair the float32 stage cannot resolve, rows whose norms
+    span more than 32× (over both descriptors, zero rows aside) or a near-perfect match (an
+    approximate cost ≤ 1 % of the rms row norm), is minimised on float64 rows throughout,
+    several times slower (0.5-0.7 ms a pair at T = 120, C = 256; BENCHMARKS.md); learned
+    descriptors have unit rows and take it only for near-identical views. Between minima
+    closer than float64's rounding of the curve (~1e-8 of the row norm) either may be
+    returned. Reference: dense 0.01-bin scan + refinement. T >= 3
     (:data:`MIN_YAW_BINS`: with 2 bins the yaw's sign is undetermined).
     """
     _check_backend(backend)

@@ -24,7 +24,13 @@
 //!    Newton/bisection, which stops once a Newton step no longer moves the shift (1e-14 bins);
 //! 4. the winner and every near-tie (within a small margin of the approximate best) are re-scored
 //!    from rows recomputed directly in f64 and re-minimised, so the reported shift and cost do
-//!    not suffer from fp32 cancellation.
+//!    not suffer from fp32 cancellation;
+//! 5. a pair the f32 stage cannot resolve takes the exact path instead (every integer-shift row
+//!    in f64, every interval the Lipschitz bound leaves minimised on them): rows whose squared
+//!    norms span more than 1024 (`WIDE_ROWS`, checked first: the f32 slopes and bounds sum
+//!    terms of very different sizes) or an approximate best within 1 % (`NEAR_PERFECT`) of the
+//!    rms row norm (checked after step 3: the f32 values cancel near a perfect match, and a
+//!    second basin within their error could win).
 
 // Index loops over fixed lane counts are deliberate: they are what the compiler vectorises.
 #![allow(clippy::needless_range_loop)]
@@ -43,6 +49,16 @@ type Pairs<'a> = (usize, usize, usize, Cow<'a, [f32]>, Cow<'a, [f32]>, bool);
 const NEAR_ZERO_REL: f64 = 1e-2;
 /// Relative margin (of `1 + best cost`) within which approximate candidates are polished exactly.
 const POLISH_MARGIN: f64 = 1e-5;
+/// A pair whose largest nonzero row (of either descriptor) exceeds its smallest by more than
+/// this in squared norm (32× in norm) takes the exact path ([`estimate_exact`]): the first
+/// pass's f32 slopes and bounds sum terms of very different sizes there, and erred past the
+/// pruning margin for rows spanning 10³ and more (a review's fuzz, 2026-12-07). Learned
+/// descriptors have unit rows (the interactor's L2 normalisation) and never take it.
+const WIDE_ROWS: f64 = 1024.0;
+/// A pair whose approximate best cost is at most this fraction of its rms row norm takes the
+/// exact path too: near a perfect match the interpolated rows cancel, and the f32 tables' values
+/// there err by ~5e-4 of the row norm, enough to prefer another basin within that error.
+const NEAR_PERFECT: f64 = 1e-2;
 
 /// The yaw estimate of one (source, target) pair.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -402,7 +418,8 @@ impl Isa {
             Isa::Avx512 => unsafe { x86::estimate_avx512(ds, dt, t, c) },
             #[cfg(target_arch = "x86_64")]
             Isa::Avx2 => unsafe { x86::estimate_avx2(ds, dt, t, c) },
-            Isa::Generic => estimate_impl(ds, dt, t, c, &GenericGram),
+            Isa::Generic => estimate_impl(ds, dt, t, c, &GenericGram)
+                .unwrap_or_else(|| estimate_exact(ds, dt, t, c)),
         }
     }
 
@@ -698,11 +715,27 @@ mod x86 {
     }
     #[target_feature(enable = "avx512f")]
     pub fn estimate_avx512(ds: &[f32], dt: &[f32], t: usize, c: usize) -> YawEstimate {
-        estimate_impl(ds, dt, t, c, &Avx512Gram)
+        match estimate_impl(ds, dt, t, c, &Avx512Gram) {
+            Some(est) => est,
+            None => exact_avx512(ds, dt, t, c),
+        }
+    }
+    #[inline(never)]
+    #[target_feature(enable = "avx512f")]
+    fn exact_avx512(ds: &[f32], dt: &[f32], t: usize, c: usize) -> YawEstimate {
+        estimate_exact(ds, dt, t, c)
     }
     #[target_feature(enable = "avx2,fma")]
     pub fn estimate_avx2(ds: &[f32], dt: &[f32], t: usize, c: usize) -> YawEstimate {
-        estimate_impl(ds, dt, t, c, &Avx2Gram)
+        match estimate_impl(ds, dt, t, c, &Avx2Gram) {
+            Some(est) => est,
+            None => exact_avx2(ds, dt, t, c),
+        }
+    }
+    #[inline(never)]
+    #[target_feature(enable = "avx2,fma")]
+    fn exact_avx2(ds: &[f32], dt: &[f32], t: usize, c: usize) -> YawEstimate {
+        estimate_exact(ds, dt, t, c)
     }
 }
 
@@ -844,6 +877,16 @@ fn exact_curve_row(ds: &[f32], dt: &[f32], t: usize, c: usize, k: usize) -> Vec<
     out
 }
 
+/// `e[j] = ‖Ds_j − Ds_{j−1}‖²` (T,) of a (T, C) matrix, f64, exact.
+#[inline(always)]
+fn diff_sqnorms(ds: &[f32], t: usize, c: usize) -> Vec<f64> {
+    let mut e = vec![0.0; t];
+    for (j, ej) in e.iter_mut().enumerate() {
+        *ej = sqdist_f64(row_of(c, ds, j), row_of(c, ds, (j + t - 1) % t));
+    }
+    e
+}
+
 /// `Σᵢ sqrt(x[i])` in f64.
 #[inline(always)]
 fn sum_sqrt(x: &[f64]) -> f64 {
@@ -874,6 +917,10 @@ struct Curve {
     rinv: Vec<f32>,
     /// (T,) integer-shift costs.
     cint: Vec<f64>,
+    /// Smallest nonzero and largest squared row norm of either matrix (∞, 0 for all zeros).
+    norm_range: (f64, f64),
+    /// RMS row norm of the two matrices.
+    rms: f64,
 }
 
 #[inline(always)]
@@ -965,11 +1012,20 @@ fn curve_impl<G: Gram>(ds: &[f32], dt: &[f32], t: usize, c: usize, slopes: bool,
     } else {
         Vec::new()
     };
+    let norm_range = ns
+        .iter()
+        .chain(&nt)
+        .fold((f64::INFINITY, 0.0f64), |(lo, hi), &v| {
+            (if v > 0.0 { lo.min(v) } else { lo }, hi.max(v))
+        });
+    let rms = ((ns.iter().sum::<f64>() + nt.iter().sum::<f64>()) / (2 * t) as f64).sqrt();
     Curve {
         stride: st,
         dg,
         rinv,
         cint,
+        norm_range,
+        rms,
     }
 }
 
@@ -1109,14 +1165,23 @@ fn minimise_interval(a: &[f64], b: &[f64], e: &[f64], c0: f64, c1: f64) -> (f64,
     best
 }
 
+/// The yaw estimate of one pair by the approximate stage and the polish (module docs, steps
+/// 1-4), or `None` for a pair it cannot resolve, which the caller gives to [`estimate_exact`]
+/// (step 5; in a function of its own, so that the approximate stage's code stays as it was).
 #[inline(always)]
-fn estimate_impl<G: Gram>(ds: &[f32], dt: &[f32], t: usize, c: usize, g: &G) -> YawEstimate {
+fn estimate_impl<G: Gram>(
+    ds: &[f32],
+    dt: &[f32],
+    t: usize,
+    c: usize,
+    g: &G,
+) -> Option<YawEstimate> {
     let cv = curve_impl(ds, dt, t, c, true, g);
-    // e[j] = ‖Ds_j − Ds_{j−1}‖², exact.
-    let mut e = vec![0.0; t];
-    for (j, ej) in e.iter_mut().enumerate() {
-        *ej = sqdist_f64(row_of(c, ds, j), row_of(c, ds, (j + t - 1) % t));
+    let (lo, hi) = cv.norm_range;
+    if hi > WIDE_ROWS * lo {
+        return None; // the curve was not needed: a rare pair, the cost of one check
     }
+    let e = diff_sqnorms(ds, t, c);
     // two periods and the padding, so that every shift reads a row-long slice (the padding's
     // values are finite and ≥ 0, and meet zeros in dg and rinv: they add nothing)
     let st = cv.stride;
@@ -1131,9 +1196,10 @@ fn estimate_impl<G: Gram>(ds: &[f32], dt: &[f32], t: usize, c: usize, g: &G) -> 
     // the f32 entries through (1−w)a + wb − w(1−w)e, which cancels where the interpolated rows
     // match closely; the margin is relative, so at a near-perfect match (cost ≲ 1e-3) with two
     // basins closer than the f32 error (a scene periodic under a half turn) the other basin
-    // can win. Learned descriptors do not come near; a bound that covered it (an absolute
-    // allowance of √(τ·(2(‖Ds‖² + ‖Dt‖²) + e))) kept nearly every interval of flat curves
-    // and made the kernel 20× slower (BENCHMARKS.md, "estimate_yaw near a perfect match").
+    // could win: such a pair (best ≤ NEAR_PERFECT·rms) takes the exact path after pass 2. A
+    // bound that covered it here (an absolute allowance of √(τ·(2(‖Ds‖² + ‖Dt‖²) + e))) kept
+    // nearly every interval of flat curves and made every pair 20× slower (BENCHMARKS.md,
+    // "estimate_yaw near a perfect match").
     let mut best = cv.cint.iter().copied().fold(f64::INFINITY, f64::min);
     let margin = |b: f64| POLISH_MARGIN * (1.0 + b.abs());
     let mut cands: Vec<(usize, f64)> = Vec::new(); // (interval k, approximate minimum)
@@ -1175,12 +1241,10 @@ fn estimate_impl<G: Gram>(ds: &[f32], dt: &[f32], t: usize, c: usize, g: &G) -> 
         if wx.is_nan() {
             continue; // unreachable for inputs check_rows admits; never a panic below
         }
-        // The bounds below take the f32 slopes as they are. With rows of similar size their
-        // error is far below the margin; with rows spanning 10³ and more in size it can pass
-        // it and prune the best interval (a review's fuzz: a few pairs per thousand, rows of
-        // 1 to 3e6). Moving the bounds by slope_error_bound, a worst-case bound, kept most
-        // intervals of flat curves and doubled the kernel's time; a bound tight enough needs
-        // the Gram products' own summation order. A known limit (kernels.estimate_yaw).
+        // The bounds below take the f32 slopes as they are: with rows of similar size (a pair
+        // of rows spanning more than WIDE_ROWS took the exact path above) their error is far
+        // below the margin. Moving the bounds by slope_error_bound, a worst-case bound, kept
+        // most intervals of flat curves and doubled the kernel's time.
         if c0 + d0 * wx > best + margin(best) {
             continue; // the end tangents' lower bound cannot beat the best
         }
@@ -1241,6 +1305,9 @@ fn estimate_impl<G: Gram>(ds: &[f32], dt: &[f32], t: usize, c: usize, g: &G) -> 
         .map(|c| c.1)
         .chain(cv.cint.iter().copied())
         .fold(f64::INFINITY, f64::min);
+    if best <= NEAR_PERFECT * cv.rms {
+        return None;
+    }
     let mut polish: Vec<usize> = Vec::new();
     for (k, &v) in cv.cint.iter().enumerate() {
         if v <= best + margin(best) {
@@ -1279,10 +1346,82 @@ fn estimate_impl<G: Gram>(ds: &[f32], dt: &[f32], t: usize, c: usize, g: &G) -> 
         }
     }
     let (k, w, _) = result;
+    Some(finish_estimate(
+        ds,
+        dt,
+        t,
+        c,
+        &e,
+        &exact_rows[k],
+        &exact_rows[(k + 1) % t],
+        k,
+        w,
+    ))
+}
+
+/// The exact path: every row of the curve at an integer shift recomputed directly in f64, and
+/// every interval that the (exact) Lipschitz bound leaves minimised on them, the most promising
+/// first. O(T²·C) in f64 and O(T) minimisations: several times the approximate stage, for the
+/// pairs it cannot resolve (rows of very different sizes, a near-perfect match). Among equal
+/// minima the lowest interval wins, as in the polish. `e`: `e[j] = ‖Ds_j − Ds_{j−1}‖²`.
+#[inline(always)]
+fn estimate_exact(ds: &[f32], dt: &[f32], t: usize, c: usize) -> YawEstimate {
+    let e = diff_sqnorms(ds, t, c);
+    let e = &e[..];
+    let rows: Vec<Vec<f64>> = (0..t).map(|k| exact_curve_row(ds, dt, t, c, k)).collect();
+    let inv_t = 1.0 / t as f64;
+    let cint: Vec<f64> = rows.iter().map(|r| sum_sqrt(r) * inv_t).collect();
+    let lipschitz = sum_sqrt(e) * inv_t;
+    let margin = |b: f64| POLISH_MARGIN * (1.0 + b.abs());
+    let mut order: Vec<(f64, usize)> = (0..t)
+        .map(|k| (0.5 * (cint[k] + cint[(k + 1) % t] - lipschitz), k))
+        .collect();
+    order.sort_by(|x, y| x.0.total_cmp(&y.0).then(x.1.cmp(&y.1)));
+    // (interval k, w, value), from the best integer shift (its first, at w = 0)
+    let mut result = (0usize, 0.0f64, cint[0]);
+    for (k, &v) in cint.iter().enumerate() {
+        if v < result.2 {
+            result = (k, 0.0, v);
+        }
+    }
+    let mut best = result.2;
+    let mut e64 = vec![0.0; t];
+    for &(lb, k) in &order {
+        if lb > best + margin(best) {
+            break; // sorted: no later interval can come near the best either
+        }
+        let k1 = (k + 1) % t;
+        for (i, ei) in e64.iter_mut().enumerate() {
+            *ei = e[(i + t - k) % t];
+        }
+        let (w, v) = minimise_interval(&rows[k], &rows[k1], &e64, cint[k], cint[k1]);
+        if v < result.2 || (v == result.2 && k < result.0) {
+            result = (k, w, v);
+        }
+        best = best.min(v);
+    }
+    let (k, w, _) = result;
+    finish_estimate(ds, dt, t, c, e, &rows[k], &rows[(k + 1) % t], k, w)
+}
+
+/// The estimate at shift `k + w`, from the exact rows `ea`, `eb` of the curve at shifts k and
+/// k + 1 (mod T).
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+fn finish_estimate(
+    ds: &[f32],
+    dt: &[f32],
+    t: usize,
+    c: usize,
+    e: &[f64],
+    ea: &[f64],
+    eb: &[f64],
+    k: usize,
+    w: f64,
+) -> YawEstimate {
     // The minimiser's value is the expanded quadratic (1−w)a + wb − w(1−w)e in f64, which
     // cancels where a row matches closely: those rows are summed literally, so that the cost
     // is c(s*) to f64 rounding.
-    let (ea, eb) = (&exact_rows[k], &exact_rows[(k + 1) % t]);
     let mut cost = 0.0;
     for i in 0..t {
         let ei = e[(i + t - k) % t];
@@ -1602,6 +1741,73 @@ mod tests {
     }
 
     #[test]
+    fn the_exact_path_is_the_approximate_stage_where_both_are_exact() {
+        // ordinary pairs (unit rows, no near-perfect match) take the approximate stage; the
+        // exact path must give them the same minimum
+        for (t, c) in [(3, 3), (7, 5), (17, 16), (40, 64)] {
+            let (s, g) = (data(4, t, c, 5), data(4, t, c, 6));
+            for q in 0..4 {
+                let (ds, dt) = (
+                    s.index_axis(Axis(0), q).to_owned(),
+                    g.index_axis(Axis(0), q).to_owned(),
+                );
+                let (ds, dt) = (ds.as_slice().unwrap(), dt.as_slice().unwrap());
+                let fast = estimate_impl(ds, dt, t, c, &GenericGram).expect("approximate stage");
+                let exact = estimate_exact(ds, dt, t, c);
+                assert!(
+                    (fast.cost - exact.cost).abs() < 1e-12,
+                    "{t} {c}: {fast:?} {exact:?}"
+                );
+                let d = (fast.shift - exact.shift).abs();
+                assert!(d.min(t as f64 - d) < 1e-6, "{t} {c}: {fast:?} {exact:?}");
+            }
+        }
+    }
+
+    #[test]
+    fn a_near_perfect_match_keeps_its_basin_against_a_half_turn_twin() {
+        // Ds's two halves differ by 1e-5, Dt is Ds rolled by s0: the basin half a turn away
+        // costs ~1e-5 more, within the f32 tables' error near a perfect match, and the
+        // approximate stage alone chose it for 17 of 40 such pairs (T = 24, C = 16)
+        let (t, c) = (24, 16);
+        let h = data(1, t / 2, c, 9);
+        let p = data(1, t / 2, c, 10);
+        let mut ds = vec![0.0f32; t * c];
+        for j in 0..t {
+            for ch in 0..c {
+                let base = h[[0, j % (t / 2), ch]];
+                ds[j * c + ch] = if j < t / 2 {
+                    base
+                } else {
+                    base + 1e-5 * p[[0, j - t / 2, ch]]
+                };
+            }
+        }
+        let s0: f64 = 5.3;
+        let dsv = ndarray::ArrayView2::from_shape((t, c), &ds).unwrap();
+        let mut dt = vec![0.0f32; t * c];
+        for i in 0..t {
+            // the interpolated roll ρ(Ds, s0) in f64, as the module docs define it
+            let (k, w) = (s0.floor() as usize, s0 - s0.floor());
+            for ch in 0..c {
+                let u = dsv[[(i + t - k) % t, ch]] as f64;
+                let v = dsv[[(i + 2 * t - k - 1) % t, ch]] as f64;
+                dt[i * c + ch] = ((1.0 - w) * u + w * v) as f32;
+            }
+        }
+        let dtv = ndarray::ArrayView2::from_shape((t, c), &dt).unwrap();
+        let at_s0 = literal_cost(&dsv, &dtv, s0);
+        let twin = literal_cost(&dsv, &dtv, s0 + (t / 2) as f64);
+        assert!(twin > at_s0 + 1e-6, "{twin} {at_s0}"); // the twin basin is worse
+        for isa in [Isa::detect(), Isa::Generic] {
+            let e = isa.estimate(&ds, &dt, t, c);
+            assert!((e.shift - s0).abs() < 1e-3, "{isa:?}: {e:?}");
+            // at a cost of ~2e-8 the f64 expanded quadratic's own rounding is ~1e-8
+            assert!(e.cost <= at_s0 + 1e-9, "{isa:?}: {} > {at_s0}", e.cost);
+        }
+    }
+
+    #[test]
     fn rows_of_very_different_sizes_keep_the_interior_minimum() {
         // rows of sizes 1 to 1e6 in one descriptor: the f32 end slope of the best interval
         // came out −391 where it is +64.5 (b − a + e cancels), the interval was taken as
@@ -1677,7 +1883,7 @@ mod tests {
             for q in 0..3 {
                 let (ds, dt) = (s.index_axis(Axis(0), q), g.index_axis(Axis(0), q));
                 let (ds, dt) = (ds.as_slice().unwrap(), dt.as_slice().unwrap());
-                let a = estimate_impl(ds, dt, t, c, &GenericGram);
+                let a = Isa::Generic.estimate(ds, dt, t, c);
                 let x = curve_impl(ds, dt, t, c, true, &GenericGram);
                 for &isa in &isas {
                     let b = isa.estimate(ds, dt, t, c);
