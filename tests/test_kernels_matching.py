@@ -204,6 +204,50 @@ def test_estimate_yaw_of_rows_of_any_sizes_is_at_least_as_good_as_the_reference(
             assert min(d, t - d) < 1e-4
 
 
+def test_rows_with_a_large_common_part_keep_the_best_interval():
+    # a review's case: the wide rows above plus a constant second channel K, which cancels in
+    # every distance (the same cost curve) but makes the rows' norms alike (no exact path):
+    # with K = 3e7 or 4e7 the first pass pruned the best interval (shift 5.0 at 588 622.6
+    # against 0.971 at 588 577.5) while the polish margin followed the cost, not the rows' size
+    s = np.float32([-18271.859375, -394.004974, 2963412.5, 100.926277, 515.355102])
+    g = np.float32([-3.365183, -26.200469, 85942.0859375, -1.846915, 48154.277343])
+    want = K.estimate_yaw(s[None, :, None], g[None, :, None], backend="reference")
+    for k in (1e7, 2e7, 3e7, 4e7, 6e7):
+        src = np.stack([s, np.full(5, k, np.float32)], 1)[None]
+        tgt = np.stack([g, np.full(5, k, np.float32)], 1)[None]
+        got = K.estimate_yaw(src, tgt)
+        assert got.shift[0] == pytest.approx(want.shift[0], abs=1e-5), k
+        assert got.cost[0] == pytest.approx(want.cost[0], rel=1e-7), k
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    t=st.integers(3, 40),
+    c=st.integers(1, 16),
+    twin=st.booleans(),
+    seed=st.integers(0, 2**32 - 1),
+)
+def test_estimate_yaw_is_the_same_for_a_pair_scaled_by_a_power_of_two(t, c, twin, seed):
+    # every step of the kernel is homogeneous in the rows' size, so a pair scaled by 2^k (exact
+    # in float32) has the same shift and 2^k times the cost; the polish margin once followed
+    # the cost alone, and a half-turn-twin pair came out half a turn off at scales 2^6-2^12
+    rng = np.random.default_rng(seed)
+    src = _unit_rows(rng, (4, t, c))
+    if twin and t % 2 == 0:
+        src[:, t // 2 :] = src[:, : t // 2] + np.float32(1e-6) * rng.standard_normal(
+            (4, t // 2, c)
+        ).astype(np.float32)
+    s0 = rng.uniform(0, t, size=4)
+    tgt = np.stack([_fractional_roll(src[q], s0[q]) for q in range(4)])
+    tgt += (10 ** rng.uniform(-3, -1) * rng.standard_normal(tgt.shape)).astype(np.float32)
+    base = K.estimate_yaw(src, tgt)
+    for e in (-60, -20, -6, 6, 12, 40):
+        f = np.float32(2.0**e)
+        got = K.estimate_yaw(src * f, tgt * f)
+        np.testing.assert_array_equal(got.shift, base.shift, err_msg=f"2^{e}")
+        np.testing.assert_allclose(got.cost, base.cost * 2.0**e, rtol=1e-12, err_msg=f"2^{e}")
+
+
 def test_a_near_perfect_match_keeps_its_basin_against_a_half_turn_twin():
     # each source's two halves differ by 1e-5 and its target is it rolled by s0: the basin half
     # a turn away costs ~1e-5 more, within the float32 tables' error near a perfect match, and
