@@ -317,3 +317,19 @@ def test_convert_names_src_when_it_is_no_dataset(tmp_path):
         assert r.returncode == 2, r.stderr
         assert r.stderr.startswith(f"vvloc convert: error: --src: {src}: {said}"), r.stderr
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("in_pool", [False, True])
+def test_a_kernel_panic_comes_to_python_as_a_runtime_error(in_pool):
+    # a panic on the calling thread or in a pool thread's item of a parallel loop: a
+    # RuntimeError naming it (an ``except Exception`` catches it; a PanicException would not),
+    # and the pool still runs kernels afterwards
+    with pytest.raises(
+        RuntimeError, match=r"^vvloc internal error in a Rust kernel \(a test panic"
+    ):
+        vvloc._core._panic_for_tests(in_pool)
+    threads = vvloc.get_num_threads()
+    a = np.arange(4 * 16 * 8, dtype=np.float32).reshape(4, 16, 8)
+    got = vvloc.kernels.estimate_yaw(a, a)
+    np.testing.assert_allclose(got.cost, 0.0, atol=1e-6)
+    assert vvloc.get_num_threads() == threads

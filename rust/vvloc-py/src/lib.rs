@@ -23,7 +23,7 @@ mod _core {
     #[pymodule_export]
     use super::fork::{_after_fork_in_child, _after_fork_in_parent, _before_fork};
     #[pymodule_export]
-    use super::pool::{_reset_pool_after_fork, get_num_threads, set_num_threads};
+    use super::pool::{_panic_for_tests, _reset_pool_after_fork, get_num_threads, set_num_threads};
 
     #[pymodule_init]
     fn init(m: &Bound<'_, PyModule>) -> PyResult<()> {

@@ -140,6 +140,26 @@ where
     }
 }
 
+/// Panics inside [`run_where`], for the tests of the path that turns a kernel's panic into a
+/// `RuntimeError`: no kernel has a panic left that a test could trigger. `in_pool`: in a pool
+/// thread, one item of a parallel loop (rayon carries the panic back to the calling thread);
+/// otherwise on the calling thread. Not part of vvloc's API.
+#[pyfunction]
+pub fn _panic_for_tests(py: Python<'_>, in_pool: bool) -> PyResult<()> {
+    run_where(py, !in_pool, move || {
+        if in_pool {
+            use rayon::prelude::*;
+            (0..64usize).into_par_iter().for_each(|i| {
+                if i == 37 {
+                    panic!("a test panic in item {i}");
+                }
+            });
+        } else {
+            panic!("a test panic");
+        }
+    })
+}
+
 /// The most threads vvloc's kernel pool may have (building thousands of threads takes
 /// seconds and helps nothing).
 const MAX_THREADS: i64 = 1024;
