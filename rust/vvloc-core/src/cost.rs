@@ -1172,7 +1172,7 @@ fn minimise_interval(a: &[f64], b: &[f64], e: &[f64], c0: f64, c1: f64) -> (f64,
 
 /// The yaw estimate of one pair by the approximate stage and the polish (module docs, steps
 /// 1-4), or `None` for a pair it cannot resolve, which the caller gives to [`estimate_exact`]
-/// (step 5; in a function of its own, so that the approximate stage's code stays as it was).
+/// (step 5; its own instantiation per instruction set, `x86::exact_*`, called only then).
 #[inline(always)]
 fn estimate_impl<G: Gram>(
     ds: &[f32],
