@@ -497,7 +497,7 @@ def estimate_yaw(src: Any, tgt: Any, *, backend: Backend = "rust") -> YawEstimat
     rows recomputed in float64); a pair the float32 stage cannot resolve, rows whose norms
     span more than 32× (over both descriptors, zero rows aside) or a near-perfect match (an
     approximate cost ≤ 1 % of the rms row norm), is minimised on float64 rows throughout,
-    ~5× slower (1.4-1.7 ms of one core a pair at T = 120, C = 256; BENCHMARKS.md); learned
+    ~5× slower (1.0-1.4 ms of one core a pair at T = 120, C = 256; BENCHMARKS.md); learned
     descriptors have unit rows and take it only for near-identical views. The answer is the
     same for a pair scaled by a power of two (its cost scaled), while its values stay normal
     float32 numbers within the size limit. Between basins whose costs differ by less than

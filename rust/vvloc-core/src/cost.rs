@@ -1076,7 +1076,8 @@ fn eval_interval(a: &[f64], b: &[f64], e: &[f64], w: f64) -> (f64, f64, f64) {
 fn interval_row<const L: usize>(acc: &mut [[f64; L]; 3], l: usize, a: f64, b: f64, e: f64, w: f64) {
     let f = ((1.0 - w) * a + w * b - w * (1.0 - w) * e).max(0.0);
     let r = f.sqrt();
-    let inv = if f > 0.0 { 1.0 / r } else { 0.0 };
+    let q = 1.0 / r; // formed for every row, then selected: a branch kept the loop scalar
+    let inv = if f > 0.0 { q } else { 0.0 };
     let d = 0.5 * (b - a - e + 2.0 * w * e) * inv;
     acc[0][l] += r;
     acc[1][l] += d;
@@ -1109,16 +1110,14 @@ fn end_slopes(a: &[f64], b: &[f64], e: &[f64]) -> (f64, f64) {
 /// One row's terms of [`end_slopes`], added to lane `l`.
 #[inline(always)]
 fn slope_row<const L: usize>(acc: &mut [[f64; L]; 2], l: usize, a: f64, b: f64, e: f64) {
-    acc[0][l] += if a > 0.0 {
-        (b - a - e) / (2.0 * a.sqrt())
-    } else {
-        e.sqrt()
-    };
-    acc[1][l] += if b > 0.0 {
-        (b - a + e) / (2.0 * b.sqrt())
-    } else {
-        -e.sqrt()
-    };
+    // both arms formed for every row, then selected: a branch kept the loop scalar
+    let (s0, s1, se) = (
+        (b - a - e) / (2.0 * a.sqrt()),
+        (b - a + e) / (2.0 * b.sqrt()),
+        e.sqrt(),
+    );
+    acc[0][l] += if a > 0.0 { s0 } else { se };
+    acc[1][l] += if b > 0.0 { s1 } else { -se };
 }
 
 /// Minimises the convex interval function on [0, 1]: returns (w*, g(w*)). Safeguarded Newton
@@ -1255,7 +1254,7 @@ fn estimate_impl<G: Gram>(
         if c0 + d0 * wx > best + margin(best) {
             continue; // the end tangents' lower bound cannot beat the best
         }
-        // value and slope at wx, in one pass (zero rows give 0: r = 0 takes the else arm)
+        // value and slope at wx, in one pass (zero rows give 0: r = 0 selects 0)
         // 1 − wx is rounded to f32 itself, not formed from wx as f32: near wx = 1 the latter
         // keeps a few bits of it, and a minimum just below a whole bin (a close match) then
         // read ~1e-4 too high, its interval was pruned and the neighbouring one won.
@@ -1265,16 +1264,13 @@ fn estimate_impl<G: Gram>(
             2.0 * wx as f32,
             (wx * (1.0 - wx)) as f32,
         );
+        // The quotient is formed for every row and then selected, not branched on: with the
+        // division inside the branch, LLVM vectorised this loop in some builds and left half of
+        // its lanes scalar in others (BENCHMARKS.md, "A branch in the first stage's loop").
         let [gx, sx] = lane_sums([da, db, er], |[a, b, e]| {
             let r = (u * a + w * b - q * e).max(0.0).sqrt();
-            [
-                r,
-                if r > 0.0 {
-                    (b - a - e + v * e) / r
-                } else {
-                    0.0
-                },
-            ]
+            let slope = (b - a - e + v * e) / r;
+            [r, if r > 0.0 { slope } else { 0.0 }]
         });
         let (gx, sx) = (gx / t as f64, sx * inv_2t);
         // Lower envelope of the tangents at 0, wx, 1 (each a lower bound of a convex function).
@@ -1376,9 +1372,17 @@ fn estimate_impl<G: Gram>(
 fn estimate_exact(ds: &[f32], dt: &[f32], t: usize, c: usize) -> YawEstimate {
     let e = diff_sqnorms(ds, t, c);
     let e = &e[..];
-    let rows: Vec<Vec<f64>> = (0..t).map(|k| exact_curve_row(ds, dt, t, c, k)).collect();
+    // plain loops, not `map(…).collect()`: the collect's closure is compiled outside this
+    // function, without the instruction set it was instantiated for (BENCHMARKS.md, "A branch
+    // in the first stage's loop")
     let inv_t = 1.0 / t as f64;
-    let cint: Vec<f64> = rows.iter().map(|r| sum_sqrt(r) * inv_t).collect();
+    let mut rows: Vec<Vec<f64>> = Vec::with_capacity(t);
+    let mut cint: Vec<f64> = Vec::with_capacity(t);
+    for k in 0..t {
+        let row = exact_curve_row(ds, dt, t, c, k);
+        cint.push(sum_sqrt(&row) * inv_t);
+        rows.push(row);
+    }
     let lipschitz = sum_sqrt(e) * inv_t;
     let margin = |b: f64| POLISH_MARGIN * (1.0 + b.abs());
     let mut order: Vec<(f64, usize)> = (0..t)
@@ -1475,6 +1479,7 @@ fn shift_to_yaw(shift: f64, t: usize) -> f64 {
 }
 
 /// ‖(1−w)·Ds_{i−k} + w·Ds_{i−k−1} − Dt_i‖² in f64: row i of the curve at s = k + w.
+#[inline(always)]
 fn interpolated_sqdist(
     ds: &[f32],
     dt: &[f32],
