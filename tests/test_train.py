@@ -2357,6 +2357,30 @@ def test_a_bad_sim_section_is_named_as_the_configs_key(tmp_path):
     assert not world.exists()
 
 
+@pytest.mark.parametrize(
+    ("sim", "error", "said"),
+    [
+        ({"lighting": ["sunny"]}, ValueError, r"^sim: lighting: unknown presets \['sunny'\]"),
+        ({"frames": 0}, ValueError, r"^sim: frames: expected"),
+        ({"scene": "garage", "floor_marking": "signs"}, ValueError, r"^sim: floor_marking: "),
+        ({"cameras": 0, "progress": False}, ValueError, r"^sim: num_cameras: expected"),
+        ({"max_roll": 45}, ValueError, r"^sim: max_roll: expected degrees"),
+    ],
+)
+def test_a_bad_sim_value_is_refused_before_rendering_is_announced(
+    tmp_path, caplog, sim, error, said
+):
+    # the "rendering it" warning came first, then the refusal: a user read that the dataset
+    # was being rendered
+    from vvloc.train.data import _ensure_dataset
+
+    world = tmp_path / "world"
+    with caplog.at_level(logging.INFO, logger="vvloc"), pytest.raises(error, match=said):
+        _ensure_dataset(str(world), sim)
+    assert not [r for r in caplog.records if "rendering it" in r.getMessage()]
+    assert not world.exists()
+
+
 def test_rendering_a_missing_dataset_is_said_at_the_default_level(tmp_path, caplog):
     # a mistyped dataset path beside a leftover sim section trained on a rendered world, said
     # only with -v

@@ -142,31 +142,24 @@ def simulate_dataset(
     tilt puts them and written as that frame's own extrinsics (``cam_to_ego.csv``, the level
     ego frame's, as the NCLT and RobotCar readers give them); the pose stays (x, y, yaw).
     """
-    if scene == "parking" and floors is not None:
-        raise ValueError("floors: only the garage scene has floors (the parking lot has one level)")
-    if floors is None:
-        floors = 2
-    sessions, frames, floors = (
-        positive_int(v, key)
-        for key, v in (("sessions", sessions), ("frames", frames), ("floors", floors))
+    o = _checked_options(
+        scene=scene,
+        sessions=sessions,
+        frames=frames,
+        floors=floors,
+        floor_marking=floor_marking,
+        seed=seed,
+        cameras=cameras,
+        width=width,
+        height=height,
+        texture_strength=texture_strength,
+        lighting=lighting,
+        max_roll=max_roll,
+        max_pitch=max_pitch,
     )
-    if scene == "garage" and floors > MAX_FLOORS:  # the parking lot has one level
-        raise ValueError(f"floors: expected at most {MAX_FLOORS} storeys, got {floors}")
-    if scene == "garage" and frames < floors:  # each floor drives its share of the frames
-        raise ValueError(
-            f"frames: expected at least one frame per floor ({floors}) a session, got {frames}"
-        )
-    seed = positive_int(seed, "seed", 0)
-    texture_strength = finite_float(texture_strength, "texture_strength")  # a plain float
-    if texture_strength < 0:
-        raise ValueError(f"texture_strength: expected a value >= 0, got {texture_strength}")
-    for key, v in (("max_roll", max_roll), ("max_pitch", max_pitch)):
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0.0 <= v <= MAX_TILT:
-            raise ValueError(f"{key}: expected degrees within [0, {MAX_TILT:g}], got {v!r}")
-    tilt_bounds = np.array([max_roll, max_pitch], dtype=np.float64)
-    plan = session_plan(scene, sessions, seed, lighting)
-    rig = make_rig(cameras, width, height)
-    world = build_world(scene, seed, floors, floor_marking)
+    scene, sessions, frames, seed = o.scene, o.sessions, o.frames, o.seed
+    plan, rig, world, tilt_bounds = o.plan, o.rig, o.world, o.tilt_bounds
+    texture_strength = o.texture_strength
     loops = [sample_loop(r) for r in world.routes]
     meta = {
         "scene": scene,
@@ -214,3 +207,72 @@ def simulate_dataset(
             bar.close()
         renderer.release()
     return Path(out)
+
+
+@dataclass(frozen=True)
+class _Options:
+    """:func:`simulate_dataset`'s options, checked, and what they build before any rendering."""
+
+    scene: str
+    sessions: int
+    frames: int
+    seed: int
+    texture_strength: float
+    tilt_bounds: np.ndarray  # (2,) float64 degrees: max roll, max pitch
+    plan: list[SessionSpec]
+    rig: list[Camera]
+    world: World
+
+
+def check_options(**options: object) -> None:
+    """Refuse bad :func:`simulate_dataset` keyword arguments (all but ``out``) before anything
+    is rendered or said: the ``ValueError``/``TypeError`` that :func:`simulate_dataset` would
+    raise, naming the argument. ``overwrite`` and ``progress`` are not checked here."""
+    options = {k: v for k, v in options.items() if k not in ("overwrite", "progress")}
+    _checked_options(**options)  # type: ignore[arg-type]
+
+
+def _checked_options(
+    *,
+    scene: str = "parking",
+    sessions: int = 3,
+    frames: int = 600,
+    floors: int | None = None,
+    floor_marking: str = "walls",
+    seed: int = 0,
+    cameras: int = 4,
+    width: int = 160,
+    height: int = 96,
+    texture_strength: float = 1.0,
+    lighting: Sequence[str] | None = None,
+    max_roll: float = 0.0,
+    max_pitch: float = 0.0,
+) -> _Options:
+    """The checks of :func:`simulate_dataset` (its defaults), and the session plan, rig and
+    world they lead to."""
+    if scene == "parking" and floors is not None:
+        raise ValueError("floors: only the garage scene has floors (the parking lot has one level)")
+    if floors is None:
+        floors = 2
+    sessions, frames, floors = (
+        positive_int(v, key)
+        for key, v in (("sessions", sessions), ("frames", frames), ("floors", floors))
+    )
+    if scene == "garage" and floors > MAX_FLOORS:  # the parking lot has one level
+        raise ValueError(f"floors: expected at most {MAX_FLOORS} storeys, got {floors}")
+    if scene == "garage" and frames < floors:  # each floor drives its share of the frames
+        raise ValueError(
+            f"frames: expected at least one frame per floor ({floors}) a session, got {frames}"
+        )
+    seed = positive_int(seed, "seed", 0)
+    texture_strength = finite_float(texture_strength, "texture_strength")  # a plain float
+    if texture_strength < 0:
+        raise ValueError(f"texture_strength: expected a value >= 0, got {texture_strength}")
+    for key, v in (("max_roll", max_roll), ("max_pitch", max_pitch)):
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0.0 <= v <= MAX_TILT:
+            raise ValueError(f"{key}: expected degrees within [0, {MAX_TILT:g}], got {v!r}")
+    tilt_bounds = np.array([max_roll, max_pitch], dtype=np.float64)
+    plan = session_plan(scene, sessions, seed, lighting)
+    rig = make_rig(cameras, width, height)
+    world = build_world(scene, seed, floors, floor_marking)
+    return _Options(scene, sessions, frames, seed, texture_strength, tilt_bounds, plan, rig, world)

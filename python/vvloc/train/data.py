@@ -144,6 +144,7 @@ def _ensure_dataset(dataset: str, sim: dict[str, Any] | None, prefix: str = "") 
     import inspect
 
     from vvloc.sim import simulate_dataset
+    from vvloc.sim.simulate import check_options
 
     key = f"{prefix}sim"
     root = Path(dataset)
@@ -176,6 +177,10 @@ def _ensure_dataset(dataset: str, sim: dict[str, Any] | None, prefix: str = "") 
         return
     if not sim:
         raise _nothing_to_render(prefix, root)
+    try:  # a bad value is refused before the warning below says the dataset is being rendered
+        check_options(**sim)
+    except (TypeError, ValueError) as e:
+        raise (TypeError if isinstance(e, TypeError) else ValueError)(f"{key}: {e}") from e
     # said at the default level: a mistyped path beside a leftover sim section would otherwise
     # train on a synthetic world without a word (README, "Your own rig's data")
     log.warning(
