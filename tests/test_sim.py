@@ -674,3 +674,16 @@ def test_loops_and_keyframe_drives_refuse_arguments_they_cannot_use():
     ):
         with pytest.raises(error, match=match):
             call()
+
+
+def test_check_options_refuses_what_simulate_dataset_would_before_rendering():
+    # the trainer calls it before saying that a dataset is being rendered
+    from vvloc.sim.simulate import check_options
+
+    check_options(scene="garage", floors=3, frames=30, progress=False, overwrite=True)
+    with pytest.raises(ValueError, match=r"^floors: only the garage scene has floors"):
+        check_options(scene="parking", floors=2)
+    with pytest.raises(TypeError, match=r"^frames: expected an int >= 1, got str"):
+        check_options(frames="600")
+    with pytest.raises(TypeError, match=r"unknown simulate_dataset arguments \['frame'\]"):
+        check_options(frame=10)

@@ -2365,6 +2365,7 @@ def test_a_bad_sim_section_is_named_as_the_configs_key(tmp_path):
         ({"scene": "garage", "floor_marking": "signs"}, ValueError, r"^sim: floor_marking: "),
         ({"cameras": 0, "progress": False}, ValueError, r"^sim: num_cameras: expected"),
         ({"max_roll": 45}, ValueError, r"^sim: max_roll: expected degrees"),
+        ({"frames": "600"}, TypeError, r"^sim: frames: expected an int >= 1, got str"),
     ],
 )
 def test_a_bad_sim_value_is_refused_before_rendering_is_announced(

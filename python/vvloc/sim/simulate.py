@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import inspect
 import logging
 import os
 from collections.abc import Sequence
@@ -229,6 +230,10 @@ def check_options(**options: object) -> None:
     is rendered or said: the ``ValueError``/``TypeError`` that :func:`simulate_dataset` would
     raise, naming the argument. ``overwrite`` and ``progress`` are not checked here."""
     options = {k: v for k, v in options.items() if k not in ("overwrite", "progress")}
+    known = [p for p in inspect.signature(simulate_dataset).parameters if p != "out"]
+    unknown = sorted(set(options) - set(known))
+    if unknown:
+        raise TypeError(f"unknown simulate_dataset arguments {unknown} (known: {known})")
     _checked_options(**options)  # type: ignore[arg-type]
 
 
