@@ -2363,7 +2363,7 @@ def test_a_bad_sim_section_is_named_as_the_configs_key(tmp_path):
         ({"lighting": ["sunny"]}, ValueError, r"^sim: lighting: unknown presets \['sunny'\]"),
         ({"frames": 0}, ValueError, r"^sim: frames: expected"),
         ({"scene": "garage", "floor_marking": "signs"}, ValueError, r"^sim: floor_marking: "),
-        ({"cameras": 0, "progress": False}, ValueError, r"^sim: num_cameras: expected"),
+        ({"cameras": 0, "progress": False}, ValueError, r"^sim: cameras: expected"),
         ({"max_roll": 45}, ValueError, r"^sim: max_roll: expected degrees"),
         ({"frames": "600"}, TypeError, r"^sim: frames: expected an int >= 1, got str"),
     ],

@@ -270,6 +270,7 @@ def _checked_options(
             f"frames: expected at least one frame per floor ({floors}) a session, got {frames}"
         )
     seed = positive_int(seed, "seed", 0)
+    cameras = positive_int(cameras, "cameras")  # as this function names it (make_rig: num_cameras)
     texture_strength = finite_float(texture_strength, "texture_strength")  # a plain float
     if texture_strength < 0:
         raise ValueError(f"texture_strength: expected a value >= 0, got {texture_strength}")
