@@ -229,32 +229,34 @@ def check_options(**options: object) -> None:
     """Refuse bad :func:`simulate_dataset` keyword arguments (all but ``out``) before anything
     is rendered or said: the ``ValueError``/``TypeError`` that :func:`simulate_dataset` would
     raise, naming the argument. ``overwrite`` and ``progress`` are not checked here."""
-    options = {k: v for k, v in options.items() if k not in ("overwrite", "progress")}
-    known = [p for p in inspect.signature(simulate_dataset).parameters if p != "out"]
+    params = inspect.signature(simulate_dataset).parameters
+    known = [p for p in params if p != "out"]
     unknown = sorted(set(options) - set(known))
     if unknown:
         raise TypeError(f"unknown simulate_dataset arguments {unknown} (known: {known})")
-    _checked_options(**options)  # type: ignore[arg-type]
+    checked = [p for p in known if p not in ("overwrite", "progress")]
+    given = {p: options.get(p, params[p].default) for p in checked}  # its defaults, not copies
+    _checked_options(**given)  # type: ignore[arg-type]  # checked inside
 
 
 def _checked_options(
     *,
-    scene: str = "parking",
-    sessions: int = 3,
-    frames: int = 600,
-    floors: int | None = None,
-    floor_marking: str = "walls",
-    seed: int = 0,
-    cameras: int = 4,
-    width: int = 160,
-    height: int = 96,
-    texture_strength: float = 1.0,
-    lighting: Sequence[str] | None = None,
-    max_roll: float = 0.0,
-    max_pitch: float = 0.0,
+    scene: str,
+    sessions: int,
+    frames: int,
+    floors: int | None,
+    floor_marking: str,
+    seed: int,
+    cameras: int,
+    width: int,
+    height: int,
+    texture_strength: float,
+    lighting: Sequence[str] | None,
+    max_roll: float,
+    max_pitch: float,
 ) -> _Options:
-    """The checks of :func:`simulate_dataset` (its defaults), and the session plan, rig and
-    world they lead to."""
+    """The checks of :func:`simulate_dataset` (every argument given: the defaults are its
+    own), and the session plan, rig and world they lead to."""
     if scene == "parking" and floors is not None:
         raise ValueError("floors: only the garage scene has floors (the parking lot has one level)")
     if floors is None:
