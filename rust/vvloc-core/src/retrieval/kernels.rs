@@ -173,14 +173,19 @@ unsafe fn tile_f32_avx2<const QT: usize, const G: usize>(
     tile_f32_generic::<QT, G>(q, d, blocks, out)
 }
 
+/// The `QT` × `G` accumulators of [`tile_f32`]'s AVX-512 path: `acc[t][g]` lane l = query t ·
+/// row l of block g, `fma` over j = 0..d in order.
+///
+/// # Safety
+/// avx512f must be available; `q.len() >= QT * d` and `blocks.len() >= G * d * 16`.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f")]
-unsafe fn tile_f32_avx512<const QT: usize, const G: usize>(
+#[inline]
+unsafe fn tile_acc_avx512<const QT: usize, const G: usize>(
     q: &[f32],
     d: usize,
     blocks: &[f32],
-    out: &mut [f32],
-) {
+) -> [[__m512; G]; QT] {
     let mut acc = [[_mm512_setzero_ps(); G]; QT];
     let mut x = [_mm512_setzero_ps(); G];
     let bp = blocks.as_ptr();
@@ -198,12 +203,122 @@ unsafe fn tile_f32_avx512<const QT: usize, const G: usize>(
             }
         }
     }
+    acc
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+unsafe fn tile_f32_avx512<const QT: usize, const G: usize>(
+    q: &[f32],
+    d: usize,
+    blocks: &[f32],
+    out: &mut [f32],
+) {
+    // SAFETY: the caller checked the slice lengths.
+    let acc = unsafe { tile_acc_avx512::<QT, G>(q, d, blocks) };
     for t in 0..QT {
         for g in 0..G {
             // SAFETY: (t*G + g)*16 + 16 <= QT*G*16 <= out.len().
             unsafe { _mm512_storeu_ps(out.as_mut_ptr().add((t * G + g) * BLOCK), acc[t][g]) };
         }
     }
+}
+
+/// Squared distances of `QT` queries to the rows of the `G` consecutive blocks starting at
+/// `blocks[0]`, and per (query, block) the mask of rows below the query's threshold: for query t
+/// (squared norm `qn[t]`, threshold `thr[t]`) and block g (rows' squared norms
+/// `xn[g * 16..(g + 1) * 16]`), `sq[(t * G + g) * 16 + l]` and bit l of `masks[t * G + g]` are
+/// what [`block_sq`] gives for the dot products [`tile_f32`] gives: the same bits, on every level.
+/// The AVX-512 path forms them from the accumulators in registers, without storing the dot
+/// products and calling [`block_sq`] per block.
+///
+/// Panics (a bug, never user input) if a slice is too short.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn tile_sq_f32<const QT: usize, const G: usize>(
+    level: Level,
+    q: &[f32],
+    d: usize,
+    blocks: &[f32],
+    qn: &[f32],
+    xn: &[f32],
+    thr: &[f32],
+    sq: &mut [f32],
+    masks: &mut [u16],
+) {
+    assert!(
+        fits(q.len(), &[QT, d])
+            && fits(blocks.len(), &[G, d, BLOCK])
+            && qn.len() >= QT
+            && thr.len() >= QT
+            && fits(xn.len(), &[G, BLOCK])
+            && fits(sq.len(), &[QT, G, BLOCK])
+            && masks.len() >= QT * G
+    );
+    match level {
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: `level` is Avx512 only when avx512f was detected on this CPU (see
+        // `tile_f32`); the slice lengths were checked above.
+        Level::Avx512 { .. } => unsafe {
+            tile_sq_f32_avx512::<QT, G>(q, d, blocks, qn, xn, thr, sq, masks)
+        },
+        _ => {
+            tile_f32::<QT, G>(level, q, d, blocks, sq);
+            for t in 0..QT {
+                for g in 0..G {
+                    let i = t * G + g;
+                    let dots = &mut sq[i * BLOCK..(i + 1) * BLOCK];
+                    let (s, below) =
+                        block_sq(level, qn[t], &xn[g * BLOCK..(g + 1) * BLOCK], dots, thr[t]);
+                    dots.copy_from_slice(&s);
+                    masks[i] = below;
+                }
+            }
+        }
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+#[allow(clippy::too_many_arguments)]
+unsafe fn tile_sq_f32_avx512<const QT: usize, const G: usize>(
+    q: &[f32],
+    d: usize,
+    blocks: &[f32],
+    qn: &[f32],
+    xn: &[f32],
+    thr: &[f32],
+    sq: &mut [f32],
+    masks: &mut [u16],
+) {
+    // SAFETY: the caller checked the slice lengths.
+    let acc = unsafe { tile_acc_avx512::<QT, G>(q, d, blocks) };
+    let mut x = [_mm512_setzero_ps(); G];
+    for g in 0..G {
+        // SAFETY: g*16 + 16 <= G*16 <= xn.len().
+        x[g] = unsafe { _mm512_loadu_ps(xn.as_ptr().add(g * BLOCK)) };
+    }
+    for t in 0..QT {
+        let (qv, tv) = (_mm512_set1_ps(qn[t]), _mm512_set1_ps(thr[t]));
+        for g in 0..G {
+            let (s, below) = sq_below_avx512(qv, x[g], acc[t][g], tv);
+            // SAFETY: (t*G + g)*16 + 16 <= QT*G*16 <= sq.len().
+            unsafe { _mm512_storeu_ps(sq.as_mut_ptr().add((t * G + g) * BLOCK), s) };
+            masks[t * G + g] = below;
+        }
+    }
+}
+
+/// [`block_sq`]'s arithmetic on registers: `qn` and `thr` broadcast, `xn` the rows' squared norms,
+/// `dots` their dot products with the query.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+#[inline]
+fn sq_below_avx512(qn: __m512, xn: __m512, dots: __m512, thr: __m512) -> (__m512, u16) {
+    let s = _mm512_sub_ps(_mm512_add_ps(qn, xn), _mm512_add_ps(dots, dots));
+    // vmaxps returns its second operand when the first is NaN or both are zeros: +0 then, as
+    // f32::max gives for NaN (and -0 cannot occur: (qn + xn) >= +0 and a - a = +0)
+    let s = _mm512_max_ps(s, _mm512_setzero_ps());
+    (s, _mm512_cmp_ps_mask::<_CMP_LT_OQ>(s, thr))
 }
 
 /// Squared distances of one block's 16 rows to a query of squared norm `qn`, from the rows'
@@ -245,11 +360,7 @@ fn block_sq_generic(qn: f32, xn: &[f32], dots: &[f32], thr: f32) -> ([f32; BLOCK
 unsafe fn block_sq_avx512(qn: f32, xn: &[f32], dots: &[f32], thr: f32) -> ([f32; BLOCK], u16) {
     // SAFETY: both slices hold at least 16 f32 (checked by the caller).
     let (x, d) = unsafe { (_mm512_loadu_ps(xn.as_ptr()), _mm512_loadu_ps(dots.as_ptr())) };
-    let s = _mm512_sub_ps(_mm512_add_ps(_mm512_set1_ps(qn), x), _mm512_add_ps(d, d));
-    // vmaxps returns its second operand when the first is NaN or both are zeros: +0 then, as
-    // f32::max gives for NaN (and -0 cannot occur: (qn + xn) >= +0 and a - a = +0)
-    let s = _mm512_max_ps(s, _mm512_setzero_ps());
-    let below = _mm512_cmp_ps_mask::<_CMP_LT_OQ>(s, _mm512_set1_ps(thr));
+    let (s, below) = sq_below_avx512(_mm512_set1_ps(qn), x, d, _mm512_set1_ps(thr));
     let mut sq = [0f32; BLOCK];
     // SAFETY: `sq` holds 16 f32, the width of one unaligned 512-bit store.
     unsafe { _mm512_storeu_ps(sq.as_mut_ptr(), s) };

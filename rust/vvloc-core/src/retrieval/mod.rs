@@ -709,16 +709,24 @@ impl DescriptorIndex {
         for (g, dg) in dots.chunks_exact(BLOCK).enumerate() {
             let blk = b + g;
             let xn = &self.norms[blk * BLOCK..][..BLOCK];
-            let (sq, mut below) = kernels::block_sq(self.level, qn, xn, dg, sink.threshold(q));
-            // the rows below the threshold, in row order; the threshold only falls as rows are
-            // offered, so a row above it before the first offer stays above it
-            while below != 0 {
-                let l = below.trailing_zeros() as usize;
-                below &= below - 1;
-                let row = blk * BLOCK + l;
-                if row < self.len && sq[l] < sink.threshold(q) {
-                    sink.offer(q, row, sq[l]);
-                }
+            let (sq, below) = kernels::block_sq(self.level, qn, xn, dg, sink.threshold(q));
+            self.offer_below(sink, q, blk, &sq, below);
+        }
+    }
+
+    /// Offers query `q`'s sink the rows of block `blk` in `below` (bit l: row l), at squared
+    /// distances `sq`, in row order, each only if it is still below the sink's threshold: the
+    /// threshold only falls as rows are offered, so `below`, taken against it at any earlier
+    /// moment of the scan, holds every row that can still enter.
+    #[inline]
+    fn offer_below<S: Sink>(&self, sink: &mut S, q: usize, blk: usize, sq: &[f32], below: u16) {
+        let mut below = below;
+        while below != 0 {
+            let l = below.trailing_zeros() as usize;
+            below &= below - 1;
+            let row = blk * BLOCK + l;
+            if row < self.len && sq[l] < sink.threshold(q) {
+                sink.offer(q, row, sq[l]);
             }
         }
     }
@@ -729,22 +737,53 @@ impl DescriptorIndex {
         let nq = qn.len();
         let full = nq / QT * QT;
         let mut out = [0f32; QT * 2 * BLOCK];
+        let mut masks = [0u16; QT * 2];
         let blocks = |b: usize| &self.data[b * d * BLOCK..];
         for sb in (b0..b1).step_by(SUPER_BLOCKS) {
             let se = (sb + SUPER_BLOCKS).min(b1);
             for t0 in (0..full).step_by(QT) {
                 let q = &qs[t0 * d..(t0 + QT) * d];
+                let tn = &qn[t0..t0 + QT];
                 let mut b = sb;
                 while b < se {
                     let g = if b + 2 <= se { 2 } else { 1 };
+                    // the thresholds before the tile: a mask may hold rows that the offers of
+                    // an earlier block put above the threshold; `offer_below` skips them
+                    let thr: [f32; QT] = std::array::from_fn(|t| sink.threshold(t0 + t));
+                    let xn = &self.norms[b * BLOCK..(b + g) * BLOCK];
                     if g == 2 {
-                        kernels::tile_f32::<QT, 2>(self.level, q, d, blocks(b), &mut out);
+                        kernels::tile_sq_f32::<QT, 2>(
+                            self.level,
+                            q,
+                            d,
+                            blocks(b),
+                            tn,
+                            xn,
+                            &thr,
+                            &mut out,
+                            &mut masks,
+                        );
                     } else {
-                        kernels::tile_f32::<QT, 1>(self.level, q, d, blocks(b), &mut out);
+                        kernels::tile_sq_f32::<QT, 1>(
+                            self.level,
+                            q,
+                            d,
+                            blocks(b),
+                            tn,
+                            xn,
+                            &thr,
+                            &mut out,
+                            &mut masks,
+                        );
                     }
                     for t in 0..QT {
-                        let dots = &out[t * g * BLOCK..(t + 1) * g * BLOCK];
-                        self.emit(sink, t0 + t, qn[t0 + t], b, dots);
+                        for gi in 0..g {
+                            let i = t * g + gi;
+                            if masks[i] != 0 {
+                                let sq = &out[i * BLOCK..(i + 1) * BLOCK];
+                                self.offer_below(sink, t0 + t, b + gi, sq, masks[i]);
+                            }
+                        }
                     }
                     b += g;
                 }
@@ -953,36 +992,27 @@ impl DescriptorIndex {
             let per_thread = if nq < QT && self.head > 0 { 16 } else { 4 };
             let chunks = self.chunks(nq * self.dim, per_thread);
             let shared: Vec<Mutex<TopK>> = (0..nq).map(|_| Mutex::new(TopK::new(k))).collect();
-            let sinks: Vec<TopKSink> = chunks
-                .par_iter()
-                .map(|&(b0, b1)| {
-                    let mut s = TopKSink {
-                        heaps: vec![TopK::new(k); nq],
-                        floor: shared
-                            .iter()
-                            .map(|m| lock(m).threshold().next_up())
-                            .collect(),
-                        ex,
-                    };
-                    self.scan_f32(queries, &qn, b0, b1, &mut s);
-                    for (m, h) in shared.iter().zip(&s.heaps) {
-                        let mut g = lock(m);
-                        h.iter().for_each(|&hit| g.push(hit));
-                    }
-                    s
-                })
-                .collect();
-            let mut merged: Vec<Vec<Hit>> = vec![Vec::new(); nq];
-            for s in sinks {
-                for (m, h) in merged.iter_mut().zip(s.heaps) {
-                    m.extend(h.into_vec());
+            // every chunk's hits go into `shared`, which so ends up with the k nearest of all
+            chunks.par_iter().for_each(|&(b0, b1)| {
+                let mut s = TopKSink {
+                    heaps: vec![TopK::new(k); nq],
+                    floor: shared
+                        .iter()
+                        .map(|m| lock(m).threshold().next_up())
+                        .collect(),
+                    ex,
+                };
+                self.scan_f32(queries, &qn, b0, b1, &mut s);
+                for (m, h) in shared.iter().zip(&s.heaps) {
+                    let mut g = lock(m);
+                    h.iter().for_each(|&hit| g.push(hit));
                 }
-            }
-            merged
+            });
+            shared
                 .into_iter()
-                .map(|mut v| {
+                .map(|m| {
+                    let mut v = m.into_inner().unwrap_or_else(|e| e.into_inner()).into_vec();
                     v.sort_unstable();
-                    v.truncate(k);
                     v
                 })
                 .collect()

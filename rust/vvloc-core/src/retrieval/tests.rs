@@ -699,3 +699,39 @@ fn block_distances_are_the_same_bits_on_every_level() {
         }
     }
 }
+
+#[test]
+fn fused_tile_distances_are_those_of_the_tile_and_block_kernels() {
+    // tile_sq_f32 = tile_f32 then block_sq per (query, block), bit for bit, on every level
+    let d = 37;
+    let q = rand_vec(8 * d, 11);
+    let blocks = rand_vec(2 * d * BLOCK, 12);
+    let xn: Vec<f32> = rand_vec(2 * BLOCK, 13)
+        .iter()
+        .map(|v| v.abs() * 9.0)
+        .collect();
+    let qn: Vec<f32> = rand_vec(8, 14).iter().map(|v| v.abs() * 9.0).collect();
+    // thresholds from none below to all below
+    let thr = [0.0, 1.0, 4.0, 9.0, 16.0, 25.0, 100.0, f32::INFINITY];
+    let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+    for level in kernels::available_levels() {
+        let mut dots = [0f32; 8 * 2 * BLOCK];
+        kernels::tile_f32::<8, 2>(level, &q, d, &blocks, &mut dots);
+        let (mut want_sq, mut want_masks) = (Vec::new(), Vec::new());
+        for t in 0..8 {
+            for g in 0..2 {
+                let i = t * 2 + g;
+                let dg = &dots[i * BLOCK..(i + 1) * BLOCK];
+                let xg = &xn[g * BLOCK..(g + 1) * BLOCK];
+                let (s, m) = kernels::block_sq(level, qn[t], xg, dg, thr[t]);
+                want_sq.extend(s);
+                want_masks.push(m);
+            }
+        }
+        assert!(want_masks.contains(&0) && want_masks.contains(&u16::MAX));
+        let (mut sq, mut masks) = ([0f32; 8 * 2 * BLOCK], [0u16; 8 * 2]);
+        kernels::tile_sq_f32::<8, 2>(level, &q, d, &blocks, &qn, &xn, &thr, &mut sq, &mut masks);
+        assert_eq!(bits(&sq), bits(&want_sq), "{level:?}");
+        assert_eq!(masks.to_vec(), want_masks, "{level:?}");
+    }
+}
