@@ -135,24 +135,28 @@ impl TranslationSearch {
         shrink: f64,
         seed: u64,
     ) -> PyResult<Self> {
-        let inner = to_py(CoreSearch::new(SearchConfig {
-            half_range,
-            step,
-            fine_samples,
-            stages,
-            shrink,
-            seed,
-        }))?;
-        Ok(TranslationSearch { inner })
+        pool::guard(|| {
+            let inner = to_py(CoreSearch::new(SearchConfig {
+                half_range,
+                step,
+                fine_samples,
+                stages,
+                shrink,
+                seed,
+            }))?;
+            Ok(TranslationSearch { inner })
+        })
     }
 
     /// The current stage's translations (N, 2) float64 in metres ((0, 2) when done).
     fn proposals<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray2<f64>>> {
-        let n = self.inner.proposals().len();
-        let xy = to_py(self.inner.proposals_xy())?;
-        let arr = ndarray::Array2::from_shape_vec((n, 2), xy)
-            .map_err(|e| pyo3::exceptions::PyValueError::new_err(e.to_string()))?;
-        Ok(arr.into_pyarray(py))
+        pool::guard(|| {
+            let n = self.inner.proposals().len();
+            let xy = to_py(self.inner.proposals_xy())?;
+            let arr = ndarray::Array2::from_shape_vec((n, 2), xy)
+                .map_err(|e| pyo3::exceptions::PyValueError::new_err(e.to_string()))?;
+            Ok(arr.into_pyarray(py))
+        })
     }
 
     /// Reports (N,) costs and (N,) yaws of the current proposals and advances a stage.
@@ -163,24 +167,24 @@ impl TranslationSearch {
     ) -> PyResult<()> {
         let c = f64_slice(&costs, "costs")?;
         let y = f64_slice(&yaws, "yaws")?;
-        to_py(self.inner.report(&c, &y))
+        pool::guard(|| to_py(self.inner.report(&c, &y)))
     }
 
     /// Whether every stage has been evaluated.
     #[getter]
-    fn done(&self) -> bool {
-        self.inner.done()
+    fn done(&self) -> PyResult<bool> {
+        pool::guard(|| Ok(self.inner.done()))
     }
 
     /// The current stage index.
     #[getter]
-    fn stage(&self) -> usize {
-        self.inner.stage()
+    fn stage(&self) -> PyResult<usize> {
+        pool::guard(|| Ok(self.inner.stage()))
     }
 
     /// The best hypothesis (x, y, yaw, cost), or None before the first report.
-    fn best(&self) -> Option<(f64, f64, f64, f64)> {
-        self.inner.best().map(|b| (b.x, b.y, b.yaw, b.cost))
+    fn best(&self) -> PyResult<Option<(f64, f64, f64, f64)>> {
+        pool::guard(|| Ok(self.inner.best().map(|b| (b.x, b.y, b.yaw, b.cost))))
     }
 
     /// Every evaluated hypothesis: (xy (M, 2), yaw (M,), cost (M,), stage (M,) int64).
@@ -194,16 +198,18 @@ impl TranslationSearch {
         F64Vec<'py>,
         Bound<'py, PyArray1<i64>>,
     )> {
-        let h = to_py(self.inner.history_columns())?;
-        let m = h.yaw.len();
-        let xy = ndarray::Array2::from_shape_vec((m, 2), h.xy)
-            .map_err(|e| pyo3::exceptions::PyValueError::new_err(e.to_string()))?;
-        Ok((
-            xy.into_pyarray(py),
-            h.yaw.into_pyarray(py),
-            h.cost.into_pyarray(py),
-            h.stage.into_pyarray(py),
-        ))
+        pool::guard(|| {
+            let h = to_py(self.inner.history_columns())?;
+            let m = h.yaw.len();
+            let xy = ndarray::Array2::from_shape_vec((m, 2), h.xy)
+                .map_err(|e| pyo3::exceptions::PyValueError::new_err(e.to_string()))?;
+            Ok((
+                xy.into_pyarray(py),
+                h.yaw.into_pyarray(py),
+                h.cost.into_pyarray(py),
+                h.stage.into_pyarray(py),
+            ))
+        })
     }
 }
 

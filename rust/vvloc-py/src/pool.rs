@@ -94,6 +94,13 @@ pub fn guarded<T>(f: impl FnOnce() -> T) -> Result<T, String> {
     catch_unwind(AssertUnwindSafe(f)).map_err(|p| panic_message(p.as_ref()))
 }
 
+/// Runs `f` on the calling thread, holding the GIL, with a panic in it turned into the
+/// `RuntimeError` of [`internal_error`]: for the bindings' light methods (the translation
+/// search's steps, the index's accessors) that do not go through [`run`].
+pub fn guard<T>(f: impl FnOnce() -> PyResult<T>) -> PyResult<T> {
+    guarded(f).map_err(internal_error)?
+}
+
 fn panic_message(payload: &(dyn Any + Send)) -> String {
     if let Some(s) = payload.downcast_ref::<&str>() {
         (*s).to_string()

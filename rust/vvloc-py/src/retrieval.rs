@@ -113,8 +113,9 @@ impl DescriptorIndex {
         .map_err(pool::internal_error)
     }
 
-    /// Runs `f` on the index with the GIL released, on this thread.
-    fn inspect<T, F>(&self, py: Python<'_>, f: F) -> T
+    /// Runs `f` on the index with the GIL released, on this thread (a panic in it a
+    /// `RuntimeError`, as in [`Self::query`]).
+    fn inspect<T, F>(&self, py: Python<'_>, f: F) -> PyResult<T>
     where
         T: Send,
         F: FnOnce(&CoreIndex) -> T + Send,
@@ -124,8 +125,9 @@ impl DescriptorIndex {
             // a local, dropped before `_inside` (a temporary of the tail expression would be
             // dropped after it, leaving the gate with the lock still held)
             let guard = self.read();
-            f(&guard)
+            pool::guarded(|| f(&guard))
         })
+        .map_err(pool::internal_error)
     }
 }
 
@@ -209,7 +211,7 @@ impl DescriptorIndex {
     /// The index in the file format of `vvloc_core::retrieval::format` (the Python wrapper
     /// writes it with vvloc's atomic writer, which keeps a file's mode and follows links).
     fn to_bytes<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyBytes>> {
-        let bytes = to_py(self.inspect(py, vvloc_core::retrieval::format::to_bytes))?;
+        let bytes = to_py(self.inspect(py, vvloc_core::retrieval::format::to_bytes)?)?;
         Ok(PyBytes::new(py, &bytes))
     }
 
@@ -220,23 +222,24 @@ impl DescriptorIndex {
     }
 
     /// All descriptors, float32 (N, d).
-    fn descriptors<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray2<f32>> {
-        let (n, rows) = self.inspect(py, |index| (index.len(), index.rows()));
-        let a = Array2::from_shape_vec((n, self.dim), rows).expect("rows are N*d");
-        a.into_pyarray(py)
+    fn descriptors<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray2<f32>>> {
+        let (n, rows) = self.inspect(py, |index| (index.len(), index.rows()))?;
+        let a = Array2::from_shape_vec((n, self.dim), rows)
+            .map_err(|e| pool::internal_error(format!("descriptors: {e}")))?;
+        Ok(a.into_pyarray(py))
     }
 
     /// Group id of every entry, int64 (N,).
-    fn groups<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<i64>> {
-        Array1::from(self.inspect(py, |index| index.groups().to_vec())).into_pyarray(py)
+    fn groups<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray1<i64>>> {
+        Ok(Array1::from(self.inspect(py, |index| index.groups().to_vec())?).into_pyarray(py))
     }
 
     /// Sequence number of every entry, int64 (N,).
-    fn seqs<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<i64>> {
-        Array1::from(self.inspect(py, |index| index.seqs().to_vec())).into_pyarray(py)
+    fn seqs<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray1<i64>>> {
+        Ok(Array1::from(self.inspect(py, |index| index.seqs().to_vec())?).into_pyarray(py))
     }
 
-    fn __len__(&self, py: Python<'_>) -> usize {
+    fn __len__(&self, py: Python<'_>) -> PyResult<usize> {
         self.inspect(py, CoreIndex::len)
     }
 
