@@ -115,8 +115,8 @@ impl TopK {
 /// Receives the squared distances of one scan (rows of a chunk, in increasing order per query).
 pub(crate) trait Sink {
     /// Rows with a squared distance `< threshold(q)` are offered; others are skipped unseen. It
-    /// never rises as rows are offered (the scans test a block's rows against it once, then
-    /// offer only those below it).
+    /// never rises as rows are offered (the scans test a block's rows once against it, or
+    /// against its value before a tile of blocks, then offer those still below it).
     fn threshold(&self, q: usize) -> f32;
     /// Offers row `row` at squared distance `sq` to query `q`.
     fn offer(&mut self, q: usize, row: usize, sq: f32);

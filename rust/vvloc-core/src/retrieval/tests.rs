@@ -662,6 +662,15 @@ fn kernel_length_checks_do_not_wrap() {
             wrapped.is_err(),
             "{level:?}: a wrapped length passed the check"
         );
+        let fused = std::panic::catch_unwind(|| {
+            let (mut sq, mut masks) = ([0f32; 8 * 2 * BLOCK], [0u16; 16]);
+            let (qn, thr, xn) = ([0f32; 8], [0f32; 8], [0f32; 2 * BLOCK]);
+            kernels::tile_sq_f32::<8, 2>(level, &[], d, &[], &qn, &xn, &thr, &mut sq, &mut masks);
+        });
+        assert!(
+            fused.is_err(),
+            "{level:?}: a wrapped length passed the fused check"
+        );
         let norms = std::panic::catch_unwind(|| kernels::block_norms(level, &[], d));
         assert!(norms.is_err(), "{level:?}");
     }
@@ -702,36 +711,95 @@ fn block_distances_are_the_same_bits_on_every_level() {
 
 #[test]
 fn fused_tile_distances_are_those_of_the_tile_and_block_kernels() {
-    // tile_sq_f32 = tile_f32 then block_sq per (query, block), bit for bit, on every level
-    let d = 37;
-    let q = rand_vec(8 * d, 11);
-    let blocks = rand_vec(2 * d * BLOCK, 12);
-    let xn: Vec<f32> = rand_vec(2 * BLOCK, 13)
-        .iter()
-        .map(|v| v.abs() * 9.0)
-        .collect();
-    let qn: Vec<f32> = rand_vec(8, 14).iter().map(|v| v.abs() * 9.0).collect();
-    // thresholds from none below to all below
-    let thr = [0.0, 1.0, 4.0, 9.0, 16.0, 25.0, 100.0, f32::INFINITY];
-    let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
-    for level in kernels::available_levels() {
-        let mut dots = [0f32; 8 * 2 * BLOCK];
-        kernels::tile_f32::<8, 2>(level, &q, d, &blocks, &mut dots);
+    // tile_sq_f32 = tile_f32 then block_sq per (query, block), bit for bit, on every level, for
+    // both tile widths the scans use
+    fn check<const G: usize>(level: kernels::Level) {
+        let d = 37;
+        let q = rand_vec(8 * d, 11);
+        let blocks = rand_vec(G * d * BLOCK, 12);
+        let xn: Vec<f32> = rand_vec(G * BLOCK, 13)
+            .iter()
+            .map(|v| v.abs() * 9.0)
+            .collect();
+        let qn: Vec<f32> = rand_vec(8, 14).iter().map(|v| v.abs() * 9.0).collect();
+        // thresholds from none below to all below
+        let thr = [0.0, 1.0, 4.0, 9.0, 16.0, 25.0, 100.0, f32::INFINITY];
+        let mut dots = vec![0f32; 8 * G * BLOCK];
+        kernels::tile_f32::<8, G>(level, &q, d, &blocks, &mut dots);
         let (mut want_sq, mut want_masks) = (Vec::new(), Vec::new());
         for t in 0..8 {
-            for g in 0..2 {
-                let i = t * 2 + g;
+            for g in 0..G {
+                let i = t * G + g;
                 let dg = &dots[i * BLOCK..(i + 1) * BLOCK];
                 let xg = &xn[g * BLOCK..(g + 1) * BLOCK];
                 let (s, m) = kernels::block_sq(level, qn[t], xg, dg, thr[t]);
-                want_sq.extend(s);
+                want_sq.extend(s.map(f32::to_bits));
                 want_masks.push(m);
             }
         }
+        // masks with no row, every row and some rows below their threshold
         assert!(want_masks.contains(&0) && want_masks.contains(&u16::MAX));
-        let (mut sq, mut masks) = ([0f32; 8 * 2 * BLOCK], [0u16; 8 * 2]);
-        kernels::tile_sq_f32::<8, 2>(level, &q, d, &blocks, &qn, &xn, &thr, &mut sq, &mut masks);
-        assert_eq!(bits(&sq), bits(&want_sq), "{level:?}");
-        assert_eq!(masks.to_vec(), want_masks, "{level:?}");
+        assert!(want_masks.iter().any(|&m| m != 0 && m != u16::MAX));
+        let (mut sq, mut masks) = (vec![0f32; 8 * G * BLOCK], vec![0u16; 8 * G]);
+        kernels::tile_sq_f32::<8, G>(level, &q, d, &blocks, &qn, &xn, &thr, &mut sq, &mut masks);
+        let got_sq: Vec<u32> = sq.iter().map(|v| v.to_bits()).collect();
+        assert_eq!(got_sq, want_sq, "{level:?}, G = {G}");
+        assert_eq!(masks, want_masks, "{level:?}, G = {G}");
+        // and the same bits as the portable code (block_sq's AVX-512 arithmetic is shared)
+        if level != kernels::Level::Portable {
+            let mut portable = (vec![0f32; 8 * G * BLOCK], vec![0u16; 8 * G]);
+            kernels::tile_sq_f32::<8, G>(
+                kernels::Level::Portable,
+                &q,
+                d,
+                &blocks,
+                &qn,
+                &xn,
+                &thr,
+                &mut portable.0,
+                &mut portable.1,
+            );
+            assert_eq!(portable.0, sq, "{level:?}, G = {G}");
+            assert_eq!(portable.1, masks, "{level:?}, G = {G}");
+        }
+    }
+    for level in kernels::available_levels() {
+        check::<1>(level);
+        check::<2>(level);
+    }
+}
+
+#[test]
+fn batched_radius_is_the_same_on_every_level_and_thread_count() {
+    // the batch scan's fused tiles (AVX-512) and tile + block kernels (other levels) give the
+    // same hits: 19 queries (two tiles of 8 and three alone) against 2200 rows (two chunks
+    // with several threads; a last block with padding rows)
+    let (n, d, r) = (2200, 37, 0.6f32);
+    let data = clustered(n, d, 21);
+    let queries = &data[..19 * d]; // rows of the map: hits in their clusters
+    let base = DescriptorIndex::from_rows(&data, d, Dtype::F32, None, None).unwrap();
+    let want = base.radius(queries, r, None).unwrap();
+    assert!(
+        want.indices.len() > 19,
+        "too few hits to compare: {}",
+        want.indices.len()
+    );
+    for level in kernels::available_levels() {
+        let mut idx = DescriptorIndex::from_rows(&data, d, Dtype::F32, None, None)
+            .unwrap()
+            .with_level(level)
+            .unwrap();
+        idx.min_parallel_work = 0; // chunks for this small map
+        for threads in [1, 3] {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
+            let got = pool.install(|| idx.radius(queries, r, None).unwrap());
+            assert_eq!(got.offsets, want.offsets, "{level:?}, {threads} threads");
+            assert_eq!(got.indices, want.indices, "{level:?}, {threads} threads");
+            let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+            assert_eq!(bits(&got.distances), bits(&want.distances), "{level:?}");
+        }
     }
 }
