@@ -731,6 +731,23 @@ impl DescriptorIndex {
         }
     }
 
+    /// [`kernels::tile_sq_f32`] of the `QT` queries `q` (squared norms `tn`, thresholds `thr`)
+    /// and the `G` blocks from block `b`: squared distances into `out`, masks into `masks`.
+    #[inline]
+    fn tile_sq<const G: usize>(
+        &self,
+        q: &[f32],
+        tn: &[f32],
+        b: usize,
+        thr: &[f32],
+        out: &mut [f32],
+        masks: &mut [u16],
+    ) {
+        let (d, xn) = (self.dim, &self.norms[b * BLOCK..(b + G) * BLOCK]);
+        let blocks = &self.data[b * d * BLOCK..];
+        kernels::tile_sq_f32::<QT, G>(self.level, q, d, blocks, tn, xn, thr, out, masks);
+    }
+
     /// Exact float32 scan of blocks `b0..b1` for all queries (tiles of 8, then one by one).
     fn scan_f32<S: Sink>(&self, qs: &[f32], qn: &[f32], b0: usize, b1: usize, sink: &mut S) {
         let d = self.dim;
@@ -750,31 +767,10 @@ impl DescriptorIndex {
                     // the thresholds before the tile: a mask may hold rows that the offers of
                     // an earlier block put above the threshold; `offer_below` skips them
                     let thr: [f32; QT] = std::array::from_fn(|t| sink.threshold(t0 + t));
-                    let xn = &self.norms[b * BLOCK..(b + g) * BLOCK];
                     if g == 2 {
-                        kernels::tile_sq_f32::<QT, 2>(
-                            self.level,
-                            q,
-                            d,
-                            blocks(b),
-                            tn,
-                            xn,
-                            &thr,
-                            &mut out,
-                            &mut masks,
-                        );
+                        self.tile_sq::<2>(q, tn, b, &thr, &mut out, &mut masks);
                     } else {
-                        kernels::tile_sq_f32::<QT, 1>(
-                            self.level,
-                            q,
-                            d,
-                            blocks(b),
-                            tn,
-                            xn,
-                            &thr,
-                            &mut out,
-                            &mut masks,
-                        );
+                        self.tile_sq::<1>(q, tn, b, &thr, &mut out, &mut masks);
                     }
                     for t in 0..QT {
                         for gi in 0..g {
