@@ -103,6 +103,25 @@ def test_nclt_reader_converts_frames_and_matches_poses(tmp_path):
     assert f.images.shape == (1, 3, 3, 4) and f.K[0, 0, 0] == pytest.approx(2.5)
 
 
+def test_nclt_undistortion_maps_are_found_where_their_archive_unpacks(tmp_path):
+    # NCLT ships the maps apart from cam_params (U2D_ALL_1616X1232.tar.gz): a map in a
+    # U2D_ALL_* folder beside cam_params, or beside cam_params itself, is used as one inside it
+    _nclt(tmp_path)
+    inside = tmp_path / "cam_params" / "U2D_Cam1_8X6.txt"
+    with pytest.warns(UserWarning, match="U2D_Cam2"):
+        want = open_dataset(tmp_path, cameras=(1, 2), upright=False).session(DATE)[1].images
+    for folder in (tmp_path / "U2D_ALL_8X6", tmp_path):
+        folder.mkdir(exist_ok=True)
+        moved = folder / inside.name
+        (inside if inside.exists() else tmp_path / "U2D_ALL_8X6" / inside.name).rename(moved)
+        with pytest.warns(UserWarning) as caught:
+            got = open_dataset(tmp_path, cameras=(1, 2), upright=False).session(DATE)[1].images
+        messages = [str(w.message) for w in caught]
+        assert not any("U2D_Cam1" in m for m in messages), messages  # Cam1's map was found
+        assert any("looked there, in" in m and "U2D_Cam2" in m for m in messages), messages
+        assert np.array_equal(got, want), folder
+
+
 def test_nclt_images_are_turned_upright_and_the_ego_origin_lowered(tmp_path):
     _nclt(tmp_path)
     np.savetxt(tmp_path / "cam_params" / "x_lb3_c1.csv", [X_LB3_C5], delimiter=",")

@@ -6,7 +6,8 @@ Layout read (as distributed; ``images/`` and ``ground_truth/`` levels are option
     <root>/[ground_truth/]groundtruth_<date>.csv            utime,x,y,z,roll,pitch,yaw (no header)
     <root>/cam_params/K_cam{i}.csv                          3×3 intrinsics, comma separated
     <root>/cam_params/x_lb3_c{i}.csv                        camera pose in the Ladybug frame
-    <root>/cam_params/U2D_Cam{i}_*.txt                      optional undistortion map
+    <root>/cam_params/U2D_Cam{i}_*.txt                      optional undistortion map (or in
+    <root>/U2D_ALL_*/, as NCLT's U2D_ALL_1616X1232.tar.gz unpacks, or in <root>/)
 
 Conventions converted from:
 
@@ -359,17 +360,25 @@ def _undistortion_map(
     *,
     warn: bool,
 ) -> tuple[np.ndarray, np.ndarray] | None:
-    """Camera ``camera``'s undistortion map (``cam_params/U2D_Cam<i>_*.txt``), read once into
-    ``cache`` for every date, or None without one (a ``UserWarning`` at :func:`open_nclt`'s
-    caller when ``warn``: the images stay distorted). ``DatasetFormatError`` when it is not of
-    the raw images' (width, height) ``native`` (``images``: a camera folder, for the
-    message)."""
-    u2d = sorted(params.glob(f"U2D_Cam{camera}_*.txt"))
+    """Camera ``camera``'s undistortion map (``U2D_Cam<i>_*.txt`` in ``cam_params/``, else in a
+    ``U2D_ALL_*/`` folder beside it, as NCLT's archive of the maps unpacks, else beside
+    ``cam_params/``), read once into ``cache`` for every date, or None without one (a
+    ``UserWarning`` at :func:`open_nclt`'s caller when ``warn``: the images stay distorted).
+    ``DatasetFormatError`` when it is not of the raw images' (width, height) ``native``
+    (``images``: a camera folder, for the message)."""
+    root = params.parent
+    places = [params, *sorted(p for p in root.glob("U2D_ALL_*") if p.is_dir()), root]
+    u2d: list[Path] = []
+    for place in places:
+        u2d = sorted(place.glob(f"U2D_Cam{camera}_*.txt"))
+        if u2d:
+            break
     if not u2d:
         if warn:
             warnings.warn(
-                f"{params}: no U2D_Cam{camera}_*.txt undistortion map; Cam{camera}'s images are "
-                "used distorted, which its pinhole K does not describe",
+                f"{params}: no U2D_Cam{camera}_*.txt undistortion map (looked there, in "
+                f"{root}/U2D_ALL_*/ and in {root}); Cam{camera}'s images are used distorted, "
+                "which its pinhole K does not describe",
                 stacklevel=3,
             )
         return None
