@@ -668,6 +668,7 @@ def _full_metrics():
         "robustness": ev.evaluate_robustness(
             q, db, {"none": reranked, "fog": retrieved}, top_n=(1, 2)
         ),
+        "robustness_pose": {"fog": ev.pose_accuracy(est, gt, ml.correct(), kept=ml.kept)},
         "latency": ev.latency_summary({"encoder": [10.0, 12.0], "retrieval": [0.5, 0.7]}),
         "notes": ["hand-made data"],
     }
@@ -722,6 +723,14 @@ def test_write_report_markdown_and_json(tmp_path):
     assert "| CFER 90 % bound, events (%) | CFER at Recall@2m 30 % (%) |" in rendered
     assert "| 11.70 | 0.12 |" in rendered
     assert "| s1 | cost < 0.75 | 2 | 0 | 2.50 | 1.20 | 100.0 | 100.0 |" in text
+    # the accept rule of each threshold column (the row's: distance < it; the sweep's: ≤)
+    assert "| name | threshold (accepted: distance < it) | accepted |" in text
+    assert "| best-F1 threshold (accepted: distance ≤ it) |" in text
+    # the robustness pose rows are named by perturbation, and say whose pose they score
+    robust = text[text.index("## Robustness (metric pose accuracy") :]
+    assert "| perturbation (VVLoc-ML's pose) | queries | n |" in robust
+    assert "| fog | top-1 true revisit |" in robust
+    assert "| method | queries | n |" in text[: text.index("## Loop closure")]
     assert not list(tmp_path.glob(".*.tmp"))
 
 

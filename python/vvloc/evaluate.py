@@ -1327,7 +1327,11 @@ def _recall_table(results: Mapping[str, Any], first: str, define_kept: bool = Fa
     ]
 
 
-def _pose_table(results: Mapping[str, Any]) -> list[str]:
+def _pose_table(
+    results: Mapping[str, Any], first_column: str = "method", define: bool = True
+) -> list[str]:
+    """AOE/APE rows of ``{name: pose_accuracy(...)}``, the names under ``first_column``; with
+    ``define``, how AOE/APE@p are taken is said under the table (the report's first such)."""
     subsets = {
         "true_revisit": "top-1 true revisit",
         "pose_keyframe": "pose's keyframe a true revisit",
@@ -1337,7 +1341,8 @@ def _pose_table(results: Mapping[str, Any]) -> list[str]:
     first = next(iter(next(iter(results.values())).values()))
     aoe = [k for k in first if k.startswith("AOE@")]
     ape = [k for k in first if k.startswith("APE@")]
-    header = ["method", "queries", "n"] + [f"{k}% (°)" for k in aoe] + [f"{k}% (m)" for k in ape]
+    header = [first_column, "queries", "n"]
+    header += [f"{k}% (°)" for k in aoe] + [f"{k}% (m)" for k in ape]
     rows = []
     for name, res in results.items():
         for key, label in subsets.items():
@@ -1347,6 +1352,8 @@ def _pose_table(results: Mapping[str, Any]) -> list[str]:
                 other = row.get("other_floor", 0)
                 shown = f"{label} ({other} answered on another floor left out)" if other else label
                 rows.append([name, shown, str(row["count"]), *cells])
+    if not define:
+        return _table(header, rows)
     return [
         *_table(header, rows)[:-1],
         "",
@@ -1372,7 +1379,7 @@ def _loop_table(results: Mapping[str, Any]) -> list[str]:
     default_targets = " / ".join(f"{100 * r:g}" for r in SUMMARY_RECALLS)
     header = [
         "name",
-        "threshold",
+        "threshold (accepted: distance < it)",
         "accepted",
         "Precision@2m (%)",
         "Recall@2m (%)",
@@ -1383,7 +1390,7 @@ def _loop_table(results: Mapping[str, Any]) -> list[str]:
         f"CFER {_one_label(levels, '95')} % bound, events (%)",
         f"CFER at Recall@2m {_one_label(targets, default_targets)} % (%)",
         "best F1",
-        "best-F1 threshold",
+        "best-F1 threshold (accepted: distance ≤ it)",
     ]
     rows = []
     for name, res in results.items():
@@ -1496,14 +1503,13 @@ def render_markdown(
         lines.append(f"- **{k}**: {v}")
     if meta:
         lines.append("")
+    pose_columns = {"pose_accuracy": "method", "robustness_pose": "perturbation (VVLoc-ML's pose)"}
     builders = {
-        "pose_accuracy": _pose_table,
-        "robustness_pose": _pose_table,
         "loop_closure": _loop_table,
         "loop_pose": _loop_pose_table,
         "latency": _latency_table,
     }
-    kept_defined = False
+    kept_defined = pose_defined = False
     for key, (heading, first) in _SECTIONS.items():
         section = m.get(key)
         if not section:
@@ -1513,6 +1519,9 @@ def render_markdown(
             if first:
                 lines += _recall_table(section, first, define_kept=not kept_defined)
                 kept_defined = True
+            elif key in pose_columns:
+                lines += _pose_table(section, pose_columns[key], define=not pose_defined)
+                pose_defined = True
             else:
                 lines += builders[key](section)
         except (TypeError, AttributeError, KeyError, IndexError, ValueError) as e:
