@@ -611,6 +611,35 @@ def test_confidence_curve():
         ev.confidence_curve([0.1, 0.2], [30.0, 1.0], [0.5, -0.5])
 
 
+def test_confidence_curve_keeps_tied_costs_together():
+    # costs [0.5, 0.5, 0.2]: thresholds 0.2 then 0.5, the two pairs at 0.5 kept at once
+    curve = ev.confidence_curve([0.5, 0.5, 0.2], [4.0, 8.0, 1.0], [0.5, 3.0, 0.1])
+    np.testing.assert_allclose(curve["threshold"], [0.2, 0.5])
+    np.testing.assert_allclose(curve["kept_share"], [1 / 3, 1.0])
+    np.testing.assert_allclose(curve["mRRE_deg"], [1.0, 13 / 3])
+    np.testing.assert_allclose(curve["RR_rot"], [1.0, 2 / 3])
+    np.testing.assert_allclose(curve["RR_trans"], [1.0, 2 / 3])
+
+
+def test_pose_errors_wrap_yaws_given_outside_the_half_open_interval():
+    # 359° against 1°, −719.5° against 1°, 540° against −180°: 2°, 0.5°, 0°
+    est = np.radians([[0, 0, 359.0], [0, 0, -719.5], [0, 0, 540.0]])
+    gt = np.radians([[0, 0, 1.0], [0, 0, 1.0], [0, 0, -180.0]])
+    yaw, pos = ev.pose_errors(est, gt)
+    np.testing.assert_allclose(yaw, [2.0, 0.5, 0.0], atol=1e-9)
+    np.testing.assert_allclose(pos, 0.0)
+
+
+def test_pose_accuracy_true_revisit_row_leaves_out_queries_not_kept():
+    # a query marked correct but not kept (no map frame within 2 m) stays out of true_revisit
+    gt = np.zeros((3, 3))
+    est = np.array([[1.0, 0.0, 0.0], [2.0, 0.0, 0.0], [40.0, 0.0, 0.0]])
+    acc = ev.pose_accuracy(est, gt, [True, True, True], kept=[True, True, False])
+    assert acc["true_revisit"]["count"] == 2 and acc["true_revisit"]["APE@95"] == 2.0
+    assert acc["all"]["count"] == 2 and acc["every_query"]["count"] == 3
+    assert acc["every_query"]["APE@95"] == 40.0
+
+
 def test_loop_closure_curve_flags_are_bools():
     # causal="no" is truthy: it scored as causal=True (no pair) without a word
     pos = np.c_[np.arange(5.0), np.zeros(5)]
