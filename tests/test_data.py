@@ -623,6 +623,74 @@ def test_the_writer_refuses_what_the_reader_would_refuse_naming_the_argument(tmp
     np.testing.assert_array_equal(frame.pose, [1.0, 2.0, 0.5])
 
 
+def test_a_session_meta_json_cannot_hold_leaves_no_half_made_session(tmp_path):
+    # a numpy int in meta: a bare TypeError once left the session's folders in the output,
+    # unregistered, so that the same name could not be added again and the closed dataset
+    # failed to open ("poses file missing")
+    cams = make_rig(2, W, H)
+    img = np.zeros((2, 3, H, W), np.uint8)
+    with DatasetWriter(tmp_path / "ds", cams) as w:
+        with pytest.raises(TypeError, match=r"meta: expected plain JSON values"):
+            w.add_session("s0", meta={"seed": np.int64(3)})
+        w.add_session("s0", meta={"seed": 3}).add(1000, (0.0, 0.0, 0.0), img)
+        w.add_session("s1").add(1000, (0.0, 0.0, 0.0), img)
+    ds = open_dataset(tmp_path / "ds")
+    assert ds.sessions == ["s0", "s1"]
+
+
+def test_timestamps_beyond_2_53_microseconds_are_refused_as_likely_nanoseconds(tmp_path):
+    # nanoseconds since 1970 (1.7e18) opened silently: Frame.t = 1.7e12 s, and round(t·1e6),
+    # which the exports name frames by, no longer gave the poses.csv timestamp back
+    cams = make_rig(2, W, H)
+    img = np.zeros((2, 3, H, W), np.uint8)
+    with DatasetWriter(tmp_path / "ds", cams) as w:
+        s = w.add_session("s0")
+        with pytest.raises(ValueError, match=r"timestamp: timestamp 1700000000100000123 is beyond"):
+            s.add(1_700_000_000_100_000_123, (0.0, 0.0, 0.0), img)
+        s.add(2**53, (0.0, 0.0, 0.0), img)  # the largest taken
+    (frame,) = open_dataset(tmp_path / "ds").session("s0")
+    assert round(frame.t * 1e6) == 2**53
+    poses = tmp_path / "ds" / "sessions" / "s0" / "poses.csv"
+    poses.write_text(poses.read_text().replace(str(2**53), "1700000000100000123"))
+    with pytest.raises(DatasetFormatError, match=r"poses.csv, line 2: .*microseconds \(nanosec"):
+        open_dataset(tmp_path / "ds")
+
+
+def test_the_writer_names_cameras_that_are_no_cameras(tmp_path):
+    cams = make_rig(2, W, H)
+    with pytest.raises(TypeError, match=r"cameras\[0\]: expected a vvloc.data.Camera .* got dict"):
+        DatasetWriter(tmp_path / "ds", [c.to_json() for c in cams])
+    assert not list(tmp_path.iterdir())  # refused before any folder was made
+    # a generator is taken whole (it was used up by the checks, leaving no camera)
+    with DatasetWriter(tmp_path / "ds", (c for c in cams)) as w:
+        assert w.cameras == tuple(cams)
+        w.add_session("s0").add(1000, (0.0, 0.0, 0.0), np.zeros((2, 3, H, W), np.uint8))
+    assert len(open_dataset(tmp_path / "ds").cameras) == 2
+
+
+def test_a_byte_order_mark_and_hidden_folders_are_read_as_nothing(tmp_path):
+    cams = _write(tmp_path / "ds", {"s0": _line(3)})
+    root = tmp_path / "ds"
+    for f in (root / "rig.json", root / "sessions" / "s0" / "poses.csv"):
+        f.write_bytes(b"\xef\xbb\xbf" + f.read_bytes())  # Excel's "CSV UTF-8"
+    (root / "sessions" / ".ipynb_checkpoints").mkdir()
+    (root / "sessions" / "s0" / ".ipynb_checkpoints").mkdir()
+    ds = open_dataset(root)
+    assert ds.sessions == ["s0"] and len(ds.session("s0")) == 3
+    assert [c.name for c in ds.cameras] == [c.name for c in cams]
+
+
+def test_a_rotation_typed_with_few_decimals_is_refused_with_how_far_it_is_off(tmp_path):
+    _write(tmp_path / "ds", {"s0": _line(2)})
+    root = tmp_path / "ds"
+    # forward-looking, pitched down 10°, the cosine and sine typed as 0.9848 and 0.1736
+    c, n = 0.9848, 0.1736
+    typed = [[0, -n, c, 0], [-1, 0, 0, 0], [0, -c, -n, 1.5], [0, 0, 0, 1]]
+    _edit_rig(root, lambda doc: doc["cameras"][1].__setitem__("cam_to_ego", typed))
+    with pytest.raises(DatasetFormatError, match=r"is 3.2e-05 from orthonormal .*Re-orthonorm"):
+        open_dataset(root)
+
+
 def test_an_interrupted_overwrite_keeps_the_old_dataset_whole(tmp_path, monkeypatch):
     """The old dataset is renamed aside, not deleted, until the new one is in place: an
     interrupt between the two renames puts it back (it was left half deleted before)."""

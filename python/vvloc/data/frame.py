@@ -63,7 +63,9 @@ class Camera:
                 f"camera {self.name!r}: cam_to_ego must be finite (4, 4), got {T.shape}"
             )
         if not is_rigid(T):
-            raise ValueError(f"camera {self.name!r}: cam_to_ego must be a {RIGID}")
+            raise ValueError(
+                f"camera {self.name!r}: cam_to_ego must be a {RIGID}: {rigid_fault(T)}"
+            )
         object.__setattr__(self, "K", K)
         object.__setattr__(self, "cam_to_ego", T)
         object.__setattr__(self, "width", int(self.width))
@@ -473,6 +475,25 @@ def is_pinhole(K: np.ndarray) -> bool:
         and (K[..., 0, 0] > 0).all()
         and (K[..., 1, 1] > 0).all()
         and np.allclose(K[..., 2, :], (0.0, 0.0, 1.0), atol=1e-9)
+    )
+
+
+def rigid_fault(T: np.ndarray) -> str:
+    """Why a finite (4, 4) ``T`` is not a :data:`RIGID` transform, for messages: its bottom row,
+    its rotation's determinant, or how far the rotation is from orthonormal (a matrix typed
+    with a few decimals misses the 1e-6 by about their rounding)."""
+    T = np.asarray(T, dtype=np.float64)
+    R = T[:3, :3]
+    if not (T[3] == (0.0, 0.0, 0.0, 1.0)).all():
+        return f"bottom row {T[3].tolist()}, not 0 0 0 1"
+    det = float(np.linalg.det(R))
+    if det <= 0:
+        return f"the rotation's determinant is {det:.6g} (a reflection or a singular matrix)"
+    off = float(np.abs(R.T @ R - np.eye(3)).max())
+    return (
+        f"the rotation is {off:.2g} from orthonormal (largest entry of RᵀR − I, above 1e-6): "
+        "written with too few decimals? Re-orthonormalise it (U·Vᵀ of its SVD) or write it "
+        "with more digits"
     )
 
 

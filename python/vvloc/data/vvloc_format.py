@@ -51,6 +51,7 @@ from vvloc.data.frame import (
     check_image_size,
     is_rigid,
     load_rgb,
+    rigid_fault,
 )
 from vvloc.data.heading import heading_warning
 from vvloc.data.rig import frame_extrinsics_warnings, rig_warnings
@@ -141,7 +142,7 @@ def read_rig(path: Path, *, one_size: bool = True) -> tuple[list[Camera], dict[s
     except ValueError as e:
         raise DatasetFormatError(str(e)) from None
     try:
-        doc = json.loads(path.read_text(encoding="utf-8"))
+        doc = json.loads(path.read_text(encoding="utf-8-sig"))  # a byte-order mark too
     except (OSError, ValueError, RecursionError) as e:  # JSON, UTF-8 errors; too deep nesting
         raise DatasetFormatError(f"{path}: cannot read rig: {e}") from e
     if not isinstance(doc, dict) or not isinstance(doc.get("cameras"), list) or not doc["cameras"]:
@@ -188,6 +189,20 @@ def _number_texts(fields: Sequence[str], kinds: str) -> None:
             raise ValueError(f"expected {what}, got {text!r:.60}")
 
 
+#: The largest timestamp magnitude (microseconds) a dataset takes: 2^53, about the year 2255,
+#: below which a timestamp survives the float seconds of ``Frame.t`` and back exactly (the
+#: exported trajectories and keyframe tables name frames by ``round(t·1e6)``). Nanoseconds
+#: since 1970 (≈ 1.7e18) lie far above it.
+MAX_TIMESTAMP_US = 2**53
+
+
+def _timestamp_fault(ts: int) -> str:
+    return (
+        f"timestamp {ts} is beyond ±2^53 µs (about the year 2255): timestamps are microseconds "
+        "(nanoseconds? divide by 1000)"
+    )
+
+
 def read_poses(path: Path) -> np.ndarray:
     """Parse ``poses.csv`` into a structured array; errors name the file and the line."""
     if not path.is_file():
@@ -208,6 +223,8 @@ def read_poses(path: Path) -> np.ndarray:
                     f"{path}, line {line}: {name} {row[0] if name == 'timestamp' else row[5]:.60} "
                     "is outside the int64 range"
                 )
+        if not -MAX_TIMESTAMP_US <= ts <= MAX_TIMESTAMP_US:
+            raise DatasetFormatError(f"{path}, line {line}: {_timestamp_fault(ts)}")
         if not all(math.isfinite(v) for v in (x, y, z, yaw)):
             raise DatasetFormatError(f"{path}, line {line}: non-finite value in {row!r:.200}")
         if last is not None and ts <= last:
@@ -230,7 +247,8 @@ def _csv_rows(path: Path, header: tuple[str, ...]) -> Iterator[tuple[int, list[s
     """(line number, fields) of every non-blank row of a CSV file whose first line must be
     ``header`` and whose rows must have as many fields; errors name the file and the line (a
     file that is not UTF-8 text: the file and the byte)."""
-    with path.open(newline="", encoding="utf-8") as f:
+    # utf-8-sig: a byte-order mark (Excel's "CSV UTF-8") is read as none
+    with path.open(newline="", encoding="utf-8-sig") as f:
         reader = csv.reader(f)
         try:
             yield from _checked_rows(path, reader, header)
@@ -288,7 +306,9 @@ def read_extrinsics(path: Path, timestamps: np.ndarray, cameras: Sequence[Camera
             )
         out[k, m, :3] = vals
         if not is_rigid(out[k, m]):
-            raise DatasetFormatError(f"{path}, line {line}: not a {RIGID}")
+            raise DatasetFormatError(
+                f"{path}, line {line}: not a {RIGID}: {rigid_fault(out[k, m])}"
+            )
         seen[k, m] = True
     if not seen.all():
         k, m = np.argwhere(~seen)[0]
@@ -388,7 +408,8 @@ def open_vvloc(root: str | os.PathLike[str], image_size: tuple[int, int] | None 
     if not sess_root.is_dir():
         raise DatasetFormatError(f"{sess_root}: sessions folder missing")
     sessions: dict[str, Session] = {}
-    for d in sorted(p for p in sess_root.iterdir() if p.is_dir()):
+    # hidden folders (.ipynb_checkpoints, ...) are no sessions: the writer names none so
+    for d in sorted(p for p in sess_root.iterdir() if p.is_dir() and not p.name.startswith(".")):
         if _has_control(d.name):  # a line break in a name would split the CSV rows vvloc writes
             raise DatasetFormatError(
                 f"{d.parent / repr(d.name)}: a session folder name with a control character "
@@ -396,7 +417,7 @@ def open_vvloc(root: str | os.PathLike[str], image_size: tuple[int, int] | None 
             )
         poses_path = d / "poses.csv"
         rows = read_poses(poses_path)
-        for sub in sorted(p for p in d.iterdir() if p.is_dir()):
+        for sub in sorted(p for p in d.iterdir() if p.is_dir() and not p.name.startswith(".")):
             if sub.name not in names:
                 raise DatasetFormatError(
                     f"{sub}: camera {sub.name!r} is not in rig.json (cameras: {sorted(names)})"
@@ -445,12 +466,20 @@ class SessionWriter:
     def __init__(self, directory: Path, cameras: Sequence[Camera], meta: dict[str, Any] | None):
         self.directory = directory
         self.cameras = tuple(cameras)
+        try:  # before any folder is made: a meta JSON cannot hold leaves nothing behind
+            meta_text = None if meta is None else json.dumps(meta, indent=2)
+        except (TypeError, ValueError) as e:
+            raise TypeError(f"meta: expected plain JSON values (str, int, float, ...): {e}") from e
         directory.mkdir(parents=True)
-        for cam in self.cameras:
-            (directory / cam.name).mkdir()
-        if meta is not None:
-            (directory / "session.json").write_text(json.dumps(meta, indent=2))
-        self._file = (directory / "poses.csv").open("w", newline="")
+        try:
+            for cam in self.cameras:
+                (directory / cam.name).mkdir()
+            if meta_text is not None:
+                (directory / "session.json").write_text(meta_text)
+            self._file = (directory / "poses.csv").open("w", newline="")
+        except BaseException:  # e.g. a full disk: the session is not left half made
+            shutil.rmtree(directory, ignore_errors=True)
+            raise
         self._csv = csv.writer(self._file, lineterminator="\n")
         self._csv.writerow(POSES_HEADER)
         self._last_ts: int | None = None
@@ -483,6 +512,8 @@ class SessionWriter:
         from PIL import Image
 
         ts = _whole(timestamp, "timestamp")
+        if not -MAX_TIMESTAMP_US <= ts <= MAX_TIMESTAMP_US:
+            raise ValueError(f"timestamp: {_timestamp_fault(ts)}")
         if self._last_ts is not None and ts <= self._last_ts:
             raise ValueError(f"timestamp: must increase, got {ts} after {self._last_ts}")
         floor = _whole(floor, "floor")
@@ -644,8 +675,15 @@ class DatasetWriter:
         # Work on the real folder: "." has no name to put a temporary folder beside, and a
         # symlink is kept while its target is replaced (as vvloc._io's atomic files do).
         self._target = Path(os.path.realpath(self.root))
+        cameras = tuple(cameras)  # a generator would be used up by the checks below
         if not cameras:
             raise ValueError("cameras: expected at least one camera")
+        for i, c in enumerate(cameras):
+            if not isinstance(c, Camera):
+                raise TypeError(
+                    f"cameras[{i}]: expected a vvloc.data.Camera (Camera.from_json reads a "
+                    f"rig.json entry), got {type(c).__name__}"
+                )
         if len({(c.width, c.height) for c in cameras}) != 1:
             raise ValueError("cameras: all cameras of a written dataset must share one image size")
         names = [c.name for c in cameras]
