@@ -1025,6 +1025,51 @@ def test_an_epoch_of_triplets_without_image_content_trains_no_step_and_says_so(
         tr._exclude_blank(np.array(every))
 
 
+def test_a_run_whose_epoch_trains_no_step_goes_on_and_keeps_its_exclusions(tiny_world, tmp_path):
+    # fit() took the epoch's nan losses for a diverged run: FloatingPointError, nothing saved
+    # (the exclusions neither), and every retry drew the same epoch and failed the same way
+    root = tmp_path / "world"
+    shutil.copytree(tiny_world, root)
+    for name in ("s1", "s2"):
+        blank_frames(root, name, range(40))
+    cfg = _config(root, stage1_epochs=1, stage2_epochs=0)
+    train(cfg, tmp_path / "run", progress=False)
+    (logged,) = [json.loads(x) for x in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
+    assert logged["step"] == 0 and logged["blank_triplets"] == 4
+    assert logged["loss_total"] is None
+    resumed = Trainer(cfg, tmp_path / "run")
+    assert resumed.resume() and resumed.epoch == 1 and len(resumed.sampler.excluded) > 0
+
+
+def test_best_is_written_after_the_state_and_mended_by_resume(tiny_world, tmp_path, monkeypatch):
+    # best/ was swapped in before the state: a stop between the two left best/ with weights of
+    # an epoch the resumed run trained again, and kept them when the rerun scored lower
+    val = dict(train_sessions=["s0", "s1"], val_sessions=["s2"], val_every=4, device="cpu")
+    cfg = _config(tiny_world, stage1_epochs=2, stage2_epochs=0, **val)
+    tr = Trainer(cfg, tmp_path / "run")
+
+    def stop(self):  # the process stops after the state, before best/
+        raise KeyboardInterrupt
+
+    with monkeypatch.context() as m:
+        m.setattr(Trainer, "_save_best", stop)
+        with pytest.raises(KeyboardInterrupt):
+            tr.fit(progress=False)
+    assert not (tmp_path / "run" / "best").exists()
+    resumed = Trainer(cfg, tmp_path / "run")
+    assert resumed.resume() and resumed.epoch == 1 and resumed.best["epoch"] == 1
+    best = VVLocNet.load(tmp_path / "run" / "best")  # written from the state's weights
+    assert best.weights_hash() == resumed.model.weights_hash()
+    assert best.training_record["runs"][-1]["weights_epoch"] == 1
+    assert best.calibration["sessions"] == ["s2"]
+
+
+def test_weight_decay_is_every_stages(tiny_world, tmp_path):
+    tr = Trainer(_config(tiny_world, weight_decay=0.1), tmp_path / "run")
+    for opt in (tr.optimizer, tr.head_optimizer, tr.local_optimizer):
+        assert opt.param_groups[0]["weight_decay"] == 0.1
+
+
 def test_a_run_resumes_after_its_init_checkpoint_is_gone(tiny_world, tmp_path):
     base = tmp_path / "base"
     train(_config(tiny_world, stage1_epochs=1, stage2_epochs=0), base, progress=False)

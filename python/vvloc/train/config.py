@@ -173,7 +173,7 @@ class TrainConfig:
     batch_size: int = 2
     lr: float = 1e-4
     lr_decay: float = 0.95
-    weight_decay: float = 0.0
+    weight_decay: float = 0.0  # Adam's L2 weight decay, in every stage's optimizer
     grad_clip: float = 10.0
     num_workers: int = 2
     device: str = "auto"

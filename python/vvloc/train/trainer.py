@@ -207,14 +207,18 @@ class Trainer:
             self.model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay
         )
         self.scheduler = torch.optim.lr_scheduler.ExponentialLR(self.optimizer, gamma=cfg.lr_decay)
-        self.head_optimizer = torch.optim.Adam(self.model.global_head.parameters(), lr=cfg.head_lr)
+        self.head_optimizer = torch.optim.Adam(
+            self.model.global_head.parameters(), lr=cfg.head_lr, weight_decay=cfg.weight_decay
+        )
         self.head_scheduler = torch.optim.lr_scheduler.ExponentialLR(
             self.head_optimizer, gamma=cfg.lr_decay
         )
         self._head_cache: torch.Tensor | None = None  # (N, T, R, C) float16, the head stage's
         self._head_positions: torch.Tensor | None = None  # (N, 3) sampler positions, on device
         local = [*self.model.decoder.parameters(), *self.model.interactor.parameters()]
-        self.local_optimizer = torch.optim.Adam(local, lr=cfg.local_lr)
+        self.local_optimizer = torch.optim.Adam(
+            local, lr=cfg.local_lr, weight_decay=cfg.weight_decay
+        )
         self.local_scheduler = torch.optim.lr_scheduler.ExponentialLR(
             self.local_optimizer, gamma=cfg.lr_decay
         )
@@ -422,6 +426,35 @@ class Trainer:
         finally:
             self.model.training_record = {}
 
+    def _save_best(self) -> None:
+        """Write ``best/`` from the current weights, those of the best epoch (``self.best``),
+        with the acceptance calibration of its validation (and where it was measured)."""
+        assert self.best is not None
+        cfg = self.cfg
+        self.model.calibration = {
+            **self.best["val"]["calibration"],
+            "dataset": str(cfg.dataset),
+            "database": cfg.val_database,
+            "sessions": list(cfg.val_sessions or []),
+            "every": int(cfg.val_every),
+        }
+        try:
+            self._save_model(self.best_dir, int(self.best["epoch"]))
+        finally:
+            self.model.calibration = {}
+
+    def _mend_best(self) -> None:
+        """On resume: when the state names its own epoch as the best and ``best/`` does not hold
+        it (the last process stopped between writing the state and ``best/``), write ``best/``
+        from the state's weights, which are that epoch's."""
+        if self.best is None or int(self.best["epoch"]) != self.epoch:
+            return
+        record = self._saved_record(self.best_dir)
+        if record is not None and record["runs"][-1].get("weights_epoch") == self.epoch:
+            return
+        log.info("%s: writing epoch %d's weights, the run's best, there", self.best_dir, self.epoch)
+        self._save_best()
+
     def _log_record(self, rec: dict[str, Any]) -> None:
         """Append one epoch's record to ``log.jsonl``
         (:func:`~vvloc.train.runfolder.append_log_line`)."""
@@ -597,6 +630,7 @@ class Trainer:
         self._restore(state, loaded)
         self._restore_record(state, loaded)
         self.process["epochs"] = [self.epoch, self.epoch]
+        self._mend_best()
         self.process["seconds"] += time.perf_counter() - t0
         log.info("resumed %s at epoch %d, step %d", self.out, self.epoch, self.step)
         return True
@@ -765,7 +799,8 @@ class Trainer:
         stage = self.stage_of(self.epoch)
         if stage == 3:
             return self._head_epoch(progress)
-        if stage == 4:
+        if stage == 4:  # the head stage's cache is not needed again (rebuilt if it were)
+            self._head_cache = self._head_positions = None
             return self._local_epoch(progress)
         if self.epoch + 1 in cfg.hard_pool_restarts:
             self.sampler.restart_hard_pool()
@@ -1297,9 +1332,15 @@ class Trainer:
         while self.epoch < self.total_epochs:
             t0 = time.perf_counter()
             validating = self.validates(self.epoch)
+            steps_before = self.step
             with self._out_of_memory_named():
                 rec = self.run_epoch(progress=progress)
-            if not all(math.isfinite(v) for k, v in rec.items() if k.startswith("loss_")):
+            # an epoch that trained no step (every triplet held a frame without image content)
+            # has no loss to check: its losses are nan, null in the log
+            stepped = self.step > steps_before
+            if stepped and not all(
+                math.isfinite(v) for k, v in rec.items() if k.startswith("loss_")
+            ):
                 # before any save: checkpoint/, best/ and the state keep the last good epoch
                 raise FloatingPointError(
                     f"non-finite loss in epoch {rec['epoch']}: {rec}; nothing of this epoch was "
@@ -1309,6 +1350,7 @@ class Trainer:
                 rec["val"] = self.validate()
             self.process["seconds"] += time.perf_counter() - t0  # the saves below record it
             t0 = time.perf_counter()
+            new_best = False
             if validating:
                 key = self.selection_key(rec["val"], cfg.select_by)
                 if (
@@ -1316,16 +1358,8 @@ class Trainer:
                     or self.best is None
                     or key > self.selection_key(self.best["val"], cfg.select_by)
                 ):
-                    self.model.calibration = {
-                        **rec["val"]["calibration"],
-                        "dataset": str(cfg.dataset),
-                        "database": cfg.val_database,
-                        "sessions": list(cfg.val_sessions or []),
-                        "every": int(cfg.val_every),
-                    }
-                    self._save_model(self.best_dir, self.epoch)
-                    self.model.calibration = {}
                     self.best = {"epoch": rec["epoch"], "val": rec["val"]}
+                    new_best = True
                 rec["best_epoch"] = self.best["epoch"]
                 if (
                     cfg.patience is not None
@@ -1345,6 +1379,8 @@ class Trainer:
                     )
             records.append(rec)
             self.save(record=rec)
+            if new_best:  # after the state, which names it: a stop between the two is mended
+                self._save_best()  # by resume (_mend_best)
             self.process["seconds"] += time.perf_counter() - t0
             self._log_record(rec)
             log.info("epoch %d: %s", rec["epoch"], {k: v for k, v in rec.items() if "loss" in k})
