@@ -638,20 +638,28 @@ def test_a_session_meta_json_cannot_hold_leaves_no_half_made_session(tmp_path):
     assert ds.sessions == ["s0", "s1"]
 
 
-def test_timestamps_beyond_2_53_microseconds_are_refused_as_likely_nanoseconds(tmp_path):
+def test_timestamps_beyond_2_32_seconds_are_refused_as_likely_nanoseconds(tmp_path):
     # nanoseconds since 1970 (1.7e18) opened silently: Frame.t = 1.7e12 s, and round(t·1e6),
-    # which the exports name frames by, no longer gave the poses.csv timestamp back
+    # which the exports name frames by, no longer gave the poses.csv timestamp back (from
+    # 2^32 s on, e.g. 4294967296000507 came back as ...508)
+    top = fmt.MAX_TIMESTAMP_US
+    assert top == 2**32 * 10**6
+    rng = np.random.default_rng(0)  # below it every timestamp comes back
+    below = np.concatenate([rng.integers(top - 10**12, top, 100_000), [top, top - 1]])
+    assert all(round((int(ts) / 1e6) * 1e6) == ts for ts in below)
     cams = make_rig(2, W, H)
     img = np.zeros((2, 3, H, W), np.uint8)
     with DatasetWriter(tmp_path / "ds", cams) as w:
         s = w.add_session("s0")
-        with pytest.raises(ValueError, match=r"timestamp: timestamp 1700000000100000123 is beyond"):
-            s.add(1_700_000_000_100_000_123, (0.0, 0.0, 0.0), img)
-        s.add(2**53, (0.0, 0.0, 0.0), img)  # the largest taken
-    (frame,) = open_dataset(tmp_path / "ds").session("s0")
-    assert round(frame.t * 1e6) == 2**53
+        for beyond in (1_700_000_000_100_000_123, 4_294_967_296_000_507):
+            with pytest.raises(ValueError, match=rf"timestamp: timestamp {beyond} is beyond"):
+                s.add(beyond, (0.0, 0.0, 0.0), img)
+        s.add(top - 1, (0.0, 0.0, 0.0), img)
+        s.add(top, (0.0, 0.0, 0.0), img)  # the largest taken
+    frames = list(open_dataset(tmp_path / "ds").session("s0"))
+    assert [round(f.t * 1e6) for f in frames] == [top - 1, top]
     poses = tmp_path / "ds" / "sessions" / "s0" / "poses.csv"
-    poses.write_text(poses.read_text().replace(str(2**53), "1700000000100000123"))
+    poses.write_text(poses.read_text().replace(str(top - 1), "1700000000100000123"))
     with pytest.raises(DatasetFormatError, match=r"poses.csv, line 2: .*microseconds \(nanosec"):
         open_dataset(tmp_path / "ds")
 
@@ -678,6 +686,13 @@ def test_a_byte_order_mark_and_hidden_folders_are_read_as_nothing(tmp_path):
     ds = open_dataset(root)
     assert ds.sessions == ["s0"] and len(ds.session("s0")) == 3
     assert [c.name for c in ds.cameras] == [c.name for c in cams]
+    doc = json.loads((root / "rig.json").read_text(encoding="utf-8-sig"))
+    doc["meta"] = {"scene": "mine"}
+    (root / "rig.json").write_text("\ufeff" + json.dumps(doc), encoding="utf-8")
+    assert fmt.rig_meta(root) == {"scene": "mine"} == open_dataset(root).meta
+    with DatasetWriter(root, cams, overwrite=True) as w:  # still a vvloc dataset to replace
+        w.add_session("s1").add(1000, (0.0, 0.0, 0.0), np.zeros((4, 3, H, W), np.uint8))
+    assert open_dataset(root).sessions == ["s1"]
 
 
 def test_a_rotation_typed_with_few_decimals_is_refused_with_how_far_it_is_off(tmp_path):
@@ -689,6 +704,9 @@ def test_a_rotation_typed_with_few_decimals_is_refused_with_how_far_it_is_off(tm
     _edit_rig(root, lambda doc: doc["cameras"][1].__setitem__("cam_to_ego", typed))
     with pytest.raises(DatasetFormatError, match=r"is 3.2e-05 from orthonormal .*Re-orthonorm"):
         open_dataset(root)
+    far = np.eye(4)
+    far[0, 3] = np.inf  # FLOAT_TEXT takes 1e999
+    assert fmt.rigid_fault(far) == "a value is not finite (inf or nan)"
 
 
 def test_an_interrupted_overwrite_keeps_the_old_dataset_whole(tmp_path, monkeypatch):

@@ -735,7 +735,7 @@ def test_write_report_markdown_and_json(tmp_path):
     assert data["global_localization"]["VVLoc-G"]["eligibility_radius_m"] == 2.0
     assert text.count("*kept*: queries with a map frame within 2 m of their true position") == 1
     assert text.index("*kept*") < text.index("## Metric pose accuracy")
-    row = "| s1 | 0.350 | 3 | 66.7 | 66.7 | 0.667 | – | – | – | – | – / – / – | 0.750 | 0.900 |"
+    row = "| s1 | ≤ 0.350 | 3 | 66.7 | 66.7 | 0.667 | – | – | – | – | – / – / – | 0.750 | 0.900 |"
     assert row in text
     # how AOE/APE@p are taken is said under their table
     assert text.count("(the inverted-CDF percentile, no interpolation") == 1
@@ -752,12 +752,19 @@ def test_write_report_markdown_and_json(tmp_path):
     assert "| CFER 90 % bound, events (%) | CFER at Recall@2m 30 % (%) |" in rendered
     assert "| 11.70 | 0.12 |" in rendered
     assert "| s1 | cost < 0.75 | 2 | 0 | 2.50 | 1.20 | 100.0 | 100.0 |" in text
-    # the accept rule of each threshold column (the row's: distance < it; the sweep's: ≤)
-    assert "| name | threshold (accepted: distance < it) | accepted |" in text
+    # the accept rule of each threshold: the row's as it was computed (summary's default ≤,
+    # the detector's < with strict), the sweep's ≤
+    assert "| name | accepted at distance | accepted |" in text
     assert "| best-F1 threshold (accepted: distance ≤ it) |" in text
-    # the robustness pose rows are named by perturbation, and say whose pose they score
+    detector = ev.loop_closure_curve(*_tiny_loop_set()).summary(0.35, strict=True)
+    strict = ev.render_markdown({"loop_closure": {"s1": detector}})
+    assert "| s1 | < 0.350 |" in strict
+    old = json.loads(json.dumps(data["loop_closure"]["s1"]))  # a report of before the rule
+    old["at_threshold"].pop("strict")
+    assert "| s1 | 0.350 |" in ev.render_markdown({"loop_closure": {"s1": old}})
+    # the robustness pose rows are named by perturbation
     robust = text[text.index("## Robustness (metric pose accuracy") :]
-    assert "| perturbation (VVLoc-ML's pose) | queries | n |" in robust
+    assert "| perturbation | queries | n |" in robust
     assert "| fog | top-1 true revisit |" in robust
     assert "| method | queries | n |" in text[: text.index("## Loop closure")]
     assert not list(tmp_path.glob(".*.tmp"))

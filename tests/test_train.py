@@ -1062,6 +1062,48 @@ def test_best_is_written_after_the_state_and_mended_by_resume(tiny_world, tmp_pa
     assert best.weights_hash() == resumed.model.weights_hash()
     assert best.training_record["runs"][-1]["weights_epoch"] == 1
     assert best.calibration["sessions"] == ["s2"]
+    # with the record the stopped process would have written: its process only
+    checkpoint = _record(tmp_path / "run" / "checkpoint")["runs"][-1]["processes"]
+    assert best.training_record["runs"][-1]["processes"] == checkpoint
+
+
+def test_resume_mends_best_from_the_state_or_says_why_it_cannot(tiny_world, tmp_path, caplog):
+    val = dict(train_sessions=["s0", "s1"], val_sessions=["s2"], val_every=4, device="cpu")
+    cfg = _config(tiny_world, stage1_epochs=3, stage2_epochs=0, **val)
+    tr = Trainer(cfg, tmp_path / "run")
+    tr.run_epoch(progress=False)
+    tr.best = {"epoch": 1, "val": tr.validate()}
+    tr.save()
+    tr._save_best()
+    best = tmp_path / "run" / "best"
+    record = best / "training.json"
+
+    def claim(epoch):  # best/ as a process of before 2026-12-07 could leave it
+        doc = json.loads(record.read_text())
+        doc["runs"][-1]["weights_epoch"] = epoch
+        record.write_text(json.dumps(doc))
+
+    # the state's epoch is its best: best/ is written again from the state's weights
+    claim(2)
+    assert Trainer(cfg, tmp_path / "run").resume()
+    assert _record(best)["runs"][-1]["weights_epoch"] == 1
+    # an unreadable record: best/ as it is
+    record.write_text("{")
+    assert Trainer(cfg, tmp_path / "run").resume()
+    assert record.read_text() == "{"
+    # the state's best is an earlier epoch, whose weights are gone: said, and left for an
+    # epoch that beats it
+    tr = Trainer(cfg, tmp_path / "run")
+    assert tr.resume()
+    tr._save_best()  # a readable record again
+    tr.run_epoch(progress=False)
+    tr.save()  # epoch 2, best still epoch 1
+    claim(3)
+    before = (best / "model.safetensors").read_bytes()
+    with caplog.at_level("WARNING", logger="vvloc.train"):
+        assert Trainer(cfg, tmp_path / "run").resume()
+    assert "holds epoch 3's weights, the run's state names epoch 1 as its best" in caplog.text
+    assert (best / "model.safetensors").read_bytes() == before
 
 
 def test_weight_decay_is_every_stages(tiny_world, tmp_path):

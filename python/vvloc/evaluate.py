@@ -575,8 +575,8 @@ class LoopClosureCurve:
         ``threshold``, the loop detector's rule at its radius; the two differ only for scores
         exactly at the threshold).
 
-        Returns ``{"threshold", "accepted", "true_accepted", "precision", "recall", "f1",
-        "cfer"}``: precision = true accepted pairs / accepted pairs; recall = queries with ≥ 1
+        Returns ``{"threshold", "strict", "accepted", "true_accepted", "precision", "recall",
+        "f1", "cfer"}``: precision = true accepted pairs / accepted pairs; recall = queries with ≥ 1
         accepted true pair / :attr:`num_positive_queries`; F1 = 2PR/(P+R) (0 when P = R = 0,
         and when nothing is accepted while positive queries exist: 2TP/(2TP + FP + FN) = 0);
         CFER = accepted pairs joining different floors / accepted pairs. Undefined → ``nan``.
@@ -591,6 +591,7 @@ class LoopClosureCurve:
         cfer = _ratio(self.is_cross_floor[:k].sum(), k) if self.has_floors else float("nan")
         return {
             "threshold": t,
+            "strict": bool(strict),
             "accepted": k,
             "true_accepted": tp,
             "precision": precision,
@@ -1379,7 +1380,7 @@ def _loop_table(results: Mapping[str, Any]) -> list[str]:
     default_targets = " / ".join(f"{100 * r:g}" for r in SUMMARY_RECALLS)
     header = [
         "name",
-        "threshold (accepted: distance < it)",
+        "accepted at distance",
         "accepted",
         "Precision@2m (%)",
         "Recall@2m (%)",
@@ -1399,7 +1400,8 @@ def _loop_table(results: Mapping[str, Any]) -> list[str]:
         rows.append(
             [
                 name,
-                _num(at["threshold"], 3),
+                # the rule the row was computed with (a report of before 2026-12-07: the number)
+                {True: "< ", False: "≤ "}.get(at.get("strict"), "") + _num(at["threshold"], 3),
                 str(at["accepted"]),
                 _pct(at["precision"]),
                 _pct(at["recall"]),
@@ -1503,7 +1505,7 @@ def render_markdown(
         lines.append(f"- **{k}**: {v}")
     if meta:
         lines.append("")
-    pose_columns = {"pose_accuracy": "method", "robustness_pose": "perturbation (VVLoc-ML's pose)"}
+    pose_columns = {"pose_accuracy": "method", "robustness_pose": "perturbation"}
     builders = {
         "loop_closure": _loop_table,
         "loop_pose": _loop_pose_table,

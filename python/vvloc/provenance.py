@@ -215,7 +215,9 @@ def rendered_plan(root: str | os.PathLike[str], session: str) -> dict[str, Any] 
     (its ``session.json``, which ``vvloc convert`` keeps), or None for a session without them
     (data of one's own)."""
     try:
-        meta = json.loads((Path(root) / "sessions" / session / "session.json").read_text())
+        meta = json.loads(
+            (Path(root) / "sessions" / session / "session.json").read_text(encoding="utf-8-sig")
+        )
     except (OSError, ValueError):
         return None
     if not isinstance(meta, dict) or "lighting" not in meta or "seed" not in meta:

@@ -321,7 +321,7 @@ def _session_meta(src: str | os.PathLike[str], fmt: str, name: str) -> dict[str,
     if fmt == "vvloc":
         path = Path(src) / "sessions" / name / "session.json"
         try:
-            own = json.loads(path.read_text())
+            own = json.loads(path.read_text(encoding="utf-8-sig"))
         except (OSError, ValueError):  # none, or unreadable: the reader ignores it too
             own = None
         if isinstance(own, dict):

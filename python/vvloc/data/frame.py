@@ -484,6 +484,8 @@ def rigid_fault(T: np.ndarray) -> str:
     with a few decimals misses the 1e-6 by about their rounding)."""
     T = np.asarray(T, dtype=np.float64)
     R = T[:3, :3]
+    if not np.isfinite(T).all():
+        return "a value is not finite (inf or nan)"
     if not (T[3] == (0.0, 0.0, 0.0, 1.0)).all():
         return f"bottom row {T[3].tolist()}, not 0 0 0 1"
     det = float(np.linalg.det(R))

@@ -128,7 +128,7 @@ def rig_meta(root: str | os.PathLike[str]) -> dict[str, Any] | None:
     if not rig.is_file():
         return None
     try:
-        meta = json.loads(rig.read_text(encoding="utf-8")).get("meta")
+        meta = json.loads(rig.read_text(encoding="utf-8-sig")).get("meta")
     except (OSError, ValueError, AttributeError, RecursionError):  # not a vvloc rig.json
         return None
     return meta if isinstance(meta, dict) else None
@@ -189,17 +189,19 @@ def _number_texts(fields: Sequence[str], kinds: str) -> None:
             raise ValueError(f"expected {what}, got {text!r:.60}")
 
 
-#: The largest timestamp magnitude (microseconds) a dataset takes: 2^53, about the year 2255,
-#: below which a timestamp survives the float seconds of ``Frame.t`` and back exactly (the
-#: exported trajectories and keyframe tables name frames by ``round(t·1e6)``). Nanoseconds
+#: The largest timestamp magnitude (microseconds) a dataset takes: 2^32 s, the year 2106.
+#: Up to it a timestamp survives the float seconds of ``Frame.t`` (``ts / 1e6``) and
+#: ``round(t·1e6)`` back exactly, by which the exported trajectories and keyframe tables name
+#: frames (t's rounding errs by at most 2^-22 s, the product's by 0.25 µs below 2^52: under
+#: half a microsecond); beyond it about 4 % of timestamps came back off by one. Nanoseconds
 #: since 1970 (≈ 1.7e18) lie far above it.
-MAX_TIMESTAMP_US = 2**53
+MAX_TIMESTAMP_US = 2**32 * 10**6
 
 
 def _timestamp_fault(ts: int) -> str:
     return (
-        f"timestamp {ts} is beyond ±2^53 µs (about the year 2255): timestamps are microseconds "
-        "(nanoseconds? divide by 1000)"
+        f"timestamp {ts} is beyond ±2^32 s in microseconds (the year 2106): timestamps are "
+        "microseconds (nanoseconds? divide by 1000)"
     )
 
 
@@ -588,7 +590,7 @@ def _check_replaceable(root: Path) -> None:
     folder, so anything a user keeps there (notes, runs, another tool's files) would go too."""
     rig = root / "rig.json"
     try:
-        doc = json.loads(rig.read_text(encoding="utf-8")) if rig.is_file() else None
+        doc = json.loads(rig.read_text(encoding="utf-8-sig")) if rig.is_file() else None
     except (OSError, UnicodeDecodeError, ValueError):
         doc = None
     if not (isinstance(doc, dict) and doc.get("format") == FORMAT_NAME):

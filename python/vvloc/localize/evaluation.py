@@ -449,7 +449,9 @@ def _planned_alike(dataset: str | os.PathLike[str], session: str, sim: dict[str,
     if not (session[:1] == "s" and session[1:].isdigit()):
         return False
     try:
-        meta = json.loads((Path(dataset) / "sessions" / session / "session.json").read_text())
+        meta = json.loads(
+            (Path(dataset) / "sessions" / session / "session.json").read_text(encoding="utf-8-sig")
+        )
         plan = session_plan(
             sim.get("scene", "parking"),
             int(session[1:]) + 1,

@@ -78,7 +78,10 @@ def session_specs(dataset: str, sessions: list[str]) -> list[dict[str, Any]]:
     """Each session's ``session.json`` (lighting, change_fraction, seed, ...) as written by
     ``vvloc sim``."""
     root = Path(dataset) / "sessions"
-    return [json.loads((root / name / "session.json").read_text()) for name in sessions]
+    return [
+        json.loads((root / name / "session.json").read_text(encoding="utf-8-sig"))
+        for name in sessions
+    ]
 
 
 def bay_states(world: World, specs: list[dict[str, Any]]) -> np.ndarray:

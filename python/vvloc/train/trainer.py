@@ -390,7 +390,8 @@ class Trainer:
         (epochs and seconds; for ``best/`` the time to produce *and select* its weights), from
         one snapshot of the processes. The weights, and so the records' ``weights_hash``, are
         unchanged. A ``best/`` whose record names another epoch than the trainer's best (a
-        process stopped between saving ``best/`` and its state) is left as it is."""
+        process of before 2026-12-07, which wrote ``best/`` before its state, stopped between
+        the two) is left as it is."""
         targets = [(self.checkpoint_dir, self.epoch)]
         if self.best is not None:
             targets.append((self.best_dir, int(self.best["epoch"])))
@@ -417,18 +418,20 @@ class Trainer:
         record = self._saved_record(self.best_dir) if self.best is not None else None
         return record is not None and not record["runs"][-1].get("complete")
 
-    def _save_model(self, folder: Path, weights_epoch: int) -> None:
-        """Write the model with its training record at ``weights_epoch`` into ``folder``
-        (``checkpoint/``, ``best/``) as a whole (:func:`~vvloc.train.runfolder.swap_in_folder`)."""
-        self.model.training_record = self.record_for(weights_epoch)
+    def _save_model(self, folder: Path, weights_epoch: int, include_current: bool = True) -> None:
+        """Write the model with its training record at ``weights_epoch`` (``include_current``
+        as in :meth:`record_for`) into ``folder`` (``checkpoint/``, ``best/``) as a whole
+        (:func:`~vvloc.train.runfolder.swap_in_folder`)."""
+        self.model.training_record = self.record_for(weights_epoch, include_current)
         try:
             swap_in_folder(folder, self.model.save)
         finally:
             self.model.training_record = {}
 
-    def _save_best(self) -> None:
+    def _save_best(self, include_current: bool = True) -> None:
         """Write ``best/`` from the current weights, those of the best epoch (``self.best``),
-        with the acceptance calibration of its validation (and where it was measured)."""
+        with the acceptance calibration of its validation (and where it was measured);
+        ``include_current`` as in :meth:`record_for`."""
         assert self.best is not None
         cfg = self.cfg
         self.model.calibration = {
@@ -439,21 +442,39 @@ class Trainer:
             "every": int(cfg.val_every),
         }
         try:
-            self._save_model(self.best_dir, int(self.best["epoch"]))
+            self._save_model(self.best_dir, int(self.best["epoch"]), include_current)
         finally:
             self.model.calibration = {}
 
     def _mend_best(self) -> None:
         """On resume: when the state names its own epoch as the best and ``best/`` does not hold
         it (the last process stopped between writing the state and ``best/``), write ``best/``
-        from the state's weights, which are that epoch's."""
-        if self.best is None or int(self.best["epoch"]) != self.epoch:
+        from the state's weights, which are that epoch's, with the record the stopped process
+        would have written. A ``best/`` that holds another epoch than the state's best, which
+        the state's weights are not (a state written before 2026-12-07 swapped ``best/`` in
+        first), is said and left until an epoch beats the state's best; an unreadable record
+        leaves ``best/`` as it is."""
+        if self.best is None:
             return
-        record = self._saved_record(self.best_dir)
-        if record is not None and record["runs"][-1].get("weights_epoch") == self.epoch:
-            return
-        log.info("%s: writing epoch %d's weights, the run's best, there", self.best_dir, self.epoch)
-        self._save_best()
+        best = int(self.best["epoch"])
+        if (self.best_dir / TRAINING_FILE).is_file():
+            record = self._saved_record(self.best_dir)  # None: unreadable, said there
+            held = None if record is None else record["runs"][-1].get("weights_epoch")
+            if record is None or held == best:
+                return
+        else:
+            held = None
+        if best == self.epoch:
+            log.info("%s: writing epoch %d's weights, the run's best, there", self.best_dir, best)
+            self._save_best(include_current=False)
+        elif held is not None:
+            log.warning(
+                "%s holds epoch %s's weights, the run's state names epoch %d as its best (a stop "
+                "between writing best/ and the state): left as it is until an epoch beats it",
+                self.best_dir,
+                held,
+                best,
+            )
 
     def _log_record(self, rec: dict[str, Any]) -> None:
         """Append one epoch's record to ``log.jsonl``
