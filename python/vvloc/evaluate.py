@@ -1365,6 +1365,15 @@ def _pose_table(
     ]
 
 
+def _accept_rule(strict: bool | None) -> str:
+    """The prefix of a loop row's threshold: the rule it was computed with (``<``: strict, the
+    detector's; ``≤``: :meth:`LoopClosureCurve.at`'s default); none for a report written before
+    2026-12-07, which did not record it."""
+    if strict is None:
+        return ""
+    return "< " if strict else "≤ "
+
+
 def _loop_table(results: Mapping[str, Any]) -> list[str]:
     # the bound's level and the recall targets as the rows hold them (one header for all)
     levels = {
@@ -1400,8 +1409,7 @@ def _loop_table(results: Mapping[str, Any]) -> list[str]:
         rows.append(
             [
                 name,
-                # the rule the row was computed with (a report of before 2026-12-07: the number)
-                {True: "< ", False: "≤ "}.get(at.get("strict"), "") + _num(at["threshold"], 3),
+                _accept_rule(at.get("strict")) + _num(at["threshold"], 3),
                 str(at["accepted"]),
                 _pct(at["precision"]),
                 _pct(at["recall"]),

@@ -479,9 +479,10 @@ def is_pinhole(K: np.ndarray) -> bool:
 
 
 def rigid_fault(T: np.ndarray) -> str:
-    """Why a finite (4, 4) ``T`` is not a :data:`RIGID` transform, for messages: its bottom row,
-    its rotation's determinant, or how far the rotation is from orthonormal (a matrix typed
-    with a few decimals misses the 1e-6 by about their rounding)."""
+    """Why a (4, 4) ``T`` that :func:`is_rigid` refuses is not a :data:`RIGID` transform, for
+    messages: a value not finite, its bottom row, its rotation's determinant, or how far the
+    rotation is from orthonormal (a matrix typed with a few decimals misses the 1e-6 by about
+    their rounding)."""
     T = np.asarray(T, dtype=np.float64)
     R = T[:3, :3]
     if not np.isfinite(T).all():

@@ -198,11 +198,14 @@ def _number_texts(fields: Sequence[str], kinds: str) -> None:
 MAX_TIMESTAMP_US = 2**32 * 10**6
 
 
-def _timestamp_fault(ts: int) -> str:
-    return (
-        f"timestamp {ts} is beyond ±2^32 s in microseconds (the year 2106): timestamps are "
-        "microseconds (nanoseconds? divide by 1000)"
-    )
+def _check_timestamp(ts: int) -> None:
+    """``ValueError`` for a timestamp beyond ±:data:`MAX_TIMESTAMP_US` (the writer's and the
+    reader's one rule)."""
+    if not -MAX_TIMESTAMP_US <= ts <= MAX_TIMESTAMP_US:
+        raise ValueError(
+            f"timestamp: {ts} µs lies beyond ±2^32 s (the year 2106); timestamps are "
+            "microseconds since 1970 (nanoseconds? divide by 1000)"
+        )
 
 
 def read_poses(path: Path) -> np.ndarray:
@@ -225,8 +228,10 @@ def read_poses(path: Path) -> np.ndarray:
                     f"{path}, line {line}: {name} {row[0] if name == 'timestamp' else row[5]:.60} "
                     "is outside the int64 range"
                 )
-        if not -MAX_TIMESTAMP_US <= ts <= MAX_TIMESTAMP_US:
-            raise DatasetFormatError(f"{path}, line {line}: {_timestamp_fault(ts)}")
+        try:
+            _check_timestamp(ts)
+        except ValueError as e:
+            raise DatasetFormatError(f"{path}, line {line}: {e}") from None
         if not all(math.isfinite(v) for v in (x, y, z, yaw)):
             raise DatasetFormatError(f"{path}, line {line}: non-finite value in {row!r:.200}")
         if last is not None and ts <= last:
@@ -514,8 +519,7 @@ class SessionWriter:
         from PIL import Image
 
         ts = _whole(timestamp, "timestamp")
-        if not -MAX_TIMESTAMP_US <= ts <= MAX_TIMESTAMP_US:
-            raise ValueError(f"timestamp: {_timestamp_fault(ts)}")
+        _check_timestamp(ts)
         if self._last_ts is not None and ts <= self._last_ts:
             raise ValueError(f"timestamp: must increase, got {ts} after {self._last_ts}")
         floor = _whole(floor, "floor")
